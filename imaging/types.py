@@ -1,0 +1,184 @@
+"""Plain typed data produced by :mod:`imaging` (no I/O here).
+
+Conventions
+-----------
+* Patient coordinates are DICOM patient coordinates (LPS), millimetres.
+* A volume array is indexed ``array[k, j, i]``: slice ``k``, row ``j``, column ``i`` (the order of
+  ``SimpleITK.GetArrayFromImage`` and of stacked pydicom ``pixel_array``).
+* ``patient_from_index`` is a 4x4 matrix mapping the homogeneous index ``(i, j, k, 1)`` (column, row,
+  slice; note the reversed order with respect to the array axes) to ``(x, y, z, 1)`` in LPS mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from imaging.errors import StructureError
+
+FloatArray = NDArray[np.float64]
+
+
+def _check_affine(m: np.ndarray, name: str) -> None:
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)) or not np.allclose(m[3], [0, 0, 0, 1]):
+        raise ValueError(f"{name} must be a finite 4x4 homogeneous matrix with last row (0, 0, 0, 1)")
+    if abs(np.linalg.det(m[:3, :3])) < 1e-12:
+        raise ValueError(f"{name} is singular: voxel spacing must be non-zero along every axis")
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """A regular voxel grid in patient space.
+
+    Parameters
+    ----------
+    shape : (3,) int
+        ``(nk, nj, ni)``: slices, rows, columns.
+    patient_from_index : (4, 4) float
+        Maps ``(i, j, k, 1)`` to LPS mm.
+    """
+
+    shape: tuple[int, int, int]
+    patient_from_index: FloatArray
+
+    def __post_init__(self) -> None:
+        if len(self.shape) != 3 or min(self.shape) < 1:
+            raise ValueError(f"grid shape must be three positive sizes (nk, nj, ni), got {self.shape}")
+        m = np.asarray(self.patient_from_index, dtype=float)
+        _check_affine(m, "patient_from_index")
+        m.setflags(write=False)
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        object.__setattr__(self, "patient_from_index", m)
+
+    @property
+    def spacing_mm(self) -> FloatArray:
+        """(3,) float, mm: voxel size along i (columns), j (rows), k (slices)."""
+        return np.linalg.norm(self.patient_from_index[:3, :3], axis=0)
+
+    @property
+    def index_from_patient(self) -> FloatArray:
+        """(4, 4) float: inverse of :attr:`patient_from_index`."""
+        return np.linalg.inv(self.patient_from_index)
+
+    def to_patient(self, ijk: np.ndarray) -> FloatArray:
+        """Map ``(n, 3)`` continuous indices ``(i, j, k)`` to ``(n, 3)`` LPS mm."""
+        ijk = np.asarray(ijk, dtype=float)
+        return ijk @ self.patient_from_index[:3, :3].T + self.patient_from_index[:3, 3]
+
+    def to_index(self, xyz_mm: np.ndarray) -> FloatArray:
+        """Map ``(n, 3)`` LPS mm to ``(n, 3)`` continuous indices ``(i, j, k)``."""
+        inv = self.index_from_patient
+        return np.asarray(xyz_mm, dtype=float) @ inv[:3, :3].T + inv[:3, 3]
+
+
+@dataclass(frozen=True, eq=False)
+class Volume:
+    """An image volume (CT in HU, MR in its own units) with its place in patient space.
+
+    Parameters
+    ----------
+    array : (nk, nj, ni) float32
+        Voxel values; CT already rescaled to Hounsfield units.
+    grid : Grid
+        Shape and ``patient_from_index`` of ``array``.
+    modality : str
+        ``"CT"``, ``"MR"``, ...
+    series_instance_uid, study_instance_uid, frame_of_reference_uid : str
+        Identity of the series it was read from.
+    patient_id, patient_name : str
+        Carried over to exports.
+    """
+
+    array: np.ndarray
+    grid: Grid
+    modality: str
+    series_instance_uid: str
+    frame_of_reference_uid: str
+    study_instance_uid: str = ""
+    patient_id: str = ""
+    patient_name: str = ""
+
+    def __post_init__(self) -> None:
+        if tuple(self.array.shape) != self.grid.shape:
+            raise ValueError(f"array shape {self.array.shape} does not match grid shape {self.grid.shape}")
+
+
+@dataclass(frozen=True, eq=False)
+class Contour:
+    """One contour of a structure.
+
+    Parameters
+    ----------
+    points_mm : (n, 3) float, mm, LPS
+    geometric_type : str
+        ``"CLOSED_PLANAR"``, ``"OPEN_NONPLANAR"``, ``"OPEN_PLANAR"`` or ``"POINT"``.
+    """
+
+    points_mm: FloatArray
+    geometric_type: str = "CLOSED_PLANAR"
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.points_mm, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+            raise ValueError(f"contour points must be a non-empty (n, 3) array, got shape {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise ValueError("contour points must be finite")
+        p.setflags(write=False)
+        object.__setattr__(self, "points_mm", p)
+
+
+@dataclass(frozen=True, eq=False)
+class Roi:
+    """A region of interest of an RT Structure Set.
+
+    ``name`` is the name as written in the file; ``normalized_name`` the standard name it maps to
+    through the synonym table (equal to ``name`` when no synonym matched).
+    """
+
+    number: int
+    name: str
+    contours: tuple[Contour, ...]
+    normalized_name: str = ""
+    interpreted_type: str = ""
+    color: tuple[int, int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if not self.normalized_name:
+            object.__setattr__(self, "normalized_name", self.name)
+
+
+@dataclass(frozen=True, eq=False)
+class StructureSet:
+    """The ROIs of an RT Structure Set and what they refer to."""
+
+    rois: tuple[Roi, ...]
+    frame_of_reference_uid: str
+    referenced_series_uid: str | None = None
+    sop_instance_uid: str = ""
+    study_instance_uid: str = ""
+    patient_id: str = ""
+    patient_name: str = ""
+    label: str = ""
+    names: tuple[str, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(r.normalized_name for r in self.rois))
+
+    def get(self, name: str) -> Roi:
+        """The ROI whose normalised (or original) name is ``name``, case-insensitively.
+
+        Raises
+        ------
+        StructureError
+            With the list of available names.
+        """
+        key = name.casefold()
+        for roi in self.rois:
+            if roi.normalized_name.casefold() == key:
+                return roi
+        for roi in self.rois:
+            if roi.name.casefold() == key:
+                return roi
+        raise StructureError(f"no ROI named {name!r}; available: {', '.join(self.names) or 'none'}")

@@ -1,0 +1,62 @@
+"""The ``reachplan`` command line: a thin layer over the packages.
+
+Each command lives in its own module under :mod:`planner.commands` and exposes ``NAME``, ``HELP``,
+``add_arguments(parser)`` and ``run(args) -> int``. Expected failures (any :class:`ReachplanError`)
+become one line on stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from plugins.errors import ReachplanError
+
+COMMAND_MODULES: tuple[str, ...] = (
+    "planner.commands.demo",
+    "planner.commands.phantom",
+    "planner.commands.plan",
+    "planner.commands.inspect",
+    "planner.commands.rod",
+    "planner.commands.bench",
+    "planner.commands.dose",
+    "planner.commands.plugins",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="reachplan",
+        description="Pre-plan steered needle paths for interstitial gynecologic brachytherapy.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # command not written yet
+                continue
+            raise
+        p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args._run(args))
+    except ReachplanError as exc:
+        print(f"reachplan {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("reachplan: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
