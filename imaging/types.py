@@ -14,11 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from imaging.errors import StructureError
 
-FloatArray = NDArray[np.float64]
+FloatArray = np.ndarray  # float64 arrays; shapes and units in each docstring
 
 
 def _check_affine(m: np.ndarray, name: str) -> None:
