@@ -1,0 +1,99 @@
+"""Candidate enumeration: holes x targets -> predicted needle path -> clearance -> score."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from planner.collision import Organ, check_path
+from planner.ranking import Candidate, Target
+
+
+def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float, step_mm: float = 5.0) -> np.ndarray:
+    """Points of a straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``.
+
+    Returns
+    -------
+    (n, 3) float, mm, LPS; n >= 2, spaced at most ``step_mm`` apart.
+    """
+    n = max(1, int(np.ceil(depth_mm / step_mm)))
+    return np.asarray(entry_mm, float) + np.outer(np.linspace(0.0, depth_mm, n + 1), direction)
+
+
+def score_path(
+    target: Target,
+    hole_id: str,
+    hole_distance_mm: float,
+    path_mm: np.ndarray,
+    organs: Sequence[Organ],
+    needle_radius_mm: float,
+    reach_tolerance_mm: float,
+    model: str,
+    steered: bool = False,
+    peak_tension_n: float = 0.0,
+    reason: str = "",
+) -> Candidate:
+    """Score one predicted path: reach error at the target, clearance and collisions against ``organs``."""
+    tip = path_mm[-1]
+    reach = float(np.linalg.norm(tip - np.asarray(target.position_mm)))
+    depth = float(np.sum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1)))
+    checks = check_path(path_mm, needle_radius_mm, tuple(organs))
+    hits = sorted((c for c in checks if c.collides), key=lambda c: (c.contact_s_mm or 0.0, c.organ))
+    if hits:
+        clearance, organ = 0.0, hits[0].organ
+    elif checks:
+        nearest = min(checks, key=lambda c: (c.clearance_mm, c.organ))
+        clearance, organ = nearest.clearance_mm, nearest.organ
+    else:
+        clearance, organ = float("inf"), ""
+    reaches = reach <= reach_tolerance_mm
+    reasons = [reason] if reason else []
+    if hits:
+        reasons.append(f"collides with {hits[0].organ} at depth {hits[0].contact_s_mm or 0.0:.1f} mm")
+    if not reaches:
+        reasons.append(f"misses the target by {reach:.1f} mm")
+    return Candidate(
+        target=target.name, hole_id=hole_id, hole_distance_mm=hole_distance_mm, reach_error_mm=reach,
+        clearance_mm=clearance, closest_organ=organ, insertion_depth_mm=depth, steered=steered,
+        peak_tension_n=peak_tension_n, model=model, collides=bool(hits), reaches=reaches,
+        reason="; ".join(reasons), path_mm=path_mm,
+    )
+
+
+def straight_candidates(
+    targets: Iterable[Target],
+    hole_ids: Sequence[str],
+    hole_distances_mm: np.ndarray,
+    entry_mm: np.ndarray,
+    direction: np.ndarray,
+    organs: Sequence[Organ],
+    needle_radius_mm: float,
+    reach_tolerance_mm: float = 2.0,
+    max_depth_mm: float = 200.0,
+) -> list[Candidate]:
+    """Straight-needle candidates for every hole and target.
+
+    The tip is placed at the target's depth along the hole's axis (the closest approach of a straight
+    needle), so the reach error is the target's distance from that axis.
+
+    Parameters
+    ----------
+    entry_mm, direction : (n_holes, 3) float, mm and unit vectors, LPS
+    hole_distances_mm : (n_holes,) float, mm
+    """
+    out: list[Candidate] = []
+    for target in targets:
+        t = np.asarray(target.position_mm, float)
+        depths = np.einsum("ij,ij->i", t - entry_mm, direction)
+        for k, hole_id in enumerate(hole_ids):
+            depth = float(depths[k])
+            reason = ""
+            if depth <= 0.0:
+                depth, reason = 1.0, "target lies behind the template plane"
+            elif depth > max_depth_mm:
+                depth, reason = max_depth_mm, f"target deeper than the needle's {max_depth_mm:.0f} mm"
+            path = straight_path(entry_mm[k], direction[k], depth)
+            out.append(score_path(target, hole_id, float(hole_distances_mm[k]), path, organs, needle_radius_mm,
+                                  reach_tolerance_mm, "straight", reason=reason))
+    return out

@@ -1,0 +1,13 @@
+"""Errors raised by the planner (expected per-candidate failures are results, not errors)."""
+
+from __future__ import annotations
+
+from plugins.errors import ReachplanError
+
+
+class PlannerError(ReachplanError):
+    """Base of the planner errors."""
+
+
+class PlanInputError(PlannerError):
+    """A plan's inputs are inconsistent or incomplete (missing organ, unknown target, bad pose...)."""
