@@ -27,3 +27,23 @@ class ReferenceMismatchError(ImagingError):
 
 class StructureError(ImagingError):
     """A structure is missing, empty or cannot be turned into a mask or mesh."""
+
+
+class OutputExistsError(ImagingError):
+    """A file that reachplan did not write is in the way of an output; nothing was overwritten."""
+
+
+class UnsupportedDataError(ImagingError):
+    """Valid DICOM that reachplan cannot use (an undecodable transfer syntax, an unsupported layout)."""
+
+
+class ImagingWarning(UserWarning):
+    """Base of the warnings about input that was read but is not quite right."""
+
+
+class ObliqueSliceWarning(ImagingWarning):
+    """Slices step sideways (gantry tilt); the volume's affine carries the shear."""
+
+
+class DicomQuirkWarning(ImagingWarning):
+    """A file breaks a DICOM rule in a way that could be worked around; the message names the quirk."""

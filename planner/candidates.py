@@ -10,15 +10,10 @@ from planner.collision import Organ, check_path
 from planner.ranking import Candidate, Target
 
 
-def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float, step_mm: float = 5.0) -> np.ndarray:
-    """Points of a straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``.
-
-    Returns
-    -------
-    (n, 3) float, mm, LPS; n >= 2, spaced at most ``step_mm`` apart.
-    """
-    n = max(1, int(np.ceil(depth_mm / step_mm)))
-    return np.asarray(entry_mm, float) + np.outer(np.linspace(0.0, depth_mm, n + 1), direction)
+def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float) -> np.ndarray:
+    """A straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``: (2, 3) float, mm, LPS
+    (one capsule; collision depths are still resolved to 1 mm by the collision check)."""
+    return np.asarray(entry_mm, float) + np.outer([0.0, depth_mm], direction)
 
 
 def score_path(

@@ -28,6 +28,17 @@ class Organ:
     mesh: trimesh.Trimesh
     fcl_object: fcl.CollisionObject
     bounds_mm: np.ndarray  # (2, 3) float, mm, LPS: axis-aligned box (min, max)
+    components: tuple[trimesh.Trimesh, ...] = ()  # connected parts, for cheap containment tests
+
+    def contains(self, point_mm: np.ndarray) -> bool:
+        """Whether a point ((3,) float, mm, LPS) lies inside the organ (ray parity, only in the connected
+        parts whose bounding box holds the point)."""
+        q = np.asarray(point_mm, dtype=float).reshape(1, 3)
+        for part in self.components or (self.mesh,):
+            lo, hi = part.bounds
+            if np.all(q >= lo) and np.all(q <= hi) and bool(part.contains(q)[0]):
+                return True
+        return False
 
 
 def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
@@ -46,7 +57,8 @@ def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
     bvh.beginModel(len(mesh.vertices), len(mesh.faces))
     bvh.addSubModel(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64))
     bvh.endModel()
-    return Organ(name, mesh, fcl.CollisionObject(bvh, fcl.Transform()), np.asarray(mesh.bounds, dtype=float))
+    parts = tuple(mesh.split(only_watertight=True)) if mesh.body_count > 1 else (mesh,)
+    return Organ(name, mesh, fcl.CollisionObject(bvh, fcl.Transform()), np.asarray(mesh.bounds, dtype=float), parts)
 
 
 def _rotation_to(direction: np.ndarray) -> np.ndarray:
@@ -130,11 +142,37 @@ def path_clearance(
             s = s0[i] + _first_contact_s(pts[i], pts[i + 1], radius_mm, organ, resolution_mm)
             return Clearance(organ.name, 0.0, True, float(s))
         best = min(best, max(d, 0.0))
-    if bool(organ.mesh.contains(p[:1])[0]):
+    if organ.contains(p[0]):
         return Clearance(organ.name, 0.0, True, 0.0)
     return Clearance(organ.name, float(best), False, None)
 
 
+def _box_gap_mm(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> float:
+    """Distance between two axis-aligned boxes (0 when they overlap): a lower bound on any distance
+    between what they contain."""
+    gap = np.maximum(0.0, np.maximum(lo_a - hi_b, lo_b - hi_a))
+    return float(np.linalg.norm(gap))
+
+
 def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...]) -> tuple[Clearance, ...]:
-    """Clearance of one needle path against every organ, in the order of ``organs``."""
-    return tuple(path_clearance(path_mm, radius_mm, o) for o in organs)
+    """Clearance of one needle path against the organs that can matter.
+
+    Broad phase first: organs are measured in order of the gap between their bounding box and the
+    path's (inflated by ``radius_mm``); an organ whose gap exceeds the smallest clearance found so far is
+    skipped, as it can neither touch the needle nor be the nearest organ. The minimum clearance, the
+    nearest organ and every collision are therefore exact; skipped organs are absent from the result.
+    """
+    p = np.asarray(path_mm, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise PlanInputError("a needle path must be a finite (n, 3) array of points in mm")
+    lo, hi = p.min(axis=0) - radius_mm, p.max(axis=0) + radius_mm
+    gaps = [_box_gap_mm(lo, hi, *o.bounds_mm) for o in organs]
+    out: list[Clearance] = []
+    best = np.inf
+    for gap, organ in sorted(zip(gaps, organs, strict=True), key=lambda g: g[0]):
+        if gap > best:
+            break
+        c = path_clearance(p, radius_mm, organ)
+        out.append(c)
+        best = min(best, c.clearance_mm)
+    return tuple(out)

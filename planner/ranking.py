@@ -100,11 +100,14 @@ class Candidate:
         }
 
 
-def rank_key(c: Candidate) -> tuple[int, float, float, float, str]:
-    """Medial-entry order: feasible first, then the most medial hole, the smallest reach error, the
-    largest clearance; the hole id breaks remaining ties so the order is deterministic."""
-    return (0 if c.feasible else 1, round(c.hole_distance_mm, 6), round(c.reach_error_mm, 6),
-            -round(c.clearance_mm, 6), c.hole_id)
+def rank_key(c: Candidate) -> tuple[float, ...]:
+    """Medial-entry order. Feasible candidates first: the most medial hole, then the smallest reach error,
+    then the largest clearance. Then the infeasible ones, most informative first: those that reach but
+    collide, by reach error, then those that miss, by reach error. Ties keep a fixed order (by hole id,
+    applied in :func:`rank`), so the ranking is deterministic."""
+    if c.feasible:
+        return (0, round(c.hole_distance_mm, 6), round(c.reach_error_mm, 6), -round(c.clearance_mm, 6))
+    return (1 if c.reaches else 2, round(c.reach_error_mm, 6), -round(c.clearance_mm, 6), round(c.hole_distance_mm, 6))
 
 
 def rank(candidates: Iterable[Candidate]) -> dict[str, tuple[Candidate, ...]]:
@@ -112,4 +115,4 @@ def rank(candidates: Iterable[Candidate]) -> dict[str, tuple[Candidate, ...]]:
     groups: dict[str, list[Candidate]] = {}
     for c in candidates:
         groups.setdefault(c.target, []).append(c)
-    return {t: tuple(sorted(groups[t], key=rank_key)) for t in sorted(groups)}
+    return {t: tuple(sorted(sorted(groups[t], key=lambda c: c.hole_id), key=rank_key)) for t in sorted(groups)}

@@ -18,3 +18,7 @@ class ReachplanError(Exception):
 
 class PluginError(ReachplanError):
     """A plugin is unknown, unavailable or does not implement its Protocol."""
+
+
+class ExportError(ReachplanError):
+    """A plan cannot be exported as asked (file exists, would overwrite an input, inconsistent identity)."""

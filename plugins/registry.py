@@ -1,39 +1,94 @@
 """Plugin registry over entry points.
 
-Groups (entry-point group ``reachplan.<kind>``):
+Groups (entry-point group ``reachplan.<kind>``) and the Protocol each plugin is checked against:
 
 ``rod_models``       objects implementing :class:`rod_model.protocol.RodModel`
+                     (check: ``rod_model.protocol.check_rod_model``)
 ``insertion_models`` objects implementing the planner's insertion-model Protocol
+                     (check: ``planner.insertion.check_insertion_model``; while that module does not exist,
+                     insertion-model plugins are listed as unavailable with that reason)
 ``templates``        zero-argument callables returning a :class:`planner.template.Template`
-``sources``          zero-argument callables returning TG-43 source data
-``exporters``        objects implementing the planner's exporter Protocol
+``sources``          zero-argument callables returning a :class:`plugins.sources.SourceData`
+``exporters``        objects implementing :class:`plugins.exporters.base.Exporter`
+                     (check: ``plugins.exporters.base.check_exporter``)
 
 Built-ins register through the same entry points as third-party plugins (see ``pyproject.toml``).
 Entry points are loaded lazily, on first use of their group; a plugin that fails to import, or does not
 pass its group's check, is listed as unavailable with the reason instead of breaking the registry
-(the approach of pydicom's pixel-decoder plugins).
+(the approach of pydicom's pixel-decoder plugins). When two distributions register the same name, the
+built-in (distribution ``reachplan``) wins, else the first distribution by name; the other is listed as
+unavailable. Call :func:`refresh` after installing a distribution at run time.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import importlib
+import inspect
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cache
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
+from types import MappingProxyType
 from typing import Any
 
 from plugins.errors import PluginError
 
 KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters")
 
-#: Optional per-kind checks: raise ``TypeError``/``ValueError`` with a reason when a loaded object does
-#: not implement its Protocol. Packages register their check with :func:`set_check`.
+BUILTIN_DISTRIBUTION = "reachplan"
+
+#: Checks registered at run time with :func:`set_check`; they replace the default check of their kind.
 _CHECKS: dict[str, Callable[[Any], None]] = {}
+
+
+def _zero_argument_factory(obj: Any, kind: str) -> Any:
+    if not callable(obj):
+        raise TypeError(f"a {kind} plugin must be a zero-argument callable, got {type(obj).__name__}")
+    try:
+        sig = inspect.signature(obj)
+    except (TypeError, ValueError):  # builtins without a signature: try the call
+        sig = None
+    if sig is not None and any(p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+                               for p in sig.parameters.values()):
+        raise TypeError(f"a {kind} plugin must be callable without arguments; {obj!r} requires {sig}")
+    return obj()
+
+
+def check_template_factory(obj: Any) -> None:
+    """Raise ``TypeError`` unless ``obj()`` returns a :class:`planner.template.Template`."""
+    from planner.template import Template
+
+    made = _zero_argument_factory(obj, "templates")
+    if not isinstance(made, Template):
+        raise TypeError(f"a templates plugin must return planner.template.Template, got {type(made).__name__}")
+
+
+def check_source_factory(obj: Any) -> None:
+    """Raise ``TypeError`` unless ``obj()`` returns a :class:`plugins.sources.SourceData`."""
+    from plugins.sources import SourceData
+
+    made = _zero_argument_factory(obj, "sources")
+    if not isinstance(made, SourceData):
+        raise TypeError(f"a sources plugin must return plugins.sources.SourceData, got {type(made).__name__}")
+
+
+#: The default check of each kind, as ``"module:function"`` (imported when the group is first loaded).
+DEFAULT_CHECKS: Mapping[str, str] = MappingProxyType({
+    "rod_models": "rod_model.protocol:check_rod_model",
+    "insertion_models": "planner.insertion:check_insertion_model",
+    "templates": "plugins.registry:check_template_factory",
+    "sources": "plugins.registry:check_source_factory",
+    "exporters": "plugins.exporters.base:check_exporter",
+})
 
 
 @dataclass(frozen=True)
 class PluginInfo:
-    """What the registry knows of one plugin."""
+    """What the registry knows of one plugin.
+
+    ``target`` is the entry point's ``module:attribute``; ``reason`` says why an unavailable plugin is
+    unavailable; ``description`` is the plugin's ``description`` attribute or the first docstring line.
+    """
 
     kind: str
     name: str
@@ -41,6 +96,7 @@ class PluginInfo:
     distribution: str
     available: bool
     reason: str = ""
+    description: str = ""
 
 
 def _group(kind: str) -> str:
@@ -49,33 +105,74 @@ def _group(kind: str) -> str:
     return f"reachplan.{kind}"
 
 
+def _check_for(kind: str) -> Callable[[Any], None]:
+    if kind in _CHECKS:
+        return _CHECKS[kind]
+    module, _, attr = DEFAULT_CHECKS[kind].partition(":")
+    try:
+        check = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        msg = f"cannot check it against its Protocol: {DEFAULT_CHECKS[kind]} is missing ({exc})"
+
+        def unavailable(obj: Any) -> None:
+            raise TypeError(msg)
+
+        return unavailable
+    return check
+
+
+def _describe(obj: Any) -> str:
+    text = getattr(obj, "description", None)
+    if not isinstance(text, str):
+        doc = inspect.getdoc(obj) or ""
+        text = doc.strip().splitlines()[0] if doc.strip() else ""
+    return text
+
+
+def _dist(ep: EntryPoint) -> str:
+    dist = getattr(ep, "dist", None)
+    return str(dist.name) if dist is not None else ""
+
+
 @cache
 def _load_group(kind: str) -> tuple[dict[str, Any], tuple[PluginInfo, ...]]:
+    group = _group(kind)
+    check = _check_for(kind)
     loaded: dict[str, Any] = {}
     infos: list[PluginInfo] = []
-    for ep in sorted(entry_points(group=_group(kind)), key=lambda e: e.name):
-        dist = ep.dist.name if ep.dist is not None else ""
+    eps = sorted(entry_points(group=group), key=lambda e: (e.name, _dist(e) != BUILTIN_DISTRIBUTION, _dist(e)))
+    seen: dict[str, str] = {}
+    for ep in eps:
+        dist = _dist(ep)
+        if ep.name in seen:
+            infos.append(PluginInfo(kind, ep.name, ep.value, dist, False,
+                                    f"duplicate name; the one from {seen[ep.name] or 'another distribution'} is used"))
+            continue
+        seen[ep.name] = dist
         try:
             obj = ep.load()
-            check = _CHECKS.get(kind)
-            if check is not None:
-                check(obj)
+            check(obj)
         except Exception as exc:  # a broken plugin must not break the registry
             infos.append(PluginInfo(kind, ep.name, ep.value, dist, False, f"{type(exc).__name__}: {exc}"))
             continue
-        if ep.name in loaded:
-            infos.append(PluginInfo(kind, ep.name, ep.value, dist, False, "duplicate name; first one kept"))
-            continue
         loaded[ep.name] = obj
-        infos.append(PluginInfo(kind, ep.name, ep.value, dist, True))
+        infos.append(PluginInfo(kind, ep.name, ep.value, dist, True, description=_describe(obj)))
     return loaded, tuple(infos)
 
 
+def refresh() -> None:
+    """Forget what was loaded: the next call re-reads the entry points (after installing a plugin)."""
+    _load_group.cache_clear()
+
+
 def set_check(kind: str, check: Callable[[Any], None]) -> None:
-    """Register the Protocol check for ``kind`` (clears the cache so it applies on the next load)."""
+    """Replace the Protocol check of ``kind`` (clears the cache so it applies on the next load).
+
+    ``check(obj)`` raises ``TypeError`` or ``ValueError`` with the reason when ``obj`` does not qualify.
+    """
     _group(kind)
     _CHECKS[kind] = check
-    _load_group.cache_clear()
+    refresh()
 
 
 def names(kind: str) -> tuple[str, ...]:

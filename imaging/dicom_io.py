@@ -1,0 +1,512 @@
+"""Read DICOM image series (CT, MR, ...) into a :class:`imaging.types.Volume`.
+
+A folder may hold several series and other objects (RT Structure Sets, plans, non-DICOM files). Slices
+are sorted along the slice normal (never by file name or InstanceNumber); spacing, orientation and
+geometry are checked, and anything that would give a silently wrong volume is a typed error
+(:mod:`imaging.errors`). Enhanced (multi-frame) CT/MR objects are read frame by frame.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imaging.errors import (
+    CorruptFileError,
+    NoDicomError,
+    ObliqueSliceWarning,
+    ReferenceMismatchError,
+    SeriesError,
+    UnsupportedDataError,
+)
+from imaging.types import Grid, Volume
+
+#: Modalities that are never image series, whatever pixel data they carry.
+NON_IMAGE_MODALITIES = frozenset({"RTSTRUCT", "RTPLAN", "RTDOSE", "RTRECORD", "REG", "SEG", "SR", "KO", "PR"})
+
+# --------------------------------------------------------------------------------------------------
+# Finding and opening files
+# --------------------------------------------------------------------------------------------------
+
+
+def list_files(path: Path) -> list[Path]:
+    """Every regular, non-hidden file at ``path`` (itself, or recursively below a folder), sorted.
+
+    Raises
+    ------
+    NoDicomError
+        When ``path`` does not exist.
+    """
+    path = Path(path)
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
+        raise NoDicomError(f"{path} does not exist; give a DICOM file or a folder that holds DICOM files")
+    out = []
+    for root, dirs, files in os.walk(path):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        out += [Path(root) / f for f in sorted(files) if not f.startswith(".")]
+    return out
+
+
+def _looks_like_dicom(path: Path) -> bool:
+    """True when the file claims to be DICOM: ``DICM`` magic at byte 128 or a ``.dcm`` name."""
+    if path.suffix.lower() in (".dcm", ".dicom"):
+        return True
+    try:
+        with path.open("rb") as fh:
+            fh.seek(128)
+            return fh.read(4) == b"DICM"
+    except OSError:
+        return False
+
+
+def _corrupt(path: Path, what: str) -> CorruptFileError:
+    return CorruptFileError(f"{path}: {what}; the file is truncated or damaged: re-export it or remove it")
+
+
+def _invalid(path: Path, what: str) -> CorruptFileError:
+    return CorruptFileError(f"{path}: {what}; the file breaks the DICOM standard: fix or re-export it")
+
+
+def _check_complete(ds: Any, path: Path) -> None:
+    """Raise :class:`CorruptFileError` when the last element of ``ds`` runs past the end of the file."""
+    size = path.stat().st_size
+    tags = list(ds.keys())
+    if not tags:
+        raise _corrupt(path, "no data elements after the file meta header")
+    elem = ds.get_item(tags[-1])
+    tell = getattr(elem, "value_tell", None)
+    length = getattr(elem, "length", None)
+    if tell is not None and length is not None and length != 0xFFFFFFFF and tell + length > size:
+        raise _corrupt(path, f"element {elem.tag} needs {tell + length} bytes but the file has {size}")
+    if length == 0xFFFFFFFF and getattr(ds, "is_little_endian", True):
+        with path.open("rb") as fh:  # an undefined-length sequence must end with its delimiter
+            fh.seek(max(0, size - 8))
+            if fh.read() != b"\xfe\xff\xdd\xe0\x00\x00\x00\x00":
+                raise _corrupt(path, f"sequence {elem.tag} has no end delimiter")
+
+
+def read_dataset(path: Path, *, header_only: bool = False, required: bool = False) -> Any:
+    """Read one DICOM file with pydicom.
+
+    Returns ``None`` for a file that does not claim to be DICOM (no ``DICM`` magic, no ``.dcm`` name) and
+    cannot be read as DICOM. A file that claims to be DICOM but cannot be read is an error.
+
+    Parameters
+    ----------
+    header_only : stop before the pixel data
+    required : a file that is not DICOM at all is an error too (:class:`NoDicomError`)
+
+    Raises
+    ------
+    CorruptFileError, NoDicomError
+    """
+    from pydicom import dcmread
+    from pydicom.errors import InvalidDicomError
+
+    claims = _looks_like_dicom(path)
+    try:
+        ds = dcmread(path, stop_before_pixels=header_only)
+    except InvalidDicomError:
+        if not claims:
+            if required:
+                raise NoDicomError(f"{path} is not a DICOM file; give a DICOM file or folder") from None
+            return None
+        try:  # a DICOM dataset without preamble / file meta is still readable
+            ds = dcmread(path, stop_before_pixels=header_only, force=True)
+        except Exception as exc:
+            raise _corrupt(path, f"cannot be parsed as DICOM ({type(exc).__name__})") from None
+        if "SOPClassUID" not in ds:
+            raise _corrupt(path, "has no DICOM preamble and no SOP Class UID") from None
+    except (OSError, EOFError, ValueError, KeyError, TypeError, IndexError, AttributeError, OverflowError) as exc:
+        raise _corrupt(path, f"cannot be parsed as DICOM ({type(exc).__name__}: {_one_line(exc)})") from None
+    if "SOPClassUID" not in ds and "Modality" not in ds:
+        raise _corrupt(path, "has neither SOP Class UID nor Modality")
+    if not header_only:
+        _check_complete(ds, path)
+    return ds
+
+
+def _one_line(exc: BaseException, limit: int = 160) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+# --------------------------------------------------------------------------------------------------
+# Frames and series
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Frame:
+    path: Path
+    frame: int | None  # index into a multi-frame object; None = single-frame file
+    position: np.ndarray  # (3,) ImagePositionPatient, LPS mm
+    orientation: np.ndarray  # (6,) ImageOrientationPatient
+    spacing: tuple[float, float]  # PixelSpacing (row spacing, column spacing), mm
+    rows: int
+    columns: int
+    slope: float
+    intercept: float
+
+
+@dataclass(frozen=True)
+class SeriesSummary:
+    """What a folder holds for one image series (no pixel data read)."""
+
+    series_instance_uid: str
+    modality: str
+    description: str
+    frame_of_reference_uid: str
+    n_frames: int
+    rows: int
+    columns: int
+    paths: tuple[Path, ...]
+
+
+def _floats(ds: Any, keyword: str, n: int, path: Path) -> np.ndarray:
+    if keyword not in ds or ds[keyword].value is None or ds[keyword].value == "":
+        raise _invalid(path, f"required attribute {keyword} is missing")
+    try:
+        v = np.array([float(x) for x in np.atleast_1d(ds[keyword].value)], dtype=float)
+    except (TypeError, ValueError):
+        raise _invalid(path, f"{keyword} is not numeric ({ds[keyword].value!r})") from None
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise _invalid(path, f"{keyword} must hold {n} finite numbers, got {ds[keyword].value!r}")
+    return v
+
+
+def _rescale(ds: Any, path: Path) -> tuple[float, float]:
+    slope = float(_floats(ds, "RescaleSlope", 1, path)[0]) if "RescaleSlope" in ds else 1.0
+    intercept = float(_floats(ds, "RescaleIntercept", 1, path)[0]) if "RescaleIntercept" in ds else 0.0
+    if slope == 0:
+        raise _invalid(path, "RescaleSlope is 0")
+    return slope, intercept
+
+
+def _frames_of(ds: Any, path: Path) -> list[_Frame]:
+    """The image frames of one object with their geometry."""
+    rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
+    if rows < 1 or cols < 1:
+        raise _invalid(path, f"image has {rows} rows and {cols} columns")
+    n_frames = int(ds.get("NumberOfFrames", 1) or 1)
+    if "PerFrameFunctionalGroupsSequence" not in ds:
+        if n_frames != 1:
+            raise UnsupportedDataError(
+                f"{path}: multi-frame object without per-frame functional groups (no plane positions); "
+                "convert it to single-frame slices"
+            )
+        slope, intercept = _rescale(ds, path)
+        ps = _floats(ds, "PixelSpacing", 2, path)
+        return [_Frame(path, None, _floats(ds, "ImagePositionPatient", 3, path),
+                       _floats(ds, "ImageOrientationPatient", 6, path), (ps[0], ps[1]), rows, cols, slope, intercept)]
+    shared = ds.SharedFunctionalGroupsSequence[0] if "SharedFunctionalGroupsSequence" in ds else None
+    per_frame = ds.PerFrameFunctionalGroupsSequence
+    if len(per_frame) != n_frames:
+        raise _corrupt(path, f"NumberOfFrames is {n_frames} but there are {len(per_frame)} per-frame groups")
+
+    def macro(item: Any, seq: str) -> Any:
+        for group in (item, shared):
+            if group is not None and seq in group and len(group[seq].value):
+                return group[seq][0]
+        return None
+
+    out = []
+    for f, item in enumerate(per_frame):
+        pos, ori, meas, trans = (macro(item, s) for s in (
+            "PlanePositionSequence", "PlaneOrientationSequence", "PixelMeasuresSequence",
+            "PixelValueTransformationSequence"))
+        if pos is None or ori is None or meas is None:
+            raise _corrupt(path, f"frame {f + 1} lacks plane position, orientation or pixel measures")
+        slope, intercept = _rescale(trans, path) if trans is not None else _rescale(ds, path)
+        ps = _floats(meas, "PixelSpacing", 2, path)
+        out.append(_Frame(path, f, _floats(pos, "ImagePositionPatient", 3, path),
+                          _floats(ori, "ImageOrientationPatient", 6, path), (ps[0], ps[1]), rows, cols,
+                          slope, intercept))
+    return out
+
+
+def _is_image(ds: Any) -> bool:
+    modality = str(ds.get("Modality", "")).upper()
+    return modality not in NON_IMAGE_MODALITIES and "Rows" in ds and "Columns" in ds
+
+
+@dataclass(frozen=True)
+class FolderScan:
+    """Headers of every DICOM object below a path (pixel data not read)."""
+
+    images: tuple[tuple[Any, Path], ...]
+    others: tuple[tuple[Any, Path], ...]
+    n_non_dicom: int
+
+    def series(self) -> tuple[SeriesSummary, ...]:
+        """One summary per SeriesInstanceUID of the image objects, in order of first appearance."""
+        groups: dict[str, list[tuple[Any, Path]]] = {}
+        for ds, path in self.images:
+            groups.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((ds, path))
+        out = []
+        for uid, items in groups.items():
+            ds0 = items[0][0]
+            out.append(SeriesSummary(
+                series_instance_uid=uid, modality=str(ds0.get("Modality", "")),
+                description=str(ds0.get("SeriesDescription", "")),
+                frame_of_reference_uid=str(ds0.get("FrameOfReferenceUID", "")),
+                n_frames=sum(int(d.get("NumberOfFrames", 1) or 1) for d, _ in items),
+                rows=int(ds0.get("Rows", 0)), columns=int(ds0.get("Columns", 0)),
+                paths=tuple(p for _, p in items)))
+        return tuple(out)
+
+
+def scan(path: Path) -> FolderScan:
+    """Read the headers of every file at ``path`` (a file or a folder, recursively).
+
+    Raises
+    ------
+    NoDicomError
+        ``path`` does not exist.
+    CorruptFileError
+        A file that claims to be DICOM cannot be read.
+    """
+    images, others, n_non = [], [], 0
+    for p in list_files(Path(path)):
+        ds = read_dataset(p, header_only=True)
+        if ds is None:
+            n_non += 1
+        elif _is_image(ds):
+            images.append((ds, p))
+        else:
+            others.append((ds, p))
+    return FolderScan(tuple(images), tuple(others), n_non)
+
+
+def _describe(s: SeriesSummary) -> str:
+    return f"{s.series_instance_uid} ({s.modality}, {s.n_frames} images, {s.description or 'no description'})"
+
+
+def select_series(
+    found: FolderScan, folder: Path, series_uid: str | None = None, modality: str | None = None
+) -> SeriesSummary:
+    """The one image series matching ``series_uid`` and ``modality``; a typed error otherwise."""
+    all_series = found.series()
+    chosen = [s for s in all_series
+              if (series_uid is None or s.series_instance_uid == series_uid)
+              and (modality is None or s.modality.upper() == modality.upper())]
+    if not chosen:
+        what = " ".join(x for x in (modality, "image series", f"with SeriesInstanceUID {series_uid}"
+                                    if series_uid else "") if x)
+        if all_series:
+            have = "; ".join(_describe(s) for s in all_series)
+            raise NoDicomError(f"no {what} in {folder}; it holds: {have}")
+        raise NoDicomError(
+            f"no {what} in {folder} ({len(found.others)} non-image DICOM objects, {found.n_non_dicom} other "
+            "files); give the folder of a CT or MR series"
+        )
+    if len(chosen) > 1:
+        have = "; ".join(_describe(s) for s in chosen)
+        raise SeriesError(f"{folder} holds {len(chosen)} image series: {have}; choose one with series_uid")
+    return chosen[0]
+
+
+# --------------------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SeriesTolerance:
+    """How strictly a series must be regular.
+
+    ``spacing`` : relative tolerance on slice-to-slice spacing (and on positions along the slice axis).
+    ``orientation`` : absolute tolerance on ImageOrientationPatient components.
+    ``allow_gantry_tilt`` : accept slices whose positions step sideways (gantry tilt) with an
+    :class:`~imaging.errors.ObliqueSliceWarning`; the affine then carries the shear exactly.
+    """
+
+    spacing: float = 0.01
+    orientation: float = 1e-4
+    allow_gantry_tilt: bool = False
+
+    def __post_init__(self) -> None:
+        if not (0 < self.spacing < 0.5 and 0 < self.orientation < 0.1):
+            raise ValueError("SeriesTolerance needs 0 < spacing < 0.5 and 0 < orientation < 0.1")
+
+
+def assemble_geometry(frames: Sequence[_Frame], tol: SeriesTolerance, label: str) -> tuple[Grid, list[int]]:
+    """Check that ``frames`` form one regular volume; return its grid and the frames' order along k.
+
+    Raises
+    ------
+    SeriesError
+        Different image sizes, pixel spacings or orientations, duplicate or missing slices, irregular
+        spacing, slices not on a line, gantry tilt (unless allowed).
+    """
+    sizes = {(f.rows, f.columns) for f in frames}
+    if len(sizes) > 1:
+        raise SeriesError(f"{label}: slices have different sizes {sorted(sizes)}; it is not one volume")
+    ori = np.array([f.orientation for f in frames])
+    if np.abs(ori - ori[0]).max() > tol.orientation:
+        raise SeriesError(f"{label}: slices have different orientations (ImageOrientationPatient); "
+                          "select one stack or reslice it")
+    row, col = ori[0, :3], ori[0, 3:]
+    if abs(np.linalg.norm(row) - 1) > 1e-3 or abs(np.linalg.norm(col) - 1) > 1e-3 or abs(row @ col) > 1e-3:
+        raise SeriesError(f"{label}: ImageOrientationPatient {ori[0].tolist()} is not two orthogonal unit vectors")
+    row, col = row / np.linalg.norm(row), col / np.linalg.norm(col)
+    spacing = np.array([f.spacing for f in frames])
+    if np.any(spacing <= 0) or np.abs(spacing - spacing[0]).max() > 1e-4 * spacing[0].max():
+        raise SeriesError(f"{label}: PixelSpacing is not positive or differs between slices; "
+                          "it is not one regular volume")
+    normal = np.cross(row, col)
+    pos = np.array([f.position for f in frames])
+    d = pos @ normal
+    order = [int(i) for i in np.argsort(d, kind="stable")]
+    d_sorted, pos_sorted = d[order], pos[order]
+    if len(frames) == 1:
+        thickness = 1.0
+        step = normal * thickness
+    else:
+        diffs = np.diff(d_sorted)
+        scale = max(float(np.median(diffs)), 1e-9)
+        dup = int(np.sum(diffs < tol.spacing * max(scale, 1e-3)))
+        if dup or scale < 1e-6:
+            raise SeriesError(f"{label}: {max(dup, 1)} duplicate slice position(s) along the slice normal; "
+                              "remove the duplicate images or pick one acquisition")
+        if np.abs(diffs - scale).max() > tol.spacing * scale:
+            ratio = diffs / scale
+            gaps = np.flatnonzero(np.abs(ratio - np.round(ratio)) < tol.spacing * 5 * np.round(ratio))
+            gaps = gaps[np.round(ratio[gaps]) >= 2]
+            if len(gaps):
+                k = int(gaps[0])
+                raise SeriesError(f"{label}: missing slice(s) between positions {d_sorted[k]:.2f} and "
+                                  f"{d_sorted[k + 1]:.2f} mm (spacing {scale:.3g} mm); re-export the complete series")
+            raise SeriesError(f"{label}: irregular slice spacing ({diffs.min():.3g} to {diffs.max():.3g} mm); "
+                              "resample the series to a regular grid")
+        step = (pos_sorted[-1] - pos_sorted[0]) / (len(frames) - 1)
+        line = pos_sorted[0] + np.outer(np.arange(len(frames)), step)
+        if np.linalg.norm(pos_sorted - line, axis=1).max() > tol.spacing * scale:
+            raise SeriesError(f"{label}: slice positions do not lie on a straight line; re-export the series")
+        sideways = np.linalg.norm(step - (step @ normal) * normal)
+        if sideways > tol.spacing * scale:
+            angle = np.degrees(np.arctan2(sideways, step @ normal))
+            if not tol.allow_gantry_tilt:
+                raise SeriesError(f"{label}: slices are sheared by {angle:.1f} degrees (gantry tilt); "
+                                  "resample it or read with SeriesTolerance(allow_gantry_tilt=True)")
+            warnings.warn(ObliqueSliceWarning(
+                f"{label}: gantry tilt of {angle:.1f} degrees; the volume's affine is sheared accordingly"),
+                stacklevel=3)
+    m = np.eye(4)
+    m[:3, 0] = row * spacing[0][1]
+    m[:3, 1] = col * spacing[0][0]
+    m[:3, 2] = step
+    m[:3, 3] = pos_sorted[0]
+    rows, columns = frames[0].rows, frames[0].columns
+    return Grid((len(frames), rows, columns), m), order
+
+
+# --------------------------------------------------------------------------------------------------
+# Pixel data
+# --------------------------------------------------------------------------------------------------
+
+
+def _pixels(ds: Any, path: Path) -> np.ndarray:
+    try:
+        arr = ds.pixel_array
+    except (NotImplementedError, RuntimeError) as exc:
+        ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", "unknown")
+        raise UnsupportedDataError(
+            f"{path}: cannot decode pixel data with transfer syntax {ts} ({_one_line(exc, 80)}); "
+            "install a pydicom decoder plugin (e.g. pylibjpeg) or decompress the series"
+        ) from None
+    except (ValueError, AttributeError, KeyError, TypeError, EOFError, OSError) as exc:
+        raise _corrupt(path, f"pixel data cannot be read ({_one_line(exc, 100)})") from None
+    if arr.ndim not in (2, 3) or np.iscomplexobj(arr):
+        raise UnsupportedDataError(f"{path}: pixel data of shape {arr.shape} is not a grey-level image")
+    return arr
+
+
+def read_series(
+    folder: Path,
+    series_uid: str | None = None,
+    modality: str | None = None,
+    tolerance: SeriesTolerance | None = None,
+) -> Volume:
+    """Read one CT/MR image series into a :class:`~imaging.types.Volume`.
+
+    Parameters
+    ----------
+    folder : a folder (searched recursively) or a single (multi-frame) file
+    series_uid : SeriesInstanceUID to pick when the folder holds several series
+    modality : ``"CT"``, ``"MR"``, ... to pick by modality
+    tolerance : regularity checks (default :class:`SeriesTolerance`)
+
+    Returns
+    -------
+    Volume
+        ``array`` (nk, nj, ni) float32 (CT in HU: rescale slope and intercept applied per slice),
+        ``grid.patient_from_index`` in LPS mm.
+
+    Raises
+    ------
+    NoDicomError, CorruptFileError, SeriesError, UnsupportedDataError
+    """
+    folder = Path(folder)
+    found = scan(folder)
+    return load_series(found, select_series(found, folder, series_uid, modality), tolerance, folder)
+
+
+def load_series(
+    found: FolderScan, chosen: SeriesSummary, tolerance: SeriesTolerance | None = None, folder: Path | None = None
+) -> Volume:
+    """Read the pixel data of one series of a :func:`scan` (see :func:`read_series`)."""
+    tol = tolerance or SeriesTolerance()
+    where = folder if folder is not None else (chosen.paths[0].parent if chosen.paths else Path("."))
+    label = f"series {chosen.series_instance_uid} in {where}"
+    wanted = set(chosen.paths)
+    headers = [(ds, p) for ds, p in found.images if p in wanted]
+    uids = {str(ds.get("FrameOfReferenceUID", "")) for ds, _ in headers}
+    if len(uids) > 1:
+        raise SeriesError(f"{label}: images have {len(uids)} different Frame of Reference UIDs")
+    frames = [f for ds, p in headers for f in _frames_of(ds, p)]
+    grid, order = assemble_geometry(frames, tol, label)
+    out = np.empty(grid.shape, dtype=np.float32)
+    slot = {(frames[i].path, frames[i].frame): k for k, i in enumerate(order)}
+    for path in chosen.paths:
+        ds = read_dataset(path)
+        arr = _pixels(ds, path)
+        mine = [f for f in frames if f.path == path]
+        if arr.ndim == 2:
+            arr = arr[None]
+        if arr.shape[0] != len(mine) or arr.shape[1:] != grid.shape[1:]:
+            raise _corrupt(path, f"pixel data has shape {arr.shape}, expected {len(mine)} x {grid.shape[1:]}")
+        for f in mine:
+            k = slot[(f.path, f.frame)]
+            np.multiply(arr[f.frame or 0], f.slope, out=out[k], casting="unsafe")
+            out[k] += f.intercept
+    ds0 = headers[0][0]
+    return Volume(
+        array=out, grid=grid, modality=chosen.modality, series_instance_uid=chosen.series_instance_uid,
+        frame_of_reference_uid=chosen.frame_of_reference_uid,
+        study_instance_uid=str(ds0.get("StudyInstanceUID", "")), patient_id=str(ds0.get("PatientID", "")),
+        patient_name=str(ds0.get("PatientName", "")),
+    )
+
+
+def check_reference(volume: Volume, frame_of_reference_uid: str | None, series_uid: str | None, what: str) -> None:
+    """Raise :class:`ReferenceMismatchError` when ``what`` refers to another FoR or series than ``volume``."""
+    if frame_of_reference_uid and volume.frame_of_reference_uid and \
+            frame_of_reference_uid != volume.frame_of_reference_uid:
+        raise ReferenceMismatchError(
+            f"{what} is in Frame of Reference {frame_of_reference_uid} but the image series is in "
+            f"{volume.frame_of_reference_uid}; give the images it was drawn on"
+        )
+    if series_uid and series_uid != volume.series_instance_uid:
+        raise ReferenceMismatchError(
+            f"{what} references series {series_uid} but the image series is {volume.series_instance_uid}; "
+            "give the images it was drawn on, or read it without images"
+        )

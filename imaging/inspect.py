@@ -1,0 +1,249 @@
+"""What is in a DICOM file or folder: image series, structure sets (with volumes) and brachy plans.
+
+Everything found is read completely (pixel data included), so a damaged or inconsistent input is reported
+as a typed error here rather than later in a plan.
+"""
+
+from __future__ import annotations
+
+import importlib
+import warnings
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from imaging.dicom_io import FolderScan, load_series, scan
+from imaging.errors import ImagingError, ImagingWarning, NoDicomError, ReferenceMismatchError, StructureError
+from imaging.meshing import structure_volume_cc
+from imaging.names import SynonymTable
+from imaging.rtstruct import read_rtstruct
+from imaging.types import Volume
+
+
+@dataclass(frozen=True)
+class SeriesInfo:
+    """An image series: ``shape`` (nk, nj, ni) voxels, ``spacing_mm`` along (i, j, k)."""
+
+    series_instance_uid: str
+    modality: str
+    description: str
+    frame_of_reference_uid: str
+    shape: tuple[int, int, int]
+    spacing_mm: tuple[float, float, float]
+    n_files: int
+    folder: str
+
+
+@dataclass(frozen=True)
+class StructureInfo:
+    """One ROI: names, RTROIInterpretedType, contour count and kinds, volume of its closed contours."""
+
+    number: int
+    name: str
+    normalized_name: str
+    type: str
+    n_contours: int
+    geometric_types: tuple[str, ...]
+    volume_cc: float | None
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class StructureSetInfo:
+    path: str
+    label: str
+    frame_of_reference_uid: str
+    referenced_series_uid: str | None
+    structures: tuple[StructureInfo, ...]
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    channel_number: int
+    n_dwells: int
+    total_time_s: float
+    roi_number: int | None
+
+
+@dataclass(frozen=True)
+class PlanInfo:
+    path: str
+    plan_type: str
+    technique: str
+    source: str
+    channels: tuple[ChannelInfo, ...]
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class OtherInfo:
+    path: str
+    modality: str
+    sop_class_uid: str
+
+
+@dataclass(frozen=True)
+class Inspection:
+    """The result of :func:`inspect_path`."""
+
+    path: str
+    series: tuple[SeriesInfo, ...]
+    structure_sets: tuple[StructureSetInfo, ...]
+    plans: tuple[PlanInfo, ...]
+    others: tuple[OtherInfo, ...]
+    n_non_dicom: int
+    warnings: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict (``series``, ``structure_sets`` with ``structures``, ``plans`` with ``channels``)."""
+        from dataclasses import asdict
+
+        return asdict(self)
+
+
+def _volume_cc(roi: Any, volume: Volume | None) -> tuple[float | None, str]:
+    if not any(c.geometric_type == "CLOSED_PLANAR" for c in roi.contours):
+        return None, ""
+    try:
+        return structure_volume_cc(roi, volume.grid if volume is not None else None), ""
+    except StructureError as exc:
+        if volume is not None:  # contours that do not stack on the images: try them on their own
+            try:
+                return structure_volume_cc(roi), f"not on the image slices: {exc}"
+            except StructureError:
+                pass
+        return None, str(exc)
+
+
+def _first(obj: Any, *names: str) -> Any:
+    """The first of ``obj``'s attributes ``names`` that exists and is not None (plan readers differ in naming)."""
+    for name in names:
+        value = getattr(obj, name, None)
+        if value is not None:
+            return value
+    return None
+
+
+def _source_label(plan: Any) -> str:
+    source = _first(plan, "source")
+    if callable(source):
+        try:
+            source = source()
+        except ImagingError:
+            return ""
+    if source is None:
+        return ""
+    if isinstance(source, str):
+        return source
+    labels = getattr(source, "labels", None)
+    parts = labels() if callable(labels) else ()
+    return " / ".join(str(x) for x in parts) or str(source)
+
+
+def _plan_info(path: Path) -> PlanInfo:
+    """Summary of a brachy RT Plan through :func:`imaging.rtplan.read_rtplan` (loaded lazily)."""
+    try:
+        rtplan = importlib.import_module("imaging.rtplan")
+    except ModuleNotFoundError as exc:
+        if exc.name != "imaging.rtplan":
+            raise
+        return PlanInfo(str(path), "", "", "", (), note="RT Plan reader not available")
+    plan = rtplan.read_rtplan(path)
+    channels = []
+    for c in plan.channels:
+        roi = _first(c, "roi_number")
+        channels.append(ChannelInfo(int(_first(c, "channel_number", "number")), int(c.n_dwells),
+                                    float(_first(c, "total_time_s") or 0.0), None if roi is None else int(roi)))
+    return PlanInfo(str(path), str(_first(plan, "plan_type", "treatment_type") or ""),
+                    str(_first(plan, "technique") or ""), _source_label(plan), tuple(channels))
+
+
+def _structure_sets(
+    found: FolderScan, root: Path, volumes: dict[str, Volume], synonyms: SynonymTable | None
+) -> list[StructureSetInfo]:
+    out = []
+    by_for: dict[str, list[Volume]] = {}
+    for v in volumes.values():
+        by_for.setdefault(v.frame_of_reference_uid, []).append(v)
+    for ds, path in found.others:
+        if str(ds.get("Modality", "")).upper() != "RTSTRUCT":
+            continue
+        ss = read_rtstruct(path, synonyms=synonyms)
+        volume: Volume | None = None
+        if ss.referenced_series_uid and ss.referenced_series_uid in volumes:
+            volume = volumes[ss.referenced_series_uid]
+        elif volumes and ss.referenced_series_uid:
+            have = ", ".join(volumes)
+            raise ReferenceMismatchError(
+                f"RT Structure Set {path} references series {ss.referenced_series_uid}, which is not in "
+                f"{root} (it holds {have}); put it beside the images it was drawn on"
+            )
+        elif volumes:
+            same = by_for.get(ss.frame_of_reference_uid, [])
+            if not same:
+                raise ReferenceMismatchError(
+                    f"RT Structure Set {path} is in Frame of Reference {ss.frame_of_reference_uid or 'unknown'}, "
+                    "which no image series here shares; put it beside the images it was drawn on"
+                )
+            volume = same[0]
+        if volume is not None:
+            ss = read_rtstruct(path, volume, synonyms=synonyms)  # checks FoR and series
+        infos = []
+        for roi in ss.rois:
+            vol, note = _volume_cc(roi, volume)
+            infos.append(StructureInfo(
+                number=roi.number, name=roi.name, normalized_name=roi.normalized_name, type=roi.interpreted_type,
+                n_contours=len(roi.contours), geometric_types=tuple(sorted({c.geometric_type for c in roi.contours})),
+                volume_cc=None if vol is None else round(vol, 3), note=note))
+        out.append(StructureSetInfo(str(path), ss.label, ss.frame_of_reference_uid, ss.referenced_series_uid,
+                                    tuple(infos)))
+    return out
+
+
+def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection:
+    """Read everything at ``path`` (a DICOM file or a folder, recursively) and summarise it.
+
+    Warnings about quirks the readers worked around (:class:`~imaging.errors.ImagingWarning`) are collected
+    in :attr:`Inspection.warnings` instead of being emitted.
+
+    Raises
+    ------
+    NoDicomError
+        Nothing DICOM there.
+    CorruptFileError, SeriesError, UnsupportedDataError, StructureError, ReferenceMismatchError
+        From the readers: the first problem found.
+    """
+    path = Path(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ImagingWarning)
+        result = _inspect(path, synonyms)
+    notes = tuple(dict.fromkeys(f"{type(w.message).__name__}: {w.message}" for w in caught
+                                if isinstance(w.message, ImagingWarning)))
+    for w in caught:  # anything that is not ours goes on as a warning
+        if not isinstance(w.message, ImagingWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return replace(result, warnings=notes)
+
+
+def _inspect(path: Path, synonyms: SynonymTable | None) -> Inspection:
+    found = scan(path)
+    if not found.images and not found.others:
+        raise NoDicomError(f"no DICOM files in {path} ({found.n_non_dicom} other files); "
+                           "give a folder that holds a DICOM series, structure set or plan")
+    series, volumes = [], {}
+    for s in found.series():
+        v = load_series(found, s, folder=path)
+        volumes[s.series_instance_uid] = v
+        sp = v.grid.spacing_mm
+        folders = {str(p.parent) for p in s.paths}
+        series.append(SeriesInfo(
+            series_instance_uid=s.series_instance_uid, modality=s.modality, description=s.description,
+            frame_of_reference_uid=s.frame_of_reference_uid, shape=v.grid.shape,
+            spacing_mm=(round(float(sp[0]), 4), round(float(sp[1]), 4), round(float(sp[2]), 4)),
+            n_files=len(s.paths), folder=sorted(folders)[0]))
+    structure_sets = _structure_sets(found, path, volumes, synonyms)
+    plans = [_plan_info(p) for ds, p in found.others if str(ds.get("Modality", "")).upper() == "RTPLAN"]
+    others = [OtherInfo(str(p), str(ds.get("Modality", "")), str(ds.get("SOPClassUID", "")))
+              for ds, p in found.others if str(ds.get("Modality", "")).upper() not in ("RTSTRUCT", "RTPLAN")]
+    return Inspection(str(path), tuple(series), tuple(structure_sets), tuple(plans), tuple(others),
+                      found.n_non_dicom)

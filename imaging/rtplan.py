@@ -1,0 +1,588 @@
+"""Read DICOM RT Plans, in particular brachytherapy plans, into plain typed data.
+
+What is read (PS3.3 C.8.8.14-15, RT Brachy Application Setups): the source (isotope, model,
+reference air-kerma rate, reference date, active length), application setups, channels with their
+control points turned into dwell positions and times, dose reference points with the TPS's own doses,
+the channel ↔ RT Structure Set ROI links (ReferencedROINumber), and Oncentra's private catheter
+sequence (300F,1000). External-beam plans are read too (``is_brachy`` false, no channels) so a caller
+can say what the file is.
+
+Conventions (``reference/oncoreach.md``, Dose; they reproduce the Eclipse point doses):
+
+* dwell time = ChannelTotalTime × ΔCumulativeTimeWeight / FinalCumulativeTimeWeight over the
+  control-point pair at each position; for PDR, Eclipse writes FinalCumulativeTimeWeight =
+  ChannelTotalTime × NumberOfPulses, so the times are per pulse;
+* the TPS's dose at a dose reference point = Σ over channels of the last
+  CumulativeDoseReferenceCoefficient × BrachyApplicationSetupDose × NumberOfFractionsPlanned
+  (× NumberOfPulses for PDR).
+
+Real files break rules; every quirk met is read anyway and reported once per file by a
+:class:`PlanQuirkWarning` naming it: invalid values (over-long decimal strings, ``UNKNOWN`` UIDs, ...),
+cumulative time weights that restart at 0 for every dwell, a FinalCumulativeTimeWeight that differs
+from the last control point's, weight between two different positions of a stepwise channel, a missing
+Frame of Reference UID, a private catheter sequence stored as raw bytes.
+
+Positions are mm, DICOM patient coordinates (LPS); times s; doses Gy; air-kerma rate in U
+(µGy m² h⁻¹ = cGy cm² h⁻¹).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import warnings
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydicom.dataset import Dataset
+from pydicom.filereader import read_sequence
+
+from imaging.dicom_io import read_dataset
+from imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError
+from imaging.types import StructureSet
+
+RT_PLAN_SOP_CLASSES = {
+    "1.2.840.10008.5.1.4.1.1.481.5": "RT Plan",
+    "1.2.840.10008.5.1.4.1.1.481.8": "RT Ion Plan",
+}
+ONCENTRA_CATHETER_TAG = (0x300F, 0x1000)
+ONCENTRA_CHANNEL_ROI_TAG = (0x300B, 0x1000)
+_SAME_POSITION_MM = 1e-3
+
+
+class PlanQuirkWarning(DicomQuirkWarning):
+    """A plan breaks a DICOM rule in a known way; it was read anyway (the message names the quirk)."""
+
+
+def _frozen(a: Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    if shape is not None:
+        arr = arr.reshape(shape)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class BrachySource:
+    """One item of the Source Sequence."""
+
+    number: int
+    isotope_name: str
+    source_type: str
+    manufacturer: str
+    air_kerma_rate_u: float
+    reference_date: str
+    reference_time: str
+    half_life_days: float | None
+    active_length_mm: float | None
+    diameter_mm: float | None
+    model_id: str = ""
+
+    def labels(self) -> tuple[str, ...]:
+        """Strings that may identify the source model (for matching TG-43 data sets)."""
+        return tuple(x for x in (self.model_id, self.isotope_name, self.manufacturer) if x)
+
+
+@dataclass(frozen=True, eq=False)
+class Channel:
+    """A channel of a brachy application setup with its dwells.
+
+    Parameters
+    ----------
+    number : int
+        Channel Number.
+    setup_number : int
+        Application Setup Number it belongs to.
+    roi_number : int or None
+        ReferencedROINumber of the channel's ROI (an RT Structure Set BRACHY_CHANNEL ROI, or for
+        Oncentra the ROI of the private catheter sequence), None when the plan gives none.
+    total_time_s : float
+        Channel Total Time as written (per pulse for PDR).
+    dwell_positions_mm : (n, 3) float, mm, LPS
+    dwell_relative_mm : (n,) float, mm
+        Control Point Relative Position of each dwell.
+    dwell_times_s : (n,) float, s
+        Per fraction, per pulse for PDR.
+    dose_coefficients : tuple of (int, float)
+        (dose reference number, cumulative dose reference coefficient at the last control point).
+    """
+
+    number: int
+    setup_number: int
+    roi_number: int | None
+    source_number: int | None
+    applicator_id: str
+    source_movement: str
+    total_time_s: float
+    final_weight: float
+    n_pulses: int | None
+    pulse_interval_s: float | None
+    length_mm: float | None
+    step_mm: float | None
+    dwell_positions_mm: np.ndarray
+    dwell_relative_mm: np.ndarray
+    dwell_times_s: np.ndarray
+    dose_coefficients: tuple[tuple[int, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "dwell_positions_mm", _frozen(self.dwell_positions_mm, (-1, 3)))
+        object.__setattr__(self, "dwell_relative_mm", _frozen(self.dwell_relative_mm))
+        object.__setattr__(self, "dwell_times_s", _frozen(self.dwell_times_s))
+        n = len(self.dwell_times_s)
+        if not (len(self.dwell_positions_mm) == len(self.dwell_relative_mm) == n):
+            raise ValueError(f"channel {self.number}: dwell arrays disagree in length")
+
+    @property
+    def n_dwells(self) -> int:
+        return len(self.dwell_times_s)
+
+
+@dataclass(frozen=True)
+class ApplicationSetup:
+    number: int
+    name: str
+    setup_type: str
+    channels: tuple[Channel, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class DoseReference:
+    """A dose reference of the plan.
+
+    ``position_mm`` is (3,) mm LPS for point references, else None; ``tps_dose_gy`` the TPS's total
+    dose there (all fractions, all pulses) from the cumulative dose reference coefficients, None when
+    the plan does not carry them.
+    """
+
+    number: int
+    description: str
+    structure_type: str
+    reference_type: str
+    position_mm: np.ndarray | None
+    tps_dose_gy: float | None
+
+
+@dataclass(frozen=True, eq=False)
+class CatheterPath:
+    """A catheter reconstruction from Oncentra's private sequence: ROI number and (k, 3) mm LPS points."""
+
+    roi_number: int
+    points_mm: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "points_mm", _frozen(self.points_mm, (-1, 3)))
+
+
+@dataclass(frozen=True, eq=False)
+class RtPlan:
+    """An RT Plan. For brachy plans ``setups`` holds the channels; ``is_brachy`` is False otherwise."""
+
+    path: str
+    sop_instance_uid: str
+    frame_of_reference_uid: str
+    label: str
+    name: str
+    manufacturer: str
+    is_brachy: bool
+    treatment_type: str  # HDR, PDR, MDR, LDR (brachy) or "" (beam)
+    technique: str  # INTRACAVITARY, INTERSTITIAL, ...
+    n_fractions: int
+    n_beams: int
+    sources: tuple[BrachySource, ...]
+    setups: tuple[ApplicationSetup, ...]
+    dose_references: tuple[DoseReference, ...]
+    setup_doses_gy: tuple[tuple[int, float], ...] = ()
+    catheter_paths: tuple[CatheterPath, ...] = ()
+    machine_name: str = ""
+    study_instance_uid: str = ""
+    patient_id: str = ""
+    patient_name: str = ""
+    quirks: tuple[str, ...] = field(default=())
+
+    @property
+    def channels(self) -> tuple[Channel, ...]:
+        return tuple(c for s in self.setups for c in s.channels)
+
+    @property
+    def n_pulses(self) -> int:
+        """Pulses per fraction (1 unless PDR)."""
+        pulses = {c.n_pulses for c in self.channels if c.n_pulses}
+        return int(max(pulses)) if pulses and self.treatment_type == "PDR" else 1
+
+    @property
+    def n_dwells(self) -> int:
+        return sum(c.n_dwells for c in self.channels)
+
+    @property
+    def total_time_s(self) -> float:
+        """Σ Channel Total Time as written (per pulse for PDR)."""
+        return float(sum(c.total_time_s for c in self.channels))
+
+    def source(self, number: int | None = None) -> BrachySource:
+        """The source with ``number`` (or the only / first one)."""
+        if not self.sources:
+            raise NoDicomError(f"{self.path}: the plan has no Source Sequence; it is not a brachy plan")
+        for s in self.sources:
+            if number is None or s.number == number:
+                return s
+        raise CorruptFileError(f"{self.path}: a channel refers to source {number}, which the plan lacks")
+
+
+# --- reading ------------------------------------------------------------------------------------------
+
+
+@contextmanager
+def _quirks(path: str, found: list[str]) -> Iterator[None]:
+    """Collect pydicom's validation warnings (emitted lazily while values are read)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        msg = str(w.message).split(" Please see")[0].strip()
+        found.append(f"invalid value ({msg})")
+
+
+def _float(ds: Dataset, keyword: str, default: float | None = None) -> float | None:
+    v = ds.get(keyword)
+    if v is None or v == "":
+        return default
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return default
+
+
+def _int(ds: Dataset, keyword: str, default: int | None = None) -> int | None:
+    v = _float(ds, keyword)
+    return default if v is None else round(v)
+
+
+def _str(ds: Dataset, keyword: str) -> str:
+    v = ds.get(keyword)
+    return "" if v is None else str(v).strip()
+
+
+def read_rtplan(path: str | os.PathLike[str]) -> RtPlan:
+    """Read an RT Plan file.
+
+    Parameters
+    ----------
+    path : path-like
+        The RP file.
+
+    Returns
+    -------
+    RtPlan
+
+    Raises
+    ------
+    NoDicomError
+        The file is DICOM but not an RT Plan.
+    CorruptFileError
+        Not DICOM, truncated, or a brachy channel without the data needed to place its dwells.
+
+    Warns
+    -----
+    PlanQuirkWarning
+        Once per distinct quirk met (see the module docstring).
+    """
+    p = str(path)
+    found: list[str] = []
+    with _quirks(p, found):
+        if not Path(p).is_file():
+            raise NoDicomError(f"{p} is not a file; pass the path of an RT Plan (RP) file")
+        ds = read_dataset(Path(p), required=True)
+        if ds is None:  # not reached: required=True raises instead
+            raise NoDicomError(f"{p} is not a DICOM file; pass an RT Plan (RP) file")
+        try:
+            plan = _plan_from_dataset(ds, p, found)
+        except (EOFError, OSError) as exc:
+            raise CorruptFileError(f"{p}: the file is truncated ({exc})") from None
+    quirks = _emit(p, found)
+    return RtPlan(**{**plan.__dict__, "quirks": quirks})
+
+
+def _emit(path: str, found: list[str]) -> tuple[str, ...]:
+    quirks = tuple(dict.fromkeys(found))
+    for q in quirks:
+        warnings.warn(f"{Path(path).name}: {q}; read anyway", PlanQuirkWarning, stacklevel=3)
+    return quirks
+
+
+def _plan_from_dataset(ds: Dataset, path: str, found: list[str]) -> RtPlan:
+    sop_class = str(ds.get("SOPClassUID", ""))
+    modality = _str(ds, "Modality")
+    if sop_class not in RT_PLAN_SOP_CLASSES and modality != "RTPLAN":
+        kind = getattr(ds.get("SOPClassUID"), "name", "") or modality or "unknown object"
+        raise NoDicomError(f"{path}: is a {kind}, not an RT Plan; pass the plan (RP) file")
+    long_ds = _overlong_decimal_strings(ds)
+    if long_ds:
+        found.append(f"over-long decimal strings (> 16 characters) in {', '.join(long_ds)}")
+    for_uid = _str(ds, "FrameOfReferenceUID")
+    if not for_uid:
+        found.append("missing Frame of Reference UID")
+    is_brachy = "BrachyTreatmentType" in ds or "ApplicationSetupSequence" in ds
+    fg = ds.FractionGroupSequence[0] if ds.get("FractionGroupSequence") else Dataset()
+    n_fractions = _int(fg, "NumberOfFractionsPlanned", 1) or 1
+    setup_doses = tuple(
+        (
+            _int(item, "ReferencedBrachyApplicationSetupNumber", 0) or 0,
+            _float(item, "BrachyApplicationSetupDose", 0.0) or 0.0,
+        )
+        for item in fg.get("ReferencedBrachyApplicationSetupSequence", [])
+    )
+    sources = tuple(_source(s) for s in ds.get("SourceSequence", []))
+    catheters = _oncentra_catheters(ds, path, found)
+    setups = tuple(_setup(s, path, found) for s in ds.get("ApplicationSetupSequence", []))
+    treatment_type = _str(ds, "BrachyTreatmentType")
+    machine = ""
+    if ds.get("TreatmentMachineSequence"):
+        machine = _str(ds.TreatmentMachineSequence[0], "TreatmentMachineName")
+    plan = RtPlan(
+        path=path,
+        sop_instance_uid=_str(ds, "SOPInstanceUID"),
+        frame_of_reference_uid=for_uid,
+        label=_str(ds, "RTPlanLabel"),
+        name=_str(ds, "RTPlanName"),
+        manufacturer=_str(ds, "Manufacturer"),
+        is_brachy=is_brachy,
+        treatment_type=treatment_type,
+        technique=_str(ds, "BrachyTreatmentTechnique"),
+        n_fractions=n_fractions,
+        n_beams=len(ds.get("BeamSequence", [])) + len(ds.get("IonBeamSequence", [])),
+        sources=sources,
+        setups=setups,
+        dose_references=(),
+        setup_doses_gy=setup_doses,
+        catheter_paths=catheters,
+        machine_name=machine,
+        study_instance_uid=_str(ds, "StudyInstanceUID"),
+        patient_id=_str(ds, "PatientID"),
+        patient_name=_str(ds, "PatientName"),
+    )
+    refs = tuple(_dose_reference(d, plan) for d in ds.get("DoseReferenceSequence", []))
+    return RtPlan(**{**plan.__dict__, "dose_references": refs})
+
+
+def _overlong_decimal_strings(ds: Dataset) -> list[str]:
+    """Keywords of DS elements holding a value longer than the 16 characters PS3.5 allows."""
+    names: list[str] = []
+
+    def visit(_: Dataset, elem: Any) -> None:
+        if elem.VR != "DS" or elem.value is None:
+            return
+        values = elem.value if elem.VM > 1 else [elem.value]
+        for v in values:
+            text = getattr(v, "original_string", None) or str(v)
+            if len(text) > 16 and (elem.keyword or str(elem.tag)) not in names:
+                names.append(elem.keyword or str(elem.tag))
+
+    ds.walk(visit)
+    return names
+
+
+def _source(s: Dataset) -> BrachySource:
+    return BrachySource(
+        number=_int(s, "SourceNumber", 0) or 0,
+        isotope_name=_str(s, "SourceIsotopeName"),
+        source_type=_str(s, "SourceType"),
+        manufacturer=_str(s, "SourceManufacturer"),
+        air_kerma_rate_u=_float(s, "ReferenceAirKermaRate", 0.0) or 0.0,
+        reference_date=_str(s, "SourceStrengthReferenceDate"),
+        reference_time=_str(s, "SourceStrengthReferenceTime"),
+        half_life_days=_float(s, "SourceIsotopeHalfLife"),
+        active_length_mm=_float(s, "ActiveSourceLength"),
+        diameter_mm=_float(s, "ActiveSourceDiameter"),
+        model_id=_str(s, "SourceModelID"),
+    )
+
+
+def _setup(s: Dataset, path: str, found: list[str]) -> ApplicationSetup:
+    number = _int(s, "ApplicationSetupNumber", 0) or 0
+    return ApplicationSetup(
+        number=number,
+        name=_str(s, "ApplicationSetupName"),
+        setup_type=_str(s, "ApplicationSetupType"),
+        channels=tuple(_channel(c, number, path, found) for c in s.get("ChannelSequence", [])),
+    )
+
+
+def _private_roi_number(c: Dataset) -> int | None:
+    elem = c.get(ONCENTRA_CHANNEL_ROI_TAG)
+    if elem is None:
+        return None
+    v = elem.value
+    if isinstance(v, bytes):
+        v = v.decode("ascii", "ignore").strip("\x00 ")
+    try:
+        return round(float(v))
+    except (TypeError, ValueError):
+        return None
+
+
+def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Channel:
+    number = _int(c, "ChannelNumber", 0) or 0
+    where = f"{path}: channel {number}"
+    total = _float(c, "ChannelTotalTime")
+    if total is None:
+        raise CorruptFileError(f"{where} has no Channel Total Time; the dwell times cannot be known")
+    cps = list(c.get("BrachyControlPointSequence", []))
+    rel = np.array([_float(cp, "ControlPointRelativePosition", np.nan) for cp in cps], dtype=float)
+    pos = np.full((len(cps), 3), np.nan)
+    for k, cp in enumerate(cps):
+        v = cp.get("ControlPoint3DPosition")
+        if v is not None and len(v) == 3:
+            pos[k] = [float(x) for x in v]
+    ctw = np.array([_float(cp, "CumulativeTimeWeight", np.nan) for cp in cps], dtype=float)
+    if len(cps) and (np.any(np.isnan(ctw)) or np.any(np.isnan(pos))):
+        raise CorruptFileError(
+            f"{where}: a control point lacks its 3D position or cumulative time weight; "
+            "re-export the plan with control point positions"
+        )
+    final = _float(c, "FinalCumulativeTimeWeight")
+    dwell_pos: list[np.ndarray] = []
+    dwell_rel: list[float] = []
+    weights: list[float] = []
+    restarts = bool(np.any(np.diff(ctw) < 0))
+    if restarts:
+        found.append("cumulative time weights do not accumulate (restart at 0 for each dwell)")
+    transit = 0.0
+    for k in range(len(cps) - 1):
+        delta = ctw[k + 1] - ctw[k]
+        if np.linalg.norm(pos[k + 1] - pos[k]) <= _SAME_POSITION_MM:
+            if dwell_pos and np.linalg.norm(dwell_pos[-1] - pos[k]) <= _SAME_POSITION_MM and k > 0 and (
+                np.linalg.norm(pos[k] - pos[k - 1]) <= _SAME_POSITION_MM
+            ):
+                weights[-1] += max(delta, 0.0)  # three or more control points at one position
+            else:
+                dwell_pos.append(pos[k])
+                dwell_rel.append(float(rel[k]))
+                weights.append(max(delta, 0.0))
+        elif delta > 0:
+            transit += delta
+    movement = _str(c, "SourceMovementType")
+    if transit > 0 and movement == "STEPWISE":
+        found.append("time weight between two different positions of a stepwise channel (ignored)")
+    w = np.array(weights, dtype=float)
+    last = float(ctw[-1]) if len(ctw) else 0.0
+    if restarts or final is None or final <= 0:
+        norm = float(w.sum())
+        if final is None and not restarts:
+            found.append("missing Final Cumulative Time Weight (used the sum of dwell weights)")
+    else:
+        norm = final
+        if abs(final - last) > 1e-6 * max(abs(final), 1.0):
+            found.append("Final Cumulative Time Weight differs from the last control point's (used the former)")
+    times = total * w / norm if norm > 0 else np.zeros_like(w)
+    coeffs: list[tuple[int, float]] = []
+    if cps:
+        for item in cps[-1].get("BrachyReferencedDoseReferenceSequence", []):
+            ref = _int(item, "ReferencedDoseReferenceNumber")
+            coef = _float(item, "CumulativeDoseReferenceCoefficient")
+            if ref is not None and coef is not None:
+                coeffs.append((ref, coef))
+    roi = _int(c, "ReferencedROINumber")
+    if roi is None:
+        roi = _private_roi_number(c)
+    length = _float(c, "ChannelEffectiveLength")
+    if length is None:
+        length = _float(c, "ChannelLength")
+    return Channel(
+        number=number,
+        setup_number=setup_number,
+        roi_number=roi,
+        source_number=_int(c, "ReferencedSourceNumber"),
+        applicator_id=_str(c, "SourceApplicatorID"),
+        source_movement=movement,
+        total_time_s=total,
+        final_weight=norm,
+        n_pulses=_int(c, "NumberOfPulses"),
+        pulse_interval_s=_float(c, "PulseRepetitionInterval"),
+        length_mm=length,
+        step_mm=_float(c, "SourceApplicatorStepSize"),
+        dwell_positions_mm=np.array(dwell_pos).reshape(-1, 3),
+        dwell_relative_mm=np.array(dwell_rel),
+        dwell_times_s=times,
+        dose_coefficients=tuple(coeffs),
+    )
+
+
+def _dose_reference(d: Dataset, plan: RtPlan) -> DoseReference:
+    number = _int(d, "DoseReferenceNumber", 0) or 0
+    coords = d.get("DoseReferencePointCoordinates")
+    position = _frozen([float(x) for x in coords]) if coords is not None and len(coords) == 3 else None
+    tps: float | None = None
+    setup_dose = dict(plan.setup_doses_gy)
+    terms = [
+        coef * setup_dose.get(ch.setup_number, 0.0)
+        for ch in plan.channels
+        for ref, coef in ch.dose_coefficients
+        if ref == number
+    ]
+    if terms:
+        tps = float(sum(terms)) * plan.n_fractions * plan.n_pulses
+    return DoseReference(
+        number=number,
+        description=_str(d, "DoseReferenceDescription"),
+        structure_type=_str(d, "DoseReferenceStructureType"),
+        reference_type=_str(d, "DoseReferenceType"),
+        position_mm=position,
+        tps_dose_gy=tps,
+    )
+
+
+def _oncentra_catheters(ds: Dataset, path: str, found: list[str]) -> tuple[CatheterPath, ...]:
+    elem = ds.get(ONCENTRA_CATHETER_TAG)
+    if elem is None:
+        return ()
+    value = elem.value
+    if isinstance(value, bytes):
+        found.append("private catheter sequence (300F,1000) stored as raw bytes (parsed as implicit VR)")
+        try:
+            value = read_sequence(io.BytesIO(value), True, True, len(value), ds.get("SpecificCharacterSet", "ISO_IR 6"))
+        except Exception as exc:  # malformed private data must not stop reading the standard part
+            found.append(f"private catheter sequence (300F,1000) unreadable ({type(exc).__name__}; ignored)")
+            return ()
+    out: list[CatheterPath] = []
+    for item in value or []:
+        for roi in item.get((0x3006, 0x0039), []):  # ROI Contour Sequence
+            number = _int(roi, "ReferencedROINumber")
+            contours = roi.get("ContourSequence", [])
+            if number is None or len(contours) != 1 or "ContourData" not in contours[0]:
+                continue
+            pts = np.array([float(x) for x in contours[0].ContourData], dtype=float)
+            if len(pts) >= 6 and len(pts) % 3 == 0:
+                out.append(CatheterPath(number, pts.reshape(-1, 3)))
+    return tuple(out)
+
+
+# --- channel paths ------------------------------------------------------------------------------------
+
+
+def channel_paths(plan: RtPlan, structures: StructureSet | None = None) -> Mapping[int, np.ndarray]:
+    """Centre line of each channel, ordered as written (Eclipse: tip first), keyed by channel number.
+
+    Looked up through the channel's ReferencedROINumber in ``structures`` (an OPEN_NONPLANAR contour
+    of that ROI) or in the plan's Oncentra catheter sequence.
+
+    Parameters
+    ----------
+    plan : RtPlan
+    structures : StructureSet, optional
+
+    Returns
+    -------
+    mapping channel number -> (k, 3) float, mm, LPS
+        Channels whose path cannot be found are absent.
+    """
+    by_roi: dict[int, np.ndarray] = {c.roi_number: c.points_mm for c in plan.catheter_paths}
+    if structures is not None:
+        for roi in structures.rois:
+            lines = [c.points_mm for c in roi.contours if c.geometric_type in ("OPEN_NONPLANAR", "OPEN_PLANAR")]
+            if lines and len(lines[0]) >= 2:
+                by_roi.setdefault(roi.number, lines[0])
+    return {c.number: by_roi[c.roi_number] for c in plan.channels if c.roi_number in by_roi}

@@ -1,0 +1,152 @@
+"""Read an RT Structure Set into a :class:`imaging.types.StructureSet`.
+
+CLOSED_PLANAR contours become polygons, OPEN_NONPLANAR / OPEN_PLANAR contours (brachy channels,
+markers) polylines and POINT contours single points, all in LPS mm. ROI names are normalised through a
+:class:`~imaging.names.SynonymTable`; the original name is kept. When a volume is given, the Frame of
+Reference and the referenced series are checked against it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imaging.dicom_io import check_reference, read_dataset
+from imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError, StructureError
+from imaging.names import DEFAULT_SYNONYMS, SynonymTable
+from imaging.types import Contour, Roi, StructureSet, Volume
+
+RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
+GEOMETRIC_TYPES = frozenset({"CLOSED_PLANAR", "OPEN_PLANAR", "OPEN_NONPLANAR", "POINT", "CLOSEDPLANAR_XOR"})
+
+
+def _contour_points(item: Any, path: Path, roi_label: str) -> np.ndarray:
+    """``(n, 3)`` float LPS mm from ContourData, parsed straight from the raw bytes when possible."""
+    tag = 0x30060050
+    if tag not in item:
+        raise StructureError(f"{path}: a contour of ROI {roi_label} has no ContourData; re-export the structure set")
+    elem = item.get_item(tag)
+    raw = getattr(elem, "value", None)
+    try:
+        if isinstance(raw, bytes | bytearray):
+            text = raw.decode("ascii", errors="strict").strip(" \0")
+            values = np.array([float(v) for v in text.split("\\")] if text else [], dtype=float)
+        else:
+            values = np.array([float(v) for v in np.atleast_1d(item.ContourData)], dtype=float)
+    except (ValueError, UnicodeDecodeError):
+        raise CorruptFileError(
+            f"{path}: ContourData of ROI {roi_label} holds non-numeric values; the file is damaged, re-export it"
+        ) from None
+    if values.size == 0 or values.size % 3:
+        raise StructureError(f"{path}: ContourData of ROI {roi_label} has {values.size} numbers, not a multiple "
+                             "of 3 (x, y, z triplets); re-export the structure set")
+    if not np.all(np.isfinite(values)):
+        raise StructureError(f"{path}: ContourData of ROI {roi_label} holds NaN or infinite coordinates")
+    pts = values.reshape(-1, 3)
+    n_declared = item.get("NumberOfContourPoints")
+    if n_declared is not None and n_declared != "" and int(n_declared) != len(pts):
+        warnings.warn(DicomQuirkWarning(
+            f"{path}: ROI {roi_label}: NumberOfContourPoints is {int(n_declared)} but ContourData holds "
+            f"{len(pts)} points; using ContourData"), stacklevel=4)
+    return pts
+
+
+def _referenced(ds: Any) -> tuple[str, str | None]:
+    """(Frame of Reference UID, referenced SeriesInstanceUID or None) of a structure set."""
+    for_uid = str(ds.get("FrameOfReferenceUID", "") or "")
+    series: str | None = None
+    for ref in ds.get("ReferencedFrameOfReferenceSequence", []) or []:
+        for_uid = for_uid or str(ref.get("FrameOfReferenceUID", "") or "")
+        for study in ref.get("RTReferencedStudySequence", []) or []:
+            for s in study.get("RTReferencedSeriesSequence", []) or []:
+                if s.get("SeriesInstanceUID"):
+                    series = series or str(s.SeriesInstanceUID)
+    return for_uid, series
+
+
+def read_rtstruct(
+    path: Path, volume: Volume | None = None, *, synonyms: SynonymTable | None = None
+) -> StructureSet:
+    """Read an RT Structure Set.
+
+    Parameters
+    ----------
+    path : the RT Structure Set file
+    volume : the images it was drawn on; when given, its Frame of Reference and referenced series must match
+    synonyms : ROI name table (default :data:`imaging.names.DEFAULT_SYNONYMS`)
+
+    Returns
+    -------
+    StructureSet
+        ROIs in file order; contour points ``(n, 3)`` float, mm, LPS.
+
+    Raises
+    ------
+    NoDicomError
+        Not DICOM, or DICOM but not an RT Structure Set.
+    CorruptFileError
+        Truncated or unparsable.
+    StructureError
+        Broken structure (no ROI list, contours of an undeclared ROI, bad ContourData).
+    ReferenceMismatchError
+        ``volume`` is another series or Frame of Reference.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise NoDicomError(f"{path} is not a file; give the RT Structure Set file (RS*.dcm)")
+    ds = read_dataset(path, required=True)
+    sop_class = str(ds.get("SOPClassUID", ""))
+    if str(ds.get("Modality", "")).upper() != "RTSTRUCT" and sop_class != RT_STRUCTURE_SET_STORAGE:
+        raise NoDicomError(f"{path} is a {ds.get('Modality', 'DICOM')} object, not an RT Structure Set")
+    table = synonyms or DEFAULT_SYNONYMS
+    if "StructureSetROISequence" not in ds:
+        raise StructureError(f"{path}: no StructureSetROISequence (the list of ROIs); re-export the structure set")
+    declared: dict[int, Any] = {}
+    for item in ds.StructureSetROISequence:
+        if item.get("ROINumber") in (None, ""):
+            raise StructureError(f"{path}: a StructureSetROISequence item has no ROINumber")
+        number = int(item.ROINumber)
+        if number in declared:
+            raise StructureError(f"{path}: ROI number {number} is declared twice")
+        declared[number] = item
+    types = {int(o.ReferencedROINumber): str(o.get("RTROIInterpretedType", "") or "")
+             for o in ds.get("RTROIObservationsSequence", []) or [] if o.get("ReferencedROINumber") not in (None, "")}
+    contours: dict[int, list[Contour]] = {n: [] for n in declared}
+    colors: dict[int, tuple[int, int, int]] = {}
+    for rc in ds.get("ROIContourSequence", []) or []:
+        if rc.get("ReferencedROINumber") in (None, ""):
+            raise StructureError(f"{path}: a ROIContourSequence item has no ReferencedROINumber")
+        number = int(rc.ReferencedROINumber)
+        if number not in declared:
+            raise StructureError(f"{path}: contours reference ROI number {number}, which the structure set does "
+                                 "not declare; the file is inconsistent, re-export it")
+        label = f"{number} ({declared[number].get('ROIName', '')})"
+        color = rc.get("ROIDisplayColor")
+        if color is not None and len(color) == 3:
+            colors[number] = (int(color[0]), int(color[1]), int(color[2]))
+        for item in rc.get("ContourSequence", []) or []:
+            gtype = str(item.get("ContourGeometricType", "") or "").upper()
+            if gtype not in GEOMETRIC_TYPES:
+                raise StructureError(f"{path}: ROI {label} has a contour of unknown type {gtype or 'none'!r}")
+            pts = _contour_points(item, path, label)
+            if gtype == "CLOSEDPLANAR_XOR":  # DICOM 2020+: XOR-combined closed planar contours
+                gtype = "CLOSED_PLANAR"
+            contours[number].append(Contour(pts, gtype))
+    rois = []
+    for number, item in declared.items():
+        name = str(item.get("ROIName", "") or f"ROI_{number}")
+        rois.append(Roi(number=number, name=name, contours=tuple(contours[number]),
+                        normalized_name=table.normalize(name), interpreted_type=types.get(number, ""),
+                        color=colors.get(number)))
+    for_uid, series_uid = _referenced(ds)
+    if volume is not None:
+        check_reference(volume, for_uid, series_uid, f"RT Structure Set {path}")
+    return StructureSet(
+        rois=tuple(rois), frame_of_reference_uid=for_uid, referenced_series_uid=series_uid,
+        sop_instance_uid=str(ds.get("SOPInstanceUID", "")), study_instance_uid=str(ds.get("StudyInstanceUID", "")),
+        patient_id=str(ds.get("PatientID", "")), patient_name=str(ds.get("PatientName", "")),
+        label=str(ds.get("StructureSetLabel", "")),
+    )

@@ -1,0 +1,473 @@
+"""What every exporter receives and returns, the exporter Protocol, and safe output files.
+
+An exporter is a plugin of kind ``exporters`` (entry-point group ``reachplan.exporters``): an object with a
+``name``, a ``description`` and ``export(plan, out_dir, options) -> ExportedFiles``. The planner fills one
+:class:`ExportPlan` (plain data: needle paths and dwells in LPS mm, the source, the input identity) and
+hands it to any exporter.
+
+File safety (all exporters): writes are atomic (:func:`planner.io.atomic_write_bytes`), an input file of
+the plan is never written, an existing file is replaced only with ``overwrite=True``, and file names are
+built from the plan label with only ``[A-Za-z0-9._-]`` (no patient name unless asked for).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import unicodedata
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, replace
+from datetime import datetime
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from imaging.types import StructureSet, Volume
+from plugins.errors import ExportError
+from plugins.sources import SourceData
+
+#: A dwell farther than this from its needle's path is an input error (mm).
+DWELL_ON_PATH_TOLERANCE_MM = 0.5
+#: Two dwells closer than this along a needle are an input error (mm).
+MIN_DWELL_SPACING_MM = 0.1
+
+#: Half-lives (days) of the isotopes used for HDR/PDR afterloaders. Ir-192: 73.83 d as written by
+#: Varian BrachyVision (reference/tps_examples/hdr, SourceIsotopeHalfLife) and NNDC NuDat 3 (73.829 d);
+#: Co-60: 1925.28 d (NNDC NuDat 3, 5.2714 y).
+HALF_LIFE_DAYS: Mapping[str, float] = MappingProxyType({"Ir-192": 73.83, "Co-60": 1925.28})
+
+_SOURCE_TYPES = ("POINT", "LINE", "CYLINDER", "SPHERE")
+
+
+def _frozen(a: object, shape_tail: tuple[int, ...], what: str) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        want = ", ".join(["n", *map(str, shape_tail)])
+        raise ValueError(f"{what} must have shape ({want}), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what} must be finite")
+    arr.setflags(write=False)
+    return arr
+
+
+def _check_short_text(value: str, what: str, max_len: int) -> None:
+    if not value or len(value) > max_len or "\\" in value or any(unicodedata.category(c)[0] == "C" for c in value):
+        raise ValueError(f"{what} must be 1-{max_len} printable characters without backslash, got {value!r}")
+
+
+def arc_length_mm(path_mm: np.ndarray) -> np.ndarray:
+    """Cumulative arc length along a polyline.
+
+    Parameters
+    ----------
+    path_mm : (n, 3) float, mm
+
+    Returns
+    -------
+    (n,) float, mm, starting at 0.
+    """
+    seg = np.linalg.norm(np.diff(path_mm, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def project_on_path(path_mm: np.ndarray, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arc length (from ``path_mm[0]``) of the nearest point of the polyline to each point, and the distance.
+
+    Parameters
+    ----------
+    path_mm : (n, 3) float, mm
+    points_mm : (m, 3) float, mm
+
+    Returns
+    -------
+    arc_mm : (m,) float, mm from the first path point
+    distance_mm : (m,) float, mm from the polyline
+    """
+    a, b = path_mm[:-1], path_mm[1:]
+    d = b - a
+    length = np.linalg.norm(d, axis=1)
+    u = d / np.where(length > 0, length, 1.0)[:, None]
+    rel = points_mm[:, None, :] - a[None, :, :]  # (m, s, 3)
+    t = np.clip(np.einsum("msk,sk->ms", rel, u), 0.0, length[None, :])
+    foot = a[None] + t[..., None] * u[None]
+    dist = np.linalg.norm(points_mm[:, None, :] - foot, axis=2)
+    best = np.argmin(dist, axis=1)
+    rows = np.arange(len(points_mm))
+    return arc_length_mm(path_mm)[best] + t[rows, best], dist[rows, best]
+
+
+@dataclass(frozen=True, eq=False)
+class NeedleExport:
+    """One needle of a plan.
+
+    Parameters
+    ----------
+    hole_id : str
+        Template hole (1-16 characters: it becomes the DICOM Source Applicator ID).
+    path_mm : (n, 3) float, mm, LPS
+        Predicted needle centre line from the entry (template plane) to the tip, n >= 2.
+    dwell_positions_mm : (m, 3) float, mm, LPS
+        Source dwell positions, m >= 1, each within :data:`DWELL_ON_PATH_TOLERANCE_MM` of the path.
+    dwell_times_s : (m,) float, s, >= 0
+        Dwell time at each position.
+    design : str
+        Stylet preset name ("" for a plain needle).
+    schedule : (k, 3) float or None
+        Breakpoints (depth_mm, tension_n, roll_deg) of the insertion schedule: depth along the path from
+        its entry, strictly increasing and >= 0; tension >= 0 N; roll in degrees, taken as given (not
+        wrapped). Piecewise linear between breakpoints, constant outside. None: no tendon pulled.
+    """
+
+    hole_id: str
+    path_mm: np.ndarray
+    dwell_positions_mm: np.ndarray
+    dwell_times_s: np.ndarray
+    design: str = ""
+    schedule: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        _check_short_text(self.hole_id, "hole_id", 16)
+        path = _frozen(self.path_mm, (3,), f"needle {self.hole_id}: path_mm")
+        pos = _frozen(self.dwell_positions_mm, (3,), f"needle {self.hole_id}: dwell_positions_mm")
+        times = _frozen(self.dwell_times_s, (), f"needle {self.hole_id}: dwell_times_s")
+        if len(path) < 2 or arc_length_mm(path)[-1] <= 0:
+            raise ValueError(f"needle {self.hole_id}: path_mm needs at least two distinct points")
+        if np.abs(path).max() > 1e5:
+            raise ValueError(f"needle {self.hole_id}: path_mm is beyond 100 m from the origin; units must be mm")
+        if len(pos) < 1 or len(times) != len(pos):
+            raise ValueError(f"needle {self.hole_id}: give one dwell time per dwell position (at least one)")
+        if np.any(times < 0):
+            raise ValueError(f"needle {self.hole_id}: dwell times must be >= 0 s")
+        arc, dist = project_on_path(path, pos)
+        if dist.max() > DWELL_ON_PATH_TOLERANCE_MM:
+            raise ValueError(f"needle {self.hole_id}: a dwell position is {dist.max():.2f} mm off the needle path "
+                             f"(tolerance {DWELL_ON_PATH_TOLERANCE_MM} mm); place dwells on the path")
+        if len(pos) > 1 and np.diff(np.sort(arc)).min() < MIN_DWELL_SPACING_MM:
+            raise ValueError(f"needle {self.hole_id}: two dwell positions are less than {MIN_DWELL_SPACING_MM} mm "
+                             "apart along the needle; merge them (add their times)")
+        object.__setattr__(self, "path_mm", path)
+        object.__setattr__(self, "dwell_positions_mm", pos)
+        object.__setattr__(self, "dwell_times_s", times)
+        if self.schedule is not None:
+            sch = _frozen(self.schedule, (3,), f"needle {self.hole_id}: schedule")
+            if len(sch) < 1 or sch[0, 0] < 0 or np.any(np.diff(sch[:, 0]) <= 0):
+                raise ValueError(f"needle {self.hole_id}: schedule depths must start >= 0 mm and increase strictly")
+            if np.any(sch[:, 1] < 0):
+                raise ValueError(f"needle {self.hole_id}: schedule tension must be >= 0 N (the tendon only pulls)")
+            object.__setattr__(self, "schedule", sch)
+
+    @property
+    def length_mm(self) -> float:
+        """Arc length of the path (mm): the insertion depth at the tip."""
+        return float(arc_length_mm(self.path_mm)[-1])
+
+    @property
+    def dwell_distance_from_tip_mm(self) -> np.ndarray:
+        """(m,) float, mm: arc distance of each dwell from the tip along the path."""
+        arc, _ = project_on_path(self.path_mm, self.dwell_positions_mm)
+        return np.maximum(self.length_mm - arc, 0.0)
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """The treatment source as an RT Plan needs it.
+
+    Parameters
+    ----------
+    name : str
+        TG-43 data set name (``reachplan.sources`` plugin), e.g. ``"gammamed_plus_hdr"``.
+    air_kerma_rate_u : float
+        Reference air-kerma rate S_K at the reference date, U = µGy m² h⁻¹ (DICOM Reference Air Kerma Rate).
+    reference_datetime : datetime
+        Date and time of the source strength calibration.
+    isotope : str
+        e.g. ``"Ir-192"``.
+    title : str
+        Human-readable model (written as Source Description; TG-43 readers recognise the model from it).
+    treatment_type : str
+        ``"HDR"`` (``"PDR"`` and ``"LDR"`` are not exported).
+    manufacturer, model_id : str
+        Source Manufacturer (<= 64 characters) and Source Model ID (<= 16); "" when unknown.
+    source_type : str
+        ``"LINE"``, ``"POINT"``, ``"CYLINDER"`` or ``"SPHERE"``.
+    active_length_mm, active_diameter_mm : float or None
+        Active dimensions, mm; None when unknown.
+    half_life_days : float or None
+        None: taken from :data:`HALF_LIFE_DAYS` for ``isotope``.
+    """
+
+    name: str
+    air_kerma_rate_u: float
+    reference_datetime: datetime
+    isotope: str = "Ir-192"
+    title: str = ""
+    treatment_type: str = "HDR"
+    manufacturer: str = ""
+    model_id: str = ""
+    source_type: str = "LINE"
+    active_length_mm: float | None = None
+    active_diameter_mm: float | None = None
+    half_life_days: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.air_kerma_rate_u) and self.air_kerma_rate_u > 0):
+            raise ValueError(f"source {self.name}: air_kerma_rate_u must be positive (U = µGy m² h⁻¹)")
+        if self.half_life_days is None:
+            if self.isotope not in HALF_LIFE_DAYS:
+                raise ValueError(f"source {self.name}: no half-life known for {self.isotope!r}; give half_life_days")
+            object.__setattr__(self, "half_life_days", HALF_LIFE_DAYS[self.isotope])
+        elif not (math.isfinite(self.half_life_days) and self.half_life_days > 0):
+            raise ValueError(f"source {self.name}: half_life_days must be positive")
+        if self.source_type not in _SOURCE_TYPES:
+            raise ValueError(f"source {self.name}: source_type must be one of {', '.join(_SOURCE_TYPES)}")
+        for v, what in ((self.active_length_mm, "active_length_mm"), (self.active_diameter_mm, "active_diameter_mm")):
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ValueError(f"source {self.name}: {what} must be positive when given")
+        if len(self.model_id) > 16 or len(self.manufacturer) > 64 or len(self.title) > 64:
+            raise ValueError(f"source {self.name}: model_id <= 16, manufacturer and title <= 64 characters")
+        _check_short_text(self.isotope, "isotope", 64)
+
+    @classmethod
+    def from_source_data(cls, data: SourceData, air_kerma_rate_u: float, reference_datetime: datetime,
+                         **extra: Any) -> SourceSpec:
+        """Build from the TG-43 data set (name, title, kind, isotope, active length) of a ``sources`` plugin.
+
+        ``extra`` sets the fields SourceData does not hold (manufacturer, active_diameter_mm, ...). Source Model
+        ID defaults to the data set's first alias of at most 16 characters (e.g. ``gammamedplushdr``), which
+        :func:`planner.dose.recognise_source` maps back to the data set.
+        """
+        aliases = [a for a in data.aliases if 0 < len(a) <= 16]
+        spec = cls(name=data.name, air_kerma_rate_u=air_kerma_rate_u, reference_datetime=reference_datetime,
+                   isotope=data.isotope, title=data.title[:64], treatment_type=data.kind,
+                   model_id=aliases[0] if aliases else "", active_length_mm=10.0 * float(data.active_length_cm))
+        return replace(spec, **extra) if extra else spec
+
+
+@dataclass(frozen=True, eq=False)
+class ExportPlan:
+    """Everything an exporter needs, as plain data.
+
+    Parameters
+    ----------
+    label : str
+        RT Plan Label (1-16 characters); also the default file-name stem.
+    needles : tuple of NeedleExport
+        One channel per needle, in channel order; hole ids unique.
+    source : SourceSpec
+    structure_set : StructureSet or None
+        The patient's structures as read; carried over into the exported structure set.
+    volume : Volume or None
+        The input image series: patient, study and Frame of Reference identity. None (and no structure
+        set identity): placeholders are generated and the export says so in its notes.
+    plan_datetime : datetime or None
+        RT Plan Date/Time; None: the time of export.
+    name : str
+        RT Plan Name (<= 64 characters, optional).
+    fractions_planned : int
+    prescription_dose_gy : float or None
+        Dose per fraction at the prescription (Brachy Application Setup Dose), Gy, when known.
+    application_setup_type : str
+        DICOM Application Setup Type (defined terms; ``SYED_NEBLETT`` for a perineal interstitial template).
+    channel_effective_length_mm : float
+        Afterloader to the distal-most source position, mm (ASSUMED default 1300 mm: the GammaMed Plus
+        channel length in the BrachyVision example, reference/tps_examples/hdr). Must exceed every path.
+    input_paths : tuple of Path
+        Files (or series folders) the plan was made from: never written, nor written into, by an export.
+    """
+
+    label: str
+    needles: tuple[NeedleExport, ...]
+    source: SourceSpec
+    structure_set: StructureSet | None = None
+    volume: Volume | None = None
+    plan_datetime: datetime | None = None
+    name: str = ""
+    fractions_planned: int = 1
+    prescription_dose_gy: float | None = None
+    application_setup_type: str = "SYED_NEBLETT"
+    channel_effective_length_mm: float = 1300.0
+    input_paths: tuple[Path, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        _check_short_text(self.label, "plan label", 16)
+        object.__setattr__(self, "needles", tuple(self.needles))
+        object.__setattr__(self, "input_paths", tuple(Path(p) for p in self.input_paths))
+        if not self.needles:
+            raise ValueError("a plan to export needs at least one needle")
+        ids = [n.hole_id for n in self.needles]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"needle hole ids must be unique, got {ids}")
+        if len(self.name) > 64:
+            raise ValueError("plan name must be <= 64 characters")
+        if self.fractions_planned < 1:
+            raise ValueError("fractions_planned must be >= 1")
+        if self.prescription_dose_gy is not None and not (
+                math.isfinite(self.prescription_dose_gy) and self.prescription_dose_gy > 0):
+            raise ValueError("prescription_dose_gy must be positive when given")
+        longest = max(n.length_mm for n in self.needles)
+        if not (math.isfinite(self.channel_effective_length_mm) and self.channel_effective_length_mm > longest):
+            raise ValueError(f"channel_effective_length_mm ({self.channel_effective_length_mm}) must exceed the "
+                             f"longest needle path ({longest:.1f} mm)")
+        if self.source.treatment_type != "HDR":
+            raise ValueError(f"only HDR plans are exported, the source is {self.source.treatment_type}")
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """How to write (not what).
+
+    Parameters
+    ----------
+    overwrite : bool
+        Replace existing output files (never an input file of the plan).
+    stem : str
+        File-name stem; "" uses the plan label. Made safe (``[A-Za-z0-9._-]``).
+    include_patient_name : bool
+        Prefix file names with the (safe) patient name; off by default.
+    step_mm : float
+        Depth step of device-instruction rows, mm.
+    time_resolution_s : float
+        Dwell times are rounded to this (0.1 s: afterloader resolution; the BrachyVision example's
+        times are multiples of it). Cumulative weights are then exact decimals.
+    uid_prefix : str or None
+        Root of new DICOM UIDs (digits and dots, ending with a dot); None: pydicom's registered root.
+    """
+
+    overwrite: bool = False
+    stem: str = ""
+    include_patient_name: bool = False
+    step_mm: float = 5.0
+    time_resolution_s: float = 0.1
+    uid_prefix: str | None = None
+
+    def __post_init__(self) -> None:
+        prefix = self.uid_prefix
+        if prefix is not None and (len(prefix) > 54 or not re.fullmatch(r"(?:(?:[1-9][0-9]*|0)\.)+", prefix)):
+            raise ValueError(f"uid_prefix must be digits and dots ending with a dot, <= 54 characters, "
+                             f"got {self.uid_prefix!r}")
+        if not (math.isfinite(self.step_mm) and self.step_mm > 0):
+            raise ValueError("step_mm must be > 0")
+        if not (math.isfinite(self.time_resolution_s) and 1e-6 <= self.time_resolution_s <= 10):
+            raise ValueError("time_resolution_s must be within 1e-6 .. 10 s")
+
+
+@dataclass(frozen=True)
+class ExportedFile:
+    """One written file and its role (``"rtstruct"``, ``"rtplan"``, ``"device_json"``, ``"device_csv"``)."""
+
+    role: str
+    path: Path
+
+
+@dataclass(frozen=True)
+class ExportedFiles:
+    """What an export wrote, and anything the user must know (placeholders, rounding)."""
+
+    exporter: str
+    files: tuple[ExportedFile, ...]
+    notes: tuple[str, ...] = ()
+
+    def path(self, role: str) -> Path:
+        """The one file of ``role``.
+
+        Raises
+        ------
+        KeyError
+            When there is not exactly one.
+        """
+        found = [f.path for f in self.files if f.role == role]
+        if len(found) != 1:
+            raise KeyError(f"{len(found)} files of role {role!r} in this export")
+        return found[0]
+
+
+@runtime_checkable
+class Exporter(Protocol):
+    """The exporter plugin Protocol (entry-point group ``reachplan.exporters``).
+
+    ``name`` is the plugin name, ``description`` one line for ``reachplan plugins``; ``export`` writes into
+    ``out_dir`` (created when missing) and raises :class:`ExportError` for expected failures.
+    """
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def description(self) -> str: ...
+
+    def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles: ...
+
+
+def check_exporter(obj: object) -> None:
+    """Raise ``TypeError`` when ``obj`` does not implement :class:`Exporter` (the registry's check)."""
+    if not isinstance(obj, Exporter):
+        raise TypeError(f"{obj!r} does not implement plugins.exporters.base.Exporter (name, description, export)")
+    if not isinstance(obj.name, str) or not obj.name or not isinstance(obj.description, str):
+        raise TypeError(f"{obj!r}: name must be a non-empty str and description a str")
+
+
+# --- files ------------------------------------------------------------------------------------------------
+
+
+def safe_name(text: str, fallback: str = "plan", max_len: int = 64) -> str:
+    """``text`` reduced to ASCII ``[A-Za-z0-9._-]`` (others become ``_``), never empty, never hidden."""
+    ascii_text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode("ascii")
+    out = re.sub(r"[^A-Za-z0-9._-]+", "_", ascii_text).strip("._-")[:max_len].strip("._-")
+    return out or fallback
+
+
+def file_stem(plan: ExportPlan, options: ExportOptions) -> str:
+    """The safe file-name stem of ``plan`` (patient name only with ``include_patient_name``)."""
+    stem = safe_name(options.stem or plan.label)
+    if options.include_patient_name:
+        who = (plan.volume.patient_name if plan.volume is not None else "") or (
+            plan.structure_set.patient_name if plan.structure_set is not None else "")
+        if who:
+            stem = f"{safe_name(who, fallback='patient')}_{stem}"
+    return stem
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except OSError:
+        return False
+
+
+def check_targets(targets: Iterable[Path], plan: ExportPlan, options: ExportOptions) -> None:
+    """Refuse to write over an input file of ``plan`` or into an input folder, over an existing file without
+    ``overwrite``, or twice to one path.
+
+    Raises
+    ------
+    ExportError
+    """
+    seen: list[Path] = []
+    for t in targets:
+        if any(_same(t, s) for s in seen):
+            raise ExportError(f"two outputs of this export would be written to {t}; choose another stem")
+        seen.append(t)
+        if any(_same(t, p) for p in plan.input_paths):
+            raise ExportError(f"refusing to write {t}: it is an input file of the plan; export to another folder")
+        if any(p.is_dir() and t.resolve().is_relative_to(p.resolve()) for p in plan.input_paths):
+            raise ExportError(f"refusing to write {t} into an input folder of the plan (its series would gain "
+                              "files); export to another folder")
+        if t.exists() and not options.overwrite:
+            raise ExportError(f"{t} exists; choose another folder or stem, or pass overwrite=True")
+        if t.exists() and not t.is_file():
+            raise ExportError(f"{t} exists and is not a file; choose another folder or stem")
+
+
+def prepare_out_dir(out_dir: Path) -> Path:
+    """Create ``out_dir`` if needed; raise :class:`ExportError` when it is not a writable folder."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ExportError(f"cannot create output folder {out}: {exc.strerror}") from None
+    if not out.is_dir() or not os.access(out, os.W_OK):
+        raise ExportError(f"output folder {out} is not a writable folder")
+    return out

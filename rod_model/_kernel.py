@@ -1,0 +1,358 @@
+"""Compiled kernel of the Cosserat models: right-hand side, RK4 integration, shooting with continuation.
+
+Plain functions on arrays (SI units), compiled with numba when it is installed; without numba the very same
+functions run as plain Python (slowly). The maths is documented in :mod:`rod_model.cosserat`.
+
+State ``y`` (21): ``p`` (3, world, m), ``R`` (9, row-major, stylet directors as columns), ``N`` (3, world, N),
+``M`` (3, world, N·m), ``θ`` (relative twist of needle against stylet, rad), ``n2z`` (needle axial force, N),
+``m2z`` (needle torsional moment, N·m).
+Section table ``sec`` (k, 11): ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm``.
+Unknowns at the base ``x`` (8): ``N(0)``, ``M(0)``, ``n2z(0)``, ``m2z(0)`` (the last two unused when coupled).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+try:
+    from numba import njit as _njit
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised only without numba
+    HAVE_NUMBA = False
+
+
+def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Compile ``fn`` with numba (cached on disk) when available; otherwise return it unchanged."""
+    return _njit(cache=True)(fn) if HAVE_NUMBA else fn
+
+
+NSTATE = 21
+NX = 8
+
+# status codes of shoot()
+OK = 0
+NOT_CONVERGED = 1
+SINGULAR = 2
+NON_FINITE = 3
+
+
+@_jit
+def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, coupled: bool,
+             out: np.ndarray) -> None:
+    """Strains from loads: ``out = (u (3), v (3), u2z, beta)`` in the stylet's body frame."""
+    ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm = (sec[2], sec[3], sec[4], sec[5], sec[6], sec[7], sec[8],
+                                                     sec[9], sec[10])
+    nb0 = y[3] * y[12] + y[6] * y[13] + y[9] * y[14]
+    nb1 = y[4] * y[12] + y[7] * y[13] + y[10] * y[14]
+    nb2 = y[5] * y[12] + y[8] * y[13] + y[11] * y[14]
+    mb0 = y[3] * y[15] + y[6] * y[16] + y[9] * y[17]
+    mb1 = y[4] * y[15] + y[7] * y[16] + y[10] * y[17]
+    mb2 = y[5] * y[15] + y[8] * y[16] + y[11] * y[17]
+    n2z = y[19]
+    m2z = y[20]
+    u0 = u1 = u2 = 0.0
+    v0 = v1 = 0.0
+    v2 = 1.0
+    u2z = 0.0
+    beta = 1.0
+    ei = ei1 + ei2
+    for _ in range(4):  # fixed point on the tendon directions (coupling ~ λ/GA, λ·r²/EI ~ 1e-3)
+        ft0 = ft1 = ft2 = 0.0
+        mt0 = mt1 = mt2 = 0.0
+        for j in range(lam.shape[0]):
+            if lam[j] == 0.0:
+                continue
+            rx = arm * rdir[j, 0]
+            ry = arm * rdir[j, 1]
+            # tendon tangent ~ v + u x r (r has no z component)
+            tx = v0 - u2 * ry
+            ty = v1 + u2 * rx
+            tz = v2 + u0 * ry - u1 * rx
+            nt = np.sqrt(tx * tx + ty * ty + tz * tz)
+            tx, ty, tz = lam[j] * tx / nt, lam[j] * ty / nt, lam[j] * tz / nt
+            ft0 += tx
+            ft1 += ty
+            ft2 += tz
+            mt0 += ry * tz
+            mt1 += -rx * tz
+            mt2 += rx * ty - ry * tx
+        nr0, nr1, nr2 = nb0 - ft0, nb1 - ft1, nb2 - ft2
+        mr0, mr1, mr2 = mb0 - mt0, mb1 - mt1, mb2 - mt2
+        u0 = mr0 / ei
+        u1 = mr1 / ei
+        if coupled:
+            v2 = 1.0 + nr2 / (ea1 + ea2)
+            beta = 1.0
+            v0 = nr0 / (ga1 + ga2)
+            v1 = nr1 / (ga1 + ga2)
+            u2 = mr2 / (gj1 + gj2)
+            u2z = u2
+        else:
+            v2 = 1.0 + (nr2 - n2z) / ea1
+            beta = (1.0 + n2z / ea2) / v2
+            v0 = nr0 / (ga1 + beta * ga2)
+            v1 = nr1 / (ga1 + beta * ga2)
+            u2 = (mr2 - m2z) / gj1
+            u2z = m2z / gj2
+    out[0] = u0
+    out[1] = u1
+    out[2] = u2
+    out[3] = v0
+    out[4] = v1
+    out[5] = v2
+    out[6] = u2z
+    out[7] = beta
+
+
+@_jit
+def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext: np.ndarray, coupled: bool,
+         st: np.ndarray, dy: np.ndarray) -> None:
+    closure(y, sec, rdir, lam, coupled, st)
+    u0, u1, u2, v0, v1, v2, u2z, beta = st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7]
+    # p' = R v
+    for i in range(3):
+        dy[i] = y[3 + 3 * i] * v0 + y[4 + 3 * i] * v1 + y[5 + 3 * i] * v2
+    # R' = R [u]x  (row i: (R_i1 u2 - R_i2 u1, R_i2 u0 - R_i0 u2, R_i0 u1 - R_i1 u0))
+    for i in range(3):
+        r0, r1, r2 = y[3 + 3 * i], y[4 + 3 * i], y[5 + 3 * i]
+        dy[3 + 3 * i] = r1 * u2 - r2 * u1
+        dy[4 + 3 * i] = r2 * u0 - r0 * u2
+        dy[5 + 3 * i] = r0 * u1 - r1 * u0
+    dy[12] = -fext[0]
+    dy[13] = -fext[1]
+    dy[14] = -fext[2]
+    # M' = -p' x N
+    px, py, pz = dy[0], dy[1], dy[2]
+    nx, ny, nz = y[12], y[13], y[14]
+    dy[15] = -(py * nz - pz * ny)
+    dy[16] = -(pz * nx - px * nz)
+    dy[17] = -(px * ny - py * nx)
+    if coupled:
+        dy[18] = 0.0
+        dy[19] = 0.0
+    else:
+        dy[18] = u2z - u2
+        fz = y[5] * fext[0] + y[8] * fext[1] + y[11] * fext[2]  # (R^T f)_z
+        dy[19] = -sec[9] * beta * (u0 * v1 - u1 * v0) - fz
+    dy[20] = 0.0  # isotropic needle, no distributed torque: (u2 x m2)_z = (v2 x n2)_z = 0
+
+
+@_jit
+def integrate(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
+               fext: np.ndarray, coupled: bool, traj: np.ndarray, record: bool) -> np.ndarray:
+    """RK4 from the base with unknowns ``x``; returns the tip state; fills ``traj`` (n+1, 21) if ``record``."""
+    y = np.zeros(NSTATE)
+    y[3] = 1.0
+    y[7] = 1.0
+    y[11] = 1.0
+    y[12:18] = x[0:6]
+    y[19] = x[6]
+    y[20] = x[7]
+    k1 = np.empty(NSTATE)
+    k2 = np.empty(NSTATE)
+    k3 = np.empty(NSTATE)
+    k4 = np.empty(NSTATE)
+    yt = np.empty(NSTATE)
+    st = np.empty(8)
+    row = 0
+    if record:
+        traj[0, :] = y
+    for i in range(sec.shape[0]):
+        h = (sec[i, 1] - sec[i, 0]) / nsteps[i]
+        s = sec[i]
+        for _ in range(nsteps[i]):
+            rhs(y, s, rdir, lam, fext, coupled, st, k1)
+            for q in range(NSTATE):
+                yt[q] = y[q] + 0.5 * h * k1[q]
+            rhs(yt, s, rdir, lam, fext, coupled, st, k2)
+            for q in range(NSTATE):
+                yt[q] = y[q] + 0.5 * h * k2[q]
+            rhs(yt, s, rdir, lam, fext, coupled, st, k3)
+            for q in range(NSTATE):
+                yt[q] = y[q] + h * k3[q]
+            rhs(yt, s, rdir, lam, fext, coupled, st, k4)
+            for q in range(NSTATE):
+                y[q] += h / 6.0 * (k1[q] + 2.0 * k2[q] + 2.0 * k3[q] + k4[q])
+            row += 1
+            if record:
+                traj[row, :] = y
+    return y
+
+
+@_jit
+def residual(y: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, length: float, coupled: bool,
+              r: np.ndarray) -> float:
+    """Tip boundary residual (8) in newtons (moments divided by the rod length); returns its max-norm."""
+    for i in range(3):
+        r[i] = y[12 + i] - ftip[i]
+        r[3 + i] = (y[15 + i] - ltip[i]) / length
+    if coupled:
+        r[6] = 0.0
+        r[7] = 0.0
+    else:
+        r[6] = y[19] - (y[5] * ftip[0] + y[8] * ftip[1] + y[11] * ftip[2])
+        r[7] = (y[20] - (y[5] * ltip[0] + y[8] * ltip[1] + y[11] * ltip[2])) / length
+    worst = 0.0
+    for i in range(NX):
+        if not np.isfinite(r[i]):
+            return np.inf
+        worst = max(worst, abs(r[i]))
+    return worst
+
+
+@_jit
+def solve_linear(a: np.ndarray, b: np.ndarray, n: int) -> bool:
+    """Gaussian elimination with partial pivoting on the leading n x n block; b <- a^-1 b. False if singular."""
+    for c in range(n):
+        p = c
+        for i in range(c + 1, n):
+            if abs(a[i, c]) > abs(a[p, c]):
+                p = i
+        if not abs(a[p, c]) > 1e-300:
+            return False
+        if p != c:
+            for j in range(n):
+                a[c, j], a[p, j] = a[p, j], a[c, j]
+            b[c], b[p] = b[p], b[c]
+        for i in range(c + 1, n):
+            f = a[i, c] / a[c, c]
+            for j in range(c, n):
+                a[i, j] -= f * a[c, j]
+            b[i] -= f * b[c]
+    for c in range(n - 1, -1, -1):
+        acc = b[c]
+        for j in range(c + 1, n):
+            acc -= a[c, j] * b[j]
+        b[c] = acc / a[c, c]
+    return True
+
+
+@_jit
+def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
+            fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
+            fscale: float, traj: np.ndarray) -> tuple[int, float, int]:
+    """Damped Newton on the base unknowns (finite-difference Jacobian). Returns (status, residual, iters)."""
+    n = 6 if coupled else NX
+    length = sec[sec.shape[0] - 1, 1]
+    r = np.empty(NX)
+    rt = np.empty(NX)
+    jac = np.empty((NX, NX))
+    xt = np.empty(NX)
+    y = integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+    res = residual(y, ftip, ltip, length, coupled, r)
+    if not np.isfinite(res):
+        return NON_FINITE, res, 0
+    it = 0
+    rnew = res
+    while res > tol and it < max_iter:
+        it += 1
+        for c in range(n):
+            eps = 1e-7 * fscale * (length if 3 <= c < 6 or c == 7 else 1.0)
+            for q in range(NX):
+                xt[q] = x[q]
+            xt[c] += eps
+            yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+            residual(yt, ftip, ltip, length, coupled, rt)
+            for q in range(n):
+                jac[q, c] = (rt[q] - r[q]) / eps
+        step = np.empty(NX)
+        for q in range(n):
+            step[q] = -r[q]
+        if not solve_linear(jac, step, n):
+            return SINGULAR, res, it
+        alpha = 1.0
+        improved = False
+        for _ in range(12):  # backtracking line search on the residual
+            for q in range(n):
+                xt[q] = x[q] + alpha * step[q]
+            yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+            rnew = residual(yt, ftip, ltip, length, coupled, rt)
+            if np.isfinite(rnew) and rnew < res:
+                improved = True
+                break
+            alpha *= 0.5
+        if not improved:
+            return NOT_CONVERGED, res, it
+        for q in range(NX):
+            x[q] = xt[q]
+            r[q] = rt[q]
+        res = rnew
+    return (OK if res <= tol else NOT_CONVERGED), res, it
+
+
+@_jit
+def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
+           fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
+           max_ramp: int, traj: np.ndarray) -> tuple[int, float, int, int]:
+    """Shooting with continuation: try the full load from ``x``; on failure ramp tension and external loads
+    from zero in 4, then 16, ... steps (each step starting from the previous solution). ``x`` is updated in
+    place; ``traj`` receives the converged trajectory. Returns (status, residual in N, iterations, ramp steps).
+    ``tol`` is relative to the load scale ``1 N + Σλ + |external loads|``."""
+    fscale = 1.0
+    for j in range(lam.shape[0]):
+        fscale += lam[j]
+    length = sec[sec.shape[0] - 1, 1]
+    for i in range(3):
+        fscale += abs(ftip[i]) + abs(fext[i]) * length + abs(ltip[i]) / length
+    x_start = x.copy()
+    ramp = 1
+    total_it = 0
+    status = NOT_CONVERGED
+    res = np.inf
+    while ramp <= max_ramp:
+        if ramp == 1:
+            for q in range(NX):
+                x[q] = x_start[q]
+        else:
+            for q in range(NX):
+                x[q] = 0.0
+        status = OK
+        for k in range(1, ramp + 1):
+            f = k / ramp
+            status, res, it = newton(x, sec, nsteps, rdir, f * lam, f * fext, f * ftip, f * ltip, coupled,
+                                      tol * fscale, max_iter, fscale, traj)
+            total_it += it
+            if status != OK:
+                break
+        if status == OK:
+            integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, True)
+            return OK, res, total_it, ramp
+        ramp *= 4
+    return status, res, total_it, ramp // 4
+
+
+@_jit
+def batch_free(tensions: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, coupled: bool,
+                tol: float, max_iter: int, max_ramp: int, tips: np.ndarray, tangents: np.ndarray,
+                status: np.ndarray, resid: np.ndarray) -> None:
+    """Free-space solves pulling tendon 0 with each of ``tensions`` (b,): tip positions (b, 3), tangents at the
+    section bounds (b, k + 1, 3), status (b,), residual (b,), N."""
+    nrow = 1
+    for i in range(nsteps.shape[0]):
+        nrow += nsteps[i]
+    traj = np.empty((nrow, NSTATE))
+    lam = np.zeros(rdir.shape[0])
+    zero = np.zeros(3)
+    x = np.zeros(NX)
+    for b in range(tensions.shape[0]):
+        lam[0] = tensions[b]
+        for q in range(NX):
+            x[q] = 0.0
+        st, res, _, _ = shoot(x, sec, nsteps, rdir, lam, zero, zero, zero, coupled, tol, max_iter, max_ramp,
+                               traj)
+        status[b] = st
+        resid[b] = res
+        tips[b, :] = traj[nrow - 1, 0:3]
+        row = 0
+        tangents[b, 0, 0] = traj[0, 5]
+        tangents[b, 0, 1] = traj[0, 8]
+        tangents[b, 0, 2] = traj[0, 11]
+        for i in range(nsteps.shape[0]):
+            row += nsteps[i]
+            tangents[b, i + 1, 0] = traj[row, 5]
+            tangents[b, i + 1, 1] = traj[row, 8]
+            tangents[b, i + 1, 2] = traj[row, 11]

@@ -1,0 +1,188 @@
+"""Second, independent solver of the two-tube (and single-rod) Cosserat boundary-value problem: collocation
+with :func:`scipy.integrate.solve_bvp`.
+
+Same equations as :mod:`rod_model.cosserat` (see there), re-implemented vectorised in numpy in millimetre /
+newton units, solved on the whole rod at once (4th-order Lobatto IIIA collocation with mesh refinement,
+no shooting). Each section of constant properties is mapped onto ``τ ∈ [0, 1]`` as its own block of 21 states
+so that the jumps of stiffness and moment arm fall on block boundaries; the blocks are tied by continuity.
+It exists to check the shooting solver (they must agree to ≤ 1 µm) and as a fallback; it is much slower.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from scipy.integrate import solve_bvp
+
+from rod_model.cosserat import section_table
+from rod_model.design import Loads, RodDesign
+from rod_model.protocol import Capabilities, check_loads
+from rod_model.result import FailedSolve, RodPath
+
+NS = 21
+
+
+def _strains(y: np.ndarray, sec: np.ndarray, r: np.ndarray, lam: np.ndarray,
+             coupled: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """u (3, m) 1/mm, v (3, m), u2z (m,) 1/mm, beta (m,) from states y (21, m) (mm, N, N·mm units)."""
+    ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2 = sec[2:10]
+    rot = y[3:12].reshape(3, 3, -1)  # rot[i, j] = R_ij
+    nb = np.einsum("ijm,im->jm", rot, y[12:15])
+    mb = np.einsum("ijm,im->jm", rot, y[15:18])
+    n2z, m2z = y[19], y[20]
+    m = y.shape[1]
+    u = np.zeros((3, m))
+    v = np.zeros((3, m))
+    v[2] = 1.0
+    beta = np.ones(m)
+    u2z = np.zeros(m)
+    for _ in range(4):
+        t = v[:, None, :] + np.cross(u.T[:, None, :], r[None, :, :]).transpose(2, 1, 0)  # (3, k, m)
+        t = lam[None, :, None] * t / np.linalg.norm(t, axis=0, keepdims=True)
+        ft = t.sum(axis=1)
+        mt = np.cross(r[:, :, None], t, axisa=1, axisb=0, axisc=0).sum(axis=1)
+        nr, mr = nb - ft, mb - mt
+        u[:2] = mr[:2] / (ei1 + ei2)
+        if coupled:
+            v[2] = 1.0 + nr[2] / (ea1 + ea2)
+            v[:2] = nr[:2] / (ga1 + ga2)
+            u[2] = mr[2] / (gj1 + gj2)
+            u2z = u[2]
+        else:
+            v[2] = 1.0 + (nr[2] - n2z) / ea1
+            beta = (1.0 + n2z / ea2) / v[2]
+            v[:2] = nr[:2] / (ga1 + beta * ga2)
+            u[2] = (mr[2] - m2z) / gj1
+            u2z = m2z / gj2
+    return u, v, u2z, beta
+
+
+def _block_rhs(y: np.ndarray, sec: np.ndarray, r: np.ndarray, lam: np.ndarray, fext: np.ndarray,
+               coupled: bool) -> np.ndarray:
+    u, v, u2z, beta = _strains(y, sec, r, lam, coupled)
+    rot = y[3:12].reshape(3, 3, -1)
+    dy = np.zeros_like(y)
+    dp = np.einsum("ijm,jm->im", rot, v)
+    dy[0:3] = dp
+    ux = np.zeros((3, 3, y.shape[1]))
+    ux[0, 1], ux[0, 2], ux[1, 0], ux[1, 2], ux[2, 0], ux[2, 1] = -u[2], u[1], u[2], -u[0], -u[1], u[0]
+    dy[3:12] = np.einsum("ijm,jkm->ikm", rot, ux).reshape(9, -1)
+    dy[12:15] = -fext[:, None]
+    dy[15:18] = -np.cross(dp, y[12:15], axis=0)
+    if not coupled:
+        dy[18] = u2z - u[2]
+        dy[19] = -sec[9] * beta * (u[0] * v[1] - u[1] * v[0]) - np.einsum("im,i->m", rot[:, 2], fext)
+    return dy
+
+
+@dataclass(frozen=True)
+class CollocationCosserat:
+    """The Cosserat BVP by collocation (``scipy.integrate.solve_bvp``).
+
+    Parameters
+    ----------
+    coupled : bool
+        ``False``: two-tube model; ``True``: single rod.
+    tol : float
+        ``solve_bvp`` collocation tolerance.
+    nodes_per_section : int
+        Initial mesh nodes per section.
+    max_nodes : int
+    max_ramp : int
+        Largest number of load-continuation steps.
+    """
+
+    coupled: bool = False
+    tol: float = 1e-9
+    nodes_per_section: int = 21
+    max_nodes: int = 20000
+    max_ramp: int = 8
+    name: ClassVar[str] = "two_tube_collocation"
+    capabilities: ClassVar[Capabilities] = Capabilities(planar_only=False, twist=True, several_tendons=True,
+                                                        external_load=True, large_deflection=True)
+
+    def solve(self, design: RodDesign, loads: Loads, initial_guess: np.ndarray | None = None,
+              *, continuation: bool = True) -> RodPath | FailedSolve:
+        """Solve ``design`` under ``loads``; ``initial_guess`` (21, n_mesh) in block form is for the stability
+        map only (default: the straight, unloaded rod)."""
+        t0 = time.perf_counter()
+        check_loads(self.name, self.capabilities, design, loads)
+        sec = section_table(design)
+        sec_mm = sec.copy()
+        sec_mm[:, :2] *= 1e3
+        sec_mm[:, 2:4] *= 1e6
+        sec_mm[:, 6:8] *= 1e6
+        sec_mm[:, 10] *= 1e3
+        k = len(sec)
+        lengths = sec_mm[:, 1] - sec_mm[:, 0]
+        r = design.tendon_unit_offsets(loads.roll_deg)
+        lam_full = np.array(loads.tensions_n)
+        f_full = np.array(loads.distributed_n_per_m) * 1e-3
+        ftip_full = np.array(loads.tip_force_n)
+        ltip_full = np.array(loads.tip_moment_nm) * 1e3
+        tau = np.linspace(0.0, 1.0, self.nodes_per_section)
+        if initial_guess is None:
+            y0 = np.zeros((NS * k, tau.size))
+            for i in range(k):
+                b = y0[NS * i:NS * (i + 1)]
+                b[2] = sec_mm[i, 0] + tau * lengths[i]
+                b[3] = b[7] = b[11] = 1.0
+        else:
+            y0 = np.asarray(initial_guess, dtype=float)
+            tau = np.linspace(0.0, 1.0, y0.shape[1])
+
+        def solve_at(f: float, mesh: np.ndarray, guess: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, float]:
+            lam, fext, ftip, ltip = f * lam_full, f * f_full, f * ftip_full, f * ltip_full
+
+            def fun(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+                out = np.empty_like(y)
+                for i in range(k):
+                    sl = slice(NS * i, NS * (i + 1))
+                    out[sl] = lengths[i] * _block_rhs(y[sl], sec_mm[i], sec_mm[i, 10] * r, lam, fext, self.coupled)
+                return out
+
+            def bc(ya: np.ndarray, yb: np.ndarray) -> np.ndarray:
+                res = [ya[0:3], ya[3:12] - np.eye(3).ravel(), ya[18:19]]
+                for i in range(k - 1):
+                    res.append(ya[NS * (i + 1):NS * (i + 2)] - yb[NS * i:NS * (i + 1)])
+                tip = yb[NS * (k - 1):]
+                rz = tip[[5, 8, 11]]
+                res += [tip[12:15] - ftip, tip[15:18] - ltip]
+                if self.coupled:
+                    res.append(ya[19:21])
+                else:
+                    res.append(np.array([tip[19] - rz @ ftip, tip[20] - rz @ ltip]))
+                return np.concatenate(res)
+
+            with np.errstate(all="ignore"):  # a diverging iterate is reported as a failure below
+                sol = solve_bvp(fun, bc, mesh, guess, tol=self.tol, max_nodes=self.max_nodes)
+            ok = bool(sol.success) and np.all(np.isfinite(sol.y))
+            bres = float(np.max(np.abs(bc(sol.y[:, 0], sol.y[:, -1])))) if ok else np.inf
+            rms = float(np.max(sol.rms_residuals)) if ok else np.inf
+            return bool(ok and bres < 1e-8 and rms < 10 * self.tol), sol.x, sol.y, max(bres, rms)
+
+        ramp = 1
+        res = np.inf
+        while ramp <= (self.max_ramp if continuation else 1):
+            mesh, guess = tau, y0
+            ok = True
+            for j in range(1, ramp + 1):
+                ok, mesh, guess, res = solve_at(j / ramp, mesh, guess)
+                if not ok:
+                    break
+            if ok:
+                break
+            ramp *= 2
+        ms = (time.perf_counter() - t0) * 1e3
+        if not ok:
+            return FailedSolve(self.name, f"collocation did not converge (residual {res:.2e}, continuation up to "
+                               f"{ramp // 2} load steps)", res, ms, loads.tensions_n, loads.roll_deg)
+        s = np.concatenate([sec_mm[i, 0] + mesh[(1 if i else 0):] * lengths[i] for i in range(k)])
+        ys = np.concatenate([guess[NS * i:NS * (i + 1), (1 if i else 0):] for i in range(k)], axis=1)
+        keep = np.r_[True, np.diff(s) > 1e-12]
+        frames = ys[3:12].T.reshape(-1, 3, 3)
+        return RodPath(self.name, s[keep], ys[0:3].T[keep], frames[keep], res, ms, ramp, loads.tensions_n,
+                       loads.roll_deg, None if self.coupled else ys[18][keep])

@@ -1,0 +1,25 @@
+"""Errors raised by :mod:`rod_model`.
+
+A solve that does not converge is *not* an error: it is a :class:`rod_model.result.FailedSolve`.
+These errors are for requests that cannot be served at all.
+"""
+
+from __future__ import annotations
+
+from plugins.errors import ReachplanError
+
+
+class RodModelError(ReachplanError):
+    """Base of the rod-model errors."""
+
+
+class UnknownPresetError(RodModelError):
+    """A design preset name is not known."""
+
+
+class UnsupportedLoadError(RodModelError):
+    """A model was asked for a load case it cannot represent (see its ``capabilities``)."""
+
+
+class NoModelWithinToleranceError(RodModelError):
+    """The model selector found no model whose measured error is within the tolerance asked for."""

@@ -1,0 +1,154 @@
+"""Constant-curvature model, and the closed-form geometry of piecewise circular arcs it shares with
+:mod:`rod_model.beam`.
+
+Constant curvature (the classic continuum-robot assumption, Webster & Jones, IJRR 2010): only the actuated
+joint section bends, with the curvature of a beam under the tendon's moment ``λ·r_disk / (EI_joints + EI_needle)``;
+the tube sections stay straight. It ignores the bending of the nitinol tube by the tendon running through it,
+which on this device carries most of the tip deflection: the benchmark measures how much that costs.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from rod_model.design import Loads, RodDesign
+from rod_model.protocol import Capabilities, check_loads
+from rod_model.result import RodBatch, RodPath
+
+#: Output spacing of the sampled centreline, mm.
+DEFAULT_STEP_MM = 1.0
+
+
+def sample_s_mm(design: RodDesign, step_mm: float = DEFAULT_STEP_MM) -> np.ndarray:
+    """(n,) float, mm: arc lengths at about ``step_mm`` spacing that include every section boundary."""
+    bounds = section_bounds_mm(design)
+    parts = [np.linspace(a, b, max(1, int(np.ceil((b - a) / step_mm))) + 1)[:-1]
+             for a, b in itertools.pairwise(bounds)]
+    return np.concatenate([*parts, bounds[-1:]])
+
+
+def section_bounds_mm(design: RodDesign) -> np.ndarray:
+    """(k + 1,) float, mm: boundaries of the design's sections."""
+    secs = design.sections()
+    return np.array([secs[0].start_m * 1e3] + [s.end_m * 1e3 for s in secs])
+
+
+def joint_section_index(design: RodDesign) -> int:
+    """Index of the joint section in :meth:`RodDesign.sections`."""
+    return next(i for i, s in enumerate(design.sections()) if s.kind == "joints")
+
+
+def tendon_moment_direction(design: RodDesign, loads: Loads) -> tuple[np.ndarray, float]:
+    """Unit in-plane direction toward which the tendons bend the rod, and the tension-weighted sum.
+
+    Returns
+    -------
+    direction : (3,) float, unit, needle frame (``+x`` for tendon 0 at roll 0)
+    magnitude_n : float, N: length of ``Σ λ_j e_j`` (multiplied by a section's arm it is the bending moment)
+    """
+    e = design.tendon_unit_offsets(loads.roll_deg)
+    v = np.asarray(loads.tensions_n) @ e
+    mag = float(np.hypot(v[0], v[1]))
+    if mag == 0.0:
+        return e[0], 0.0
+    return v / mag, mag
+
+
+def arc_path(bounds_mm: np.ndarray, curvature_per_m: np.ndarray, s_mm: np.ndarray,
+             direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact centreline and frames of a rod made of circular arcs (closed form).
+
+    Parameters
+    ----------
+    bounds_mm : (k + 1,) float, mm: section boundaries.
+    curvature_per_m : (..., k) float, 1/m: curvature of each section, bending toward ``direction``.
+    s_mm : (n,) float, mm: where to evaluate.
+    direction : (3,) float, unit, in the x-y plane: the bending direction.
+
+    Returns
+    -------
+    positions_mm : (..., n, 3) float, mm, needle frame
+    frames : (..., n, 3, 3) float: columns ``d1, d2, d3`` (base frame = identity)
+    """
+    kap = np.asarray(curvature_per_m, dtype=float)[..., None, :] * 1e-3  # 1/mm, (..., 1, k)
+    lengths = np.diff(bounds_mm)
+    seg = np.clip(s_mm[:, None] - bounds_mm[None, :-1], 0.0, lengths[None, :])  # (n, k) arc length in section
+    psi_prev = np.cumsum(kap * lengths, axis=-1) - kap * lengths  # (..., 1, k) angle at section start
+    half = 0.5 * kap * seg
+    chord = seg * np.sinc(half / np.pi)
+    lat = np.sum(chord * np.sin(psi_prev + half), axis=-1)  # (..., n)
+    ax = np.sum(chord * np.cos(psi_prev + half), axis=-1)
+    psi = np.sum(kap * seg, axis=-1)
+    pos = lat[..., None] * direction + ax[..., None] * np.array([0.0, 0.0, 1.0])
+    # Rotation by psi about a = z x direction (bends +z toward direction): Rodrigues.
+    a = np.array([-direction[1], direction[0], 0.0])  # z x direction
+    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    sp, cp = np.sin(psi)[..., None, None], np.cos(psi)[..., None, None]
+    frames = np.eye(3) + sp * k + (1.0 - cp) * (k @ k)
+    return pos, frames
+
+
+def _arc_solution(model: str, design: RodDesign, loads: Loads, curv: np.ndarray, t0: float,
+                  step_mm: float) -> RodPath:
+    s = sample_s_mm(design, step_mm)
+    d, _ = tendon_moment_direction(design, loads)
+    pos, frames = arc_path(section_bounds_mm(design), curv, s, d)
+    return RodPath(model, s, pos, frames, 0.0, (time.perf_counter() - t0) * 1e3, 0, loads.tensions_n,
+                   loads.roll_deg)
+
+
+def _arc_batch(model: str, design: RodDesign, tensions_n: np.ndarray, roll_deg: float,
+               curv: np.ndarray) -> RodBatch:
+    bounds = section_bounds_mm(design)
+    d = design.tendon_unit_offsets(roll_deg)[0]
+    pos, _ = arc_path(bounds, curv, bounds[-1:], d)
+    b = len(tensions_n)
+    return RodBatch(model, tensions_n, roll_deg, pos[:, 0], bounds, curv, joint_section_index(design),
+                    np.ones(b, bool), np.zeros(b))
+
+
+def _tensions(tensions_n: np.ndarray) -> np.ndarray:
+    t = np.asarray(tensions_n, dtype=float).ravel()
+    if not np.all(np.isfinite(t)) or np.any(t < 0):
+        raise ValueError("tensions_n must be finite and non-negative")
+    return t
+
+
+@dataclass(frozen=True)
+class ConstantCurvature:
+    """Only the joint section bends, as one circular arc; closed form.
+
+    Parameters
+    ----------
+    step_mm : float
+        Spacing of the returned centreline samples, mm.
+    """
+
+    step_mm: float = DEFAULT_STEP_MM
+    name: ClassVar[str] = "constant_curvature"
+    capabilities: ClassVar[Capabilities] = Capabilities(planar_only=True, twist=False, several_tendons=True,
+                                                        external_load=False, large_deflection=True)
+
+    def curvatures(self, design: RodDesign, moment_factor_n: np.ndarray) -> np.ndarray:
+        """(b, k) float, 1/m: curvature of each section for ``Σλ_j e_j`` magnitudes ``moment_factor_n`` (b,)."""
+        secs = design.sections()
+        c = np.array([s.arm_m / (s.ei1 + s.ei2) if s.kind == "joints" else 0.0 for s in secs])
+        return np.asarray(moment_factor_n, dtype=float)[:, None] * c[None, :]
+
+    def solve(self, design: RodDesign, loads: Loads) -> RodPath:
+        t0 = time.perf_counter()
+        check_loads(self.name, self.capabilities, design, loads)
+        _, mag = tendon_moment_direction(design, loads)
+        return _arc_solution(self.name, design, loads, self.curvatures(design, np.array([mag]))[0], t0, self.step_mm)
+
+    def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch:
+        t = _tensions(tensions_n)
+        return _arc_batch(self.name, design, t, roll_deg, self.curvatures(design, t))
+
+
+CONSTANT_CURVATURE = ConstantCurvature()

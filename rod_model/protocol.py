@@ -1,0 +1,86 @@
+"""The one interface every rod model implements, and what a model can represent.
+
+Built-in models and third-party ones register as plugins of kind ``rod_models`` (entry-point group
+``reachplan.rod_models``); the object an entry point names is an instance implementing :class:`RodModel`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from rod_model.design import Loads, RodDesign
+from rod_model.errors import UnsupportedLoadError
+from rod_model.result import FailedSolve, RodBatch, RodPath
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What a model can represent.
+
+    Parameters
+    ----------
+    planar_only : bool
+        Only shapes in one plane (one pulled tendon direction, loads in that plane).
+    twist : bool
+        Relative twist of stylet and needle.
+    several_tendons : bool
+        Several tendons pulled at once, in different directions.
+    external_load : bool
+        Tip force/moment and distributed loads.
+    large_deflection : bool
+        Geometrically exact (no small-angle assumption).
+    """
+
+    planar_only: bool
+    twist: bool
+    several_tendons: bool
+    external_load: bool
+    large_deflection: bool
+
+
+@runtime_checkable
+class RodModel(Protocol):
+    """A rod model: maps a design and loads to a shape.
+
+    ``solve`` returns a :class:`RodPath`, or a :class:`FailedSolve` when the model could not converge (never a
+    plausible wrong shape); it raises :class:`rod_model.errors.UnsupportedLoadError` for loads outside its
+    ``capabilities``. ``solve_batch`` solves many free-space tensions of tendon 0 at once.
+    """
+
+    @property
+    def name(self) -> str:
+        """Plugin name (``two_tube_cosserat``, ...)."""
+
+    @property
+    def capabilities(self) -> Capabilities:
+        """What the model can represent."""
+
+    def solve(self, design: RodDesign, loads: Loads) -> RodPath | FailedSolve: ...
+
+    def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch: ...
+
+
+def check_rod_model(obj: object) -> None:
+    """Raise ``TypeError`` when ``obj`` does not implement :class:`RodModel` (the registry's check)."""
+    if not isinstance(obj, RodModel):
+        raise TypeError(f"{obj!r} does not implement rod_model.protocol.RodModel (name, capabilities, solve, "
+                        "solve_batch)")
+    if not isinstance(obj.capabilities, Capabilities) or not isinstance(obj.name, str):
+        raise TypeError(f"{obj!r}: name must be a str and capabilities a rod_model.protocol.Capabilities")
+
+
+def check_loads(name: str, caps: Capabilities, design: RodDesign, loads: Loads) -> None:
+    """Raise :class:`UnsupportedLoadError` when ``loads`` do not fit ``design`` or the capabilities ``caps`` of
+    the model called ``name``."""
+    if len(loads.tensions_n) != design.n_tendons:
+        raise UnsupportedLoadError(f"{len(loads.tensions_n)} tensions given for a design with {design.n_tendons} "
+                                   "tendons; give one tension per tendon")
+    if loads.has_external and not caps.external_load:
+        raise UnsupportedLoadError(f"model {name} cannot represent external loads; use cosserat_rod or "
+                                   "two_tube_cosserat")
+    if not caps.several_tendons and sum(t > 0 for t in loads.tensions_n) > 1:
+        raise UnsupportedLoadError(f"model {name} represents one pulled tendon at a time; use "
+                                   "cosserat_rod or two_tube_cosserat")

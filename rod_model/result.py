@@ -1,0 +1,218 @@
+"""What a rod model returns: a solved shape, a failure with its reason, or a batch of solves.
+
+Every position is in millimetres in the needle's own frame (base at the origin, unactuated axis ``+z``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _frozen(a: np.ndarray | list[float] | tuple[float, ...], shape_tail: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    if arr.shape[1:] != shape_tail or arr.ndim != 1 + len(shape_tail):
+        raise ValueError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))}), got {arr.shape}"
+                         if shape_tail else f"{name} must be one-dimensional, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} holds non-finite values")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class RodPath:
+    """A converged solve.
+
+    Parameters
+    ----------
+    model : str
+        Name of the model that produced it (``two_tube_cosserat``, ...).
+    s_mm : (n,) float, mm
+        Arc length from the base, increasing, ``s_mm[0] == 0``.
+    positions_mm : (n, 3) float, mm, needle frame
+        Centreline.
+    frames : (n, 3, 3) float
+        Orientation of the stylet's cross-section: columns are the directors ``d1, d2, d3`` in the needle
+        frame (``d3`` the tangent).
+    residual : float
+        Boundary-condition residual of the solve, N (0 for closed forms).
+    solve_ms : float
+        Wall time of the solve, ms.
+    iterations : int
+        Solver iterations (0 for closed forms).
+    tensions_n : tuple of float
+        Tendon tensions solved for.
+    roll_deg : float
+        Roll solved for.
+    twist_rad : (n,) float or None
+        Relative twist of needle against stylet (two-tube model only).
+    """
+
+    model: str
+    s_mm: np.ndarray
+    positions_mm: np.ndarray
+    frames: np.ndarray
+    residual: float
+    solve_ms: float
+    iterations: int
+    tensions_n: tuple[float, ...]
+    roll_deg: float
+    twist_rad: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        s = _frozen(self.s_mm, (), "s_mm")
+        object.__setattr__(self, "s_mm", s)
+        object.__setattr__(self, "positions_mm", _frozen(self.positions_mm, (3,), "positions_mm"))
+        object.__setattr__(self, "frames", _frozen(self.frames, (3, 3), "frames"))
+        if len(s) < 2 or len(self.positions_mm) != len(s) or len(self.frames) != len(s):
+            raise ValueError("s_mm, positions_mm and frames must have the same length n >= 2")
+        if np.any(np.diff(s) <= 0):
+            raise ValueError("s_mm must be strictly increasing")
+        if self.twist_rad is not None:
+            tw = _frozen(self.twist_rad, (), "twist_rad")
+            if len(tw) != len(s):
+                raise ValueError("twist_rad must have the same length as s_mm")
+            object.__setattr__(self, "twist_rad", tw)
+
+    converged = True
+
+    def __bool__(self) -> bool:
+        return True
+
+    @property
+    def tip_position_mm(self) -> np.ndarray:
+        """(3,) float, mm, needle frame: the tip."""
+        return self.positions_mm[-1]
+
+    @property
+    def tip_deflection_mm(self) -> float:
+        """Lateral distance of the tip from the unactuated tip (perpendicular to the base axis ``z``), mm."""
+        return float(np.hypot(self.positions_mm[-1, 0], self.positions_mm[-1, 1]))
+
+    def to_json(self) -> dict[str, object]:
+        """Plain JSON-able summary (positions rounded to 1 nm)."""
+        return {
+            "model": self.model,
+            "converged": True,
+            "tensions_n": list(self.tensions_n),
+            "roll_deg": self.roll_deg,
+            "tip_deflection_mm": round(self.tip_deflection_mm, 6),
+            "tip_position_mm": [round(float(x), 6) for x in self.tip_position_mm],
+            "residual": self.residual,
+            "solve_ms": round(self.solve_ms, 4),
+            "iterations": self.iterations,
+            "s_mm": [round(float(x), 6) for x in self.s_mm],
+            "positions_mm": np.round(self.positions_mm, 6).tolist(),
+        }
+
+
+@dataclass(frozen=True)
+class FailedSolve:
+    """A solve that did not converge: falsy, with the reason (never a plausible wrong shape).
+
+    Parameters
+    ----------
+    model : str
+    reason : str
+        One line: what failed (e.g. ``"shooting residual 3.1e-02 N after 30 iterations"``).
+    residual : float
+        Best boundary-condition residual reached, N (``inf`` if none).
+    solve_ms : float
+    tensions_n : tuple of float
+    roll_deg : float
+    """
+
+    model: str
+    reason: str
+    residual: float
+    solve_ms: float
+    tensions_n: tuple[float, ...]
+    roll_deg: float
+
+    converged = False
+
+    def __bool__(self) -> bool:
+        return False
+
+    def to_json(self) -> dict[str, object]:
+        """Plain JSON-able summary."""
+        return {"model": self.model, "converged": False, "reason": self.reason,
+                "residual": self.residual if np.isfinite(self.residual) else None,
+                "solve_ms": round(self.solve_ms, 4), "tensions_n": list(self.tensions_n), "roll_deg": self.roll_deg}
+
+
+@dataclass(frozen=True, eq=False)
+class RodBatch:
+    """Many free-space solves of one design at once (what an insertion model integrates).
+
+    Parameters
+    ----------
+    model : str
+    tensions_n : (b,) float, N
+        Tension on tendon 0 for each solve.
+    roll_deg : float
+    tip_positions_mm : (b, 3) float, mm, needle frame (rows of failed solves are NaN).
+    section_bounds_mm : (k + 1,) float, mm
+        Arc-length boundaries of the design's sections (see :meth:`RodDesign.sections`).
+    section_curvature_per_m : (b, k) float, 1/m
+        Mean curvature of each section: angle between the tangents at its ends over its length (exact for
+        a section of constant curvature, as every section is in free space).
+    joint_section : int
+        Index of the joint section among the ``k`` sections.
+    converged : (b,) bool
+    residual : (b,) float, N
+    """
+
+    model: str
+    tensions_n: np.ndarray
+    roll_deg: float
+    tip_positions_mm: np.ndarray
+    section_bounds_mm: np.ndarray
+    section_curvature_per_m: np.ndarray
+    joint_section: int
+    converged: np.ndarray
+    residual: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("tensions_n", "tip_positions_mm", "section_bounds_mm", "section_curvature_per_m",
+                     "converged", "residual"):
+            a = np.array(getattr(self, name))
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+        b = len(self.tensions_n)
+        k = len(self.section_bounds_mm) - 1
+        if (self.tip_positions_mm.shape != (b, 3) or self.section_curvature_per_m.shape != (b, k)
+                or self.converged.shape != (b,) or self.residual.shape != (b,)):
+            raise ValueError("RodBatch arrays must have b rows matching tensions_n and k matching the sections")
+
+    @property
+    def tip_deflection_mm(self) -> np.ndarray:
+        """(b,) float, mm: lateral tip distance from the unactuated tip."""
+        return np.hypot(self.tip_positions_mm[:, 0], self.tip_positions_mm[:, 1])
+
+    @property
+    def joint_curvature_per_m(self) -> np.ndarray:
+        """(b,) float, 1/m: mean curvature of the joint section."""
+        return self.section_curvature_per_m[:, self.joint_section]
+
+
+def section_curvatures(frames: np.ndarray, s_mm: np.ndarray, bounds_mm: np.ndarray) -> np.ndarray:
+    """Mean curvature (1/m) of each section from the tangents at its ends.
+
+    Parameters
+    ----------
+    frames : (..., n, 3, 3) float
+    s_mm : (n,) float, mm
+    bounds_mm : (k + 1,) float, mm (each bound must be one of ``s_mm``)
+
+    Returns
+    -------
+    (..., k) float, 1/m
+    """
+    idx = np.searchsorted(s_mm, bounds_mm - 1e-9)
+    t = frames[..., idx, :, 2]
+    cos = np.clip(np.sum(t[..., :-1, :] * t[..., 1:, :], axis=-1), -1.0, 1.0)
+    sin = np.linalg.norm(np.cross(t[..., :-1, :], t[..., 1:, :]), axis=-1)
+    return np.arctan2(sin, cos) / (np.diff(bounds_mm) * 1e-3)

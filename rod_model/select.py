@@ -1,0 +1,119 @@
+"""Look up rod models by name, and pick the cheapest one whose *measured* error fits a tolerance.
+
+The error table is package data (``rod_model/model_errors.json``) written by ``reachplan bench models``
+(``benchmarks/rod_models.py``): for every model and resolution, the largest tip error against a converged
+two-tube reference over the benchmark grid of presets × tensions (0-15 N), and the measured time per solve.
+Nothing in it is guessed; re-run the benchmark to refresh it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cache
+from importlib import resources
+from typing import Any
+
+from plugins import registry
+from plugins.errors import PluginError
+from rod_model.errors import NoModelWithinToleranceError, RodModelError
+from rod_model.protocol import RodModel
+
+ERROR_TABLE = "model_errors.json"
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What a solve has to represent.
+
+    Parameters
+    ----------
+    planar : bool
+        One pulled tendon direction, no out-of-plane load.
+    twist : bool
+        Relative twist of stylet and needle matters (torsional loads).
+    external_load : bool
+        Tip force/moment or distributed load.
+    """
+
+    planar: bool = True
+    twist: bool = False
+    external_load: bool = False
+
+
+@dataclass(frozen=True)
+class ErrorRow:
+    """One row of the benchmark's error table.
+
+    ``resolution`` is ``"default"`` for the configuration registered as the plugin (the one the selector can
+    return); other rows (coarser or finer steps) are there for the chart.
+
+    ``max_tip_error_mm`` is the worst tip error against the reference over the grid; ``median_ms`` the median
+    wall time of one solve; ``batched_solves_per_s`` the throughput of ``solve_batch``.
+    """
+
+    model: str
+    resolution: str
+    max_tip_error_mm: float
+    median_ms: float
+    batched_solves_per_s: float | None
+    success_rate: float
+
+
+@cache
+def error_table() -> tuple[ErrorRow, ...]:
+    """The rows of the packaged error table."""
+    try:
+        text = resources.files("rod_model").joinpath(ERROR_TABLE).read_text(encoding="utf-8")
+        doc = json.loads(text)
+        return tuple(ErrorRow(**row) for row in doc["rows"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise RodModelError(f"rod-model error table {ERROR_TABLE} is missing or unreadable ({exc}); "
+                            "run `reachplan bench models --out DIR --install` from a source checkout") from None
+
+
+def get_model(name: str) -> RodModel:
+    """The rod-model plugin called ``name`` (entry-point group ``reachplan.rod_models``)."""
+    model: Any = registry.get("rod_models", name)
+    return model
+
+
+def select_model(tolerance_mm: float, scene: Scene, rows: tuple[ErrorRow, ...] | None = None, *,
+                 batched: bool = False) -> str:
+    """Name of the cheapest installed model able to represent ``scene`` whose measured tip error is within
+    ``tolerance_mm``: cheapest by the median time of one ``solve``, or with ``batched`` by the throughput of
+    ``solve_batch`` (what a planner screening many candidates pays).
+
+    The errors are measured in free space over the benchmark grid; for a scene with external loads or twist
+    only the Cosserat models qualify by their capabilities, and their tabulated error is then their numerical
+    error against the converged reference.
+
+    Raises
+    ------
+    NoModelWithinToleranceError
+        When no model qualifies (the message gives the best error available).
+    """
+    if not tolerance_mm > 0:
+        raise ValueError(f"tolerance_mm must be positive, got {tolerance_mm}")
+    rows = error_table() if rows is None else rows
+    best: tuple[float, str] | None = None
+    for row in rows:
+        if row.resolution != "default" or row.success_rate < 1.0 or row.max_tip_error_mm > tolerance_mm:
+            continue
+        try:
+            caps = get_model(row.model).capabilities
+        except PluginError:
+            continue
+        if (not scene.planar and caps.planar_only) or (scene.twist and not caps.twist) or (
+                scene.external_load and not caps.external_load):
+            continue
+        cost = row.median_ms
+        if batched:
+            cost = 1e3 / row.batched_solves_per_s if row.batched_solves_per_s else float("inf")
+        if best is None or cost < best[0]:
+            best = (cost, row.model)
+    if best is None:
+        floor = min((r.max_tip_error_mm for r in rows), default=float("nan"))
+        raise NoModelWithinToleranceError(f"no rod model is within {tolerance_mm} mm (best measured {floor:.3g} mm);"
+                                          " raise --tolerance or use two_tube_cosserat")
+    return best[1]

@@ -1,0 +1,107 @@
+"""Device instructions (JSON and CSV per needle): resampled schedules checked against hand interpolation."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plugins.exporters.base import ExportError, ExportOptions, ExportPlan, NeedleExport, check_exporter
+from plugins.exporters.device import CSV_EXPORTER, JSON_EXPORTER, schedule_rows
+
+
+def _by_hand(depth: float) -> tuple[float, float]:
+    """Tension and roll of the test schedule (0,0,0) (40,0,0) (80,9.9,90) (110,9.9,90) at ``depth``."""
+    if depth <= 40.0:
+        return 0.0, 0.0
+    if depth <= 80.0:
+        f = (depth - 40.0) / 40.0
+        return 9.9 * f, 90.0 * f
+    return 9.9, 90.0
+
+
+def test_rows_follow_the_breakpoints_piecewise_linearly(make_plan: Callable[..., ExportPlan]) -> None:
+    needle = make_plan().needles[0]
+    rows = schedule_rows(needle, 5.0)
+    assert rows[0, 0] == 0.0 and rows[-1, 0] == pytest.approx(needle.length_mm)
+    assert needle.length_mm > 120.0  # the bent needle is longer than its 120 mm chord along z
+    np.testing.assert_allclose(np.diff(rows[:-1, 0]), 5.0)
+    assert 0 < rows[-1, 0] - rows[-2, 0] <= 5.0
+    for d, t, r in rows:
+        assert (t, r) == pytest.approx(_by_hand(d), abs=1e-12)
+    # a finer step passes through the same values at the shared depths
+    fine = schedule_rows(needle, 1.0)
+    shared = np.isin(np.round(fine[:, 0], 9), np.round(rows[:, 0], 9))
+    np.testing.assert_allclose(fine[shared], rows, atol=1e-12)
+
+
+def test_json_document(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:
+    plan = make_plan()
+    out = JSON_EXPORTER.export(plan, tmp_path, ExportOptions(step_mm=2.5))
+    doc = json.loads(out.path("device_json").read_text(encoding="utf-8"))
+    assert doc["format"] == "reachplan-device/1" and doc["step_mm"] == 2.5
+    assert [n["hole_id"] for n in doc["needles"]] == [n.hole_id for n in plan.needles]
+    assert "Doe" not in out.path("device_json").read_text(encoding="utf-8")  # no patient identity
+    for entry, needle in zip(doc["needles"], plan.needles, strict=True):
+        assert entry["stylet_preset"] == "15ga_20j_tip"
+        assert entry["insertion_depth_mm"] == pytest.approx(needle.length_mm, abs=1e-3)
+        for row in entry["rows"]:
+            t, r = _by_hand(row["depth_mm"])
+            assert row["tension_n"] == pytest.approx(t, abs=1e-3) and row["roll_deg"] == pytest.approx(r, abs=1e-3)
+        assert len(entry["rows"]) == int(np.ceil(needle.length_mm / 2.5 - 1e-9)) + 1
+
+
+def test_csv_per_needle_matches_json(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:
+    plan = make_plan()
+    out = CSV_EXPORTER.export(plan, tmp_path)
+    assert len(out.files) == len(plan.needles)
+    for f, needle in zip(out.files, plan.needles, strict=True):
+        assert f.path.name == f"PrePlan1_needle_{needle.hole_id}.csv"
+        with f.path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+        assert {r["hole_id"] for r in rows} == {needle.hole_id}
+        got = np.array([[float(r["depth_mm"]), float(r["tension_n"]), float(r["roll_deg"])] for r in rows])
+        np.testing.assert_allclose(got, schedule_rows(needle, 5.0), atol=1e-3)
+
+
+def test_needle_without_schedule_is_straight_and_noted(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:
+    n0 = make_plan().needles[0]
+    plain = NeedleExport("D4", n0.path_mm, n0.dwell_positions_mm, n0.dwell_times_s)
+    out = CSV_EXPORTER.export(make_plan(needles=(plain,)), tmp_path)
+    assert any("D4" in n and "straight" in n for n in out.notes)
+    assert np.all(schedule_rows(plain, 5.0)[:, 1:] == 0.0)
+
+
+def test_colliding_safe_names_and_existing_files_are_refused(make_plan: Callable[..., ExportPlan],
+                                                             tmp_path: Path) -> None:
+    n0 = make_plan().needles[0]
+    twins = tuple(NeedleExport(h, n0.path_mm, n0.dwell_positions_mm, n0.dwell_times_s) for h in ("A/1", "A_1"))
+    with pytest.raises(ExportError, match="two outputs"):
+        CSV_EXPORTER.export(make_plan(needles=twins), tmp_path)
+    assert not list(tmp_path.iterdir())
+    JSON_EXPORTER.export(make_plan(), tmp_path)
+    with pytest.raises(ExportError, match="exists"):
+        JSON_EXPORTER.export(make_plan(), tmp_path)
+
+
+def test_schedule_validation() -> None:
+    path = np.column_stack([np.zeros(3), np.zeros(3), [0.0, 50.0, 100.0]])
+    with pytest.raises(ValueError, match="increase strictly"):
+        NeedleExport("A1", path, path[1:2], [1.0], schedule=[[0, 0, 0], [0, 1, 0]])
+    with pytest.raises(ValueError, match="tension"):
+        NeedleExport("A1", path, path[1:2], [1.0], schedule=[[0, -1, 0]])
+    with pytest.raises(ValueError, match="off the needle path"):
+        NeedleExport("A1", path, path[1:2] + np.array([2.0, 0.0, 0.0]), [1.0])
+    with pytest.raises(ValueError, match="dwell times"):
+        NeedleExport("A1", path, path[1:2], [-1.0])
+    with pytest.raises(ValueError, match="hole_id"):
+        NeedleExport("A" * 17, path, path[1:2], [1.0])
+
+
+def test_device_exporters_pass_their_protocol_check() -> None:
+    check_exporter(JSON_EXPORTER)
+    check_exporter(CSV_EXPORTER)
