@@ -1,0 +1,87 @@
+"""Insertion models against closed forms, limits and a finer discretisation of themselves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planner.errors import PlanInputError
+from planner.insertion import KinematicInsertion, TissueBeamInsertion, curvature_table, fit_tissue_factor
+from planner.schedule import TensionSchedule
+from rod_model.design import preset
+
+
+@pytest.fixture(scope="module")
+def design():  # type: ignore[no-untyped-def]
+    return preset("15ga-20j-tip")
+
+
+def test_kinematic_constant_tension_cuts_a_circular_arc(design) -> None:  # type: ignore[no-untyped-def]
+    model = KinematicInsertion(tissue_factor=0.7, step_mm=2.0)
+    path = model.insert_array(design, [TensionSchedule.constant(8.0)], 120.0)[0]
+    kappa = 0.7 * curvature_table(design).joint(np.array([8.0]))[0]
+    s = np.linspace(0.0, 120.0, len(path))
+    expected = np.column_stack([(1 - np.cos(kappa * s)) / kappa, np.zeros_like(s), np.sin(kappa * s) / kappa])
+    np.testing.assert_allclose(path, expected, atol=1e-9)
+
+
+def test_kinematic_roll_and_zero_tension(design) -> None:  # type: ignore[no-untyped-def]
+    paths = KinematicInsertion().insert_array(
+        design, [TensionSchedule.constant(0.0), TensionSchedule.constant(6.0, 90.0)], 100.0)
+    np.testing.assert_allclose(paths[0][:, :2], 0.0, atol=1e-12)
+    assert paths[1][-1, 1] > 5.0 and abs(paths[1][-1, 0]) < 1e-9
+
+
+def test_tissue_beam_in_a_vanishing_medium_takes_the_free_space_shape(design) -> None:  # type: ignore[no-untyped-def]
+    depth, tension = 150.0, 1.0  # small load: the small-deflection closed form holds
+    model = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model="planar_beam", grid_mm=0.5, step_mm=10.0)
+    tip = model.insert_one(design, TensionSchedule.constant(tension), depth)[-1]
+    table = curvature_table(design, "planar_beam")
+    kap = table.sections(tension)
+    a = design.length_mm - depth  # needle arc length at the template
+    joint0 = table.section_bounds_mm[table.joint_section] - a  # depth where the joint section starts
+    # small-deflection closed form: w(L) = integral of (L - s) kappa(s) ds
+    expected = kap[0] * (depth * joint0 - joint0**2 / 2) + kap[table.joint_section] * (depth - joint0) ** 2 / 2
+    assert tip[0] == pytest.approx(expected, rel=2e-3)
+    assert tip[1] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_tissue_beam_converges_under_refinement(design) -> None:  # type: ignore[no-untyped-def]
+    sch = TensionSchedule.ramp(30.0, 20.0, 8.0, roll_deg=30.0)
+    tips = {h: TissueBeamInsertion(rod_model="planar_beam", grid_mm=h, step_mm=h).insert_one(design, sch, 120.0)[-1]
+            for h in (2.0, 1.0, 0.5, 0.25)}
+    e = [np.linalg.norm(tips[h] - tips[0.25]) for h in (2.0, 1.0, 0.5)]
+    assert e[1] < 0.6 * e[0] and e[2] < 0.6 * e[1]  # converging, at least first order in the grid/step
+    assert e[2] < 1.0  # mm, at the default's twice coarser grid
+    direction = tips[0.25][:2] / np.linalg.norm(tips[0.25][:2])
+    np.testing.assert_allclose(direction, [np.cos(np.radians(30)), np.sin(np.radians(30))], atol=1e-9)
+
+
+def test_tissue_beam_straight_without_tension(design) -> None:  # type: ignore[no-untyped-def]
+    path = TissueBeamInsertion(rod_model="planar_beam").insert_one(design, TensionSchedule.constant(0.0), 100.0)
+    np.testing.assert_allclose(path[:, :2], 0.0, atol=1e-12)
+
+
+def test_stiffer_tissue_holds_the_needle_closer_to_its_track(design) -> None:  # type: ignore[no-untyped-def]
+    sch = TensionSchedule.constant(10.0)
+    soft = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model="planar_beam", step_mm=5.0)
+    gel = TissueBeamInsertion(rod_model="planar_beam", step_mm=5.0)
+    # the gel accumulates curvature along the track; free space bends only the distal section
+    assert gel.insert_one(design, sch, 150.0)[-1, 0] > soft.insert_one(design, sch, 150.0)[-1, 0]
+
+
+def test_default_tissue_factor_matches_its_fit(design) -> None:  # type: ignore[no-untyped-def]
+    schedules = [TensionSchedule.ramp(o, 20.0, t) for o, t in ((0.0, 10.0), (40.0, 10.0), (20.0, 5.0))]
+    ref = TissueBeamInsertion(rod_model="planar_beam", grid_mm=0.5, step_mm=0.5)
+    factor, err = fit_tissue_factor(design, schedules, 150.0, ref)
+    assert factor == pytest.approx(KinematicInsertion().tissue_factor, abs=0.05)
+    assert np.all(err < 2.0)
+
+
+def test_bad_inputs_are_typed_errors(design) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(PlanInputError):
+        KinematicInsertion().insert_array(design, [TensionSchedule.constant(50.0)], 100.0)
+    with pytest.raises(PlanInputError):
+        TissueBeamInsertion().insert_one(design, TensionSchedule.constant(1.0), 500.0)
+    with pytest.raises(ValueError, match="only pulls"):
+        TensionSchedule.constant(-1.0)
