@@ -8,6 +8,7 @@ import numpy as np
 
 from planner.collision import Organ, check_path
 from planner.ranking import Candidate, Target
+from planner.schedule import TensionSchedule
 
 
 def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float) -> np.ndarray:
@@ -28,20 +29,30 @@ def score_path(
     steered: bool = False,
     peak_tension_n: float = 0.0,
     reason: str = "",
+    design: str = "",
+    schedule: TensionSchedule | None = None,
+    depth_mm: float | None = None,
+    check: bool = True,
 ) -> Candidate:
-    """Score one predicted path: reach error at the target, clearance and collisions against ``organs``."""
+    """Score one predicted path: reach error at the target, clearance and collisions against ``organs``.
+
+    ``depth_mm`` is the inserted arc length (default: the polyline's length); ``check=False`` skips the
+    collision check (clearance NaN) for a candidate that does not reach anyway.
+    """
     tip = path_mm[-1]
     reach = float(np.linalg.norm(tip - np.asarray(target.position_mm)))
-    depth = float(np.sum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1)))
-    checks = check_path(path_mm, needle_radius_mm, tuple(organs))
+    depth = float(np.sum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1))) if depth_mm is None else depth_mm
+    checks = check_path(path_mm, needle_radius_mm, tuple(organs)) if check else ()
     hits = sorted((c for c in checks if c.collides), key=lambda c: (c.contact_s_mm or 0.0, c.organ))
     if hits:
         clearance, organ = 0.0, hits[0].organ
     elif checks:
         nearest = min(checks, key=lambda c: (c.clearance_mm, c.organ))
         clearance, organ = nearest.clearance_mm, nearest.organ
-    else:
+    elif check:
         clearance, organ = float("inf"), ""
+    else:
+        clearance, organ = float("nan"), ""
     reaches = reach <= reach_tolerance_mm
     reasons = [reason] if reason else []
     if hits:
@@ -52,7 +63,7 @@ def score_path(
         target=target.name, hole_id=hole_id, hole_distance_mm=hole_distance_mm, reach_error_mm=reach,
         clearance_mm=clearance, closest_organ=organ, insertion_depth_mm=depth, steered=steered,
         peak_tension_n=peak_tension_n, model=model, collides=bool(hits), reaches=reaches,
-        reason="; ".join(reasons), path_mm=path_mm,
+        reason="; ".join(reasons), path_mm=path_mm, design=design, schedule=schedule,
     )
 
 

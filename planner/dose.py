@@ -170,9 +170,11 @@ class Tg43Kernel:
         gfac /= y  # β / y ; divided by L and G0 in the constant below
         ac += one
         np.divide(s, ac, out=s)
-        th = np.arctan(s, out=s)  # half the angle to the nearer axis direction
-        th *= dtype(2.0 * 180.0 / (math.pi * DTHETA_DEG))
-        np.subtract(dtype(180.0 / DTHETA_DEG), th, out=th, where=c < 0)
+        phi = np.arctan(s, out=s)  # α/2, α = angle to the nearer axis direction (tan α/2 = sin α/(1+cos α))
+        phi *= dtype(-2.0 * 180.0 / (math.pi * DTHETA_DEG))
+        phi += dtype(90.0 / DTHETA_DEG)  # 90° − α, in table steps
+        th = np.copysign(phi, c, out=phi)
+        np.subtract(dtype(90.0 / DTHETA_DEG), th, out=th)  # θ = 90° − sign(cos θ)·(90° − α)
         nt = self._table.shape[1]
         t0 = np.minimum(th.astype(np.intp), nt - 2)
         ft = th
@@ -382,11 +384,22 @@ def _check_sk(sk: float) -> None:
         raise ValueError(f"air-kerma strength must be positive and finite (U), got {sk}")
 
 
-def grid_points_mm(grid: Grid) -> np.ndarray:
-    """(nk·nj·ni, 3) float, mm, LPS: voxel centres in array (k, j, i) C order."""
-    nk, nj, ni = grid.shape
-    k, j, i = np.meshgrid(np.arange(nk), np.arange(nj), np.arange(ni), indexing="ij")
-    return grid.to_patient(np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1))
+def grid_points_mm(grid: Grid, flat_index: np.ndarray | None = None) -> np.ndarray:
+    """Voxel centres, float, mm, LPS.
+
+    Parameters
+    ----------
+    grid : Grid
+    flat_index : (n,) int, optional
+        Indices into the C-ordered (k, j, i) array; default all voxels.
+
+    Returns
+    -------
+    (n, 3) float, mm, LPS (n = nk·nj·ni without ``flat_index``)
+    """
+    flat = np.arange(int(np.prod(grid.shape))) if flat_index is None else np.asarray(flat_index)
+    k, j, i = np.unravel_index(flat, grid.shape)
+    return grid.to_patient(np.stack([i, j, k], axis=1))
 
 
 def dose_on_grid(
@@ -560,10 +573,16 @@ def get_source(name: str) -> SourceData:
 
 
 def recognise_source(*labels: str) -> str | None:
-    """Name of the built-in source whose alias occurs in one of ``labels`` (DICOM strings), else None."""
+    """Name of the source (built-in or installed plugin) whose alias occurs in one of ``labels``.
+
+    ``labels`` are DICOM strings (Source Isotope Name, Source Model ID, Treatment Machine Name); they and
+    the aliases are compared without case, spaces, dashes, underscores or dots. None when no alias matches.
+    """
+    from plugins import registry
+
     norm = [normalise_label(x) for x in labels if x]
-    for name, loader in BUILTIN.items():
-        if any(alias in text for alias in loader().aliases for text in norm):
+    for name in dict.fromkeys([*BUILTIN, *registry.names("sources")]):
+        if any(alias in text for alias in get_source(name).aliases for text in norm):
             return name
     return None
 

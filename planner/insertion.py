@@ -185,6 +185,8 @@ class KinematicInsertion:
             raise PlanInputError(f"a schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
         kappa = self.tissue_factor * table.joint(tension)  # (S, n+1), 1/mm
         phi = np.radians(roll)
+        if np.all(np.ptp(phi, axis=1) == 0.0):
+            return _planar_paths(kappa, phi[:, 0], h)
         s_count = len(schedules)
         pos = np.zeros((s_count, n + 1, 3))
         t = np.tile([0.0, 0.0, 1.0], (s_count, 1))
@@ -202,6 +204,18 @@ class KinematicInsertion:
             e1 = _rotate(e1, axis, km * h)  # parallel transport of the reference normal
             t = t_new
         return pos
+
+
+def _planar_paths(kappa: np.ndarray, phi: np.ndarray, h: float) -> np.ndarray:
+    """Tip-following paths of constant roll: the tangent angle is the running integral of the curvature,
+    each step an exact circular arc (chord along the mid-step tangent). (S, n+1, 3) float, mm."""
+    km = 0.5 * (kappa[:, 1:] + kappa[:, :-1])  # (S, n)
+    theta = np.concatenate([np.zeros((len(km), 1)), np.cumsum(km * h, axis=1)], axis=1)
+    mid = theta[:, :-1] + 0.5 * km * h
+    chord = h * np.sinc(0.5 * km * h / np.pi)
+    lateral = np.concatenate([np.zeros((len(km), 1)), np.cumsum(chord * np.sin(mid), axis=1)], axis=1)
+    axial = np.concatenate([np.zeros((len(km), 1)), np.cumsum(chord * np.cos(mid), axis=1)], axis=1)
+    return np.stack([lateral * np.cos(phi)[:, None], lateral * np.sin(phi)[:, None], axial], axis=-1)
 
 
 def winkler_modulus_pa(design: RodDesign, tissue_modulus_pa: float = SIMUGEL_MODULUS_PA,

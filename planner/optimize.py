@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 from scipy import optimize as sopt
+from scipy import sparse
 
 from imaging.types import Grid
 from planner.coverage import (
@@ -99,7 +100,9 @@ EMBRACE_II_OAR_D2CC: tuple[tuple[str, float], ...] = (
 class Aims:
     """Coverage aim and organ limits (EQD2, totals with the external-beam course).
 
-    Defaults: EMBRACE II (see the module docstring).
+    Defaults: EMBRACE II (see the module docstring). The prescription (V100) and ``aim_met`` use the D90
+    aim; the D98 aim is carried for reports. Organ limits match organ names case-insensitively, also as
+    a substring (``"Bladder_P"`` gets the bladder limit); organs without a limit are reported only.
     """
 
     target_d90_eqd2_gy: float = 85.0
@@ -230,13 +233,15 @@ class _Problem:
 def _build(
     dwells: DwellSet, structures: PlanningStructures, kernel: Tg43Kernel, sk: float, settings: OptimizerSettings
 ) -> _Problem:
-    pts = grid_points_mm(structures.grid)
     to_gy_per_s = sk / 360000.0
 
     def rates(idx: np.ndarray) -> np.ndarray:
-        if len(dwells) == 0:
-            return np.zeros((len(idx), 0))
-        return rate_matrix(pts[idx], dwells.positions_mm, dwells.directions, kernel) * to_gy_per_s
+        out = np.zeros((len(idx), len(dwells)))
+        step = max(1, (1 << 18) // max(len(dwells), 1))  # bounded temporaries (~30 MB)
+        for s0 in range(0, len(idx) if len(dwells) else 0, step):
+            pts = grid_points_mm(structures.grid, idx[s0 : s0 + step])
+            out[s0 : s0 + step] = rate_matrix(pts, dwells.positions_mm, dwells.directions, kernel)
+        return out * to_gy_per_s
 
     t_idx = np.flatnonzero(structures.target.mask.ravel())
     a_t = rates(t_idx)
@@ -261,17 +266,17 @@ def _solve_lp(
     # variables x = [t (n), u (m)]
     # objective: mean underdose + ε · mean target dose (both Gy), so ε is unit-free
     c = np.concatenate([settings.time_weight * at.mean(axis=0), np.full(m, 1.0 / m)])
-    rows = [np.hstack([-at, -np.eye(m)])]
+    rows = [sparse.hstack([sparse.csr_matrix(-at), -sparse.identity(m, format="csr")])]
     rhs = [np.full(m, -prescription)]
     for a, lp_rows, limit, free in zip(prob.a_oar, prob.lp_oar_rows, limits, released, strict=True):
         if limit is None:
             continue
         keep = np.setdiff1d(lp_rows, free, assume_unique=False)
         if len(keep):
-            rows.append(np.hstack([a[keep][:, cols], np.zeros((len(keep), m))]))
+            rows.append(sparse.hstack([sparse.csr_matrix(a[keep][:, cols]), sparse.csr_matrix((len(keep), m))]))
             rhs.append(np.full(len(keep), limit))
     res = sopt.linprog(
-        c, A_ub=np.vstack(rows), b_ub=np.concatenate(rhs), bounds=(0, None), method="highs",
+        c, A_ub=sparse.vstack(rows, format="csr"), b_ub=np.concatenate(rhs), bounds=(0, None), method="highs",
     )
     if res.status != 0 or res.x is None:
         return None, f"linear programme did not solve: {res.message}"

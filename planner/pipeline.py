@@ -6,6 +6,7 @@ arguments, calls these and writes files.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -14,12 +15,16 @@ import trimesh
 from tqdm import tqdm
 
 from imaging.types import Grid, StructureSet
-from planner.candidates import straight_candidates
+from planner.candidates import score_path, straight_candidates
 from planner.collision import Organ, make_organ
 from planner.errors import PlanInputError
-from planner.ranking import Candidate, Target, rank
+from planner.insertion import TISSUE_BEAM
+from planner.ranking import Candidate, RankWeights, Target, pareto_front, rank
+from planner.schedule import TensionSchedule
+from planner.steering import ScheduleFamily, match_targets, place, refine_with, shape_bank
 from planner.template import Template, check_rigid, hole_frames, pose_from_obturator
 from plugins import registry
+from rod_model.design import RodDesign, preset
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
@@ -36,6 +41,11 @@ class PlanConfig:
     target point. ``max_depth_mm``: free length of the needle beyond the template (reference: about 200 mm).
     ``obturator_depth_mm``: how far the obturator tip lies beyond the template plane, used to place the
     template from an ``Obturator`` ROI when no pose is given.
+    ``designs``: stylet presets to steer with (empty: straight needles only; the pilot study used
+    15ga-30j-tip). ``family``: the schedules screened per design. ``alternatives``: reaching schedules tried
+    per hole before a steered candidate is declared colliding. ``refine_top``: feasible steered candidates
+    per target re-solved with the reference insertion model (tissue-embedded beam, two-tube Cosserat
+    curvatures); the others keep the screening model's numbers, and every candidate names its model.
     """
 
     template: str = "needlefinder_syed_63"
@@ -44,6 +54,11 @@ class PlanConfig:
     max_depth_mm: float = 200.0
     oar_names: tuple[str, ...] = DEFAULT_OARS
     obturator_depth_mm: float = 60.0
+    designs: tuple[str, ...] = ("15ga-30j-tip",)
+    family: ScheduleFamily = field(default_factory=ScheduleFamily)
+    alternatives: int = 8
+    refine_top: int = 1
+    weights: RankWeights = field(default_factory=RankWeights)
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
@@ -75,11 +90,26 @@ class PlanResult:
     ranking: dict[str, tuple[Candidate, ...]]
     config: PlanConfig
 
+    def rerank(self, weights: RankWeights) -> PlanResult:
+        """The same candidates in the order of other weights (nothing is re-solved)."""
+        return PlanResult(self.candidates, rank(self.candidates, weights), dataclasses.replace(self.config,
+                                                                                              weights=weights))
+
+    def best(self, target: str, steered: bool) -> Candidate | None:
+        """The best-ranked feasible straight (or steered) candidate of a target, if any."""
+        return next((c for c in self.ranking[target] if c.feasible and c.steered == steered), None)
+
     def to_json(self) -> dict[str, object]:
-        return {
-            "config": {k: getattr(self.config, k) for k in self.config.__dataclass_fields__},
-            "targets": {t: [c.to_json() for c in cs] for t, cs in self.ranking.items()},
-        }
+        targets: dict[str, object] = {}
+        for t, cands in self.ranking.items():
+            front = {id(c) for c in pareto_front(cands)}
+            straight, steered = self.best(t, False), self.best(t, True)
+            targets[t] = {
+                "best_straight": None if straight is None else straight.to_json(),
+                "best_steered": None if steered is None else steered.to_json(),
+                "candidates": [{**c.to_json(), "pareto": id(c) in front} for c in cands],
+            }
+        return {"config": dataclasses.asdict(self.config), "targets": targets}
 
 
 def load_template(name: str) -> Template:
@@ -153,14 +183,100 @@ def build_scene(
 
 
 def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True) -> PlanResult:
-    """Score every hole x target candidate and rank them (straight needles)."""
+    """Score every hole x target candidate, straight and steered, and rank them."""
     config = config or PlanConfig()
     holes = scene.template.needle_holes
     entry, direction = hole_frames(scene.template, scene.patient_from_template, holes)
+    hole_ids = [h.hole_id for h in holes]
+    dist = np.array([h.distance_mm for h in holes])
+    designs = [preset(name) for name in config.designs]
     cands: list[Candidate] = []
     for target in tqdm(scene.targets, desc="planning targets", unit="target", disable=quiet, leave=False):
-        cands += straight_candidates(
-            [target], [h.hole_id for h in holes], np.array([h.distance_mm for h in holes]), entry, direction,
-            scene.organs, config.needle_radius_mm, config.reach_tolerance_mm, config.max_depth_mm,
-        )
-    return PlanResult(tuple(cands), rank(cands), config)
+        straight = straight_candidates([target], hole_ids, dist, entry, direction, scene.organs,
+                                       config.needle_radius_mm, config.reach_tolerance_mm, config.max_depth_mm)
+        cands += straight
+        reached = {c.hole_id for c in straight if c.reaches}
+        for design in designs:
+            steered = steered_candidates(scene, target, design, config, skip=reached)
+            cands += refine_shortlist(scene, target, design, steered, config)
+    return PlanResult(tuple(cands), rank(cands, config.weights), config)
+
+
+def _template_offsets(scene: Scene, target: Target) -> np.ndarray:
+    """(H, 3) target minus each needle hole's entry, mm, in the template frame."""
+    inv = np.linalg.inv(scene.patient_from_template)
+    t = inv[:3, :3] @ np.asarray(target.position_mm) + inv[:3, 3]
+    xy = np.array([h.xy_mm for h in scene.template.needle_holes])
+    return t - np.column_stack([xy, np.zeros(len(xy))])
+
+
+def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: PlanConfig,
+                       skip: frozenset[str] | set[str] = frozenset()) -> list[Candidate]:
+    """One steered candidate per hole (holes in ``skip`` excluded).
+
+    Among the bank's schedules that reach the target, the gentlest (lowest peak tension, then smallest
+    reach error) that clears every organ is kept, trying at most ``config.alternatives``; when none is
+    clear, the gentlest reaching one (colliding); when none reaches, the closest approach, unchecked.
+    """
+    bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm))
+    radius = design.needle.outer_diameter_mm / 2
+    matches = match_targets(bank, _template_offsets(scene, target), keep=len(bank.schedules))
+    out: list[Candidate] = []
+    for hole, match in zip(scene.template.needle_holes, matches, strict=True):
+        if hole.hole_id in skip:
+            continue
+        ok = np.flatnonzero(match.reach_mm <= config.reach_tolerance_mm)
+        peak = np.array([bank.schedules[k].peak_tension_n for k in match.order[ok]])
+        tries = ok[np.lexsort((match.reach_mm[ok], peak))][: config.alternatives] if len(ok) else np.array([0])
+        chosen: Candidate | None = None
+        for i in tries:
+            k = int(match.order[i])
+            base = bank.schedules[k]
+            sch = TensionSchedule(base.depth_mm, base.tension_n, np.full(len(base.depth_mm), match.roll_deg))
+            path = place(bank.shapes_mm[k], bank.step_mm, float(match.depth_mm[i]), match.roll_deg,
+                         np.asarray(hole.xy_mm), scene.patient_from_template)
+            reaches = bool(match.reach_mm[i] <= config.reach_tolerance_mm)
+            c = score_path(target, hole.hole_id, hole.distance_mm, path, scene.organs, radius,
+                           config.reach_tolerance_mm, bank.model, steered=True, peak_tension_n=sch.peak_tension_n,
+                           design=design.name, schedule=sch, depth_mm=float(match.depth_mm[i]), check=reaches,
+                           reason="" if reaches else "no screened schedule reaches it")
+            chosen = chosen or c
+            if c.feasible:
+                chosen = c
+                break
+        if chosen is not None:
+            out.append(chosen)
+    return out
+
+
+def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: list[Candidate],
+                     config: PlanConfig) -> list[Candidate]:
+    """Re-solve the best feasible steered candidates with the reference model until the top
+    ``config.refine_top`` feasible ones all carry the reference's numbers (at most ``refine_top + 4`` solves:
+    a refined candidate that no longer reaches drops down and the next one is refined)."""
+    rel_all = _template_offsets(scene, target)
+    index = {h.hole_id: i for i, h in enumerate(scene.template.needle_holes)}
+    holes = {h.hole_id: h for h in scene.template.needle_holes}
+    radius = design.needle.outer_diameter_mm / 2
+    current = list(cands)
+    done: set[str] = set()
+    for _ in range(config.refine_top + 4):
+        ranked = rank(current, config.weights).get(target.name, ())
+        top = [c for c in ranked if c.feasible][: config.refine_top]
+        todo = [c for c in top if c.hole_id not in done and c.schedule is not None]
+        if not todo:
+            break
+        c = todo[0]
+        assert c.schedule is not None
+        done.add(c.hole_id)
+        roll = float(c.schedule.roll_deg[0])
+        base = TensionSchedule(c.schedule.depth_mm, c.schedule.tension_n, np.zeros(len(c.schedule.depth_mm)))
+        sch, res = refine_with(TISSUE_BEAM, design, base, c.insertion_depth_mm, rel_all[index[c.hole_id]])
+        sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), roll))
+        path = place(res.positions_mm, TISSUE_BEAM.step_mm, c.insertion_depth_mm, roll,
+                     np.asarray(holes[c.hole_id].xy_mm), scene.patient_from_template)
+        new = score_path(target, c.hole_id, c.hole_distance_mm, path, scene.organs, radius,
+                         config.reach_tolerance_mm, res.model, steered=True, peak_tension_n=sch.peak_tension_n,
+                         design=design.name, schedule=sch, depth_mm=c.insertion_depth_mm)
+        current = [new if x is c else x for x in current]
+    return current

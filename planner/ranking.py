@@ -6,11 +6,14 @@ rejected when it was. JSON field names are a public contract: later versions add
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from planner.schedule import TensionSchedule
 
 
 @dataclass(frozen=True)
@@ -37,7 +40,8 @@ class Candidate:
     reach_error_mm : float
         Distance from the predicted tip to the target point (mm).
     clearance_mm : float
-        Smallest surface distance from the needle to any organ at risk or bone (mm); 0 when touching.
+        Smallest surface distance from the needle to any organ at risk or bone (mm); 0 when touching;
+        NaN when it was not checked because the candidate does not reach (JSON ``null``, with the reason).
     closest_organ : str
         The organ that sets ``clearance_mm``.
     insertion_depth_mm : float
@@ -56,6 +60,10 @@ class Candidate:
         Why the candidate is rejected ("" when it is feasible).
     path_mm : (n, 3) float, mm, LPS
         Predicted needle centreline from the hole (first point) to the tip (last point).
+    design : str
+        Stylet preset ("" for a plain straight needle).
+    schedule : TensionSchedule or None
+        Tension and roll along the insertion (None for a straight needle).
     """
 
     target: str
@@ -72,6 +80,8 @@ class Candidate:
     reaches: bool
     reason: str
     path_mm: np.ndarray = field(repr=False)
+    design: str = ""
+    schedule: TensionSchedule | None = field(default=None, repr=False)
 
     @property
     def feasible(self) -> bool:
@@ -80,12 +90,15 @@ class Candidate:
 
     def to_json(self) -> dict[str, Any]:
         """The candidate as JSON-ready values (mm, N)."""
+        sched = None if self.schedule is None else [
+            [round(float(d), 3), round(float(t), 3), round(float(r), 3)]
+            for d, t, r in zip(self.schedule.depth_mm, self.schedule.tension_n, self.schedule.roll_deg, strict=True)]
         return {
             "target": self.target,
             "hole_id": self.hole_id,
             "hole_distance_mm": round(self.hole_distance_mm, 3),
             "reach_error_mm": round(self.reach_error_mm, 3),
-            "clearance_mm": round(self.clearance_mm, 3),
+            "clearance_mm": round(self.clearance_mm, 3) if np.isfinite(self.clearance_mm) else None,
             "closest_organ": self.closest_organ,
             "insertion_depth_mm": round(self.insertion_depth_mm, 3),
             "steered": self.steered,
@@ -97,22 +110,66 @@ class Candidate:
             "reason": self.reason,
             "entry_position_mm": [round(float(v), 3) for v in self.path_mm[0]],
             "tip_position_mm": [round(float(v), 3) for v in self.path_mm[-1]],
+            "design": self.design,
+            "schedule": sched,
         }
 
 
-def rank_key(c: Candidate) -> tuple[float, ...]:
-    """Medial-entry order. Feasible candidates first: the most medial hole, then the smallest reach error,
-    then the largest clearance. Then the infeasible ones, most informative first: those that reach but
-    collide, by reach error, then those that miss, by reach error. Ties keep a fixed order (by hole id,
-    applied in :func:`rank`), so the ranking is deterministic."""
+@dataclass(frozen=True)
+class RankWeights:
+    """Weights of the feasible candidates' order (lower score ranks first); changing them re-ranks without
+    re-solving anything.
+
+    ``score = hole_distance_mm·per_mm_from_centre + peak_tension_n·per_newton + reach_error_mm·per_mm_reach
+    − min(clearance_mm, clearance_cap_mm)·per_mm_clearance + steered·steering_cost``. Defaults: 1 per mm from
+    the centre (medial entry), 1 per newton, 2 per mm of reach error, 1 per mm of clearance up to 5 mm
+    (beyond that more room buys nothing), and 10 for steering at all (a steered needle costs a stylet, a
+    tension schedule to follow by hand and more uncertainty, so it must enter at least ~10 mm more medially,
+    plus its tension, to rank above a straight needle that reaches cleanly).
+    """
+
+    per_mm_from_centre: float = 1.0
+    per_newton: float = 1.0
+    per_mm_reach: float = 2.0
+    per_mm_clearance: float = 1.0
+    clearance_cap_mm: float = 5.0
+    steering_cost: float = 10.0
+
+    def __post_init__(self) -> None:
+        for k, v in dataclasses.asdict(self).items():
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"rank weight {k} must be a finite number >= 0, got {v}")
+
+    def score(self, c: Candidate) -> float:
+        clear = min(c.clearance_mm, self.clearance_cap_mm) if np.isfinite(c.clearance_mm) else 0.0
+        return (self.per_mm_from_centre * c.hole_distance_mm + self.per_newton * c.peak_tension_n
+                + self.per_mm_reach * c.reach_error_mm - self.per_mm_clearance * clear
+                + (self.steering_cost if c.steered else 0.0))
+
+
+def rank_key(c: Candidate, weights: RankWeights = RankWeights()) -> tuple[float, ...]:
+    """Feasible candidates first, by :class:`RankWeights` score. Then the infeasible ones, most
+    informative first: those that reach but collide, by reach error, then those that miss, by reach error.
+    Ties keep a fixed order (by hole id, then design, applied in :func:`rank`): the ranking is deterministic."""
+    clear = -round(c.clearance_mm, 6) if np.isfinite(c.clearance_mm) else 0.0
     if c.feasible:
-        return (0, round(c.hole_distance_mm, 6), round(c.reach_error_mm, 6), -round(c.clearance_mm, 6))
-    return (1 if c.reaches else 2, round(c.reach_error_mm, 6), -round(c.clearance_mm, 6), round(c.hole_distance_mm, 6))
+        return (0, round(weights.score(c), 6), round(c.hole_distance_mm, 6))
+    return (1 if c.reaches else 2, round(c.reach_error_mm, 6), clear, round(c.hole_distance_mm, 6))
 
 
-def rank(candidates: Iterable[Candidate]) -> dict[str, tuple[Candidate, ...]]:
+def rank(candidates: Iterable[Candidate], weights: RankWeights = RankWeights()) -> dict[str, tuple[Candidate, ...]]:
     """Candidates grouped by target (targets in name order), each group sorted by :func:`rank_key`."""
     groups: dict[str, list[Candidate]] = {}
     for c in candidates:
         groups.setdefault(c.target, []).append(c)
-    return {t: tuple(sorted(sorted(groups[t], key=lambda c: c.hole_id), key=rank_key)) for t in sorted(groups)}
+    return {t: tuple(sorted(sorted(groups[t], key=lambda c: (c.hole_id, c.steered, c.design)),
+                            key=lambda c: rank_key(c, weights))) for t in sorted(groups)}
+
+
+def pareto_front(candidates: Iterable[Candidate]) -> tuple[Candidate, ...]:
+    """The feasible candidates not dominated in (hole distance ↓, reach error ↓, clearance ↑)."""
+    feas = [c for c in candidates if c.feasible]
+    pts = np.array([[c.hole_distance_mm, c.reach_error_mm, -c.clearance_mm] for c in feas]).reshape(-1, 3)
+    keep = [i for i in range(len(feas))
+            if not np.any(np.all(pts <= pts[i], axis=1) & np.any(pts < pts[i], axis=1))]
+    return tuple(feas[i] for i in keep)

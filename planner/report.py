@@ -29,15 +29,23 @@ def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]
 
 
 def format_table(result: PlanResult) -> str:
-    """One line per target: the top-ranked candidate, or why none is feasible."""
-    head = (f"{'target':<16}{'hole':>6}{'dist mm':>9}{'reach mm':>10}{'clear mm':>10}  {'closest':<9}"
-            f"{'depth mm':>9}  model")
+    """Per target: the top-ranked candidate, and the best straight next to the best steered one."""
+
+    def cell(c: Candidate | None) -> str:
+        if c is None:
+            return f"{'none feasible':<34}"
+        return (f"{c.hole_id:>4} {c.hole_distance_mm:5.1f} mm r{c.reach_error_mm:4.1f} c{c.clearance_mm:5.1f} "
+                f"{c.peak_tension_n:4.1f} N")
+
+    head = (f"{'target':<15} {'top':<8} {'best straight (hole, from centre, reach, clear)':<34}   "
+            f"{'best steered':<34}  model")
     lines = [head, "-" * len(head)]
     for target, cands in result.ranking.items():
-        c = cands[0]
-        mark = "" if c.feasible else f"  (none feasible: {c.reason})"
-        lines.append(f"{target:<16}{c.hole_id:>6}{c.hole_distance_mm:>9.1f}{c.reach_error_mm:>10.2f}"
-                     f"{c.clearance_mm:>10.2f}  {c.closest_organ:<9}{c.insertion_depth_mm:>9.1f}  {c.model}{mark}")
+        top = cands[0]
+        first = ("steered" if top.steered else "straight") if top.feasible else "none"
+        steered = result.best(target, True)
+        lines.append(f"{target:<15} {first:<8} {cell(result.best(target, False))}   {cell(steered)}  "
+                     f"{steered.model if steered else ''}")
     return "\n".join(lines)
 
 
@@ -88,7 +96,7 @@ def overview_figure(scene: Scene, result: PlanResult, path: Path, volume: Volume
         ax_a.plot(t.position_mm[0], t.position_mm[1], "+", color="red", ms=8)
     handles = [plt.Line2D([], [], color=ORGAN_COLOURS.get(n, "#2ca02c"), label=n) for n in scene.meshes
                if n in ORGAN_COLOURS]
-    handles.append(plt.Line2D([], [], color="cyan", ls="--", label="top needle per target"))
+    handles.append(plt.Line2D([], [], color="cyan", label="top needle per target (dashed: straight)"))
     ax_a.legend(handles=handles, loc="lower right", fontsize=7)
     ax_a.set(title=f"axial, z = {tz:.0f} mm", xlabel="x (mm, patient left +)", ylabel="y (mm, posterior +)")
     ax_a.set_aspect("equal")

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
             out.append(f"  {r.number:4d} {r.name + alias:32s} {r.type or '-':15s} {vol}  "
                        f"{r.n_contours} contours {'/'.join(r.geometric_types)}")
     for p in result.plans:
-        out.append(f"plan {p.plan_type or '-'} {p.technique or '-'} source {p.source or '-'} ({p.path}) {p.note}")
+        out.append(f"plan {p.type or '-'} {p.technique or '-'} source {p.source or '-'} ({p.path}) {p.note}")
         for c in p.channels:
             out.append(f"  channel {c.channel_number:3d}: {c.n_dwells:3d} dwells, {c.total_time_s:8.1f} s, "
                        f"ROI {c.roi_number if c.roi_number is not None else '-'}")

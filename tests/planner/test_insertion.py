@@ -85,3 +85,13 @@ def test_bad_inputs_are_typed_errors(design) -> None:  # type: ignore[no-untyped
         TissueBeamInsertion().insert_one(design, TensionSchedule.constant(1.0), 500.0)
     with pytest.raises(ValueError, match="only pulls"):
         TensionSchedule.constant(-1.0)
+
+
+def test_planar_fast_path_equals_the_3d_integration(design) -> None:  # type: ignore[no-untyped-def]
+    model = KinematicInsertion()
+    sch = TensionSchedule.ramp(10.0, 30.0, 7.0, roll_deg=40.0)
+    planar = model.insert_array(design, [sch], 120.0)[0]
+    # the same schedule with a roll change of 1e-9 deg at the end takes the general 3-D integration
+    wobble = TensionSchedule(np.r_[sch.depth_mm, 119.0], np.r_[sch.tension_n, 7.0], np.r_[sch.roll_deg, 40.0 + 1e-9])
+    general = model.insert_array(design, [wobble], 120.0)[0]
+    np.testing.assert_allclose(planar, general, atol=1e-8)
