@@ -30,13 +30,14 @@ import tracemalloc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from rod_model.beam import PLANAR_BEAM, PlanarBeam
 from rod_model.collocation import NS, CollocationCosserat
 from rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
-from rod_model.design import PRESET_NAMES, Loads, RodDesign, preset
+from rod_model.design import PRESET_NAMES, Loads, RodDesign, gravity_load, preset
 from rod_model.kinematic import CONSTANT_CURVATURE, ConstantCurvature
 from rod_model.result import RodPath
 
@@ -66,6 +67,7 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     os.close(fd)
     try:
         write(Path(tmp))
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these are committed/package files
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -73,7 +75,9 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
 
 
 def _write_text(path: Path, text: str) -> None:
-    _atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+    def w(p: Path) -> None:
+        p.write_text(text, encoding="utf-8")
+    _atomic_write(path, w)
 
 
 def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
@@ -183,6 +187,22 @@ def speed_accuracy(quick: bool, log: Callable[[str], None]) -> tuple[list[Row], 
     rows.append(Row(coll.name, "tol 1e-6 (6 cases)", med, float(np.max(errs)), float(np.median(errs)), rate))
     log(f"{coll.name:20s} {'tol 1e-6':24s} {med:8.3f} ms  max err {rows[-1].max_tip_error_mm:.2e} mm")
     extra: dict[str, float] = {"reference_self_convergence_mm": ref_conv, "grid_cases": float(len(grid))}
+    # the same grid with an out-of-plane tip force and the needle's weight: the boundary-value problem proper
+    loaded = [(d, Loads(d.loads(t).tensions_n, tip_force_n=(0.0, 0.2, -0.2), distributed_n_per_m=gravity_load(d)))
+              for d, t in grid]
+    lref = [REFERENCE.solve(d, ld) for d, ld in loaded]
+    for model in (COSSERAT_ROD, TWO_TUBE_COSSERAT):
+        ltimes, lerrs = [], []
+        for (d, ld), rr in zip(loaded, lref, strict=True):
+            t1 = time.perf_counter()
+            r = model.solve(d, ld)
+            ltimes.append((time.perf_counter() - t1) * 1e3)
+            ok = isinstance(r, RodPath) and isinstance(rr, RodPath)
+            lerrs.append(float(np.linalg.norm(r.tip_position_mm - rr.tip_position_mm)) if ok else np.inf)  # type: ignore[union-attr]
+        extra[f"{model.name}_loaded_median_ms"] = statistics.median(ltimes)
+        extra[f"{model.name}_loaded_max_tip_error_mm"] = max(lerrs)
+        log(f"{model.name:20s} loaded (tip force + weight) {statistics.median(ltimes):8.3f} ms  max err "
+            f"{max(lerrs):.2e} mm")
     planar_rate, planar_peak = _batched(PLANAR_BEAM, preset("15ga-20j-tip"), 100_000)
     extra.update(planar_100k_solves_per_s=planar_rate, planar_100k_peak_mb=planar_peak)
     log(f"planar_beam 100k batched: {planar_rate:,.0f}/s, peak {planar_peak:.0f} MB")
@@ -211,11 +231,12 @@ def stability(quick: bool, log: Callable[[str], None]) -> list[StabilityCase]:
     tensions = (0.0, 7.5, 15.0) if quick else (0.0, 5.0, 10.0, 15.0)
     rng = np.random.default_rng(7)
     out: list[StabilityCase] = []
-    solvers = {"shooting": (TWO_TUBE_COSSERAT, False), "shooting+continuation": (TWO_TUBE_COSSERAT, True),
-               "collocation": (CollocationCosserat(tol=1e-6, nodes_per_section=11, max_nodes=1500, max_ramp=2), True)}
+    collocation = CollocationCosserat(tol=1e-6, nodes_per_section=11, max_nodes=300, max_ramp=2)
+    solvers: dict[str, tuple[Any, bool]] = {"shooting": (TWO_TUBE_COSSERAT, False),
+                                            "shooting+continuation": (TWO_TUBE_COSSERAT, True),
+                                            "collocation": (collocation, True)}
     for placement in ("tip", "mid", "base"):
         d = preset(f"15ga-20j-{placement}")
-        length = d.length_mm * 1e-3
         for t in tensions:
             loads = Loads((t, 0.0, 0.0, 0.0), tip_force_n=(0.0, 0.2, -0.2))
             scale = 1.0 + t + 0.4
@@ -270,7 +291,7 @@ def _pareto_png(rows: list[Row], path: Path) -> None:
     ax.scatter([1e3 / r.batched_solves_per_s for r in batched],  # type: ignore[operator]
                [max(r.max_tip_error_mm, floor) for r in batched], marker="s", facecolors="none",
                edgecolors=[colors[r.model] for r in batched], s=60, label="same model, batched (time per solve)")
-    front = []
+    front: list[Row] = []
     for r in sorted(rows, key=lambda r: r.median_ms):
         if not front or r.max_tip_error_mm < front[-1].max_tip_error_mm:
             front.append(r)

@@ -9,8 +9,10 @@ geometry are checked, and anything that would give a silently wrong volume is a 
 from __future__ import annotations
 
 import os
+import struct
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +21,7 @@ import numpy as np
 
 from imaging.errors import (
     CorruptFileError,
+    ImagingError,
     NoDicomError,
     ObliqueSliceWarning,
     ReferenceMismatchError,
@@ -26,6 +29,8 @@ from imaging.errors import (
     UnsupportedDataError,
 )
 from imaging.types import Grid, Volume
+
+MEDIA_STORAGE_DIRECTORY = "1.2.840.10008.1.3.10"  # DICOMDIR
 
 #: Modalities that are never image series, whatever pixel data they carry.
 NON_IMAGE_MODALITIES = frozenset({"RTSTRUCT", "RTPLAN", "RTDOSE", "RTRECORD", "REG", "SEG", "SR", "KO", "PR"})
@@ -81,7 +86,7 @@ def _check_complete(ds: Any, path: Path) -> None:
     tags = list(ds.keys())
     if not tags:
         raise _corrupt(path, "no data elements after the file meta header")
-    elem = ds.get_item(tags[-1])
+    elem = ds.get_item(tags[-1], keep_deferred=True)
     tell = getattr(elem, "value_tell", None)
     length = getattr(elem, "length", None)
     if tell is not None and length is not None and length != 0xFFFFFFFF and tell + length > size:
@@ -93,7 +98,9 @@ def _check_complete(ds: Any, path: Path) -> None:
                 raise _corrupt(path, f"sequence {elem.tag} has no end delimiter")
 
 
-def read_dataset(path: Path, *, header_only: bool = False, required: bool = False) -> Any:
+def read_dataset(
+    path: Path, *, header_only: bool = False, required: bool = False, defer_size: int | None = None
+) -> Any:
     """Read one DICOM file with pydicom.
 
     Returns ``None`` for a file that does not claim to be DICOM (no ``DICM`` magic, no ``.dcm`` name) and
@@ -101,7 +108,8 @@ def read_dataset(path: Path, *, header_only: bool = False, required: bool = Fals
 
     Parameters
     ----------
-    header_only : stop before the pixel data
+    header_only : stop before the pixel data (no completeness check)
+    defer_size : values longer than this many bytes are read from the file only when used
     required : a file that is not DICOM at all is an error too (:class:`NoDicomError`)
 
     Raises
@@ -113,25 +121,46 @@ def read_dataset(path: Path, *, header_only: bool = False, required: bool = Fals
 
     claims = _looks_like_dicom(path)
     try:
-        ds = dcmread(path, stop_before_pixels=header_only)
+        ds = dcmread(path, stop_before_pixels=header_only, defer_size=defer_size)
     except InvalidDicomError:
         if not claims:
             if required:
                 raise NoDicomError(f"{path} is not a DICOM file; give a DICOM file or folder") from None
             return None
         try:  # a DICOM dataset without preamble / file meta is still readable
-            ds = dcmread(path, stop_before_pixels=header_only, force=True)
+            ds = dcmread(path, stop_before_pixels=header_only, defer_size=defer_size, force=True)
         except Exception as exc:
             raise _corrupt(path, f"cannot be parsed as DICOM ({type(exc).__name__})") from None
         if "SOPClassUID" not in ds:
             raise _corrupt(path, "has no DICOM preamble and no SOP Class UID") from None
-    except (OSError, EOFError, ValueError, KeyError, TypeError, IndexError, AttributeError, OverflowError) as exc:
+    except PARSE_ERRORS as exc:
         raise _corrupt(path, f"cannot be parsed as DICOM ({type(exc).__name__}: {_one_line(exc)})") from None
-    if "SOPClassUID" not in ds and "Modality" not in ds:
-        raise _corrupt(path, "has neither SOP Class UID nor Modality")
     if not header_only:
         _check_complete(ds, path)
+    with parsing(path):
+        media_class = str(getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", "") or "")
+        if "SOPClassUID" not in ds and "Modality" not in ds and media_class != MEDIA_STORAGE_DIRECTORY:
+            raise _corrupt(path, "has neither SOP Class UID nor Modality")
+        _ = ds.get("Modality"), ds.get("SOPClassUID")  # the values every caller looks at first
     return ds
+
+
+#: What pydicom raises on damaged bytes, when a file is read or when its values are first used.
+PARSE_ERRORS: tuple[type[Exception], ...] = (
+    OSError, EOFError, ValueError, KeyError, TypeError, IndexError, AttributeError, OverflowError, struct.error,
+    NotImplementedError, RuntimeError,  # pydicom's BytesLengthException is a RuntimeError
+)
+
+
+@contextmanager
+def parsing(path: Path) -> Iterator[None]:
+    """Turn pydicom's errors on damaged values met while using a dataset into :class:`CorruptFileError`."""
+    try:
+        yield
+    except ImagingError:
+        raise
+    except PARSE_ERRORS as exc:
+        raise _corrupt(path, f"a value cannot be parsed ({type(exc).__name__}: {_one_line(exc)})") from None
 
 
 def _one_line(exc: BaseException, limit: int = 160) -> str:
@@ -155,6 +184,7 @@ class _Frame:
     columns: int
     slope: float
     intercept: float
+    thickness: float | None = None  # SliceThickness, used only for a single-slice series
 
 
 @dataclass(frozen=True)
@@ -172,20 +202,23 @@ class SeriesSummary:
 
 
 def _floats(ds: Any, keyword: str, n: int, path: Path) -> np.ndarray:
-    if keyword not in ds or ds[keyword].value is None or ds[keyword].value == "":
+    value = ds.get(keyword)
+    if value is None or value == "":
         raise _invalid(path, f"required attribute {keyword} is missing")
     try:
-        v = np.array([float(x) for x in np.atleast_1d(ds[keyword].value)], dtype=float)
+        v = np.array([float(x) for x in value] if n > 1 and not isinstance(value, str | bytes) else
+                     [float(value)], dtype=float)
     except (TypeError, ValueError):
-        raise _invalid(path, f"{keyword} is not numeric ({ds[keyword].value!r})") from None
+        raise _invalid(path, f"{keyword} is not numeric ({value!r})") from None
     if v.shape != (n,) or not np.all(np.isfinite(v)):
-        raise _invalid(path, f"{keyword} must hold {n} finite numbers, got {ds[keyword].value!r}")
+        raise _invalid(path, f"{keyword} must hold {n} finite numbers, got {value!r}")
     return v
 
 
 def _rescale(ds: Any, path: Path) -> tuple[float, float]:
-    slope = float(_floats(ds, "RescaleSlope", 1, path)[0]) if "RescaleSlope" in ds else 1.0
-    intercept = float(_floats(ds, "RescaleIntercept", 1, path)[0]) if "RescaleIntercept" in ds else 0.0
+    slope = float(_floats(ds, "RescaleSlope", 1, path)[0]) if ds.get("RescaleSlope") is not None else 1.0
+    intercept = float(_floats(ds, "RescaleIntercept", 1, path)[0]) if ds.get("RescaleIntercept") is not None \
+        else 0.0
     if slope == 0:
         raise _invalid(path, "RescaleSlope is 0")
     return slope, intercept
@@ -205,8 +238,14 @@ def _frames_of(ds: Any, path: Path) -> list[_Frame]:
             )
         slope, intercept = _rescale(ds, path)
         ps = _floats(ds, "PixelSpacing", 2, path)
+        thickness = ds.get("SliceThickness")
+        try:
+            thick = float(thickness) if thickness not in (None, "") and float(thickness) > 0 else None
+        except (TypeError, ValueError):
+            thick = None
         return [_Frame(path, None, _floats(ds, "ImagePositionPatient", 3, path),
-                       _floats(ds, "ImageOrientationPatient", 6, path), (ps[0], ps[1]), rows, cols, slope, intercept)]
+                       _floats(ds, "ImageOrientationPatient", 6, path), (ps[0], ps[1]), rows, cols, slope, intercept,
+                       thick)]
     shared = ds.SharedFunctionalGroupsSequence[0] if "SharedFunctionalGroupsSequence" in ds else None
     per_frame = ds.PerFrameFunctionalGroupsSequence
     if len(per_frame) != n_frames:
@@ -238,6 +277,10 @@ def _is_image(ds: Any) -> bool:
     return modality not in NON_IMAGE_MODALITIES and "Rows" in ds and "Columns" in ds
 
 
+_SUMMARY_KEYWORDS = ("SeriesInstanceUID", "FrameOfReferenceUID", "SeriesDescription", "NumberOfFrames", "Rows",
+                     "Columns", "StudyInstanceUID", "PatientID", "PatientName")
+
+
 @dataclass(frozen=True)
 class FolderScan:
     """Headers of every DICOM object below a path (pixel data not read)."""
@@ -265,7 +308,8 @@ class FolderScan:
 
 
 def scan(path: Path) -> FolderScan:
-    """Read the headers of every file at ``path`` (a file or a folder, recursively).
+    """Read every file at ``path`` (a file or a folder, recursively); values over 1 KiB (pixel data, long
+    contour lists) stay on disk until used. Every DICOM file is checked to be complete.
 
     Raises
     ------
@@ -276,10 +320,18 @@ def scan(path: Path) -> FolderScan:
     """
     images, others, n_non = [], [], 0
     for p in list_files(Path(path)):
-        ds = read_dataset(p, header_only=True)
+        ds = read_dataset(p, defer_size=1024)
         if ds is None:
             n_non += 1
-        elif _is_image(ds):
+            continue
+        with parsing(p):
+            image = _is_image(ds)
+            if image:  # parse now what the series summaries and the volume use, so damage shows here
+                for keyword in _SUMMARY_KEYWORDS:
+                    ds.get(keyword)
+                for keyword in ("Rows", "Columns", "NumberOfFrames"):
+                    int(ds.get(keyword, 1) or 1)
+        if image:
             images.append((ds, p))
         else:
             others.append((ds, p))
@@ -368,8 +420,7 @@ def assemble_geometry(frames: Sequence[_Frame], tol: SeriesTolerance, label: str
     order = [int(i) for i in np.argsort(d, kind="stable")]
     d_sorted, pos_sorted = d[order], pos[order]
     if len(frames) == 1:
-        thickness = 1.0
-        step = normal * thickness
+        step = normal * (frames[0].thickness or 1.0)
     else:
         diffs = np.diff(d_sorted)
         scale = max(float(np.median(diffs)), 1e-9)
@@ -414,15 +465,75 @@ def assemble_geometry(frames: Sequence[_Frame], tol: SeriesTolerance, label: str
 # --------------------------------------------------------------------------------------------------
 
 
+_NATIVE_LE = frozenset({"1.2.840.10008.1.2", "1.2.840.10008.1.2.1"})
+
+
+def _native_pixels(ds: Any, path: Path) -> np.ndarray | None:
+    """Uncompressed little-endian single-frame grey pixels straight from the bytes; None when not that simple."""
+    meta = getattr(ds, "file_meta", None)
+    if meta is None or str(meta.get("TransferSyntaxUID", "")) not in _NATIVE_LE:
+        return None
+    try:
+        bits, stored = int(ds.BitsAllocated), int(ds.BitsStored)
+        rows, cols, signed = int(ds.Rows), int(ds.Columns), int(ds.PixelRepresentation) == 1
+        spp, frames = int(ds.get("SamplesPerPixel", 1)), int(ds.get("NumberOfFrames", 1) or 1)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    if bits not in (8, 16, 32) or stored != bits or spp != 1 or frames != 1 or "PixelData" not in ds:
+        return None
+    dtype = np.dtype(f"<{'i' if signed else 'u'}{bits // 8}")
+    n = rows * cols
+    elem = ds.get_item(0x7FE00010, keep_deferred=True)
+    if getattr(elem, "value", b"") is None and getattr(elem, "length", 0) >= n * dtype.itemsize:
+        # deferred: read the pixels from the file without keeping a copy in the dataset
+        arr = np.fromfile(path, dtype=dtype, count=n, offset=int(elem.value_tell))
+        return arr.reshape(rows, cols) if arr.size == n else None
+    data = ds.PixelData
+    if len(data) < n * dtype.itemsize:
+        return None  # let pydicom explain what is wrong
+    return np.frombuffer(data, dtype=dtype, count=n).reshape(rows, cols)
+
+
+def _sitk_pixels(ds: Any, path: Path) -> np.ndarray | None:
+    """Stored values of a single-frame image decoded by SimpleITK (GDCM); None when it cannot.
+
+    GDCM applies the rescale slope and intercept; they are undone here so that every decoder returns stored
+    values and the rescale is applied in one place.
+    """
+    if int(ds.get("NumberOfFrames", 1) or 1) != 1:
+        return None
+    try:
+        import SimpleITK as sitk
+
+        reader = sitk.ImageFileReader()
+        reader.SetImageIO("GDCMImageIO")
+        reader.SetFileName(str(path))
+        arr = sitk.GetArrayFromImage(reader.Execute())
+    except (ImportError, RuntimeError):
+        return None
+    arr = arr.reshape(arr.shape[-2:]) if arr.ndim == 3 and arr.shape[0] == 1 else arr
+    if arr.ndim != 2:
+        return None
+    slope, intercept = _rescale(ds, path)
+    if slope != 1 or intercept != 0:
+        arr = np.rint((arr.astype(np.float64) - intercept) / slope)
+    return arr
+
+
 def _pixels(ds: Any, path: Path) -> np.ndarray:
+    fast = _native_pixels(ds, path)
+    if fast is not None:
+        return fast
     try:
         arr = ds.pixel_array
     except (NotImplementedError, RuntimeError) as exc:
-        ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", "unknown")
-        raise UnsupportedDataError(
-            f"{path}: cannot decode pixel data with transfer syntax {ts} ({_one_line(exc, 80)}); "
-            "install a pydicom decoder plugin (e.g. pylibjpeg) or decompress the series"
-        ) from None
+        arr = _sitk_pixels(ds, path)  # GDCM inside SimpleITK decodes JPEG lossless, JPEG-LS, ...
+        if arr is None:
+            ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", "unknown")
+            raise UnsupportedDataError(
+                f"{path}: neither pydicom nor SimpleITK can decode pixel data with transfer syntax {ts} "
+                f"({_one_line(exc, 80)}); install a pydicom decoder plugin (e.g. pylibjpeg) or decompress the series"
+            ) from None
     except (ValueError, AttributeError, KeyError, TypeError, EOFError, OSError) as exc:
         raise _corrupt(path, f"pixel data cannot be read ({_one_line(exc, 100)})") from None
     if arr.ndim not in (2, 3) or np.iscomplexobj(arr):
@@ -472,22 +583,29 @@ def load_series(
     uids = {str(ds.get("FrameOfReferenceUID", "")) for ds, _ in headers}
     if len(uids) > 1:
         raise SeriesError(f"{label}: images have {len(uids)} different Frame of Reference UIDs")
-    frames = [f for ds, p in headers for f in _frames_of(ds, p)]
+    frames = []
+    for ds, p in headers:
+        with parsing(p):
+            frames += _frames_of(ds, p)
     grid, order = assemble_geometry(frames, tol, label)
     out = np.empty(grid.shape, dtype=np.float32)
     slot = {(frames[i].path, frames[i].frame): k for k, i in enumerate(order)}
-    for path in chosen.paths:
-        ds = read_dataset(path)
-        arr = _pixels(ds, path)
-        mine = [f for f in frames if f.path == path]
+    by_path: dict[Path, list[_Frame]] = {}
+    for f in frames:
+        by_path.setdefault(f.path, []).append(f)
+    for ds, path in headers:
+        with parsing(path):
+            arr = _pixels(ds, path)
+        mine = by_path[path]
         if arr.ndim == 2:
             arr = arr[None]
         if arr.shape[0] != len(mine) or arr.shape[1:] != grid.shape[1:]:
             raise _corrupt(path, f"pixel data has shape {arr.shape}, expected {len(mine)} x {grid.shape[1:]}")
         for f in mine:
             k = slot[(f.path, f.frame)]
-            np.multiply(arr[f.frame or 0], f.slope, out=out[k], casting="unsafe")
-            out[k] += f.intercept
+            np.multiply(arr[f.frame or 0], np.float32(f.slope), out=out[k], casting="unsafe")
+            if f.intercept:
+                out[k] += np.float32(f.intercept)
     ds0 = headers[0][0]
     return Volume(
         array=out, grid=grid, modality=chosen.modality, series_instance_uid=chosen.series_instance_uid,

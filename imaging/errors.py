@@ -47,3 +47,7 @@ class ObliqueSliceWarning(ImagingWarning):
 
 class DicomQuirkWarning(ImagingWarning):
     """A file breaks a DICOM rule in a way that could be worked around; the message names the quirk."""
+
+
+class MeshDecimationWarning(ImagingWarning):
+    """A mesh could not be decimated to the requested size without losing watertightness."""

@@ -68,7 +68,7 @@ class ChannelInfo:
 @dataclass(frozen=True)
 class PlanInfo:
     path: str
-    plan_type: str
+    type: str  # HDR, PDR, ... (the plan's brachy treatment type)
     technique: str
     source: str
     channels: tuple[ChannelInfo, ...]

@@ -13,13 +13,15 @@ oblique grids work too. Each contour is taken to cover its slice's slab (half a 
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 import trimesh
 
-from imaging.errors import StructureError
+from imaging.errors import MeshDecimationWarning, StructureError
 from imaging.types import Grid, Roi
 
 #: largest in-plane pixel (mm) of the grid built from the contours when no grid is given
@@ -321,7 +323,8 @@ def roi_mesh(
     z_supersample : sub-slices per slice (each a copy of its slab's coverage) so that marching cubes cuts
         the slab corners less; default ``ceil(slice spacing / pixel size)``
     smooth_iterations : Taubin smoothing passes (volume-preserving to first order), 0 = none
-    max_faces : decimate to at most this many faces (needs the optional ``fast-simplification`` package)
+    max_faces : decimate to at most this many faces (needs the optional ``fast-simplification`` package);
+        when that breaks watertightness, twice as many are tried, and so on (the result may then exceed it)
 
     Returns
     -------
@@ -352,14 +355,31 @@ def roi_mesh(
         mesh.invert()
     if smooth_iterations:
         trimesh.smoothing.filter_taubin(mesh, iterations=smooth_iterations)
-    if max_faces is not None and len(mesh.faces) > max_faces:
-        try:
-            mesh = mesh.simplify_quadric_decimation(face_count=max_faces)
-        except (ImportError, ModuleNotFoundError) as exc:  # optional dependency, only needed here
-            raise StructureError(f"decimating meshes needs the optional package fast-simplification ({exc}); "
-                                 "install it or leave max_faces unset") from None
     if not mesh.is_watertight:
-        raise StructureError(f"ROI {roi.name!r}: the mesh is not watertight; try another pixel_mm or no decimation")
+        raise StructureError(f"ROI {roi.name!r}: the mesh is not watertight; try another pixel_mm")
+    if max_faces is not None and len(mesh.faces) > max_faces:
+        mesh = _decimate(mesh, max_faces, roi.name)
+    return mesh
+
+
+def _decimate(mesh: trimesh.Trimesh, max_faces: int, name: str) -> trimesh.Trimesh:
+    """Quadric decimation to at most ``max_faces`` faces that keeps the mesh watertight.
+
+    Tries ``max_faces``, then twice as many, ...; when no decimated mesh is watertight the full mesh is kept
+    with a :class:`~imaging.errors.MeshDecimationWarning`.
+    """
+    if importlib.util.find_spec("fast_simplification") is None:  # optional dependency of trimesh's decimation
+        raise StructureError("decimating meshes needs the optional package fast-simplification; "
+                             "install it or leave max_faces unset")
+    target = max_faces
+    while target < len(mesh.faces):
+        small = mesh.simplify_quadric_decimation(face_count=target)
+        small = trimesh.Trimesh(small.vertices, small.faces, process=True, validate=True)  # drop degenerate faces
+        if small.is_watertight and small.volume > 0:
+            return small
+        target *= 2
+    warnings.warn(MeshDecimationWarning(
+        f"ROI {name!r}: no watertight mesh with at most {max_faces} faces; kept all {len(mesh.faces)}"), stacklevel=3)
     return mesh
 
 

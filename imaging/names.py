@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import csv
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from imaging.errors import ImagingError
@@ -58,6 +58,7 @@ class SynonymTable:
     """
 
     entries: tuple[tuple[str, tuple[str, ...]], ...] = _DEFAULT
+    _lookup: dict[str, str] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         seen: dict[str, str] = {}
@@ -75,8 +76,7 @@ class SynonymTable:
 
     def normalize(self, name: str) -> str:
         """The standard name for ``name``; ``name`` itself (stripped) when no synonym matches."""
-        lookup: dict[str, str] = self._lookup  # type: ignore[attr-defined]
-        return lookup.get(name_key(name), name.strip())
+        return self._lookup.get(name_key(name), name.strip())
 
     def extended(self, entries: tuple[tuple[str, tuple[str, ...]], ...]) -> SynonymTable:
         """A new table with ``entries`` added (synonyms of an existing standard name are merged)."""

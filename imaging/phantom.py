@@ -14,6 +14,26 @@ plane is ``z = 0`` with its centre on the obturator axis ``(0, 0, 0)`` and needl
 
 CT slices are 2.5 mm thick with centres at ``z = -28.75 + 2.5 k``, so slab boundaries fall on multiples of
 2.5 mm, where every flat end of a solid is placed (a contour stack then represents them exactly).
+
+Geometry (LPS mm; exact values in :func:`phantom_spec`)
+--------------------------------------------------------
+* CT: 84 slices z -30..180, 256 x 256 pixels of 1 mm centred on the z axis; air -1000 HU, an 8 mm
+  subcutaneous fat layer -90 HU, SimuGel +30 HU.
+* Body: elliptic cylinder semi-axes (95, 90), z -30..180 (EXTERNAL).
+* Obturator: cylinder r 15 on the z axis, z -30..60, +100 HU (BRACHY_ACCESSORY).
+* Cervix: cylinder r 15, z 60..85, +50 HU. Uterus: ellipsoid semi (25, 18, 38) centred (0, -25, 115), long
+  axis tilted 45 degrees from +z toward anterior (anteverted, toward the bladder), +45 HU.
+* HR-CTV: ellipsoid semi (45, 20, 18) centred (0, 0, 75), +55 HU (CTV).
+* Bladder: ellipsoid semi (40, 18, 25) centred (0, -65, 100), +10 HU.
+* Rectum: cylinder r 12 at (0, 60), z -20..100, +40 HU. Sigmoid: tube r 10 on a quarter circle of radius 35
+  from the rectum top (0, 60, 100) toward patient left and up to (35, 60, 135), +40 HU.
+* Bowel: torus R 25, r 10 centred (0, -10, 160), axis along z, +35 HU.
+* Bone (AVOIDANCE, +700 HU): side walls |x| 62..75, y -40..30, z -10..120; pubic symphysis x -15..15,
+  y -75..-60, z -10..30.
+* Targets (PTV, +80 HU): cylinders r 5, axes along z: ``Target_65_aaa`` 15 mm tall (z 67.5..82.5) on a 65 mm
+  circle at angles 0, 60, ..., 300; ``Target_80_aaa`` 5 mm tall (z 77.5..82.5) on an 80 mm circle at
+  30, 90, ..., 330; angle 0 = patient left (+x), 90 = anterior (-y).
+* ``patient_from_template`` is the identity: template plane z = 0, centre on the obturator axis.
 """
 
 from __future__ import annotations
@@ -362,6 +382,8 @@ class PhantomSpec:
     slice_thickness_mm, pixel_mm : CT slice spacing and in-plane pixel size
     z_range_mm : (z0, z1) extent of the CT slabs; slice centres at ``z0 + (k + 0.5) * slice_thickness_mm``
     matrix : rows = columns of the CT
+    air_hu, fat_hu, fat_thickness_mm : CT numbers outside the body and of a subcutaneous fat layer under the
+        body outline (the body's own ``hu`` is the gel inside it); painted only, not a ROI
     patient_from_template : (4, 4) float: template frame (origin at the obturator axis on the perineal
         plane, x/y in the template plane, +z = insertion direction) to LPS mm.
     """
@@ -372,6 +394,8 @@ class PhantomSpec:
     z_range_mm: tuple[float, float] = (-30.0, 180.0)
     matrix: int = 256
     air_hu: float = -1000.0
+    fat_hu: float = -90.0
+    fat_thickness_mm: float = 8.0
     patient_from_template: np.ndarray = field(default_factory=lambda: np.eye(4))
 
     @property
@@ -476,19 +500,36 @@ def phantom_ct_hu(spec: PhantomSpec) -> np.ndarray:
     order = [*_PAINT_ORDER, *(s.name for s in spec.targets), "Obturator", "Bone"]
     painted = {s.name for s in spec.structures if s.name in order}
     order += [s.name for s in spec.structures if s.name not in painted]
+    body = spec.get("Body") if "Body" in {s.name for s in spec.structures} else None
+    fat_inner = None
+    if body is not None and isinstance(body.shapes[0], EllipticCylinder) and spec.fat_thickness_mm > 0:
+        outer = body.shapes[0]
+        (a, b), t = outer.semi_axes_xy_mm, spec.fat_thickness_mm
+        fat_inner = PhantomStructure("gel", "", (EllipticCylinder(outer.center_xy_mm, (a - t, b - t), outer.z0_mm,
+                                                                  outer.z1_mm),), hu=body.hu, color=body.color)
+        body = PhantomStructure("fat", "", body.shapes, hu=spec.fat_hu, color=body.color)
     for name in order:
-        s = spec.get(name)
-        lo, hi = s.bounds()
-        ks = np.flatnonzero((z >= lo[2]) & (z <= hi[2]))
-        js = np.flatnonzero((xy >= lo[1]) & (xy <= hi[1]))
-        is_ = np.flatnonzero((xy >= lo[0]) & (xy <= hi[0]))
-        if not (len(ks) and len(js) and len(is_)):
-            continue
-        gz, gy, gx = np.meshgrid(z[ks], xy[js], xy[is_], indexing="ij")
-        inside = s.contains(np.stack([gx, gy, gz], axis=-1))
-        sub = hu[ks[0]:ks[-1] + 1, js[0]:js[-1] + 1, is_[0]:is_[-1] + 1]
-        sub[inside] = s.hu
+        if name == "Body" and body is not None and fat_inner is not None:
+            shapes = [body, fat_inner]
+        else:
+            shapes = [spec.get(name)]
+        for s in shapes:
+            _paint(hu, s, z, xy)
     return np.round(hu).astype(np.int16)
+
+
+def _paint(hu: np.ndarray, s: PhantomStructure, z: np.ndarray, xy: np.ndarray) -> None:
+    """Set ``hu`` to ``s.hu`` at the voxel centres inside ``s`` (in place)."""
+    lo, hi = s.bounds()
+    ks = np.flatnonzero((z >= lo[2]) & (z <= hi[2]))
+    js = np.flatnonzero((xy >= lo[1]) & (xy <= hi[1]))
+    is_ = np.flatnonzero((xy >= lo[0]) & (xy <= hi[0]))
+    if not (len(ks) and len(js) and len(is_)):
+        return
+    gz, gy, gx = np.meshgrid(z[ks], xy[js], xy[is_], indexing="ij")
+    inside = s.contains(np.stack([gx, gy, gz], axis=-1))
+    sub = hu[ks[0]:ks[-1] + 1, js[0]:js[-1] + 1, is_[0]:is_[-1] + 1]
+    sub[inside] = s.hu
 
 
 # --------------------------------------------------------------------------------------------------
@@ -496,7 +537,7 @@ def phantom_ct_hu(spec: PhantomSpec) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 
 #: Identity of the phantom's files; changing the geometry must change PHANTOM_VERSION (new UIDs).
-PHANTOM_VERSION = "1"
+PHANTOM_VERSION = "2"
 MANUFACTURER = "reachplan"
 MODEL_NAME = "reachplan pelvic phantom"
 CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
@@ -639,6 +680,7 @@ def _rtstruct_dataset(spec: PhantomSpec, ct: list[Any]) -> Any:
                 c.NumberOfContourPoints = len(poly)
                 pts = np.column_stack([poly, np.full(len(poly), z)])
                 c[0x30060050] = _raw_ds(0x30060050, pts.ravel())  # ContourData
+                c.set_original_encoding(False, True, "iso8859")  # lets pydicom write the raw bytes as they are
                 items.append(c)
         rc = Dataset()
         rc.ROIDisplayColor = list(s.color)

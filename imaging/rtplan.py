@@ -33,7 +33,7 @@ import os
 import warnings
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -242,8 +242,11 @@ def _quirks(path: str, found: list[str]) -> Iterator[None]:
         warnings.simplefilter("always")
         yield
     for w in caught:
-        msg = str(w.message).split(" Please see")[0].strip()
-        found.append(f"invalid value ({msg})")
+        if issubclass(w.category, DicomQuirkWarning) or "pydicom" in w.filename:
+            msg = str(w.message).split(" Please see")[0].strip()
+            found.append(f"invalid value ({msg})")
+        else:  # not about the file: pass it on unchanged
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _float(ds: Dataset, keyword: str, default: float | None = None) -> float | None:
@@ -303,7 +306,7 @@ def read_rtplan(path: str | os.PathLike[str]) -> RtPlan:
         except (EOFError, OSError) as exc:
             raise CorruptFileError(f"{p}: the file is truncated ({exc})") from None
     quirks = _emit(p, found)
-    return RtPlan(**{**plan.__dict__, "quirks": quirks})
+    return replace(plan, quirks=quirks)
 
 
 def _emit(path: str, found: list[str]) -> tuple[str, ...]:
@@ -365,7 +368,7 @@ def _plan_from_dataset(ds: Dataset, path: str, found: list[str]) -> RtPlan:
         patient_name=_str(ds, "PatientName"),
     )
     refs = tuple(_dose_reference(d, plan) for d in ds.get("DoseReferenceSequence", []))
-    return RtPlan(**{**plan.__dict__, "dose_references": refs})
+    return replace(plan, dose_references=refs)
 
 
 def _overlong_decimal_strings(ds: Dataset) -> list[str]:

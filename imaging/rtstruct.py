@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from imaging.dicom_io import check_reference, read_dataset
+from imaging.dicom_io import check_reference, parsing, read_dataset
 from imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError, StructureError
 from imaging.names import DEFAULT_SYNONYMS, SynonymTable
 from imaging.types import Contour, Roi, StructureSet, Volume
@@ -98,6 +98,11 @@ def read_rtstruct(
     if not path.is_file():
         raise NoDicomError(f"{path} is not a file; give the RT Structure Set file (RS*.dcm)")
     ds = read_dataset(path, required=True)
+    with parsing(path):
+        return _structure_set(ds, path, volume, synonyms)
+
+
+def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: SynonymTable | None) -> StructureSet:
     sop_class = str(ds.get("SOPClassUID", ""))
     if str(ds.get("Modality", "")).upper() != "RTSTRUCT" and sop_class != RT_STRUCTURE_SET_STORAGE:
         raise NoDicomError(f"{path} is a {ds.get('Modality', 'DICOM')} object, not an RT Structure Set")

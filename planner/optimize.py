@@ -392,7 +392,9 @@ class ArmResult:
     """One arm of a comparison: its optimised plan with all needles, and how many it needs.
 
     ``needles_needed`` is the smallest number of the arm's needles (taken in the given order) whose
-    optimised plan reaches the D90 aim within the organ limits; None when all of them do not.
+    optimised plan reaches the D90 aim within the organ limits, found by bisection (adding a needle adds
+    dwells, so the optimum cannot get worse; the post-LP scaling makes this hold only approximately);
+    None when all of them do not.
     """
 
     name: str
@@ -512,13 +514,16 @@ def compare_arms(
         prob = _build(dwells, structures, kernel, air_kerma_strength_u, settings)
         full = _optimise_columns(prob, np.arange(len(dwells)), structures, aims, settings)
         needed: int | None = None
-        if full.aim_met:
-            for k in range(1, len(needles) + 1):
-                cols = np.flatnonzero(dwells.channels <= k)
-                res = full if k == len(needles) else _optimise_columns(prob, cols, structures, aims, settings)
-                if res.aim_met:
-                    needed = k
-                    break
+        if full.aim_met:  # bisection over prefixes: more needles never make the optimum worse
+            lo, hi = 0, len(needles)  # the aim fails with lo needles (or lo = 0) and is met with hi
+            while hi - lo > 1:
+                mid = (lo + hi) // 2
+                cols = np.flatnonzero(dwells.channels <= mid)
+                if _optimise_columns(prob, cols, structures, aims, settings).aim_met:
+                    hi = mid
+                else:
+                    lo = mid
+            needed = hi
         results.append(ArmResult(name, len(needles), full, needed))
     return Comparison(tuple(results), aims)
 

@@ -9,12 +9,15 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from imaging.types import Grid, StructureSet
+from imaging.types import Grid, StructureSet, Volume
 from planner.candidates import score_path, straight_candidates
 from planner.collision import Organ, make_organ
 from planner.errors import PlanInputError
@@ -25,6 +28,10 @@ from planner.steering import ScheduleFamily, match_targets, place, refine_with, 
 from planner.template import Template, check_rigid, hole_frames, pose_from_obturator
 from plugins import registry
 from rod_model.design import RodDesign, preset
+
+if TYPE_CHECKING:
+    from planner.optimize import OptimisationResult
+    from plugins.exporters import ExportPlan
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
@@ -280,3 +287,84 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
                          design=design.name, schedule=sch, depth_mm=c.insertion_depth_mm)
         current = [new if x is c else x for x in current]
     return current
+
+
+def choose_needles(result: PlanResult, targets: Sequence[str] | None = None) -> tuple[Candidate, ...]:
+    """One needle per target: its top-ranked feasible candidate whose hole no earlier target took.
+
+    Targets without a feasible candidate on a free hole get none (their ranking says why).
+    """
+    used: set[str] = set()
+    out: list[Candidate] = []
+    for t in targets or list(result.ranking):
+        for c in result.ranking.get(t, ()):
+            if c.feasible and c.hole_id not in used:
+                used.add(c.hole_id)
+                out.append(c)
+                break
+    return tuple(out)
+
+
+#: ASSUMED source strength for planning: a new Ir-192 HDR source of about 10 Ci, S_K ≈ 40 700 U.
+DEFAULT_AIR_KERMA_U = 40_700.0
+
+
+@dataclass(frozen=True, eq=False)
+class Delivery:
+    """Chosen needles with optimised dwell times, ready for the exporters."""
+
+    needles: tuple[Candidate, ...]
+    optimisation: OptimisationResult
+    export: ExportPlan
+
+
+def plan_delivery(
+    result: PlanResult,
+    structures: StructureSet,
+    grid: Grid | None,
+    source_name: str = "gammamed_plus_hdr",
+    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
+    target_roi: str = "HR-CTV",
+    label: str = "reachplan",
+    volume: Volume | None = None,
+    input_paths: Sequence[Path] = (),
+) -> Delivery:
+    """Choose needles, optimise their dwell times on the target (TG-43, EMBRACE II aims) and assemble the
+    export plan (RT Plan + RT Structure Set + device instructions).
+
+    Raises
+    ------
+    PlanInputError
+        No feasible needle, or no target structure to optimise on.
+    """
+    from imaging.meshing import fit_grid, roi_mask
+    from planner.dose import Tg43Kernel
+    from planner.optimize import PlanningStructures, Structure, optimise_dwell_times
+    from plugins.exporters import ExportPlan, NeedleExport, SourceSpec
+
+    needles = choose_needles(result)
+    if not needles:
+        raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
+    if target_roi not in structures.names:
+        raise PlanInputError(f"no {target_roi} ROI to optimise the dwell times on; name it with --target-roi")
+    roi = structures.get(target_roi)
+    plan_grid = grid if grid is not None else fit_grid(roi, None, 2.0)
+    oars = tuple(Structure(n, roi_mask(structures.get(n), plan_grid)) for n in result.config.oar_names
+                 if n in structures.names and n != "Bone")
+    planning = PlanningStructures(plan_grid, Structure(target_roi, roi_mask(roi, plan_grid)), oars)
+    source = registry.get("sources", source_name)()
+    opt = optimise_dwell_times([c.path_mm for c in needles], planning, Tg43Kernel(source), air_kerma_u)
+    exports = []
+    for ch, c in enumerate(needles, start=1):
+        sel = opt.dwells.channels == ch
+        keep = sel & (opt.dwells.times_s > 0)
+        if not keep.any():  # an unused needle still gets one zero-time dwell at its first position
+            keep = sel & (np.cumsum(sel) == 1)
+        sched = None if c.schedule is None else np.column_stack(
+            [c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg])
+        exports.append(NeedleExport(c.hole_id, c.path_mm, opt.dwells.positions_mm[keep], opt.dwells.times_s[keep],
+                                    c.design, sched))
+    spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
+    export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
+                        input_paths=tuple(input_paths))
+    return Delivery(needles, opt, export)

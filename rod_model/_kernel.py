@@ -232,41 +232,73 @@ def solve_linear(a: np.ndarray, b: np.ndarray, n: int) -> bool:
 
 
 @_jit
+def fd_jacobian(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
+                lam: np.ndarray, fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, fscale: float,
+                n: int, jac: np.ndarray, traj: np.ndarray) -> None:
+    """Forward-difference Jacobian of the tip residual with respect to the base unknowns, on the (coarser)
+    grid ``nsteps``: a quasi-Newton iteration only needs an approximate Jacobian, the residual it drives to
+    zero is always evaluated on the full grid."""
+    length = sec[sec.shape[0] - 1, 1]
+    xt = np.empty(NX)
+    rt = np.empty(NX)
+    r = np.empty(NX)
+    y0 = integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+    residual(y0, ftip, ltip, length, coupled, r)
+    for c in range(n):
+        eps = 1e-7 * fscale * (length if 3 <= c < 6 or c == 7 else 1.0)
+        for q in range(NX):
+            xt[q] = x[q]
+        xt[c] += eps
+        yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+        residual(yt, ftip, ltip, length, coupled, rt)
+        for q in range(n):
+            jac[q, c] = (rt[q] - r[q]) / eps
+
+
+@_jit
 def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
-            fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
-            fscale: float, traj: np.ndarray) -> tuple[int, float, int]:
-    """Damped Newton on the base unknowns (finite-difference Jacobian). Returns (status, residual, iters)."""
+           fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
+           fscale: float, traj: np.ndarray) -> tuple[int, float, int]:
+    """Damped quasi-Newton on the base unknowns: finite-difference Jacobian, Broyden rank-one updates while
+    they keep reducing the residual, a fresh Jacobian when they stop. Returns (status, residual, iters)."""
     n = 6 if coupled else NX
     length = sec[sec.shape[0] - 1, 1]
+    nsteps_j = np.empty_like(nsteps)
+    for i in range(nsteps.shape[0]):
+        nsteps_j[i] = max(2, (nsteps[i] + 3) // 4)
     r = np.empty(NX)
     rt = np.empty(NX)
-    jac = np.empty((NX, NX))
+    jac = np.zeros((NX, NX))
+    work = np.empty((NX, NX))
     xt = np.empty(NX)
+    step = np.zeros(NX)
     y = integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, False)
     res = residual(y, ftip, ltip, length, coupled, r)
     if not np.isfinite(res):
         return NON_FINITE, res, 0
     it = 0
-    rnew = res
+    fresh = False
+    if res > tol:
+        fd_jacobian(x, sec, nsteps_j, rdir, lam, fext, ftip, ltip, coupled, fscale, n, jac, traj)
+        fresh = True
     while res > tol and it < max_iter:
         it += 1
-        for c in range(n):
-            eps = 1e-7 * fscale * (length if 3 <= c < 6 or c == 7 else 1.0)
-            for q in range(NX):
-                xt[q] = x[q]
-            xt[c] += eps
-            yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
-            residual(yt, ftip, ltip, length, coupled, rt)
-            for q in range(n):
-                jac[q, c] = (rt[q] - r[q]) / eps
-        step = np.empty(NX)
+        for q in range(NX):
+            step[q] = 0.0
+            for c in range(NX):
+                work[q, c] = jac[q, c]
         for q in range(n):
             step[q] = -r[q]
-        if not solve_linear(jac, step, n):
-            return SINGULAR, res, it
+        if not solve_linear(work, step, n):
+            if fresh:
+                return SINGULAR, res, it
+            fd_jacobian(x, sec, nsteps_j, rdir, lam, fext, ftip, ltip, coupled, fscale, n, jac, traj)
+            fresh = True
+            continue
         alpha = 1.0
         improved = False
-        for _ in range(12):  # backtracking line search on the residual
+        rnew = res
+        for _ in range(12 if fresh else 2):  # backtracking line search on the residual
             for q in range(n):
                 xt[q] = x[q] + alpha * step[q]
             yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
@@ -276,7 +308,24 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
                 break
             alpha *= 0.5
         if not improved:
-            return NOT_CONVERGED, res, it
+            if fresh:
+                return NOT_CONVERGED, res, it
+            fd_jacobian(x, sec, nsteps_j, rdir, lam, fext, ftip, ltip, coupled, fscale, n, jac, traj)
+            fresh = True
+            continue
+        # Broyden update J += (dr - J dx) dx^T / (dx^T dx)
+        dxx = 0.0
+        for q in range(n):
+            dxx += (alpha * step[q]) ** 2
+        if dxx > 0.0:
+            for q in range(n):
+                jdx = 0.0
+                for c in range(n):
+                    jdx += jac[q, c] * alpha * step[c]
+                g = (rt[q] - r[q] - jdx) / dxx
+                for c in range(n):
+                    jac[q, c] += g * alpha * step[c]
+        fresh = False
         for q in range(NX):
             x[q] = xt[q]
             r[q] = rt[q]

@@ -25,6 +25,15 @@ quantities of the model are both unpublished and physically uncertain in exactly
 The disk arm stays at its documented default (0.42 mm on 15 ga, inside the 1.4 mm disk), and the 13 ga row is
 predicted by the same two numbers through the published geometry (4.47x stiffness, larger lumen and disk),
 never by a parameter of its own. Residuals are reported row by row.
+
+Result (two-tube model, shipped as the :class:`~rod_model.design.Calibration` defaults)
+-----------------------------------------------------------------------------------
+``joint_stiffness_scale = 0.1181``: the 15 ga joint section bends in the needle with 0.094 mN·m² of its own
+(the needle adds 0.97 mN·m², so the needle carries ~91 % of the joint section's bending moment);
+``tube_arm_fraction = 0.6088``: tendon arm 0.324 mm in the 15 ga tube (lumen radius 0.533 mm), 0.455 mm in the
+13 ga tube (0.747 mm). Row by row, predicted − measured: 15 ga tip +0.45 mm (10.32 vs 9.87), 13 ga tip
+−1.08 mm (5.41 vs 6.49), 15 ga base +0.08 mm (29.48 vs 29.40): each within the 1.5 mm aim. With the measured
+joint stiffness (scale 1) no single tube arm brings all three rows within 3 mm.
 """
 
 from __future__ import annotations

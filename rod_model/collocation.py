@@ -39,11 +39,15 @@ def _strains(y: np.ndarray, sec: np.ndarray, r: np.ndarray, lam: np.ndarray,
     v[2] = 1.0
     beta = np.ones(m)
     u2z = np.zeros(m)
+    rx, ry = r[:, 0, None], r[:, 1, None]  # (k, 1); tendon offsets have no z component
     for _ in range(4):
-        t = v[:, None, :] + np.cross(u.T[:, None, :], r[None, :, :]).transpose(2, 1, 0)  # (3, k, m)
-        t = lam[None, :, None] * t / np.linalg.norm(t, axis=0, keepdims=True)
-        ft = t.sum(axis=1)
-        mt = np.cross(r[:, :, None], t, axisa=1, axisb=0, axisc=0).sum(axis=1)
+        tx = v[0] - u[2] * ry  # tendon tangent v + u x r, (k, m)
+        ty = v[1] + u[2] * rx
+        tz = v[2] + u[0] * ry - u[1] * rx
+        w = lam[:, None] / np.sqrt(tx * tx + ty * ty + tz * tz)
+        tx, ty, tz = w * tx, w * ty, w * tz
+        ft = np.stack([tx.sum(0), ty.sum(0), tz.sum(0)])
+        mt = np.stack([(ry * tz).sum(0), (-rx * tz).sum(0), (rx * ty - ry * tx).sum(0)])
         nr, mr = nb - ft, mb - mt
         u[:2] = mr[:2] / (ei1 + ei2)
         if coupled:
@@ -71,7 +75,10 @@ def _block_rhs(y: np.ndarray, sec: np.ndarray, r: np.ndarray, lam: np.ndarray, f
     ux[0, 1], ux[0, 2], ux[1, 0], ux[1, 2], ux[2, 0], ux[2, 1] = -u[2], u[1], u[2], -u[0], -u[1], u[0]
     dy[3:12] = np.einsum("ijm,jkm->ikm", rot, ux).reshape(9, -1)
     dy[12:15] = -fext[:, None]
-    dy[15:18] = -np.cross(dp, y[12:15], axis=0)
+    n = y[12:15]
+    dy[15] = -(dp[1] * n[2] - dp[2] * n[1])
+    dy[16] = -(dp[2] * n[0] - dp[0] * n[2])
+    dy[17] = -(dp[0] * n[1] - dp[1] * n[0])
     if not coupled:
         dy[18] = u2z - u[2]
         dy[19] = -sec[9] * beta * (u[0] * v[1] - u[1] * v[0]) - np.einsum("im,i->m", rot[:, 2], fext)
@@ -144,6 +151,19 @@ class CollocationCosserat:
                     out[sl] = lengths[i] * _block_rhs(y[sl], sec_mm[i], sec_mm[i, 10] * r, lam, fext, self.coupled)
                 return out
 
+            def fun_jac(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+                # blocks are independent: perturb state q of every block at once (21 evaluations, not 21 k)
+                f0 = fun(x, y)
+                jac = np.zeros((y.shape[0], y.shape[0], y.shape[1]))
+                for q in range(NS):
+                    h = 1e-7 * (1.0 + np.abs(y[q::NS]))
+                    yp = y.copy()
+                    yp[q::NS] += h
+                    df = (fun(x, yp) - f0)
+                    for i in range(k):
+                        jac[NS * i:NS * (i + 1), NS * i + q] = df[NS * i:NS * (i + 1)] / h[i]
+                return jac
+
             def bc(ya: np.ndarray, yb: np.ndarray) -> np.ndarray:
                 res = [ya[0:3], ya[3:12] - np.eye(3).ravel(), ya[18:19]]
                 for i in range(k - 1):
@@ -158,12 +178,16 @@ class CollocationCosserat:
                 return np.concatenate(res)
 
             with np.errstate(all="ignore"):  # a diverging iterate is reported as a failure below
-                sol = solve_bvp(fun, bc, mesh, guess, tol=self.tol, max_nodes=self.max_nodes)
-            ok = bool(sol.success) and np.all(np.isfinite(sol.y))
-            bres = float(np.max(np.abs(bc(sol.y[:, 0], sol.y[:, -1])))) if ok else np.inf
-            rms = float(np.max(sol.rms_residuals)) if ok else np.inf
-            return bool(ok and bres < 1e-8 and rms < 10 * self.tol), sol.x, sol.y, max(bres, rms)
+                sol = solve_bvp(fun, bc, mesh, guess, tol=self.tol, max_nodes=self.max_nodes, fun_jac=fun_jac)
+            finite = bool(np.all(np.isfinite(sol.y)))
+            with np.errstate(all="ignore"):
+                bres = float(np.max(np.abs(bc(sol.y[:, 0], sol.y[:, -1])))) if finite else np.inf
+            rms = float(np.max(sol.rms_residuals)) if finite and sol.rms_residuals is not None else np.inf
+            res = max(bres, rms) if np.isfinite(bres) and np.isfinite(rms) else np.inf
+            messages.append(str(sol.message))
+            return bool(sol.success and finite and bres < 1e-8 and rms < 10 * self.tol), sol.x, sol.y, res
 
+        messages: list[str] = []
         ramp = 1
         res = np.inf
         while ramp <= (self.max_ramp if continuation else 1):
@@ -178,8 +202,9 @@ class CollocationCosserat:
             ramp *= 2
         ms = (time.perf_counter() - t0) * 1e3
         if not ok:
-            return FailedSolve(self.name, f"collocation did not converge (residual {res:.2e}, continuation up to "
-                               f"{ramp // 2} load steps)", res, ms, loads.tensions_n, loads.roll_deg)
+            why = messages[-1].rstrip(".") if messages else "no attempt"
+            return FailedSolve(self.name, f"collocation did not converge: {why} (residual {res:.2e}, continuation "
+                               f"up to {ramp // 2} load steps)", res, ms, loads.tensions_n, loads.roll_deg)
         s = np.concatenate([sec_mm[i, 0] + mesh[(1 if i else 0):] * lengths[i] for i in range(k)])
         ys = np.concatenate([guess[NS * i:NS * (i + 1), (1 if i else 0):] for i in range(k)], axis=1)
         keep = np.r_[True, np.diff(s) > 1e-12]

@@ -27,7 +27,8 @@ only through ``λ/GA`` and ``λ r²/EI``, both ~1e-3).
 
 Boundary conditions: clamped base (``p = 0``, ``R = I``, ``θ = 0``); at the tip ``N = F_tip``, ``M = L_tip``
 and, for the needle that carries the external loads, ``n2z = (Rᵀ F_tip)_z``, ``m2z = (Rᵀ L_tip)_z``. Unknowns
-of the shooting: ``N(0), M(0), n2z(0), m2z(0)``; Newton with a finite-difference Jacobian and a backtracking
+of the shooting: ``N(0), M(0), n2z(0), m2z(0)``, started from the undeformed rod's values
+(:func:`linear_guess`); quasi-Newton with a finite-difference Jacobian, Broyden updates and a backtracking
 line search, RK4 with fixed steps aligned to the section boundaries; when the full load fails from the
 initial guess, the tensions and external loads are ramped from zero (continuation). Convergence is judged by
 the tip residual (N, moments divided by the length), never by an optimiser's flag.
@@ -55,6 +56,19 @@ def section_table(design: RodDesign) -> np.ndarray:
     """(k, 11) float, SI: ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm`` per section."""
     return np.array([[s.start_m, s.end_m, s.ei1, s.gj1, s.ea1, s.ga1, s.ei2, s.gj2, s.ea2, s.ga2, s.arm_m]
                      for s in design.sections()])
+
+
+def linear_guess(design: RodDesign, loads: Loads) -> np.ndarray:
+    """(8,) float: base unknowns of the undeformed rod: ``N(0) = F_tip + f L`` (exact: dead loads),
+    ``M(0) = L_tip + L e3 × F_tip + L²/2 e3 × f`` (undeformed lever arms), needle ``n2z = F_z + f_z L``,
+    ``m2z = L_tip,z``. Zero in free space (where it is the exact solution)."""
+    length = design.length_mm * 1e-3
+    f = np.array(loads.distributed_n_per_m)
+    ftip = np.array(loads.tip_force_n)
+    e3 = np.array([0.0, 0.0, 1.0])
+    n0 = ftip + f * length
+    m0 = np.array(loads.tip_moment_nm) + np.cross(length * e3, ftip) + np.cross(0.5 * length**2 * e3, f)
+    return np.r_[n0, m0, n0[2], loads.tip_moment_nm[2]]
 
 
 def _steps(sec: np.ndarray, steps_per_mm: float) -> np.ndarray:
@@ -98,7 +112,7 @@ class _ShootingModel:
         ----------
         initial_guess : (8,) float or None
             Base unknowns ``N(0)`` (N, world), ``M(0)`` (N·m, world), ``n2z(0)`` (N), ``m2z(0)`` (N·m);
-            zero by default (exact in free space).
+            default :func:`linear_guess` (exact in free space).
         continuation : bool
             Ramp the loads from zero when the direct solve fails.
         """
@@ -106,7 +120,7 @@ class _ShootingModel:
         check_loads(self.name, self.capabilities, design, loads)
         sec = section_table(design)
         nsteps = _steps(sec, self.steps_per_mm)
-        x = np.zeros(_kernel.NX) if initial_guess is None else np.array(initial_guess, dtype=float)
+        x = linear_guess(design, loads) if initial_guess is None else np.array(initial_guess, dtype=float)
         if x.shape != (_kernel.NX,) or not np.all(np.isfinite(x)):
             raise ValueError("initial_guess must be 8 finite numbers: N(0), M(0), n2z(0), m2z(0)")
         traj = np.empty((int(nsteps.sum()) + 1, _kernel.NSTATE))

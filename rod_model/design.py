@@ -399,23 +399,6 @@ class Loads:
         """True when any external force or moment is applied."""
         return any(any(v) for v in (self.tip_force_n, self.tip_moment_nm, self.distributed_n_per_m))
 
-    @property
-    def is_planar(self) -> bool:
-        """True when every load keeps the rod in one plane through its axis (one pulled tendon direction or
-        opposite ones, and external loads in that plane)."""
-        pulled = [i for i, t in enumerate(self.tensions_n) if t > 0]
-        return len(pulled) <= 1 and not self.has_external
-
-    def scaled(self, factor: float) -> Loads:
-        """These loads with tensions and external loads multiplied by ``factor`` (for continuation)."""
-        return Loads(tuple(factor * t for t in self.tensions_n), self.roll_deg,
-                     _scale3(self.tip_force_n, factor), _scale3(self.tip_moment_nm, factor),
-                     _scale3(self.distributed_n_per_m, factor))
-
-
-def _scale3(v: tuple[float, float, float], f: float) -> tuple[float, float, float]:
-    return (v[0] * f, v[1] * f, v[2] * f)
-
 
 def gravity_load(design: RodDesign,
                  direction: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> tuple[float, float, float]:

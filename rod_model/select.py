@@ -16,6 +16,7 @@ from typing import Any
 
 from plugins import registry
 from plugins.errors import PluginError
+from rod_model.design import Loads
 from rod_model.errors import NoModelWithinToleranceError, RodModelError
 from rod_model.protocol import RodModel
 
@@ -39,6 +40,13 @@ class Scene:
     planar: bool = True
     twist: bool = False
     external_load: bool = False
+
+    @classmethod
+    def of(cls, loads: Loads) -> Scene:
+        """The scene of ``loads``: tendons alone always bend the rod in one plane (their net moment keeps its
+        direction); external loads need a Cosserat model, a torque about the axis the two-tube one."""
+        return cls(planar=not loads.has_external, twist=loads.tip_moment_nm[2] != 0.0,
+                   external_load=loads.has_external)
 
 
 @dataclass(frozen=True)

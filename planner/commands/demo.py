@@ -22,46 +22,28 @@ def run(args: argparse.Namespace) -> int:
     from imaging.dicom_io import read_series
     from imaging.phantom import write_phantom
     from imaging.rtstruct import read_rtstruct
-    from planner.io import atomic_write_json
-    from planner.pipeline import PlanConfig, build_scene, plan
-    from planner.report import format_table, overview_figure
+    from planner.commands.plan import run_plan
+    from planner.pipeline import PlanConfig
 
     out: Path = args.out
     quiet = args.quiet or args.json
-    timings: dict[str, float] = {}
-
-    def log(msg: str) -> None:
-        if not quiet:
-            print(msg, file=sys.stderr)
-
     t0 = time.perf_counter()
     files = write_phantom(out / "phantom")
-    timings["write_phantom_s"] = time.perf_counter() - t0
-    log(f"phantom written to {files.ct_dir.parent} ({timings['write_phantom_s']:.1f} s)")
-
+    t_write = time.perf_counter() - t0
     t = time.perf_counter()
-    volume = read_series(files.ct_dir)
+    volume = read_series(files.ct_dir)  # read back from disk: the demo exercises the DICOM reader
     structures = read_rtstruct(files.rtstruct_path, volume)
-    timings["read_dicom_s"] = time.perf_counter() - t
-    log(f"read CT {volume.grid.shape} and {len(structures.rois)} ROIs ({timings['read_dicom_s']:.1f} s)")
-
-    config = PlanConfig()
-    t = time.perf_counter()
-    scene = build_scene(structures, grid=volume.grid, config=config, quiet=quiet)
-    timings["mesh_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    result = plan(scene, config, quiet=quiet)
-    timings["plan_s"] = time.perf_counter() - t
-    log(f"scored {len(result.candidates)} candidates ({timings['plan_s']:.1f} s)")
-
-    doc = {"case": "built-in phantom", **result.to_json(), "timings": timings}
-    atomic_write_json(out / "ranking.json", doc)
-    overview_figure(scene, result, out / "overview.png", volume)
-    timings["total_s"] = time.perf_counter() - t0
+    t_read = time.perf_counter() - t
+    if not quiet:
+        print(f"phantom written to {files.ct_dir.parent} ({t_write:.1f} s), read back: CT {volume.grid.shape}, "
+              f"{len(structures.rois)} ROIs ({t_read:.1f} s)", file=sys.stderr)
+    targets = [n for n in structures.names if n.casefold().startswith("target")]
+    doc = run_plan(structures, volume, targets, [], PlanConfig(), out, quiet,
+                   inputs=[files.ct_dir, files.rtstruct_path],
+                   extra={"case": "built-in phantom", "phantom_s": {"write": t_write, "read": t_read}})
     if args.json:
         json.dump(doc, sys.stdout, indent=2)
         print()
     elif not args.quiet:
-        print(format_table(result))
-        print(f"\nwrote {out / 'ranking.json'} and {out / 'overview.png'} in {timings['total_s']:.1f} s")
+        print(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return 0

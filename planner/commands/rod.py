@@ -48,10 +48,11 @@ def run(args: argparse.Namespace) -> int:
     values, sweep = _tensions(args)
     design = preset(args.preset)
     if args.model == "auto":
-        name = select_model(args.tolerance, Scene(planar=True, twist=False, external_load=False))
+        name = select_model(args.tolerance, Scene.of(design.loads(values[0], args.roll)))
     else:
         name = args.model
     model = get_model(name)
+    model.solve(design, design.loads(0.0))  # load compiled kernels before timing (solve_ms is the solve only)
     out = []
     for t in values:
         result = model.solve(design, design.loads(t, args.roll))

@@ -230,11 +230,15 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         raise CorruptFileError(f"{p}: RT Dose geometry is incomplete ({exc})") from None
     if len(offsets) != nk:
         raise CorruptFileError(f"{p}: GridFrameOffsetVector has {len(offsets)} values for {nk} frames")
+    normal = np.cross(iop[:3], iop[3:])
+    if abs(offsets[0]) > 1e-6:  # "absolute" offsets (PS3.3 C.8.8.3.2): patient z of each plane, axial only
+        if abs(abs(normal[2]) - 1.0) > 1e-6:
+            raise CorruptFileError(f"{p}: absolute GridFrameOffsetVector on a non-axial RT Dose grid")
+        offsets = (offsets - offsets[0]) * np.sign(normal[2])
     steps = np.diff(offsets)
     if nk > 1 and (np.ptp(steps) > 1e-3 * max(1.0, abs(steps).max()) or np.any(steps == 0)):
         raise CorruptFileError(f"{p}: RT Dose frames are not evenly spaced; cannot use it as a grid")
     step = float(steps[0]) if nk > 1 else 1.0
-    normal = np.cross(iop[:3], iop[3:])
     affine = np.eye(4)
     affine[:3, 0] = iop[:3] * col_sp
     affine[:3, 1] = iop[3:] * row_sp

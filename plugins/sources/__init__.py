@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import re
 from dataclasses import dataclass
+from functools import cache
 from importlib import resources
 
 import numpy as np
@@ -124,10 +125,11 @@ def normalise_label(text: str) -> str:
     return re.sub(r"[\s_\-.]+", "", text).casefold()
 
 
+@cache
 def load_builtin(name: str) -> SourceData:
-    """Load the built-in data set ``name`` from the package data."""
+    """Load the built-in data set ``name`` from the package data (cached: the result is immutable)."""
     try:
-        text = resources.files(__name__).joinpath("data", f"{name}.json").read_text()
+        text = resources.files(__name__).joinpath(f"{name}.json").read_text()
     except FileNotFoundError:
         raise PluginError(f"no built-in TG-43 source {name!r}; built-ins: {', '.join(BUILTIN)}") from None
     return SourceData.from_json(text)
@@ -167,8 +169,3 @@ BUILTIN = {
     "varisource_vs2000_hdr": varisource_vs2000_hdr,
 }
 
-
-def check_source(obj: object) -> None:
-    """Registry check for ``reachplan.sources``: a zero-argument callable returning :class:`SourceData`."""
-    if not callable(obj):
-        raise TypeError("a sources plugin must be a zero-argument callable returning SourceData")

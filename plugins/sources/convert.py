@@ -1,7 +1,7 @@
 """Re-write the consensus TG-43 tables of ``reference/tg43/<source>/`` as this package's JSON data.
 
 Run once by a maintainer (``python -m plugins.sources.convert REFERENCE_TG43_DIR``); the runtime only
-reads the JSON files in ``plugins/sources/data``. The conversion keeps the published numbers and drops
+reads the JSON files beside this module. The conversion keeps the published numbers and drops
 the ``r = 0`` row/column that the reference CSVs carry as a copy of the first measured distance: the
 kernel applies the same nearest-neighbour rule explicitly (see :mod:`planner.dose`).
 """
@@ -83,8 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     if len(args) != 1:
         print("usage: python -m plugins.sources.convert REFERENCE_TG43_DIR", file=sys.stderr)
         return 2
-    out = Path(__file__).with_name("data")
-    out.mkdir(exist_ok=True)
+    out = Path(__file__).parent
     for src in sorted(p for p in Path(args[0]).iterdir() if p.is_dir()):
         doc = convert_one(src)
         (out / f"{src.name}.json").write_text(dumps(doc))

@@ -13,6 +13,8 @@ from pydicom.dataset import Dataset, FileDataset, FileMetaDataset
 from pydicom.sequence import Sequence as DicomSequence
 from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
+from imaging.phantom import PhantomFiles, write_phantom
+
 CT_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
 MR_STORAGE = "1.2.840.10008.5.1.4.1.1.4"
 ENHANCED_CT_STORAGE = "1.2.840.10008.5.1.4.1.1.2.1"
@@ -243,3 +245,9 @@ class Factory:
 @pytest.fixture(scope="session")
 def dicom() -> Any:
     return Factory
+
+
+@pytest.fixture(scope="session")
+def phantom_files(tmp_path_factory: pytest.TempPathFactory) -> PhantomFiles:
+    """The built-in phantom written once per test session (treat as read-only)."""
+    return write_phantom(tmp_path_factory.mktemp("phantom"))

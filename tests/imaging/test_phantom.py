@@ -23,8 +23,8 @@ from planner.cli import main
 
 
 @pytest.fixture(scope="module")
-def written(tmp_path_factory: pytest.TempPathFactory) -> PhantomFiles:
-    return write_phantom(tmp_path_factory.mktemp("phantom"))
+def written(phantom_files: PhantomFiles) -> PhantomFiles:
+    return phantom_files
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +84,7 @@ def test_ct_geometry_and_hounsfield_units(loaded: tuple[Volume, StructureSet]) -
     assert hu_at((0.5, 0.5, 21.25)) == 100  # obturator
     assert hu_at((120.5, 120.5, 51.25)) == -1000  # air outside the body
     assert hu_at((-50.5, 50.5, 51.25)) == 30  # gel
+    assert hu_at((0.5, 86.5, 51.25)) == -90  # subcutaneous fat under the body outline
 
 
 def test_rtstruct_contours_lie_on_ct_slices(written: PhantomFiles, loaded: tuple[Volume, StructureSet]) -> None:

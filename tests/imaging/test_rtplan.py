@@ -37,6 +37,7 @@ def test_eclipse_hdr(reference_dir: Path) -> None:
     before = _sha(rp)
     plan = _read_quiet(rp)
     assert _sha(rp) == before
+    assert plan.quirks == ("invalid value (Invalid value for VR UI: 'UNKNOWN'.)",)  # the Study Instance UID
     assert plan.is_brachy and plan.treatment_type == "HDR" and plan.technique == "INTRACAVITARY"
     assert [c.number for c in plan.channels] == [1, 2, 3]
     assert [c.n_dwells for c in plan.channels] == [15, 5, 5]
@@ -58,7 +59,7 @@ def test_eclipse_hdr(reference_dir: Path) -> None:
 
 def test_eclipse_pdr(reference_dir: Path) -> None:
     plan = _read_quiet(reference_dir / "tps_examples" / "pdr" / "RP.PDR.dcm")
-    assert plan.treatment_type == "PDR" and plan.n_pulses == 43
+    assert plan.treatment_type == "PDR" and plan.n_pulses == 43 and plan.quirks == ()
     assert [c.n_dwells for c in plan.channels] == [12, 5, 4]
     assert [c.roi_number for c in plan.channels] == [6, 5, 4]
     assert [c.total_time_s for c in plan.channels] == pytest.approx([276.3, 69.0, 54.6], abs=1e-6)

@@ -136,3 +136,48 @@ def test_spacing_tolerance_is_configurable(tmp_path: Path, dicom: Any) -> None:
     assert v.grid.shape[0] == 6
     with pytest.raises(ValueError, match="SeriesTolerance"):
         SeriesTolerance(spacing=0.0)
+
+
+def test_dicomdir_and_single_slices(tmp_path: Path, dicom: Any) -> None:
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import UID, ExplicitVRLittleEndian
+
+    dicom.write_series(tmp_path, n=1)
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = UID("1.2.840.10008.1.3.10")
+    meta.MediaStorageSOPInstanceUID = UID("1.2.3.4.5")
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = FileDataset("", {}, file_meta=meta, preamble=b"\0" * 128)
+    ds.FileSetID = "TEST"
+    ds.save_as(tmp_path / "DICOMDIR", enforce_file_format=True)
+    v = read_series(tmp_path)
+    assert v.grid.shape == (1, 10, 12)
+    assert np.allclose(v.grid.spacing_mm, [0.7, 0.8, 2.0])  # a single slice is SliceThickness thick
+
+
+def test_jpeg_lossless_is_decoded_even_without_a_pydicom_plugin(tmp_path: Path, dicom: Any) -> None:
+    """JPEG Lossless (process 14), common in clinical archives: pydicom needs a plugin, SimpleITK's GDCM
+    does not; the reader falls back to it."""
+    import pydicom
+    import SimpleITK as sitk
+    from pydicom.uid import JPEGLosslessSV1
+
+    def to_jpeg_lossless(k: int, ds: Any) -> None:
+        arr = np.frombuffer(ds.PixelData, dtype=np.int16).reshape(ds.Rows, ds.Columns)
+        out = tmp_path / f"j{k}.dcm"
+        writer = sitk.ImageFileWriter()
+        writer.SetImageIO("GDCMImageIO")
+        writer.SetFileName(str(out))
+        writer.SetUseCompression(True)
+        writer.SetCompressor("JPEG")
+        writer.Execute(sitk.GetImageFromArray(arr[None]))
+        encoded = pydicom.dcmread(out)
+        assert encoded.file_meta.TransferSyntaxUID == JPEGLosslessSV1
+        ds.file_meta.TransferSyntaxUID = JPEGLosslessSV1
+        ds.PixelData = encoded.PixelData
+        ds["PixelData"].is_undefined_length = True
+        out.unlink()
+
+    dicom.write_series(tmp_path / "plain")
+    dicom.write_series(tmp_path / "jpeg", edit=to_jpeg_lossless)
+    assert np.array_equal(read_series(tmp_path / "plain").array, read_series(tmp_path / "jpeg").array)

@@ -195,3 +195,39 @@ def test_cli_errors(reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureF
         ["dose", "--plan", str(rp), "--structures", str(ct), "--out", str(tmp_path / "c.dcm")], capsys)
     assert (_sha(rp), _sha(rs)) == before
     assert not (tmp_path / "a.dcm").exists() and not (tmp_path / "c.dcm").exists()
+
+
+def test_cli_unrecognised_source_needs_option(
+    reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    hdr = reference_dir / "tps_examples" / "hdr"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = pydicom.dcmread(hdr / "RP.HDR.dcm")
+        ds.SourceSequence[0].SourceIsotopeName = "Ir-192 unknown model"
+        ds.TreatmentMachineSequence[0].TreatmentMachineName = "Afterloader"
+        ds.save_as(tmp_path / "RP.dcm")
+    rp, rs = tmp_path / "RP.dcm", hdr / "RS.HDR.dcm"
+    err = _run_error(["dose", "--plan", str(rp), "--structures", str(rs), "--out", str(tmp_path / "a.dcm")], capsys)
+    assert "--source" in err
+    assert "no TG-43 source named" in _run_error(
+        ["dose", "--plan", str(rp), "--structures", str(rs), "--source", "nope", "--out", str(tmp_path / "a.dcm")],
+        capsys)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DicomQuirkWarning)
+        assert main(["dose", "--plan", str(rp), "--structures", str(rs), "--source", "gammamed_plus_hdr",
+                     "--points", "--json", "--spacing", "10", "--out", str(tmp_path / "b.dcm")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert all(abs(d["diff_percent"]) < 0.2 for d in doc)
+
+
+def test_rtdose_absolute_frame_offsets(tmp_path: Path) -> None:
+    """An RD whose GridFrameOffsetVector holds patient z (first value non-zero) gives the same grid."""
+    grid = _grid()
+    out = write_rtdose(tmp_path / "rd.dcm", np.ones(grid.shape), grid, DoseContext("1.2.3"))
+    ds = pydicom.dcmread(out)
+    z0 = float(ds.ImagePositionPatient[2])
+    ds.GridFrameOffsetVector = [f"{z0 + float(v):.4f}" for v in ds.GridFrameOffsetVector]
+    ds.save_as(tmp_path / "abs.dcm")
+    _, grid2 = read_rtdose_grid(tmp_path / "abs.dcm")
+    assert np.allclose(grid2.patient_from_index, grid.patient_from_index, atol=1e-4)

@@ -29,7 +29,9 @@ def kernel() -> Tg43Kernel:
 
 @pytest.fixture(scope="module")
 def phantom() -> PlanningStructures:
-    """A wide HR-CTV (x semi-axis 26 mm) with bladder anterior (−y) and rectum posterior (+y)."""
+    """A wide HR-CTV (x semi-axis 28 mm, 14 cm³) between a bladder anterior (−y) and a rectum posterior
+    (+y), both as wide as the target: medial straight needles cannot cover its lateral ends without
+    overdosing them."""
     n = 32
     aff = np.diag([H, H, H, 1.0])
     aff[:3, 3] = [-40 + H / 2, -40 + H / 2, -30 + H / 2]
@@ -37,9 +39,9 @@ def phantom() -> PlanningStructures:
     k, j, i = np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij")
     p = grid.to_patient(np.stack([i.ravel(), j.ravel(), k.ravel()], 1)).reshape(n, n, n, 3)
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    target = (x / 26) ** 2 + (y / 12) ** 2 + ((z - 10) / 12) ** 2 <= 1
-    bladder = x**2 + (y + 24) ** 2 + (z - 12) ** 2 <= 11**2
-    rectum = x**2 + (y - 22) ** 2 + (z - 5) ** 2 <= 9**2
+    target = (x / 28) ** 2 + (y / 11) ** 2 + ((z - 10) / 11) ** 2 <= 1
+    bladder = (x / 30) ** 2 + ((y + 22) / 9) ** 2 + ((z - 12) / 10) ** 2 <= 1
+    rectum = (x / 30) ** 2 + ((y - 21) / 8) ** 2 + ((z - 5) / 9) ** 2 <= 1
     return PlanningStructures(grid, Structure("HR-CTV", target), (Structure("Bladder", bladder),
                                                                      Structure("Rectum", rectum)))
 
@@ -125,13 +127,19 @@ def test_steered_beats_straight(phantom: PlanningStructures, kernel: Tg43Kernel)
     comp = compare_straight_steered(STRAIGHT, STEERED, phantom, kernel, SK)
     rows = {r.arm: r for r in comp.rows()}
     straight, steered = rows["straight"], rows["steered"]
-    assert steered.d90_eqd2_gy > straight.d90_eqd2_gy
-    assert steered.aim_met and steered.needles_needed is not None
-    assert straight.needles_needed is None or steered.needles_needed <= straight.needles_needed
+    assert steered.d90_eqd2_gy > straight.d90_eqd2_gy + 10.0
+    assert steered.d98_eqd2_gy > straight.d98_eqd2_gy and steered.v100_pct > straight.v100_pct
+    assert steered.aim_met and steered.needles_needed is not None and steered.needles_needed < 4
+    assert not straight.aim_met and straight.needles_needed is None
     for r in (straight, steered):
         limits = dict(Aims().oar_d2cc_eqd2_gy)
         for organ, value in r.oar_d2cc_eqd2_gy:
             assert value <= limits[organ.lower()] + 1e-6
+    # the bisected needle count is the smallest prefix that meets the aim (checked one by one)
+    assert steered.needles_needed is not None
+    for k in range(1, steered.needles_needed + 1):
+        met = optimise_dwell_times(STEERED[:k], phantom, kernel, SK).aim_met
+        assert met == (k == steered.needles_needed)
     text = comp.format_table()
     assert "straight" in text and "steered" in text and "Bladder D2cc" in text
     fig = comp.figure()

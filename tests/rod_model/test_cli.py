@@ -58,3 +58,19 @@ def test_rod_errors_are_one_line(argv: list[str], message: str, capsys: pytest.C
     err = capsys.readouterr().err
     assert message in err
     assert err.count("\n") == 1
+
+
+def test_bench_is_a_subcommand_structure(tmp_path: object, monkeypatch: pytest.MonkeyPatch,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    from pathlib import Path
+
+    from planner.commands import bench
+
+    assert bench.TARGETS[0][:2] == ("models", "rod_models")
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "models"])  # --out is required
+    assert exc.value.code == 2
+    capsys.readouterr()
+    monkeypatch.setattr(bench, "BENCH_DIR", Path(str(tmp_path)))
+    assert main(["bench", "models", "--out", str(tmp_path)]) == 2
+    assert "source checkout" in capsys.readouterr().err

@@ -63,6 +63,11 @@ def test_small_loads_match_linear_beam_theory(model: object, name: str) -> None:
                + s.length_m / (s.ga1 + s.ga2) for s in secs)
     r = _ok(model.solve(d, Loads((0.0,) * 4, tip_force_n=(f, 0, 0))))  # type: ignore[attr-defined]
     assert r.tip_position_mm[0] == pytest.approx(f * flex * 1e3, rel=1e-4)
+    # uniform distributed load w: M = w (L - s)² / 2, unit-load moment (L - s)
+    w = 5e-3
+    flex_w = sum(((length - s.start_m) ** 4 - (length - s.end_m) ** 4) / 8 / (s.ei1 + s.ei2) for s in secs)
+    r = _ok(model.solve(d, Loads((0.0,) * 4, distributed_n_per_m=(w, 0, 0))))  # type: ignore[attr-defined]
+    assert r.tip_position_mm[0] == pytest.approx(w * flex_w * 1e3, rel=1e-3)
     # small tension: moment λ r(s) per section, deflection ∫ κ (L - s) ds
     lam = 1e-2
     lin = sum(lam * s.arm_m / (s.ei1 + s.ei2) * ((length - s.start_m) ** 2 - (length - s.end_m) ** 2) / 2
@@ -182,3 +187,15 @@ def test_nonconvergence_is_a_failed_result_with_reason() -> None:
     assert "residual" in r.reason  # type: ignore[union-attr]
     rescued = TWO_TUBE_COSSERAT.solve(d, loads, initial_guess=bad)
     assert rescued, getattr(rescued, "reason", "")
+
+
+def test_axial_tip_force_stretches_the_needle_not_the_stylet() -> None:
+    # external loads act on the needle; without friction the stylet (whose centreline is reported) carries no
+    # part of an axial pull, while the welded single rod shares it: z_tip = L (1 + F / (EA1 + EA2))
+    d = preset("15ga-20j-tip")
+    loads = Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, 2.0))
+    two = _ok(TWO_TUBE_COSSERAT.solve(d, loads))
+    one = _ok(COSSERAT_ROD.solve(d, loads))
+    assert two.tip_position_mm[2] == pytest.approx(d.length_mm, abs=1e-9)
+    s = d.sections()[0]
+    assert one.tip_position_mm[2] == pytest.approx(d.length_mm * (1 + 2.0 / (s.ea1 + s.ea2)), rel=1e-9)
