@@ -23,6 +23,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "planner.commands.bench",
     "planner.commands.dose",
     "planner.commands.plugins",
+    "planner.commands.study",
 )
 
 

@@ -23,6 +23,7 @@ from planner.collision import Organ, make_organ
 from planner.errors import PlanInputError
 from planner.insertion import TISSUE_BEAM
 from planner.ranking import Candidate, RankWeights, Target, pareto_front, rank
+from planner.robustness import Perturbations, assess, with_robustness
 from planner.schedule import TensionSchedule
 from planner.steering import ScheduleFamily, match_targets, place, refine_with, shape_bank
 from planner.template import Template, check_rigid, hole_frames, pose_from_obturator
@@ -53,6 +54,8 @@ class PlanConfig:
     per hole before a steered candidate is declared colliding. ``refine_top``: feasible steered candidates
     per target re-solved with the reference insertion model (tissue-embedded beam, two-tube Cosserat
     curvatures); the others keep the screening model's numbers, and every candidate names its model.
+    ``robust_top``: feasible straight and steered candidates per target assessed under ``perturbations``
+    (tension, roll and entry-angle errors); the ranking prefers robust ones among them.
     """
 
     template: str = "needlefinder_syed_63"
@@ -66,6 +69,8 @@ class PlanConfig:
     alternatives: int = 8
     refine_top: int = 1
     weights: RankWeights = field(default_factory=RankWeights)
+    robust_top: int = 2
+    perturbations: Perturbations = field(default_factory=Perturbations)
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
@@ -206,7 +211,24 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True) -> 
         for design in designs:
             steered = steered_candidates(scene, target, design, config, skip=reached)
             cands += refine_shortlist(scene, target, design, steered, config)
+    cands = assess_shortlist(scene, cands, config)
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
+
+
+def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig) -> list[Candidate]:
+    """Robustness of the ``config.robust_top`` best feasible straight and steered candidates per target."""
+    if config.robust_top <= 0:
+        return cands
+    targets = {t.name: t for t in scene.targets}
+    chosen: dict[int, Candidate] = {}
+    for name, ranked in rank(cands, config.weights).items():
+        for steered in (False, True):
+            for c in [c for c in ranked if c.feasible and c.steered == steered][: config.robust_top]:
+                radius = preset(c.design).needle.outer_diameter_mm / 2 if c.design else config.needle_radius_mm
+                r = assess(c, targets[name], scene.organs, scene.patient_from_template, radius,
+                           config.perturbations, reach_tolerance_mm=config.reach_tolerance_mm)
+                chosen[id(c)] = with_robustness(c, r)
+    return [chosen.get(id(c), c) for c in cands]
 
 
 def _template_offsets(scene: Scene, target: Target) -> np.ndarray:

@@ -64,6 +64,9 @@ class Candidate:
         Stylet preset ("" for a plain straight needle).
     schedule : TensionSchedule or None
         Tension and roll along the insertion (None for a straight needle).
+    worst_reach_mm, worst_clearance_mm, worst_case : float, float, str
+        Robustness (see :mod:`planner.robustness`): worst reach error and smallest clearance under
+        tension, roll and entry-angle errors, and which error gave them; NaN/"" when not assessed.
     """
 
     target: str
@@ -82,6 +85,9 @@ class Candidate:
     path_mm: np.ndarray = field(repr=False)
     design: str = ""
     schedule: TensionSchedule | None = field(default=None, repr=False)
+    worst_reach_mm: float = float("nan")
+    worst_clearance_mm: float = float("nan")
+    worst_case: str = ""
 
     @property
     def feasible(self) -> bool:
@@ -112,6 +118,11 @@ class Candidate:
             "tip_position_mm": [round(float(v), 3) for v in self.path_mm[-1]],
             "design": self.design,
             "schedule": sched,
+            "robustness": None if np.isnan(self.worst_reach_mm) else {
+                "worst_reach_mm": round(self.worst_reach_mm, 3),
+                "worst_clearance_mm": round(self.worst_clearance_mm, 3) if np.isfinite(self.worst_clearance_mm)
+                else None,
+                "worst_case": self.worst_case},
         }
 
 
@@ -125,7 +136,8 @@ class RankWeights:
     the centre (medial entry), 1 per newton, 2 per mm of reach error, 1 per mm of clearance up to 5 mm
     (beyond that more room buys nothing), and 10 for steering at all (a steered needle costs a stylet, a
     tension schedule to follow by hand and more uncertainty, so it must enter at least ~10 mm more medially,
-    plus its tension, to rank above a straight needle that reaches cleanly).
+    plus its tension, to rank above a straight needle that reaches cleanly). Robust candidates are preferred:
+    1 per mm that the worst-case reach error (see :mod:`planner.robustness`) exceeds the nominal one.
     """
 
     per_mm_from_centre: float = 1.0
@@ -134,6 +146,7 @@ class RankWeights:
     per_mm_clearance: float = 1.0
     clearance_cap_mm: float = 5.0
     steering_cost: float = 10.0
+    per_mm_worst_reach: float = 1.0
 
     def __post_init__(self) -> None:
         for k, v in dataclasses.asdict(self).items():
@@ -141,10 +154,14 @@ class RankWeights:
                 raise ValueError(f"rank weight {k} must be a finite number >= 0, got {v}")
 
     def score(self, c: Candidate) -> float:
-        clear = min(c.clearance_mm, self.clearance_cap_mm) if np.isfinite(c.clearance_mm) else 0.0
+        nominal = c.clearance_mm if np.isfinite(c.clearance_mm) else 0.0
+        worst = c.worst_clearance_mm if np.isfinite(c.worst_clearance_mm) else nominal
+        clear = min(nominal, worst, self.clearance_cap_mm)  # the worst case when assessed
         return (self.per_mm_from_centre * c.hole_distance_mm + self.per_newton * c.peak_tension_n
                 + self.per_mm_reach * c.reach_error_mm - self.per_mm_clearance * clear
-                + (self.steering_cost if c.steered else 0.0))
+                + (self.steering_cost if c.steered else 0.0)
+                + (self.per_mm_worst_reach * max(0.0, c.worst_reach_mm - c.reach_error_mm)
+                   if np.isfinite(c.worst_reach_mm) else 0.0))
 
 
 def rank_key(c: Candidate, weights: RankWeights = RankWeights()) -> tuple[float, ...]:
@@ -152,8 +169,9 @@ def rank_key(c: Candidate, weights: RankWeights = RankWeights()) -> tuple[float,
     informative first: those that reach but collide, by reach error, then those that miss, by reach error.
     Ties keep a fixed order (by hole id, then design, applied in :func:`rank`): the ranking is deterministic."""
     clear = -round(c.clearance_mm, 6) if np.isfinite(c.clearance_mm) else 0.0
-    if c.feasible:
-        return (0, round(weights.score(c), 6), round(c.hole_distance_mm, 6))
+    if c.feasible:  # assessed candidates (the shortlist) first: their score carries the robustness term
+        return (0, 0 if np.isfinite(c.worst_reach_mm) else 1, round(weights.score(c), 6),
+                round(c.hole_distance_mm, 6))
     return (1 if c.reaches else 2, round(c.reach_error_mm, 6), clear, round(c.hole_distance_mm, 6))
 
 
