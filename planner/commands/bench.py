@@ -22,6 +22,7 @@ HELP = "Run a benchmark (models: rod models speed vs accuracy and stability) and
 #: (sub-command, module file under benchmarks/, help)
 TARGETS: tuple[tuple[str, str, str], ...] = (
     ("models", "rod_models", "rod models: time per solve vs tip error (Pareto chart), batched speed, stability"),
+    ("planning", "planning", "whole phantom plan (paths/s, FCL queries/s, re-rank) and insertion models' chart"),
 )
 
 BENCH_DIR = Path(__file__).resolve().parents[2] / "benchmarks"
