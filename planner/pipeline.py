@@ -116,7 +116,12 @@ class PlanResult:
         for t, cands in self.ranking.items():
             front = {id(c) for c in pareto_front(cands)}
             straight, steered = self.best(t, False), self.best(t, True)
+            straight_d = [c.hole_distance_mm for c in cands if c.feasible and not c.steered]
+            steered_d = [c.hole_distance_mm for c in cands if c.feasible and c.steered and c.clearance_mm >= 2.0]
             targets[t] = {
+                "most_medial_straight_mm": round(min(straight_d), 3) if straight_d else None,
+                "most_medial_steered_mm": round(min(steered_d), 3) if steered_d else None,
+                "medial_gain_mm": round(min(straight_d) - min(steered_d), 3) if straight_d and steered_d else None,
                 "best_straight": None if straight is None else straight.to_json(),
                 "best_steered": None if steered is None else steered.to_json(),
                 "candidates": [{**c.to_json(), "pareto": id(c) in front} for c in cands],

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 NAME = "demo"
-HELP = "write the built-in pelvic phantom as DICOM, read it back, plan needles, write ranking.json and figures"
+HELP = "write the built-in phantom as DICOM, read it back, plan needles; write plan/ranking JSON, figures, exports"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,6 +23,7 @@ def run(args: argparse.Namespace) -> int:
     from imaging.phantom import write_phantom
     from imaging.rtstruct import read_rtstruct
     from planner.commands.plan import run_plan
+    from planner.io import atomic_write_json
     from planner.pipeline import PlanConfig
 
     out: Path = args.out
@@ -41,6 +42,9 @@ def run(args: argparse.Namespace) -> int:
     doc = run_plan(structures, volume, targets, [], PlanConfig(), out, quiet,
                    inputs=[files.ct_dir, files.rtstruct_path],
                    extra={"case": "built-in phantom", "phantom_s": {"write": t_write, "read": t_read}})
+    targets_doc = doc["targets"]
+    assert isinstance(targets_doc, dict)
+    atomic_write_json(out / "ranking.json", {t: v["candidates"] for t, v in targets_doc.items()})
     if args.json:
         json.dump(doc, sys.stdout, indent=2)
         print()
