@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydicom.errors import BytesLengthException
 
 from imaging.errors import (
     CorruptFileError,
@@ -148,7 +149,7 @@ def read_dataset(
 #: What pydicom raises on damaged bytes, when a file is read or when its values are first used.
 PARSE_ERRORS: tuple[type[Exception], ...] = (
     OSError, EOFError, ValueError, KeyError, TypeError, IndexError, AttributeError, OverflowError, struct.error,
-    NotImplementedError, RuntimeError,  # pydicom's BytesLengthException is a RuntimeError
+    NotImplementedError, RuntimeError, BytesLengthException,
 )
 
 
@@ -494,6 +495,25 @@ def _native_pixels(ds: Any, path: Path) -> np.ndarray | None:
     return np.frombuffer(data, dtype=dtype, count=n).reshape(rows, cols)
 
 
+def _check_pixel_length(ds: Any, path: Path) -> None:
+    """For uncompressed pixel data: its length must hold Rows x Columns x frames values."""
+    meta = getattr(ds, "file_meta", None)
+    if meta is None or str(meta.get("TransferSyntaxUID", "")) not in _NATIVE_LE:
+        return
+    with parsing(path):
+        elem = ds.get_item(0x7FE00010, keep_deferred=True) if 0x7FE00010 in ds else None
+        if elem is None:
+            raise _invalid(path, "the image has no Pixel Data")
+        length = getattr(elem, "length", None)
+        if length is None:
+            length = len(elem.value or b"")
+        bits = int(ds.get("BitsAllocated", 16) or 16)
+        need = int(ds.Rows) * int(ds.Columns) * int(ds.get("NumberOfFrames", 1) or 1) * \
+            int(ds.get("SamplesPerPixel", 1) or 1) * bits // 8
+    if length != 0xFFFFFFFF and length < need:
+        raise _corrupt(path, f"pixel data has {length} bytes, {need} needed for its rows, columns and frames")
+
+
 def _sitk_pixels(ds: Any, path: Path) -> np.ndarray | None:
     """Stored values of a single-frame image decoded by SimpleITK (GDCM); None when it cannot.
 
@@ -588,7 +608,12 @@ def load_series(
         with parsing(p):
             frames += _frames_of(ds, p)
     grid, order = assemble_geometry(frames, tol, label)
-    out = np.empty(grid.shape, dtype=np.float32)
+    for ds, p in headers:
+        _check_pixel_length(ds, p)
+    try:
+        out = np.empty(grid.shape, dtype=np.float32)
+    except MemoryError:
+        raise UnsupportedDataError(f"{label}: a volume of {grid.shape} voxels does not fit in memory") from None
     slot = {(frames[i].path, frames[i].frame): k for k, i in enumerate(order)}
     by_path: dict[Path, list[_Frame]] = {}
     for f in frames:

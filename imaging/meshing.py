@@ -30,6 +30,8 @@ DEFAULT_PIXEL_MM = 1.0
 #: this many pixels (small ROIs keep their volume through marching cubes), but not below MIN_AUTO_PIXEL_MM
 PIXELS_ACROSS = 20
 MIN_AUTO_PIXEL_MM = 0.2
+#: largest grid (voxels) a single ROI is rasterised on (float32 coverage: 4 bytes per voxel)
+MAX_VOXELS = 100_000_000
 
 
 def _closed_contours(roi: Roi) -> list[np.ndarray]:
@@ -279,7 +281,7 @@ def fit_grid(
         index_from_new = np.diag([1.0 / f, 1.0 / f, 1.0, 1.0])
         index_from_new[:3, 3] = [lo[0], lo[1], k0]
         shape = (k1 - k0 + 1, int((hi[1] - lo[1]) * f) + 1, int((hi[0] - lo[0]) * f) + 1)
-        return Grid(shape, grid.patient_from_index @ index_from_new)
+        return _checked_grid(roi, shape, grid.patient_from_index @ index_from_new)
     assert frame is not None
     axes, planes, h = frame
     px = pixel_mm
@@ -291,6 +293,15 @@ def fit_grid(
     m[:3, :3] = axes * [px, px, h]
     m[:3, 3] = axes @ np.array([lo[0], lo[1], planes[0] - h])
     shape = (n_k, math.ceil((hi[1] - lo[1]) / px) + 1, math.ceil((hi[0] - lo[0]) / px) + 1)
+    return _checked_grid(roi, shape, m)
+
+
+def _checked_grid(roi: Roi, shape: tuple[int, int, int], m: np.ndarray) -> Grid:
+    n = float(np.prod(np.asarray(shape, dtype=float)))
+    if n > MAX_VOXELS:
+        extent = np.asarray(shape) * np.linalg.norm(m[:3, :3], axis=0)[::-1]
+        raise StructureError(f"ROI {roi.name!r} spans {extent[2]:.0f} x {extent[1]:.0f} x {extent[0]:.0f} mm, "
+                             f"{n:.2g} voxels to rasterise; check its coordinates or pass a larger pixel_mm")
     return Grid(shape, m)
 
 

@@ -398,6 +398,19 @@ class PhantomSpec:
     fat_thickness_mm: float = 8.0
     patient_from_template: np.ndarray = field(default_factory=lambda: np.eye(4))
 
+    def __post_init__(self) -> None:
+        names = [s.name for s in self.structures]
+        if len(set(names)) != len(names):
+            raise ValueError(f"phantom structure names must be unique, got {names}")
+        if not (self.slice_thickness_mm > 0 and self.pixel_mm > 0 and self.matrix > 0):
+            raise ValueError("slice_thickness_mm, pixel_mm and matrix must be positive")
+        n = (self.z_range_mm[1] - self.z_range_mm[0]) / self.slice_thickness_mm
+        if n < 1 or abs(n - round(n)) > 1e-9:
+            raise ValueError(f"z_range_mm {self.z_range_mm} must span a whole number of slices")
+        m = np.asarray(self.patient_from_template, dtype=float)
+        if m.shape != (4, 4):
+            raise ValueError("patient_from_template must be a 4x4 matrix")
+
     @property
     def organs(self) -> tuple[PhantomStructure, ...]:
         """Every structure that is not a ``Target_*`` cylinder."""

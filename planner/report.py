@@ -1,9 +1,13 @@
-"""Figures and tables of a plan (matplotlib, no screen needed)."""
+"""Figures, tables and the HTML report of a plan (matplotlib, no screen needed)."""
 
 from __future__ import annotations
 
 import io
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -11,10 +15,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import trimesh
+from tqdm import tqdm
 
-from imaging.types import Volume
+from imaging.types import Grid, StructureSet, Volume
+from planner import figures
+from planner.errors import PlanInputError
+from planner.html_report import Figure, Paragraph, Report, Section, Table, write_html
 from planner.io import atomic_write_bytes
-from planner.pipeline import PlanResult, Scene
+from planner.optimize import Comparison, OptimizerSettings, PlanningStructures, Structure, compare_arms
+from planner.pipeline import DEFAULT_AIR_KERMA_U, Delivery, PlanResult, Scene
 from planner.ranking import Candidate
 
 ORGAN_COLOURS = {
@@ -108,3 +117,387 @@ def overview_figure(scene: Scene, result: PlanResult, path: Path, volume: Volume
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
+
+
+# --- the HTML report (issue 8) ----------------------------------------------------------------------------
+
+#: Faster LP settings for the straight-versus-steered comparison in the report (the delivered plan keeps the
+#: full :class:`~planner.optimize.OptimizerSettings`); about 6 s for 4 + 12 needles on the demo phantom.
+COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500)
+
+
+@dataclass(frozen=True)
+class ReportOptions:
+    """What the report computes and draws.
+
+    ``max_slice_targets``: targets that get slice overlays (in ranking order); ``comparison``: run the
+    straight-versus-steered dose comparison; ``comparison_settings``: its LP settings; ``mesh_pitch_mm``:
+    voxel size of the light meshes in the 3-D views.
+    """
+
+    max_slice_targets: int = 12
+    comparison: bool = True
+    comparison_settings: OptimizerSettings = COMPARISON_SETTINGS
+    mesh_pitch_mm: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.max_slice_targets < 0:
+            raise ValueError("max_slice_targets must be >= 0")
+        if not (np.isfinite(self.mesh_pitch_mm) and self.mesh_pitch_mm > 0):
+            raise ValueError("mesh_pitch_mm must be a positive number of mm")
+
+
+def chosen_by_kind(result: PlanResult, steered: bool) -> tuple[Candidate, ...]:
+    """One needle of one kind per target: its best-ranked feasible straight (or steered) candidate on a hole
+    that no earlier target took. Targets without one get none."""
+    used: set[str] = set()
+    out: list[Candidate] = []
+    for cands in result.ranking.values():
+        c = next((c for c in cands if c.feasible and c.steered == steered and c.hole_id not in used), None)
+        if c is not None:
+            used.add(c.hole_id)
+            out.append(c)
+    return tuple(out)
+
+
+def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str,
+                        oar_names: Sequence[str]) -> PlanningStructures:
+    """The target and organs at risk (bone excluded) as masks on ``grid`` (or on a 2 mm grid fitted to the
+    target), as :func:`planner.pipeline.plan_delivery` builds them.
+
+    Raises
+    ------
+    PlanInputError
+        ``target_roi`` is not in the structure set.
+    """
+    from imaging.meshing import fit_grid, roi_mask
+
+    if target_roi not in structures.names:
+        raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
+    roi = structures.get(target_roi)
+    g = grid if grid is not None else fit_grid(roi, None, 2.0)
+    oars = tuple(Structure(n, roi_mask(structures.get(n), g)) for n in oar_names
+                 if n in structures.names and n != "Bone")
+    return PlanningStructures(g, Structure(target_roi, roi_mask(roi, g)), oars)
+
+
+def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | None,
+                   source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
+                   air_kerma_u: float = DEFAULT_AIR_KERMA_U,
+                   settings: OptimizerSettings = COMPARISON_SETTINGS) -> Comparison | None:
+    """Straight versus steered dose: each arm gets the per-target best needle of its kind
+    (:func:`chosen_by_kind`), optimised the same way (:func:`planner.optimize.compare_arms`). An arm with no
+    feasible needle is left out; None when both are empty."""
+    from planner.dose import Tg43Kernel
+    from plugins import registry
+
+    arms = [(name, [c.path_mm for c in chosen_by_kind(result, steered)])
+            for name, steered in (("straight", False), ("steered", True))]
+    arms = [a for a in arms if a[1]]
+    if not arms:
+        return None
+    planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
+    kernel = Tg43Kernel(registry.get("sources", source_name)())
+    return compare_arms(arms, planning, kernel, air_kerma_u, settings=settings)
+
+
+def _f(v: float, digits: int = 1) -> str:
+    return f"{v:.{digits}f}" if np.isfinite(v) else "-"
+
+
+def _rod_models(model: str) -> list[str]:
+    """Rod models named in a candidate's model label (``insertion+rod``)."""
+    return [p for p in model.split("+")[1:]] if "+" in model else []
+
+
+def _case_section(scene: Scene, result: PlanResult, case: str, template_png: bytes) -> Section:
+    cfg = result.config
+    oars = {o.name for o in scene.organs}
+    targets = {t.name for t in scene.targets}
+    organ_rows = []
+    for name, mesh in scene.meshes.items():
+        role = "organ at risk" if name in oars else "target ROI" if name in targets else "context"
+        lo, hi = mesh.bounds
+        organ_rows.append((name, role, _f(abs(float(mesh.volume)) / 1000.0),
+                           " .. ".join(f"({a:.0f}, {b:.0f}, {c:.0f})" for a, b, c in (lo, hi))))
+    target_rows = [(t.name, *(f"{v:.1f}" for v in t.position_mm)) for t in scene.targets]
+    m = scene.patient_from_template
+    template = (f"Template {scene.template.name}: {len(scene.template.needle_holes)} needle holes "
+                f"({len(scene.template.holes)} in all); its centre at "
+                f"({m[0, 3]:.1f}, {m[1, 3]:.1f}, {m[2, 3]:.1f}) mm, "
+                f"needles advance along ({m[0, 2]:.2f}, {m[1, 2]:.2f}, {m[2, 2]:.2f}) (LPS). "
+                f"{scene.template.source.splitlines()[0] if scene.template.source else ''}")
+    settings = (f"Needle radius {cfg.needle_radius_mm:.2f} mm; reach tolerance {cfg.reach_tolerance_mm:g} mm; "
+                f"free length up to {cfg.max_depth_mm:g} mm; stylet designs {', '.join(cfg.designs) or 'none'}; "
+                f"the top {cfg.refine_top} feasible steered candidate(s) per target re-solved with the reference "
+                "model.")
+    return Section("Case", "case", (
+        Paragraph(f"{case}. Coordinates are DICOM patient coordinates (LPS: +x patient left, +y posterior, "
+                  "+z superior), in mm."),
+        Table(("organ", "role", "volume (cm³)", "extent min .. max (mm)"), tuple(organ_rows), "Organs",
+              numeric=(2,)),
+        Table(("target", "x (mm)", "y (mm)", "z (mm)"), tuple(target_rows), "Targets (ROI centroids or points)",
+              numeric=(1, 2, 3)),
+        Paragraph(template),
+        Paragraph(settings),
+        Figure(template_png, "Template holes; the holes of the per-target best straight (orange) and best "
+                             "steered (cyan) needles are labelled."),
+    ))
+
+
+def _cand_cells(c: Candidate | None, steered: bool) -> tuple[str, ...]:
+    if c is None:
+        return ("none feasible", "", "", "") if steered else ("none feasible", "", "")
+    geometry = (f"{c.hole_distance_mm:.1f} / {c.reach_error_mm:.1f} / {_f(c.clearance_mm)} ({c.closest_organ})")
+    return (c.hole_id, geometry, _f(c.peak_tension_n), c.model) if steered else (c.hole_id, geometry, c.model)
+
+
+def _ranking_section(result: PlanResult) -> Section:
+    rows = []
+    for target, cands in result.ranking.items():
+        top = cands[0] if cands else None
+        first = "none" if top is None or not top.feasible else "steered" if top.steered else "straight"
+        rows.append((target, first, *_cand_cells(result.best(target, False), False),
+                     *_cand_cells(result.best(target, True), True)))
+    geometry = "from centre / reach error / clearance (closest organ), mm"
+    head = ("target", "top ranked", "straight: hole", f"straight: {geometry}", "straight: model", "steered: hole",
+            f"steered: {geometry}", "steered: peak tension (N)", "steered: model")
+    main = Table(head, tuple(rows), "Best straight next to best steered needle per target", numeric=(7,))
+    weights = result.config.weights
+    detail_rows = []
+    for target, cands in result.ranking.items():
+        for i, c in enumerate(cands[:5], start=1):
+            detail_rows.append((target, str(i), c.hole_id, "steered" if c.steered else "straight", c.design or "-",
+                                _f(weights.score(c)), _f(c.reach_error_mm), _f(c.clearance_mm),
+                                _f(c.insertion_depth_mm), _f(c.peak_tension_n), c.model,
+                                "yes" if c.feasible else f"no: {c.reason}"))
+    detail = Table(("target", "rank", "hole", "kind", "stylet", "score", "reach error (mm)", "clearance (mm)",
+                    "depth (mm)", "peak tension (N)", "model", "feasible"), tuple(detail_rows),
+                   "Top 5 candidates of every target (lower score ranks first)", numeric=(1, 5, 6, 7, 8, 9),
+                   collapsed=True)
+    counts: dict[str, int] = {}
+    for c in result.candidates:
+        counts[c.model] = counts.get(c.model, 0) + 1
+    models = "; ".join(f"{m}: {n} candidates" for m, n in sorted(counts.items()))
+    return Section("Ranked candidates", "ranking", (
+        Paragraph(f"{len(result.candidates)} candidates scored (hole × target × schedule). Every number comes "
+                  f"from the model named in its row ({models}). Straight needles are exact lines; steered "
+                  "candidates are screened with the fast model and the best re-solved with the reference model. "
+                  f"Score = {weights.per_mm_from_centre:g}/mm from the template centre + {weights.per_newton:g}/N "
+                  f"peak tension + {weights.per_mm_reach:g}/mm reach error − {weights.per_mm_clearance:g}/mm "
+                  f"clearance (up to {weights.clearance_cap_mm:g} mm) + {weights.steering_cost:g} for steering."),
+        main, detail,
+    ))
+
+
+def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_png: bytes | None,
+                  source_name: str, note: str) -> Section:
+    blocks: list[Paragraph | Table | Figure] = []
+    if comparison is not None:
+        rows = comparison.rows()
+        organs = [n for n, _ in rows[0].oar_d2cc_eqd2_gy] if rows else []
+        table_rows = tuple(
+            (r.arm, str(r.n_needles), "-" if r.needles_needed is None else str(r.needles_needed), _f(r.d90_gy, 2),
+             _f(r.d90_eqd2_gy), _f(r.d98_eqd2_gy), _f(r.v100_pct), *(_f(v) for _, v in r.oar_d2cc_eqd2_gy),
+             "yes" if r.aim_met else "no", r.note) for r in rows)
+        aims = comparison.aims
+        limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
+        blocks += [
+            Paragraph("Straight versus steered: each arm gets the best feasible needle of its kind per target "
+                      "(one per hole) and its dwell times are optimised the same way (TG-43 dose, source "
+                      f"{source_name}; linear programme with {COMPARISON_SETTINGS.max_target_points} target and "
+                      f"{COMPARISON_SETTINGS.max_oar_points} points per organ). 'needed' is the smallest number of "
+                      "the arm's needles, in target order, that reaches the aim. Aims (EMBRACE II, EQD2 with "
+                      f"45 Gy / 25 fx external beam, {aims.fractionation.n_fractions} fractions): HR-CTV D90 ≥ "
+                      f"{aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}."),
+            Table(("arm", "needles", "needed", "D90 (Gy/fx)", "D90 EQD2 (Gy)", "D98 EQD2 (Gy)", "V100 (%)",
+                   *(f"{o} D2cm³ EQD2 (Gy)" for o in organs), "aim met", "note"), table_rows,
+                  "Coverage, straight versus steered", numeric=tuple(range(1, 7 + len(organs)))),
+        ]
+        if dvh_png is not None:
+            blocks.append(Figure(dvh_png, "Cumulative DVHs per fraction: solid = first arm, dashed = second arm; "
+                                          "grey line = prescription."))
+    elif note:
+        blocks.append(Paragraph(note))
+    if delivery is not None:
+        opt = delivery.optimisation
+        rows2 = [(opt.target.name, _f(opt.target.volume_cc), _f(opt.target.d90_gy, 2), _f(opt.target.d90_eqd2_gy),
+                  _f(opt.target.d98_eqd2_gy), _f(opt.target.v100_pct), "-")]
+        rows2 += [(o.name, _f(o.volume_cc), _f(o.d90_gy, 2), _f(o.d90_eqd2_gy), _f(o.d98_eqd2_gy), _f(o.v100_pct),
+                   _f(o.d2cc_eqd2_gy)) for o in opt.oars]
+        status = ("aim met" if opt.aim_met else "aim NOT met") if opt.success else f"not solved: {opt.reason}"
+        blocks += [
+            Paragraph(f"Delivered plan ({len(delivery.needles)} needles: the top-ranked feasible needle of every "
+                      f"target, full optimiser settings): {status}; {opt.reason}."),
+            Table(("structure", "volume (cm³)", "D90 (Gy/fx)", "D90 EQD2 (Gy)", "D98 EQD2 (Gy)", "V100 (%)",
+                   "D2cm³ EQD2 (Gy)"), tuple(rows2), "Delivered plan: dose-volume metrics",
+                  numeric=(1, 2, 3, 4, 5, 6)),
+        ]
+    return Section("Dose and coverage", "dose", tuple(blocks))
+
+
+def _runs(schedule: np.ndarray) -> list[tuple[float, float, float]]:
+    """Schedule breakpoints (depth, tension, roll) without repeats of the same tension and roll."""
+    out: list[tuple[float, float, float]] = []
+    for d, t, r in schedule:
+        if not out or abs(out[-1][1] - t) > 1e-6 or abs(out[-1][2] - r) > 1e-6:
+            out.append((float(d), float(t), float(r)))
+    return out
+
+
+def _device_section(delivery: Delivery | None) -> Section:
+    if delivery is None:
+        return Section("Device instructions", "device", (
+            Paragraph("No delivery: the plan was ranked only (--no-export)."),))
+    rows = []
+    for ch, (n, c) in enumerate(zip(delivery.export.needles, delivery.needles, strict=True), start=1):
+        steps = ("straight needle, no tendon" if n.schedule is None else
+                 "; ".join(f"from {d:.1f} mm: {t:.2f} N, roll {r:.0f}°" for d, t, r in _runs(n.schedule)))
+        active = n.dwell_times_s > 0
+        rows.append((str(ch), n.hole_id, c.target, n.design or "plain needle", _f(n.length_mm), steps,
+                     str(int(active.sum())), _f(float(n.dwell_times_s.sum()))))
+    src = delivery.export.source
+    return Section("Device instructions", "device", (
+        Paragraph("Per needle, in channel order: the template hole, the stylet, how deep to insert (arc length from "
+                  "the template plane) and the tension schedule (tendon tension and roll of the bending plane, "
+                  "template frame, 0° = template +x; held from each depth until the next). A needle with no active "
+                  "dwell is inserted but the optimiser left it unloaded. The exact rows are in "
+                  "export/*_device.json and one CSV per needle; the afterloader plan in export/RP_*.dcm. Source: "
+                  f"{src.title or src.name}, S_K {src.air_kerma_rate_u:.0f} U (ASSUMED planning strength)."),
+        Table(("channel", "hole", "target", "stylet", "insertion depth (mm)", "schedule", "active dwells",
+               "total dwell time (s)"), tuple(rows), "Device instructions", numeric=(0, 4, 6, 7)),
+    ))
+
+
+def _models_section(result: PlanResult, chart: bytes | None, rows: Sequence[Any], used: dict[str, str]) -> Section:
+    if chart is None:
+        return Section("Models: speed vs accuracy", "models", (
+            Paragraph("The rod-model error table (rod_model/model_errors.json) is not available; run "
+                      "`reachplan bench models --out DIR --install` from a source checkout."),))
+    table = tuple((r.model, r.resolution, f"{r.median_ms:.3f}", f"{r.max_tip_error_mm:.2g}",
+                   "-" if r.batched_solves_per_s is None else f"{r.batched_solves_per_s:,.0f}",
+                   used.get(r.model, "") if r.resolution == "default" else "") for r in rows)
+    return Section("Models: speed vs accuracy", "models", (
+        Paragraph("Measured by benchmarks/rod_models.py (reachplan bench models) against the converged two-tube "
+                  "Cosserat reference, over every stylet preset × tensions 0-15 N in free space; the numbers come "
+                  "from the packaged table rod_model/model_errors.json, not from this run. Ringed: the rod models "
+                  "this plan's candidates were computed with."),
+        Figure(chart, "Time per solve against worst tip error of each rod model and resolution; labels say which "
+                      "model produced which numbers of this plan."),
+        Table(("rod model", "resolution", "median time per solve (ms)", "max tip error (mm)",
+               "batched solves per s", "used in this plan"), table, "Measured error table", numeric=(2, 3, 4),
+              collapsed=True),
+    ))
+
+
+def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = None,
+                 delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
+                 timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
+                 comparison_note: str = "", options: ReportOptions | None = None, quiet: bool = True) -> Report:
+    """Assemble the report of a plan (figures are rendered here; nothing is solved except the drawings).
+
+    Parameters
+    ----------
+    scene, result : the plan (:func:`planner.pipeline.build_scene`, :func:`planner.pipeline.plan`)
+    volume : the image series, drawn under the organ outlines (optional)
+    delivery : the delivered plan (:func:`planner.pipeline.plan_delivery`), or None (ranked only)
+    comparison : straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why)
+    case : one line naming the case
+    timings : seconds per stage, shown at the end
+    """
+    from rod_model.errors import RodModelError
+    from rod_model.select import error_table
+
+    options = options or ReportOptions()
+    straight, steered = chosen_by_kind(result, False), chosen_by_kind(result, True)
+    slice_targets = list(result.ranking)[: options.max_slice_targets]
+    bar = tqdm(total=4 + len(slice_targets), desc="report", unit="figure", disable=quiet, leave=False)
+    try:
+        case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
+        bar.update()
+        slices: list[Paragraph | Table | Figure] = [Paragraph(
+            "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
+            "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane.")]
+        for t in slice_targets:
+            s, st = result.best(t, False), result.best(t, True)
+            desc = "; ".join(f"{k} {c.hole_id} ({c.model}, reach {c.reach_error_mm:.1f} mm, clearance "
+                             f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
+                             for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
+            slices.append(Figure(figures.slice_views(scene, t, s, st, volume), f"{t}: {desc}"))
+            bar.update()
+        needles = [*straight, *steered]
+        view = figures.views_3d(scene, needles, pitch_mm=options.mesh_pitch_mm)
+        bar.update()
+        dvh = figures.dvh_png(comparison) if comparison is not None else None
+        bar.update()
+        try:
+            rows: Sequence[Any] = error_table()
+        except RodModelError:
+            rows = ()
+        used: dict[str, str] = {}
+        for c in result.candidates:
+            for i, m in enumerate(_rod_models(c.model)):
+                role = f"{c.model.split('+')[0]} {'reference' if 'tissue' in c.model else 'screening'}"
+                used.setdefault(m, role if i == 0 else c.model)
+        chart = figures.speed_accuracy(rows, used) if rows else None
+        bar.update()
+    finally:
+        bar.close()
+    n_reach = {k: sum(result.best(t, k) is not None for t in result.ranking) for k in (False, True)}
+    subtitle = (f"{case}: {len(result.ranking)} targets; a straight needle reaches {n_reach[False]}, a steered one "
+                f"{n_reach[True]}" + ("" if delivery is None else
+                                      f"; delivered plan HR-CTV D90 {delivery.optimisation.target.d90_eqd2_gy:.1f} Gy "
+                                      f"EQD2 ({'aim met' if delivery.optimisation.aim_met else 'aim not met'})"))
+    sections = [
+        case_sec,
+        _ranking_section(result),
+        Section("Slices through the targets", "slices", tuple(slices)),
+        Section("3-D views", "views-3d", (
+            Paragraph("Organs at risk (bone hidden), HR-CTV and target ROIs with the per-target best straight and "
+                      f"steered needles, from three angles (organs re-meshed on a {options.mesh_pitch_mm:g} mm grid "
+                      "for drawing only)."),
+            Figure(view, "3-D views of organs and needles"),
+        )),
+        _dose_section(delivery, comparison, dvh, source_name, comparison_note),
+        _device_section(delivery),
+        _models_section(result, chart, rows, used),
+    ]
+    if timings:
+        sections.append(Section("Run", "run", (Table(("stage", "seconds"),
+                                                     tuple((k.removesuffix("_s"), f"{v:.1f}")
+                                                           for k, v in timings.items()),
+                                                     "Wall time per stage", numeric=(1,)),)))
+    return Report(f"reachplan report: {case}", subtitle, tuple(sections))
+
+
+def write_report(path: Path, scene: Scene, result: PlanResult, structures: StructureSet, *,
+                 volume: Volume | None = None, delivery: Delivery | None = None, case: str = "case",
+                 timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
+                 target_roi: str = "HR-CTV", options: ReportOptions | None = None, quiet: bool = True) -> Path:
+    """Compare straight and steered needles (when a delivery was made), build the report and write it to
+    ``path`` (HTML, self-contained, atomic). Returns ``path``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        release = version("reachplan")
+    except PackageNotFoundError:
+        release = "(not installed)"
+    options = options or ReportOptions()
+    comparison, note = None, ""
+    if delivery is None:
+        note = "No dose: the plan was ranked only (--no-export)."
+    elif options.comparison:
+        bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
+        comparison = compare_chosen(result, structures, volume.grid if volume is not None else None,
+                                    source_name, target_roi, delivery.export.source.air_kerma_rate_u,
+                                    options.comparison_settings)
+        bar.update()
+        bar.close()
+        if comparison is None:
+            note = "No feasible needle of either kind: nothing to compare."
+    report = build_report(scene, result, volume=volume, delivery=delivery, comparison=comparison, case=case,
+                          timings=timings, source_name=source_name, comparison_note=note, options=options,
+                          quiet=quiet)
+    footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
+              "research use; not a treatment plan.")
+    return write_html(report, path, footer)

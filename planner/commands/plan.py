@@ -90,6 +90,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     timings["plan_s"] = time.perf_counter() - t
     doc: dict[str, object] = {**(extra or {}), **result.to_json()}
     overview_figure(scene, result, out / "overview.png", volume)
+    delivery = None
     if export:
         t = time.perf_counter()
         delivery = plan_delivery(result, structures, grid, source_name=source, target_roi=target_roi,
@@ -107,9 +108,19 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
             "files": files,
         }
         timings["delivery_s"] = time.perf_counter() - t
+    # --- report.html (issue 8: planner/report.py owns the content) ---
+    from planner.report import write_report
+
+    t = time.perf_counter()
+    case = str((extra or {}).get("case") or (inputs[-1].name if inputs else "case"))
+    doc["report"] = str(write_report(out / "report.html", scene, result, structures, volume=volume,
+                                     delivery=delivery, case=case, timings=timings, source_name=source,
+                                     target_roi=target_roi, quiet=quiet))
+    timings["report_s"] = time.perf_counter() - t
+    # --- end report ---
     doc["timings"] = timings
     atomic_write_json(out / "plan.json", doc)
     if not quiet:
         print(format_table(result))
-        print(f"\nwrote {out / 'plan.json'} and {out / 'overview.png'}")
+        print(f"\nwrote {out / 'plan.json'}, {out / 'overview.png'} and {out / 'report.html'}")
     return doc

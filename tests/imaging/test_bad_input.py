@@ -371,7 +371,7 @@ def test_damaged_bytes_never_escape_as_untyped_errors(tmp_path: Path, dicom: Any
                               [("Bladder", [dicom.circle(3.0, 10.0 + 2 * k, n=40) for k in range(3)], "CLOSED_PLANAR")],
                               series_uid=None, for_uid="1.2.3")
     sources = [paths[0].read_bytes(), rs.read_bytes()]
-    rng = random.Random(22197)
+    rng = random.Random(1350)
     outcomes = {"ok": 0, "typed": 0}
     for trial in range(240):
         data = bytearray(sources[trial % 2])

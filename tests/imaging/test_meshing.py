@@ -187,3 +187,11 @@ def test_real_structure_set_volumes_agree_with_independent_computation(reference
         assert mesh.volume == pytest.approx(ref, rel=0.02), roi.name
         checked += 1
     assert checked >= 2
+
+
+def test_absurd_coordinates_are_refused_before_allocating() -> None:
+    roi = _roi([_rect(0, 0, 2, 2, 0.0), _rect(0, 0, 2e6, 2, 2.0)])
+    with pytest.raises(StructureError, match="voxels to rasterise"):
+        roi_mesh(roi)
+    with pytest.raises(StructureError, match="voxels to rasterise"):
+        structure_volume_cc(roi)
