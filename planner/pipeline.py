@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from imaging.types import Grid, StructureSet, Volume
+from imaging.types import Grid, Roi, StructureSet, Volume
 from planner.candidates import score_path, straight_candidates
 from planner.collision import Organ, make_organ
 from planner.errors import PlanInputError
@@ -375,9 +375,14 @@ def plan_delivery(
     if target_roi not in structures.names:
         raise PlanInputError(f"no {target_roi} ROI to optimise the dwell times on; name it with --target-roi")
     roi = structures.get(target_roi)
-    plan_grid = grid if grid is not None else fit_grid(roi, None, 2.0)
-    oars = tuple(Structure(n, roi_mask(structures.get(n), plan_grid)) for n in result.config.oar_names
-                 if n in structures.names and n != "Bone")
+    oar_rois = [structures.get(n) for n in result.config.oar_names if n in structures.names and n != "Bone"]
+    if grid is None:  # no CT: a 2 mm grid on the contours' own slices, holding the target and every organ
+        union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
+                                                  if c.geometric_type == "CLOSED_PLANAR"))
+        plan_grid = fit_grid(union, None, 2.0)
+    else:
+        plan_grid = grid
+    oars = tuple(Structure(r.normalized_name, roi_mask(r, plan_grid)) for r in oar_rois)
     planning = PlanningStructures(plan_grid, Structure(target_roi, roi_mask(roi, plan_grid)), oars)
     source = registry.get("sources", source_name)()
     opt = optimise_dwell_times([c.path_mm for c in needles], planning, Tg43Kernel(source), air_kerma_u)

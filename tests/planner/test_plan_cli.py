@@ -1,0 +1,39 @@
+"""``reachplan plan`` from a structure set alone (no CT), and its input errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from imaging.phantom import write_phantom
+from planner.cli import main
+
+
+@pytest.fixture(scope="module")
+def rtstruct(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_phantom(tmp_path_factory.mktemp("phantom")).rtstruct_path
+
+
+def test_plan_from_structures_alone_with_roi_and_point_targets(rtstruct: Path, tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["plan", "--rtstruct", str(rtstruct), "--targets", "Target_80_030", "35,10,80",
+                 "--out", str(tmp_path), "--no-export", "--json"])
+    assert code == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc["targets"]) == {"Target_80_030", "point_1"}
+    point = doc["targets"]["point_1"]["candidates"][0]
+    assert point["tip_position_mm"] == pytest.approx([35.0, 10.0, 80.0], abs=2.0)
+    assert (tmp_path / "plan.json").is_file() and (tmp_path / "overview.png").is_file()
+
+
+@pytest.mark.parametrize(("targets", "message"), [
+    (["NoSuchOrgan"], "no ROI named 'NoSuchOrgan'"),
+    (["1,2,x"], "a point is three numbers"),
+])
+def test_plan_input_errors_are_one_line_exit_2(rtstruct: Path, tmp_path: Path, targets: list[str], message: str,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["plan", "--rtstruct", str(rtstruct), "--targets", *targets, "--out", str(tmp_path), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and message in err and "\n" not in err and "Traceback" not in err
