@@ -77,6 +77,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     from planner.io import atomic_write_json
     from planner.pipeline import build_scene, plan, plan_delivery
     from planner.report import format_table, overview_figure
+    from planner.workspace import workspace_figure
     from plugins import registry
     from plugins.exporters import ExportOptions
 
@@ -90,6 +91,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     timings["plan_s"] = time.perf_counter() - t
     doc: dict[str, object] = {**(extra or {}), **result.to_json()}
     overview_figure(scene, result, out / "overview.png", volume)
+    workspace_figure(scene, config, out / "workspace.png")
     delivery = None
     if export:
         t = time.perf_counter()
