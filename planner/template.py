@@ -123,8 +123,9 @@ def pose_from_obturator(obturator: Roi, depth_mm: float = 60.0) -> np.ndarray:
     """``patient_from_template`` for a template that sits on the obturator.
 
     The obturator axis is the principal axis of its contour points; its cranial end (larger patient z,
-    the end inside the patient) is the tip. The template plane is ``depth_mm`` behind the tip along the
-    axis (how far the obturator is inserted beyond the template; 60 mm is our documented default, the
+    the end inside the patient) is the tip, half a contour spacing beyond the last contour. The template
+    plane is ``depth_mm`` behind the tip along the axis (how far the obturator is inserted beyond the
+    template; 60 mm is our documented default, the
     vaginal length of the phantom); template ``+z`` points along the axis into the patient, template
     ``+x`` is the patient's left (+x LPS) made perpendicular to the axis.
 
@@ -139,7 +140,11 @@ def pose_from_obturator(obturator: Roi, depth_mm: float = 60.0) -> np.ndarray:
     _, _, vt = np.linalg.svd(pts - centre, full_matrices=False)
     axis = vt[0] if vt[0][2] >= 0 else -vt[0]
     proj = (pts - centre) @ axis
-    tip = centre + axis * proj.max()
+    # each planar contour stands for a slab one contour spacing thick: the tip is half a spacing beyond
+    # the last contour's plane
+    planes = np.unique(np.round([float(np.mean((c.points_mm - centre) @ axis)) for c in obturator.contours], 3))
+    half = 0.5 * float(np.median(np.diff(planes))) if len(planes) > 1 else 0.0
+    tip = centre + axis * (proj.max() + half)
     origin = tip - axis * depth_mm
     x = np.array([1.0, 0.0, 0.0]) - axis[0] * axis
     if np.linalg.norm(x) < 1e-6:

@@ -74,3 +74,4 @@ def test_open_mesh_is_rejected() -> None:
     m.update_faces(np.arange(len(m.faces)) > 0)
     with pytest.raises(PlanInputError, match="watertight"):
         make_organ("Rectum", m)
+
