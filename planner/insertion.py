@@ -267,13 +267,29 @@ class TissueBeamInsertion:
                 out.append(FailedInsertion(label, f"equilibrium system singular: {exc}"))
         return out
 
-    def insert_one(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float) -> np.ndarray:
-        """(n, 3) float, mm, template frame: the needle's centreline at the final depth."""
+    def insert_one(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+                   modulus_profile: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(n, 3) float, mm, template frame: the needle's centreline at the final depth.
+
+        ``modulus_profile``: optional ``(depth_mm (p,), modulus_pa (p,))`` giving the tissue's Young's
+        modulus along the insertion (e.g. per organ the path crosses), piecewise constant from each depth
+        on; None = the model's ``tissue_modulus_pa`` everywhere.
+        """
         _check_depth(design, depth_mm)
         if schedule.peak_tension_n > design.max_tension_n + 1e-9:
             raise PlanInputError(f"the schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
         table = curvature_table(design, self.rod_model)
-        k_n_per_m2 = winkler_modulus_pa(design, self.tissue_modulus_pa, self.poisson)
+        n_nodes_total = max(2, round(depth_mm / self.grid_mm)) + 1
+        node_depth = np.linspace(0.0, depth_mm, n_nodes_total)
+        if modulus_profile is None:
+            moduli = np.full(n_nodes_total, self.tissue_modulus_pa)
+        else:
+            at, values = (np.asarray(a, dtype=float) for a in modulus_profile)
+            if at.shape != values.shape or at.ndim != 1 or len(at) == 0 or np.any(np.diff(at) <= 0):
+                raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
+            moduli = values[np.clip(np.searchsorted(at, node_depth, side="right") - 1, 0, len(at) - 1)]
+        k_nodes = np.array([winkler_modulus_pa(design, e, self.poisson) for e in np.unique(moduli)])
+        k_n_per_m2 = k_nodes[np.searchsorted(np.unique(moduli), moduli)]  # per node, N/m per m
         bounds = table.section_bounds_mm
         ei_sec = np.array([s.ei1 + s.ei2 for s in design.sections()])  # N m², per section
         n_total = max(2, round(depth_mm / self.grid_mm))
@@ -300,7 +316,7 @@ class TissueBeamInsertion:
             ei = 1.0 / _cell_average(bounds, 1.0 / (ei_sec * 1e6), sigma, h)  # N mm²
             kappa0 = _cell_average(bounds, kap_sec, sigma, h)  # 1/mm
             direction = np.array([np.cos(np.radians(roll[0])), np.sin(np.radians(roll[0]))])
-            w = _solve_foundation_beam(ei, k_n_per_m2 * 1e-3, h, kappa0, track, direction)
+            w = _solve_foundation_beam(ei, k_n_per_m2[: end + 1] * 1e-3, h, kappa0, track, direction)
         # The mechanics is linear in the slopes; the centreline is rebuilt inextensibly from them, so the
         # needle's arc length equals the inserted depth however far it bends.
         slope = np.gradient(w, h, axis=0)
@@ -326,14 +342,14 @@ def _cell_average(bounds: np.ndarray, values: np.ndarray, centres: np.ndarray, h
     return (integral(centres + h / 2) - integral(centres - h / 2)) / h
 
 
-def _solve_foundation_beam(ei_nmm2: np.ndarray, k_n_per_mm2: float, h: float, kappa0: np.ndarray,
+def _solve_foundation_beam(ei_nmm2: np.ndarray, k_n_per_mm2: np.ndarray | float, h: float, kappa0: np.ndarray,
                            rest: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """Minimise ``Σ ½ EI (w'' − κ0 dir)² h + Σ ½ k (w − rest)² h`` with ``w(0) = 0, w'(0) = 0``.
 
     Parameters
     ----------
     ei_nmm2 : (n,) bending stiffness at the nodes, N·mm²
-    k_n_per_mm2 : foundation modulus, N/mm per mm of needle
+    k_n_per_mm2 : foundation modulus, N/mm per mm of needle (scalar, or (n,) per node)
     kappa0 : (n,) preferred curvature magnitude, 1/mm; ``direction`` (2,) unit bending direction
     rest : (n, 2) spring rest positions, mm
 
@@ -362,7 +378,7 @@ def _solve_foundation_beam(ei_nmm2: np.ndarray, k_n_per_mm2: float, h: float, ka
     diag = wp[j] * vp[j, 2] ** 2 + wp[j + 1] * vp[j + 1, 1] ** 2 + wp[j + 2] * vp[j + 2, 0] ** 2
     off1 = wp[j + 1] * vp[j + 1, 1] * vp[j + 1, 2] + wp[j + 2] * vp[j + 2, 0] * vp[j + 2, 1]
     off2 = wp[j + 2] * vp[j + 2, 0] * vp[j + 2, 2]
-    kw = np.full(m, k_n_per_mm2 * h)
+    kw = np.broadcast_to(np.asarray(k_n_per_mm2, dtype=float), (n,))[1:] * h  # a new array
     kw[-1] *= 0.5
     ab = np.zeros((3, m))
     ab[0, 2:] = off2[:-2]

@@ -56,6 +56,8 @@ class PlanConfig:
     curvatures); the others keep the screening model's numbers, and every candidate names its model.
     ``robust_top``: feasible straight and steered candidates per target assessed under ``perturbations``
     (tension, roll and entry-angle errors); the ranking prefers robust ones among them.
+    ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa) for the reference insertion
+    model, e.g. ``(("Uterus", 0.5e6),)``; tissue outside the named organs keeps the gel's 0.19 MPa.
     """
 
     template: str = "needlefinder_syed_63"
@@ -71,6 +73,7 @@ class PlanConfig:
     weights: RankWeights = field(default_factory=RankWeights)
     robust_top: int = 2
     perturbations: Perturbations = field(default_factory=Perturbations)
+    tissue_moduli_pa: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
@@ -220,6 +223,34 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True) -> 
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
 
 
+def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, float], ...],
+                    default_pa: float = TISSUE_BEAM.tissue_modulus_pa) -> tuple[np.ndarray, np.ndarray] | None:
+    """Tissue modulus along a needle path: ``(depth_mm, modulus_pa)`` from the organ each point lies in
+    (the first of ``moduli`` that contains it), ``default_pa`` elsewhere; None when ``moduli`` is empty.
+
+    Raises
+    ------
+    PlanInputError
+        When a named organ has no mesh in the scene, or a modulus is not positive.
+    """
+    if not moduli:
+        return None
+    for name, value in moduli:
+        if name not in scene.meshes:
+            raise PlanInputError(f"tissue modulus given for {name!r}, which is not meshed in the scene "
+                                 f"(meshed: {', '.join(scene.meshes)})")
+        if not (np.isfinite(value) and value > 0):
+            raise PlanInputError(f"tissue modulus of {name} must be > 0 Pa, got {value}")
+    depth = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1))])
+    values = np.full(len(path_mm), default_pa)
+    assigned = np.zeros(len(path_mm), dtype=bool)
+    for name, value in moduli:
+        inside = scene.meshes[name].contains(path_mm) & ~assigned
+        values[inside] = value
+        assigned |= inside
+    return depth, values
+
+
 def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig) -> list[Candidate]:
     """Robustness of the ``config.robust_top`` best feasible straight and steered candidates per target."""
     if config.robust_top <= 0:
@@ -305,7 +336,9 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
         done.add(c.hole_id)
         roll = float(c.schedule.roll_deg[0])
         base = TensionSchedule(c.schedule.depth_mm, c.schedule.tension_n, np.zeros(len(c.schedule.depth_mm)))
-        sch, res = refine_with(TISSUE_BEAM, design, base, c.insertion_depth_mm, rel_all[index[c.hole_id]])
+        profile = modulus_profile(scene, c.path_mm, config.tissue_moduli_pa)
+        sch, res = refine_with(TISSUE_BEAM, design, base, c.insertion_depth_mm, rel_all[index[c.hole_id]],
+                               modulus_profile=profile)
         sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), roll))
         path = place(res.positions_mm, TISSUE_BEAM.step_mm, c.insertion_depth_mm, roll,
                      np.asarray(holes[c.hole_id].xy_mm), scene.patient_from_template)

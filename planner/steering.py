@@ -14,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 
 from planner.errors import PlanInputError
-from planner.insertion import KINEMATIC, InsertionModel, InsertionPath, KinematicInsertion
+from planner.insertion import KINEMATIC, InsertionPath, KinematicInsertion, TissueBeamInsertion
 from planner.schedule import TensionSchedule
 from rod_model.design import RodDesign
 
@@ -138,24 +138,32 @@ def place(shape_mm: np.ndarray, step_mm: float, depth_mm: float, roll_deg: float
     return local @ m[:3, :3].T + m[:3, 3]
 
 
-def refine_with(model: InsertionModel, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
-                rel_mm: np.ndarray, fast: KinematicInsertion = KINEMATIC, iterations: int = 2
+def refine_with(model: TissueBeamInsertion, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+                rel_mm: np.ndarray, fast: KinematicInsertion = KINEMATIC, iterations: int = 2,
+                modulus_profile: tuple[np.ndarray, np.ndarray] | None = None,
                 ) -> tuple[TensionSchedule, InsertionPath]:
     """Re-solve a screened candidate with a richer insertion model and correct its aim.
 
     Space mapping: the richer model's tip departs from the fast model's by δ; the fast model is re-aimed at
     ``target − δ`` (new plateau tension by a 1-D search over the same ramp, the roll kept), and the richer
     model re-solves, ``iterations`` times. Returns the final schedule and the richer model's path
-    (template frame, hole at the origin, roll 0; the caller rolls and places it).
+    (template frame, hole at the origin, roll 0; the caller rolls and places it). ``modulus_profile`` is
+    passed to :meth:`TissueBeamInsertion.insert_one` (tissue modulus along the insertion, per organ).
     """
     from scipy.optimize import minimize_scalar
 
     target = np.array([np.hypot(rel_mm[0], rel_mm[1]), 0.0, rel_mm[2]])
     aim = target.copy()
     sch = schedule
-    res = model.insert(design, [sch], depth_mm)[0]
-    if not isinstance(res, InsertionPath):
-        raise PlanInputError(f"{model.name} failed: {res.reason}")
+    label = f"{model.name}+{model.rod_model}"
+
+    def solve(s: TensionSchedule) -> InsertionPath:
+        try:
+            return InsertionPath(model.insert_one(design, s, depth_mm, modulus_profile), depth_mm, label)
+        except np.linalg.LinAlgError as exc:
+            raise PlanInputError(f"{model.name} failed: equilibrium system singular ({exc})") from None
+
+    res = solve(sch)
     for _ in range(iterations):
         aim = aim + (target - res.positions_mm[-1])  # correct the aim by the richer model's miss
         d, r = sch.depth_mm, sch.roll_deg
@@ -168,9 +176,7 @@ def refine_with(model: InsertionModel, design: RodDesign, schedule: TensionSched
 
         best = minimize_scalar(miss, bounds=(0.0, design.max_tension_n), method="bounded", options={"xatol": 1e-3})
         sch = TensionSchedule(d, unit * float(best.x), r)
-        res = model.insert(design, [sch], depth_mm)[0]
-        if not isinstance(res, InsertionPath):
-            raise PlanInputError(f"{model.name} failed: {res.reason}")
+        res = solve(sch)
     return sch, res
 
 

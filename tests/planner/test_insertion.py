@@ -113,3 +113,20 @@ def test_inverse_targeting_reaches_a_reachable_point_and_reports_an_unreachable_
     # the workspace radius at a depth bounds what any schedule reaches there
     radius = reach_radius_mm(shape_bank(design), np.array([60.0]))[0]
     assert 45.0 > radius > 0.0
+
+
+def test_tissue_modulus_profile_per_organ(design) -> None:  # type: ignore[no-untyped-def]
+    sch = TensionSchedule.ramp(20.0, 20.0, 8.0)
+    gel = TissueBeamInsertion(rod_model="planar_beam", grid_mm=0.5, step_mm=0.5)
+    soft = TissueBeamInsertion(rod_model="planar_beam", grid_mm=0.5, step_mm=0.5, tissue_modulus_pa=2e4)
+    flat = gel.insert_one(design, sch, 120.0)
+    # a profile that repeats the default is the homogeneous model; one that is soft everywhere is the soft model
+    np.testing.assert_allclose(gel.insert_one(design, sch, 120.0, (np.array([0.0]), np.array([0.19e6]))), flat)
+    np.testing.assert_allclose(gel.insert_one(design, sch, 120.0, (np.array([0.0]), np.array([2e4]))),
+                               soft.insert_one(design, sch, 120.0))
+    # softer tissue over the distal half moves the tip between the two homogeneous answers
+    mixed = gel.insert_one(design, sch, 120.0, (np.array([0.0, 60.0]), np.array([0.19e6, 2e4])))[-1, 0]
+    lo, hi = sorted([flat[-1, 0], soft.insert_one(design, sch, 120.0)[-1, 0]])
+    assert lo - 1e-9 <= mixed <= hi + 1e-9 and lo < hi
+    with pytest.raises(PlanInputError, match="modulus_profile"):
+        gel.insert_one(design, sch, 120.0, (np.array([10.0, 5.0]), np.array([1.0, 2.0])))
