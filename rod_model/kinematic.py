@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -120,8 +121,8 @@ def _tensions(tensions_n: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class ConstantCurvature:
-    """Only the joint section bends, as one circular arc; closed form.
+class ArcModel(ABC):
+    """Closed-form models whose every section is a circular arc; subclasses give the section curvatures.
 
     Parameters
     ----------
@@ -130,15 +131,13 @@ class ConstantCurvature:
     """
 
     step_mm: float = DEFAULT_STEP_MM
-    name: ClassVar[str] = "constant_curvature"
+    name: ClassVar[str] = ""
     capabilities: ClassVar[Capabilities] = Capabilities(planar_only=True, twist=False, several_tendons=True,
                                                         external_load=False, large_deflection=True)
 
+    @abstractmethod
     def curvatures(self, design: RodDesign, moment_factor_n: np.ndarray) -> np.ndarray:
-        """(b, k) float, 1/m: curvature of each section for ``Σλ_j e_j`` magnitudes ``moment_factor_n`` (b,)."""
-        secs = design.sections()
-        c = np.array([s.arm_m / (s.ei1 + s.ei2) if s.kind == "joints" else 0.0 for s in secs])
-        return np.asarray(moment_factor_n, dtype=float)[:, None] * c[None, :]
+        """(b, k) float, 1/m: curvature of each section for ``|Σλ_j e_j|`` = ``moment_factor_n`` (b,), N."""
 
     def solve(self, design: RodDesign, loads: Loads) -> RodPath:
         t0 = time.perf_counter()
@@ -149,6 +148,18 @@ class ConstantCurvature:
     def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch:
         t = _tensions(tensions_n)
         return _arc_batch(self.name, design, t, roll_deg, self.curvatures(design, t))
+
+
+@dataclass(frozen=True)
+class ConstantCurvature(ArcModel):
+    """Only the joint section bends, as one circular arc; closed form."""
+
+    name: ClassVar[str] = "constant_curvature"
+
+    def curvatures(self, design: RodDesign, moment_factor_n: np.ndarray) -> np.ndarray:
+        secs = design.sections()
+        c = np.array([s.arm_m / (s.ei1 + s.ei2) if s.kind == "joints" else 0.0 for s in secs])
+        return np.asarray(moment_factor_n, dtype=float)[:, None] * c[None, :]
 
 
 CONSTANT_CURVATURE = ConstantCurvature()
