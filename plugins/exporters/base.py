@@ -16,7 +16,7 @@ import math
 import os
 import re
 import unicodedata
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
@@ -399,6 +399,18 @@ class Exporter(Protocol):
     def description(self) -> str: ...
 
     def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles: ...
+
+
+@dataclass(frozen=True)
+class FunctionExporter:
+    """An exporter plugin made of a name, a one-line description and an export function."""
+
+    name: str
+    description: str
+    function: Callable[[ExportPlan, Path, ExportOptions | None], ExportedFiles]
+
+    def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
+        return self.function(plan, out_dir, options)
 
 
 def check_exporter(obj: object) -> None:

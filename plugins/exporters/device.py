@@ -20,7 +20,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from plugins.exporters.base import (
     Exporter,
     ExportOptions,
     ExportPlan,
+    FunctionExporter,
     NeedleExport,
     check_targets,
     file_stem,
@@ -127,27 +127,9 @@ def export_device_csv(plan: ExportPlan, out_dir: Path, options: ExportOptions | 
     return ExportedFiles("device_csv", tuple(ExportedFile("device_csv", p) for p in paths), _notes(plan))
 
 
-@dataclass(frozen=True)
-class DeviceJsonExporter:
-    """The ``device_json`` exporter plugin."""
-
-    name: str = "device_json"
-    description: str = "stylet device instructions, JSON: per needle hole, preset, (depth, tension, roll) rows"
-
-    def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-        return export_device_json(plan, out_dir, options)
-
-
-@dataclass(frozen=True)
-class DeviceCsvExporter:
-    """The ``device_csv`` exporter plugin."""
-
-    name: str = "device_csv"
-    description: str = "stylet device instructions, one CSV per needle: hole, preset, depth, tension, roll"
-
-    def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-        return export_device_csv(plan, out_dir, options)
-
-
-JSON_EXPORTER: Exporter = DeviceJsonExporter()
-CSV_EXPORTER: Exporter = DeviceCsvExporter()
+JSON_EXPORTER: Exporter = FunctionExporter(
+    "device_json", "stylet device instructions, one JSON file: per needle hole, preset and schedule rows",
+    export_device_json)
+CSV_EXPORTER: Exporter = FunctionExporter(
+    "device_csv", "stylet device instructions, one CSV per needle: hole, preset, depth, tension, roll",
+    export_device_csv)

@@ -44,6 +44,7 @@ from plugins.exporters.base import (
     ExportError,
     ExportOptions,
     ExportPlan,
+    FunctionExporter,
     NeedleExport,
     check_targets,
     file_stem,
@@ -450,17 +451,7 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
                          tuple(notes))
 
 
-@dataclass(frozen=True)
-class DicomRtExporter:
-    """The ``dicom_rt`` exporter plugin (see :func:`export_plan`)."""
-
-    name: str = "dicom_rt"
-    description: str = "DICOM RT Plan (brachy HDR) + RT Structure Set with BRACHY_CHANNEL ROIs"
-
-    def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-        return export_plan(plan, out_dir, options)
-
-
-EXPORTER: Exporter = DicomRtExporter()
+EXPORTER: Exporter = FunctionExporter(
+    "dicom_rt", "DICOM RT Plan (brachy HDR) + RT Structure Set with BRACHY_CHANNEL ROIs", export_plan)
 
 __all__ = ["EXPORTER", "build_rtplan", "build_rtstruct", "export_plan", "plan_identity"]
