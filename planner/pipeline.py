@@ -21,7 +21,7 @@ from imaging.types import Grid, Roi, StructureSet, Volume
 from planner.candidates import score_path, straight_candidates
 from planner.collision import Organ, make_organ
 from planner.errors import PlanInputError
-from planner.insertion import TISSUE_BEAM
+from planner.insertion import TISSUE_BEAM, KinematicInsertion
 from planner.ranking import Candidate, RankWeights, Target, pareto_front, rank
 from planner.robustness import Perturbations, assess, with_robustness
 from planner.schedule import TensionSchedule
@@ -58,6 +58,8 @@ class PlanConfig:
     (tension, roll and entry-angle errors); the ranking prefers robust ones among them.
     ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa) for the reference insertion
     model, e.g. ``(("Uterus", 0.5e6),)``; tissue outside the named organs keeps the gel's 0.19 MPa.
+    ``screen_tolerance_mm``: the screening uses the cheapest rod model (by batched throughput) whose
+    measured free-space tip error (the rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
     """
 
     template: str = "needlefinder_syed_63"
@@ -74,6 +76,7 @@ class PlanConfig:
     robust_top: int = 2
     perturbations: Perturbations = field(default_factory=Perturbations)
     tissue_moduli_pa: tuple[tuple[str, float], ...] = ()
+    screen_tolerance_mm: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
@@ -275,6 +278,14 @@ def _template_offsets(scene: Scene, target: Target) -> np.ndarray:
     return t - np.column_stack([xy, np.zeros(len(xy))])
 
 
+def screening_model(config: PlanConfig) -> KinematicInsertion:
+    """The kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm``."""
+    from rod_model.select import Scene as RodScene
+    from rod_model.select import select_model
+
+    return KinematicInsertion(rod_model=select_model(config.screen_tolerance_mm, RodScene(), batched=True))
+
+
 def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: PlanConfig,
                        skip: frozenset[str] | set[str] = frozenset()) -> list[Candidate]:
     """One steered candidate per hole (holes in ``skip`` excluded).
@@ -283,7 +294,7 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
     reach error) that clears every organ is kept, trying at most ``config.alternatives``; when none is
     clear, the gentlest reaching one (colliding); when none reaches, the closest approach, unchecked.
     """
-    bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm))
+    bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm), screening_model(config))
     radius = design.needle.outer_diameter_mm / 2
     matches = match_targets(bank, _template_offsets(scene, target), keep=len(bank.schedules))
     out: list[Candidate] = []

@@ -87,3 +87,14 @@ def test_pareto_front_is_not_dominated() -> None:
                 strictly = (b.hole_distance_mm < a.hole_distance_mm or b.reach_error_mm < a.reach_error_mm
                             or b.clearance_mm > a.clearance_mm)
                 assert not (better and strictly)
+
+
+def test_screening_model_is_chosen_by_the_measured_error_table() -> None:
+    from planner.pipeline import screening_model
+    from rod_model.select import error_table
+
+    rows = {r.model: r for r in error_table() if r.resolution == "default"}
+    chosen = screening_model(PlanConfig(screen_tolerance_mm=0.5)).rod_model
+    assert rows[chosen].max_tip_error_mm <= 0.5
+    strict = screening_model(PlanConfig(screen_tolerance_mm=1e-5)).rod_model
+    assert rows[strict].max_tip_error_mm <= 1e-5 and strict != chosen
