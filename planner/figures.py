@@ -24,7 +24,7 @@ from planner.pipeline import Scene
 from planner.ranking import Candidate
 
 ORGAN_COLOURS = {
-    "Bladder": "#e6c229", "Rectum": "#8c564b", "Sigmoid": "#c49c94", "Bowel": "#f7b6d2", "Bone": "#f2f2f2",
+    "Bladder": "#e6c229", "Rectum": "#8c564b", "Sigmoid": "#c49c94", "Bowel": "#f7b6d2", "Bone": "#5b7bd5",
     "HR-CTV": "#d62728", "Uterus": "#9467bd", "Cervix": "#ff9896", "Obturator": "#7f7f7f",
 }
 TARGET_COLOUR = "#2ca02c"
@@ -128,6 +128,7 @@ def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: 
         ax.set_xlabel(AXIS_LABELS[u], fontsize=8)
         ax.set_ylabel(AXIS_LABELS[v], fontsize=8)
         ax.tick_params(labelsize=7)
+        ax.locator_params(nbins=5)
     handles = [Line2D([], [], color=organ_colour(n), label=n) for n in meshes]
     if straight is not None:
         handles.append(Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label=f"straight {straight.hole_id}"))
@@ -156,21 +157,23 @@ VIEWS_3D: tuple[tuple[float, float, str], ...] = (
 
 def views_3d(scene: Scene, needles: Sequence[Candidate], organs: Sequence[str] | None = None,
              pitch_mm: float = 4.0, meshes: Mapping[str, trimesh.Trimesh] | None = None) -> bytes:
-    """Organs and needles in 3-D from three angles (steered solid cyan, straight dashed orange).
+    """Organs, target points (green dots) and needles in 3-D from three angles (steered solid cyan,
+    straight dashed orange).
 
-    ``organs``: meshes to draw (default: organs at risk without bone, HR-CTV, targets' ROIs);
+    ``organs``: meshes to draw (default: organs at risk without bone, and HR-CTV);
     ``meshes``: pre-coarsened meshes by name (default: :func:`coarse_mesh` of the scene's).
     """
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # type: ignore[import-untyped]
 
     names = list(organs) if organs is not None else (
-        [o.name for o in scene.organs if o.name != "Bone"] + ["HR-CTV"] + [t.name for t in scene.targets])
+        [o.name for o in scene.organs if o.name != "Bone"] + ["HR-CTV"])
     light = dict(meshes) if meshes is not None else {}
     for n in names:
         if n not in light and n in scene.meshes:
             light[n] = coarse_mesh(scene.meshes[n], pitch_mm)
     fig = Figure(figsize=(15, 5.4))
-    pts = [m.vertices for n, m in light.items() if n in names] + [c.path_mm for c in needles]
+    points = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)
+    pts = [points, *(m.vertices for n, m in light.items() if n in names), *(c.path_mm for c in needles)]
     lo, hi = _box(pts, 5.0)
     centre, half = (lo + hi) / 2, float((hi - lo).max()) / 2
     for i, (elev, azim, title) in enumerate(VIEWS_3D):
@@ -186,6 +189,8 @@ def views_3d(scene: Scene, needles: Sequence[Candidate], organs: Sequence[str] |
             colour, style = (STEERED_COLOUR, "-") if c.steered else (STRAIGHT_COLOUR, "--")
             ax.plot(c.path_mm[:, 0], c.path_mm[:, 1], c.path_mm[:, 2], style, color=colour, lw=1.5)
             ax.scatter(*c.path_mm[-1], color=colour, s=8)
+        ax.scatter(points[:, 0], points[:, 1], points[:, 2], marker="o", color=TARGET_COLOUR, s=30,
+                   depthshade=False)
         ax.set_xlim(centre[0] - half, centre[0] + half)
         ax.set_ylim(centre[1] - half, centre[1] + half)
         ax.set_zlim(centre[2] - half, centre[2] + half)
@@ -198,7 +203,7 @@ def views_3d(scene: Scene, needles: Sequence[Candidate], organs: Sequence[str] |
         ax.tick_params(labelsize=6)
     handles = [Line2D([], [], color=organ_colour(n), lw=6, alpha=0.5, label=n) for n in names
                if n in light and not n.casefold().startswith("target")]
-    handles += [Line2D([], [], color=TARGET_COLOUR, lw=6, alpha=0.5, label="target ROIs"),
+    handles += [Line2D([], [], color=TARGET_COLOUR, marker="o", ls="", label="target points"),
                 Line2D([], [], color=STEERED_COLOUR, label="steered needle"),
                 Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="straight needle")]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)

@@ -31,7 +31,7 @@ from plugins import registry
 from rod_model.design import RodDesign, preset
 
 if TYPE_CHECKING:
-    from planner.optimize import OptimisationResult
+    from planner.optimize import OptimisationResult, PlanningStructures
     from plugins.exporters import ExportPlan
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
@@ -360,6 +360,31 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
     return current
 
 
+def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str,
+                        oar_names: Sequence[str]) -> PlanningStructures:
+    """The target and organs at risk (bone excluded) as masks for dose: on ``grid`` (the CT's), or without
+    a CT on a 2 mm grid on the contours' own slices that holds the target and every organ.
+
+    Raises
+    ------
+    PlanInputError
+        ``target_roi`` is not in the structure set.
+    """
+    from imaging.meshing import fit_grid, roi_mask
+    from planner.optimize import PlanningStructures, Structure
+
+    if target_roi not in structures.names:
+        raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
+    roi = structures.get(target_roi)
+    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone"]
+    if grid is None:
+        union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
+                                                  if c.geometric_type == "CLOSED_PLANAR"))
+        grid = fit_grid(union, None, 2.0)
+    oars = tuple(Structure(r.normalized_name, roi_mask(r, grid)) for r in oar_rois)
+    return PlanningStructures(grid, Structure(target_roi, roi_mask(roi, grid)), oars)
+
+
 def choose_needles(result: PlanResult, targets: Sequence[str] | None = None) -> tuple[Candidate, ...]:
     """One needle per target: its top-ranked feasible candidate whose hole no earlier target took.
 
@@ -387,6 +412,7 @@ class Delivery:
     needles: tuple[Candidate, ...]
     optimisation: OptimisationResult
     export: ExportPlan
+    planning: PlanningStructures
 
 
 def plan_delivery(
@@ -408,26 +434,14 @@ def plan_delivery(
     PlanInputError
         No feasible needle, or no target structure to optimise on.
     """
-    from imaging.meshing import fit_grid, roi_mask
     from planner.dose import Tg43Kernel
-    from planner.optimize import PlanningStructures, Structure, optimise_dwell_times
+    from planner.optimize import optimise_dwell_times
     from plugins.exporters import ExportPlan, NeedleExport, SourceSpec
 
     needles = choose_needles(result)
     if not needles:
         raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
-    if target_roi not in structures.names:
-        raise PlanInputError(f"no {target_roi} ROI to optimise the dwell times on; name it with --target-roi")
-    roi = structures.get(target_roi)
-    oar_rois = [structures.get(n) for n in result.config.oar_names if n in structures.names and n != "Bone"]
-    if grid is None:  # no CT: a 2 mm grid on the contours' own slices, holding the target and every organ
-        union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
-                                                  if c.geometric_type == "CLOSED_PLANAR"))
-        plan_grid = fit_grid(union, None, 2.0)
-    else:
-        plan_grid = grid
-    oars = tuple(Structure(r.normalized_name, roi_mask(r, plan_grid)) for r in oar_rois)
-    planning = PlanningStructures(plan_grid, Structure(target_roi, roi_mask(roi, plan_grid)), oars)
+    planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
     source = registry.get("sources", source_name)()
     opt = optimise_dwell_times([c.path_mm for c in needles], planning, Tg43Kernel(source), air_kerma_u)
     exports = []
@@ -443,4 +457,4 @@ def plan_delivery(
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
                         input_paths=tuple(input_paths))
-    return Delivery(needles, opt, export)
+    return Delivery(needles, opt, export, planning)

@@ -19,11 +19,10 @@ from tqdm import tqdm
 
 from imaging.types import Grid, StructureSet, Volume
 from planner import figures
-from planner.errors import PlanInputError
 from planner.html_report import Figure, Paragraph, Report, Section, Table, write_html
 from planner.io import atomic_write_bytes
-from planner.optimize import Comparison, OptimizerSettings, PlanningStructures, Structure, compare_arms
-from planner.pipeline import DEFAULT_AIR_KERMA_U, Delivery, PlanResult, Scene
+from planner.optimize import Comparison, OptimizerSettings, PlanningStructures, compare_arms
+from planner.pipeline import DEFAULT_AIR_KERMA_U, Delivery, PlanResult, Scene, planning_structures
 from planner.ranking import Candidate
 
 ORGAN_COLOURS = {
@@ -122,8 +121,17 @@ def overview_figure(scene: Scene, result: PlanResult, path: Path, volume: Volume
 # --- the HTML report (issue 8) ----------------------------------------------------------------------------
 
 #: Faster LP settings for the straight-versus-steered comparison in the report (the delivered plan keeps the
-#: full :class:`~planner.optimize.OptimizerSettings`); about 6 s for 4 + 12 needles on the demo phantom.
-COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500)
+#: full :class:`~planner.optimize.OptimizerSettings`); about 5 s for 4 + 12 needles on the demo phantom.
+COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500, relax_iterations=1)
+
+
+#: Captions of the PNG files :func:`write_report` embeds in the case section, by file name.
+CASE_PNG_CAPTIONS = {
+    "overview.png": "Overview: axial slice at the targets' mean height and the mid-sagittal slice, with the top "
+                    "needle of every target (dashed: straight).",
+    "workspace.png": "Reachable workspace: where each hole's steered needle can put its tip at the targets' depth "
+                     "(template frame), with the targets and the organ outlines at that depth.",
+}
 
 
 @dataclass(frozen=True)
@@ -160,34 +168,15 @@ def chosen_by_kind(result: PlanResult, steered: bool) -> tuple[Candidate, ...]:
     return tuple(out)
 
 
-def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str,
-                        oar_names: Sequence[str]) -> PlanningStructures:
-    """The target and organs at risk (bone excluded) as masks on ``grid`` (or on a 2 mm grid fitted to the
-    target), as :func:`planner.pipeline.plan_delivery` builds them.
-
-    Raises
-    ------
-    PlanInputError
-        ``target_roi`` is not in the structure set.
-    """
-    from imaging.meshing import fit_grid, roi_mask
-
-    if target_roi not in structures.names:
-        raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
-    roi = structures.get(target_roi)
-    g = grid if grid is not None else fit_grid(roi, None, 2.0)
-    oars = tuple(Structure(n, roi_mask(structures.get(n), g)) for n in oar_names
-                 if n in structures.names and n != "Bone")
-    return PlanningStructures(g, Structure(target_roi, roi_mask(roi, g)), oars)
-
-
 def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | None,
                    source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
                    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
-                   settings: OptimizerSettings = COMPARISON_SETTINGS) -> Comparison | None:
+                   settings: OptimizerSettings = COMPARISON_SETTINGS,
+                   planning: PlanningStructures | None = None) -> Comparison | None:
     """Straight versus steered dose: each arm gets the per-target best needle of its kind
     (:func:`chosen_by_kind`), optimised the same way (:func:`planner.optimize.compare_arms`). An arm with no
-    feasible needle is left out; None when both are empty."""
+    feasible needle is left out; None when both are empty. ``planning``: the delivery's structures, when
+    already built (else :func:`planner.pipeline.planning_structures` builds them)."""
     from planner.dose import Tg43Kernel
     from plugins import registry
 
@@ -196,7 +185,8 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
     arms = [a for a in arms if a[1]]
     if not arms:
         return None
-    planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
+    if planning is None:
+        planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
     kernel = Tg43Kernel(registry.get("sources", source_name)())
     return compare_arms(arms, planning, kernel, air_kerma_u, settings=settings)
 
@@ -205,9 +195,21 @@ def _f(v: float, digits: int = 1) -> str:
     return f"{v:.{digits}f}" if np.isfinite(v) else "-"
 
 
-def _rod_models(model: str) -> list[str]:
-    """Rod models named in a candidate's model label (``insertion+rod``)."""
-    return [p for p in model.split("+")[1:]] if "+" in model else []
+def models_used(result: PlanResult) -> dict[str, str]:
+    """What each rod model did in this plan, by rod model name (from the candidates' ``insertion+rod``
+    model labels), e.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``."""
+    from planner.insertion import TISSUE_BEAM
+
+    counts: dict[str, int] = {}
+    for c in result.candidates:
+        counts[c.model] = counts.get(c.model, 0) + 1
+    used: dict[str, list[str]] = {}
+    for model, n in sorted(counts.items()):
+        insertion, _, rod = model.partition("+")
+        if rod:
+            role = "reference re-solve" if insertion == TISSUE_BEAM.name else "screening"
+            used.setdefault(rod, []).append(f"{role} with {insertion} ({n} candidates)")
+    return {rod: "; ".join(roles) for rod, roles in used.items()}
 
 
 def _case_section(scene: Scene, result: PlanResult, case: str, template_png: bytes) -> Section:
@@ -291,7 +293,7 @@ def _ranking_section(result: PlanResult) -> Section:
 
 
 def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_png: bytes | None,
-                  source_name: str, note: str) -> Section:
+                  source_name: str, note: str, settings: OptimizerSettings) -> Section:
     blocks: list[Paragraph | Table | Figure] = []
     if comparison is not None:
         rows = comparison.rows()
@@ -305,8 +307,10 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
         blocks += [
             Paragraph("Straight versus steered: each arm gets the best feasible needle of its kind per target "
                       "(one per hole) and its dwell times are optimised the same way (TG-43 dose, source "
-                      f"{source_name}; linear programme with {COMPARISON_SETTINGS.max_target_points} target and "
-                      f"{COMPARISON_SETTINGS.max_oar_points} points per organ). 'needed' is the smallest number of "
+                      f"{source_name}; linear programme with {settings.max_target_points} target and "
+                      f"{settings.max_oar_points} points per organ, fewer than the delivered plan's: on the "
+                      "demo phantom, D90 moves by up to about 2 Gy EQD2 with the point sampling, so smaller "
+                      "differences between the arms are not significant). 'needed' is the smallest number of "
                       "the arm's needles, in target order, that reaches the aim. Aims (EMBRACE II, EQD2 with "
                       f"45 Gy / 25 fx external beam, {aims.fractionation.n_fractions} fractions): HR-CTV D90 ≥ "
                       f"{aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}."),
@@ -393,7 +397,8 @@ def _models_section(result: PlanResult, chart: bytes | None, rows: Sequence[Any]
 def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = None,
                  delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
-                 comparison_note: str = "", options: ReportOptions | None = None, quiet: bool = True) -> Report:
+                 comparison_note: str = "", options: ReportOptions | None = None, quiet: bool = True,
+                 case_figures: Sequence[Figure] = ()) -> Report:
     """Assemble the report of a plan (figures are rendered here; nothing is solved except the drawings).
 
     Parameters
@@ -404,6 +409,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     comparison : straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why)
     case : one line naming the case
     timings : seconds per stage, shown at the end
+    case_figures : further figures for the case section (e.g. the overview and workspace PNGs)
     """
     from rod_model.errors import RodModelError
     from rod_model.select import error_table
@@ -414,6 +420,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     bar = tqdm(total=4 + len(slice_targets), desc="report", unit="figure", disable=quiet, leave=False)
     try:
         case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
+        case_sec = Section(case_sec.title, case_sec.anchor, (*case_sec.blocks, *case_figures))
         bar.update()
         slices: list[Paragraph | Table | Figure] = [Paragraph(
             "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
@@ -434,11 +441,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
             rows: Sequence[Any] = error_table()
         except RodModelError:
             rows = ()
-        used: dict[str, str] = {}
-        for c in result.candidates:
-            for i, m in enumerate(_rod_models(c.model)):
-                role = f"{c.model.split('+')[0]} {'reference' if 'tissue' in c.model else 'screening'}"
-                used.setdefault(m, role if i == 0 else c.model)
+        used = models_used(result)
         chart = figures.speed_accuracy(rows, used) if rows else None
         bar.update()
     finally:
@@ -453,12 +456,12 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         _ranking_section(result),
         Section("Slices through the targets", "slices", tuple(slices)),
         Section("3-D views", "views-3d", (
-            Paragraph("Organs at risk (bone hidden), HR-CTV and target ROIs with the per-target best straight and "
+            Paragraph("Organs at risk (bone hidden), HR-CTV and the target points with each target's best straight and "
                       f"steered needles, from three angles (organs re-meshed on a {options.mesh_pitch_mm:g} mm grid "
                       "for drawing only)."),
             Figure(view, "3-D views of organs and needles"),
         )),
-        _dose_section(delivery, comparison, dvh, source_name, comparison_note),
+        _dose_section(delivery, comparison, dvh, source_name, comparison_note, options.comparison_settings),
         _device_section(delivery),
         _models_section(result, chart, rows, used),
     ]
@@ -473,9 +476,14 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
 def write_report(path: Path, scene: Scene, result: PlanResult, structures: StructureSet, *,
                  volume: Volume | None = None, delivery: Delivery | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
-                 target_roi: str = "HR-CTV", options: ReportOptions | None = None, quiet: bool = True) -> Path:
+                 target_roi: str = "HR-CTV", options: ReportOptions | None = None, quiet: bool = True,
+                 case_pngs: Sequence[Path] = ()) -> Path:
     """Compare straight and steered needles (when a delivery was made), build the report and write it to
-    ``path`` (HTML, self-contained, atomic). Returns ``path``."""
+    ``path`` (HTML, self-contained, atomic). Returns ``path``.
+
+    ``case_pngs``: PNG files written before (``overview.png``, ``workspace.png``) to embed in the case
+    section; missing ones are left out.
+    """
     from importlib.metadata import PackageNotFoundError, version
 
     try:
@@ -490,14 +498,16 @@ def write_report(path: Path, scene: Scene, result: PlanResult, structures: Struc
         bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
         comparison = compare_chosen(result, structures, volume.grid if volume is not None else None,
                                     source_name, target_roi, delivery.export.source.air_kerma_rate_u,
-                                    options.comparison_settings)
+                                    options.comparison_settings, planning=delivery.planning)
         bar.update()
         bar.close()
         if comparison is None:
             note = "No feasible needle of either kind: nothing to compare."
+    extra = tuple(Figure(Path(p).read_bytes(), CASE_PNG_CAPTIONS.get(Path(p).name, Path(p).name))
+                  for p in case_pngs if Path(p).is_file())
     report = build_report(scene, result, volume=volume, delivery=delivery, comparison=comparison, case=case,
                           timings=timings, source_name=source_name, comparison_note=note, options=options,
-                          quiet=quiet)
+                          quiet=quiet, case_figures=extra)
     footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
               "research use; not a treatment plan.")
     return write_html(report, path, footer)

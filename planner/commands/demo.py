@@ -19,6 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
     from imaging.dicom_io import read_series
     from imaging.phantom import write_phantom
     from imaging.rtstruct import read_rtstruct
@@ -29,11 +31,15 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     quiet = args.quiet or args.json
     t0 = time.perf_counter()
+    bar = tqdm(total=2, desc="phantom: write, read back", unit="step", disable=quiet, leave=False)
     files = write_phantom(out / "phantom")
+    bar.update()
     t_write = time.perf_counter() - t0
     t = time.perf_counter()
     volume = read_series(files.ct_dir)  # read back from disk: the demo exercises the DICOM reader
     structures = read_rtstruct(files.rtstruct_path, volume)
+    bar.update()
+    bar.close()
     t_read = time.perf_counter() - t
     if not quiet:
         print(f"phantom written to {files.ct_dir.parent} ({t_write:.1f} s), read back: CT {volume.grid.shape}, "

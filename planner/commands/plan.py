@@ -74,6 +74,8 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
              extra: dict[str, object] | None = None) -> dict[str, object]:
     """Scene → plan → files (plan.json, overview.png, exports); returns the plan document."""
+    from tqdm import tqdm
+
     from planner.io import atomic_write_json
     from planner.pipeline import build_scene, plan, plan_delivery
     from planner.report import format_table, overview_figure
@@ -95,13 +97,19 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     delivery = None
     if export:
         t = time.perf_counter()
+        bar = tqdm(total=4, desc="delivery", unit="step", disable=quiet, leave=False)
+        bar.set_postfix_str("dwell times (TG-43, LP)")
         delivery = plan_delivery(result, structures, grid, source_name=source, target_roi=target_roi,
                                  volume=volume, input_paths=inputs or [])
+        bar.update()
         files = []
         for name in ("dicom_rt", "device_json", "device_csv"):
+            bar.set_postfix_str(f"export {name}")
             exporter = registry.get("exporters", name)
             written = exporter.export(delivery.export, out / "export", ExportOptions(overwrite=True))
             files += [str(f.path) for f in written.files]
+            bar.update()
+        bar.close()
         opt = delivery.optimisation
         doc["delivery"] = {
             "needles": [c.hole_id for c in delivery.needles],
@@ -117,7 +125,8 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     case = str((extra or {}).get("case") or (inputs[-1].name if inputs else "case"))
     doc["report"] = str(write_report(out / "report.html", scene, result, structures, volume=volume,
                                      delivery=delivery, case=case, timings=timings, source_name=source,
-                                     target_roi=target_roi, quiet=quiet))
+                                     target_roi=target_roi, quiet=quiet,
+                                     case_pngs=(out / "overview.png", out / "workspace.png")))
     timings["report_s"] = time.perf_counter() - t
     # --- end report ---
     doc["timings"] = timings

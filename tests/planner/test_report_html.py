@@ -1,0 +1,114 @@
+"""The HTML builder (plain data -> one self-contained document) and the report's small helpers."""
+
+from __future__ import annotations
+
+import base64
+import io
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from matplotlib.figure import Figure as MplFigure
+
+from planner import figures
+from planner.html_report import Figure, Paragraph, Report, Section, Table, render_html, write_html
+from planner.ranking import Candidate
+from planner.report import _runs, chosen_by_kind, models_used
+
+
+def _png(colour: str = "red") -> bytes:
+    fig = MplFigure(figsize=(2, 1))
+    fig.patch.set_facecolor(colour)
+    return figures.png_bytes(fig, dpi=50)
+
+
+def _report() -> Report:
+    return Report("t <1>", "sub & title", (
+        Section("One", "one", (Paragraph("a <b>bold</b> claim"),
+                               Table(("name", "value"), (("x<y", "1.0"), ("z", "2.5")), "tab", numeric=(1,)))),
+        Section("Two", "two", (Figure(_png(), "a red square", alt="red"),
+                               Table(("k",), (("v",),), "hidden", collapsed=True))),
+    ))
+
+
+def test_render_escapes_text_and_embeds_images_as_data_uris() -> None:
+    doc = render_html(_report(), footer="f")
+    assert "a &lt;b&gt;bold&lt;/b&gt; claim" in doc and "<b>bold" not in doc
+    assert "<td>x&lt;y</td>" in doc and '<td class="num">2.5</td>' in doc
+    srcs = re.findall(r'src="([^"]*)"', doc)
+    assert len(srcs) == 1 and srcs[0].startswith("data:image/png;base64,")
+    png = base64.b64decode(srcs[0].split(",", 1)[1])
+    img = mpimg.imread(io.BytesIO(png), format="png")
+    assert img[..., 0].mean() > 0.9 and img[..., 1].mean() < 0.1  # the red square survived the round trip
+    assert "<script" not in doc and "http://" not in doc and "https://" not in doc
+    assert "default-src 'none'" in doc  # the browser may load nothing but the embedded images
+    assert "<details><summary>hidden</summary>" in doc
+    assert doc.count('<section id="') == 2 and 'href="#two"' in doc
+
+
+def test_plain_data_is_validated() -> None:
+    with pytest.raises(ValueError, match="row 0 has 1 cells"):
+        Table(("a", "b"), (("only one",),))
+    with pytest.raises(ValueError, match="numeric column"):
+        Table(("a",), (("1",),), numeric=(3,))
+    with pytest.raises(ValueError, match="not a PNG"):
+        Figure(b"GIF89a...", "gif")
+    with pytest.raises(ValueError, match="anchor"):
+        Section("S", "has space", ())
+    with pytest.raises(ValueError, match="unique anchors"):
+        Report("r", "", (Section("a", "x", ()), Section("b", "x", ())))
+
+
+def test_write_is_atomic_and_replaces(tmp_path: Path) -> None:
+    path = tmp_path / "report.html"
+    path.write_text("old")
+    write_html(_report(), path)
+    assert path.read_text(encoding="utf-8").startswith("<!DOCTYPE html>")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.html"]  # no temporary file left behind
+
+
+def _cand(target: str, hole: str, steered: bool, feasible: bool = True) -> Candidate:
+    path = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 50.0]])
+    return Candidate(target, hole, 10.0, 0.5, 5.0, "Bladder", 50.0, steered, 0.0, "m", not feasible, True,
+                     "" if feasible else "collides", path)
+
+
+def test_chosen_by_kind_takes_each_targets_best_of_a_kind_on_a_free_hole() -> None:
+    result = SimpleNamespace(ranking={  # the part of PlanResult chosen_by_kind reads
+        "T1": (_cand("T1", "A", True), _cand("T1", "B", False, feasible=False), _cand("T1", "C", False)),
+        "T2": (_cand("T2", "A", True), _cand("T2", "D", True), _cand("T2", "C", False)),
+        "T3": (_cand("T3", "E", True, feasible=False),),
+    })
+    steered = chosen_by_kind(result, True)  # type: ignore[arg-type]
+    straight = chosen_by_kind(result, False)  # type: ignore[arg-type]
+    assert [(c.target, c.hole_id) for c in steered] == [("T1", "A"), ("T2", "D")]  # A is taken: T2 gets D
+    assert [(c.target, c.hole_id) for c in straight] == [("T1", "C")]  # T2's straight would reuse C: none
+
+
+def test_schedule_runs_drop_repeated_breakpoints() -> None:
+    sched = np.array([[0.0, 0.0, 90.0], [5.0, 10.0, 90.0], [10.0, 10.0, 90.0], [15.0, 4.0, 90.0]])
+    assert _runs(sched) == [(0.0, 0.0, 90.0), (5.0, 10.0, 90.0), (15.0, 4.0, 90.0)]
+
+
+def test_speed_accuracy_chart_marks_the_models_used() -> None:
+    from rod_model.select import error_table
+
+    rows = error_table()
+    plain = mpimg.imread(io.BytesIO(figures.speed_accuracy(rows, {})), format="png")
+    marked = mpimg.imread(io.BytesIO(figures.speed_accuracy(rows, {"planar_beam": "screening"})), format="png")
+    assert plain.shape == marked.shape and plain.std() > 0.05
+    assert np.abs(plain - marked).sum() > 100  # the ring and the label are drawn
+
+
+def test_models_used_names_each_rod_models_role() -> None:
+    from planner.insertion import KINEMATIC, TISSUE_BEAM
+
+    cands = [SimpleNamespace(model=m) for m in
+             ["straight", f"{KINEMATIC.name}+planar_beam", f"{KINEMATIC.name}+planar_beam",
+              f"{TISSUE_BEAM.name}+two_tube_cosserat"]]
+    used = models_used(SimpleNamespace(candidates=cands))  # type: ignore[arg-type]
+    assert used == {"planar_beam": f"screening with {KINEMATIC.name} (2 candidates)",
+                    "two_tube_cosserat": f"reference re-solve with {TISSUE_BEAM.name} (1 candidates)"}
