@@ -11,3 +11,7 @@ class PlannerError(ReachplanError):
 
 class PlanInputError(PlannerError):
     """A plan's inputs are inconsistent or incomplete (missing organ, unknown target, bad pose...)."""
+
+
+class StudyError(PlanInputError):
+    """A design study cannot run or resume as asked (output folder, cases, scheduler, missing results)."""

@@ -1,0 +1,239 @@
+"""Design studies over patient cohorts: every case x stylet design x target, planned in parallel.
+
+The work is split into tasks of one case x one design (all targets), run by Dask distributed: on a
+``LocalCluster`` of worker processes by default, on a user's cluster when given a scheduler address
+(started the standard way: ``dask scheduler`` and ``dask worker ADDRESS``; the workers must read the case
+folders under the same paths; only this process writes results), or in this process (``workers=0``).
+Tasks ship names and paths only. Each worker loads a case once and keeps it for the case's other designs
+(:func:`planner.study.tasks.load_scene`), and tasks prefer the worker that holds their case.
+
+Results stream to ``OUT/parts/<task>.parquet`` as tasks finish (the folder is a Parquet dataset:
+``pyarrow.parquet.read_table(OUT / "parts")`` shows the progress of a running study). A task is done
+exactly when its part file exists, so a killed study resumes where it stopped, with no row lost or
+repeated. A task that fails is recorded (rows with ``status = failed`` and the reason) and the study goes
+on; ``retry_failed`` runs those again. At the end the parts are consolidated into ``OUT/study.parquet``,
+with ``summary.csv`` and ``summary.png`` (reach rate and best-candidate metrics per design).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from tqdm import tqdm
+
+from planner.errors import StudyError
+from planner.io import atomic_write_json
+from planner.pipeline import PlanConfig
+from planner.study import store
+from planner.study.summary import DesignSummary, summarise, summary_figure, write_summary_csv
+from planner.study.tasks import STRAIGHT, Case, StudyRow, StudyTask, discover_cases, failed_rows, run_task
+
+if TYPE_CHECKING:
+    import pyarrow as pa
+
+__all__ = ["STRAIGHT", "Case", "DesignSummary", "StudyResult", "StudyRow", "StudySpec", "StudyTask",
+           "discover_cases", "run_study", "run_task"]
+
+TaskFn = Callable[[StudyTask, PlanConfig], Sequence[StudyRow]]
+MANIFEST = "study.json"
+MANIFEST_VERSION = 1
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """What a study plans: every case x design x target with one plan configuration.
+
+    ``designs`` are stylet presets or ``straight`` (straight needles only); ``targets`` are ROI names
+    (None: every ROI named ``Target*`` in each case); ``config.designs`` is ignored (each task sets its own);
+    ``dose``: also optimise each case x design's dwell times and report the HR-CTV D90.
+    """
+
+    cases: tuple[Case, ...]
+    designs: tuple[str, ...]
+    targets: tuple[str, ...] | None = None
+    config: PlanConfig = field(default_factory=PlanConfig)
+    dose: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.cases:
+            raise ValueError("a study needs at least one case")
+        if not self.designs or len(set(self.designs)) != len(self.designs):
+            raise ValueError("a study needs at least one design, each named once")
+        if self.targets is not None and (not self.targets or len(set(self.targets)) != len(self.targets)):
+            raise ValueError("targets, when given, must be at least one ROI name, each named once")
+
+    def tasks(self) -> tuple[StudyTask, ...]:
+        """Case-major order: a worker that takes consecutive tasks reuses the loaded case."""
+        return tuple(StudyTask(c, d, self.targets, self.dose) for c in self.cases for d in self.designs)
+
+    def manifest(self) -> dict[str, Any]:
+        """What identifies the study's results (JSON-ready); a resumed study must match it."""
+        config = dataclasses.asdict(dataclasses.replace(self.config, designs=()))
+        return {"version": MANIFEST_VERSION, "cases": {c.case_id: str(c.rtstruct) for c in self.cases},
+                "designs": list(self.designs), "targets": None if self.targets is None else list(self.targets),
+                "dose": self.dose,
+                "config": json.loads(json.dumps(config))}
+
+
+@dataclass(frozen=True, eq=False)
+class StudyResult:
+    """A finished study: the consolidated ``table`` (one row per case x design x target, or per failed task
+    whose targets were not known), the per-design ``summaries``, how many tasks there were, how many were
+    already done before this run (``n_resumed``), how many failed, and the wall time of this run (s)."""
+
+    out: Path
+    table: pa.Table = field(repr=False)
+    summaries: tuple[DesignSummary, ...]
+    n_tasks: int
+    n_resumed: int
+    n_failed_tasks: int
+    wall_s: float
+
+
+def _check_manifest(out: Path, spec: StudySpec) -> None:
+    path = out / MANIFEST
+    want = spec.manifest()
+    if path.exists():
+        have = json.loads(path.read_text(encoding="utf-8"))
+        if have != want:
+            diff = [k for k in want if have.get(k) != want[k]] or ["version"]
+            raise StudyError(f"{out} holds another study ({', '.join(diff)} differ); give the same arguments "
+                                 "to resume it, or a new --out folder")
+    elif out.exists() and any(out.iterdir()):
+        raise StudyError(f"{out} is not empty and holds no study; give a new or empty --out folder")
+    else:
+        atomic_write_json(path, want)
+
+
+def _serial(todo: Sequence[StudyTask], config: PlanConfig, task_fn: TaskFn) -> Iterator[tuple[StudyTask,
+                                                                                             Sequence[StudyRow]]]:
+    for task in todo:
+        try:
+            rows = task_fn(task, config)
+        except Exception as exc:  # a failing task is recorded, the study goes on
+            rows = failed_rows(task, f"{type(exc).__name__}: {exc}")
+        yield task, rows
+
+
+def _dask(client: Any, todo: Sequence[StudyTask], config: PlanConfig,
+          task_fn: TaskFn) -> Iterator[tuple[StudyTask, Sequence[StudyRow]]]:
+    from distributed import as_completed
+
+    run = uuid.uuid4().hex[:8]
+    workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
+    futures = {}
+    for k, t in enumerate(todo):
+        # Case-major blocks of equal size per worker (a loose preference: the scheduler still moves tasks to idle
+        # or surviving workers), so a worker runs one case's designs in a row and loads each case once.
+        prefer = {"workers": [workers[k * len(workers) // len(todo)]], "allow_other_workers": True} if workers else {}
+        futures[client.submit(task_fn, t, config, key=f"reachplan-study-{run}-{t.key}", pure=False, **prefer)] = t
+    try:
+        for fut in as_completed(futures):
+            task = futures[fut]
+            if fut.status == "finished":
+                rows = fut.result()
+            elif fut.status == "cancelled":  # the scheduler dropped it (restarted, or the client lost it)
+                raise StudyError(f"the Dask scheduler cancelled task {task.key}; run the study again to "
+                                     "resume it (finished tasks are kept)")
+            else:  # an error inside the task, or a worker that kept dying while running it (KilledWorker)
+                exc = fut.exception()
+                rows = failed_rows(task, f"{type(exc).__name__}: {exc}")
+            fut.release()
+            yield task, rows
+    finally:
+        client.cancel(list(futures))
+
+
+def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, workers: int | None = None,
+              client: Any = None, retry_failed: bool = False, quiet: bool = True,
+              task_fn: TaskFn = run_task) -> StudyResult:
+    """Run (or resume) a study into the folder ``out``.
+
+    Parameters
+    ----------
+    scheduler : address of a running Dask scheduler (``tcp://host:8786``); None = a local cluster
+    workers : worker processes of the local cluster (default: the CPU count); 0 = run in this process
+    client : an existing ``distributed.Client`` to use instead (``scheduler``/``workers`` ignored)
+    retry_failed : run again the tasks a previous run recorded as failed
+    task_fn : the function a worker runs per task (default :func:`run_task`; must be importable by workers)
+
+    Raises
+    ------
+    StudyError
+        ``out`` holds another study or unrelated files; Dask or pyarrow is missing.
+    """
+    store.require_pyarrow()
+    out = Path(out)
+    t0 = time.perf_counter()
+    _check_manifest(out, spec)
+    tasks = spec.tasks()
+    done = store.finished(out)
+    redo = store.failed_keys(out) if retry_failed else set()
+    todo = [t for t in tasks if t.key not in done or t.key in redo]
+    with ExitStack() as stack:
+        if not todo:
+            results: Iterator[tuple[StudyTask, Sequence[StudyRow]]] = iter(())
+        elif client is None and scheduler is None and workers == 0:
+            results = _serial(todo, spec.config, task_fn)
+        else:
+            if client is None:
+                client = stack.enter_context(_client(scheduler, workers, len(todo)))
+            results = _dask(client, todo, spec.config, task_fn)
+        bar = stack.enter_context(tqdm(total=len(todo), desc="study tasks", unit="task", disable=quiet or not todo))
+        for task, rows in results:
+            store.write_part(out, task.key, rows)
+            bar.update()
+    table = store.consolidate(out, [t.key for t in tasks])
+    summaries = summarise(table)
+    write_summary_csv(summaries, out / "summary.csv")
+    summary_figure(table, summaries, out / "summary.png")
+    n_failed = len({k for k, s in zip(table["task"].to_pylist(), table["status"].to_pylist(), strict=True)
+                    if s == "failed"})
+    return StudyResult(out, table, summaries, len(tasks), len(tasks) - len(todo), n_failed,
+                       time.perf_counter() - t0)
+
+
+def _client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any:
+    """A ``distributed.Client`` on ``scheduler``, or on a new loopback-only local cluster of worker processes
+    (closed with the client)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ModuleNotFoundError:
+        raise StudyError("dask[distributed] is not installed: pip install 'dask[distributed]', "
+                             "or run in this process with --workers 0") from None
+    if scheduler is not None:
+        try:
+            return Client(scheduler, timeout="20s")
+        except OSError as exc:
+            raise StudyError(f"cannot reach the Dask scheduler at {scheduler} ({exc}); start it with "
+                                 "'dask scheduler' and give its address") from None
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    if n < 1:
+        raise StudyError(f"--workers must be >= 0, got {n}")
+    cluster = LocalCluster(n_workers=min(n, n_tasks), threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None)
+    client = Client(cluster)
+    return _Closing(client, cluster)
+
+
+class _Closing:
+    """Context manager closing a client and then the local cluster it runs on."""
+
+    def __init__(self, client: Any, cluster: Any) -> None:
+        self.client, self.cluster = client, cluster
+
+    def __enter__(self) -> Any:
+        return self.client
+
+    def __exit__(self, *exc: object) -> None:
+        self.client.close()
+        self.cluster.close()

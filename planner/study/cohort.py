@@ -1,0 +1,154 @@
+"""Deterministic cohorts of phantom variants for design studies, tests and benchmarks.
+
+Variant ``i`` of seed ``s`` perturbs the built-in phantom (:func:`imaging.phantom.phantom_spec`) with a random
+generator seeded by ``(s, i)``: organs move in the axial plane and change size (bladder filling, rectum
+calibre, HR-CTV extent), the pelvic side walls move laterally, and the target pattern rotates about the
+obturator axis and scales radially. Variant 0 is the reference phantom itself. Every z bound stays where the
+phantom puts it (on the CT slab boundaries), so the written contours represent each solid exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from imaging.phantom import (
+    Box,
+    Cylinder,
+    Ellipsoid,
+    EllipticCylinder,
+    PhantomSpec,
+    PhantomStructure,
+    Shape,
+    TorusSection,
+    phantom_spec,
+    write_phantom,
+)
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """How one cohort variant differs from the reference phantom (mm, degrees, dimensionless factors).
+
+    ``shift_xy_mm`` maps an organ name to its axial shift; ``scale`` maps an organ name to the factor on its
+    axial size (radius or x/y semi-axes); ``bone_shift_mm`` moves each pelvic side wall outward (> 0) or
+    inward; ``target_rotation_deg`` rotates the target pattern about the z axis and ``target_radius_scale``
+    scales its radius.
+    """
+
+    seed: int
+    index: int
+    shift_xy_mm: tuple[tuple[str, float, float], ...]
+    scale: tuple[tuple[str, float], ...]
+    bone_shift_mm: float
+    target_rotation_deg: float
+    target_radius_scale: float
+
+    def __post_init__(self) -> None:
+        if any(not (np.isfinite(f) and f > 0) for _, f in self.scale) or not self.target_radius_scale > 0:
+            raise ValueError("cohort scale factors must be positive")
+
+
+#: Largest axial shift (mm) per organ; the cervix, obturator and body stay put (the applicator defines the frame).
+_SHIFT_MM = {"Bladder": 6.0, "Rectum": 4.0, "Uterus": 5.0, "Bowel": 8.0, "HR-CTV": 3.0}
+#: Range of the axial size factor per organ.
+_SCALE = {"Bladder": (0.85, 1.2), "Rectum": (0.85, 1.15), "HR-CTV": (0.85, 1.15), "Uterus": (0.9, 1.1)}
+
+
+def perturbation(seed: int, index: int) -> Perturbation:
+    """The deterministic perturbation of variant ``index`` (0 = the reference phantom, unperturbed)."""
+    if index == 0:
+        return Perturbation(seed, 0, (), (), 0.0, 0.0, 1.0)
+    rng = np.random.default_rng([seed, index])
+    shifts = tuple((n, round(float(rng.uniform(-m, m)), 2), round(float(rng.uniform(-m, m)), 2))
+                   for n, m in _SHIFT_MM.items())
+    scale = tuple((n, round(float(rng.uniform(lo, hi)), 3)) for n, (lo, hi) in _SCALE.items())
+    return Perturbation(seed, index, shifts, scale, round(float(rng.uniform(-3.0, 3.0)), 2),
+                        round(float(rng.uniform(-10.0, 10.0)), 2), round(float(rng.uniform(0.94, 1.06)), 3))
+
+
+def _move(shape: Shape, dx: float, dy: float, s: float) -> Shape:
+    """``shape`` shifted by (dx, dy) mm in the axial plane, its axial size scaled by ``s`` about its centre."""
+    if isinstance(shape, Cylinder):
+        (cx, cy) = shape.center_xy_mm
+        return dataclasses.replace(shape, center_xy_mm=(cx + dx, cy + dy), radius_mm=shape.radius_mm * s)
+    if isinstance(shape, EllipticCylinder):
+        (cx, cy), (a, b) = shape.center_xy_mm, shape.semi_axes_xy_mm
+        return dataclasses.replace(shape, center_xy_mm=(cx + dx, cy + dy), semi_axes_xy_mm=(a * s, b * s))
+    if isinstance(shape, Ellipsoid):
+        (cx, cy, cz), (a, b, c) = shape.center_mm, shape.semi_axes_mm
+        return dataclasses.replace(shape, center_mm=(cx + dx, cy + dy, cz), semi_axes_mm=(a * s, b * s, c))
+    if isinstance(shape, TorusSection):
+        cx, cy, cz = shape.center_mm
+        return dataclasses.replace(shape, center_mm=(cx + dx, cy + dy, cz))
+    if isinstance(shape, Box):
+        (x0, y0, z0), (x1, y1, z1) = shape.lo_mm, shape.hi_mm
+        return Box((x0 + dx, y0 + dy, z0), (x1 + dx, y1 + dy, z1))
+    raise TypeError(f"unknown phantom shape {type(shape).__name__}")
+
+
+def _structure(s: PhantomStructure, fn: Callable[[Shape], Shape]) -> PhantomStructure:
+    return dataclasses.replace(s, shapes=tuple(fn(sh) for sh in s.shapes))
+
+
+def perturbed_spec(p: Perturbation, base: PhantomSpec | None = None) -> PhantomSpec:
+    """The phantom ``base`` (default: the built-in one) with perturbation ``p`` applied."""
+    base = base or phantom_spec()
+    shift = {n: (dx, dy) for n, dx, dy in p.shift_xy_mm}
+    scale = dict(p.scale)
+    rot = math.radians(p.target_rotation_deg)
+    c, s = math.cos(rot), math.sin(rot)
+    out = []
+    for st in base.structures:
+        dx, dy = shift.get("Rectum" if st.name == "Sigmoid" else st.name, (0.0, 0.0))  # the sigmoid follows the rectum
+        if st.name == "Bone":
+            def wall(b: Shape, d: float = p.bone_shift_mm) -> Shape:
+                mid = 0.5 * (b.bounds()[0][0] + b.bounds()[1][0])
+                return _move(b, math.copysign(d, mid) if abs(mid) > 30 else 0.0, 0.0, 1.0)
+            out.append(_structure(st, wall))
+        elif st.name.startswith("Target_"):
+            def target(t: Shape) -> Shape:
+                assert isinstance(t, Cylinder)
+                x, y = t.center_xy_mm
+                k = p.target_radius_scale
+                nx, ny = k * (c * x - s * y), k * (s * x + c * y)
+                return _move(t, round(nx - x, 6), round(ny - y, 6), 1.0)
+            out.append(_structure(st, target))
+        else:
+            def organ(sh: Shape, dx: float = dx, dy: float = dy, k: float = scale.get(st.name, 1.0)) -> Shape:
+                return _move(sh, dx, dy, k)
+            out.append(_structure(st, organ))
+    return dataclasses.replace(base, structures=tuple(out))
+
+
+def make_cohort(out_dir: Path, n: int, seed: int = 0) -> tuple[Path, ...]:
+    """Write ``n`` phantom variants as ``out_dir/case_000``, ``case_001``, ... (CT series + RT Structure Set).
+
+    Deterministic in ``(seed, index)``; variant 0 is the reference phantom. Note: the phantom writer derives
+    its DICOM UIDs from the phantom version only, so every variant carries the same UIDs; treat the folders as
+    separate cases, not as series of one study.
+
+    Returns
+    -------
+    the case folders, in index order
+    """
+    if n < 1:
+        raise ValueError(f"a cohort needs at least one case, got {n}")
+    from planner.io import atomic_write_json
+
+    out_dir = Path(out_dir)
+    cases = []
+    doc: list[dict[str, object]] = []
+    for i in range(n):
+        p = perturbation(seed, i)
+        case = out_dir / f"case_{i:03d}"
+        write_phantom(case, perturbed_spec(p))
+        cases.append(case)
+        doc.append({"case": case.name, **dataclasses.asdict(p)})
+    atomic_write_json(out_dir / "cohort.json", {"seed": seed, "cases": doc})
+    return tuple(cases)

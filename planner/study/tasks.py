@@ -1,0 +1,301 @@
+"""One study task: a case x a stylet design, planned for all the study's targets, as rows.
+
+A task ships only names and paths; the heavy inputs (the case's structure set, organ meshes and collision
+objects) are loaded by the process that runs it and kept in a small per-process cache, so a worker that runs
+several designs of one case loads it once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import socket
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from planner.errors import StudyError
+from plugins.errors import ReachplanError
+
+if TYPE_CHECKING:
+    from imaging.types import StructureSet
+    from planner.pipeline import PlanConfig, PlanResult, Scene
+
+#: The design name that plans straight needles only (no stylet): the baseline of a study.
+STRAIGHT = "straight"
+
+
+@dataclass(frozen=True)
+class Case:
+    """A patient (or phantom) case: ``case_id`` names it in the results; ``rtstruct`` is its RT Structure Set."""
+
+    case_id: str
+    rtstruct: Path
+
+    def __post_init__(self) -> None:
+        if not self.case_id or any(ch in self.case_id for ch in "/\\\0") or self.case_id.startswith("."):
+            raise ValueError(f"case id {self.case_id!r} must be a plain folder name")
+
+
+@dataclass(frozen=True)
+class StudyTask:
+    """One unit of work: every target of ``case`` planned with stylet ``design`` (``straight``: none).
+
+    ``targets`` are ROI names; None = every ROI named ``Target*`` in the case. ``dose``: also choose one needle
+    per target and optimise the dwell times on the HR-CTV (as ``reachplan plan`` does before exporting).
+    """
+
+    case: Case
+    design: str
+    targets: tuple[str, ...] | None
+    dose: bool = False
+
+    @property
+    def key(self) -> str:
+        """Unique, file-name-safe key of the task; also the name of its part file (the ledger)."""
+        return f"{self.case.case_id}--{self.design}"
+
+
+@dataclass(frozen=True)
+class StudyRow:
+    """One result row: a case x design x target.
+
+    ``status`` is ``ok`` or ``failed`` (the task failed; ``reason`` says why, the metrics are None, and
+    ``target`` is "" when the task failed before its targets were known). For ``ok`` rows, ``reason`` is ""
+    when the target is reached and otherwise the reason of its top-ranked candidate.
+    ``steered_*`` describe the best-ranked feasible steered candidate and ``straight_*`` the best feasible
+    straight one (None when there is none): hole, reach error (mm), clearance to the nearest organ at risk
+    (mm), peak tendon tension (N), insertion depth beyond the template (mm), hole distance from the template
+    centre (mm). ``best_is_steered``: the overall top-ranked feasible candidate is steered.
+    ``task_scene_s`` is the time the task spent loading the case (0 when the worker had it cached),
+    ``task_plan_s`` the time planning all the task's targets and ``task_cpu_s`` the CPU time of the whole task
+    (all s, the same on every row of a task; CPU time well below wall time means the machine was oversubscribed).
+    ``task_hrctv_d90_gy`` (Gy), ``task_dose_aim_met`` and ``task_dose_reason``: the dwell-time optimisation of the
+    task's chosen needles (only when the study asks for dose; None otherwise; the reason says why there is no
+    dose, e.g. no feasible needle).
+    """
+
+    task: str
+    case: str
+    design: str
+    target: str
+    status: str
+    reason: str
+    reached_steered: bool | None
+    reached_straight: bool | None
+    n_candidates: int | None
+    n_feasible: int | None
+    best_is_steered: bool | None
+    steered_hole: str | None
+    steered_reach_error_mm: float | None
+    steered_clearance_mm: float | None
+    steered_peak_tension_n: float | None
+    steered_insertion_depth_mm: float | None
+    steered_hole_distance_mm: float | None
+    steered_model: str | None
+    straight_hole: str | None
+    straight_reach_error_mm: float | None
+    straight_clearance_mm: float | None
+    straight_insertion_depth_mm: float | None
+    straight_hole_distance_mm: float | None
+    task_scene_s: float | None
+    task_plan_s: float | None
+    task_cpu_s: float | None
+    task_hrctv_d90_gy: float | None
+    task_dose_aim_met: bool | None
+    task_dose_reason: str | None
+    worker: str
+    finished_utc: str
+
+    def __post_init__(self) -> None:
+        if self.status not in ("ok", "failed"):
+            raise ValueError(f"row status must be 'ok' or 'failed', got {self.status!r}")
+
+
+def _worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _now() -> str:
+    return datetime.now(UTC).replace(microsecond=0).isoformat()
+
+
+def failed_rows(task: StudyTask, reason: str) -> tuple[StudyRow, ...]:
+    """The rows recording a failed task: one per requested target (one with target "" when unknown)."""
+    reason = " ".join(reason.split())[:500] or "failed without a message"
+    none: dict[str, object] = {f.name: None for f in dataclasses.fields(StudyRow) if str(f.type).endswith("| None")}
+    worker, now = _worker_name(), _now()
+    return tuple(StudyRow(task.key, task.case.case_id, task.design, t, "failed", reason, worker=worker,
+                          finished_utc=now, **none)  # type: ignore[arg-type]
+                 for t in (task.targets or ("",)))
+
+
+#: Scenes this process has loaded, most recently used last (at most ``_SCENE_CACHE_SIZE``).
+_SCENES: OrderedDict[tuple[str, int, tuple[str, ...] | None, str], tuple[Scene, StructureSet]] = OrderedDict()
+_SCENE_CACHE_SIZE = 4
+_SCENE_LOCK = threading.Lock()
+
+
+def load_scene(case: Case, targets: tuple[str, ...] | None,
+               config: PlanConfig) -> tuple[Scene, StructureSet, float]:
+    """The case's scene and structures from this process's cache (loaded on first use), and the seconds spent
+    loading them (0 when they were cached).
+
+    The cache key holds the file's modification time, so an edited case is reloaded, and the configuration
+    without its designs (a scene does not depend on them).
+    """
+    from imaging.rtstruct import read_rtstruct
+    from planner.pipeline import build_scene
+
+    t = time.perf_counter()
+    key = (str(case.rtstruct), case.rtstruct.stat().st_mtime_ns, targets, repr(dataclasses.replace(config, designs=())))
+    with _SCENE_LOCK:  # one load at a time per process; other threads wanting the same case wait for it
+        hit = _SCENES.get(key)
+        if hit is not None:
+            _SCENES.move_to_end(key)
+            return (*hit, 0.0)
+        structures = read_rtstruct(case.rtstruct, None)
+        scene = build_scene(structures, None if targets is None else list(targets), config=config)
+        _SCENES[key] = (scene, structures)
+        while len(_SCENES) > _SCENE_CACHE_SIZE:
+            _SCENES.popitem(last=False)
+    return scene, structures, time.perf_counter() - t
+
+
+def _num(v: float) -> float:
+    return round(float(v), 4)
+
+
+@dataclass(frozen=True)
+class DoseOutcome:
+    """The dwell-time optimisation of a task's needles: HR-CTV D90 (Gy), whether the aims were met, and why
+    there is no dose when ``d90_gy`` is None."""
+
+    d90_gy: float | None
+    aim_met: bool | None
+    reason: str
+
+
+def task_dose(result: PlanResult, structures: StructureSet) -> DoseOutcome:
+    """Choose one needle per target and optimise their dwell times on the HR-CTV (no export)."""
+    from planner.pipeline import plan_delivery
+
+    try:
+        opt = plan_delivery(result, structures, None).optimisation
+    except ReachplanError as exc:
+        return DoseOutcome(None, None, " ".join(str(exc).split()))
+    if not opt.success:
+        return DoseOutcome(None, None, opt.reason)
+    return DoseOutcome(_num(opt.target.d90_gy), bool(opt.aim_met), "")
+
+
+def rows_from_result(task: StudyTask, result: PlanResult, scene_s: float, plan_s: float,
+                     cpu_s: float, dose: DoseOutcome | None = None) -> tuple[StudyRow, ...]:
+    """The task's rows (one per target, in ranking order) from a plan result."""
+    rows = []
+    worker, now = _worker_name(), _now()
+    for target, cands in result.ranking.items():
+        st, sr = result.best(target, True), result.best(target, False)
+        feas = [c for c in cands if c.feasible]
+        reason = "" if feas else (cands[0].reason if cands else "no candidate")
+        rows.append(StudyRow(
+            task=task.key, case=task.case.case_id, design=task.design, target=target, status="ok", reason=reason,
+            reached_steered=st is not None, reached_straight=sr is not None, n_candidates=len(cands),
+            n_feasible=len(feas), best_is_steered=bool(feas and feas[0].steered),
+            steered_hole=None if st is None else st.hole_id,
+            steered_reach_error_mm=None if st is None else _num(st.reach_error_mm),
+            steered_clearance_mm=None if st is None else _num(st.clearance_mm),
+            steered_peak_tension_n=None if st is None else _num(st.peak_tension_n),
+            steered_insertion_depth_mm=None if st is None else _num(st.insertion_depth_mm),
+            steered_hole_distance_mm=None if st is None else _num(st.hole_distance_mm),
+            steered_model=None if st is None else st.model,
+            straight_hole=None if sr is None else sr.hole_id,
+            straight_reach_error_mm=None if sr is None else _num(sr.reach_error_mm),
+            straight_clearance_mm=None if sr is None else _num(sr.clearance_mm),
+            straight_insertion_depth_mm=None if sr is None else _num(sr.insertion_depth_mm),
+            straight_hole_distance_mm=None if sr is None else _num(sr.hole_distance_mm),
+            task_scene_s=_num(scene_s), task_plan_s=_num(plan_s), task_cpu_s=_num(cpu_s),
+            task_hrctv_d90_gy=None if dose is None else dose.d90_gy,
+            task_dose_aim_met=None if dose is None else dose.aim_met,
+            task_dose_reason=None if dose is None else dose.reason, worker=worker,
+            finished_utc=now))
+    return tuple(rows)
+
+
+def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
+    """Plan one task as ``reachplan plan --no-export`` would (ranking; with ``task.dose`` also the dwell-time
+    optimisation) and return its rows.
+
+    An expected failure (unreadable case, missing ROI, unknown design...) becomes failed rows with the
+    reason; anything else propagates (the driver records it as a failure too).
+    """
+    from planner.pipeline import plan
+
+    cpu = time.process_time()
+    try:
+        designs = () if task.design == STRAIGHT else (task.design,)
+        cfg = dataclasses.replace(config, designs=designs)
+        if designs:
+            from rod_model.design import preset
+
+            preset(task.design)  # a typed error for an unknown preset, before loading the case
+        scene, structures, scene_s = load_scene(task.case, task.targets, cfg)
+        t = time.perf_counter()
+        result = plan(scene, cfg)
+        plan_s = time.perf_counter() - t
+        dose = task_dose(result, structures) if task.dose else None
+        return rows_from_result(task, result, scene_s, plan_s, time.process_time() - cpu, dose)
+    except ReachplanError as exc:
+        return failed_rows(task, f"{type(exc).__name__}: {exc}")
+
+
+def _rtstruct_in(folder: Path) -> Path | None:
+    """The one RT Structure Set directly in ``folder`` (``RS*.dcm`` first, else any RTSTRUCT .dcm), or None."""
+    found = sorted(folder.glob("RS*.dcm"))
+    if not found:
+        from pydicom import dcmread
+
+        for p in sorted(folder.glob("*.dcm")):
+            try:
+                if dcmread(p, stop_before_pixels=True, specific_tags=["Modality"]).get("Modality") == "RTSTRUCT":
+                    found.append(p)
+            except Exception:  # any unreadable file is simply not a structure set
+                continue
+    if len(found) > 1:
+        raise StudyError(f"case folder {folder} holds {len(found)} RT Structure Sets "
+                             f"({', '.join(p.name for p in found)}); keep one per case folder")
+    return found[0] if found else None
+
+
+def discover_cases(paths: Sequence[Path]) -> tuple[Case, ...]:
+    """Cases from folders: a folder holding an RT Structure Set is a case (named after the folder); a folder
+    without one contributes each of its sub-folders that holds one (a cohort folder).
+
+    Raises
+    ------
+    StudyError
+        A path is missing, holds no case, or two cases have the same folder name.
+    """
+    cases: list[Case] = []
+    for path in (Path(p) for p in paths):
+        if not path.is_dir():
+            raise StudyError(f"case folder {path} does not exist; give folders holding an RS*.dcm file")
+        rs = _rtstruct_in(path)
+        if rs is not None:
+            cases.append(Case(path.resolve().name, rs.resolve()))
+            continue
+        sub = [(d, _rtstruct_in(d)) for d in sorted(path.iterdir()) if d.is_dir() and not d.name.startswith(".")]
+        found = [Case(d.resolve().name, r.resolve()) for d, r in sub if r is not None]
+        if not found:
+            raise StudyError(f"{path} holds no RT Structure Set, nor do its sub-folders; give case folders")
+        cases += found
+    ids = [c.case_id for c in cases]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise StudyError(f"two case folders are both called {dup[0]!r}; case folder names must be unique")
+    return tuple(cases)
