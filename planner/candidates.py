@@ -81,7 +81,8 @@ def straight_candidates(
     """Straight-needle candidates for every hole and target.
 
     The tip is placed at the target's depth along the hole's axis (the closest approach of a straight
-    needle), so the reach error is the target's distance from that axis.
+    needle), so the reach error is the target's distance from that axis. Candidates that miss are not
+    checked for collisions (clearance NaN, JSON null): they are rejected for the miss, which their reason says.
 
     Parameters
     ----------
@@ -100,6 +101,7 @@ def straight_candidates(
             elif depth > max_depth_mm:
                 depth, reason = max_depth_mm, f"target deeper than the needle's {max_depth_mm:.0f} mm"
             path = straight_path(entry_mm[k], direction[k], depth)
+            reaches = float(np.linalg.norm(path[-1] - t)) <= reach_tolerance_mm
             out.append(score_path(target, hole_id, float(hole_distances_mm[k]), path, organs, needle_radius_mm,
-                                  reach_tolerance_mm, "straight", reason=reason))
+                                  reach_tolerance_mm, "straight", reason=reason, check=reaches))
     return out

@@ -296,6 +296,12 @@ class TissueBeamInsertion:
         h = depth_mm / n_total  # node i sits at depth i * h throughout the insertion
         per_step = max(1, round(self.step_mm / h))
         ends = [*range(per_step, n_total, per_step), n_total]
+        # Node i at insertion depth d sits at needle arc length L - d + i h, so what a cell holds depends only
+        # on its distance from the tip, (end - i) h: the fraction of each cell in each section, once.
+        n_sec = len(ei_sec)
+        from_tip = design.length_mm - h * np.arange(n_total + 1)
+        frac = np.column_stack([_cell_average(bounds, np.eye(n_sec)[j], from_tip, h) for j in range(n_sec)])
+        ei_from_tip = 1.0 / (frac @ (1.0 / (ei_sec * 1e6)))  # N mm²; compliances add along the rod
         track = np.zeros((1, 2))  # spring rest positions (the cut track), (x, y) mm, per node
         w = np.zeros((1, 2))  # needle's lateral position per node, mm
         for end in ends:
@@ -311,10 +317,9 @@ class TissueBeamInsertion:
             track = np.vstack([track, w[-1] + np.outer(new_depths, slope)])  # new tissue, cut along the tangent
             tension, roll = schedule.at(np.array([d]))
             kap_sec = table.sections(float(tension[0]))  # 1/mm per section
-            sigma = design.length_mm - d + h * np.arange(end + 1)  # needle arc length from its base
-            # cell averages: curvature and compliance add along the rod (same moment across a cell)
-            ei = 1.0 / _cell_average(bounds, 1.0 / (ei_sec * 1e6), sigma, h)  # N mm²
-            kappa0 = _cell_average(bounds, kap_sec, sigma, h)  # 1/mm
+            rows = end - np.arange(end + 1)  # each node's distance from the tip, in cells
+            ei = ei_from_tip[rows]  # N mm²
+            kappa0 = frac[rows] @ kap_sec  # 1/mm: cell averages (same moment across a cell)
             direction = np.array([np.cos(np.radians(roll[0])), np.sin(np.radians(roll[0]))])
             w = _solve_foundation_beam(ei, k_n_per_m2[: end + 1] * 1e-3, h, kappa0, track, direction)
         # The mechanics is linear in the slopes; the centreline is rebuilt inextensibly from them, so the
