@@ -41,6 +41,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -386,6 +387,8 @@ class PhantomSpec:
         body outline (the body's own ``hu`` is the gel inside it); painted only, not a ROI
     patient_from_template : (4, 4) float: template frame (origin at the obturator axis on the perineal
         plane, x/y in the template plane, +z = insertion direction) to LPS mm.
+    case_id : "" for the reference phantom; a variant's id (e.g. ``case_003``) gives it its own DICOM UIDs
+        and Patient ID, so variants are distinct patients, studies and Frames of Reference.
     """
 
     structures: tuple[PhantomStructure, ...]
@@ -397,8 +400,11 @@ class PhantomSpec:
     fat_hu: float = -90.0
     fat_thickness_mm: float = 8.0
     patient_from_template: np.ndarray = field(default_factory=lambda: np.eye(4))
+    case_id: str = ""
 
     def __post_init__(self) -> None:
+        if self.case_id and not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", self.case_id):
+            raise ValueError(f"case_id must be 1-40 characters of [A-Za-z0-9_.-], got {self.case_id!r}")
         names = [s.name for s in self.structures]
         if len(set(names)) != len(names):
             raise ValueError(f"phantom structure names must be unique, got {names}")
@@ -565,14 +571,16 @@ class PhantomFiles:
     rtstruct_path: Path
 
 
-def _uid(*parts: str) -> str:
-    """A deterministic UID ``2.25.<128-bit hash>`` (ISO/IEC 9834-8 UUID arc) of the phantom version and ``parts``."""
-    digest = hashlib.sha256("\0".join(["reachplan phantom", PHANTOM_VERSION, *parts]).encode()).hexdigest()
+def _uid(*parts: str, case_id: str = "") -> str:
+    """A deterministic UID ``2.25.<128-bit hash>`` (ISO/IEC 9834-8 UUID arc) of the phantom version, the
+    case id (when not empty) and ``parts``."""
+    case = ["case", case_id] if case_id else []
+    digest = hashlib.sha256("\0".join(["reachplan phantom", PHANTOM_VERSION, *case, *parts]).encode()).hexdigest()
     return f"2.25.{int(digest[:32], 16)}"
 
 
 def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: str,
-                  series_number: int, description: str) -> Any:
+                  series_number: int, description: str, case_id: str = "") -> Any:
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, UID, ExplicitVRLittleEndian
 
@@ -596,10 +604,10 @@ def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: 
     ds.StudyDescription = "reachplan synthetic pelvis (gyn ISBT)"
     ds.SeriesDescription = description
     ds.PatientName = "Phantom^Pelvis"
-    ds.PatientID = "REACHPLAN-PHANTOM"
+    ds.PatientID = f"REACHPLAN-PHANTOM-{case_id}" if case_id else "REACHPLAN-PHANTOM"
     ds.PatientBirthDate = ""
     ds.PatientSex = "F"
-    ds.StudyInstanceUID = _uid("study")
+    ds.StudyInstanceUID = _uid("study", case_id=case_id)
     ds.SeriesInstanceUID = series_uid
     ds.StudyID = "1"
     ds.SeriesNumber = series_number
@@ -608,10 +616,11 @@ def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: 
 
 def _ct_datasets(spec: PhantomSpec) -> Iterator[tuple[str, Any]]:
     hu = phantom_ct_hu(spec)
-    series_uid, for_uid = _uid("ct series"), _uid("frame of reference")
+    series_uid, for_uid = _uid("ct series", case_id=spec.case_id), _uid("frame of reference", case_id=spec.case_id)
     x0 = spec.first_pixel_xy_mm
     for k, z in enumerate(spec.slice_z_mm):
-        ds = _base_dataset(CT_IMAGE_STORAGE, _uid("ct", str(k)), "CT", series_uid, 1, "phantom CT")
+        ds = _base_dataset(CT_IMAGE_STORAGE, _uid("ct", str(k), case_id=spec.case_id), "CT", series_uid, 1,
+                           "phantom CT", spec.case_id)
         ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
         ds.InstanceNumber = k + 1
         ds.FrameOfReferenceUID = for_uid
@@ -646,8 +655,8 @@ def _rtstruct_dataset(spec: PhantomSpec, ct: list[Any]) -> Any:
     from pydicom.sequence import Sequence
 
     first = ct[0]
-    ds = _base_dataset(RT_STRUCTURE_SET_STORAGE, _uid("rtstruct"), "RTSTRUCT", _uid("rtstruct series"), 2,
-                       "phantom structures")
+    ds = _base_dataset(RT_STRUCTURE_SET_STORAGE, _uid("rtstruct", case_id=spec.case_id), "RTSTRUCT",
+                       _uid("rtstruct series", case_id=spec.case_id), 2, "phantom structures", spec.case_id)
     ds.InstanceNumber = 1
     ds.OperatorsName = ""
     ds.FrameOfReferenceUID = first.FrameOfReferenceUID

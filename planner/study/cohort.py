@@ -129,9 +129,8 @@ def perturbed_spec(p: Perturbation, base: PhantomSpec | None = None) -> PhantomS
 def make_cohort(out_dir: Path, n: int, seed: int = 0) -> tuple[Path, ...]:
     """Write ``n`` phantom variants as ``out_dir/case_000``, ``case_001``, ... (CT series + RT Structure Set).
 
-    Deterministic in ``(seed, index)``; variant 0 is the reference phantom. Note: the phantom writer derives
-    its DICOM UIDs from the phantom version only, so every variant carries the same UIDs; treat the folders as
-    separate cases, not as series of one study.
+    Deterministic in ``(seed, index)``; variant 0 is the reference phantom's geometry. Each variant carries its
+    own Patient ID and DICOM UIDs (``PhantomSpec.case_id`` = the folder name).
 
     Returns
     -------
@@ -147,7 +146,7 @@ def make_cohort(out_dir: Path, n: int, seed: int = 0) -> tuple[Path, ...]:
     for i in range(n):
         p = perturbation(seed, i)
         case = out_dir / f"case_{i:03d}"
-        write_phantom(case, perturbed_spec(p))
+        write_phantom(case, dataclasses.replace(perturbed_spec(p), case_id=case.name))
         cases.append(case)
         doc.append({"case": case.name, **dataclasses.asdict(p)})
     atomic_write_json(out_dir / "cohort.json", {"seed": seed, "cases": doc})

@@ -211,3 +211,19 @@ def test_spec_is_validated() -> None:
         from imaging.phantom import Cylinder
 
         Cylinder((0.0, 0.0), -1.0, 0.0, 1.0)
+
+
+def test_phantom_variants_are_distinct_patients(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import dataclasses
+
+    import pydicom
+
+    from imaging.phantom import phantom_spec, write_phantom
+
+    a = write_phantom(tmp_path / "a")
+    b = write_phantom(tmp_path / "b", dataclasses.replace(phantom_spec(), case_id="case_007"))
+    ra, rb = pydicom.dcmread(a.rtstruct_path), pydicom.dcmread(b.rtstruct_path)
+    assert ra.PatientID == "REACHPLAN-PHANTOM" and rb.PatientID == "REACHPLAN-PHANTOM-case_007"
+    assert ra.StudyInstanceUID != rb.StudyInstanceUID and ra.FrameOfReferenceUID != rb.FrameOfReferenceUID
+    again = write_phantom(tmp_path / "c", dataclasses.replace(phantom_spec(), case_id="case_007"))
+    assert pydicom.dcmread(again.rtstruct_path).SOPInstanceUID == rb.SOPInstanceUID  # deterministic
