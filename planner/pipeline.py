@@ -218,9 +218,9 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True) -> 
         straight = straight_candidates([target], hole_ids, dist, entry, direction, scene.organs,
                                        config.needle_radius_mm, config.reach_tolerance_mm, config.max_depth_mm)
         cands += straight
-        reached = {c.hole_id for c in straight if c.reaches}
+        clear = {c.hole_id for c in straight if c.feasible}  # a steered needle from these holes adds nothing
         for design in designs:
-            steered = steered_candidates(scene, target, design, config, skip=reached)
+            steered = steered_candidates(scene, target, design, config, skip=clear)
             cands += refine_shortlist(scene, target, design, steered, config)
     cands = assess_shortlist(scene, cands, config)
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
