@@ -8,6 +8,10 @@ reference folder is an error, not a skip.
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -30,3 +34,20 @@ def reference_dir() -> Path:
             pytest.fail(msg)
         pytest.skip(msg)
     return ref
+
+
+@pytest.fixture(scope="session")
+def dciodvfy() -> Callable[[Path], list[str]]:
+    """Run David Clunie's ``dciodvfy`` on a file; returns its output lines. Must run in CI."""
+    exe = shutil.which("dciodvfy") or shutil.which("dciodvfy", path=str(Path(sys.executable).parent))
+    if exe is None:
+        msg = "dciodvfy not found: install the test extra (dicom3tools) or Debian's dicom3tools"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+
+    def run(path: Path) -> list[str]:
+        out = subprocess.run([exe, str(path)], capture_output=True, text=True, timeout=60)
+        return (out.stdout + out.stderr).splitlines()
+
+    return run

@@ -2,12 +2,8 @@
 
 from __future__ import annotations
 
-import os
-import shutil
-import sys
 from collections.abc import Callable
 from datetime import datetime
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -64,22 +60,3 @@ def make_plan() -> PlanFactory:
         return ExportPlan(**kw)  # type: ignore[arg-type]
 
     return factory
-
-
-@pytest.fixture(scope="session")
-def dciodvfy() -> Callable[[Path], list[str]]:
-    """Run David Clunie's ``dciodvfy`` on a file; returns its output lines. Must run in CI."""
-    exe = shutil.which("dciodvfy") or shutil.which("dciodvfy", path=str(Path(sys.executable).parent))
-    if exe is None:
-        msg = "dciodvfy not found: install the test extra (dicom3tools) or Debian's dicom3tools"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
-
-    import subprocess
-
-    def run(path: Path) -> list[str]:
-        out = subprocess.run([exe, str(path)], capture_output=True, text=True, timeout=60)
-        return (out.stdout + out.stderr).splitlines()
-
-    return run
