@@ -1,9 +1,9 @@
-"""Read DICOM image series (CT, MR, ...) into a :class:`imaging.types.Volume`.
+"""Read DICOM image series (CT, MR, ...) into a :class:`reachplan.imaging.types.Volume`.
 
 A folder may hold several series and other objects (RT Structure Sets, plans, non-DICOM files). Slices
 are sorted along the slice normal (never by file name or InstanceNumber); spacing, orientation and
 geometry are checked, and anything that would give a silently wrong volume is a typed error
-(:mod:`imaging.errors`). Enhanced (multi-frame) CT/MR objects are read frame by frame.
+(:mod:`reachplan.imaging.errors`). Enhanced (multi-frame) CT/MR objects are read frame by frame.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from pydicom.errors import BytesLengthException
 
-from imaging.errors import (
+from reachplan.imaging.errors import (
     CorruptFileError,
     ImagingError,
     NoDicomError,
@@ -29,7 +29,7 @@ from imaging.errors import (
     SeriesError,
     UnsupportedDataError,
 )
-from imaging.types import Grid, Volume
+from reachplan.imaging.types import Grid, Volume
 
 MEDIA_STORAGE_DIRECTORY = "1.2.840.10008.1.3.10"  # DICOMDIR
 
@@ -379,7 +379,7 @@ class SeriesTolerance:
     ``spacing`` : relative tolerance on slice-to-slice spacing (and on positions along the slice axis).
     ``orientation`` : absolute tolerance on ImageOrientationPatient components.
     ``allow_gantry_tilt`` : accept slices whose positions step sideways (gantry tilt) with an
-    :class:`~imaging.errors.ObliqueSliceWarning`; the affine then carries the shear exactly.
+    :class:`~reachplan.imaging.errors.ObliqueSliceWarning`; the affine then carries the shear exactly.
     """
 
     spacing: float = 0.01
@@ -567,7 +567,7 @@ def read_series(
     modality: str | None = None,
     tolerance: SeriesTolerance | None = None,
 ) -> Volume:
-    """Read one CT/MR image series into a :class:`~imaging.types.Volume`.
+    """Read one CT/MR image series into a :class:`~reachplan.imaging.types.Volume`.
 
     Parameters
     ----------

@@ -12,12 +12,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from imaging.dicom_io import FolderScan, load_series, scan
-from imaging.errors import ImagingError, ImagingWarning, NoDicomError, ReferenceMismatchError, StructureError
-from imaging.meshing import structure_volume_cc
-from imaging.names import SynonymTable
-from imaging.rtstruct import read_rtstruct
-from imaging.types import Volume
+from reachplan.imaging.dicom_io import FolderScan, load_series, scan
+from reachplan.imaging.errors import ImagingError, ImagingWarning, NoDicomError, ReferenceMismatchError, StructureError
+from reachplan.imaging.meshing import structure_volume_cc
+from reachplan.imaging.names import SynonymTable
+from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.imaging.types import Volume
 
 
 @dataclass(frozen=True)
@@ -141,11 +141,11 @@ def _source_label(plan: Any) -> str:
 
 
 def _plan_info(path: Path) -> PlanInfo:
-    """Summary of a brachy RT Plan through :func:`imaging.rtplan.read_rtplan` (loaded lazily)."""
+    """Summary of a brachy RT Plan through :func:`reachplan.imaging.rtplan.read_rtplan` (loaded lazily)."""
     try:
-        rtplan = importlib.import_module("imaging.rtplan")
+        rtplan = importlib.import_module("reachplan.imaging.rtplan")
     except ModuleNotFoundError as exc:
-        if exc.name != "imaging.rtplan":
+        if exc.name != "reachplan.imaging.rtplan":
             raise
         return PlanInfo(str(path), "", "", "", (), note="RT Plan reader not available")
     plan = rtplan.read_rtplan(path)
@@ -203,7 +203,7 @@ def _structure_sets(
 def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection:
     """Read everything at ``path`` (a DICOM file or a folder, recursively) and summarise it.
 
-    Warnings about quirks the readers worked around (:class:`~imaging.errors.ImagingWarning`) are collected
+    Warnings about quirks the readers worked around (:class:`~reachplan.imaging.errors.ImagingWarning`) are collected
     in :attr:`Inspection.warnings` instead of being emitted.
 
     Raises

@@ -21,8 +21,8 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
-from imaging.errors import MeshDecimationWarning, StructureError
-from imaging.types import Grid, Roi
+from reachplan.imaging.errors import MeshDecimationWarning, StructureError
+from reachplan.imaging.types import Grid, Roi
 
 #: largest in-plane pixel (mm) of the grid built from the contours when no grid is given
 DEFAULT_PIXEL_MM = 1.0
@@ -377,7 +377,7 @@ def _decimate(mesh: trimesh.Trimesh, max_faces: int, name: str) -> trimesh.Trime
     """Quadric decimation to at most ``max_faces`` faces that keeps the mesh watertight.
 
     Tries ``max_faces``, then twice as many, ...; when no decimated mesh is watertight the full mesh is kept
-    with a :class:`~imaging.errors.MeshDecimationWarning`.
+    with a :class:`~reachplan.imaging.errors.MeshDecimationWarning`.
     """
     if importlib.util.find_spec("fast_simplification") is None:  # optional dependency of trimesh's decimation
         raise StructureError("decimating meshes needs the optional package fast-simplification; "

@@ -2,7 +2,7 @@
 
 Clinical structure names vary (``BLADDER``, ``Bladder_P``, ``Blase``). :class:`SynonymTable` maps them to
 the standard names the planner uses; the original name is always kept beside the normalised one
-(:class:`imaging.types.Roi`). Matching ignores case, spaces, ``_``, ``-`` and ``.``. Standard names follow
+(:class:`reachplan.imaging.types.Roi`). Matching ignores case, spaces, ``_``, ``-`` and ``.``. Standard names follow
 AAPM TG-263 where it has one (``Femur_Head_L``), and the gynecologic brachytherapy usage otherwise
 (``HR-CTV``, GEC-ESTRO).
 """
@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from imaging.errors import ImagingError
+from reachplan.imaging.errors import ImagingError
 
 _DEFAULT: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Bladder", ("Bladder", "Bladder_P", "Blase", "Harnblase", "Vessie", "Vejiga", "Vescica", "UrinaryBladder")),

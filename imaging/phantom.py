@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from imaging.errors import OutputExistsError
+from reachplan.imaging.errors import OutputExistsError
 
 #: target spacing (mm) between polygon vertices written for a cross-section
 VERTEX_SPACING_MM = 0.75

@@ -41,9 +41,9 @@ import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.filereader import read_sequence
 
-from imaging.dicom_io import read_dataset
-from imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError
-from imaging.types import StructureSet
+from reachplan.imaging.dicom_io import read_dataset
+from reachplan.imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError
+from reachplan.imaging.types import StructureSet
 
 RT_PLAN_SOP_CLASSES = {
     "1.2.840.10008.5.1.4.1.1.481.5": "RT Plan",

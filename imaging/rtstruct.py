@@ -1,8 +1,8 @@
-"""Read an RT Structure Set into a :class:`imaging.types.StructureSet`.
+"""Read an RT Structure Set into a :class:`reachplan.imaging.types.StructureSet`.
 
 CLOSED_PLANAR contours become polygons, OPEN_NONPLANAR / OPEN_PLANAR contours (brachy channels,
 markers) polylines and POINT contours single points, all in LPS mm. ROI names are normalised through a
-:class:`~imaging.names.SynonymTable`; the original name is kept. When a volume is given, the Frame of
+:class:`~reachplan.imaging.names.SynonymTable`; the original name is kept. When a volume is given, the Frame of
 Reference and the referenced series are checked against it.
 """
 
@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from imaging.dicom_io import check_reference, parsing, read_dataset
-from imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError, StructureError
-from imaging.names import DEFAULT_SYNONYMS, SynonymTable
-from imaging.types import Contour, Roi, StructureSet, Volume
+from reachplan.imaging.dicom_io import check_reference, parsing, read_dataset
+from reachplan.imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError, StructureError
+from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
+from reachplan.imaging.types import Contour, Roi, StructureSet, Volume
 
 RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
 GEOMETRIC_TYPES = frozenset({"CLOSED_PLANAR", "OPEN_PLANAR", "OPEN_NONPLANAR", "POINT", "CLOSEDPLANAR_XOR"})
@@ -76,7 +76,7 @@ def read_rtstruct(
     ----------
     path : the RT Structure Set file
     volume : the images it was drawn on; when given, its Frame of Reference and referenced series must match
-    synonyms : ROI name table (default :data:`imaging.names.DEFAULT_SYNONYMS`)
+    synonyms : ROI name table (default :data:`reachplan.imaging.names.DEFAULT_SYNONYMS`)
 
     Returns
     -------

@@ -1,4 +1,4 @@
-"""Plain typed data produced by :mod:`imaging` (no I/O here).
+"""Plain typed data produced by :mod:`reachplan.imaging` (no I/O here).
 
 Conventions
 -----------
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from imaging.errors import StructureError
+from reachplan.imaging.errors import StructureError
 
 FloatArray = np.ndarray  # float64 arrays; shapes and units in each docstring
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from plugins.errors import ReachplanError
+from reachplan import ReachplanError
 
 
 class PlannerError(ReachplanError):

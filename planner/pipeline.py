@@ -17,22 +17,24 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from imaging.types import Grid, Roi, StructureSet, Volume
-from planner.candidates import score_path, straight_candidates
-from planner.collision import Organ, make_organ
-from planner.errors import PlanInputError
-from planner.insertion import TISSUE_BEAM, KinematicInsertion
-from planner.ranking import Candidate, RankWeights, Target, pareto_front, rank
-from planner.robustness import Perturbations, assess, with_robustness
-from planner.schedule import TensionSchedule
-from planner.steering import ScheduleFamily, match_targets, place, refine_with, shape_bank
-from planner.template import Template, check_rigid, hole_frames, pose_from_obturator
-from plugins import registry
-from rod_model.design import RodDesign, preset
+from reachplan.imaging.types import Grid, Roi, StructureSet, Volume
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.geometry.collision import Organ, make_organ
+from reachplan.planner.geometry.template import check_rigid, hole_frames, pose_from_obturator
+from reachplan.planner.ranking import RankWeights, pareto_front, rank
+from reachplan.planner.steering.candidates import Candidate, Target, score_path, straight_candidates
+from reachplan.planner.steering.insertion import TISSUE_BEAM, KinematicInsertion
+from reachplan.planner.steering.robustness import Perturbations, assess, with_robustness
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.planner.steering.steered import ScheduleFamily, match_targets, place, refine_with, shape_bank
+from reachplan.plugins import registry
+from reachplan.plugins.templates import Template
+from reachplan.rod_model.design import RodDesign, preset
+from reachplan.rod_model.protocol import Capabilities
 
 if TYPE_CHECKING:
-    from planner.optimize import OptimisationResult, PlanningStructures
-    from plugins.exporters import ExportPlan
+    from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures
+    from reachplan.plugins.exporters import ExportPlan
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
@@ -148,7 +150,7 @@ def mesh_structures(
     structures: StructureSet, names: Iterable[str], grid: Grid | None = None, quiet: bool = True
 ) -> dict[str, trimesh.Trimesh]:
     """Watertight meshes (LPS mm) of the named ROIs that exist in ``structures``, by normalised name."""
-    from imaging.meshing import roi_mesh
+    from reachplan.imaging.meshing import roi_mesh
 
     wanted = [n for n in names if n.casefold() in {s.casefold() for s in structures.names}]
     out: dict[str, trimesh.Trimesh] = {}
@@ -280,10 +282,11 @@ def _template_offsets(scene: Scene, target: Target) -> np.ndarray:
 
 def screening_model(config: PlanConfig) -> KinematicInsertion:
     """The kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm``."""
-    from rod_model.select import Scene as RodScene
-    from rod_model.select import select_model
+    from reachplan.rod_model.select import Scene as RodScene
+    from reachplan.rod_model.select import select_model
 
-    return KinematicInsertion(rod_model=select_model(config.screen_tolerance_mm, RodScene(), batched=True))
+    return KinematicInsertion(rod_model=select_model(config.screen_tolerance_mm, RodScene(), rod_model_capabilities(),
+                                                     batched=True))
 
 
 def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: PlanConfig,
@@ -370,8 +373,8 @@ def planning_structures(structures: StructureSet, grid: Grid | None, target_roi:
     PlanInputError
         ``target_roi`` is not in the structure set.
     """
-    from imaging.meshing import fit_grid, roi_mask
-    from planner.optimize import PlanningStructures, Structure
+    from reachplan.imaging.meshing import fit_grid, roi_mask
+    from reachplan.planner.dose.optimize import PlanningStructures, Structure
 
     if target_roi not in structures.names:
         raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
@@ -434,9 +437,9 @@ def plan_delivery(
     PlanInputError
         No feasible needle, or no target structure to optimise on.
     """
-    from planner.dose import Tg43Kernel
-    from planner.optimize import optimise_dwell_times
-    from plugins.exporters import ExportPlan, NeedleExport, SourceSpec
+    from reachplan.planner.dose.optimize import optimise_dwell_times
+    from reachplan.planner.dose.tg43 import Tg43Kernel
+    from reachplan.plugins.exporters import ExportPlan, NeedleExport, SourceSpec
 
     needles = choose_needles(result)
     if not needles:
@@ -458,3 +461,8 @@ def plan_delivery(
     export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
                         input_paths=tuple(input_paths))
     return Delivery(needles, opt, export, planning)
+
+
+def rod_model_capabilities() -> dict[str, Capabilities]:
+    """What every loadable rod-model plugin can represent, by name (the selector's input)."""
+    return {name: registry.get("rod_models", name).capabilities for name in registry.names("rod_models")}

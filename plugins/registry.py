@@ -2,15 +2,14 @@
 
 Groups (entry-point group ``reachplan.<kind>``) and the Protocol each plugin is checked against:
 
-``rod_models``       objects implementing :class:`rod_model.protocol.RodModel`
-                     (check: ``rod_model.protocol.check_rod_model``)
+``rod_models``       objects implementing :class:`reachplan.rod_model.protocol.RodModel`
+                     (check: ``reachplan.rod_model.protocol.check_rod_model``)
 ``insertion_models`` objects implementing the planner's insertion-model Protocol
-                     (check: ``planner.insertion.check_insertion_model``; while that module does not exist,
-                     insertion-model plugins are listed as unavailable with that reason)
-``templates``        zero-argument callables returning a :class:`planner.template.Template`
-``sources``          zero-argument callables returning a :class:`plugins.sources.SourceData`
-``exporters``        objects implementing :class:`plugins.exporters.base.Exporter`
-                     (check: ``plugins.exporters.base.check_exporter``)
+                     (check: ``reachplan.planner.steering.insertion.check_insertion_model``)
+``templates``        zero-argument callables returning a :class:`reachplan.plugins.templates.Template`
+``sources``          zero-argument callables returning a :class:`reachplan.plugins.sources.SourceData`
+``exporters``        objects implementing :class:`reachplan.plugins.exporters.base.Exporter`
+                     (check: ``reachplan.plugins.exporters.base.check_exporter``)
 
 Built-ins register through the same entry points as third-party plugins (see ``pyproject.toml``).
 Entry points are loaded lazily, on first use of their group; a plugin that fails to import, or does not
@@ -31,7 +30,7 @@ from importlib.metadata import EntryPoint, entry_points
 from types import MappingProxyType
 from typing import Any
 
-from plugins.errors import PluginError
+from reachplan.plugins.errors import PluginError
 
 KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters")
 
@@ -55,17 +54,18 @@ def _zero_argument_factory(obj: Any, kind: str) -> Any:
 
 
 def check_template_factory(obj: Any) -> None:
-    """Raise ``TypeError`` unless ``obj()`` returns a :class:`planner.template.Template`."""
-    from planner.template import Template
+    """Raise ``TypeError`` unless ``obj()`` returns a :class:`reachplan.plugins.templates.Template`."""
+    from reachplan.plugins.templates import Template
 
     made = _zero_argument_factory(obj, "templates")
     if not isinstance(made, Template):
-        raise TypeError(f"a templates plugin must return planner.template.Template, got {type(made).__name__}")
+        raise TypeError("a templates plugin must return reachplan.plugins.templates.Template, "
+                        f"got {type(made).__name__}")
 
 
 def check_source_factory(obj: Any) -> None:
-    """Raise ``TypeError`` unless ``obj()`` returns a :class:`plugins.sources.SourceData`."""
-    from plugins.sources import SourceData
+    """Raise ``TypeError`` unless ``obj()`` returns a :class:`reachplan.plugins.sources.SourceData`."""
+    from reachplan.plugins.sources import SourceData
 
     made = _zero_argument_factory(obj, "sources")
     if not isinstance(made, SourceData):
@@ -74,11 +74,11 @@ def check_source_factory(obj: Any) -> None:
 
 #: The default check of each kind, as ``"module:function"`` (imported when the group is first loaded).
 DEFAULT_CHECKS: Mapping[str, str] = MappingProxyType({
-    "rod_models": "rod_model.protocol:check_rod_model",
-    "insertion_models": "planner.insertion:check_insertion_model",
-    "templates": "plugins.registry:check_template_factory",
-    "sources": "plugins.registry:check_source_factory",
-    "exporters": "plugins.exporters.base:check_exporter",
+    "rod_models": "reachplan.rod_model.protocol:check_rod_model",
+    "insertion_models": "reachplan.planner.steering.insertion:check_insertion_model",
+    "templates": "reachplan.plugins.registry:check_template_factory",
+    "sources": "reachplan.plugins.registry:check_source_factory",
+    "exporters": "reachplan.plugins.exporters.base:check_exporter",
 })
 
 

@@ -1,7 +1,7 @@
 """Compiled kernel of the Cosserat models: right-hand side, RK4 integration, shooting with continuation.
 
 Plain functions on arrays (SI units), compiled with numba when it is installed; without numba the very same
-functions run as plain Python (slowly). The maths is documented in :mod:`rod_model.cosserat`.
+functions run as plain Python (slowly). The maths is documented in :mod:`reachplan.rod_model.cosserat`.
 
 State ``y`` (21): ``p`` (3, world, m), ``R`` (9, row-major, stylet directors as columns), ``N`` (3, world, N),
 ``M`` (3, world, N·m), ``θ`` (relative twist of needle against stylet, rad), ``n2z`` (needle axial force, N),

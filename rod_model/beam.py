@@ -5,7 +5,7 @@ tendon (Rucker & Webster, IEEE T-RO 27(6), 2011): the rod carries the tendon's c
 moment ``λ·r(s)``, with ``r`` the tendon's moment arm (disk arm in the joint section, tube arm in the tube).
 An inextensible, unshearable Euler–Bernoulli beam therefore bends with the piecewise-constant curvature
 ``κ(s) = λ·r(s) / (EI_stylet(s) + EI_needle)`` into a chain of circular arcs, integrated exactly
-(:func:`rod_model.kinematic.arc_path`). What it leaves out, against the Cosserat models: the axial
+(:func:`reachplan.rod_model.kinematic.arc_path`). What it leaves out, against the Cosserat models: the axial
 compression and shear of the rods and the tendon's small tilt against the centreline.
 """
 
@@ -16,8 +16,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from rod_model.design import RodDesign
-from rod_model.kinematic import ArcModel
+from reachplan.rod_model.design import RodDesign
+from reachplan.rod_model.kinematic import ArcModel
 
 
 @dataclass(frozen=True)

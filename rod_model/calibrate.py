@@ -5,7 +5,7 @@ Data (Kheradmand, Yamamoto et al., OncoReach stylet paper; calibration subset as
 13 ga 20 joints at the tip, 14.0 N → 6.49 mm; 15 ga 20 joints at the base, 9.9 N → 29.40 mm. The paper's other
 configurations are kept aside for validation.
 
-Why these two parameters (:class:`rod_model.design.Calibration`)
+Why these two parameters (:class:`reachplan.rod_model.design.Calibration`)
 --------------------------------------------------------------
 With the published stiffnesses, one moment arm everywhere cannot match tip *and* base placement: the tip row
 fixes mostly the tube's curvature (the tube is ~5x longer than the joint section and carries most of the tip
@@ -26,7 +26,7 @@ The disk arm stays at its documented default (0.42 mm on 15 ga, inside the 1.4 m
 predicted by the same two numbers through the published geometry (4.47x stiffness, larger lumen and disk),
 never by a parameter of its own. Residuals are reported row by row.
 
-Result (two-tube model, shipped as the :class:`~rod_model.design.Calibration` defaults)
+Result (two-tube model, shipped as the :class:`~reachplan.rod_model.design.Calibration` defaults)
 -----------------------------------------------------------------------------------
 ``joint_stiffness_scale = 0.1181``: the 15 ga joint section bends in the needle with 0.094 mN·m² of its own
 (the needle adds 0.97 mN·m², so the needle carries ~91 % of the joint section's bending moment);
@@ -43,10 +43,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from rod_model.cosserat import TWO_TUBE_COSSERAT
-from rod_model.design import Calibration, preset
-from rod_model.errors import RodModelError
-from rod_model.protocol import RodModel
+from reachplan.rod_model.cosserat import TWO_TUBE_COSSERAT
+from reachplan.rod_model.design import Calibration, preset
+from reachplan.rod_model.errors import RodModelError
+from reachplan.rod_model.protocol import RodModel
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Second, independent solver of the two-tube (and single-rod) Cosserat boundary-value problem: collocation
 with :func:`scipy.integrate.solve_bvp`.
 
-Same equations as :mod:`rod_model.cosserat` (see there), re-implemented vectorised in numpy in millimetre /
+Same equations as :mod:`reachplan.rod_model.cosserat` (see there), re-implemented vectorised in numpy in millimetre /
 newton units, solved on the whole rod at once (4th-order Lobatto IIIA collocation with mesh refinement,
 no shooting). Each section of constant properties is mapped onto ``τ ∈ [0, 1]`` as its own block of 21 states
 so that the jumps of stiffness and moment arm fall on block boundaries; the blocks are tied by continuity.
@@ -17,10 +17,10 @@ from typing import ClassVar
 import numpy as np
 from scipy.integrate import solve_bvp
 
-from rod_model.cosserat import section_table
-from rod_model.design import Loads, RodDesign
-from rod_model.protocol import Capabilities, check_loads
-from rod_model.result import FailedSolve, RodPath
+from reachplan.rod_model.cosserat import section_table
+from reachplan.rod_model.design import Loads, RodDesign
+from reachplan.rod_model.protocol import Capabilities, check_loads
+from reachplan.rod_model.result import FailedSolve, RodPath
 
 NS = 21
 

@@ -20,7 +20,7 @@ it needs no derivative of the strains, and a jump of the tendon's moment arm bet
 (the rod's moment jumps by ``λ Δr``, the point load the tendon's kink exerts). Per-rod axial balances are kept
 as states: the needle's axial force ``n2z' = −GA2 β (u1 × v1)_z − (Rᵀ f_ext)_z`` (no friction between the
 tubes) and its torsion ``m2z' = 0`` (isotropic tubes, no distributed torque). The strains follow from the
-loads algebraically (:func:`rod_model._kernel.closure`): bending ``u_xy = m_xy/(EI1 + EI2)``, torsion
+loads algebraically (:func:`reachplan.rod_model._kernel.closure`): bending ``u_xy = m_xy/(EI1 + EI2)``, torsion
 ``u1z = m1z/GJ1``, ``u2z = m2z/GJ2``, axial ``v1z = 1 + n1z/EA1``, dilation ``β = (1 + n2z/EA2)/v1z``, shear
 ``v_xy = n_xy/(GA1 + β GA2)``, with the tendon directions found by a fixed point (they depend on the strains
 only through ``λ/GA`` and ``λ r²/EI``, both ~1e-3).
@@ -46,10 +46,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from rod_model import _kernel
-from rod_model.design import Loads, RodDesign
-from rod_model.protocol import Capabilities, check_loads
-from rod_model.result import FailedSolve, RodBatch, RodPath
+from reachplan.rod_model import _kernel
+from reachplan.rod_model.design import Loads, RodDesign
+from reachplan.rod_model.protocol import Capabilities, check_loads
+from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath
 
 
 def section_table(design: RodDesign) -> np.ndarray:

@@ -22,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from rod_model.errors import UnknownPresetError
+from reachplan.rod_model.errors import UnknownPresetError
 
 Placement = Literal["tip", "mid", "base"]
 
@@ -38,7 +38,7 @@ _MAX_TENSION_N: dict[int, float] = {15: 10.0, 13: 14.0}
 
 @dataclass(frozen=True)
 class Calibration:
-    """The two global, physical parameters fitted by :func:`rod_model.calibrate.calibrate`.
+    """The two global, physical parameters fitted by :func:`reachplan.rod_model.calibrate.calibrate`.
 
     Parameters
     ----------
@@ -51,7 +51,7 @@ class Calibration:
         Moment arm of a tendon inside the nitinol tube, as a fraction of the tube's inner radius. In the tube
         a tendon is not held in a channel (as it is in the disks); it shares the lumen with the other three.
 
-    The defaults are the fitted values (see :mod:`rod_model.calibrate`).
+    The defaults are the fitted values (see :mod:`reachplan.rod_model.calibrate`).
     """
 
     joint_stiffness_scale: float = 0.1181

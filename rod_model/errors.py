@@ -1,12 +1,12 @@
-"""Errors raised by :mod:`rod_model`.
+"""Errors raised by :mod:`reachplan.rod_model`.
 
-A solve that does not converge is *not* an error: it is a :class:`rod_model.result.FailedSolve`.
+A solve that does not converge is *not* an error: it is a :class:`reachplan.rod_model.result.FailedSolve`.
 These errors are for requests that cannot be served at all.
 """
 
 from __future__ import annotations
 
-from plugins.errors import ReachplanError
+from reachplan import ReachplanError
 
 
 class RodModelError(ReachplanError):

@@ -1,5 +1,5 @@
 """Constant-curvature model, and the closed-form geometry of piecewise circular arcs it shares with
-:mod:`rod_model.beam`.
+:mod:`reachplan.rod_model.beam`.
 
 Constant curvature (the classic continuum-robot assumption, Webster & Jones, IJRR 2010): only the actuated
 joint section bends, with the curvature of a beam under the tendon's moment ``λ·r_disk / (EI_joints + EI_needle)``;
@@ -17,9 +17,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from rod_model.design import Loads, RodDesign
-from rod_model.protocol import Capabilities, check_loads
-from rod_model.result import RodBatch, RodPath
+from reachplan.rod_model.design import Loads, RodDesign
+from reachplan.rod_model.protocol import Capabilities, check_loads
+from reachplan.rod_model.result import RodBatch, RodPath
 
 #: Output spacing of the sampled centreline, mm.
 DEFAULT_STEP_MM = 1.0

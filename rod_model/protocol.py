@@ -11,9 +11,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from rod_model.design import Loads, RodDesign
-from rod_model.errors import UnsupportedLoadError
-from rod_model.result import FailedSolve, RodBatch, RodPath
+from reachplan.rod_model.design import Loads, RodDesign
+from reachplan.rod_model.errors import UnsupportedLoadError
+from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class RodModel(Protocol):
     """A rod model: maps a design and loads to a shape.
 
     ``solve`` returns a :class:`RodPath`, or a :class:`FailedSolve` when the model could not converge (never a
-    plausible wrong shape); it raises :class:`rod_model.errors.UnsupportedLoadError` for loads outside its
+    plausible wrong shape); it raises :class:`reachplan.rod_model.errors.UnsupportedLoadError` for loads outside its
     ``capabilities``. ``solve_batch`` solves many free-space tensions of tendon 0 at once.
     """
 

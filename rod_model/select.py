@@ -1,4 +1,4 @@
-"""Look up rod models by name, and pick the cheapest one whose *measured* error fits a tolerance.
+"""Pick the cheapest rod model whose *measured* error fits a tolerance (models are looked up by the caller).
 
 The error table is package data (``rod_model/model_errors.json``) written by ``reachplan bench models``
 (``benchmarks/rod_models.py``): for every model and resolution, the largest tip error against a converged
@@ -9,16 +9,14 @@ Nothing in it is guessed; re-run the benchmark to refresh it.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
-from typing import Any
 
-from plugins import registry
-from plugins.errors import PluginError
-from rod_model.design import Loads
-from rod_model.errors import NoModelWithinToleranceError, RodModelError
-from rod_model.protocol import RodModel
+from reachplan.rod_model.design import Loads
+from reachplan.rod_model.errors import NoModelWithinToleranceError, RodModelError
+from reachplan.rod_model.protocol import Capabilities
 
 ERROR_TABLE = "model_errors.json"
 
@@ -72,7 +70,7 @@ class ErrorRow:
 def error_table() -> tuple[ErrorRow, ...]:
     """The rows of the packaged error table."""
     try:
-        text = resources.files("rod_model").joinpath(ERROR_TABLE).read_text(encoding="utf-8")
+        text = resources.files("reachplan.rod_model").joinpath(ERROR_TABLE).read_text(encoding="utf-8")
         doc = json.loads(text)
         return tuple(ErrorRow(**row) for row in doc["rows"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -80,15 +78,10 @@ def error_table() -> tuple[ErrorRow, ...]:
                             "run `reachplan bench models --out DIR --install` from a source checkout") from None
 
 
-def get_model(name: str) -> RodModel:
-    """The rod-model plugin called ``name`` (entry-point group ``reachplan.rod_models``)."""
-    model: Any = registry.get("rod_models", name)
-    return model
-
-
-def select_model(tolerance_mm: float, scene: Scene, rows: tuple[ErrorRow, ...] | None = None, *,
-                 batched: bool = False) -> str:
-    """Name of the cheapest installed model able to represent ``scene`` whose measured tip error is within
+def select_model(tolerance_mm: float, scene: Scene, capabilities: Mapping[str, Capabilities],
+                 rows: tuple[ErrorRow, ...] | None = None, *, batched: bool = False) -> str:
+    """Name of the cheapest model of ``capabilities`` (name -> what the model can represent; the caller looks the
+    installed models up) able to represent ``scene`` whose measured tip error is within
     ``tolerance_mm``: cheapest by the median time of one ``solve``, or with ``batched`` by the throughput of
     ``solve_batch`` (what a planner screening many candidates pays).
 
@@ -108,9 +101,8 @@ def select_model(tolerance_mm: float, scene: Scene, rows: tuple[ErrorRow, ...] |
     for row in rows:
         if row.resolution != "default" or row.success_rate < 1.0 or row.max_tip_error_mm > tolerance_mm:
             continue
-        try:
-            caps = get_model(row.model).capabilities
-        except PluginError:
+        caps = capabilities.get(row.model)
+        if caps is None:  # not installed (or not loadable)
             continue
         if (not scene.planar and caps.planar_only) or (scene.twist and not caps.twist) or (
                 scene.external_load and not caps.external_load):

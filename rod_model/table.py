@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rod_model.design import RodDesign
-from rod_model.errors import RodModelError
-from rod_model.protocol import RodModel
+from reachplan.rod_model.design import RodDesign
+from reachplan.rod_model.errors import RodModelError
+from reachplan.rod_model.protocol import RodModel
 
 
 @dataclass(frozen=True, eq=False)

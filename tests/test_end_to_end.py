@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from planner.cli import main
+from reachplan.planner.cli import main
 
 FIELDS = {"target", "hole_id", "hole_distance_mm", "reach_error_mm", "clearance_mm", "closest_organ",
           "insertion_depth_mm", "steered", "peak_tension_n", "model"}

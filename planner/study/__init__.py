@@ -5,7 +5,7 @@ The work is split into tasks of one case x one design (all targets), run by Dask
 (started the standard way: ``dask scheduler`` and ``dask worker ADDRESS``; the workers must read the case
 folders under the same paths; only this process writes results), or in this process (``workers=0``).
 Tasks ship names and paths only. Each worker loads a case once and keeps it for the case's other designs
-(:func:`planner.study.tasks.load_scene`), and tasks prefer the worker that holds their case.
+(:func:`reachplan.planner.study.tasks.load_scene`), and tasks prefer the worker that holds their case.
 
 Results stream to ``OUT/parts/<task>.parquet`` as tasks finish (the folder is a Parquet dataset:
 ``pyarrow.parquet.read_table(OUT / "parts")`` shows the progress of a running study). A task is done
@@ -30,12 +30,12 @@ from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
 
-from planner.errors import StudyError
-from planner.io import atomic_write_json
-from planner.pipeline import PlanConfig
-from planner.study import store
-from planner.study.summary import DesignSummary, summarise, summary_figure, write_summary_csv
-from planner.study.tasks import STRAIGHT, Case, StudyRow, StudyTask, discover_cases, failed_rows, run_task
+from reachplan.imaging.files import atomic_write_json
+from reachplan.planner.errors import StudyError
+from reachplan.planner.pipeline import PlanConfig
+from reachplan.planner.study import store
+from reachplan.planner.study.summary import DesignSummary, summarise, summary_figure, write_summary_csv
+from reachplan.planner.study.tasks import STRAIGHT, Case, StudyRow, StudyTask, discover_cases, failed_rows, run_task
 
 if TYPE_CHECKING:
     import pyarrow as pa

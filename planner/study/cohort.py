@@ -1,6 +1,6 @@
 """Deterministic cohorts of phantom variants for design studies, tests and benchmarks.
 
-Variant ``i`` of seed ``s`` perturbs the built-in phantom (:func:`imaging.phantom.phantom_spec`) with a random
+Variant ``i`` of seed ``s`` perturbs the built-in phantom (:func:`reachplan.imaging.phantom.phantom_spec`) with a random
 generator seeded by ``(s, i)``: organs move in the axial plane and change size (bladder filling, rectum
 calibre, HR-CTV extent), the pelvic side walls move laterally, and the target pattern rotates about the
 obturator axis and scales radially. Variant 0 is the reference phantom itself. Every z bound stays where the
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imaging.phantom import (
+from reachplan.imaging.phantom import (
     Box,
     Cylinder,
     Ellipsoid,
@@ -138,7 +138,7 @@ def make_cohort(out_dir: Path, n: int, seed: int = 0) -> tuple[Path, ...]:
     """
     if n < 1:
         raise ValueError(f"a cohort needs at least one case, got {n}")
-    from planner.io import atomic_write_json
+    from reachplan.imaging.files import atomic_write_json
 
     out_dir = Path(out_dir)
     cases = []

@@ -13,9 +13,9 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from planner.errors import StudyError
-from planner.io import atomic_write_bytes
-from planner.study.tasks import StudyRow
+from reachplan.imaging.files import atomic_write_bytes
+from reachplan.planner.errors import StudyError
+from reachplan.planner.study.tasks import StudyRow
 
 if TYPE_CHECKING:
     import pyarrow as pa

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from planner.io import atomic_write_bytes
+from reachplan.imaging.files import atomic_write_bytes
 
 if TYPE_CHECKING:
     import pyarrow as pa

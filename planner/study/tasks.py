@@ -19,12 +19,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from planner.errors import StudyError
-from plugins.errors import ReachplanError
+from reachplan import ReachplanError
+from reachplan.planner.errors import StudyError
 
 if TYPE_CHECKING:
-    from imaging.types import StructureSet
-    from planner.pipeline import PlanConfig, PlanResult, Scene
+    from reachplan.imaging.types import StructureSet
+    from reachplan.planner.pipeline import PlanConfig, PlanResult, Scene
 
 #: The design name that plans straight needles only (no stylet): the baseline of a study.
 STRAIGHT = "straight"
@@ -149,8 +149,8 @@ def load_scene(case: Case, targets: tuple[str, ...] | None,
     The cache key holds the file's modification time, so an edited case is reloaded, and the configuration
     without its designs (a scene does not depend on them).
     """
-    from imaging.rtstruct import read_rtstruct
-    from planner.pipeline import build_scene
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.pipeline import build_scene
 
     t = time.perf_counter()
     key = (str(case.rtstruct), case.rtstruct.stat().st_mtime_ns, targets, repr(dataclasses.replace(config, designs=())))
@@ -183,7 +183,7 @@ class DoseOutcome:
 
 def task_dose(result: PlanResult, structures: StructureSet) -> DoseOutcome:
     """Choose one needle per target and optimise their dwell times on the HR-CTV (no export)."""
-    from planner.pipeline import plan_delivery
+    from reachplan.planner.pipeline import plan_delivery
 
     try:
         opt = plan_delivery(result, structures, None).optimisation
@@ -234,14 +234,14 @@ def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
     An expected failure (unreadable case, missing ROI, unknown design...) becomes failed rows with the
     reason; anything else propagates (the driver records it as a failure too).
     """
-    from planner.pipeline import plan
+    from reachplan.planner.pipeline import plan
 
     cpu = time.process_time()
     try:
         designs = () if task.design == STRAIGHT else (task.design,)
         cfg = dataclasses.replace(config, designs=designs)
         if designs:
-            from rod_model.design import preset
+            from reachplan.rod_model.design import preset
 
             preset(task.design)  # a typed error for an unknown preset, before loading the case
         scene, structures, scene_s = load_scene(task.case, task.targets, cfg)

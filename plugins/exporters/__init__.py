@@ -1,18 +1,18 @@
 """Exporters of a plan (plugins of kind ``exporters``, entry-point group ``reachplan.exporters``).
 
-The planner fills one :class:`~plugins.exporters.base.ExportPlan` and hands it to an exporter:
+The planner fills one :class:`~reachplan.plugins.exporters.base.ExportPlan` and hands it to an exporter:
 
 >>> from plugins import registry                                    # doctest: +SKIP
 >>> files = registry.get("exporters", "dicom_rt").export(plan, out_dir)  # doctest: +SKIP
 
-Built-ins: ``dicom_rt`` (:mod:`plugins.exporters.dicom_rt`: RT Plan + RT Structure Set), ``device_json`` and
-``device_csv`` (:mod:`plugins.exporters.device`: stylet instructions per needle). The types and the Protocol
-are in :mod:`plugins.exporters.base`, re-exported here.
+Built-ins: ``dicom_rt`` (:mod:`reachplan.plugins.exporters.dicom_rt`: RT Plan + RT Structure Set), ``device_json`` and
+``device_csv`` (:mod:`reachplan.plugins.exporters.device`: stylet instructions per needle). The types and the Protocol
+are in :mod:`reachplan.plugins.exporters.base`, re-exported here.
 """
 
 from __future__ import annotations
 
-from plugins.exporters.base import (
+from reachplan.plugins.exporters.base import (
     ExportedFile,
     ExportedFiles,
     Exporter,

@@ -5,7 +5,7 @@ An exporter is a plugin of kind ``exporters`` (entry-point group ``reachplan.exp
 :class:`ExportPlan` (plain data: needle paths and dwells in LPS mm, the source, the input identity) and
 hands it to any exporter.
 
-File safety (all exporters): writes are atomic (:func:`planner.io.atomic_write_bytes`), an input file of
+File safety (all exporters): writes are atomic (:func:`reachplan.imaging.files.atomic_write_bytes`), an input file of
 the plan is never written, an existing file is replaced only with ``overwrite=True``, and file names are
 built from the plan label with only ``[A-Za-z0-9._-]`` (no patient name unless asked for).
 """
@@ -25,9 +25,9 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from imaging.types import StructureSet, Volume
-from plugins.errors import ExportError
-from plugins.sources import SourceData
+from reachplan.imaging.types import StructureSet, Volume
+from reachplan.plugins.errors import ExportError
+from reachplan.plugins.sources import SourceData
 
 #: A dwell farther than this from its needle's path is an input error (mm).
 DWELL_ON_PATH_TOLERANCE_MM = 0.5
@@ -237,7 +237,7 @@ class SourceSpec:
 
         ``extra`` sets the fields SourceData does not hold (manufacturer, active_diameter_mm, ...). Source Model
         ID defaults to the data set's first alias of at most 16 characters (e.g. ``gammamedplushdr``), which
-        :func:`planner.dose.recognise_source` maps back to the data set.
+        :func:`reachplan.planner.dose.tg43.recognise_source` maps back to the data set.
         """
         aliases = [a for a in data.aliases if 0 < len(a) <= 16]
         spec = cls(name=data.name, air_kerma_rate_u=air_kerma_rate_u, reference_datetime=reference_datetime,

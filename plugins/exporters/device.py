@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from planner.io import atomic_write_bytes
-from plugins.exporters.base import (
+from reachplan.imaging.files import atomic_write_bytes
+from reachplan.plugins.exporters.base import (
     ExportedFile,
     ExportedFiles,
     Exporter,

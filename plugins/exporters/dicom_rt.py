@@ -35,9 +35,9 @@ from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.sequence import Sequence
 from pydicom.uid import ImplicitVRLittleEndian, generate_uid
 
-from imaging.types import Contour, Roi
-from planner.io import atomic_write_bytes
-from plugins.exporters.base import (
+from reachplan.imaging.files import atomic_write_bytes
+from reachplan.imaging.types import Contour, Roi
+from reachplan.plugins.exporters.base import (
     ExportedFile,
     ExportedFiles,
     Exporter,

@@ -22,9 +22,9 @@ import pydicom
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
-from imaging.errors import OutputExistsError
-from imaging.types import Grid
-from planner.io import atomic_write_bytes
+from reachplan.imaging.errors import OutputExistsError
+from reachplan.imaging.files import atomic_write_bytes
+from reachplan.imaging.types import Grid
 
 RT_DOSE_STORAGE = "1.2.840.10008.5.1.4.1.1.481.2"
 RT_PLAN_STORAGE = "1.2.840.10008.5.1.4.1.1.481.5"
@@ -208,7 +208,7 @@ def write_rtdose(
 
 def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read an RT Dose: ``(dose (nk, nj, ni) float64 Gy, grid)``; used for ``--like`` and round trips."""
-    from imaging.errors import CorruptFileError, NoDicomError
+    from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     p = Path(path)
     try:

@@ -2,7 +2,7 @@
 
 Each built-in loader is a zero-argument callable returning a frozen :class:`SourceData`. The numbers
 are the AAPM/ESTRO consensus data (Perez-Calatayud et al., Med. Phys. 39:2904, 2012), re-written from
-``reference/tg43/`` into this package's JSON format by :mod:`plugins.sources.convert`; each JSON file
+``reference/tg43/`` into this package's JSON format by :mod:`reachplan.plugins.sources.convert`; each JSON file
 carries its citation.
 
 A third-party source registers a callable of the same shape under the entry-point group
@@ -19,7 +19,7 @@ from importlib import resources
 
 import numpy as np
 
-from plugins.errors import PluginError
+from reachplan.plugins.errors import PluginError
 
 FORMAT = "reachplan-tg43/1"
 

@@ -3,7 +3,7 @@
 Run once by a maintainer (``python -m plugins.sources.convert REFERENCE_TG43_DIR``); the runtime only
 reads the JSON files beside this module. The conversion keeps the published numbers and drops
 the ``r = 0`` row/column that the reference CSVs carry as a copy of the first measured distance: the
-kernel applies the same nearest-neighbour rule explicitly (see :mod:`planner.dose`).
+kernel applies the same nearest-neighbour rule explicitly (see :mod:`reachplan.planner.dose.tg43`).
 """
 
 from __future__ import annotations

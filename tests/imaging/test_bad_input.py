@@ -16,8 +16,8 @@ import pytest
 from pydicom.dataelem import RawDataElement
 from pydicom.tag import Tag
 
-from imaging.dicom_io import read_series
-from imaging.errors import (
+from reachplan.imaging.dicom_io import read_series
+from reachplan.imaging.errors import (
     CorruptFileError,
     ImagingError,
     NoDicomError,
@@ -26,9 +26,9 @@ from imaging.errors import (
     StructureError,
     UnsupportedDataError,
 )
-from imaging.inspect import inspect_path
-from imaging.rtstruct import read_rtstruct
-from planner.cli import main
+from reachplan.imaging.inspect import inspect_path
+from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.planner.cli import main
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,8 @@ from typing import Any
 
 import pytest
 
-from imaging.phantom import PhantomFiles, phantom_spec
-from planner.cli import main
+from reachplan.imaging.phantom import PhantomFiles, phantom_spec
+from reachplan.planner.cli import main
 
 
 def _inspect_json(path: Path, capsys: pytest.CaptureFixture[str]) -> dict[str, Any]:

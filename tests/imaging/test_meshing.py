@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from matplotlib.path import Path as MplPath
 
-from imaging.errors import StructureError
-from imaging.meshing import contour_plane_frame, roi_coverage, roi_mask, roi_mesh, structure_volume_cc
-from imaging.phantom import PhantomFiles, phantom_spec
-from imaging.rtstruct import read_rtstruct
-from imaging.types import Contour, Grid, Roi
+from reachplan.imaging.errors import StructureError
+from reachplan.imaging.meshing import contour_plane_frame, roi_coverage, roi_mask, roi_mesh, structure_volume_cc
+from reachplan.imaging.phantom import PhantomFiles, phantom_spec
+from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.imaging.types import Contour, Grid, Roi
 
 
 def _grid(shape: tuple[int, int, int] = (5, 40, 50), spacing: tuple[float, float, float] = (0.5, 0.5, 2.0),
@@ -35,7 +35,7 @@ def _rect(x0: float, y0: float, x1: float, y1: float, z: float) -> np.ndarray:
 
 def independent_volume_mm3(roi: Roi) -> float:
     """Shoelace area of each closed contour, signed by its nesting depth on its plane (even-odd), times the
-    spacing of the contour planes. Independent of :mod:`imaging.meshing`'s rasteriser."""
+    spacing of the contour planes. Independent of :mod:`reachplan.imaging.meshing`'s rasteriser."""
     polys = [c.points_mm for c in roi.contours if c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3]
     axes, _, h = contour_plane_frame(roi)
     local = [p @ axes for p in polys]

@@ -12,13 +12,13 @@ import numpy as np
 import pydicom
 import pytest
 
-from imaging.dicom_io import read_series
-from imaging.errors import OutputExistsError
-from imaging.meshing import roi_mask, roi_mesh
-from imaging.phantom import PhantomFiles, PhantomStructure, phantom_spec, write_phantom
-from imaging.rtstruct import read_rtstruct
-from imaging.types import StructureSet, Volume
-from planner.cli import main
+from reachplan.imaging.dicom_io import read_series
+from reachplan.imaging.errors import OutputExistsError
+from reachplan.imaging.meshing import roi_mask, roi_mesh
+from reachplan.imaging.phantom import PhantomFiles, PhantomStructure, phantom_spec, write_phantom
+from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.imaging.types import StructureSet, Volume
+from reachplan.planner.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +202,7 @@ def test_spec_is_validated() -> None:
     with pytest.raises(ValueError, match="whole number of slices"):
         type(spec)(spec.structures, z_range_mm=(-30.0, 181.0))
     with pytest.raises(ValueError, match="positive"):
-        from imaging.phantom import Cylinder
+        from reachplan.imaging.phantom import Cylinder
 
         Cylinder((0.0, 0.0), -1.0, 0.0, 1.0)
 
@@ -212,7 +212,7 @@ def test_phantom_variants_are_distinct_patients(tmp_path) -> None:  # type: igno
 
     import pydicom
 
-    from imaging.phantom import phantom_spec, write_phantom
+    from reachplan.imaging.phantom import phantom_spec, write_phantom
 
     a = write_phantom(tmp_path / "a")
     b = write_phantom(tmp_path / "b", dataclasses.replace(phantom_spec(), case_id="case_007"))

@@ -17,9 +17,9 @@ from pydicom.filewriter import write_dataset
 from pydicom.sequence import Sequence
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian, generate_uid
 
-from imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError
-from imaging.rtplan import PlanQuirkWarning, channel_paths, read_rtplan
-from imaging.rtstruct import read_rtstruct
+from reachplan.imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError
+from reachplan.imaging.rtplan import PlanQuirkWarning, channel_paths, read_rtplan
+from reachplan.imaging.rtstruct import read_rtstruct
 
 
 def _sha(p: Path) -> str:

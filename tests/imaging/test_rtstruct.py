@@ -9,10 +9,16 @@ import numpy as np
 import pytest
 from pydicom.data import get_testdata_file
 
-from imaging.dicom_io import read_series
-from imaging.errors import DicomQuirkWarning, ImagingError, NoDicomError, ReferenceMismatchError, StructureError
-from imaging.names import DEFAULT_SYNONYMS, SynonymTable
-from imaging.rtstruct import read_rtstruct
+from reachplan.imaging.dicom_io import read_series
+from reachplan.imaging.errors import (
+    DicomQuirkWarning,
+    ImagingError,
+    NoDicomError,
+    ReferenceMismatchError,
+    StructureError,
+)
+from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
+from reachplan.imaging.rtstruct import read_rtstruct
 
 
 def test_open_nonplanar_channels_and_points_are_read(tmp_path: Path, dicom: Any) -> None:

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from imaging.dicom_io import SeriesTolerance, read_series
-from imaging.errors import NoDicomError, ObliqueSliceWarning, SeriesError
+from reachplan.imaging.dicom_io import SeriesTolerance, read_series
+from reachplan.imaging.errors import NoDicomError, ObliqueSliceWarning, SeriesError
 
 
 def _sitk_affine(paths: list[Path]) -> tuple[np.ndarray, np.ndarray]:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner.collision import check_path, make_organ, path_clearance
-from planner.errors import PlanInputError
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.geometry.collision import check_path, make_organ, path_clearance
 
 
 @pytest.fixture(scope="module")

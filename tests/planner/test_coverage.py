@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from imaging.types import Grid
-from planner.coverage import (
+from reachplan.imaging.types import Grid
+from reachplan.planner.dose.coverage import (
     Dvh,
     Fractionation,
     cumulative_dvh,

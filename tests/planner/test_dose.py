@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from imaging.types import Grid
-from planner.dose import (
+from reachplan.imaging.types import Grid
+from reachplan.planner.dose.tg43 import (
     DwellSet,
     Tg43Kernel,
     anisotropy,
@@ -23,8 +23,8 @@ from planner.dose import (
     radial_dose,
     recognise_source,
 )
-from plugins.errors import PluginError
-from plugins.sources import BUILTIN
+from reachplan.plugins.errors import PluginError
+from reachplan.plugins.sources import BUILTIN
 
 NAMES = sorted(BUILTIN)
 

@@ -13,12 +13,12 @@ import numpy as np
 import pydicom
 import pytest
 
-from imaging.errors import DicomQuirkWarning, OutputExistsError
-from imaging.rtplan import channel_paths, read_rtplan
-from imaging.rtstruct import read_rtstruct
-from imaging.types import Grid
-from planner.cli import main
-from planner.dose import (
+from reachplan.imaging.errors import DicomQuirkWarning, OutputExistsError
+from reachplan.imaging.rtplan import channel_paths, read_rtplan
+from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.imaging.types import Grid
+from reachplan.planner.cli import main
+from reachplan.planner.dose.tg43 import (
     DwellSet,
     Tg43Kernel,
     check_points,
@@ -28,7 +28,7 @@ from planner.dose import (
     plan_dwells,
     recognise_source,
 )
-from plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
+from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
 
 
 def _load(folder: Path):  # type: ignore[no-untyped-def]

@@ -5,10 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planner.errors import PlanInputError
-from planner.insertion import KinematicInsertion, TissueBeamInsertion, curvature_table, fit_tissue_factor
-from planner.schedule import TensionSchedule
-from rod_model.design import preset
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.steering.insertion import (
+    KinematicInsertion,
+    TissueBeamInsertion,
+    curvature_table,
+    fit_tissue_factor,
+)
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.rod_model.design import preset
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +103,7 @@ def test_planar_fast_path_equals_the_3d_integration(design) -> None:  # type: ig
 
 
 def test_inverse_targeting_reaches_a_reachable_point_and_reports_an_unreachable_one(design) -> None:  # type: ignore[no-untyped-def]
-    from planner.steering import inverse_target, reach_radius_mm, shape_bank
+    from reachplan.planner.steering.steered import inverse_target, reach_radius_mm, shape_bank
 
     model = KinematicInsertion()
     rel = np.array([9.0, 6.0, 100.0])  # template frame, from the hole

@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imaging.types import Grid
-from planner.coverage import Fractionation, eqd2, voxel_volume_cc
-from planner.dose import Tg43Kernel, dose_on_grid, get_source
-from planner.optimize import (
+from reachplan.imaging.types import Grid
+from reachplan.planner.dose.coverage import Fractionation, eqd2, voxel_volume_cc
+from reachplan.planner.dose.optimize import (
     Aims,
     OptimizerSettings,
     PlanningStructures,
@@ -17,6 +16,7 @@ from planner.optimize import (
     compare_straight_steered,
     optimise_dwell_times,
 )
+from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, get_source
 
 SK = 40000.0
 H = 2.5

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from imaging.phantom import write_phantom
-from planner.cli import main
+from reachplan.imaging.phantom import write_phantom
+from reachplan.planner.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,10 @@ import time
 import numpy as np
 import trimesh
 
-from planner.collision import make_organ
-from planner.pipeline import PlanConfig, Scene, load_template, plan
-from planner.ranking import RankWeights, Target, pareto_front, rank
+from reachplan.planner.geometry.collision import make_organ
+from reachplan.planner.pipeline import PlanConfig, Scene, load_template, plan
+from reachplan.planner.ranking import RankWeights, pareto_front, rank
+from reachplan.planner.steering.candidates import Target
 
 STRAIGHT_ONLY = PlanConfig(designs=())
 
@@ -90,8 +91,8 @@ def test_pareto_front_is_not_dominated() -> None:
 
 
 def test_screening_model_is_chosen_by_the_measured_error_table() -> None:
-    from planner.pipeline import screening_model
-    from rod_model.select import error_table
+    from reachplan.planner.pipeline import screening_model
+    from reachplan.rod_model.select import error_table
 
     rows = {r.model: r for r in error_table() if r.resolution == "default"}
     chosen = screening_model(PlanConfig(screen_tolerance_mm=0.5)).rod_model

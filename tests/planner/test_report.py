@@ -19,8 +19,8 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from imaging.phantom import write_phantom
-from planner.cli import main
+from reachplan.imaging.phantom import write_phantom
+from reachplan.planner.cli import main
 
 STEERED_RGB = (0x17, 0xBE, 0xCF)  # planner.figures.STEERED_COLOUR: drawn only inside the figures
 STRAIGHT_RGB = (0xFF, 0x7F, 0x0E)  # planner.figures.STRAIGHT_COLOUR

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure as MplFigure
 
-from planner import figures
-from planner.html_report import Figure, Paragraph, Report, Section, Table, render_html, write_html
-from planner.ranking import Candidate
-from planner.report import _runs, chosen_by_kind, models_used
+from reachplan.planner.report import figures
+from reachplan.planner.report.build import _runs, chosen_by_kind, models_used
+from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html, write_html
+from reachplan.planner.steering.candidates import Candidate
 
 
 def _png(colour: str = "red") -> bytes:
@@ -94,7 +94,7 @@ def test_schedule_runs_drop_repeated_breakpoints() -> None:
 
 
 def test_speed_accuracy_chart_marks_the_models_used() -> None:
-    from rod_model.select import error_table
+    from reachplan.rod_model.select import error_table
 
     rows = error_table()
     plain = mpimg.imread(io.BytesIO(figures.speed_accuracy(rows, {})), format="png")
@@ -104,7 +104,7 @@ def test_speed_accuracy_chart_marks_the_models_used() -> None:
 
 
 def test_models_used_names_each_rod_models_role() -> None:
-    from planner.insertion import KINEMATIC, TISSUE_BEAM
+    from reachplan.planner.steering.insertion import KINEMATIC, TISSUE_BEAM
 
     cands = [SimpleNamespace(model=m) for m in
              ["straight", f"{KINEMATIC.name}+planar_beam", f"{KINEMATIC.name}+planar_beam",

@@ -19,14 +19,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pytest
 
-from imaging.phantom import Cylinder
-from planner.cli import main
-from planner.commands.study import COARSE_FAMILY
-from planner.errors import PlanInputError
-from planner.pipeline import PlanConfig
-from planner.steering import ScheduleFamily
-from planner.study import StudyRow, StudySpec, StudyTask, discover_cases, run_study, run_task
-from planner.study.cohort import make_cohort, perturbation, perturbed_spec
+from reachplan.imaging.phantom import Cylinder
+from reachplan.planner.cli import main
+from reachplan.planner.cli.study import COARSE_FAMILY
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.pipeline import PlanConfig
+from reachplan.planner.steering.steered import ScheduleFamily
+from reachplan.planner.study import StudyRow, StudySpec, StudyTask, discover_cases, run_study, run_task
+from reachplan.planner.study.cohort import make_cohort, perturbation, perturbed_spec
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -137,7 +137,7 @@ def test_resume_recomputes_only_missing_tasks(spec: StudySpec, reference: tuple[
 def test_killed_run_resumes_with_every_row_once(spec: StudySpec, cohort: Path, reference: tuple[Path, pa.Table],
                                                 tmp_path: Path) -> None:
     out = tmp_path / "study"
-    cmd = [sys.executable, "-m", "planner.cli", "study", "--cases", str(cohort), "--designs", *DESIGNS,
+    cmd = [sys.executable, "-m", "reachplan.planner.cli", "study", "--cases", str(cohort), "--designs", *DESIGNS,
            "--targets", *TARGETS, "--family", "coarse", "--workers", "0", "--quiet", "--out", str(out)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
@@ -187,8 +187,8 @@ def test_failing_tasks_are_recorded_and_the_study_goes_on(cohort: Path, tmp_path
 
 
 def test_dose_is_what_the_plan_command_computes(cohort: Path, tmp_path: Path) -> None:
-    from imaging.rtstruct import read_rtstruct
-    from planner.pipeline import build_scene, plan, plan_delivery
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.pipeline import build_scene, plan, plan_delivery
 
     case = discover_cases([cohort])[0]
     res = run_study(StudySpec((case,), DESIGNS, TARGETS, _config(), dose=True), tmp_path / "study", workers=0)

@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from planner.errors import PlanInputError
-from planner.pipeline import load_template
-from planner.template import check_rigid, hole_frames, load_template_csv
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.geometry.template import check_rigid, hole_frames
+from reachplan.planner.pipeline import load_template
+from reachplan.plugins.templates import TemplateFileError, load_template_csv
 
 
 def test_builtin_layout_has_the_published_rings() -> None:
@@ -37,14 +38,14 @@ def test_bad_pose_and_layout_are_typed_errors(tmp_path: Path) -> None:
         check_rigid(np.diag([2.0, 1.0, 1.0, 1.0]))
     bad = tmp_path / "t.csv"
     bad.write_text("hole_id,x_mm\nA,1\n")
-    with pytest.raises(PlanInputError, match="missing column"):
+    with pytest.raises(TemplateFileError, match="missing column"):
         load_template_csv(bad)
 
 
 def test_template_pose_from_the_phantom_obturator_matches_the_phantom(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from imaging.phantom import phantom_spec, write_phantom
-    from imaging.rtstruct import read_rtstruct
-    from planner.template import pose_from_obturator
+    from reachplan.imaging.phantom import phantom_spec, write_phantom
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.geometry.template import pose_from_obturator
 
     ss = read_rtstruct(write_phantom(tmp_path / "p").rtstruct_path)
     np.testing.assert_allclose(pose_from_obturator(ss.get("Obturator")), phantom_spec().patient_from_template,

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from pydicom.uid import generate_uid
 
-from imaging.types import Contour, Grid, Roi, StructureSet, Volume
-from plugins.exporters.base import ExportPlan, NeedleExport, SourceSpec
-from plugins.sources import gammamed_plus_hdr
+from reachplan.imaging.types import Contour, Grid, Roi, StructureSet, Volume
+from reachplan.plugins.exporters.base import ExportPlan, NeedleExport, SourceSpec
+from reachplan.plugins.sources import gammamed_plus_hdr
 
 
 def curved_needle(hole_id: str, x0_mm: float, bend_mm: float, n_dwells: int = 10) -> NeedleExport:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plugins.exporters.base import ExportError, ExportOptions, ExportPlan, NeedleExport, check_exporter
-from plugins.exporters.device import CSV_EXPORTER, JSON_EXPORTER, schedule_rows
+from reachplan.plugins.exporters.base import ExportError, ExportOptions, ExportPlan, NeedleExport, check_exporter
+from reachplan.plugins.exporters.device import CSV_EXPORTER, JSON_EXPORTER, schedule_rows
 
 
 def _by_hand(depth: float) -> tuple[float, float]:

@@ -14,8 +14,8 @@ import pydicom
 import pytest
 from pydicom.uid import UID
 
-from plugins.exporters.base import ExportError, ExportOptions, ExportPlan, SourceSpec, check_exporter
-from plugins.exporters.dicom_rt import EXPORTER, export_plan
+from reachplan.plugins.exporters.base import ExportError, ExportOptions, ExportPlan, SourceSpec, check_exporter
+from reachplan.plugins.exporters.dicom_rt import EXPORTER, export_plan
 
 # --- an independent reader: plain pydicom following PS3.3 (not reachplan's readers) ---------------------
 
@@ -295,9 +295,9 @@ def test_exporter_plugin_passes_its_protocol_check(make_plan: Callable[..., Expo
 
 
 def test_round_trip_through_reachplan_readers(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:
-    from imaging.rtplan import read_rtplan
-    from imaging.rtstruct import read_rtstruct
-    from planner.dose import recognise_source
+    from reachplan.imaging.rtplan import read_rtplan
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.dose.tg43 import recognise_source
 
     plan = make_plan()
     out = export_plan(plan, tmp_path)
@@ -331,7 +331,7 @@ def test_round_trip_through_reachplan_readers(make_plan: Callable[..., ExportPla
 
 def test_non_ascii_patient_name(make_plan: Callable[..., ExportPlan], tmp_path: Path,
                                 dciodvfy: Callable[[Path], list[str]]) -> None:
-    from imaging.types import Volume
+    from reachplan.imaging.types import Volume
 
     plan = make_plan()
     v = plan.volume
@@ -349,7 +349,7 @@ def test_non_ascii_patient_name(make_plan: Callable[..., ExportPlan], tmp_path: 
 
 
 def test_needle_validation() -> None:
-    from plugins.exporters.base import NeedleExport
+    from reachplan.plugins.exporters.base import NeedleExport
 
     path = np.column_stack([np.zeros(3), np.zeros(3), [0.0, 50.0, 100.0]])
     with pytest.raises(ValueError, match="apart"):
@@ -392,9 +392,9 @@ def test_real_eclipse_structure_set_carried_over(reference_dir: Path, tmp_path: 
     """Organs read by imaging.rtstruct from a real Eclipse export (16 ROIs, some empty, 47848-point BODY)."""
     from datetime import datetime
 
-    from imaging.rtstruct import read_rtstruct
-    from plugins.exporters.base import NeedleExport
-    from plugins.sources import gammamed_plus_hdr
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.plugins.exporters.base import NeedleExport
+    from reachplan.plugins.sources import gammamed_plus_hdr
 
     ss = read_rtstruct(reference_dir / "tps_examples" / "eclipse_prostate_phantom" / "RS.dcm")
     c = np.concatenate([k.points_mm for k in ss.get("PTV").contours]).mean(axis=0)

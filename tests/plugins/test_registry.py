@@ -17,10 +17,10 @@ from typing import Any
 
 import pytest
 
-from planner.cli import main
-from plugins import registry
-from plugins.errors import PluginError
-from plugins.exporters.base import ExportPlan
+from reachplan.planner.cli import main
+from reachplan.plugins import registry
+from reachplan.plugins.errors import PluginError
+from reachplan.plugins.exporters.base import ExportPlan
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -57,16 +57,16 @@ def fake_entry_points(monkeypatch: pytest.MonkeyPatch) -> Iterator[Callable[...,
 
 def test_checks_per_kind_and_reasons(fake_entry_points: Callable[..., None]) -> None:
     fake_entry_points(
-        ("templates", "syed", "plugins.templates:needlefinder_syed_63", "reachplan"),
-        ("templates", "needs_arg", "planner.template:load_template_csv", "thirdparty"),
-        ("sources", "gm", "plugins.sources:gammamed_plus_hdr", "reachplan"),
-        ("sources", "not_a_source", "plugins.templates:needlefinder_syed_63", "thirdparty"),
-        ("exporters", "dicom_rt", "plugins.exporters.dicom_rt:EXPORTER", "reachplan"),
-        ("exporters", "device_json", "plugins.exporters.device:JSON_EXPORTER", "reachplan"),
-        ("exporters", "device_csv", "plugins.exporters.device:CSV_EXPORTER", "reachplan"),
-        ("exporters", "a_class", "plugins.exporters.base:ExportPlan", "thirdparty"),
+        ("templates", "syed", "reachplan.plugins.templates:needlefinder_syed_63", "reachplan"),
+        ("templates", "needs_arg", "reachplan.plugins.templates:load_template_csv", "thirdparty"),
+        ("sources", "gm", "reachplan.plugins.sources:gammamed_plus_hdr", "reachplan"),
+        ("sources", "not_a_source", "reachplan.plugins.templates:needlefinder_syed_63", "thirdparty"),
+        ("exporters", "dicom_rt", "reachplan.plugins.exporters.dicom_rt:EXPORTER", "reachplan"),
+        ("exporters", "device_json", "reachplan.plugins.exporters.device:JSON_EXPORTER", "reachplan"),
+        ("exporters", "device_csv", "reachplan.plugins.exporters.device:CSV_EXPORTER", "reachplan"),
+        ("exporters", "a_class", "reachplan.plugins.exporters.base:ExportPlan", "thirdparty"),
         ("exporters", "missing", "no_such_module_xyz:EXPORTER", "thirdparty"),
-        ("rod_models", "not_a_model", "plugins.exporters.dicom_rt:EXPORTER", "thirdparty"),
+        ("rod_models", "not_a_model", "reachplan.plugins.exporters.dicom_rt:EXPORTER", "thirdparty"),
         ("insertion_models", "len", "builtins:len", "thirdparty"),
     )
     by = {(i.kind, i.name): i for i in registry.info()}
@@ -92,10 +92,10 @@ def test_checks_per_kind_and_reasons(fake_entry_points: Callable[..., None]) -> 
 
 def test_builtin_wins_a_name_clash(fake_entry_points: Callable[..., None]) -> None:
     fake_entry_points(
-        ("exporters", "dicom_rt", "plugins.exporters.device:JSON_EXPORTER", "aaa-thirdparty"),
-        ("exporters", "dicom_rt", "plugins.exporters.dicom_rt:EXPORTER", "reachplan"),
+        ("exporters", "dicom_rt", "reachplan.plugins.exporters.device:JSON_EXPORTER", "aaa-thirdparty"),
+        ("exporters", "dicom_rt", "reachplan.plugins.exporters.dicom_rt:EXPORTER", "reachplan"),
     )
-    from plugins.exporters.dicom_rt import EXPORTER
+    from reachplan.plugins.exporters.dicom_rt import EXPORTER
 
     assert registry.get("exporters", "dicom_rt") is EXPORTER
     (loser,) = [i for i in registry.info("exporters") if not i.available]
@@ -112,7 +112,7 @@ def test_set_check_replaces_the_default(fake_entry_points: Callable[..., None],
 
 
 def test_cli_lists_plugins_as_json(fake_entry_points: Callable[..., None], capsys: pytest.CaptureFixture[str]) -> None:
-    fake_entry_points(("exporters", "dicom_rt", "plugins.exporters.dicom_rt:EXPORTER", "reachplan"),
+    fake_entry_points(("exporters", "dicom_rt", "reachplan.plugins.exporters.dicom_rt:EXPORTER", "reachplan"),
                       ("exporters", "missing", "no_such_module_xyz:EXPORTER", "thirdparty"))
     assert main(["plugins", "--json", "--kind", "exporters"]) == 0
     doc = json.loads(capsys.readouterr().out)
@@ -128,7 +128,7 @@ def test_builtin_exporters_are_declared_in_pyproject() -> None:
     assert {"dicom_rt", "device_json", "device_csv"} <= set(declared)
     from importlib.metadata import EntryPoint
 
-    from plugins.exporters.base import check_exporter
+    from reachplan.plugins.exporters.base import check_exporter
 
     for name, target in declared.items():
         obj = EntryPoint(name, target, "reachplan.exporters").load()
@@ -160,8 +160,8 @@ DEMO_MODULE = '''\
 from dataclasses import dataclass
 from pathlib import Path
 
-from planner.template import Hole, Template
-from plugins.exporters.base import ExportedFile, ExportedFiles, ExportOptions, check_targets, prepare_out_dir
+from reachplan.plugins.templates import Hole, Template
+from reachplan.plugins.exporters.base import ExportedFile, ExportedFiles, ExportOptions, check_targets, prepare_out_dir
 
 
 def demo_row():
@@ -255,7 +255,7 @@ def test_third_party_distribution_is_listed_by_the_cli(demo_site: Path) -> None:
 @pytest.mark.slow
 def test_third_party_plugins_work(demo_site: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
                                   make_plan: Callable[..., ExportPlan]) -> None:
-    from planner.template import Template
+    from reachplan.plugins.templates import Template
 
     try:
         with monkeypatch.context() as m:

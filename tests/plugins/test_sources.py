@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plugins.errors import PluginError
-from plugins.sources import BUILTIN, SourceData, load_builtin
+from reachplan.plugins.errors import PluginError
+from reachplan.plugins.sources import BUILTIN, SourceData, load_builtin
 
 NAMES = sorted(BUILTIN)
 

@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import pytest
 
-from rod_model.design import RodDesign, preset
+from reachplan.rod_model.design import RodDesign, preset
 
 
 @pytest.fixture(scope="session")
@@ -23,10 +23,10 @@ def uniform_design() -> RodDesign:
 def builtin_models(monkeypatch: pytest.MonkeyPatch) -> None:
     """Make the built-in rod models reachable through the plugin registry even before their entry points are
     installed (the registry itself is tested in tests/plugins)."""
-    from plugins import registry
-    from rod_model.beam import PLANAR_BEAM
-    from rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT
-    from rod_model.kinematic import CONSTANT_CURVATURE
+    from reachplan.plugins import registry
+    from reachplan.rod_model.beam import PLANAR_BEAM
+    from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT
+    from reachplan.rod_model.kinematic import CONSTANT_CURVATURE
 
     builtins = {m.name: m for m in (CONSTANT_CURVATURE, PLANAR_BEAM, COSSERAT_ROD, TWO_TUBE_COSSERAT)}
     if set(builtins) <= set(registry.names("rod_models")):

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rod_model.beam import PLANAR_BEAM
-from rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT
-from rod_model.design import preset
-from rod_model.kinematic import CONSTANT_CURVATURE
-from rod_model.result import RodPath, section_curvatures
+from reachplan.rod_model.beam import PLANAR_BEAM
+from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT
+from reachplan.rod_model.design import preset
+from reachplan.rod_model.kinematic import CONSTANT_CURVATURE
+from reachplan.rod_model.result import RodPath, section_curvatures
 
 MODELS = [CONSTANT_CURVATURE, PLANAR_BEAM, COSSERAT_ROD, TWO_TUBE_COSSERAT]
 
@@ -56,7 +56,7 @@ def test_batch_rejects_negative_tensions() -> None:
 
 @pytest.mark.parametrize("model", [PLANAR_BEAM, TWO_TUBE_COSSERAT], ids=lambda m: m.name)
 def test_curvature_table_is_exact_to_its_model(model: object) -> None:
-    from rod_model.table import curvature_table
+    from reachplan.rod_model.table import curvature_table
 
     d = preset("15ga-20j-tip")
     table = curvature_table(model, d)  # type: ignore[arg-type]
@@ -70,9 +70,14 @@ def test_curvature_table_is_exact_to_its_model(model: object) -> None:
         table.curvature(d.max_tension_n + 1.0)
 
 
-def test_selector_uses_measured_errors_and_capabilities(builtin_models: None) -> None:
-    from rod_model.errors import NoModelWithinToleranceError
-    from rod_model.select import ErrorRow, Scene, select_model
+def test_selector_uses_measured_errors_and_capabilities() -> None:
+    from reachplan.rod_model.beam import PLANAR_BEAM
+    from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT
+    from reachplan.rod_model.errors import NoModelWithinToleranceError
+    from reachplan.rod_model.kinematic import CONSTANT_CURVATURE
+    from reachplan.rod_model.select import ErrorRow, Scene, select_model
+
+    caps = {m.name: m.capabilities for m in (CONSTANT_CURVATURE, PLANAR_BEAM, COSSERAT_ROD, TWO_TUBE_COSSERAT)}
 
     rows = (ErrorRow("constant_curvature", "default", 12.0, 0.01, 1e6, 1.0),
             ErrorRow("planar_beam", "default", 0.08, 0.3, 2e6, 1.0),
@@ -80,22 +85,22 @@ def test_selector_uses_measured_errors_and_capabilities(builtin_models: None) ->
             ErrorRow("two_tube_cosserat", "default", 0.0, 0.4, 5e3, 1.0),
             ErrorRow("two_tube_cosserat", "0.02 steps/mm", 0.001, 0.05, None, 1.0))
     planar = Scene()
-    assert select_model(20.0, planar, rows) == "constant_curvature"
-    assert select_model(1.0, planar, rows) == "cosserat_rod"
-    assert select_model(1.0, planar, rows, batched=True) == "planar_beam"
-    assert select_model(1e-3, planar, rows) == "two_tube_cosserat"  # the coarse row is not the plugin's config
-    assert select_model(20.0, Scene(external_load=True), rows) == "cosserat_rod"
-    assert select_model(20.0, Scene(planar=False, twist=True), rows) == "two_tube_cosserat"
-    from rod_model.design import Loads
+    assert select_model(20.0, planar, caps, rows) == "constant_curvature"
+    assert select_model(1.0, planar, caps, rows) == "cosserat_rod"
+    assert select_model(1.0, planar, caps, rows, batched=True) == "planar_beam"
+    assert select_model(1e-3, planar, caps, rows) == "two_tube_cosserat"  # the coarse row is not the plugin's config
+    assert select_model(20.0, Scene(external_load=True), caps, rows) == "cosserat_rod"
+    assert select_model(20.0, Scene(planar=False, twist=True), caps, rows) == "two_tube_cosserat"
+    from reachplan.rod_model.design import Loads
 
     assert Scene.of(Loads((3.0, 0.0, 3.0, 0.0))) == Scene()
     assert Scene.of(Loads((3.0,), tip_moment_nm=(0.0, 0.0, 1e-3))) == Scene(False, True, True)
     with pytest.raises(NoModelWithinToleranceError, match="best measured"):
-        select_model(1e-3, Scene(), rows[:3])
+        select_model(1e-3, Scene(), caps, rows[:3])
 
 
 def test_packaged_error_table_comes_from_the_benchmark() -> None:
-    from rod_model.select import error_table
+    from reachplan.rod_model.select import error_table
 
     rows = error_table()
     names = {r.model for r in rows if r.resolution == "default"}

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rod_model.calibrate import CALIBRATION_ROWS, calibrate, predict
-from rod_model.design import Calibration
+from reachplan.rod_model.calibrate import CALIBRATION_ROWS, calibrate, predict
+from reachplan.rod_model.design import Calibration
 
 
 def test_rows_are_the_reference_calibration_subset(reference_dir: Path) -> None:

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from scipy.special import ellipe, ellipeinc, ellipk, ellipkinc
 
-from rod_model.beam import PLANAR_BEAM
-from rod_model.collocation import CollocationCosserat
-from rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
-from rod_model.design import Loads, RodDesign, preset
-from rod_model.kinematic import CONSTANT_CURVATURE
-from rod_model.result import RodPath
+from reachplan.rod_model.beam import PLANAR_BEAM
+from reachplan.rod_model.collocation import CollocationCosserat
+from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
+from reachplan.rod_model.design import Loads, RodDesign, preset
+from reachplan.rod_model.kinematic import CONSTANT_CURVATURE
+from reachplan.rod_model.result import RodPath
 
 SHOOTERS = [COSSERAT_ROD, TWO_TUBE_COSSERAT]
 ALL = [CONSTANT_CURVATURE, PLANAR_BEAM, *SHOOTERS]

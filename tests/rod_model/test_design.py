@@ -6,8 +6,8 @@ from dataclasses import replace
 
 import pytest
 
-from rod_model.design import PRESET_NAMES, Calibration, Loads, NeedleSpec, StyletDesign, preset
-from rod_model.errors import UnknownPresetError
+from reachplan.rod_model.design import PRESET_NAMES, Calibration, Loads, NeedleSpec, StyletDesign, preset
+from reachplan.rod_model.errors import UnknownPresetError
 
 
 @pytest.mark.parametrize("name", PRESET_NAMES)

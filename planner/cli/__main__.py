@@ -1,0 +1,7 @@
+"""``python -m reachplan.planner.cli``: the same as the ``reachplan`` command."""
+
+import sys
+
+from reachplan.planner.cli import main
+
+sys.exit(main())

@@ -1,0 +1,33 @@
+"""``reachplan plugins``: every installed plugin, with availability and the reason when unavailable."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+NAME = "plugins"
+HELP = "list installed plugins (rod models, insertion models, templates, sources, exporters) and whether they load"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from reachplan.plugins.registry import KINDS
+
+    parser.add_argument("--kind", choices=KINDS, help="only this kind of plugin")
+    parser.add_argument("--json", action="store_true", help="print one JSON document (a list of plugins)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from reachplan.plugins import registry
+
+    infos = registry.info(args.kind)
+    if args.json:
+        print(json.dumps([dataclasses.asdict(i) for i in infos], indent=2))
+        return 0
+    if not infos:
+        print("no plugins installed" + (f" of kind {args.kind}" if args.kind else ""))
+        return 0
+    for i in infos:
+        state = "ok" if i.available else f"UNAVAILABLE: {i.reason}"
+        print(f"{i.kind:<17}{i.name:<26}{i.distribution:<24}{state}")
+    return 0

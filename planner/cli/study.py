@@ -1,0 +1,87 @@
+"""``reachplan study``: plan every case x stylet design x target of a cohort, in parallel, resumably."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from reachplan.planner.errors import StudyError
+
+NAME = "study"
+HELP = ("plan every case x stylet design x target of a cohort on a local process pool or a Dask cluster; "
+        "resumable; writes study.parquet, summary.csv and summary.png (or --make-cohort N phantom cases)")
+
+#: ``--family coarse``: 3 onsets x 1 ramp x 2 plateaus, for quick looks and tests.
+COARSE_FAMILY = {"onsets_mm": (0.0, 40.0, 80.0), "ramps_mm": (10.0,), "plateau_fractions": (0.5, 1.0)}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cases", nargs="+", type=Path, metavar="DIR",
+                        help="case folders (each holding an RS*.dcm), or folders of case folders")
+    parser.add_argument("--designs", nargs="+", default=["15ga-30j-tip"], metavar="PRESET",
+                        help="stylet presets to compare ('straight': straight needles only)")
+    parser.add_argument("--targets", nargs="+", metavar="ROI", help="target ROI names (default: every Target* ROI)")
+    parser.add_argument("--template", default="needlefinder_syed_63", help="template plugin name")
+    parser.add_argument("--family", choices=("default", "coarse"), default="default",
+                        help="tension schedules screened per design (coarse: 6 instead of 110, for quick looks)")
+    parser.add_argument("--dose", action="store_true",
+                        help="also optimise the dwell times of each case x design's needles (TG-43) and report the "
+                             "HR-CTV D90")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (resumes the study it holds)")
+    parser.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address, e.g. tcp://host:8786")
+    parser.add_argument("--workers", type=int, metavar="N",
+                        help="local worker processes (default: CPU count; 0: run in this process)")
+    parser.add_argument("--retry-failed", action="store_true", help="run again the tasks recorded as failed")
+    parser.add_argument("--make-cohort", type=int, metavar="N",
+                        help="instead of a study: write N deterministic phantom variants to --out")
+    parser.add_argument("--seed", type=int, default=0, help="seed of --make-cohort")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar or table")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+
+
+def run(args: argparse.Namespace) -> int:
+    quiet = args.quiet or args.json
+    if args.make_cohort is not None:
+        from reachplan.planner.study.cohort import make_cohort
+
+        if args.make_cohort < 1:
+            raise StudyError(f"--make-cohort needs at least 1 case, got {args.make_cohort}")
+        cases = make_cohort(args.out, args.make_cohort, args.seed)
+        if args.json:
+            json.dump({"cases": [str(c) for c in cases]}, sys.stdout, indent=2)
+            print()
+        elif not quiet:
+            print(f"wrote {len(cases)} phantom cases to {args.out} (cohort.json lists their perturbations)")
+        return 0
+    if not args.cases:
+        raise StudyError("give --cases DIR... (or --make-cohort N to write phantom cases)")
+    if args.scheduler is not None and args.workers is not None:
+        raise StudyError("--workers sets the local pool; with --scheduler the cluster's workers are used")
+    from reachplan.planner.pipeline import PlanConfig
+    from reachplan.planner.steering.steered import ScheduleFamily
+    from reachplan.planner.study import StudySpec, discover_cases, run_study
+    from reachplan.planner.study.summary import format_summary
+
+    family = ScheduleFamily(**COARSE_FAMILY) if args.family == "coarse" else ScheduleFamily()
+    config = PlanConfig(template=args.template, family=family)
+    try:
+        spec = StudySpec(discover_cases(args.cases), tuple(args.designs),
+                         None if args.targets is None else tuple(args.targets), config, dose=args.dose)
+    except ValueError as exc:
+        raise StudyError(str(exc)) from None
+    result = run_study(spec, args.out, scheduler=args.scheduler, workers=args.workers,
+                       retry_failed=args.retry_failed, quiet=quiet)
+    if args.json:
+        json.dump({"out": str(result.out), "tasks": result.n_tasks, "resumed": result.n_resumed,
+                   "failed_tasks": result.n_failed_tasks, "rows": result.table.num_rows,
+                   "wall_s": round(result.wall_s, 3),
+                   "designs": [dataclasses.asdict(s) for s in result.summaries]}, sys.stdout, indent=2)
+        print()
+    elif not quiet:
+        print(format_summary(result.summaries))
+        print(f"\n{result.n_tasks} tasks ({result.n_resumed} already done, {result.n_failed_tasks} failed) in "
+              f"{result.wall_s:.1f} s; wrote {result.out / 'study.parquet'}, summary.csv and summary.png")
+    return 0

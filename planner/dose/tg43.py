@@ -1,0 +1,658 @@
+"""TG-43U1 dose from dwell positions, at points and on voxel grids.
+
+Formalism (Rivard et al., Med. Phys. 31:633, 2004), 2D line source::
+
+    D(r, θ) = S_K · Λ · G_L(r, θ) / G_L(r0, θ0) · g_L(r) · F(r, θ),  r0 = 1 cm, θ0 = 90°
+    G_L = β / (L r sin θ) off the axis, 1 / (r² − L²/4) on it
+
+and the 1D point-source option ``D(r) = S_K · Λ · G_L(r, θ0) / G_L(r0, θ0) · g_L(r) · φ_an(r)`` (TG-43U1
+eq. 11 with the line-source g_L; identical to ``(r0/r)² g_P(r) φ_an(r)``), where φ_an(r) is the
+solid-angle-weighted mean of the 2D dose over θ computed from F.
+
+Interpolation and extrapolation (TG-43U1 §IV and Appendix):
+
+* g_L: linear in r inside the table; below the first radius the first value (nearest neighbour);
+  beyond the last radius log-linear extrapolation through the last two points, up to 100 cm, then
+  held constant (dose there is below 10⁻⁴ of the 1 cm dose).
+* F: bilinear in (r, θ) inside the table; outside the r range the nearest column (TG-43U1 recommends
+  F(r_max, θ) beyond r_max and F(r_min, θ) below r_min).
+* r → 0: a point closer to the source centre than ``r_min = max(first g_L radius, 0.6 L)`` is evaluated
+  at ``r_min`` in the same direction (the dose is finite and the geometry factor defined also on the
+  axis, where r_min² − L²/4 > 0). On the axis the line-source G_L tends continuously to
+  1 / (r² − L²/4); the code uses that limit without a branch.
+
+g_L · F is tabulated once per source on a regular (Δr = 0.05 cm, Δθ = 1°) grid. Every consensus table
+node lies on that grid, so bilinear lookup in it reproduces bilinear interpolation of the published
+table (up to the product of two linear factors inside a 0.05 cm cell, below 10⁻⁵ relative).
+
+Frames and units: positions in mm, DICOM patient coordinates (LPS); dwell ``directions`` are unit
+vectors along the source axis pointing toward the needle tip (θ = 0 on that side); S_K in U
+(= µGy m² h⁻¹ = cGy cm² h⁻¹); times in seconds; dose in Gy.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from reachplan.imaging.rtplan import RtPlan
+from reachplan.imaging.types import Grid
+from reachplan.planner.errors import PlanInputError
+from reachplan.plugins.errors import PluginError
+from reachplan.plugins.sources import BUILTIN, SourceData, normalise_label
+
+R0_CM = 1.0
+DR_CM = 0.05  # radial step of the internal table
+DTHETA_DEG = 1.0  # polar step of the internal table
+R_TABLE_MAX_CM = 100.0
+_EPS_Y_CM = 1e-6
+
+SourceModel = Literal["line", "point"]
+
+
+def geometry_factor_line(r_cm: np.ndarray, theta_rad: np.ndarray | float, length_cm: float) -> np.ndarray:
+    """Line-source geometry function G_L(r, θ), cm⁻².
+
+    Parameters
+    ----------
+    r_cm : array, cm
+        Distance from the source centre (> L/2 on the axis).
+    theta_rad : array, rad
+        Polar angle from the source axis.
+    length_cm : float
+        Active length L, cm.
+
+    Returns
+    -------
+    array, cm⁻²
+        β / (L r sin θ); its continuous limit 1 / (r² − L²/4) on the axis.
+    """
+    r = np.asarray(r_cm, dtype=float)
+    th = np.asarray(theta_rad, dtype=float)
+    y = np.maximum(r * np.abs(np.sin(th)), _EPS_Y_CM)
+    beta = np.arctan2(length_cm * y, r * r - 0.25 * length_cm**2)
+    return beta / (length_cm * y)
+
+
+@dataclass(frozen=True, eq=False)
+class Tg43Kernel:
+    """Dose-rate kernel of one source model.
+
+    Parameters
+    ----------
+    source : SourceData
+        Consensus data.
+    model : {"line", "point"}
+        2D line-source formalism (default) or the 1D point-source approximation.
+    """
+
+    source: SourceData
+    model: SourceModel = "line"
+    r_min_cm: float = field(init=False)
+    _table: np.ndarray = field(init=False, repr=False)  # (nr, nθ) g_L·F (line) or (nr,) 1D rate factor
+    _table32: np.ndarray = field(init=False, repr=False)  # the same in float32
+    _g0: float = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.model not in ("line", "point"):
+            raise ValueError(f"source model must be 'line' or 'point', got {self.model!r}")
+        src = self.source
+        length = src.active_length_cm
+        object.__setattr__(self, "r_min_cm", max(float(src.radial_r_cm[0]), 0.6 * length))
+        r = np.arange(0.0, R_TABLE_MAX_CM + DR_CM / 2, DR_CM)
+        theta = np.arange(0.0, 180.0 + DTHETA_DEG / 2, DTHETA_DEG)
+        g = radial_dose(src, r)
+        f = anisotropy(src, r[:, None], theta[None, :])
+        object.__setattr__(self, "_g0", float(geometry_factor_line(np.array(R0_CM), np.pi / 2, length)))
+        if self.model == "line":
+            table = g[:, None] * f
+        else:
+            table = g * phi_an(src, r) * geometry_factor_line(r, np.pi / 2, length) / self._g0
+        table.setflags(write=False)
+        object.__setattr__(self, "_table", table)
+        table32 = table.astype(np.float32)
+        table32.setflags(write=False)
+        object.__setattr__(self, "_table32", table32)
+
+    @property
+    def length_cm(self) -> float:
+        return self.source.active_length_cm
+
+    def rate_per_u(self, r_cm: np.ndarray, cos_theta: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+        """Dose rate per unit air-kerma strength, cGy h⁻¹ U⁻¹, at distance ``r_cm`` and polar cosine.
+
+        Parameters
+        ----------
+        r_cm : array, cm
+            Distance from the source centre.
+        cos_theta : array
+            Cosine of the angle between the source axis (toward the tip) and the point; same shape.
+        """
+        r, c = np.broadcast_arrays(np.asarray(r_cm, dtype=dtype), np.asarray(cos_theta, dtype=dtype))
+        r = np.array(r, dtype=dtype)  # a private copy: the kernel works in place
+        c = np.clip(c, -1.0, 1.0)
+        return self._rate(r, c, dtype)
+
+    def _rate(self, r: np.ndarray, c: np.ndarray, dtype: type) -> np.ndarray:
+        """Kernel on arrays (modified in place where possible); ``c`` already in [-1, 1]."""
+        L = dtype(self.length_cm)
+        rc = np.maximum(r, dtype(self.r_min_cm), out=r)
+        ri = rc * dtype(1.0 / DR_CM)
+        nr = self._table.shape[0]
+        i0 = np.minimum(ri.astype(np.intp), nr - 2)
+        fr = np.minimum(ri - i0, dtype(1.0), out=ri)
+        table: np.ndarray = self._table32 if dtype is np.float32 else self._table
+        if self.model == "point":
+            v = table[i0] * (dtype(1.0) - fr)
+            v += table[i0 + 1] * fr
+            return v * dtype(self.source.dose_rate_constant)
+        # geometry factor with the clamped distance, direction kept. Only arctan (no arctan2/arccos:
+        # those are 3-4x slower in numpy): β = atan(L y / (r² − L²/4)) as r² > L²/4 always (r >= r_min),
+        # and θ from the half-angle formula, well conditioned on both sides of the axis.
+        one = dtype(1.0)
+        ac = np.abs(c)
+        s = one - ac
+        s *= one + ac
+        s = np.sqrt(s, out=s)  # sin θ >= 0
+        y = rc * s
+        np.maximum(y, dtype(_EPS_Y_CM), out=y)
+        d = rc * rc
+        d -= dtype(0.25) * L * L
+        np.divide(y, d, out=d)
+        d *= L
+        gfac = np.arctan(d, out=d)
+        gfac /= y  # β / y ; divided by L and G0 in the constant below
+        ac += one
+        np.divide(s, ac, out=s)
+        phi = np.arctan(s, out=s)  # α/2, α = angle to the nearer axis direction (tan α/2 = sin α/(1+cos α))
+        phi *= dtype(-2.0 * 180.0 / (math.pi * DTHETA_DEG))
+        phi += dtype(90.0 / DTHETA_DEG)  # 90° − α, in table steps
+        th = np.copysign(phi, c, out=phi)
+        np.subtract(dtype(90.0 / DTHETA_DEG), th, out=th)  # θ = 90° − sign(cos θ)·(90° − α)
+        nt = self._table.shape[1]
+        t0 = np.minimum(th.astype(np.intp), nt - 2)
+        ft = th
+        ft -= t0
+        k = i0 * nt + t0
+        flat = table.reshape(-1)
+        a = flat[k] * (dtype(1.0) - ft)
+        a += flat[k + 1] * ft
+        k += nt
+        b = flat[k] * (dtype(1.0) - ft)
+        b += flat[k + 1] * ft
+        b -= a
+        b *= fr
+        a += b
+        a *= gfac
+        a *= dtype(self.source.dose_rate_constant / (self.length_cm * self._g0))
+        return a
+
+
+def radial_dose(source: SourceData, r_cm: np.ndarray) -> np.ndarray:
+    """g_L(r) with TG-43U1 interpolation and extrapolation (see module docstring)."""
+    r = np.asarray(r_cm, dtype=float)
+    rt, gt = source.radial_r_cm, source.radial_g
+    g = np.interp(r, rt, gt)
+    beyond = r > rt[-1]
+    if np.any(beyond):
+        k = math.log(gt[-1] / gt[-2]) / (rt[-1] - rt[-2])
+        g = np.where(beyond, gt[-1] * np.exp(k * (np.minimum(r, R_TABLE_MAX_CM) - rt[-1])), g)
+    return g
+
+
+def anisotropy(source: SourceData, r_cm: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
+    """F(r, θ): bilinear in (r, θ), nearest column outside the tabulated r range."""
+    fr, ft, f = source.anisotropy_r_cm, source.anisotropy_theta_deg, source.anisotropy_f
+    r, th = np.broadcast_arrays(np.asarray(r_cm, float), np.asarray(theta_deg, float))
+    rr = np.clip(r, fr[0], fr[-1]).ravel()
+    tt = np.clip(th, 0.0, 180.0).ravel()
+    i = np.clip(np.searchsorted(fr, rr, side="right") - 1, 0, len(fr) - 2)
+    j = np.clip(np.searchsorted(ft, tt, side="right") - 1, 0, len(ft) - 2)
+    wr = (rr - fr[i]) / (fr[i + 1] - fr[i])
+    wt = (tt - ft[j]) / (ft[j + 1] - ft[j])
+    out = (
+        f[j, i] * (1 - wr) * (1 - wt)
+        + f[j, i + 1] * wr * (1 - wt)
+        + f[j + 1, i] * (1 - wr) * wt
+        + f[j + 1, i + 1] * wr * wt
+    )
+    return out.reshape(r.shape)
+
+
+def phi_an(source: SourceData, r_cm: np.ndarray) -> np.ndarray:
+    """1D anisotropy function φ_an(r) = ½ ∫ F(r,θ) G_L(r,θ)/G_L(r,90°) sin θ dθ (trapezoidal, 0.25°)."""
+    r = np.maximum(np.asarray(r_cm, dtype=float), 0.6 * source.active_length_cm)
+    theta = np.radians(np.arange(0.0, 180.0 + 0.125, 0.25))
+    L = source.active_length_cm
+    f = anisotropy(source, r[..., None], np.degrees(theta))
+    ratio = geometry_factor_line(r[..., None], theta, L) / geometry_factor_line(r[..., None], np.pi / 2, L)
+    integrand = f * ratio * np.sin(theta)
+    return 0.5 * np.trapezoid(integrand, theta, axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class DwellSet:
+    """Source dwells.
+
+    Parameters
+    ----------
+    positions_mm : (n, 3) float, mm, LPS
+        Centre of the active source at each dwell.
+    directions : (n, 3) float, unit, LPS
+        Source axis at each dwell, pointing toward the needle tip (θ = 0). Normalised on construction.
+    times_s : (n,) float, s
+        Dwell times (>= 0).
+    channels : (n,) int
+        Channel (needle) number of each dwell; zeros when not given.
+    """
+
+    positions_mm: np.ndarray
+    directions: np.ndarray
+    times_s: np.ndarray
+    channels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.positions_mm, dtype=float).reshape(-1, 3)
+        d = np.asarray(self.directions, dtype=float).reshape(-1, 3)
+        t = np.asarray(self.times_s, dtype=float).reshape(-1)
+        ch = np.asarray(self.channels, dtype=int).reshape(-1)
+        if len(ch) == 0:
+            ch = np.zeros(len(p), dtype=int)
+        if not (len(p) == len(d) == len(t) == len(ch)):
+            raise ValueError(
+                f"dwell arrays disagree in length: positions {len(p)}, directions {len(d)}, "
+                f"times {len(t)}, channels {len(ch)}"
+            )
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(d)) and np.all(np.isfinite(t))):
+            raise ValueError("dwell positions, directions and times must be finite")
+        if np.any(t < 0):
+            raise ValueError("dwell times must be >= 0 s")
+        norm = np.linalg.norm(d, axis=1)
+        if np.any(norm < 1e-9):
+            raise ValueError("every dwell needs a non-zero source direction")
+        d = d / norm[:, None]
+        for name, arr in (("positions_mm", p), ("directions", d), ("times_s", t), ("channels", ch)):
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return len(self.times_s)
+
+    def with_times(self, times_s: np.ndarray) -> DwellSet:
+        """The same dwells with other times."""
+        return DwellSet(self.positions_mm, self.directions, times_s, self.channels)
+
+    def select(self, mask: np.ndarray) -> DwellSet:
+        """The dwells where ``mask`` (n,) bool is true."""
+        m = np.asarray(mask, dtype=bool)
+        return DwellSet(self.positions_mm[m], self.directions[m], self.times_s[m], self.channels[m])
+
+    @staticmethod
+    def concatenate(parts: Iterable[DwellSet]) -> DwellSet:
+        ps = list(parts)
+        if not ps:
+            return DwellSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int))
+        return DwellSet(
+            np.concatenate([p.positions_mm for p in ps]),
+            np.concatenate([p.directions for p in ps]),
+            np.concatenate([p.times_s for p in ps]),
+            np.concatenate([p.channels for p in ps]),
+        )
+
+
+def _check_points(points_mm: np.ndarray) -> np.ndarray:
+    p = np.asarray(points_mm, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or not np.all(np.isfinite(p)):
+        raise ValueError(f"points must be a finite (m, 3) array in mm, got shape {p.shape}")
+    return p
+
+
+def rate_matrix(
+    points_mm: np.ndarray,
+    positions_mm: np.ndarray,
+    directions: np.ndarray,
+    kernel: Tg43Kernel,
+    dtype: type = np.float64,
+) -> np.ndarray:
+    """Dose rate per unit air-kerma strength from each dwell at each point.
+
+    Parameters
+    ----------
+    points_mm : (m, 3) float, mm, LPS
+    positions_mm : (n, 3) float, mm, LPS
+    directions : (n, 3) float, unit vectors toward the needle tip
+    kernel : Tg43Kernel
+    dtype : numpy float type of the computation (float32 for grids)
+
+    Returns
+    -------
+    (m, n) array of ``dtype``, cGy h⁻¹ U⁻¹
+    """
+    p = np.asarray(points_mm, dtype=dtype) * dtype(0.1)
+    s = np.asarray(positions_mm, dtype=dtype) * dtype(0.1)
+    u: np.ndarray = np.asarray(directions, dtype=dtype)
+    dx = p[:, 0:1] - s[None, :, 0]
+    dy = p[:, 1:2] - s[None, :, 1]
+    dz = p[:, 2:3] - s[None, :, 2]
+    z = dx * u[None, :, 0]
+    z += dy * u[None, :, 1]
+    z += dz * u[None, :, 2]
+    dx *= dx
+    dy *= dy
+    dz *= dz
+    dx += dy
+    dx += dz
+    r = np.sqrt(dx, out=dx)
+    np.maximum(r, dtype(1e-9), out=dy)
+    z /= dy
+    np.clip(z, -1.0, 1.0, out=z)
+    return kernel._rate(r, z, dtype)
+
+
+def dose_at_points(
+    points_mm: np.ndarray, dwells: DwellSet, kernel: Tg43Kernel, air_kerma_strength_u: float
+) -> np.ndarray:
+    """Dose (Gy) at points, float64.
+
+    Parameters
+    ----------
+    points_mm : (m, 3) float, mm, LPS
+    dwells : DwellSet
+    kernel : Tg43Kernel
+    air_kerma_strength_u : float, U (cGy cm² h⁻¹)
+
+    Returns
+    -------
+    (m,) float, Gy
+    """
+    p = _check_points(points_mm)
+    _check_sk(air_kerma_strength_u)
+    if len(dwells) == 0 or len(p) == 0:
+        return np.zeros(len(p))
+    w = dwells.times_s * (air_kerma_strength_u / 3600.0 / 100.0)  # cGy/h → Gy over t seconds
+    return rate_matrix(p, dwells.positions_mm, dwells.directions, kernel) @ w
+
+
+def _check_sk(sk: float) -> None:
+    if not (np.isfinite(sk) and sk > 0):
+        raise ValueError(f"air-kerma strength must be positive and finite (U), got {sk}")
+
+
+def grid_points_mm(grid: Grid, flat_index: np.ndarray | None = None) -> np.ndarray:
+    """Voxel centres, float, mm, LPS.
+
+    Parameters
+    ----------
+    grid : Grid
+    flat_index : (n,) int, optional
+        Indices into the C-ordered (k, j, i) array; default all voxels.
+
+    Returns
+    -------
+    (n, 3) float, mm, LPS (n = nk·nj·ni without ``flat_index``)
+    """
+    flat = np.arange(int(np.prod(grid.shape))) if flat_index is None else np.asarray(flat_index)
+    k, j, i = np.unravel_index(flat, grid.shape)
+    return grid.to_patient(np.stack([i, j, k], axis=1))
+
+
+def dose_on_grid(
+    grid: Grid,
+    dwells: DwellSet,
+    kernel: Tg43Kernel,
+    air_kerma_strength_u: float,
+    *,
+    chunk_pairs: int = 1 << 16,
+    workers: int | None = None,
+) -> np.ndarray:
+    """Dose (Gy) on every voxel centre of ``grid``, float32, computed in float32 by chunks.
+
+    Parameters
+    ----------
+    grid : Grid
+        Voxel grid (any orientation).
+    dwells : DwellSet
+    kernel : Tg43Kernel
+    air_kerma_strength_u : float, U
+    chunk_pairs : int
+        Voxel-dwell pairs per chunk: memory is about ``chunk_pairs × 40`` bytes per worker.
+    workers : int, optional
+        Threads (numpy releases the GIL); default ``min(2, os.cpu_count())``.
+
+    Returns
+    -------
+    (nk, nj, ni) float32, Gy
+    """
+    _check_sk(air_kerma_strength_u)
+    n_vox = int(np.prod(grid.shape))
+    out = np.zeros(n_vox, dtype=np.float32)
+    active = dwells.select(dwells.times_s > 0)
+    if len(active) == 0:
+        return out.reshape(grid.shape)
+    w = (active.times_s * (air_kerma_strength_u / 360000.0)).astype(np.float32)
+    pos = active.positions_mm.astype(np.float32)
+    dirs = active.directions.astype(np.float32)
+    m = max(1, chunk_pairs // len(active))
+    _, nj, ni = grid.shape
+    a = grid.patient_from_index
+    ii = np.arange(ni, dtype=np.float64)
+    jj = np.arange(nj, dtype=np.float64)
+
+    def work(start: int) -> None:
+        stop = min(start + m, n_vox)
+        flat = np.arange(start, stop)
+        k, rem = np.divmod(flat, nj * ni)
+        j, i = np.divmod(rem, ni)
+        pts = (ii[i, None] * a[:3, 0] + jj[j, None] * a[:3, 1] + k[:, None] * a[:3, 2] + a[:3, 3]).astype(
+            np.float32
+        )
+        out[start:stop] = rate_matrix(pts, pos, dirs, kernel, np.float32) @ w
+
+    n_workers = workers if workers is not None else min(2, os.cpu_count() or 1)
+    starts = range(0, n_vox, m)
+    if n_workers <= 1:
+        for s0 in starts:
+            work(s0)
+    else:
+        with ThreadPoolExecutor(max_workers=n_workers) as pool:
+            list(pool.map(work, starts))
+    return out.reshape(grid.shape)
+
+
+# --- source orientation -------------------------------------------------------------------------------
+
+
+def dwell_directions(path_mm: np.ndarray, positions_mm: np.ndarray) -> np.ndarray:
+    """Source axis at each dwell from the channel path's tangent.
+
+    Parameters
+    ----------
+    path_mm : (k, 3) float, mm, LPS
+        Channel centre line ordered from the needle tip to its base (as Eclipse writes channel ROIs).
+    positions_mm : (n, 3) float, mm, LPS
+        Dwell positions (on or near the path).
+
+    Returns
+    -------
+    (n, 3) float
+        Unit tangent of the path segment nearest to each dwell, pointing toward the tip. At a vertex
+        (dwell within 1e-6 mm of the joint of two segments) the mean of both segment directions.
+    """
+    path = np.asarray(path_mm, dtype=float)
+    pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
+    seg = path[:-1] - path[1:]  # toward the tip
+    seg_len = np.linalg.norm(seg, axis=1)
+    keep = seg_len > 1e-9
+    if len(path) < 2 or not np.any(keep):
+        raise ValueError("a channel path needs at least two distinct points")
+    a, seg, seg_len = path[1:][keep], seg[keep], seg_len[keep]
+    u = seg / seg_len[:, None]
+    # distance of each dwell to each segment (from its base-side end a, along u)
+    rel = pos[:, None, :] - a[None, :, :]
+    t = np.clip(np.einsum("nsk,sk->ns", rel, u), 0.0, seg_len[None, :])
+    foot = a[None, :, :] + t[..., None] * u[None, :, :]
+    dist = np.linalg.norm(pos[:, None, :] - foot, axis=2)
+    best = np.argmin(dist, axis=1)
+    out = u[best].copy()
+    # dwell at a joint: average the two segments meeting there
+    tb = t[np.arange(len(pos)), best]
+    at_tip_end = (tb >= seg_len[best] - 1e-6) & (best + 1 < len(u))
+    at_base_end = (tb <= 1e-6) & (best > 0)
+    out[at_tip_end] += u[best[at_tip_end] + 1]
+    out[at_base_end] += u[best[at_base_end] - 1]
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def dwells_along_path(
+    path_mm: np.ndarray,
+    *,
+    step_mm: float = 5.0,
+    tip_offset_mm: float = 6.0,
+    active_length_mm: float = 50.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate dwell positions every ``step_mm`` along a needle, starting ``tip_offset_mm`` from the tip.
+
+    Parameters
+    ----------
+    path_mm : (k, 3) float, mm, LPS
+        Needle centre line ordered from the tip to the base.
+    step_mm, tip_offset_mm, active_length_mm : float, mm
+        Dwell step, distance of the first dwell from the tip, and length (from the first dwell) over
+        which dwells are placed; positions beyond the path's length are dropped.
+
+    Returns
+    -------
+    positions : (n, 3) float, mm, LPS
+    directions : (n, 3) float, unit, toward the tip
+    """
+    if not (step_mm > 0 and tip_offset_mm >= 0 and active_length_mm >= 0):
+        raise ValueError("dwell step must be > 0 mm, tip offset and active length >= 0 mm")
+    path = np.asarray(path_mm, dtype=float)
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if len(path) < 2 or s[-1] <= 0:
+        raise ValueError("a needle path needs at least two distinct points")
+    arc = tip_offset_mm + np.arange(0.0, active_length_mm + 1e-9, step_mm)
+    arc = arc[arc <= s[-1] + 1e-9]
+    if len(arc) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    pos = np.stack([np.interp(arc, s, path[:, c]) for c in range(3)], axis=1)
+    return pos, dwell_directions(path, pos)
+
+
+# --- source selection ---------------------------------------------------------------------------------
+
+
+def get_source(name: str) -> SourceData:
+    """The TG-43 data set ``name`` through the plugin registry (built-ins as fallback).
+
+    Raises
+    ------
+    PluginError
+        Unknown or unavailable source (the message lists the known names).
+    """
+    from reachplan.plugins import registry
+
+    try:
+        loader = registry.get("sources", name)
+    except PluginError:
+        if name not in BUILTIN:
+            known = sorted(set(BUILTIN) | set(registry.names("sources")))
+            raise PluginError(f"no TG-43 source named {name!r}; available: {', '.join(known)}") from None
+        loader = BUILTIN[name]
+    data = loader()
+    if not isinstance(data, SourceData):
+        raise PluginError(f"sources plugin {name!r} did not return SourceData (got {type(data).__name__})")
+    return data
+
+
+def recognise_source(*labels: str) -> str | None:
+    """Name of the source (built-in or installed plugin) whose alias occurs in one of ``labels``.
+
+    ``labels`` are DICOM strings (Source Isotope Name, Source Model ID, Treatment Machine Name); they and
+    the aliases are compared without case, spaces, dashes, underscores or dots. None when no alias matches.
+    """
+    from reachplan.plugins import registry
+
+    norm = [normalise_label(x) for x in labels if x]
+    for name in dict.fromkeys([*BUILTIN, *registry.names("sources")]):
+        if any(alias in text for alias in get_source(name).aliases for text in norm):
+            return name
+    return None
+
+
+# --- existing plans (secondary check) -----------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class PointCheck:
+    """Our dose and the TPS's at one dose reference point.
+
+    ``position_mm`` (3,) mm LPS; doses in Gy over the whole plan (all fractions and pulses);
+    ``tps_gy`` and ``diff_percent`` are None when the plan carries no TPS dose for the point.
+    """
+
+    number: int
+    name: str
+    position_mm: np.ndarray
+    dose_gy: float
+    tps_gy: float | None
+    diff_percent: float | None
+
+
+def plan_dwells(plan: RtPlan, paths: Mapping[int, np.ndarray]) -> DwellSet:
+    """All dwells of a brachy plan, oriented along their channel paths.
+
+    Parameters
+    ----------
+    plan : RtPlan
+    paths : mapping channel number -> (k, 3) float, mm, LPS
+        Channel centre lines ordered tip first (see :func:`reachplan.imaging.rtplan.channel_paths`).
+
+    Returns
+    -------
+    DwellSet
+        Times are the whole plan's: per-fraction (per-pulse for PDR) dwell times × fractions × pulses.
+
+    Raises
+    ------
+    PlanInputError
+        A channel with dwells has no path.
+    """
+    scale = plan.n_fractions * plan.n_pulses
+    parts = []
+    for ch in plan.channels:
+        if ch.n_dwells == 0:
+            continue
+        if ch.number not in paths:
+            raise PlanInputError(
+                f"channel {ch.number} refers to ROI {ch.roi_number}, which has no channel path in the "
+                "structure set; pass the RT Structure Set the plan was made on"
+            )
+        dirs = dwell_directions(paths[ch.number], ch.dwell_positions_mm)
+        parts.append(
+            DwellSet(ch.dwell_positions_mm, dirs, ch.dwell_times_s * scale, np.full(ch.n_dwells, ch.number))
+        )
+    return DwellSet.concatenate(parts)
+
+
+def check_points(
+    plan: RtPlan, dwells: DwellSet, kernel: Tg43Kernel, air_kerma_strength_u: float
+) -> tuple[PointCheck, ...]:
+    """Recompute the dose at every point dose reference of ``plan`` and set it beside the TPS's."""
+    refs = [r for r in plan.dose_references if r.position_mm is not None]
+    if not refs:
+        return ()
+    pts = np.array([r.position_mm for r in refs])
+    doses = dose_at_points(pts, dwells, kernel, air_kerma_strength_u)
+    out = []
+    for r, p, d in zip(refs, pts, doses, strict=True):
+        diff = None if not r.tps_dose_gy else 100.0 * (float(d) / r.tps_dose_gy - 1.0)
+        out.append(PointCheck(r.number, r.description, p, float(d), r.tps_dose_gy, diff))
+    return tuple(out)

@@ -1,0 +1,178 @@
+"""Clearance and collision of needle paths against organ meshes, with FCL.
+
+A needle path is a polyline; it is checked as a chain of capsules of the needle's outer radius (one per
+segment). Organs are watertight triangle meshes held as FCL BVH models. FCL's mesh distance measures to
+the *surface* only, so a path that never crosses an organ's surface is tested once for lying inside it
+(a connected path that does not cross a closed surface is either wholly inside or wholly outside).
+
+Clearance is the smallest surface-to-surface distance (mm) between the needle (capsules of radius
+``radius_mm``) and an organ; it is ``0.0`` when they touch or the needle enters the organ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import fcl
+import numpy as np
+import trimesh
+
+from reachplan.planner.errors import PlanInputError
+
+
+@dataclass(frozen=True, eq=False)
+class Organ:
+    """An organ at risk (or bone) as a watertight mesh in LPS mm, with its FCL model."""
+
+    name: str
+    mesh: trimesh.Trimesh
+    fcl_object: fcl.CollisionObject
+    bounds_mm: np.ndarray  # (2, 3) float, mm, LPS: axis-aligned box (min, max)
+    components: tuple[trimesh.Trimesh, ...] = ()  # connected parts, for cheap containment tests
+
+    def contains(self, point_mm: np.ndarray) -> bool:
+        """Whether a point ((3,) float, mm, LPS) lies inside the organ (ray parity, only in the connected
+        parts whose bounding box holds the point)."""
+        q = np.asarray(point_mm, dtype=float).reshape(1, 3)
+        for part in self.components or (self.mesh,):
+            lo, hi = part.bounds
+            if np.all(q >= lo) and np.all(q <= hi) and bool(part.contains(q)[0]):
+                return True
+        return False
+
+
+def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
+    """Wrap a mesh (LPS mm) for collision queries.
+
+    Raises
+    ------
+    PlanInputError
+        If the mesh is empty or not watertight (containment would be undefined).
+    """
+    if len(mesh.faces) == 0:
+        raise PlanInputError(f"organ {name!r} has an empty mesh")
+    if not mesh.is_watertight:
+        raise PlanInputError(f"organ {name!r}: mesh is not watertight; re-mesh it from its mask")
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(mesh.vertices), len(mesh.faces))
+    bvh.addSubModel(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64))
+    bvh.endModel()
+    parts = tuple(mesh.split(only_watertight=True)) if mesh.body_count > 1 else (mesh,)
+    return Organ(name, mesh, fcl.CollisionObject(bvh, fcl.Transform()), np.asarray(mesh.bounds, dtype=float), parts)
+
+
+def _rotation_to(direction: np.ndarray) -> np.ndarray:
+    """Rotation matrix taking +z to the unit vector ``direction``."""
+    z = direction
+    v = np.array([-z[1], z[0], 0.0])  # e3 x z
+    c = z[2]
+    if np.dot(v, v) < 1e-24:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def capsule_chain(path_mm: np.ndarray, radius_mm: float) -> list[fcl.CollisionObject]:
+    """FCL capsules of radius ``radius_mm`` along ``path_mm`` ((n, 3) float, mm, LPS), one per segment.
+
+    Zero-length segments are skipped; a single point becomes a sphere.
+    """
+    p = np.asarray(path_mm, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or not np.all(np.isfinite(p)):
+        raise PlanInputError("a needle path must be a finite (n, 3) array of points in mm")
+    if radius_mm <= 0:
+        raise PlanInputError(f"needle radius must be positive, got {radius_mm} mm")
+    d = np.diff(p, axis=0)
+    lengths = np.linalg.norm(d, axis=1)
+    objs = []
+    for a, seg, length in zip(p[:-1], d, lengths, strict=True):
+        if length < 1e-9:
+            continue
+        rot = _rotation_to(seg / length)
+        objs.append(fcl.CollisionObject(fcl.Capsule(radius_mm, length), fcl.Transform(rot, a + seg / 2)))
+    if not objs:
+        objs.append(fcl.CollisionObject(fcl.Sphere(radius_mm), fcl.Transform(np.eye(3), p[0])))
+    return objs
+
+
+@dataclass(frozen=True)
+class Clearance:
+    """Result of checking one path against one organ.
+
+    ``clearance_mm`` is the surface-to-surface distance (0.0 when touching or inside); ``collides`` is
+    True when the needle touches, crosses or lies inside the organ; ``contact_s_mm`` is the arc length
+    along the path (from its first point) where the needle first touches the organ, to within
+    ``resolution_mm``, or None when clear.
+    """
+
+    organ: str
+    clearance_mm: float
+    collides: bool
+    contact_s_mm: float | None = None
+
+
+def _first_contact_s(a: np.ndarray, b: np.ndarray, radius_mm: float, organ: Organ, resolution_mm: float) -> float:
+    """Arc length from ``a`` at which the capsule ``a``-``b`` first touches ``organ``."""
+    length = float(np.linalg.norm(b - a))
+    n = max(1, int(np.ceil(length / resolution_mm)))
+    pts = a + np.outer(np.linspace(0.0, 1.0, n + 1), b - a)
+    creq = fcl.CollisionRequest()
+    for i, obj in enumerate(capsule_chain(pts, radius_mm)):
+        if fcl.collide(obj, organ.fcl_object, creq, fcl.CollisionResult()):
+            return length * i / n
+    return length  # touching within numerical tolerance only at the far end
+
+
+def path_clearance(
+    path_mm: np.ndarray, radius_mm: float, organ: Organ, resolution_mm: float = 1.0
+) -> Clearance:
+    """Clearance of a needle path ((n, 3) float, mm, LPS; capsules of ``radius_mm``) to one organ."""
+    p = np.asarray(path_mm, dtype=float)
+    caps = capsule_chain(p, radius_mm)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(p, axis=0), axis=1) >= 1e-9])
+    pts = p[keep]  # the points the capsules join (zero-length segments dropped)
+    s0 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    req, creq = fcl.DistanceRequest(), fcl.CollisionRequest()
+    best = np.inf
+    for i, obj in enumerate(caps):
+        d = fcl.distance(obj, organ.fcl_object, req, fcl.DistanceResult())
+        if d <= 0.0 and fcl.collide(obj, organ.fcl_object, creq, fcl.CollisionResult()):
+            if len(pts) < 2:
+                return Clearance(organ.name, 0.0, True, 0.0)
+            s = s0[i] + _first_contact_s(pts[i], pts[i + 1], radius_mm, organ, resolution_mm)
+            return Clearance(organ.name, 0.0, True, float(s))
+        best = min(best, max(d, 0.0))
+    if organ.contains(p[0]):
+        return Clearance(organ.name, 0.0, True, 0.0)
+    return Clearance(organ.name, float(best), False, None)
+
+
+def _box_gap_mm(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> float:
+    """Distance between two axis-aligned boxes (0 when they overlap): a lower bound on any distance
+    between what they contain."""
+    gap = np.maximum(0.0, np.maximum(lo_a - hi_b, lo_b - hi_a))
+    return float(np.linalg.norm(gap))
+
+
+def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...]) -> tuple[Clearance, ...]:
+    """Clearance of one needle path against the organs that can matter.
+
+    Broad phase first: organs are measured in order of the gap between their bounding box and the
+    path's (inflated by ``radius_mm``); an organ whose gap exceeds the smallest clearance found so far is
+    skipped, as it can neither touch the needle nor be the nearest organ. The minimum clearance, the
+    nearest organ and every collision are therefore exact; skipped organs are absent from the result.
+    """
+    p = np.asarray(path_mm, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise PlanInputError("a needle path must be a finite (n, 3) array of points in mm")
+    lo, hi = p.min(axis=0) - radius_mm, p.max(axis=0) + radius_mm
+    gaps = [_box_gap_mm(lo, hi, *o.bounds_mm) for o in organs]
+    out: list[Clearance] = []
+    best = np.inf
+    for gap, organ in sorted(zip(gaps, organs, strict=True), key=lambda g: g[0]):
+        if gap > best:
+            break
+        c = path_clearance(p, radius_mm, organ)
+        out.append(c)
+        best = min(best, c.clearance_mm)
+    return tuple(out)

@@ -1,0 +1,513 @@
+"""Figures, tables and the HTML report of a plan (matplotlib, no screen needed)."""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import trimesh
+from tqdm import tqdm
+
+from reachplan.imaging.files import atomic_write_bytes
+from reachplan.imaging.types import Grid, StructureSet, Volume
+from reachplan.planner.dose.optimize import Comparison, OptimizerSettings, PlanningStructures, compare_arms
+from reachplan.planner.pipeline import DEFAULT_AIR_KERMA_U, Delivery, PlanResult, Scene, planning_structures
+from reachplan.planner.report import figures
+from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, write_html
+from reachplan.planner.steering.candidates import Candidate
+
+ORGAN_COLOURS = {
+    "Bladder": "#e6c229", "Rectum": "#8c564b", "Sigmoid": "#c49c94", "Bowel": "#f7b6d2", "Bone": "#bbbbbb",
+    "HR-CTV": "#d62728", "Uterus": "#9467bd", "Cervix": "#ff9896", "Obturator": "#7f7f7f",
+}
+
+
+def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
+    """The best ``n_per_target`` feasible candidates of every target."""
+    return [c for cs in result.ranking.values() for c in [c for c in cs if c.feasible][:n_per_target]]
+
+
+def format_table(result: PlanResult) -> str:
+    """Per target: the top-ranked candidate, and the best straight next to the best steered one."""
+
+    def cell(c: Candidate | None) -> str:
+        if c is None:
+            return f"{'none feasible':<34}"
+        return (f"{c.hole_id:>4} {c.hole_distance_mm:5.1f} mm r{c.reach_error_mm:4.1f} c{c.clearance_mm:5.1f} "
+                f"{c.peak_tension_n:4.1f} N")
+
+    head = (f"{'target':<15} {'top':<8} {'best straight (hole, from centre, reach, clear)':<34}   "
+            f"{'best steered':<34}  model")
+    lines = [head, "-" * len(head)]
+    for target, cands in result.ranking.items():
+        top = cands[0]
+        first = ("steered" if top.steered else "straight") if top.feasible else "none"
+        steered = result.best(target, True)
+        lines.append(f"{target:<15} {first:<8} {cell(result.best(target, False))}   {cell(steered)}  "
+                     f"{steered.model if steered else ''}")
+    return "\n".join(lines)
+
+
+def _section(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray) -> list[np.ndarray]:
+    sec = mesh.section(plane_origin=origin, plane_normal=normal)
+    return [] if sec is None else [np.asarray(d) for d in sec.discrete]
+
+
+def _background(ax: plt.Axes, volume: Volume | None, axis: int, value_mm: float) -> None:
+    if volume is None:
+        return
+    m = volume.grid.patient_from_index
+    if not np.allclose(m[:3, :3], np.diag(np.diag(m[:3, :3]))):
+        return  # oblique grid: organ outlines only
+    idx = volume.grid.to_index(np.array([[value_mm] * 3]))[0]
+    nk, nj, ni = volume.grid.shape
+    lo = volume.grid.to_patient(np.array([[0, 0, 0]]))[0]
+    hi = volume.grid.to_patient(np.array([[ni - 1, nj - 1, nk - 1]]))[0]
+    if axis == 2:  # axial: x across, y down
+        k = int(np.clip(round(idx[2]), 0, nk - 1))
+        ax.imshow(volume.array[k], cmap="gray", vmin=-200, vmax=300, extent=(lo[0], hi[0], hi[1], lo[1]))
+    else:  # sagittal: y across, z up
+        i = int(np.clip(round(idx[0]), 0, ni - 1))
+        ax.imshow(volume.array[:, :, i], cmap="gray", vmin=-200, vmax=300, origin="lower",
+                  extent=(lo[1], hi[1], lo[2], hi[2]), aspect="auto")
+
+
+def overview_figure(scene: Scene, result: PlanResult, path: Path, volume: Volume | None = None) -> None:
+    """Axial and sagittal slices with organ outlines and the top needle path of every target (PNG)."""
+    top = top_candidates(result)
+    tz = float(np.mean([t.position_mm[2] for t in scene.targets]))
+    fig, (ax_a, ax_s) = plt.subplots(1, 2, figsize=(12, 6))
+    _background(ax_a, volume, 2, tz)
+    _background(ax_s, volume, 0, 0.0)
+    for name, mesh in scene.meshes.items():
+        colour = ORGAN_COLOURS.get(name, "#2ca02c")
+        for loop in _section(mesh, np.array([0.0, 0.0, tz]), np.array([0.0, 0.0, 1.0])):
+            ax_a.plot(loop[:, 0], loop[:, 1], color=colour, lw=1.2)
+        for loop in _section(mesh, np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])):
+            ax_s.plot(loop[:, 1], loop[:, 2], color=colour, lw=1.2)
+    for c in top:
+        p = c.path_mm
+        style = "-" if c.steered else "--"
+        ax_a.plot(p[:, 0], p[:, 1], style, color="cyan", lw=1)
+        ax_a.plot(p[-1, 0], p[-1, 1], "o", color="cyan", ms=3)
+        ax_s.plot(p[:, 1], p[:, 2], style, color="cyan", lw=1)
+    for t in scene.targets:
+        ax_a.plot(t.position_mm[0], t.position_mm[1], "+", color="red", ms=8)
+    handles = [plt.Line2D([], [], color=ORGAN_COLOURS.get(n, "#2ca02c"), label=n) for n in scene.meshes
+               if n in ORGAN_COLOURS]
+    handles.append(plt.Line2D([], [], color="cyan", label="top needle per target (dashed: straight)"))
+    ax_a.legend(handles=handles, loc="lower right", fontsize=7)
+    ax_a.set(title=f"axial, z = {tz:.0f} mm", xlabel="x (mm, patient left +)", ylabel="y (mm, posterior +)")
+    ax_a.set_aspect("equal")
+    ax_a.set_ylim(sorted(ax_a.get_ylim(), reverse=True))  # anterior (-y) at the top, as radiology shows it
+    ax_s.set(title="sagittal, x = 0 mm", xlabel="y (mm, posterior +)", ylabel="z (mm, superior +)")
+    ax_s.set_aspect("equal")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+# --- the HTML report (issue 8) ----------------------------------------------------------------------------
+
+#: Faster LP settings for the straight-versus-steered comparison in the report (the delivered plan keeps the
+#: full :class:`~reachplan.planner.dose.optimize.OptimizerSettings`); about 5 s for 4 + 12 needles on the demo phantom.
+COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500, relax_iterations=1)
+
+
+#: Captions of the PNG files :func:`write_report` embeds in the case section, by file name.
+CASE_PNG_CAPTIONS = {
+    "overview.png": "Overview: axial slice at the targets' mean height and the mid-sagittal slice, with the top "
+                    "needle of every target (dashed: straight).",
+    "workspace.png": "Reachable workspace: where each hole's steered needle can put its tip at the targets' depth "
+                     "(template frame), with the targets and the organ outlines at that depth.",
+}
+
+
+@dataclass(frozen=True)
+class ReportOptions:
+    """What the report computes and draws.
+
+    ``max_slice_targets``: targets that get slice overlays (in ranking order); ``comparison``: run the
+    straight-versus-steered dose comparison; ``comparison_settings``: its LP settings; ``mesh_pitch_mm``:
+    voxel size of the light meshes in the 3-D views.
+    """
+
+    max_slice_targets: int = 12
+    comparison: bool = True
+    comparison_settings: OptimizerSettings = COMPARISON_SETTINGS
+    mesh_pitch_mm: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.max_slice_targets < 0:
+            raise ValueError("max_slice_targets must be >= 0")
+        if not (np.isfinite(self.mesh_pitch_mm) and self.mesh_pitch_mm > 0):
+            raise ValueError("mesh_pitch_mm must be a positive number of mm")
+
+
+def chosen_by_kind(result: PlanResult, steered: bool) -> tuple[Candidate, ...]:
+    """One needle of one kind per target: its best-ranked feasible straight (or steered) candidate on a hole
+    that no earlier target took. Targets without one get none."""
+    used: set[str] = set()
+    out: list[Candidate] = []
+    for cands in result.ranking.values():
+        c = next((c for c in cands if c.feasible and c.steered == steered and c.hole_id not in used), None)
+        if c is not None:
+            used.add(c.hole_id)
+            out.append(c)
+    return tuple(out)
+
+
+def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | None,
+                   source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
+                   air_kerma_u: float = DEFAULT_AIR_KERMA_U,
+                   settings: OptimizerSettings = COMPARISON_SETTINGS,
+                   planning: PlanningStructures | None = None) -> Comparison | None:
+    """Straight versus steered dose: each arm gets the per-target best needle of its kind
+    (:func:`chosen_by_kind`), optimised the same way (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm
+    with no feasible needle is left out; None when both are empty. ``planning``: the delivery's structures, when
+    already built (else :func:`reachplan.planner.pipeline.planning_structures` builds them)."""
+    from reachplan.planner.dose.tg43 import Tg43Kernel
+    from reachplan.plugins import registry
+
+    arms = [(name, [c.path_mm for c in chosen_by_kind(result, steered)])
+            for name, steered in (("straight", False), ("steered", True))]
+    arms = [a for a in arms if a[1]]
+    if not arms:
+        return None
+    if planning is None:
+        planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
+    kernel = Tg43Kernel(registry.get("sources", source_name)())
+    return compare_arms(arms, planning, kernel, air_kerma_u, settings=settings)
+
+
+def _f(v: float, digits: int = 1) -> str:
+    return f"{v:.{digits}f}" if np.isfinite(v) else "-"
+
+
+def models_used(result: PlanResult) -> dict[str, str]:
+    """What each rod model did in this plan, by rod model name (from the candidates' ``insertion+rod``
+    model labels), e.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``."""
+    from reachplan.planner.steering.insertion import TISSUE_BEAM
+
+    counts: dict[str, int] = {}
+    for c in result.candidates:
+        counts[c.model] = counts.get(c.model, 0) + 1
+    used: dict[str, list[str]] = {}
+    for model, n in sorted(counts.items()):
+        insertion, _, rod = model.partition("+")
+        if rod:
+            role = "reference re-solve" if insertion == TISSUE_BEAM.name else "screening"
+            used.setdefault(rod, []).append(f"{role} with {insertion} ({n} candidates)")
+    return {rod: "; ".join(roles) for rod, roles in used.items()}
+
+
+def _case_section(scene: Scene, result: PlanResult, case: str, template_png: bytes) -> Section:
+    cfg = result.config
+    oars = {o.name for o in scene.organs}
+    targets = {t.name for t in scene.targets}
+    organ_rows = []
+    for name, mesh in scene.meshes.items():
+        role = "organ at risk" if name in oars else "target ROI" if name in targets else "context"
+        lo, hi = mesh.bounds
+        organ_rows.append((name, role, _f(abs(float(mesh.volume)) / 1000.0),
+                           " .. ".join(f"({a:.0f}, {b:.0f}, {c:.0f})" for a, b, c in (lo, hi))))
+    target_rows = [(t.name, *(f"{v:.1f}" for v in t.position_mm)) for t in scene.targets]
+    m = scene.patient_from_template
+    template = (f"Template {scene.template.name}: {len(scene.template.needle_holes)} needle holes "
+                f"({len(scene.template.holes)} in all); its centre at "
+                f"({m[0, 3]:.1f}, {m[1, 3]:.1f}, {m[2, 3]:.1f}) mm, "
+                f"needles advance along ({m[0, 2]:.2f}, {m[1, 2]:.2f}, {m[2, 2]:.2f}) (LPS). "
+                f"{scene.template.source.splitlines()[0] if scene.template.source else ''}")
+    settings = (f"Needle radius {cfg.needle_radius_mm:.2f} mm; reach tolerance {cfg.reach_tolerance_mm:g} mm; "
+                f"free length up to {cfg.max_depth_mm:g} mm; stylet designs {', '.join(cfg.designs) or 'none'}; "
+                f"the top {cfg.refine_top} feasible steered candidate(s) per target re-solved with the reference "
+                "model.")
+    return Section("Case", "case", (
+        Paragraph(f"{case}. Coordinates are DICOM patient coordinates (LPS: +x patient left, +y posterior, "
+                  "+z superior), in mm."),
+        Table(("organ", "role", "volume (cm³)", "extent min .. max (mm)"), tuple(organ_rows), "Organs",
+              numeric=(2,)),
+        Table(("target", "x (mm)", "y (mm)", "z (mm)"), tuple(target_rows), "Targets (ROI centroids or points)",
+              numeric=(1, 2, 3)),
+        Paragraph(template),
+        Paragraph(settings),
+        Figure(template_png, "Template holes; the holes of the per-target best straight (orange) and best "
+                             "steered (cyan) needles are labelled."),
+    ))
+
+
+def _cand_cells(c: Candidate | None, steered: bool) -> tuple[str, ...]:
+    if c is None:
+        return ("none feasible", "", "", "") if steered else ("none feasible", "", "")
+    geometry = (f"{c.hole_distance_mm:.1f} / {c.reach_error_mm:.1f} / {_f(c.clearance_mm)} ({c.closest_organ})")
+    return (c.hole_id, geometry, _f(c.peak_tension_n), c.model) if steered else (c.hole_id, geometry, c.model)
+
+
+def _ranking_section(result: PlanResult) -> Section:
+    rows = []
+    for target, cands in result.ranking.items():
+        top = cands[0] if cands else None
+        first = "none" if top is None or not top.feasible else "steered" if top.steered else "straight"
+        rows.append((target, first, *_cand_cells(result.best(target, False), False),
+                     *_cand_cells(result.best(target, True), True)))
+    geometry = "from centre / reach error / clearance (closest organ), mm"
+    head = ("target", "top ranked", "straight: hole", f"straight: {geometry}", "straight: model", "steered: hole",
+            f"steered: {geometry}", "steered: peak tension (N)", "steered: model")
+    main = Table(head, tuple(rows), "Best straight next to best steered needle per target", numeric=(7,))
+    weights = result.config.weights
+    detail_rows = []
+    for target, cands in result.ranking.items():
+        for i, c in enumerate(cands[:5], start=1):
+            detail_rows.append((target, str(i), c.hole_id, "steered" if c.steered else "straight", c.design or "-",
+                                _f(weights.score(c)), _f(c.reach_error_mm), _f(c.clearance_mm),
+                                _f(c.insertion_depth_mm), _f(c.peak_tension_n), c.model,
+                                "yes" if c.feasible else f"no: {c.reason}"))
+    detail = Table(("target", "rank", "hole", "kind", "stylet", "score", "reach error (mm)", "clearance (mm)",
+                    "depth (mm)", "peak tension (N)", "model", "feasible"), tuple(detail_rows),
+                   "Top 5 candidates of every target (lower score ranks first)", numeric=(1, 5, 6, 7, 8, 9),
+                   collapsed=True)
+    counts: dict[str, int] = {}
+    for c in result.candidates:
+        counts[c.model] = counts.get(c.model, 0) + 1
+    models = "; ".join(f"{m}: {n} candidates" for m, n in sorted(counts.items()))
+    return Section("Ranked candidates", "ranking", (
+        Paragraph(f"{len(result.candidates)} candidates scored (hole × target × schedule). Every number comes "
+                  f"from the model named in its row ({models}). Straight needles are exact lines; steered "
+                  "candidates are screened with the fast model and the best re-solved with the reference model. "
+                  f"Score = {weights.per_mm_from_centre:g}/mm from the template centre + {weights.per_newton:g}/N "
+                  f"peak tension + {weights.per_mm_reach:g}/mm reach error − {weights.per_mm_clearance:g}/mm "
+                  f"clearance (up to {weights.clearance_cap_mm:g} mm) + {weights.steering_cost:g} for steering."),
+        main, detail,
+    ))
+
+
+def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_png: bytes | None,
+                  source_name: str, note: str, settings: OptimizerSettings) -> Section:
+    blocks: list[Paragraph | Table | Figure] = []
+    if comparison is not None:
+        rows = comparison.rows()
+        organs = [n for n, _ in rows[0].oar_d2cc_eqd2_gy] if rows else []
+        table_rows = tuple(
+            (r.arm, str(r.n_needles), "-" if r.needles_needed is None else str(r.needles_needed), _f(r.d90_gy, 2),
+             _f(r.d90_eqd2_gy), _f(r.d98_eqd2_gy), _f(r.v100_pct), *(_f(v) for _, v in r.oar_d2cc_eqd2_gy),
+             "yes" if r.aim_met else "no", r.note) for r in rows)
+        aims = comparison.aims
+        limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
+        blocks += [
+            Paragraph("Straight versus steered: each arm gets the best feasible needle of its kind per target "
+                      "(one per hole) and its dwell times are optimised the same way (TG-43 dose, source "
+                      f"{source_name}; linear programme with {settings.max_target_points} target and "
+                      f"{settings.max_oar_points} points per organ, fewer than the delivered plan's: on the "
+                      "demo phantom, D90 moves by up to about 2 Gy EQD2 with the point sampling, so smaller "
+                      "differences between the arms are not significant). 'needed' is the smallest number of "
+                      "the arm's needles, in target order, that reaches the aim. Aims (EMBRACE II, EQD2 with "
+                      f"45 Gy / 25 fx external beam, {aims.fractionation.n_fractions} fractions): HR-CTV D90 ≥ "
+                      f"{aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}."),
+            Table(("arm", "needles", "needed", "D90 (Gy/fx)", "D90 EQD2 (Gy)", "D98 EQD2 (Gy)", "V100 (%)",
+                   *(f"{o} D2cm³ EQD2 (Gy)" for o in organs), "aim met", "note"), table_rows,
+                  "Coverage, straight versus steered", numeric=tuple(range(1, 7 + len(organs)))),
+        ]
+        if dvh_png is not None:
+            blocks.append(Figure(dvh_png, "Cumulative DVHs per fraction: solid = first arm, dashed = second arm; "
+                                          "grey line = prescription."))
+    elif note:
+        blocks.append(Paragraph(note))
+    if delivery is not None:
+        opt = delivery.optimisation
+        rows2 = [(opt.target.name, _f(opt.target.volume_cc), _f(opt.target.d90_gy, 2), _f(opt.target.d90_eqd2_gy),
+                  _f(opt.target.d98_eqd2_gy), _f(opt.target.v100_pct), "-")]
+        rows2 += [(o.name, _f(o.volume_cc), _f(o.d90_gy, 2), _f(o.d90_eqd2_gy), _f(o.d98_eqd2_gy), _f(o.v100_pct),
+                   _f(o.d2cc_eqd2_gy)) for o in opt.oars]
+        status = ("aim met" if opt.aim_met else "aim NOT met") if opt.success else f"not solved: {opt.reason}"
+        blocks += [
+            Paragraph(f"Delivered plan ({len(delivery.needles)} needles: the top-ranked feasible needle of every "
+                      f"target, full optimiser settings): {status}; {opt.reason}."),
+            Table(("structure", "volume (cm³)", "D90 (Gy/fx)", "D90 EQD2 (Gy)", "D98 EQD2 (Gy)", "V100 (%)",
+                   "D2cm³ EQD2 (Gy)"), tuple(rows2), "Delivered plan: dose-volume metrics",
+                  numeric=(1, 2, 3, 4, 5, 6)),
+        ]
+    return Section("Dose and coverage", "dose", tuple(blocks))
+
+
+def _runs(schedule: np.ndarray) -> list[tuple[float, float, float]]:
+    """Schedule breakpoints (depth, tension, roll) without repeats of the same tension and roll."""
+    out: list[tuple[float, float, float]] = []
+    for d, t, r in schedule:
+        if not out or abs(out[-1][1] - t) > 1e-6 or abs(out[-1][2] - r) > 1e-6:
+            out.append((float(d), float(t), float(r)))
+    return out
+
+
+def _device_section(delivery: Delivery | None) -> Section:
+    if delivery is None:
+        return Section("Device instructions", "device", (
+            Paragraph("No delivery: the plan was ranked only (--no-export)."),))
+    rows = []
+    for ch, (n, c) in enumerate(zip(delivery.export.needles, delivery.needles, strict=True), start=1):
+        steps = ("straight needle, no tendon" if n.schedule is None else
+                 "; ".join(f"from {d:.1f} mm: {t:.2f} N, roll {r:.0f}°" for d, t, r in _runs(n.schedule)))
+        active = n.dwell_times_s > 0
+        rows.append((str(ch), n.hole_id, c.target, n.design or "plain needle", _f(n.length_mm), steps,
+                     str(int(active.sum())), _f(float(n.dwell_times_s.sum()))))
+    src = delivery.export.source
+    return Section("Device instructions", "device", (
+        Paragraph("Per needle, in channel order: the template hole, the stylet, how deep to insert (arc length from "
+                  "the template plane) and the tension schedule (tendon tension and roll of the bending plane, "
+                  "template frame, 0° = template +x; held from each depth until the next). A needle with no active "
+                  "dwell is inserted but the optimiser left it unloaded. The exact rows are in "
+                  "export/*_device.json and one CSV per needle; the afterloader plan in export/RP_*.dcm. Source: "
+                  f"{src.title or src.name}, S_K {src.air_kerma_rate_u:.0f} U (ASSUMED planning strength)."),
+        Table(("channel", "hole", "target", "stylet", "insertion depth (mm)", "schedule", "active dwells",
+               "total dwell time (s)"), tuple(rows), "Device instructions", numeric=(0, 4, 6, 7)),
+    ))
+
+
+def _models_section(result: PlanResult, chart: bytes | None, rows: Sequence[Any], used: dict[str, str]) -> Section:
+    if chart is None:
+        return Section("Models: speed vs accuracy", "models", (
+            Paragraph("The rod-model error table (rod_model/model_errors.json) is not available; run "
+                      "`reachplan bench models --out DIR --install` from a source checkout."),))
+    table = tuple((r.model, r.resolution, f"{r.median_ms:.3f}", f"{r.max_tip_error_mm:.2g}",
+                   "-" if r.batched_solves_per_s is None else f"{r.batched_solves_per_s:,.0f}",
+                   used.get(r.model, "") if r.resolution == "default" else "") for r in rows)
+    return Section("Models: speed vs accuracy", "models", (
+        Paragraph("Measured by benchmarks/rod_models.py (reachplan bench models) against the converged two-tube "
+                  "Cosserat reference, over every stylet preset × tensions 0-15 N in free space; the numbers come "
+                  "from the packaged table rod_model/model_errors.json, not from this run. Ringed: the rod models "
+                  "this plan's candidates were computed with."),
+        Figure(chart, "Time per solve against worst tip error of each rod model and resolution; labels say which "
+                      "model produced which numbers of this plan."),
+        Table(("rod model", "resolution", "median time per solve (ms)", "max tip error (mm)",
+               "batched solves per s", "used in this plan"), table, "Measured error table", numeric=(2, 3, 4),
+              collapsed=True),
+    ))
+
+
+def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = None,
+                 delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
+                 timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
+                 comparison_note: str = "", options: ReportOptions | None = None, quiet: bool = True,
+                 case_figures: Sequence[Figure] = ()) -> Report:
+    """Assemble the report of a plan (figures are rendered here; nothing is solved except the drawings).
+
+    Parameters
+    ----------
+    scene, result : the plan (:func:`reachplan.planner.pipeline.build_scene`, :func:`reachplan.planner.pipeline.plan`)
+    volume : the image series, drawn under the organ outlines (optional)
+    delivery : the delivered plan (:func:`reachplan.planner.pipeline.plan_delivery`), or None (ranked only)
+    comparison : straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why)
+    case : one line naming the case
+    timings : seconds per stage, shown at the end
+    case_figures : further figures for the case section (e.g. the overview and workspace PNGs)
+    """
+    from reachplan.rod_model.errors import RodModelError
+    from reachplan.rod_model.select import error_table
+
+    options = options or ReportOptions()
+    straight, steered = chosen_by_kind(result, False), chosen_by_kind(result, True)
+    slice_targets = list(result.ranking)[: options.max_slice_targets]
+    bar = tqdm(total=4 + len(slice_targets), desc="report", unit="figure", disable=quiet, leave=False)
+    try:
+        case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
+        case_sec = Section(case_sec.title, case_sec.anchor, (*case_sec.blocks, *case_figures))
+        bar.update()
+        slices: list[Paragraph | Table | Figure] = [Paragraph(
+            "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
+            "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane.")]
+        for t in slice_targets:
+            s, st = result.best(t, False), result.best(t, True)
+            desc = "; ".join(f"{k} {c.hole_id} ({c.model}, reach {c.reach_error_mm:.1f} mm, clearance "
+                             f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
+                             for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
+            slices.append(Figure(figures.slice_views(scene, t, s, st, volume), f"{t}: {desc}"))
+            bar.update()
+        needles = [*straight, *steered]
+        view = figures.views_3d(scene, needles, pitch_mm=options.mesh_pitch_mm)
+        bar.update()
+        dvh = figures.dvh_png(comparison) if comparison is not None else None
+        bar.update()
+        try:
+            rows: Sequence[Any] = error_table()
+        except RodModelError:
+            rows = ()
+        used = models_used(result)
+        chart = figures.speed_accuracy(rows, used) if rows else None
+        bar.update()
+    finally:
+        bar.close()
+    n_reach = {k: sum(result.best(t, k) is not None for t in result.ranking) for k in (False, True)}
+    subtitle = (f"{case}: {len(result.ranking)} targets; a straight needle reaches {n_reach[False]}, a steered one "
+                f"{n_reach[True]}" + ("" if delivery is None else
+                                      f"; delivered plan HR-CTV D90 {delivery.optimisation.target.d90_eqd2_gy:.1f} Gy "
+                                      f"EQD2 ({'aim met' if delivery.optimisation.aim_met else 'aim not met'})"))
+    sections = [
+        case_sec,
+        _ranking_section(result),
+        Section("Slices through the targets", "slices", tuple(slices)),
+        Section("3-D views", "views-3d", (
+            Paragraph("Organs at risk (bone hidden), HR-CTV and the target points with each target's best straight and "
+                      f"steered needles, from three angles (organs re-meshed on a {options.mesh_pitch_mm:g} mm grid "
+                      "for drawing only)."),
+            Figure(view, "3-D views of organs and needles"),
+        )),
+        _dose_section(delivery, comparison, dvh, source_name, comparison_note, options.comparison_settings),
+        _device_section(delivery),
+        _models_section(result, chart, rows, used),
+    ]
+    if timings:
+        sections.append(Section("Run", "run", (Table(("stage", "seconds"),
+                                                     tuple((k.removesuffix("_s"), f"{v:.1f}")
+                                                           for k, v in timings.items()),
+                                                     "Wall time per stage", numeric=(1,)),)))
+    return Report(f"reachplan report: {case}", subtitle, tuple(sections))
+
+
+def write_report(path: Path, scene: Scene, result: PlanResult, structures: StructureSet, *,
+                 volume: Volume | None = None, delivery: Delivery | None = None, case: str = "case",
+                 timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
+                 target_roi: str = "HR-CTV", options: ReportOptions | None = None, quiet: bool = True,
+                 case_pngs: Sequence[Path] = ()) -> Path:
+    """Compare straight and steered needles (when a delivery was made), build the report and write it to
+    ``path`` (HTML, self-contained, atomic). Returns ``path``.
+
+    ``case_pngs``: PNG files written before (``overview.png``, ``workspace.png``) to embed in the case
+    section; missing ones are left out.
+    """
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        release = version("reachplan")
+    except PackageNotFoundError:
+        release = "(not installed)"
+    options = options or ReportOptions()
+    comparison, note = None, ""
+    if delivery is None:
+        note = "No dose: the plan was ranked only (--no-export)."
+    elif options.comparison:
+        bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
+        comparison = compare_chosen(result, structures, volume.grid if volume is not None else None,
+                                    source_name, target_roi, delivery.export.source.air_kerma_rate_u,
+                                    options.comparison_settings, planning=delivery.planning)
+        bar.update()
+        bar.close()
+        if comparison is None:
+            note = "No feasible needle of either kind: nothing to compare."
+    extra = tuple(Figure(Path(p).read_bytes(), CASE_PNG_CAPTIONS.get(Path(p).name, Path(p).name))
+                  for p in case_pngs if Path(p).is_file())
+    report = build_report(scene, result, volume=volume, delivery=delivery, comparison=comparison, case=case,
+                          timings=timings, source_name=source_name, comparison_note=note, options=options,
+                          quiet=quiet, case_figures=extra)
+    footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
+              "research use; not a treatment plan.")
+    return write_html(report, path, footer)

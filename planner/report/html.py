@@ -1,0 +1,184 @@
+"""A self-contained HTML report built from plain data: text, tables and PNG figures.
+
+Nothing here knows about plans: :mod:`reachplan.planner.report.build` turns a plan into a :class:`Report`, and
+:func:`render_html` turns any :class:`Report` into one HTML document. Images are embedded as base64 PNG
+data URIs and the style sheet is inline, so the file opens offline, from anywhere, in any browser; there
+is no script at all.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from dataclasses import dataclass
+from pathlib import Path
+
+from reachplan.imaging.files import atomic_write_bytes
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@dataclass(frozen=True)
+class Paragraph:
+    """A paragraph of plain text (escaped when rendered)."""
+
+    text: str
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table of text cells.
+
+    ``numeric`` marks the columns to right-align; ``collapsed`` puts the table in a closed
+    ``<details>`` element (for long tables), with ``caption`` as its summary.
+    """
+
+    headers: tuple[str, ...]
+    rows: tuple[tuple[str, ...], ...]
+    caption: str = ""
+    numeric: tuple[int, ...] = ()
+    collapsed: bool = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "headers", tuple(self.headers))
+        object.__setattr__(self, "rows", tuple(tuple(r) for r in self.rows))
+        for i, r in enumerate(self.rows):
+            if len(r) != len(self.headers):
+                raise ValueError(f"table {self.caption!r}: row {i} has {len(r)} cells, the header {len(self.headers)}")
+        if any(not 0 <= c < len(self.headers) for c in self.numeric):
+            raise ValueError(f"table {self.caption!r}: a numeric column index is out of range")
+
+
+@dataclass(frozen=True, eq=False)
+class Figure:
+    """A PNG image with its caption (``alt`` defaults to the caption)."""
+
+    png: bytes
+    caption: str
+    alt: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.png.startswith(PNG_SIGNATURE):
+            raise ValueError(f"figure {self.caption!r}: not a PNG image")
+
+
+Block = Paragraph | Table | Figure
+
+
+@dataclass(frozen=True, eq=False)
+class Section:
+    """A titled part of the report; ``anchor`` is its HTML id (letters, digits, ``-``)."""
+
+    title: str
+    anchor: str
+    blocks: tuple[Block, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "blocks", tuple(self.blocks))
+        if not self.anchor or not all(ch.isalnum() or ch == "-" for ch in self.anchor):
+            raise ValueError(f"section {self.title!r}: anchor must be letters, digits and '-', got {self.anchor!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Report:
+    """A whole report: a title, a one-line subtitle and its sections in order."""
+
+    title: str
+    subtitle: str
+    sections: tuple[Section, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sections", tuple(self.sections))
+        anchors = [s.anchor for s in self.sections]
+        if len(set(anchors)) != len(anchors):
+            raise ValueError("report sections need unique anchors")
+
+    @property
+    def figures(self) -> tuple[Figure, ...]:
+        """Every figure, in document order."""
+        return tuple(b for s in self.sections for b in s.blocks if isinstance(b, Figure))
+
+
+STYLE = """
+body { font: 14px/1.45 system-ui, -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; color: #1d2330;
+       margin: 0; background: #f5f6f8; }
+header { background: #1d2b45; color: #fff; padding: 18px 32px; }
+header h1 { margin: 0 0 4px 0; font-size: 24px; }
+header p { margin: 0; opacity: 0.85; }
+nav { padding: 8px 32px; background: #e8ebf0; font-size: 13px; }
+nav a { margin-right: 14px; color: #1d2b45; }
+main { padding: 8px 32px 40px 32px; max-width: 1400px; }
+section { background: #fff; border-radius: 6px; padding: 6px 20px 16px 20px; margin: 16px 0;
+          box-shadow: 0 1px 2px rgba(0,0,0,0.08); }
+h2 { font-size: 19px; border-bottom: 1px solid #dde1e7; padding-bottom: 4px; }
+.scroll { overflow-x: auto; }
+table { border-collapse: collapse; margin: 8px 0 12px 0; font-size: 12.5px; }
+caption { text-align: left; font-weight: 600; padding: 4px 0; }
+th, td { border: 1px solid #d6dbe3; padding: 3px 7px; vertical-align: top; }
+th { background: #eef1f5; text-align: left; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+tbody tr:nth-child(even) { background: #fafbfc; }
+figure { margin: 10px 0 16px 0; }
+figure img { max-width: 100%; height: auto; border: 1px solid #e1e4ea; }
+figcaption { font-size: 12.5px; color: #4a5263; margin-top: 4px; }
+details summary { cursor: pointer; font-weight: 600; margin: 6px 0; }
+footer { color: #6b7280; font-size: 12px; padding: 0 32px 24px 32px; }
+"""
+
+
+def _e(text: str) -> str:
+    return html.escape(text, quote=True)
+
+
+def _table(t: Table) -> str:
+    head = "".join(f"<th>{_e(h)}</th>" for h in t.headers)
+    body = []
+    for row in t.rows:
+        cells = "".join(f'<td class="num">{_e(c)}</td>' if i in t.numeric else f"<td>{_e(c)}</td>"
+                        for i, c in enumerate(row))
+        body.append(f"<tr>{cells}</tr>")
+    caption = f"<caption>{_e(t.caption)}</caption>" if t.caption and not t.collapsed else ""
+    out = (f'<div class="scroll"><table>{caption}<thead><tr>{head}</tr></thead>'
+           f"<tbody>{''.join(body)}</tbody></table></div>")
+    if t.collapsed:
+        out = f"<details><summary>{_e(t.caption or 'table')}</summary>{out}</details>"
+    return out
+
+
+def _figure(f: Figure) -> str:
+    data = base64.b64encode(f.png).decode("ascii")
+    return (f'<figure><img src="data:image/png;base64,{data}" alt="{_e(f.alt or f.caption)}">'
+            f"<figcaption>{_e(f.caption)}</figcaption></figure>")
+
+
+def _block(b: Block) -> str:
+    if isinstance(b, Paragraph):
+        return f"<p>{_e(b.text)}</p>"
+    if isinstance(b, Table):
+        return _table(b)
+    return _figure(b)
+
+
+def render_html(report: Report, footer: str = "") -> str:
+    """The report as one self-contained HTML5 document (no script, no external resource)."""
+    nav = "".join(f'<a href="#{s.anchor}">{_e(s.title)}</a>' for s in report.sections)
+    sections = "\n".join(
+        f'<section id="{s.anchor}"><h2>{_e(s.title)}</h2>{"".join(_block(b) for b in s.blocks)}</section>'
+        for s in report.sections)
+    return (
+        "<!DOCTYPE html>\n"
+        '<html lang="en"><head><meta charset="utf-8">'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        "<meta http-equiv=\"Content-Security-Policy\" content=\"default-src 'none'; img-src data:; "
+        "style-src 'unsafe-inline'\">"
+        f"<title>{_e(report.title)}</title><style>{STYLE}</style></head>\n"
+        f"<body><header><h1>{_e(report.title)}</h1><p>{_e(report.subtitle)}</p></header>\n"
+        f"<nav>{nav}</nav>\n<main>\n{sections}\n</main>\n"
+        f"<footer>{_e(footer)}</footer></body></html>\n"
+    )
+
+
+def write_html(report: Report, path: Path, footer: str = "") -> Path:
+    """Render ``report`` and write it to ``path`` atomically; returns ``path``."""
+    atomic_write_bytes(Path(path), render_html(report, footer).encode("utf-8"))
+    return Path(path)

@@ -1,0 +1,61 @@
+"""Reachable-workspace map: where each hole's steered needle can put its tip at a given depth."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.patches import Circle
+
+from reachplan.imaging.files import atomic_write_bytes
+from reachplan.planner.pipeline import PlanConfig, Scene
+from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
+from reachplan.rod_model.design import preset
+
+
+def workspace_figure(scene: Scene, config: PlanConfig, path: Path, depth_mm: float | None = None) -> None:
+    """Axial map, in the template plane's coordinates at ``depth_mm`` beyond it (default: the targets' mean
+    depth): every needle hole with the disk its needle reaches there (first design of ``config``), the
+    targets, and the organs' outlines at that depth (PNG)."""
+    inv = np.linalg.inv(scene.patient_from_template)
+    t_local = np.array([inv[:3, :3] @ np.asarray(t.position_mm) + inv[:3, 3] for t in scene.targets])
+    depth = float(np.mean(t_local[:, 2])) if depth_mm is None else depth_mm
+    radius = 0.0
+    label = "straight only"
+    if config.designs:
+        design = preset(config.designs[0])
+        bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm))
+        radius = float(reach_radius_mm(bank, np.array([depth]))[0])
+        label = f"{design.name}: reach {radius:.1f} mm at {depth:.0f} mm depth"
+    fig, ax = plt.subplots(figsize=(7, 7))
+    holes = scene.template.needle_holes
+    dist = np.array([h.distance_mm for h in holes])
+    cmap = plt.get_cmap("viridis")
+    for h, d in zip(holes, dist, strict=True):
+        colour = cmap(d / max(dist.max(), 1.0))
+        ax.add_patch(Circle(h.xy_mm, radius, color=colour, alpha=0.08, lw=0))
+        ax.plot(*h.xy_mm, "o", color=colour, ms=3)
+    centre = scene.patient_from_template[:3, 3] + depth * scene.patient_from_template[:3, 2]
+    normal = scene.patient_from_template[:3, 2]
+    for name, mesh in scene.meshes.items():
+        sec = mesh.section(plane_origin=centre, plane_normal=normal)
+        if sec is None:
+            continue
+        for loop in sec.discrete:
+            local = (np.asarray(loop) - scene.patient_from_template[:3, 3]) @ scene.patient_from_template[:3, :3]
+            ax.plot(local[:, 0], local[:, 1], lw=1, color="0.3" if name not in {t.name for t in scene.targets}
+                    else "red")
+    ax.plot(t_local[:, 0], t_local[:, 1], "r+", ms=9, label="targets")
+    ax.set(title=f"reachable workspace per hole ({label})", xlabel="template x (mm)", ylabel="template y (mm)")
+    ax.set_aspect("equal")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())

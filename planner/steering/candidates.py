@@ -1,0 +1,222 @@
+"""Candidates: holes x targets -> predicted needle path -> clearance -> score.
+
+A :class:`Candidate` carries every number the ranking uses, which model produced the path, and why it was
+rejected when it was. JSON field names are a public contract: later versions add fields, never rename.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from reachplan.planner.geometry.collision import Organ, check_path
+from reachplan.planner.steering.schedule import TensionSchedule
+
+
+@dataclass(frozen=True)
+class Target:
+    """A point to reach: ``position_mm`` (3,) float, mm, LPS (e.g. the centroid of a target ROI)."""
+
+    name: str
+    position_mm: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        if len(self.position_mm) != 3 or not all(np.isfinite(self.position_mm)):
+            raise ValueError(f"target {self.name!r}: position must be three finite numbers (mm, LPS)")
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One needle candidate for one target, with its score.
+
+    Parameters
+    ----------
+    target, hole_id : str
+    hole_distance_mm : float
+        Distance of the hole from the template centre (mm); smaller = more medial.
+    reach_error_mm : float
+        Distance from the predicted tip to the target point (mm).
+    clearance_mm : float
+        Smallest surface distance from the needle to any organ at risk or bone (mm); 0 when touching;
+        NaN when it was not checked because the candidate does not reach (JSON ``null``, with the reason).
+    closest_organ : str
+        The organ that sets ``clearance_mm``.
+    insertion_depth_mm : float
+        Arc length of needle inserted beyond the template plane (mm).
+    steered : bool
+        False for a straight needle.
+    peak_tension_n : float
+        Largest tendon tension of the schedule (N); 0 for a straight needle.
+    model : str
+        The model that produced the path (``straight`` or a rod/insertion model name).
+    collides : bool
+        True when the needle touches or enters an organ at risk or bone.
+    reaches : bool
+        True when ``reach_error_mm`` is within the plan's reach tolerance.
+    reason : str
+        Why the candidate is rejected ("" when it is feasible).
+    path_mm : (n, 3) float, mm, LPS
+        Predicted needle centreline from the hole (first point) to the tip (last point).
+    design : str
+        Stylet preset ("" for a plain straight needle).
+    schedule : TensionSchedule or None
+        Tension and roll along the insertion (None for a straight needle).
+    worst_reach_mm, worst_clearance_mm, worst_case : float, float, str
+        Robustness (see :mod:`reachplan.planner.steering.robustness`): worst reach error and smallest clearance under
+        tension, roll and entry-angle errors, and which error gave them; NaN/"" when not assessed.
+    """
+
+    target: str
+    hole_id: str
+    hole_distance_mm: float
+    reach_error_mm: float
+    clearance_mm: float
+    closest_organ: str
+    insertion_depth_mm: float
+    steered: bool
+    peak_tension_n: float
+    model: str
+    collides: bool
+    reaches: bool
+    reason: str
+    path_mm: np.ndarray = field(repr=False)
+    design: str = ""
+    schedule: TensionSchedule | None = field(default=None, repr=False)
+    worst_reach_mm: float = float("nan")
+    worst_clearance_mm: float = float("nan")
+    worst_case: str = ""
+
+    @property
+    def feasible(self) -> bool:
+        """Reaches its target without touching an organ at risk."""
+        return self.reaches and not self.collides
+
+    def to_json(self) -> dict[str, Any]:
+        """The candidate as JSON-ready values (mm, N)."""
+        sched = None if self.schedule is None else [
+            [round(float(d), 3), round(float(t), 3), round(float(r), 3)]
+            for d, t, r in zip(self.schedule.depth_mm, self.schedule.tension_n, self.schedule.roll_deg, strict=True)]
+        return {
+            "target": self.target,
+            "hole_id": self.hole_id,
+            "hole_distance_mm": round(self.hole_distance_mm, 3),
+            "reach_error_mm": round(self.reach_error_mm, 3),
+            "clearance_mm": round(self.clearance_mm, 3) if np.isfinite(self.clearance_mm) else None,
+            "closest_organ": self.closest_organ,
+            "insertion_depth_mm": round(self.insertion_depth_mm, 3),
+            "steered": self.steered,
+            "peak_tension_n": round(self.peak_tension_n, 3),
+            "model": self.model,
+            "collides": self.collides,
+            "reaches": self.reaches,
+            "feasible": self.feasible,
+            "reason": self.reason,
+            "entry_position_mm": [round(float(v), 3) for v in self.path_mm[0]],
+            "tip_position_mm": [round(float(v), 3) for v in self.path_mm[-1]],
+            "design": self.design,
+            "schedule": sched,
+            "robustness": None if np.isnan(self.worst_reach_mm) else {
+                "worst_reach_mm": round(self.worst_reach_mm, 3),
+                "worst_clearance_mm": round(self.worst_clearance_mm, 3) if np.isfinite(self.worst_clearance_mm)
+                else None,
+                "worst_case": self.worst_case},
+        }
+
+
+def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float) -> np.ndarray:
+    """A straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``: (2, 3) float, mm, LPS
+    (one capsule; collision depths are still resolved to 1 mm by the collision check)."""
+    return np.asarray(entry_mm, float) + np.outer([0.0, depth_mm], direction)
+
+
+def score_path(
+    target: Target,
+    hole_id: str,
+    hole_distance_mm: float,
+    path_mm: np.ndarray,
+    organs: Sequence[Organ],
+    needle_radius_mm: float,
+    reach_tolerance_mm: float,
+    model: str,
+    steered: bool = False,
+    peak_tension_n: float = 0.0,
+    reason: str = "",
+    design: str = "",
+    schedule: TensionSchedule | None = None,
+    depth_mm: float | None = None,
+    check: bool = True,
+) -> Candidate:
+    """Score one predicted path: reach error at the target, clearance and collisions against ``organs``.
+
+    ``depth_mm`` is the inserted arc length (default: the polyline's length); ``check=False`` skips the
+    collision check (clearance NaN) for a candidate that does not reach anyway.
+    """
+    tip = path_mm[-1]
+    reach = float(np.linalg.norm(tip - np.asarray(target.position_mm)))
+    depth = float(np.sum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1))) if depth_mm is None else depth_mm
+    checks = check_path(path_mm, needle_radius_mm, tuple(organs)) if check else ()
+    hits = sorted((c for c in checks if c.collides), key=lambda c: (c.contact_s_mm or 0.0, c.organ))
+    if hits:
+        clearance, organ = 0.0, hits[0].organ
+    elif checks:
+        nearest = min(checks, key=lambda c: (c.clearance_mm, c.organ))
+        clearance, organ = nearest.clearance_mm, nearest.organ
+    elif check:
+        clearance, organ = float("inf"), ""
+    else:
+        clearance, organ = float("nan"), ""
+    reaches = reach <= reach_tolerance_mm
+    reasons = [reason] if reason else []
+    if hits:
+        reasons.append(f"collides with {hits[0].organ} at depth {hits[0].contact_s_mm or 0.0:.1f} mm")
+    if not reaches:
+        reasons.append(f"misses the target by {reach:.1f} mm")
+    return Candidate(
+        target=target.name, hole_id=hole_id, hole_distance_mm=hole_distance_mm, reach_error_mm=reach,
+        clearance_mm=clearance, closest_organ=organ, insertion_depth_mm=depth, steered=steered,
+        peak_tension_n=peak_tension_n, model=model, collides=bool(hits), reaches=reaches,
+        reason="; ".join(reasons), path_mm=path_mm, design=design, schedule=schedule,
+    )
+
+
+def straight_candidates(
+    targets: Iterable[Target],
+    hole_ids: Sequence[str],
+    hole_distances_mm: np.ndarray,
+    entry_mm: np.ndarray,
+    direction: np.ndarray,
+    organs: Sequence[Organ],
+    needle_radius_mm: float,
+    reach_tolerance_mm: float = 2.0,
+    max_depth_mm: float = 200.0,
+) -> list[Candidate]:
+    """Straight-needle candidates for every hole and target.
+
+    The tip is placed at the target's depth along the hole's axis (the closest approach of a straight
+    needle), so the reach error is the target's distance from that axis. Candidates that miss are not
+    checked for collisions (clearance NaN, JSON null): they are rejected for the miss, which their reason says.
+
+    Parameters
+    ----------
+    entry_mm, direction : (n_holes, 3) float, mm and unit vectors, LPS
+    hole_distances_mm : (n_holes,) float, mm
+    """
+    out: list[Candidate] = []
+    for target in targets:
+        t = np.asarray(target.position_mm, float)
+        depths = np.einsum("ij,ij->i", t - entry_mm, direction)
+        for k, hole_id in enumerate(hole_ids):
+            depth = float(depths[k])
+            reason = ""
+            if depth <= 0.0:
+                depth, reason = 1.0, "target lies behind the template plane"
+            elif depth > max_depth_mm:
+                depth, reason = max_depth_mm, f"target deeper than the needle's {max_depth_mm:.0f} mm"
+            path = straight_path(entry_mm[k], direction[k], depth)
+            reaches = float(np.linalg.norm(path[-1] - t)) <= reach_tolerance_mm
+            out.append(score_path(target, hole_id, float(hole_distances_mm[k]), path, organs, needle_radius_mm,
+                                  reach_tolerance_mm, "straight", reason=reason, check=reaches))
+    return out

@@ -1,0 +1,438 @@
+"""Insertion models: the path a steered needle cuts while it is pushed in under a tension schedule.
+
+Two models behind one Protocol, both in the template frame (entry at the origin, ``+z`` the insertion
+direction, roll 0 bends toward template ``+x``), millimetres:
+
+``kinematic``
+    Tip following. The tip advances along its tangent, which turns toward the bending direction (set by the
+    roll) at the free-space curvature of the stylet's distal (joint) section under the current tension,
+    from a rod model, times a tissue factor. Cheap and vectorised over many schedules at once.
+``tissue_beam``
+    Reference quasi-static model. The stylet-in-needle rod (piecewise bending stiffness and the tendon's
+    preferred curvature per section, both from the rod model's free-space solve at the current tension) is
+    clamped at the template and embedded in an elastic (Winkler) medium. It is inserted in steps; the tissue
+    cut at each step is attached, by springs, to where the tip cut it (the tip's tangent at that moment),
+    and the already-inserted part is held by that track. Each step solves the linear equilibrium by
+    minimising bending plus foundation energy on a finite-difference grid.
+
+Assumptions (stated, not hidden): the mechanics is linearised in the lateral slopes (accurate to a few
+per cent up to ~0.3 rad), and the centreline is rebuilt inextensibly from those slopes; the two
+lateral planes decouple (isotropic medium and section); tissue is linear-elastic and homogeneous along
+the path (one modulus per plan; per-organ moduli are left for later); no friction or axial load; the
+rod model's free-space section curvature is the tendon's preferred curvature (the tendon's compression
+stays internal to the rod). Winkler modulus after Vesic (1961), ``k = 0.65 E_s/(1-ν²) (E_s D⁴/EI)^(1/12)``,
+with the phantom's SimuGel modulus E_s = 0.19 MPa (reference: ``oncoreach.md``, Tissue and phantom).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.plugins import registry
+from reachplan.rod_model.design import RodDesign
+from reachplan.rod_model.protocol import RodModel
+
+#: SimuGel #3 Young's modulus (Pa), the phantom's tissue (reference: oncoreach.md, section 4).
+SIMUGEL_MODULUS_PA = 0.19e6
+#: Poisson's ratio of a water-rich gel, ASSUMED nearly incompressible.
+TISSUE_POISSON = 0.49
+
+
+@dataclass(frozen=True, eq=False)
+class InsertionPath:
+    """A predicted needle centreline after insertion.
+
+    Parameters
+    ----------
+    positions_mm : (n, 3) float, mm, template frame; row 0 at the template (origin), last row the tip.
+    depth_mm : float
+        Inserted arc length.
+    model : str
+        ``insertion model + rod model`` that produced it, e.g. ``kinematic+planar_beam``.
+    """
+
+    positions_mm: np.ndarray
+    depth_mm: float
+    model: str
+
+
+@dataclass(frozen=True)
+class FailedInsertion:
+    """An insertion the model could not predict, with the reason."""
+
+    model: str
+    reason: str
+
+    def __bool__(self) -> bool:
+        return False
+
+
+@runtime_checkable
+class InsertionModel(Protocol):
+    """What the planner needs of an insertion model (entry-point group ``reachplan.insertion_models``)."""
+
+    @property
+    def name(self) -> str: ...
+
+    def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
+               depth_mm: float) -> list[InsertionPath | FailedInsertion]: ...
+
+
+def check_insertion_model(obj: object) -> None:
+    """Raise ``TypeError`` when ``obj`` does not implement :class:`InsertionModel`."""
+    if not isinstance(obj, InsertionModel):
+        raise TypeError(f"{obj!r} does not implement InsertionModel (.name, .insert(design, schedules, depth_mm))")
+
+
+@dataclass(frozen=True, eq=False)
+class CurvatureTable:
+    """Free-space section curvatures of a design against tendon tension, from one rod model.
+
+    ``section_curvature_per_mm`` is (n_tensions, k); exact at the tabulated tensions, linear between.
+    """
+
+    rod_model: str
+    tensions_n: np.ndarray
+    section_bounds_mm: np.ndarray
+    section_curvature_per_mm: np.ndarray
+    joint_section: int
+
+    def joint(self, tension_n: np.ndarray) -> np.ndarray:
+        """Joint-section curvature (1/mm) at the given tensions (N)."""
+        return np.interp(tension_n, self.tensions_n, self.section_curvature_per_mm[:, self.joint_section])
+
+    def sections(self, tension_n: float) -> np.ndarray:
+        """(k,) curvature (1/mm) of every section at one tension."""
+        return np.array([np.interp(tension_n, self.tensions_n, c) for c in self.section_curvature_per_mm.T])
+
+
+def get_model(name: str) -> RodModel:
+    """The rod-model plugin called ``name``."""
+    model: RodModel = registry.get("rod_models", name)
+    return model
+
+
+@lru_cache(maxsize=64)
+def curvature_table(design: RodDesign, rod_model: str = "planar_beam", n: int = 21) -> CurvatureTable:
+    """Tabulate the free-space section curvatures of ``design`` from 0 to its maximum tension.
+
+    Raises
+    ------
+    PlanInputError
+        When the rod model does not converge at some tabulated tension (the table would be wrong).
+    """
+    tensions = np.linspace(0.0, design.max_tension_n, n)
+    batch = get_model(rod_model).solve_batch(design, tensions)
+    if not np.all(batch.converged):
+        bad = tensions[~np.asarray(batch.converged)]
+        raise PlanInputError(f"rod model {rod_model} did not converge for {design.name} at {bad} N")
+    return CurvatureTable(rod_model, tensions, np.asarray(batch.section_bounds_mm, float),
+                          np.asarray(batch.section_curvature_per_m, float) * 1e-3, int(batch.joint_section))
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rodrigues rotation of rows ``v`` about unit rows ``axis`` by ``angle`` (rad); all (S, 3) / (S,)."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return v * c + np.cross(axis, v) * s + axis * np.einsum("ij,ij->i", axis, v)[:, None] * (1 - c)
+
+
+@dataclass(frozen=True)
+class KinematicInsertion:
+    """Tip-following insertion (see the module docstring), vectorised over schedules.
+
+    Parameters
+    ----------
+    tissue_factor : float
+        Path curvature over the joint section's free-space curvature. Default 1.0: fitted to the
+        ``tissue_beam`` reference in the phantom's gel (:func:`fit_tissue_factor`, 12 ramps from 0 to 60 mm
+        onset, 50-100 % of the maximum tension, 150 mm deep) it is 0.993 for 15ga-20j-tip and 15ga-30j-tip
+        and 1.023 for 13ga-20j-tip, with tip departures of median 0.4 mm and at most 1.0 mm. Physically:
+        the gel's Winkler length (4 EI / k)^(1/4) ≈ 25 mm is shorter than the joint section, so the
+        distal section keeps its free-space curvature and the needle follows it. Softer tissue lowers it.
+    rod_model : str
+        Rod model that gives the curvature table (``planar_beam`` is exact to 0.1 % of the two-tube model
+        for free-space curvature; see the rod-model benchmark).
+    step_mm : float
+        Integration step along the insertion.
+    """
+
+    tissue_factor: float = 1.0
+    rod_model: str = "planar_beam"
+    step_mm: float = 1.0
+
+    @property
+    def name(self) -> str:
+        return "kinematic"
+
+    def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
+               depth_mm: float) -> list[InsertionPath | FailedInsertion]:
+        paths = self.insert_array(design, schedules, depth_mm)
+        label = f"{self.name}+{self.rod_model}"
+        return [InsertionPath(p, depth_mm, label) for p in paths]
+
+    def insert_array(self, design: RodDesign, schedules: Sequence[TensionSchedule], depth_mm: float) -> np.ndarray:
+        """All paths at once: (S, n, 3) float, mm, template frame."""
+        _check_depth(design, depth_mm)
+        table = curvature_table(design, self.rod_model)
+        n = max(1, int(np.ceil(depth_mm / self.step_mm)))
+        depths = np.linspace(0.0, depth_mm, n + 1)
+        h = depth_mm / n
+        tension = np.empty((len(schedules), n + 1))
+        roll = np.empty_like(tension)
+        for i, sch in enumerate(schedules):
+            tension[i], roll[i] = sch.at(depths)
+        if np.any(tension > design.max_tension_n + 1e-9):
+            raise PlanInputError(f"a schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
+        kappa = self.tissue_factor * table.joint(tension)  # (S, n+1), 1/mm
+        phi = np.radians(roll)
+        if np.all(np.ptp(phi, axis=1) == 0.0):
+            return _planar_paths(kappa, phi[:, 0], h)
+        s_count = len(schedules)
+        pos = np.zeros((s_count, n + 1, 3))
+        t = np.tile([0.0, 0.0, 1.0], (s_count, 1))
+        e1 = np.tile([1.0, 0.0, 0.0], (s_count, 1))
+        for j in range(n):
+            km = 0.5 * (kappa[:, j] + kappa[:, j + 1])
+            ph = 0.5 * (phi[:, j] + phi[:, j + 1])
+            e2 = np.cross(t, e1)
+            b = np.cos(ph)[:, None] * e1 + np.sin(ph)[:, None] * e2
+            axis = np.cross(t, b)  # unit: t and b are orthonormal
+            half = _rotate(t, axis, 0.5 * km * h)
+            chord = h * np.sinc(0.5 * km * h / np.pi)  # = 2 sin(κh/2)/κ, the chord of the arc step
+            pos[:, j + 1] = pos[:, j] + chord[:, None] * half  # along the mid-step tangent: exact for an arc
+            t_new = _rotate(t, axis, km * h)
+            e1 = _rotate(e1, axis, km * h)  # parallel transport of the reference normal
+            t = t_new
+        return pos
+
+
+def _planar_paths(kappa: np.ndarray, phi: np.ndarray, h: float) -> np.ndarray:
+    """Tip-following paths of constant roll: the tangent angle is the running integral of the curvature,
+    each step an exact circular arc (chord along the mid-step tangent). (S, n+1, 3) float, mm."""
+    km = 0.5 * (kappa[:, 1:] + kappa[:, :-1])  # (S, n)
+    theta = np.concatenate([np.zeros((len(km), 1)), np.cumsum(km * h, axis=1)], axis=1)
+    mid = theta[:, :-1] + 0.5 * km * h
+    chord = h * np.sinc(0.5 * km * h / np.pi)
+    lateral = np.concatenate([np.zeros((len(km), 1)), np.cumsum(chord * np.sin(mid), axis=1)], axis=1)
+    axial = np.concatenate([np.zeros((len(km), 1)), np.cumsum(chord * np.cos(mid), axis=1)], axis=1)
+    return np.stack([lateral * np.cos(phi)[:, None], lateral * np.sin(phi)[:, None], axial], axis=-1)
+
+
+def winkler_modulus_pa(design: RodDesign, tissue_modulus_pa: float = SIMUGEL_MODULUS_PA,
+                       poisson: float = TISSUE_POISSON) -> float:
+    """Subgrade modulus (N/m per m of needle) of a beam of the needle's diameter in an elastic medium
+    (Vesic 1961), using the bending stiffness of the stylet-in-needle tube section."""
+    if tissue_modulus_pa <= 0 or not (0 <= poisson < 0.5):
+        raise PlanInputError("tissue modulus must be > 0 Pa and Poisson's ratio in [0, 0.5)")
+    d = design.needle.outer_diameter_mm * 1e-3
+    tube = next(s for s in design.sections() if s.kind == "tube")
+    ei = tube.ei1 + tube.ei2
+    return 0.65 * tissue_modulus_pa / (1 - poisson**2) * (tissue_modulus_pa * d**4 / ei) ** (1 / 12)
+
+
+@dataclass(frozen=True)
+class TissueBeamInsertion:
+    """Reference quasi-static insertion in an elastic medium (see the module docstring).
+
+    Parameters
+    ----------
+    tissue_modulus_pa : float
+        Young's modulus of the medium (default: SimuGel #3, 0.19 MPa).
+    rod_model : str
+        Rod model that gives each section's preferred (free-space) curvature under tension.
+    grid_mm : float
+        Finite-difference spacing along the needle.
+    step_mm : float
+        Insertion step (new tissue is cut and attached once per step).
+    """
+
+    tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
+    rod_model: str = "two_tube_cosserat"
+    grid_mm: float = 0.25
+    step_mm: float = 0.25
+    poisson: float = TISSUE_POISSON
+
+    @property
+    def name(self) -> str:
+        return "tissue_beam"
+
+    def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
+               depth_mm: float) -> list[InsertionPath | FailedInsertion]:
+        label = f"{self.name}+{self.rod_model}"
+        out: list[InsertionPath | FailedInsertion] = []
+        for sch in schedules:
+            try:
+                out.append(InsertionPath(self.insert_one(design, sch, depth_mm), depth_mm, label))
+            except np.linalg.LinAlgError as exc:
+                out.append(FailedInsertion(label, f"equilibrium system singular: {exc}"))
+        return out
+
+    def insert_one(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+                   modulus_profile: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(n, 3) float, mm, template frame: the needle's centreline at the final depth.
+
+        ``modulus_profile``: optional ``(depth_mm (p,), modulus_pa (p,))`` giving the tissue's Young's
+        modulus along the insertion (e.g. per organ the path crosses), piecewise constant from each depth
+        on; None = the model's ``tissue_modulus_pa`` everywhere.
+        """
+        _check_depth(design, depth_mm)
+        if schedule.peak_tension_n > design.max_tension_n + 1e-9:
+            raise PlanInputError(f"the schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
+        table = curvature_table(design, self.rod_model)
+        n_nodes_total = max(2, round(depth_mm / self.grid_mm)) + 1
+        node_depth = np.linspace(0.0, depth_mm, n_nodes_total)
+        if modulus_profile is None:
+            moduli = np.full(n_nodes_total, self.tissue_modulus_pa)
+        else:
+            at, values = (np.asarray(a, dtype=float) for a in modulus_profile)
+            if at.shape != values.shape or at.ndim != 1 or len(at) == 0 or np.any(np.diff(at) <= 0):
+                raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
+            moduli = values[np.clip(np.searchsorted(at, node_depth, side="right") - 1, 0, len(at) - 1)]
+        k_nodes = np.array([winkler_modulus_pa(design, e, self.poisson) for e in np.unique(moduli)])
+        k_n_per_m2 = k_nodes[np.searchsorted(np.unique(moduli), moduli)]  # per node, N/m per m
+        bounds = table.section_bounds_mm
+        ei_sec = np.array([s.ei1 + s.ei2 for s in design.sections()])  # N m², per section
+        n_total = max(2, round(depth_mm / self.grid_mm))
+        h = depth_mm / n_total  # node i sits at depth i * h throughout the insertion
+        per_step = max(1, round(self.step_mm / h))
+        ends = [*range(per_step, n_total, per_step), n_total]
+        # Node i at insertion depth d sits at needle arc length L - d + i h, so what a cell holds depends only
+        # on its distance from the tip, (end - i) h: the fraction of each cell in each section, once.
+        n_sec = len(ei_sec)
+        from_tip = design.length_mm - h * np.arange(n_total + 1)
+        frac = np.column_stack([_cell_average(bounds, np.eye(n_sec)[j], from_tip, h) for j in range(n_sec)])
+        ei_from_tip = 1.0 / (frac @ (1.0 / (ei_sec * 1e6)))  # N mm²; compliances add along the rod
+        track = np.zeros((1, 2))  # spring rest positions (the cut track), (x, y) mm, per node
+        w = np.zeros((1, 2))  # needle's lateral position per node, mm
+        for end in ends:
+            d = end * h
+            old = len(track)
+            if old >= 3:  # the tip's tangent, second-order one-sided difference
+                slope = (3 * w[-1] - 4 * w[-2] + w[-3]) / (2 * h)
+            elif old == 2:
+                slope = (w[-1] - w[-2]) / h
+            else:
+                slope = np.zeros(2)
+            new_depths = h * np.arange(1, end + 2 - old)
+            track = np.vstack([track, w[-1] + np.outer(new_depths, slope)])  # new tissue, cut along the tangent
+            tension, roll = schedule.at(np.array([d]))
+            kap_sec = table.sections(float(tension[0]))  # 1/mm per section
+            rows = end - np.arange(end + 1)  # each node's distance from the tip, in cells
+            ei = ei_from_tip[rows]  # N mm²
+            kappa0 = frac[rows] @ kap_sec  # 1/mm: cell averages (same moment across a cell)
+            direction = np.array([np.cos(np.radians(roll[0])), np.sin(np.radians(roll[0]))])
+            w = _solve_foundation_beam(ei, k_n_per_m2[: end + 1] * 1e-3, h, kappa0, track, direction)
+        # The mechanics is linear in the slopes; the centreline is rebuilt inextensibly from them, so the
+        # needle's arc length equals the inserted depth however far it bends.
+        slope = np.gradient(w, h, axis=0)
+        tangent = np.column_stack([slope, np.ones(len(w))])
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        steps = 0.5 * (tangent[1:] + tangent[:-1])
+        steps *= h / np.linalg.norm(steps, axis=1, keepdims=True)
+        return np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
+
+
+def _cell_average(bounds: np.ndarray, values: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
+    """Average of a piecewise-constant function (``values[i]`` on ``[bounds[i], bounds[i+1])``) over the
+    cells ``[c - h/2, c + h/2]``, so that a jump between sections sits where it is, not on a node."""
+    cum = np.concatenate([[0.0], np.cumsum(values * np.diff(bounds))])
+
+    def integral(x: np.ndarray) -> np.ndarray:
+        xc = np.clip(x, bounds[0], bounds[-1])
+        i = np.clip(np.searchsorted(bounds, xc, side="right") - 1, 0, len(values) - 1)
+        inside = cum[i] + values[i] * (xc - bounds[i])
+        # beyond the ends the function continues with its end values
+        return inside + values[0] * np.minimum(x - bounds[0], 0.0) + values[-1] * np.maximum(x - bounds[-1], 0.0)
+
+    return (integral(centres + h / 2) - integral(centres - h / 2)) / h
+
+
+def _solve_foundation_beam(ei_nmm2: np.ndarray, k_n_per_mm2: np.ndarray | float, h: float, kappa0: np.ndarray,
+                           rest: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Minimise ``Σ ½ EI (w'' − κ0 dir)² h + Σ ½ k (w − rest)² h`` with ``w(0) = 0, w'(0) = 0``.
+
+    Parameters
+    ----------
+    ei_nmm2 : (n,) bending stiffness at the nodes, N·mm²
+    k_n_per_mm2 : foundation modulus, N/mm per mm of needle (scalar, or (n,) per node)
+    kappa0 : (n,) preferred curvature magnitude, 1/mm; ``direction`` (2,) unit bending direction
+    rest : (n, 2) spring rest positions, mm
+
+    Returns
+    -------
+    (n, 2) lateral positions, mm
+    """
+    from scipy.linalg import solveh_banded
+
+    n = len(kappa0)
+    if n < 3:
+        return np.zeros((n, 2))
+    # Curvature rows r = 0..n-2 at the nodes; unknowns w_1..w_{n-1} (w_0 = 0, ghost w_{-1} = w_1 for the
+    # clamp). Row r holds (v0, v1, v2) / h² at unknown columns (r-2, r-1, r). The last node's curvature is
+    # left free, which gives the natural free-end conditions. A = Dᵀ W D + K is pentadiagonal, SPD.
+    m = n - 1
+    v = np.tile([1.0, -2.0, 1.0], (m, 1)) / (h * h)
+    v[0] = [0.0, 0.0, 2.0 / (h * h)]
+    v[1, 0] = 0.0
+    wt = ei_nmm2[:m] * h
+    wt[0] *= 0.5  # trapezoid weight at the clamped end
+    pad = np.zeros((2, 3))
+    vp = np.vstack([v, pad])
+    wp = np.concatenate([wt, [0.0, 0.0]])
+    j = np.arange(m)
+    diag = wp[j] * vp[j, 2] ** 2 + wp[j + 1] * vp[j + 1, 1] ** 2 + wp[j + 2] * vp[j + 2, 0] ** 2
+    off1 = wp[j + 1] * vp[j + 1, 1] * vp[j + 1, 2] + wp[j + 2] * vp[j + 2, 0] * vp[j + 2, 1]
+    off2 = wp[j + 2] * vp[j + 2, 0] * vp[j + 2, 2]
+    kw = np.broadcast_to(np.asarray(k_n_per_mm2, dtype=float), (n,))[1:] * h  # a new array
+    kw[-1] *= 0.5
+    ab = np.zeros((3, m))
+    ab[0, 2:] = off2[:-2]
+    ab[1, 1:] = off1[:-1]
+    ab[2] = diag + kw
+    wk = np.concatenate([wt * kappa0[:m], [0.0, 0.0]])
+    dt_wk = wk[j] * vp[j, 2] + wk[j + 1] * vp[j + 1, 1] + wk[j + 2] * vp[j + 2, 0]
+    rhs = np.outer(dt_wk, direction) + kw[:, None] * rest[1:]
+    out = np.zeros((n, 2))
+    out[1:] = solveh_banded(ab, rhs, lower=False, check_finite=False)
+    return out
+
+
+def fit_tissue_factor(design: RodDesign, schedules: Sequence[TensionSchedule], depth_mm: float,
+                      reference: TissueBeamInsertion | None = None) -> tuple[float, np.ndarray]:
+    """Fit the kinematic model's tissue factor to the ``tissue_beam`` reference.
+
+    Returns
+    -------
+    factor : float
+        The factor minimising the RMS tip distance between the two models over ``schedules``.
+    tip_error_mm : (S,) float
+        Remaining tip distance per schedule at that factor, mm.
+    """
+    from scipy.optimize import minimize_scalar
+
+    ref = reference or TissueBeamInsertion()
+    ref_tips = np.array([ref.insert_one(design, sch, depth_mm)[-1] for sch in schedules])
+
+    def tips(f: float) -> np.ndarray:
+        return KinematicInsertion(tissue_factor=f).insert_array(design, schedules, depth_mm)[:, -1]
+
+    res = minimize_scalar(lambda f: float(np.mean(np.sum((tips(f) - ref_tips) ** 2, axis=1))),
+                          bounds=(0.05, 3.0), method="bounded", options={"xatol": 1e-4})
+    return float(res.x), np.linalg.norm(tips(float(res.x)) - ref_tips, axis=1)
+
+
+def _check_depth(design: RodDesign, depth_mm: float) -> None:
+    if not (np.isfinite(depth_mm) and 0 < depth_mm <= design.length_mm):
+        raise PlanInputError(f"insertion depth must be in (0, {design.length_mm:.0f}] mm for {design.name}, "
+                             f"got {depth_mm}")
+
+
+KINEMATIC = KinematicInsertion()
+TISSUE_BEAM = TissueBeamInsertion()

@@ -1,0 +1,256 @@
+"""Steered candidates: a bank of insertion shapes per design, matched to targets hole by hole.
+
+For schedules of constant roll the path bends in one plane, so a shape computed at roll 0 serves every
+roll: rolling the wrist by φ rotates the path about the insertion axis. For a hole and a target the best
+roll is then the target's azimuth about the hole's axis, and what remains is planar: the distance from the
+target's (lateral offset, depth) to each shape of the bank, minimised over the insertion depth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.steering.insertion import KINEMATIC, InsertionPath, KinematicInsertion, TissueBeamInsertion
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.rod_model.design import RodDesign
+
+
+@dataclass(frozen=True)
+class ScheduleFamily:
+    """Ramp schedules ``TensionSchedule.ramp(onset, ramp, fraction × max tension)``, every combination.
+
+    Defaults: 11 onsets (0-100 mm) × 2 ramps × 5 plateaus = 110 schedules per design (the roll is solved
+    exactly for each hole and target, so it is not gridded).
+    """
+
+    onsets_mm: tuple[float, ...] = tuple(float(v) for v in range(0, 101, 10))
+    ramps_mm: tuple[float, ...] = (5.0, 20.0)
+    plateau_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
+
+    def __post_init__(self) -> None:
+        if not (self.onsets_mm and self.ramps_mm and self.plateau_fractions):
+            raise ValueError("a schedule family needs at least one onset, ramp and plateau")
+        if any(f <= 0 or f > 1 for f in self.plateau_fractions):
+            raise ValueError("plateau fractions must be in (0, 1] of the design's maximum tension")
+
+    def schedules(self, design: RodDesign, roll_deg: float = 0.0) -> tuple[TensionSchedule, ...]:
+        return tuple(TensionSchedule.ramp(o, r, f * design.max_tension_n, roll_deg)
+                     for o in self.onsets_mm for r in self.ramps_mm for f in self.plateau_fractions)
+
+
+@dataclass(frozen=True, eq=False)
+class ShapeBank:
+    """Insertion shapes of one design at roll 0, in the template frame.
+
+    ``shapes_mm`` is (S, n, 3) float, mm: row ``i`` of shape ``k`` is the tip after ``i * step_mm`` of
+    insertion (tip-following models: the path to a shallower depth is a prefix of the deeper one).
+    """
+
+    design: RodDesign
+    schedules: tuple[TensionSchedule, ...]
+    shapes_mm: np.ndarray
+    step_mm: float
+    model: str
+
+
+@lru_cache(maxsize=32)
+def shape_bank(design: RodDesign, family: ScheduleFamily = ScheduleFamily(), depth_mm: float = 200.0,
+               model: KinematicInsertion = KINEMATIC) -> ShapeBank:
+    """Compute (and cache) the shapes of ``family`` for ``design`` up to ``depth_mm``."""
+    schedules = family.schedules(design)
+    depth = min(depth_mm, design.length_mm)
+    shapes = model.insert_array(design, schedules, depth)
+    return ShapeBank(design, schedules, shapes, depth / (shapes.shape[1] - 1), f"{model.name}+{model.rod_model}")
+
+
+@dataclass(frozen=True)
+class Match:
+    """Best schedules of a bank for one hole and target (template frame quantities).
+
+    ``order`` (K,) indices into the bank's schedules, best first; ``depth_mm`` (K,) insertion depth of each;
+    ``reach_mm`` (K,) tip distance to the target; ``roll_deg`` the roll that aims the bend at the target.
+    """
+
+    order: np.ndarray
+    depth_mm: np.ndarray
+    reach_mm: np.ndarray
+    roll_deg: float
+
+
+def _planar(rel_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lateral offset ρ, depth ζ, roll φ in degrees) of target offsets ``rel_mm`` (H, 3) from holes."""
+    rho = np.hypot(rel_mm[:, 0], rel_mm[:, 1])
+    return rho, rel_mm[:, 2], np.degrees(np.arctan2(rel_mm[:, 1], rel_mm[:, 0]))
+
+
+def match_targets(bank: ShapeBank, rel_mm: np.ndarray, keep: int = 8) -> list[Match]:
+    """For each hole, the ``keep`` schedules whose tips pass closest to the target.
+
+    Parameters
+    ----------
+    rel_mm : (H, 3) float, mm, template frame: target minus hole entry.
+
+    The distance of the target to each shape is minimised over the insertion depth, projecting onto the
+    shape's segments (so it does not depend on the sampling step).
+    """
+    rho, zeta, roll = _planar(np.asarray(rel_mm, float))
+    xz = bank.shapes_mm[:, :, [0, 2]]  # (S, n, 2)
+    a, b = xz[:, :-1], xz[:, 1:]  # segments (S, n-1, 2)
+    ab = b - a
+    len2 = np.maximum(np.sum(ab * ab, axis=-1), 1e-18)
+    out: list[Match] = []
+    for h in range(len(rho)):
+        p = np.array([rho[h], zeta[h]])
+        t = np.clip(np.sum((p - a) * ab, axis=-1) / len2, 0.0, 1.0)  # (S, n-1)
+        d = np.linalg.norm(a + t[..., None] * ab - p, axis=-1)
+        seg = np.argmin(d, axis=1)
+        best = d[np.arange(len(d)), seg]
+        order = np.lexsort((np.arange(len(best)), np.round(best, 6)))[:keep]
+        depth = (seg[order] + t[order, seg[order]]) * bank.step_mm
+        out.append(Match(order, depth, best[order], float(roll[h])))
+    return out
+
+
+def place(shape_mm: np.ndarray, step_mm: float, depth_mm: float, roll_deg: float, entry_xy_mm: np.ndarray,
+          patient_from_template: np.ndarray, sample_mm: float = 5.0) -> np.ndarray:
+    """A bank shape cut at ``depth_mm``, rolled by ``roll_deg`` and put at a hole, in the patient.
+
+    Returns
+    -------
+    (m, 3) float, mm, LPS: points about ``sample_mm`` apart from the hole to the tip (the tip exact).
+    """
+    n_full = int(np.floor(depth_mm / step_mm + 1e-9))
+    prefix = shape_mm[: n_full + 1]
+    frac = depth_mm / step_mm - n_full
+    if frac > 1e-9 and n_full + 1 < len(shape_mm):
+        prefix = np.vstack([prefix, shape_mm[n_full] + frac * (shape_mm[n_full + 1] - shape_mm[n_full])])
+    every = max(1, round(sample_mm / step_mm))
+    idx = np.unique(np.r_[np.arange(0, len(prefix), every), len(prefix) - 1])
+    pts = prefix[idx]
+    c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    local = pts @ rot.T + np.array([entry_xy_mm[0], entry_xy_mm[1], 0.0])
+    m = np.asarray(patient_from_template, float)
+    return local @ m[:3, :3].T + m[:3, 3]
+
+
+def refine_with(model: TissueBeamInsertion, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+                rel_mm: np.ndarray, fast: KinematicInsertion = KINEMATIC, iterations: int = 1,
+                modulus_profile: tuple[np.ndarray, np.ndarray] | None = None,
+                ) -> tuple[TensionSchedule, InsertionPath]:
+    """Re-solve a screened candidate with a richer insertion model and correct its aim.
+
+    Space mapping: the richer model's tip departs from the fast model's by δ; the fast model is re-aimed at
+    ``target − δ`` (new plateau tension by a 1-D search over the same ramp, the roll kept), and the richer
+    model re-solves, ``iterations`` times (one suffices when the two models differ by about a millimetre: the
+    re-aimed miss is second order). Returns the final schedule and the richer model's path
+    (template frame, hole at the origin, roll 0; the caller rolls and places it). ``modulus_profile`` is
+    passed to :meth:`TissueBeamInsertion.insert_one` (tissue modulus along the insertion, per organ).
+    """
+    from scipy.optimize import minimize_scalar
+
+    target = np.array([np.hypot(rel_mm[0], rel_mm[1]), 0.0, rel_mm[2]])
+    aim = target.copy()
+    sch = schedule
+    label = f"{model.name}+{model.rod_model}"
+
+    def solve(s: TensionSchedule) -> InsertionPath:
+        try:
+            return InsertionPath(model.insert_one(design, s, depth_mm, modulus_profile), depth_mm, label)
+        except np.linalg.LinAlgError as exc:
+            raise PlanInputError(f"{model.name} failed: equilibrium system singular ({exc})") from None
+
+    res = solve(sch)
+    for _ in range(iterations):
+        aim = aim + (target - res.positions_mm[-1])  # correct the aim by the richer model's miss
+        d, r = sch.depth_mm, sch.roll_deg
+        unit = sch.tension_n / max(sch.peak_tension_n, 1e-12)  # the schedule's shape, plateau 1 N
+
+        def miss(t: float, d: np.ndarray = d, r: np.ndarray = r, unit: np.ndarray = unit,
+                 aim: np.ndarray = aim) -> float:
+            tip = fast.insert_array(design, [TensionSchedule(d, unit * t, r)], depth_mm)[0, -1]
+            return float(np.linalg.norm(tip - aim))
+
+        best = minimize_scalar(miss, bounds=(0.0, design.max_tension_n), method="bounded", options={"xatol": 1e-3})
+        sch = TensionSchedule(d, unit * float(best.x), r)
+        res = solve(sch)
+    return sch, res
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """The schedule that brings a hole's needle to a target, or the closest it gets.
+
+    ``reachable`` is True when ``reach_error_mm`` is within the tolerance asked for; otherwise the schedule
+    and depth are those of the closest approach. ``schedule`` carries the roll (template frame).
+    """
+
+    reachable: bool
+    schedule: TensionSchedule
+    depth_mm: float
+    reach_error_mm: float
+    roll_deg: float
+
+
+def inverse_target(design: RodDesign, rel_mm: np.ndarray, tolerance_mm: float = 2.0,
+                   family: ScheduleFamily = ScheduleFamily(), model: KinematicInsertion = KINEMATIC,
+                   depth_max_mm: float = 200.0) -> InverseResult:
+    """Find onset, plateau tension and roll that reach a target from a hole.
+
+    The roll is exact (the target's azimuth about the hole axis). The bank's best ramp is then refined over
+    (onset, plateau tension) by Nelder-Mead on the tip's distance to the target, minimised over the depth.
+
+    Parameters
+    ----------
+    rel_mm : (3,) float, mm, template frame: target minus the hole's entry.
+    """
+    from scipy.optimize import minimize
+
+    bank = shape_bank(design, family, min(depth_max_mm, design.length_mm), model)
+    match = match_targets(bank, np.asarray(rel_mm, float)[None, :], keep=1)[0]
+    k = int(match.order[0])
+    base = bank.schedules[k]
+    ramp = float(np.diff(base.depth_mm)[-1])
+    onset0 = float(base.depth_mm[-2]) if len(base.depth_mm) == 3 else 0.0
+    rho, zeta = float(np.hypot(rel_mm[0], rel_mm[1])), float(rel_mm[2])
+    depth_max = min(depth_max_mm, design.length_mm)
+
+    def build(x: np.ndarray) -> TensionSchedule:
+        onset = float(np.clip(x[0], 0.0, depth_max - ramp))
+        tension = float(np.clip(x[1], 0.0, design.max_tension_n))
+        return TensionSchedule.ramp(onset, ramp, tension)
+
+    def miss(x: np.ndarray) -> tuple[float, float]:
+        path = model.insert_array(design, [build(x)], depth_max)[0]
+        d = np.hypot(path[:, 0] - rho, path[:, 2] - zeta)
+        i = int(np.argmin(d))
+        return float(d[i]), i * depth_max / (len(path) - 1)
+
+    x0 = np.array([onset0, base.peak_tension_n])
+    simplex = x0 + np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 0.1 * design.max_tension_n]])
+    best = minimize(lambda x: miss(x)[0], x0, method="Nelder-Mead",
+                    options={"xatol": 0.05, "fatol": 1e-3, "maxiter": 200, "initial_simplex": simplex})
+    x = best.x if best.fun <= match.reach_mm[0] else x0
+    reach, depth = miss(x)
+    sch = build(x)
+    sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), match.roll_deg))
+    return InverseResult(reach <= tolerance_mm, sch, depth, reach, match.roll_deg)
+
+
+def reach_radius_mm(bank: ShapeBank, depths_mm: np.ndarray) -> np.ndarray:
+    """Largest lateral offset (mm) a hole reaches at each depth (mm along its axis), over the bank's
+    schedules and all rolls: the reachable workspace at that depth is a disk of this radius about the
+    hole's axis (organs not considered)."""
+    xz = bank.shapes_mm[:, :, [0, 2]]
+    out = np.zeros(len(depths_mm))
+    for i, z in enumerate(np.asarray(depths_mm, float)):
+        below, above = xz[:, :-1], xz[:, 1:]
+        cross = (below[..., 1] <= z) & (above[..., 1] > z)
+        t = (z - below[..., 1]) / np.maximum(above[..., 1] - below[..., 1], 1e-12)
+        x = below[..., 0] + t * (above[..., 0] - below[..., 0])
+        out[i] = float(np.max(np.where(cross, x, 0.0)))
+    return out
