@@ -95,7 +95,7 @@ def test_screening_model_is_chosen_by_the_measured_error_table() -> None:
     from reachplan.rod_model.select import error_table
 
     rows = {r.model: r for r in error_table() if r.resolution == "default"}
-    chosen = screening_model(PlanConfig(screen_tolerance_mm=0.5)).rod_model
+    chosen = screening_model(PlanConfig(screen_tolerance_mm=0.5)).rod_model.name
     assert rows[chosen].max_tip_error_mm <= 0.5
-    strict = screening_model(PlanConfig(screen_tolerance_mm=1e-5)).rod_model
+    strict = screening_model(PlanConfig(screen_tolerance_mm=1e-5)).rod_model.name
     assert rows[strict].max_tip_error_mm <= 1e-5 and strict != chosen
