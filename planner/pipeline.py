@@ -39,6 +39,7 @@ from reachplan.rod_model.protocol import Capabilities, RodModel
 if TYPE_CHECKING:
     from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures
     from reachplan.plugins.exporters import ExportPlan
+    from reachplan.rod_model.select import ErrorRow
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
@@ -571,3 +572,14 @@ def recognise_source(*labels: str) -> str | None:
         if any(alias in text for alias in get_source(name).aliases for text in norm):
             return name
     return None
+
+
+def rod_model_errors() -> tuple[ErrorRow, ...]:
+    """The measured rod-model error table (the rod-model benchmark's, packaged) for the report's
+    speed-versus-accuracy section; () when it is not available."""
+    from reachplan.rod_model.select import error_table
+
+    try:
+        return error_table()
+    except RodModelError:
+        return ()

@@ -25,6 +25,7 @@ from reachplan.planner.report import figures
 from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, write_html
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.plugins.sources import SourceData
+from reachplan.rod_model.select import ErrorRow
 
 ORGAN_COLOURS = {
     "Bladder": "#e6c229", "Rectum": "#8c564b", "Sigmoid": "#c49c94", "Bowel": "#f7b6d2", "Bone": "#bbbbbb",
@@ -400,7 +401,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                  delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
                  comparison_note: str = "", options: ReportOptions | None = None, quiet: bool = True,
-                 case_figures: Sequence[Figure] = ()) -> Report:
+                 case_figures: Sequence[Figure] = (), model_errors: Sequence[ErrorRow] = ()) -> Report:
     """Assemble the report of a plan (figures are rendered here; nothing is solved except the drawings).
 
     Parameters
@@ -412,10 +413,9 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     case : one line naming the case
     timings : seconds per stage, shown at the end
     case_figures : further figures for the case section (e.g. the overview and workspace PNGs)
+    model_errors : the measured rod-model error table (:func:`reachplan.planner.pipeline.rod_model_errors`) for
+        the speed-versus-accuracy section; empty: the section says it is not available
     """
-    from reachplan.rod_model.errors import RodModelError
-    from reachplan.rod_model.select import error_table
-
     options = options or ReportOptions()
     straight, steered = chosen_by_kind(result, False), chosen_by_kind(result, True)
     slice_targets = list(result.ranking)[: options.max_slice_targets]
@@ -439,10 +439,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         bar.update()
         dvh = figures.dvh_png(comparison) if comparison is not None else None
         bar.update()
-        try:
-            rows: Sequence[Any] = error_table()
-        except RodModelError:
-            rows = ()
+        rows: Sequence[ErrorRow] = tuple(model_errors)
         used = models_used(result)
         chart = figures.speed_accuracy(rows, used) if rows else None
         bar.update()
@@ -479,12 +476,12 @@ def write_report(path: Path, scene: Scene, result: PlanResult, structures: Struc
                  volume: Volume | None = None, delivery: Delivery | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
                  target_roi: str = "HR-CTV", options: ReportOptions | None = None, quiet: bool = True,
-                 case_pngs: Sequence[Path] = ()) -> Path:
+                 case_pngs: Sequence[Path] = (), model_errors: Sequence[ErrorRow] = ()) -> Path:
     """Compare straight and steered needles (when a delivery was made), build the report and write it to
     ``path`` (HTML, self-contained, atomic). Returns ``path``.
 
     ``case_pngs``: PNG files written before (``overview.png``, ``workspace.png``) to embed in the case
-    section; missing ones are left out.
+    section; missing ones are left out. ``model_errors``: see :func:`build_report`.
     """
     from importlib.metadata import PackageNotFoundError, version
 
@@ -509,7 +506,7 @@ def write_report(path: Path, scene: Scene, result: PlanResult, structures: Struc
                   for p in case_pngs if Path(p).is_file())
     report = build_report(scene, result, volume=volume, delivery=delivery, comparison=comparison, case=case,
                           timings=timings, source_name=source_name, comparison_note=note, options=options,
-                          quiet=quiet, case_figures=extra)
+                          quiet=quiet, case_figures=extra, model_errors=model_errors)
     footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
               "research use; not a treatment plan.")
     return write_html(report, path, footer)
