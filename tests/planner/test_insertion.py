@@ -136,3 +136,24 @@ def test_tissue_modulus_profile_per_organ(design) -> None:  # type: ignore[no-un
     assert lo - 1e-9 <= mixed <= hi + 1e-9 and lo < hi
     with pytest.raises(PlanInputError, match="modulus_profile"):
         gel.insert_one(design, sch, 120.0, (np.array([10.0, 5.0]), np.array([1.0, 2.0])))
+
+
+def test_insertion_models_use_the_rod_model_object_they_hold(design) -> None:  # type: ignore[no-untyped-def]
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    from reachplan.rod_model.beam import PlanarBeam
+
+    @dataclass(frozen=True)
+    class Unregistered(PlanarBeam):  # the same mechanics under a name no plugin registry knows
+        name: ClassVar[str] = "unregistered_beam"
+
+    sch = [TensionSchedule.ramp(20.0, 10.0, 6.0)]
+    model = KinematicInsertion(tissue_factor=0.9, rod_model=Unregistered())
+    (path,) = model.insert(design, sch, 100.0)
+    assert path and path.model.label == "kinematic+unregistered_beam"
+    assert dict(path.model.settings)["tissue_factor"] == 0.9 and dict(path.model.settings)["step_mm"] == 1.0
+    assert path.model.to_json()["rod_model"] == "unregistered_beam"
+    same = KinematicInsertion(tissue_factor=0.9, rod_model=PLANAR_BEAM).insert_array(design, sch, 100.0)[0]
+    np.testing.assert_array_equal(path.positions_mm, same)
+    assert TissueBeamInsertion(rod_model=PLANAR_BEAM).info.label == "tissue_beam+planar_beam"
