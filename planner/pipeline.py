@@ -10,6 +10,7 @@ import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,19 +23,23 @@ from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import Organ, make_organ
 from reachplan.planner.geometry.template import check_rigid, hole_frames, pose_from_obturator
 from reachplan.planner.ranking import RankWeights, pareto_front, rank
-from reachplan.planner.steering.candidates import Candidate, Target, score_path, straight_candidates
-from reachplan.planner.steering.insertion import TISSUE_BEAM, KinematicInsertion
+from reachplan.planner.steering.candidates import Candidate, Target, mark_failed, score_path, straight_candidates
+from reachplan.planner.steering.insertion import KINEMATIC, TISSUE_BEAM, KinematicInsertion, TissueBeamInsertion
 from reachplan.planner.steering.robustness import Perturbations, assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ScheduleFamily, match_targets, place, refine_with, shape_bank
 from reachplan.plugins import registry
+from reachplan.plugins.errors import PluginError
+from reachplan.plugins.sources import BUILTIN, SourceData, normalise_label
 from reachplan.plugins.templates import Template
 from reachplan.rod_model.design import RodDesign, preset
-from reachplan.rod_model.protocol import Capabilities
+from reachplan.rod_model.errors import RodModelError
+from reachplan.rod_model.protocol import Capabilities, RodModel
 
 if TYPE_CHECKING:
     from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures
     from reachplan.plugins.exporters import ExportPlan
+    from reachplan.rod_model.select import ErrorRow
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
@@ -85,6 +90,37 @@ class PlanConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number of mm, got {v}")
+
+    @cached_property
+    def rod_designs(self) -> tuple[RodDesign, ...]:
+        """The stylet designs of ``designs``, resolved once from their preset names (the candidates carry these
+        objects).
+
+        Raises
+        ------
+        UnknownPresetError
+            A name is not a preset.
+        """
+        return tuple(preset(name) for name in self.designs)
+
+
+@dataclass(frozen=True)
+class PlanModels:
+    """The insertion models a plan uses, resolved once per plan (:meth:`for_config` looks the screening rod model
+    up in the plugin registry; nothing below the pipeline looks plugins up).
+
+    ``screening`` screens every schedule of the family; ``reference`` re-solves the shortlist
+    (``PlanConfig.refine_top``); ``robustness`` re-evaluates the shortlist under the perturbations.
+    """
+
+    screening: KinematicInsertion = KINEMATIC
+    reference: TissueBeamInsertion = TISSUE_BEAM
+    robustness: KinematicInsertion = KINEMATIC
+
+    @classmethod
+    def for_config(cls, config: PlanConfig) -> PlanModels:
+        """The default models, with the screening model of ``config`` (:func:`screening_model`)."""
+        return cls(screening=screening_model(config))
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,14 +243,21 @@ def build_scene(
                  meshes)
 
 
-def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True) -> PlanResult:
-    """Score every hole x target candidate, straight and steered, and rank them."""
+def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
+         models: PlanModels | None = None) -> PlanResult:
+    """Score every hole x target candidate, straight and steered, and rank them.
+
+    ``models``: the insertion models to use (default :meth:`PlanModels.for_config`). A model that fails for
+    one candidate (no convergence, a shape out of range) marks that candidate (``failed``, with the reason);
+    the plan goes on.
+    """
     config = config or PlanConfig()
+    models = models or PlanModels.for_config(config)
     holes = scene.template.needle_holes
     entry, direction = hole_frames(scene.template, scene.patient_from_template, holes)
     hole_ids = [h.hole_id for h in holes]
     dist = np.array([h.distance_mm for h in holes])
-    designs = [preset(name) for name in config.designs]
+    designs = config.rod_designs
     cands: list[Candidate] = []
     for target in tqdm(scene.targets, desc="planning targets", unit="target", disable=quiet, leave=False):
         straight = straight_candidates([target], hole_ids, dist, entry, direction, scene.organs,
@@ -222,9 +265,9 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True) -> 
         cands += straight
         clear = {c.hole_id for c in straight if c.feasible}  # a steered needle from these holes adds nothing
         for design in designs:
-            steered = steered_candidates(scene, target, design, config, skip=clear)
-            cands += refine_shortlist(scene, target, design, steered, config)
-    cands = assess_shortlist(scene, cands, config)
+            steered = steered_candidates(scene, target, design, config, skip=clear, model=models.screening)
+            cands += refine_shortlist(scene, target, design, steered, config, models.reference)
+    cands = assess_shortlist(scene, cands, config, models.robustness)
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
 
 
@@ -256,8 +299,10 @@ def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, 
     return depth, values
 
 
-def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig) -> list[Candidate]:
-    """Robustness of the ``config.robust_top`` best feasible straight and steered candidates per target."""
+def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig,
+                     model: KinematicInsertion = KINEMATIC) -> list[Candidate]:
+    """Robustness of the ``config.robust_top`` best feasible straight and steered candidates per target, with
+    ``model``; a candidate whose assessment fails is marked failed with the reason."""
     if config.robust_top <= 0:
         return cands
     targets = {t.name: t for t in scene.targets}
@@ -265,9 +310,13 @@ def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig) -
     for name, ranked in rank(cands, config.weights).items():
         for steered in (False, True):
             for c in [c for c in ranked if c.feasible and c.steered == steered][: config.robust_top]:
-                radius = preset(c.design).needle.outer_diameter_mm / 2 if c.design else config.needle_radius_mm
-                r = assess(c, targets[name], scene.organs, scene.patient_from_template, radius,
-                           config.perturbations, reach_tolerance_mm=config.reach_tolerance_mm)
+                radius = c.design.needle.outer_diameter_mm / 2 if c.design else config.needle_radius_mm
+                try:
+                    r = assess(c, targets[name], scene.organs, scene.patient_from_template, radius,
+                               config.perturbations, model, reach_tolerance_mm=config.reach_tolerance_mm)
+                except (PlanInputError, RodModelError) as exc:
+                    chosen[id(c)] = mark_failed(c, f"robustness ({model.info.label}) failed: {exc}")
+                    continue
                 chosen[id(c)] = with_robustness(c, r)
     return [chosen.get(id(c), c) for c in cands]
 
@@ -281,23 +330,27 @@ def _template_offsets(scene: Scene, target: Target) -> np.ndarray:
 
 
 def screening_model(config: PlanConfig) -> KinematicInsertion:
-    """The kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm``."""
+    """The kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm`` (looked
+    up in the plugin registry)."""
     from reachplan.rod_model.select import Scene as RodScene
     from reachplan.rod_model.select import select_model
 
-    return KinematicInsertion(rod_model=select_model(config.screen_tolerance_mm, RodScene(), rod_model_capabilities(),
-                                                     batched=True))
+    name = select_model(config.screen_tolerance_mm, RodScene(), rod_model_capabilities(), batched=True)
+    return KinematicInsertion(rod_model=rod_model(name))
 
 
 def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: PlanConfig,
-                       skip: frozenset[str] | set[str] = frozenset()) -> list[Candidate]:
-    """One steered candidate per hole (holes in ``skip`` excluded).
+                       skip: frozenset[str] | set[str] = frozenset(),
+                       model: KinematicInsertion | None = None) -> list[Candidate]:
+    """One steered candidate per hole (holes in ``skip`` excluded), screened with ``model`` (default
+    :func:`screening_model` of ``config``).
 
     Among the bank's schedules that reach the target, the gentlest (lowest peak tension, then smallest
     reach error) that clears every organ is kept, trying at most ``config.alternatives``; when none is
     clear, the gentlest reaching one (colliding); when none reaches, the closest approach, unchecked.
     """
-    bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm), screening_model(config))
+    model = model or screening_model(config)
+    bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm), model)
     radius = design.needle.outer_diameter_mm / 2
     matches = match_targets(bank, _template_offsets(scene, target), keep=len(bank.schedules))
     out: list[Candidate] = []
@@ -317,7 +370,7 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
             reaches = bool(match.reach_mm[i] <= config.reach_tolerance_mm)
             c = score_path(target, hole.hole_id, hole.distance_mm, path, scene.organs, radius,
                            config.reach_tolerance_mm, bank.model, steered=True, peak_tension_n=sch.peak_tension_n,
-                           design=design.name, schedule=sch, depth_mm=float(match.depth_mm[i]), check=reaches,
+                           design=design, schedule=sch, depth_mm=float(match.depth_mm[i]), check=reaches,
                            reason="" if reaches else "no screened schedule reaches it")
             chosen = chosen or c
             if c.feasible:
@@ -329,10 +382,11 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
 
 
 def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: list[Candidate],
-                     config: PlanConfig) -> list[Candidate]:
-    """Re-solve the best feasible steered candidates with the reference model until the top
+                     config: PlanConfig, reference: TissueBeamInsertion = TISSUE_BEAM) -> list[Candidate]:
+    """Re-solve the best feasible steered candidates with the ``reference`` model until the top
     ``config.refine_top`` feasible ones all carry the reference's numbers (at most ``refine_top + 4`` solves:
-    a refined candidate that no longer reaches drops down and the next one is refined)."""
+    a refined candidate that no longer reaches, or that the reference fails to solve (marked failed, with the
+    reason), drops down and the next one is refined)."""
     rel_all = _template_offsets(scene, target)
     index = {h.hole_id: i for i, h in enumerate(scene.template.needle_holes)}
     holes = {h.hole_id: h for h in scene.template.needle_holes}
@@ -350,15 +404,19 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
         done.add(c.hole_id)
         roll = float(c.schedule.roll_deg[0])
         base = TensionSchedule(c.schedule.depth_mm, c.schedule.tension_n, np.zeros(len(c.schedule.depth_mm)))
-        profile = modulus_profile(scene, c.path_mm, config.tissue_moduli_pa)
-        sch, res = refine_with(TISSUE_BEAM, design, base, c.insertion_depth_mm, rel_all[index[c.hole_id]],
-                               modulus_profile=profile)
-        sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), roll))
-        path = place(res.positions_mm, TISSUE_BEAM.step_mm, c.insertion_depth_mm, roll,
-                     np.asarray(holes[c.hole_id].xy_mm), scene.patient_from_template)
-        new = score_path(target, c.hole_id, c.hole_distance_mm, path, scene.organs, radius,
-                         config.reach_tolerance_mm, res.model, steered=True, peak_tension_n=sch.peak_tension_n,
-                         design=design.name, schedule=sch, depth_mm=c.insertion_depth_mm)
+        profile = modulus_profile(scene, c.path_mm, config.tissue_moduli_pa, reference.tissue_modulus_pa)
+        try:
+            sch, res = refine_with(reference, design, base, c.insertion_depth_mm, rel_all[index[c.hole_id]],
+                                   modulus_profile=profile)
+        except (PlanInputError, RodModelError) as exc:
+            new = mark_failed(c, f"reference re-solve ({reference.info.label}) failed: {exc}")
+        else:
+            sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), roll))
+            path = place(res.positions_mm, reference.step_mm, c.insertion_depth_mm, roll,
+                         np.asarray(holes[c.hole_id].xy_mm), scene.patient_from_template)
+            new = score_path(target, c.hole_id, c.hole_distance_mm, path, scene.organs, radius,
+                             config.reach_tolerance_mm, res.model, steered=True, peak_tension_n=sch.peak_tension_n,
+                             design=design, schedule=sch, depth_mm=c.insertion_depth_mm)
         current = [new if x is c else x for x in current]
     return current
 
@@ -410,12 +468,14 @@ DEFAULT_AIR_KERMA_U = 40_700.0
 
 @dataclass(frozen=True, eq=False)
 class Delivery:
-    """Chosen needles with optimised dwell times, ready for the exporters."""
+    """Chosen needles with optimised dwell times, ready for the exporters; ``source`` the TG-43 data set the
+    dwell times were optimised with."""
 
     needles: tuple[Candidate, ...]
     optimisation: OptimisationResult
     export: ExportPlan
     planning: PlanningStructures
+    source: SourceData
 
 
 def plan_delivery(
@@ -445,7 +505,7 @@ def plan_delivery(
     if not needles:
         raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
-    source = registry.get("sources", source_name)()
+    source = get_source(source_name)
     opt = optimise_dwell_times([c.path_mm for c in needles], planning, Tg43Kernel(source), air_kerma_u)
     exports = []
     for ch, c in enumerate(needles, start=1):
@@ -456,13 +516,70 @@ def plan_delivery(
         sched = None if c.schedule is None else np.column_stack(
             [c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg])
         exports.append(NeedleExport(c.hole_id, c.path_mm, opt.dwells.positions_mm[keep], opt.dwells.times_s[keep],
-                                    c.design, sched))
+                                    c.design_name, sched))
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
                         input_paths=tuple(input_paths))
-    return Delivery(needles, opt, export, planning)
+    return Delivery(needles, opt, export, planning, source)
 
 
 def rod_model_capabilities() -> dict[str, Capabilities]:
     """What every loadable rod-model plugin can represent, by name (the selector's input)."""
     return {name: registry.get("rod_models", name).capabilities for name in registry.names("rod_models")}
+
+
+def rod_model(name: str) -> RodModel:
+    """The rod-model plugin called ``name``.
+
+    Raises
+    ------
+    PluginError
+        Unknown or unavailable rod model.
+    """
+    model: RodModel = registry.get("rod_models", name)
+    return model
+
+
+def get_source(name: str) -> SourceData:
+    """The TG-43 data set ``name`` through the plugin registry (built-ins as fallback).
+
+    Raises
+    ------
+    PluginError
+        Unknown or unavailable source (the message lists the known names).
+    """
+    try:
+        loader = registry.get("sources", name)
+    except PluginError:
+        if name not in BUILTIN:
+            known = sorted(set(BUILTIN) | set(registry.names("sources")))
+            raise PluginError(f"no TG-43 source named {name!r}; available: {', '.join(known)}") from None
+        loader = BUILTIN[name]
+    data = loader()
+    if not isinstance(data, SourceData):
+        raise PluginError(f"sources plugin {name!r} did not return SourceData (got {type(data).__name__})")
+    return data
+
+
+def recognise_source(*labels: str) -> str | None:
+    """Name of the source (built-in or installed plugin) whose alias occurs in one of ``labels``.
+
+    ``labels`` are DICOM strings (Source Isotope Name, Source Model ID, Treatment Machine Name); they and
+    the aliases are compared without case, spaces, dashes, underscores or dots. None when no alias matches.
+    """
+    norm = [normalise_label(x) for x in labels if x]
+    for name in dict.fromkeys([*BUILTIN, *registry.names("sources")]):
+        if any(alias in text for alias in get_source(name).aliases for text in norm):
+            return name
+    return None
+
+
+def rod_model_errors() -> tuple[ErrorRow, ...]:
+    """The measured rod-model error table (the rod-model benchmark's, packaged) for the report's
+    speed-versus-accuracy section; () when it is not available."""
+    from reachplan.rod_model.select import error_table
+
+    try:
+        return error_table()
+    except RodModelError:
+        return ()

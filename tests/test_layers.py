@@ -71,3 +71,45 @@ def test_every_package_folder_is_listed_in_pyproject() -> None:
         for floor in FLOORS for p in (REPO_ROOT / floor).rglob("__init__.py") if "__pycache__" not in p.parts
     }
     assert found == listed
+
+
+#: The only modules that may look plugins up: the pipeline and the command line (everything else is passed
+#: what it needs).
+REGISTRY = "reachplan.plugins.registry"
+
+
+def _registry_importers(pythonpath: Path | None, cwd: Path) -> list[str]:
+    """Modules of the ``reachplan`` found first on the path that import the plugin registry (grimp's graph)."""
+    code = ("import grimp; g = grimp.build_graph('reachplan'); "
+            f"print('\\n'.join(sorted(g.find_modules_that_directly_import({REGISTRY!r}))))")
+    env = None
+    if pythonpath is not None:
+        import os
+
+        env = dict(os.environ, PYTHONPATH=str(pythonpath))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=cwd, env=env,
+                         timeout=120, check=True)
+    return out.stdout.split()
+
+
+def _may_look_up_plugins(module: str) -> bool:
+    return module == "reachplan.planner.pipeline" or module.startswith("reachplan.planner.cli.")
+
+
+def test_only_the_pipeline_and_the_cli_import_the_plugin_registry(tmp_path: Path) -> None:
+    importers = _registry_importers(None, tmp_path)
+    assert "reachplan.planner.pipeline" in importers  # the check sees the registry's imports at all
+    assert [m for m in importers if not _may_look_up_plugins(m)] == []
+
+
+@pytest.mark.parametrize("module", ["planner/steering/insertion.py", "planner/report/build.py",
+                                    "planner/dose/tg43.py", "rod_model/select.py"])
+def test_a_registry_import_elsewhere_is_found(tmp_path: Path, module: str) -> None:
+    copy = tmp_path / "site" / "reachplan"
+    shutil.copytree(Path(reachplan.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    target = copy / module
+    target.write_text(target.read_text(encoding="utf-8") + "\n\ndef _f() -> None:\n"
+                      "    from reachplan.plugins import registry  # noqa\n", encoding="utf-8")
+    importers = _registry_importers(tmp_path / "site", tmp_path)
+    name = "reachplan." + module.removesuffix(".py").replace("/", ".")
+    assert name in importers and not _may_look_up_plugins(name)

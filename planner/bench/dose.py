@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from reachplan.imaging.types import Grid
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid, get_source, grid_points_mm, rate_matrix
+from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid, grid_points_mm, rate_matrix
+from reachplan.planner.pipeline import get_source
 
 
 def _timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:

@@ -41,15 +41,9 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.imaging.types import Grid
-    from reachplan.planner.dose.tg43 import (
-        Tg43Kernel,
-        check_points,
-        dose_on_grid,
-        get_source,
-        plan_dwells,
-        recognise_source,
-    )
+    from reachplan.planner.dose.tg43 import Tg43Kernel, check_points, dose_on_grid, plan_dwells
     from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.pipeline import get_source, recognise_source
     from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
 
     out = args.out.resolve()

@@ -119,6 +119,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         }
         timings["delivery_s"] = time.perf_counter() - t
     # --- report.html (issue 8: planner/report.py owns the content) ---
+    from reachplan.planner.pipeline import rod_model_errors
     from reachplan.planner.report.build import write_report
 
     t = time.perf_counter()
@@ -126,7 +127,8 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     doc["report"] = str(write_report(out / "report.html", scene, result, structures, volume=volume,
                                      delivery=delivery, case=case, timings=timings, source_name=source,
                                      target_roi=target_roi, quiet=quiet,
-                                     case_pngs=(out / "overview.png", out / "workspace.png")))
+                                     case_pngs=(out / "overview.png", out / "workspace.png"),
+                                     model_errors=rod_model_errors()))
     timings["report_s"] = time.perf_counter() - t
     # --- end report ---
     doc["timings"] = timings

@@ -44,8 +44,7 @@ import numpy as np
 from reachplan.imaging.rtplan import RtPlan
 from reachplan.imaging.types import Grid
 from reachplan.planner.errors import PlanInputError
-from reachplan.plugins.errors import PluginError
-from reachplan.plugins.sources import BUILTIN, SourceData, normalise_label
+from reachplan.plugins.sources import SourceData
 
 R0_CM = 1.0
 DR_CM = 0.05  # radial step of the internal table
@@ -544,47 +543,6 @@ def dwells_along_path(
         return np.zeros((0, 3)), np.zeros((0, 3))
     pos = np.stack([np.interp(arc, s, path[:, c]) for c in range(3)], axis=1)
     return pos, dwell_directions(path, pos)
-
-
-# --- source selection ---------------------------------------------------------------------------------
-
-
-def get_source(name: str) -> SourceData:
-    """The TG-43 data set ``name`` through the plugin registry (built-ins as fallback).
-
-    Raises
-    ------
-    PluginError
-        Unknown or unavailable source (the message lists the known names).
-    """
-    from reachplan.plugins import registry
-
-    try:
-        loader = registry.get("sources", name)
-    except PluginError:
-        if name not in BUILTIN:
-            known = sorted(set(BUILTIN) | set(registry.names("sources")))
-            raise PluginError(f"no TG-43 source named {name!r}; available: {', '.join(known)}") from None
-        loader = BUILTIN[name]
-    data = loader()
-    if not isinstance(data, SourceData):
-        raise PluginError(f"sources plugin {name!r} did not return SourceData (got {type(data).__name__})")
-    return data
-
-
-def recognise_source(*labels: str) -> str | None:
-    """Name of the source (built-in or installed plugin) whose alias occurs in one of ``labels``.
-
-    ``labels`` are DICOM strings (Source Isotope Name, Source Model ID, Treatment Machine Name); they and
-    the aliases are compared without case, spaces, dashes, underscores or dots. None when no alias matches.
-    """
-    from reachplan.plugins import registry
-
-    norm = [normalise_label(x) for x in labels if x]
-    for name in dict.fromkeys([*BUILTIN, *registry.names("sources")]):
-        if any(alias in text for alias in get_source(name).aliases for text in norm):
-            return name
-    return None
 
 
 # --- existing plans (secondary check) -----------------------------------------------------------------

@@ -52,13 +52,15 @@ class RankWeights:
 
 def rank_key(c: Candidate, weights: RankWeights = RankWeights()) -> tuple[float, ...]:
     """Feasible candidates first, by :class:`RankWeights` score. Then the infeasible ones, most
-    informative first: those that reach but collide, by reach error, then those that miss, by reach error.
+    informative first: those that reach but collide, by reach error, then those that miss, by reach error,
+    then those a model failed to solve.
     Ties keep a fixed order (by hole id, then design, applied in :func:`rank`): the ranking is deterministic."""
     clear = -round(c.clearance_mm, 6) if np.isfinite(c.clearance_mm) else 0.0
     if c.feasible:  # assessed candidates (the shortlist) first: their score carries the robustness term
         return (0, 0 if np.isfinite(c.worst_reach_mm) else 1, round(weights.score(c), 6),
                 round(c.hole_distance_mm, 6))
-    return (1 if c.reaches else 2, round(c.reach_error_mm, 6), clear, round(c.hole_distance_mm, 6))
+    group = 3 if c.failed else 1 if c.reaches else 2  # a model failed: its numbers are the screening's
+    return (group, round(c.reach_error_mm, 6), clear, round(c.hole_distance_mm, 6))
 
 
 def rank(candidates: Iterable[Candidate], weights: RankWeights = RankWeights()) -> dict[str, tuple[Candidate, ...]]:
@@ -66,7 +68,7 @@ def rank(candidates: Iterable[Candidate], weights: RankWeights = RankWeights()) 
     groups: dict[str, list[Candidate]] = {}
     for c in candidates:
         groups.setdefault(c.target, []).append(c)
-    return {t: tuple(sorted(sorted(groups[t], key=lambda c: (c.hole_id, c.steered, c.design)),
+    return {t: tuple(sorted(sorted(groups[t], key=lambda c: (c.hole_id, c.steered, c.design_name)),
                             key=lambda c: rank_key(c, weights))) for t in sorted(groups)}
 
 

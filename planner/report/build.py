@@ -24,6 +24,8 @@ from reachplan.planner.pipeline import DEFAULT_AIR_KERMA_U, Delivery, PlanResult
 from reachplan.planner.report import figures
 from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, write_html
 from reachplan.planner.steering.candidates import Candidate
+from reachplan.plugins.sources import SourceData
+from reachplan.rod_model.select import ErrorRow
 
 ORGAN_COLOURS = {
     "Bladder": "#e6c229", "Rectum": "#8c564b", "Sigmoid": "#c49c94", "Bowel": "#f7b6d2", "Bone": "#bbbbbb",
@@ -53,7 +55,7 @@ def format_table(result: PlanResult) -> str:
         first = ("steered" if top.steered else "straight") if top.feasible else "none"
         steered = result.best(target, True)
         lines.append(f"{target:<15} {first:<8} {cell(result.best(target, False))}   {cell(steered)}  "
-                     f"{steered.model if steered else ''}")
+                     f"{steered.model.label if steered else ''}")
     return "\n".join(lines)
 
 
@@ -169,16 +171,16 @@ def chosen_by_kind(result: PlanResult, steered: bool) -> tuple[Candidate, ...]:
 
 
 def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | None,
-                   source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
+                   source: SourceData, target_roi: str = "HR-CTV",
                    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
                    settings: OptimizerSettings = COMPARISON_SETTINGS,
                    planning: PlanningStructures | None = None) -> Comparison | None:
     """Straight versus steered dose: each arm gets the per-target best needle of its kind
     (:func:`chosen_by_kind`), optimised the same way (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm
     with no feasible needle is left out; None when both are empty. ``planning``: the delivery's structures, when
-    already built (else :func:`reachplan.planner.pipeline.planning_structures` builds them)."""
+    already built (else :func:`reachplan.planner.pipeline.planning_structures` builds them). ``source``: the TG-43
+    data set (the delivery's, :attr:`~reachplan.planner.pipeline.Delivery.source`)."""
     from reachplan.planner.dose.tg43 import Tg43Kernel
-    from reachplan.plugins import registry
 
     arms = [(name, [c.path_mm for c in chosen_by_kind(result, steered)])
             for name, steered in (("straight", False), ("steered", True))]
@@ -187,7 +189,7 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
         return None
     if planning is None:
         planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
-    kernel = Tg43Kernel(registry.get("sources", source_name)())
+    kernel = Tg43Kernel(source)
     return compare_arms(arms, planning, kernel, air_kerma_u, settings=settings)
 
 
@@ -196,16 +198,16 @@ def _f(v: float, digits: int = 1) -> str:
 
 
 def models_used(result: PlanResult) -> dict[str, str]:
-    """What each rod model did in this plan, by rod model name (from the candidates' ``insertion+rod``
-    model labels), e.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``."""
+    """What each rod model did in this plan, by rod model name (from the candidates' models),
+    e.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``."""
     from reachplan.planner.steering.insertion import TISSUE_BEAM
 
-    counts: dict[str, int] = {}
+    counts: dict[tuple[str, str], int] = {}
     for c in result.candidates:
-        counts[c.model] = counts.get(c.model, 0) + 1
+        key = (c.model.insertion, c.model.rod_model)
+        counts[key] = counts.get(key, 0) + 1
     used: dict[str, list[str]] = {}
-    for model, n in sorted(counts.items()):
-        insertion, _, rod = model.partition("+")
+    for (insertion, rod), n in sorted(counts.items(), key=lambda kv: f"{kv[0][0]}+{kv[0][1]}"):
         if rod:
             role = "reference re-solve" if insertion == TISSUE_BEAM.name else "screening"
             used.setdefault(rod, []).append(f"{role} with {insertion} ({n} candidates)")
@@ -251,7 +253,8 @@ def _cand_cells(c: Candidate | None, steered: bool) -> tuple[str, ...]:
     if c is None:
         return ("none feasible", "", "", "") if steered else ("none feasible", "", "")
     geometry = (f"{c.hole_distance_mm:.1f} / {c.reach_error_mm:.1f} / {_f(c.clearance_mm)} ({c.closest_organ})")
-    return (c.hole_id, geometry, _f(c.peak_tension_n), c.model) if steered else (c.hole_id, geometry, c.model)
+    model = c.model.label
+    return (c.hole_id, geometry, _f(c.peak_tension_n), model) if steered else (c.hole_id, geometry, model)
 
 
 def _ranking_section(result: PlanResult) -> Section:
@@ -269,9 +272,9 @@ def _ranking_section(result: PlanResult) -> Section:
     detail_rows = []
     for target, cands in result.ranking.items():
         for i, c in enumerate(cands[:5], start=1):
-            detail_rows.append((target, str(i), c.hole_id, "steered" if c.steered else "straight", c.design or "-",
+            detail_rows.append((target, str(i), c.hole_id, "steered" if c.steered else "straight", c.design_name or "-",
                                 _f(weights.score(c)), _f(c.reach_error_mm), _f(c.clearance_mm),
-                                _f(c.insertion_depth_mm), _f(c.peak_tension_n), c.model,
+                                _f(c.insertion_depth_mm), _f(c.peak_tension_n), c.model.label,
                                 "yes" if c.feasible else f"no: {c.reason}"))
     detail = Table(("target", "rank", "hole", "kind", "stylet", "score", "reach error (mm)", "clearance (mm)",
                     "depth (mm)", "peak tension (N)", "model", "feasible"), tuple(detail_rows),
@@ -279,7 +282,7 @@ def _ranking_section(result: PlanResult) -> Section:
                    collapsed=True)
     counts: dict[str, int] = {}
     for c in result.candidates:
-        counts[c.model] = counts.get(c.model, 0) + 1
+        counts[c.model.label] = counts.get(c.model.label, 0) + 1
     models = "; ".join(f"{m}: {n} candidates" for m, n in sorted(counts.items()))
     return Section("Ranked candidates", "ranking", (
         Paragraph(f"{len(result.candidates)} candidates scored (hole × target × schedule). Every number comes "
@@ -398,7 +401,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                  delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
                  comparison_note: str = "", options: ReportOptions | None = None, quiet: bool = True,
-                 case_figures: Sequence[Figure] = ()) -> Report:
+                 case_figures: Sequence[Figure] = (), model_errors: Sequence[ErrorRow] = ()) -> Report:
     """Assemble the report of a plan (figures are rendered here; nothing is solved except the drawings).
 
     Parameters
@@ -410,10 +413,9 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     case : one line naming the case
     timings : seconds per stage, shown at the end
     case_figures : further figures for the case section (e.g. the overview and workspace PNGs)
+    model_errors : the measured rod-model error table (:func:`reachplan.planner.pipeline.rod_model_errors`) for
+        the speed-versus-accuracy section; empty: the section says it is not available
     """
-    from reachplan.rod_model.errors import RodModelError
-    from reachplan.rod_model.select import error_table
-
     options = options or ReportOptions()
     straight, steered = chosen_by_kind(result, False), chosen_by_kind(result, True)
     slice_targets = list(result.ranking)[: options.max_slice_targets]
@@ -427,7 +429,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
             "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane.")]
         for t in slice_targets:
             s, st = result.best(t, False), result.best(t, True)
-            desc = "; ".join(f"{k} {c.hole_id} ({c.model}, reach {c.reach_error_mm:.1f} mm, clearance "
+            desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "
                              f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
                              for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
             slices.append(Figure(figures.slice_views(scene, t, s, st, volume), f"{t}: {desc}"))
@@ -437,10 +439,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         bar.update()
         dvh = figures.dvh_png(comparison) if comparison is not None else None
         bar.update()
-        try:
-            rows: Sequence[Any] = error_table()
-        except RodModelError:
-            rows = ()
+        rows: Sequence[ErrorRow] = tuple(model_errors)
         used = models_used(result)
         chart = figures.speed_accuracy(rows, used) if rows else None
         bar.update()
@@ -477,12 +476,12 @@ def write_report(path: Path, scene: Scene, result: PlanResult, structures: Struc
                  volume: Volume | None = None, delivery: Delivery | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
                  target_roi: str = "HR-CTV", options: ReportOptions | None = None, quiet: bool = True,
-                 case_pngs: Sequence[Path] = ()) -> Path:
+                 case_pngs: Sequence[Path] = (), model_errors: Sequence[ErrorRow] = ()) -> Path:
     """Compare straight and steered needles (when a delivery was made), build the report and write it to
     ``path`` (HTML, self-contained, atomic). Returns ``path``.
 
     ``case_pngs``: PNG files written before (``overview.png``, ``workspace.png``) to embed in the case
-    section; missing ones are left out.
+    section; missing ones are left out. ``model_errors``: see :func:`build_report`.
     """
     from importlib.metadata import PackageNotFoundError, version
 
@@ -497,7 +496,7 @@ def write_report(path: Path, scene: Scene, result: PlanResult, structures: Struc
     elif options.comparison:
         bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
         comparison = compare_chosen(result, structures, volume.grid if volume is not None else None,
-                                    source_name, target_roi, delivery.export.source.air_kerma_rate_u,
+                                    delivery.source, target_roi, delivery.export.source.air_kerma_rate_u,
                                     options.comparison_settings, planning=delivery.planning)
         bar.update()
         bar.close()
@@ -507,7 +506,7 @@ def write_report(path: Path, scene: Scene, result: PlanResult, structures: Struc
                   for p in case_pngs if Path(p).is_file())
     report = build_report(scene, result, volume=volume, delivery=delivery, comparison=comparison, case=case,
                           timings=timings, source_name=source_name, comparison_note=note, options=options,
-                          quiet=quiet, case_figures=extra)
+                          quiet=quiet, case_figures=extra, model_errors=model_errors)
     footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
               "research use; not a treatment plan.")
     return write_html(report, path, footer)

@@ -15,7 +15,6 @@ from matplotlib.patches import Circle
 from reachplan.imaging.files import atomic_write_bytes
 from reachplan.planner.pipeline import PlanConfig, Scene
 from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
-from reachplan.rod_model.design import preset
 
 
 def workspace_figure(scene: Scene, config: PlanConfig, path: Path, depth_mm: float | None = None) -> None:
@@ -28,7 +27,7 @@ def workspace_figure(scene: Scene, config: PlanConfig, path: Path, depth_mm: flo
     radius = 0.0
     label = "straight only"
     if config.designs:
-        design = preset(config.designs[0])
+        design = config.rod_designs[0]
         bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm))
         radius = float(reach_radius_mm(bank, np.array([depth]))[0])
         label = f"{design.name}: reach {radius:.1f} mm at {depth:.0f} mm depth"

@@ -6,6 +6,7 @@ rejected when it was. JSON field names are a public contract: later versions add
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -13,7 +14,9 @@ from typing import Any
 import numpy as np
 
 from reachplan.planner.geometry.collision import Organ, check_path
+from reachplan.planner.steering.insertion import STRAIGHT, ModelInfo
 from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.rod_model.design import RodDesign
 
 
 @dataclass(frozen=True)
@@ -50,18 +53,22 @@ class Candidate:
         False for a straight needle.
     peak_tension_n : float
         Largest tendon tension of the schedule (N); 0 for a straight needle.
-    model : str
-        The model that produced the path (``straight`` or a rod/insertion model name).
+    model : ModelInfo
+        The model that produced the path, with its settings (:data:`~reachplan.planner.steering.insertion.STRAIGHT`
+        for a straight needle); JSON ``model`` is its label, e.g. ``kinematic+planar_beam``.
     collides : bool
         True when the needle touches or enters an organ at risk or bone.
     reaches : bool
         True when ``reach_error_mm`` is within the plan's reach tolerance.
     reason : str
         Why the candidate is rejected ("" when it is feasible).
+    failed : bool
+        True when a model failed for this candidate (a solve that did not converge, a shape out of range);
+        ``reason`` says which and why, and the candidate is not feasible.
     path_mm : (n, 3) float, mm, LPS
         Predicted needle centreline from the hole (first point) to the tip (last point).
-    design : str
-        Stylet preset ("" for a plain straight needle).
+    design : RodDesign or None
+        The stylet design (None for a plain straight needle); JSON ``design`` is its preset name.
     schedule : TensionSchedule or None
         Tension and roll along the insertion (None for a straight needle).
     worst_reach_mm, worst_clearance_mm, worst_case : float, float, str
@@ -78,21 +85,27 @@ class Candidate:
     insertion_depth_mm: float
     steered: bool
     peak_tension_n: float
-    model: str
+    model: ModelInfo
     collides: bool
     reaches: bool
     reason: str
     path_mm: np.ndarray = field(repr=False)
-    design: str = ""
+    design: RodDesign | None = field(default=None, repr=False)
     schedule: TensionSchedule | None = field(default=None, repr=False)
     worst_reach_mm: float = float("nan")
     worst_clearance_mm: float = float("nan")
     worst_case: str = ""
+    failed: bool = False
 
     @property
     def feasible(self) -> bool:
-        """Reaches its target without touching an organ at risk."""
-        return self.reaches and not self.collides
+        """Reaches its target without touching an organ at risk, and every model solved it."""
+        return self.reaches and not self.collides and not self.failed
+
+    @property
+    def design_name(self) -> str:
+        """The stylet preset's name ("" for a plain straight needle)."""
+        return "" if self.design is None else self.design.name
 
     def to_json(self) -> dict[str, Any]:
         """The candidate as JSON-ready values (mm, N)."""
@@ -109,14 +122,14 @@ class Candidate:
             "insertion_depth_mm": round(self.insertion_depth_mm, 3),
             "steered": self.steered,
             "peak_tension_n": round(self.peak_tension_n, 3),
-            "model": self.model,
+            "model": self.model.label,
             "collides": self.collides,
             "reaches": self.reaches,
             "feasible": self.feasible,
             "reason": self.reason,
             "entry_position_mm": [round(float(v), 3) for v in self.path_mm[0]],
             "tip_position_mm": [round(float(v), 3) for v in self.path_mm[-1]],
-            "design": self.design,
+            "design": self.design_name,
             "schedule": sched,
             "robustness": None if np.isnan(self.worst_reach_mm) else {
                 "worst_reach_mm": round(self.worst_reach_mm, 3),
@@ -124,6 +137,12 @@ class Candidate:
                 else None,
                 "worst_case": self.worst_case},
         }
+
+
+def mark_failed(candidate: Candidate, reason: str) -> Candidate:
+    """The candidate marked as failed (not feasible) with ``reason`` added to its reasons; its numbers stay
+    those of the model that did solve it (``model`` names it)."""
+    return dataclasses.replace(candidate, failed=True, reason="; ".join(r for r in (candidate.reason, reason) if r))
 
 
 def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float) -> np.ndarray:
@@ -140,11 +159,11 @@ def score_path(
     organs: Sequence[Organ],
     needle_radius_mm: float,
     reach_tolerance_mm: float,
-    model: str,
+    model: ModelInfo,
     steered: bool = False,
     peak_tension_n: float = 0.0,
     reason: str = "",
-    design: str = "",
+    design: RodDesign | None = None,
     schedule: TensionSchedule | None = None,
     depth_mm: float | None = None,
     check: bool = True,
@@ -218,5 +237,5 @@ def straight_candidates(
             path = straight_path(entry_mm[k], direction[k], depth)
             reaches = float(np.linalg.norm(path[-1] - t)) <= reach_tolerance_mm
             out.append(score_path(target, hole_id, float(hole_distances_mm[k]), path, organs, needle_radius_mm,
-                                  reach_tolerance_mm, "straight", reason=reason, check=reaches))
+                                  reach_tolerance_mm, STRAIGHT, reason=reason, check=reaches))
     return out

@@ -26,16 +26,18 @@ with the phantom's SimuGel modulus E_s = 0.19 MPa (reference: ``oncoreach.md``, 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, cast, runtime_checkable
 
 import numpy as np
 
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.plugins import registry
+from reachplan.rod_model.beam import PLANAR_BEAM
+from reachplan.rod_model.cosserat import TWO_TUBE_COSSERAT
 from reachplan.rod_model.design import RodDesign
 from reachplan.rod_model.protocol import RodModel
 
@@ -43,6 +45,61 @@ from reachplan.rod_model.protocol import RodModel
 SIMUGEL_MODULUS_PA = 0.19e6
 #: Poisson's ratio of a water-rich gel, ASSUMED nearly incompressible.
 TISSUE_POISSON = 0.49
+
+
+#: One model setting: (name with its unit, value).
+Setting = tuple[str, float | int | str | bool]
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """The model that produced a number: insertion model and rod model by name, with their settings.
+
+    Parameters
+    ----------
+    insertion : str
+        Insertion model name (``kinematic``, ``tissue_beam``), or ``straight`` for a straight needle.
+    rod_model : str
+        Rod model that gave the curvatures (``planar_beam``, ``two_tube_cosserat``); "" for a straight needle.
+    settings : tuple of (name, value)
+        The insertion model's settings, and the rod model's prefixed ``rod_model.`` (units in the names).
+    """
+
+    insertion: str
+    rod_model: str = ""
+    settings: tuple[Setting, ...] = ()
+
+    @property
+    def label(self) -> str:
+        """``insertion+rod_model`` (e.g. ``kinematic+planar_beam``), or the insertion name alone: the JSON
+        ``model`` string."""
+        return f"{self.insertion}+{self.rod_model}" if self.rod_model else self.insertion
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"insertion", "rod_model", "settings": {name: value}}``."""
+        return {"insertion": self.insertion, "rod_model": self.rod_model, "settings": dict(self.settings)}
+
+    @staticmethod
+    def of(insertion: str, model: object, rod_model: RodModel | None = None) -> ModelInfo:
+        """The info of an insertion model ``model`` (a dataclass) named ``insertion`` on ``rod_model``: its
+        scalar fields, and the rod model's prefixed ``rod_model.``."""
+        settings = _scalar_fields(model)
+        if rod_model is None:
+            return ModelInfo(insertion, "", settings)
+        rod = tuple((f"rod_model.{k}", v) for k, v in _scalar_fields(rod_model))
+        return ModelInfo(insertion, str(rod_model.name), settings + rod)
+
+
+def _scalar_fields(obj: object) -> tuple[Setting, ...]:
+    """The (name, value) pairs of a dataclass instance's scalar fields; () for anything else."""
+    if not dataclasses.is_dataclass(obj):
+        return ()
+    pairs = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
+    return tuple((k, v) for k, v in pairs if isinstance(v, (bool, int, float, str)))
+
+
+#: The model of a straight needle (an exact line, no model settings).
+STRAIGHT = ModelInfo("straight")
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,20 +111,20 @@ class InsertionPath:
     positions_mm : (n, 3) float, mm, template frame; row 0 at the template (origin), last row the tip.
     depth_mm : float
         Inserted arc length.
-    model : str
-        ``insertion model + rod model`` that produced it, e.g. ``kinematic+planar_beam``.
+    model : ModelInfo
+        Insertion model and rod model that produced it (label e.g. ``kinematic+planar_beam``).
     """
 
     positions_mm: np.ndarray
     depth_mm: float
-    model: str
+    model: ModelInfo
 
 
 @dataclass(frozen=True)
 class FailedInsertion:
     """An insertion the model could not predict, with the reason."""
 
-    model: str
+    model: ModelInfo
     reason: str
 
     def __bool__(self) -> bool:
@@ -98,7 +155,7 @@ class CurvatureTable:
     ``section_curvature_per_mm`` is (n_tensions, k); exact at the tabulated tensions, linear between.
     """
 
-    rod_model: str
+    rod_model: str  # name of the rod model the table came from
     tensions_n: np.ndarray
     section_bounds_mm: np.ndarray
     section_curvature_per_mm: np.ndarray
@@ -113,27 +170,29 @@ class CurvatureTable:
         return np.array([np.interp(tension_n, self.tensions_n, c) for c in self.section_curvature_per_mm.T])
 
 
-def get_model(name: str) -> RodModel:
-    """The rod-model plugin called ``name``."""
-    model: RodModel = registry.get("rod_models", name)
-    return model
+def curvature_table(design: RodDesign, rod_model: RodModel = PLANAR_BEAM, n: int = 21) -> CurvatureTable:
+    """Tabulate the free-space section curvatures of ``design`` from 0 to its maximum tension at ``n`` tensions.
 
-
-@lru_cache(maxsize=64)
-def curvature_table(design: RodDesign, rod_model: str = "planar_beam", n: int = 21) -> CurvatureTable:
-    """Tabulate the free-space section curvatures of ``design`` from 0 to its maximum tension.
+    Cached per (design, rod model, n): the rod model must be hashable (a frozen dataclass, as the built-in
+    ones are).
 
     Raises
     ------
     PlanInputError
         When the rod model does not converge at some tabulated tension (the table would be wrong).
     """
+    return _curvature_table(design, cast(Hashable, rod_model), n)
+
+
+@lru_cache(maxsize=64)
+def _curvature_table(design: RodDesign, key: Hashable, n: int) -> CurvatureTable:
+    rod_model = cast(RodModel, key)
     tensions = np.linspace(0.0, design.max_tension_n, n)
-    batch = get_model(rod_model).solve_batch(design, tensions)
+    batch = rod_model.solve_batch(design, tensions)
     if not np.all(batch.converged):
         bad = tensions[~np.asarray(batch.converged)]
-        raise PlanInputError(f"rod model {rod_model} did not converge for {design.name} at {bad} N")
-    return CurvatureTable(rod_model, tensions, np.asarray(batch.section_bounds_mm, float),
+        raise PlanInputError(f"rod model {rod_model.name} did not converge for {design.name} at {bad} N")
+    return CurvatureTable(rod_model.name, tensions, np.asarray(batch.section_bounds_mm, float),
                           np.asarray(batch.section_curvature_per_m, float) * 1e-3, int(batch.joint_section))
 
 
@@ -156,26 +215,30 @@ class KinematicInsertion:
         and 1.023 for 13ga-20j-tip, with tip departures of median 0.4 mm and at most 1.0 mm. Physically:
         the gel's Winkler length (4 EI / k)^(1/4) ≈ 25 mm is shorter than the joint section, so the
         distal section keeps its free-space curvature and the needle follows it. Softer tissue lowers it.
-    rod_model : str
-        Rod model that gives the curvature table (``planar_beam`` is exact to 0.1 % of the two-tube model
-        for free-space curvature; see the rod-model benchmark).
+    rod_model : RodModel
+        Rod model that gives the curvature table (default :data:`~reachplan.rod_model.beam.PLANAR_BEAM`,
+        exact to 0.1 % of the two-tube model for free-space curvature; see the rod-model benchmark).
     step_mm : float
         Integration step along the insertion.
     """
 
     tissue_factor: float = 1.0
-    rod_model: str = "planar_beam"
+    rod_model: RodModel = PLANAR_BEAM
     step_mm: float = 1.0
 
     @property
     def name(self) -> str:
         return "kinematic"
 
+    @property
+    def info(self) -> ModelInfo:
+        """This model, its rod model and their settings."""
+        return ModelInfo.of(self.name, self, self.rod_model)
+
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
         paths = self.insert_array(design, schedules, depth_mm)
-        label = f"{self.name}+{self.rod_model}"
-        return [InsertionPath(p, depth_mm, label) for p in paths]
+        return [InsertionPath(p, depth_mm, self.info) for p in paths]
 
     def insert_array(self, design: RodDesign, schedules: Sequence[TensionSchedule], depth_mm: float) -> np.ndarray:
         """All paths at once: (S, n, 3) float, mm, template frame."""
@@ -245,8 +308,9 @@ class TissueBeamInsertion:
     ----------
     tissue_modulus_pa : float
         Young's modulus of the medium (default: SimuGel #3, 0.19 MPa).
-    rod_model : str
-        Rod model that gives each section's preferred (free-space) curvature under tension.
+    rod_model : RodModel
+        Rod model that gives each section's preferred (free-space) curvature under tension (default
+        :data:`~reachplan.rod_model.cosserat.TWO_TUBE_COSSERAT`).
     grid_mm : float
         Finite-difference spacing along the needle.
     step_mm : float
@@ -254,7 +318,7 @@ class TissueBeamInsertion:
     """
 
     tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
-    rod_model: str = "two_tube_cosserat"
+    rod_model: RodModel = TWO_TUBE_COSSERAT
     grid_mm: float = 0.25
     step_mm: float = 0.25
     poisson: float = TISSUE_POISSON
@@ -263,9 +327,14 @@ class TissueBeamInsertion:
     def name(self) -> str:
         return "tissue_beam"
 
+    @property
+    def info(self) -> ModelInfo:
+        """This model, its rod model and their settings."""
+        return ModelInfo.of(self.name, self, self.rod_model)
+
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
-        label = f"{self.name}+{self.rod_model}"
+        label = self.info
         out: list[InsertionPath | FailedInsertion] = []
         for sch in schedules:
             try:

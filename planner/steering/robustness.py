@@ -17,9 +17,8 @@ import numpy as np
 
 from reachplan.planner.geometry.collision import Organ
 from reachplan.planner.steering.candidates import Candidate, Target, score_path
-from reachplan.planner.steering.insertion import KINEMATIC, KinematicInsertion
+from reachplan.planner.steering.insertion import KINEMATIC, KinematicInsertion, ModelInfo
 from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.rod_model.design import preset
 
 
 @dataclass(frozen=True)
@@ -51,7 +50,7 @@ class Robustness:
     worst_reach_mm: float
     worst_clearance_mm: float
     worst_case: str
-    model: str
+    model: ModelInfo
 
 
 def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patient_from_template: np.ndarray,
@@ -60,8 +59,8 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
     """Re-evaluate one candidate under every perturbation (see the module docstring)."""
     m = np.asarray(patient_from_template, float)
     variants: list[tuple[str, np.ndarray]] = []
-    if candidate.steered and candidate.schedule is not None and candidate.design:
-        design = preset(candidate.design)
+    design = candidate.design
+    if candidate.steered and candidate.schedule is not None and design is not None:
         sch, depth = candidate.schedule, candidate.insertion_depth_mm
         trials = [(f"tension x{1 + f:.2f}", TensionSchedule(
             sch.depth_mm, np.minimum(sch.tension_n * (1 + f), design.max_tension_n), sch.roll_deg))
@@ -91,7 +90,7 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
             worst_clear = c.clearance_mm
             if c.collides:
                 worst = f"{label}: collides with {c.closest_organ}"
-    return Robustness(float(worst_reach), float(worst_clear), worst, f"{model.name}+{model.rod_model}")
+    return Robustness(float(worst_reach), float(worst_clear), worst, model.info)
 
 
 def with_robustness(c: Candidate, r: Robustness) -> Candidate:

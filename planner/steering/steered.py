@@ -14,7 +14,13 @@ from functools import lru_cache
 import numpy as np
 
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.steering.insertion import KINEMATIC, InsertionPath, KinematicInsertion, TissueBeamInsertion
+from reachplan.planner.steering.insertion import (
+    KINEMATIC,
+    InsertionPath,
+    KinematicInsertion,
+    ModelInfo,
+    TissueBeamInsertion,
+)
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.rod_model.design import RodDesign
 
@@ -54,7 +60,7 @@ class ShapeBank:
     schedules: tuple[TensionSchedule, ...]
     shapes_mm: np.ndarray
     step_mm: float
-    model: str
+    model: ModelInfo
 
 
 @lru_cache(maxsize=32)
@@ -64,7 +70,7 @@ def shape_bank(design: RodDesign, family: ScheduleFamily = ScheduleFamily(), dep
     schedules = family.schedules(design)
     depth = min(depth_mm, design.length_mm)
     shapes = model.insert_array(design, schedules, depth)
-    return ShapeBank(design, schedules, shapes, depth / (shapes.shape[1] - 1), f"{model.name}+{model.rod_model}")
+    return ShapeBank(design, schedules, shapes, depth / (shapes.shape[1] - 1), model.info)
 
 
 @dataclass(frozen=True)
@@ -156,13 +162,16 @@ def refine_with(model: TissueBeamInsertion, design: RodDesign, schedule: Tension
     target = np.array([np.hypot(rel_mm[0], rel_mm[1]), 0.0, rel_mm[2]])
     aim = target.copy()
     sch = schedule
-    label = f"{model.name}+{model.rod_model}"
+    label = model.info
 
     def solve(s: TensionSchedule) -> InsertionPath:
         try:
-            return InsertionPath(model.insert_one(design, s, depth_mm, modulus_profile), depth_mm, label)
+            positions = model.insert_one(design, s, depth_mm, modulus_profile)
         except np.linalg.LinAlgError as exc:
             raise PlanInputError(f"{model.name} failed: equilibrium system singular ({exc})") from None
+        if not np.all(np.isfinite(positions)):
+            raise PlanInputError(f"{model.name} failed: the predicted shape is not finite")
+        return InsertionPath(positions, depth_mm, label)
 
     res = solve(sch)
     for _ in range(iterations):

@@ -213,7 +213,7 @@ def rows_from_result(task: StudyTask, result: PlanResult, scene_s: float, plan_s
             steered_peak_tension_n=None if st is None else _num(st.peak_tension_n),
             steered_insertion_depth_mm=None if st is None else _num(st.insertion_depth_mm),
             steered_hole_distance_mm=None if st is None else _num(st.hole_distance_mm),
-            steered_model=None if st is None else st.model,
+            steered_model=None if st is None else st.model.label,
             straight_hole=None if sr is None else sr.hole_id,
             straight_reach_error_mm=None if sr is None else _num(sr.reach_error_mm),
             straight_clearance_mm=None if sr is None else _num(sr.clearance_mm),
@@ -240,10 +240,7 @@ def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
     try:
         designs = () if task.design == STRAIGHT else (task.design,)
         cfg = dataclasses.replace(config, designs=designs)
-        if designs:
-            from reachplan.rod_model.design import preset
-
-            preset(task.design)  # a typed error for an unknown preset, before loading the case
+        _ = cfg.rod_designs  # a typed error for an unknown preset, before loading the case (plan() reuses them)
         scene, structures, scene_s = load_scene(task.case, task.targets, cfg)
         t = time.perf_counter()
         result = plan(scene, cfg)

@@ -237,7 +237,7 @@ class SourceSpec:
 
         ``extra`` sets the fields SourceData does not hold (manufacturer, active_diameter_mm, ...). Source Model
         ID defaults to the data set's first alias of at most 16 characters (e.g. ``gammamedplushdr``), which
-        :func:`reachplan.planner.dose.tg43.recognise_source` maps back to the data set.
+        :func:`reachplan.planner.pipeline.recognise_source` maps back to the data set.
         """
         aliases = [a for a in data.aliases if 0 < len(a) <= 16]
         spec = cls(name=data.name, air_kerma_rate_u=air_kerma_rate_u, reference_datetime=reference_datetime,

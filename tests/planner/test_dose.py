@@ -18,11 +18,10 @@ from reachplan.planner.dose.tg43 import (
     dwell_directions,
     dwells_along_path,
     geometry_factor_line,
-    get_source,
     grid_points_mm,
     radial_dose,
-    recognise_source,
 )
+from reachplan.planner.pipeline import get_source, recognise_source
 from reachplan.plugins.errors import PluginError
 from reachplan.plugins.sources import BUILTIN
 

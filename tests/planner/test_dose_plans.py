@@ -23,11 +23,10 @@ from reachplan.planner.dose.tg43 import (
     Tg43Kernel,
     check_points,
     dose_on_grid,
-    get_source,
     grid_points_mm,
     plan_dwells,
-    recognise_source,
 )
+from reachplan.planner.pipeline import get_source, recognise_source
 from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
 
 

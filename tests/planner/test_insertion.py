@@ -13,6 +13,7 @@ from reachplan.planner.steering.insertion import (
     fit_tissue_factor,
 )
 from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.rod_model.beam import PLANAR_BEAM
 from reachplan.rod_model.design import preset
 
 
@@ -39,9 +40,9 @@ def test_kinematic_roll_and_zero_tension(design) -> None:  # type: ignore[no-unt
 
 def test_tissue_beam_in_a_vanishing_medium_takes_the_free_space_shape(design) -> None:  # type: ignore[no-untyped-def]
     depth, tension = 150.0, 1.0  # small load: the small-deflection closed form holds
-    model = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model="planar_beam", grid_mm=0.5, step_mm=10.0)
+    model = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=10.0)
     tip = model.insert_one(design, TensionSchedule.constant(tension), depth)[-1]
-    table = curvature_table(design, "planar_beam")
+    table = curvature_table(design, PLANAR_BEAM)
     kap = table.sections(tension)
     a = design.length_mm - depth  # needle arc length at the template
     joint0 = table.section_bounds_mm[table.joint_section] - a  # depth where the joint section starts
@@ -53,7 +54,7 @@ def test_tissue_beam_in_a_vanishing_medium_takes_the_free_space_shape(design) ->
 
 def test_tissue_beam_converges_under_refinement(design) -> None:  # type: ignore[no-untyped-def]
     sch = TensionSchedule.ramp(30.0, 20.0, 8.0, roll_deg=30.0)
-    tips = {h: TissueBeamInsertion(rod_model="planar_beam", grid_mm=h, step_mm=h).insert_one(design, sch, 120.0)[-1]
+    tips = {h: TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=h, step_mm=h).insert_one(design, sch, 120.0)[-1]
             for h in (2.0, 1.0, 0.5, 0.25)}
     e = [np.linalg.norm(tips[h] - tips[0.25]) for h in (2.0, 1.0, 0.5)]
     assert e[1] < 0.6 * e[0] and e[2] < 0.6 * e[1]  # converging, at least first order in the grid/step
@@ -63,21 +64,21 @@ def test_tissue_beam_converges_under_refinement(design) -> None:  # type: ignore
 
 
 def test_tissue_beam_straight_without_tension(design) -> None:  # type: ignore[no-untyped-def]
-    path = TissueBeamInsertion(rod_model="planar_beam").insert_one(design, TensionSchedule.constant(0.0), 100.0)
+    path = TissueBeamInsertion(rod_model=PLANAR_BEAM).insert_one(design, TensionSchedule.constant(0.0), 100.0)
     np.testing.assert_allclose(path[:, :2], 0.0, atol=1e-12)
 
 
 def test_stiffer_tissue_holds_the_needle_closer_to_its_track(design) -> None:  # type: ignore[no-untyped-def]
     sch = TensionSchedule.constant(10.0)
-    soft = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model="planar_beam", step_mm=5.0)
-    gel = TissueBeamInsertion(rod_model="planar_beam", step_mm=5.0)
+    soft = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model=PLANAR_BEAM, step_mm=5.0)
+    gel = TissueBeamInsertion(rod_model=PLANAR_BEAM, step_mm=5.0)
     # the gel accumulates curvature along the track; free space bends only the distal section
     assert gel.insert_one(design, sch, 150.0)[-1, 0] > soft.insert_one(design, sch, 150.0)[-1, 0]
 
 
 def test_default_tissue_factor_matches_its_fit(design) -> None:  # type: ignore[no-untyped-def]
     schedules = [TensionSchedule.ramp(o, 20.0, t) for o, t in ((0.0, 10.0), (40.0, 10.0), (20.0, 5.0))]
-    ref = TissueBeamInsertion(rod_model="planar_beam", grid_mm=0.5, step_mm=0.5)
+    ref = TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=0.5)
     factor, err = fit_tissue_factor(design, schedules, 150.0, ref)
     assert factor == pytest.approx(KinematicInsertion().tissue_factor, abs=0.05)
     assert np.all(err < 2.0)
@@ -122,8 +123,8 @@ def test_inverse_targeting_reaches_a_reachable_point_and_reports_an_unreachable_
 
 def test_tissue_modulus_profile_per_organ(design) -> None:  # type: ignore[no-untyped-def]
     sch = TensionSchedule.ramp(20.0, 20.0, 8.0)
-    gel = TissueBeamInsertion(rod_model="planar_beam", grid_mm=0.5, step_mm=0.5)
-    soft = TissueBeamInsertion(rod_model="planar_beam", grid_mm=0.5, step_mm=0.5, tissue_modulus_pa=2e4)
+    gel = TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=0.5)
+    soft = TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=0.5, tissue_modulus_pa=2e4)
     flat = gel.insert_one(design, sch, 120.0)
     # a profile that repeats the default is the homogeneous model; one that is soft everywhere is the soft model
     np.testing.assert_allclose(gel.insert_one(design, sch, 120.0, (np.array([0.0]), np.array([0.19e6]))), flat)
@@ -135,3 +136,24 @@ def test_tissue_modulus_profile_per_organ(design) -> None:  # type: ignore[no-un
     assert lo - 1e-9 <= mixed <= hi + 1e-9 and lo < hi
     with pytest.raises(PlanInputError, match="modulus_profile"):
         gel.insert_one(design, sch, 120.0, (np.array([10.0, 5.0]), np.array([1.0, 2.0])))
+
+
+def test_insertion_models_use_the_rod_model_object_they_hold(design) -> None:  # type: ignore[no-untyped-def]
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    from reachplan.rod_model.beam import PlanarBeam
+
+    @dataclass(frozen=True)
+    class Unregistered(PlanarBeam):  # the same mechanics under a name no plugin registry knows
+        name: ClassVar[str] = "unregistered_beam"
+
+    sch = [TensionSchedule.ramp(20.0, 10.0, 6.0)]
+    model = KinematicInsertion(tissue_factor=0.9, rod_model=Unregistered())
+    (path,) = model.insert(design, sch, 100.0)
+    assert path and path.model.label == "kinematic+unregistered_beam"
+    assert dict(path.model.settings)["tissue_factor"] == 0.9 and dict(path.model.settings)["step_mm"] == 1.0
+    assert path.model.to_json()["rod_model"] == "unregistered_beam"
+    same = KinematicInsertion(tissue_factor=0.9, rod_model=PLANAR_BEAM).insert_array(design, sch, 100.0)[0]
+    np.testing.assert_array_equal(path.positions_mm, same)
+    assert TissueBeamInsertion(rod_model=PLANAR_BEAM).info.label == "tissue_beam+planar_beam"

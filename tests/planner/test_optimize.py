@@ -16,7 +16,8 @@ from reachplan.planner.dose.optimize import (
     compare_straight_steered,
     optimise_dwell_times,
 )
-from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, get_source
+from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid
+from reachplan.planner.pipeline import get_source
 
 SK = 40000.0
 H = 2.5

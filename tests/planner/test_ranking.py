@@ -54,7 +54,8 @@ def test_planted_scene_only_a_curved_route_is_clear() -> None:
     best = result.ranking["T"][0]
     assert best.feasible and best.steered and best.hole_distance_mm < 40.0
     assert best.reach_error_mm <= 2.0 and best.clearance_mm > 0.0
-    assert best.model.startswith("tissue_beam")  # the shortlisted candidate was re-solved by the reference
+    assert best.model.insertion == "tissue_beam"  # the shortlisted candidate was re-solved by the reference
+    assert best.to_json()["model"] == f"tissue_beam+{best.model.rod_model}" and best.model.rod_model
     assert best.schedule is not None and 0 < best.peak_tension_n <= 10.0
     # the path's tip is where the candidate says, and it bends toward the target's side (+x)
     np.testing.assert_allclose(best.path_mm[-1], best.to_json()["tip_position_mm"], atol=1e-3)
@@ -95,7 +96,7 @@ def test_screening_model_is_chosen_by_the_measured_error_table() -> None:
     from reachplan.rod_model.select import error_table
 
     rows = {r.model: r for r in error_table() if r.resolution == "default"}
-    chosen = screening_model(PlanConfig(screen_tolerance_mm=0.5)).rod_model
+    chosen = screening_model(PlanConfig(screen_tolerance_mm=0.5)).rod_model.name
     assert rows[chosen].max_tip_error_mm <= 0.5
-    strict = screening_model(PlanConfig(screen_tolerance_mm=1e-5)).rod_model
+    strict = screening_model(PlanConfig(screen_tolerance_mm=1e-5)).rod_model.name
     assert rows[strict].max_tip_error_mm <= 1e-5 and strict != chosen

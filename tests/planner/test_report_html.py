@@ -17,6 +17,7 @@ from reachplan.planner.report import figures
 from reachplan.planner.report.build import _runs, chosen_by_kind, models_used
 from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html, write_html
 from reachplan.planner.steering.candidates import Candidate
+from reachplan.planner.steering.insertion import STRAIGHT
 
 
 def _png(colour: str = "red") -> bytes:
@@ -72,7 +73,7 @@ def test_write_is_atomic_and_replaces(tmp_path: Path) -> None:
 
 def _cand(target: str, hole: str, steered: bool, feasible: bool = True) -> Candidate:
     path = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 50.0]])
-    return Candidate(target, hole, 10.0, 0.5, 5.0, "Bladder", 50.0, steered, 0.0, "m", not feasible, True,
+    return Candidate(target, hole, 10.0, 0.5, 5.0, "Bladder", 50.0, steered, 0.0, STRAIGHT, not feasible, True,
                      "" if feasible else "collides", path)
 
 
@@ -106,9 +107,7 @@ def test_speed_accuracy_chart_marks_the_models_used() -> None:
 def test_models_used_names_each_rod_models_role() -> None:
     from reachplan.planner.steering.insertion import KINEMATIC, TISSUE_BEAM
 
-    cands = [SimpleNamespace(model=m) for m in
-             ["straight", f"{KINEMATIC.name}+planar_beam", f"{KINEMATIC.name}+planar_beam",
-              f"{TISSUE_BEAM.name}+two_tube_cosserat"]]
+    cands = [SimpleNamespace(model=m) for m in [STRAIGHT, KINEMATIC.info, KINEMATIC.info, TISSUE_BEAM.info]]
     used = models_used(SimpleNamespace(candidates=cands))  # type: ignore[arg-type]
     assert used == {"planar_beam": f"screening with {KINEMATIC.name} (2 candidates)",
                     "two_tube_cosserat": f"reference re-solve with {TISSUE_BEAM.name} (1 candidates)"}

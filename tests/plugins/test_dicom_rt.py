@@ -297,7 +297,7 @@ def test_exporter_plugin_passes_its_protocol_check(make_plan: Callable[..., Expo
 def test_round_trip_through_reachplan_readers(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:
     from reachplan.imaging.rtplan import read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.dose.tg43 import recognise_source
+    from reachplan.planner.pipeline import recognise_source
 
     plan = make_plan()
     out = export_plan(plan, tmp_path)
