@@ -17,6 +17,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
+from reachplan._arrays import arc_length_mm
 from reachplan.imaging.types import Grid, Roi, StructureSet, Volume
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import Organ, make_organ
@@ -246,7 +247,7 @@ def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, 
                                  f"(meshed: {', '.join(scene.meshes)})")
         if not (np.isfinite(value) and value > 0):
             raise PlanInputError(f"tissue modulus of {name} must be > 0 Pa, got {value}")
-    depth = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1))])
+    depth = arc_length_mm(path_mm)
     values = np.full(len(path_mm), default_pa)
     assigned = np.zeros(len(path_mm), dtype=bool)
     for name, value in moduli:
