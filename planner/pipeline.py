@@ -389,16 +389,18 @@ def planning_structures(structures: StructureSet, grid: Grid | None, target_roi:
     return PlanningStructures(grid, Structure(target_roi, roi_mask(roi, grid)), oars)
 
 
-def choose_needles(result: PlanResult, targets: Sequence[str] | None = None) -> tuple[Candidate, ...]:
+def choose_needles(result: PlanResult, targets: Sequence[str] | None = None,
+                   steered: bool | None = None) -> tuple[Candidate, ...]:
     """One needle per target: its top-ranked feasible candidate whose hole no earlier target took.
 
-    Targets without a feasible candidate on a free hole get none (their ranking says why).
+    ``steered``: True takes steered candidates only, False straight ones only, None either. Targets without a
+    feasible candidate (of that kind) on a free hole get none (their ranking says why).
     """
     used: set[str] = set()
     out: list[Candidate] = []
     for t in targets or list(result.ranking):
         for c in result.ranking.get(t, ()):
-            if c.feasible and c.hole_id not in used:
+            if c.feasible and c.hole_id not in used and (steered is None or c.steered == steered):
                 used.add(c.hole_id)
                 out.append(c)
                 break
