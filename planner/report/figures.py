@@ -161,8 +161,10 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
         ax.set(title=f"{view}, {'xyz'[normal]} = {value:.0f} mm", xlabel=AXIS_LABELS[u], ylabel=AXIS_LABELS[v])
         ax.set_aspect("equal")
     axes[0].set_ylim(sorted(axes[0].get_ylim(), reverse=True))  # axial: anterior (-y) at the top
-    handles = [Line2D([], [], color=organ_colour(n), label=n) for n in scene.meshes]
-    handles += [Line2D([], [], color=STEERED_COLOUR, label="top needle per target: steered"),
+    handles = [Line2D([], [], color=organ_colour(n), label=n) for n in scene.meshes
+               if not n.casefold().startswith("target")]
+    handles += [Line2D([], [], color=TARGET_COLOUR, marker="+", ls="", label="target points and ROIs"),
+                Line2D([], [], color=STEERED_COLOUR, label="top needle per target: steered"),
                 Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="top needle per target: straight")]
     axes[0].legend(handles=handles, loc="lower right", fontsize=7)
     fig.tight_layout()
