@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -179,8 +179,7 @@ class TwoTubeCosserat(_ShootingModel):
 
     name: ClassVar[str] = "two_tube_cosserat"
     coupled: ClassVar[bool] = False
-    capabilities: ClassVar[Capabilities] = Capabilities(
-        planar_only=False, twist=True, several_tendons=True, external_load=True, large_deflection=True)
+    capabilities: ClassVar[Capabilities] = replace(CosseratRod.capabilities, twist=True)
 
 
 COSSERAT_ROD = CosseratRod()
