@@ -8,6 +8,8 @@ The package has four floors; a floor imports only from the floors below it:
   data, exporters).
 * :mod:`reachplan.planner` (floor 3): the application (geometry, steering, ranking, dose, report, study, CLI).
 
+Below the floors, ``reachplan._arrays`` holds the array helpers every floor shares (it imports no floor).
+
 This module holds only the version and :class:`ReachplanError`, the base of every error reachplan raises on purpose.
 """
 

@@ -1,35 +1,55 @@
-"""Atomic file output for the planner (temporary file in the same folder, then ``os.replace``)."""
+"""Atomic file output (temporary file in the same folder, then ``os.replace``).
+
+The temporary file is created with ``os.open(..., O_CREAT | O_EXCL, 0o666)``, so the kernel applies the
+process umask as for any new file (``0o644`` under the usual ``022``). The umask is never read or changed:
+changing it (``os.umask(0)`` and back) is process-wide and races with every other thread that creates a file,
+and ``tempfile.mkstemp`` would give ``0o600`` and need the umask to widen it again.
+"""
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
+import secrets
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically: readers see the old file or the new one, never a part."""
+def atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> None:
+    """Create or replace ``path`` atomically: readers see the old file or the new one, never a part.
+
+    Parameters
+    ----------
+    path : Path
+        The file to write; its folder is created when missing.
+    write : callable
+        Called once with the temporary file opened for binary writing; writes the whole content.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    while True:
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+        try:
+            fd = os.open(tmp, flags, 0o666)  # permissions: 0o666 less the umask, applied by the kernel
+            break
+        except FileExistsError:  # pragma: no cover - a 48-bit name taken: draw another
+            continue
     try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual permissions
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (:func:`atomic_write`)."""
+    atomic_write(path, lambda f: f.write(data))
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:

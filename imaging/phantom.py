@@ -40,9 +40,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-import os
 import re
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from reachplan.imaging.errors import OutputExistsError
+from reachplan.imaging.files import atomic_write
 
 #: target spacing (mm) between polygon vertices written for a cross-section
 VERTEX_SPACING_MM = 0.75
@@ -744,14 +743,7 @@ def _is_phantom_file(path: Path) -> bool:
 
 
 def _atomic_write(ds: Any, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            ds.save_as(fh, enforce_file_format=True)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda fh: ds.save_as(fh, enforce_file_format=True))
 
 
 def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFiles:

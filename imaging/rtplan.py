@@ -41,6 +41,7 @@ import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.filereader import read_sequence
 
+from reachplan._arrays import frozen_floats
 from reachplan.imaging.dicom_io import read_dataset
 from reachplan.imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError
 from reachplan.imaging.types import StructureSet
@@ -56,14 +57,6 @@ _SAME_POSITION_MM = 1e-3
 
 class PlanQuirkWarning(DicomQuirkWarning):
     """A plan breaks a DICOM rule in a known way; it was read anyway (the message names the quirk)."""
-
-
-def _frozen(a: Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
-    arr = np.array(a, dtype=float)
-    if shape is not None:
-        arr = arr.reshape(shape)
-    arr.setflags(write=False)
-    return arr
 
 
 @dataclass(frozen=True)
@@ -129,9 +122,9 @@ class Channel:
     dose_coefficients: tuple[tuple[int, float], ...] = ()
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "dwell_positions_mm", _frozen(self.dwell_positions_mm, (-1, 3)))
-        object.__setattr__(self, "dwell_relative_mm", _frozen(self.dwell_relative_mm))
-        object.__setattr__(self, "dwell_times_s", _frozen(self.dwell_times_s))
+        object.__setattr__(self, "dwell_positions_mm", frozen_floats(np.reshape(self.dwell_positions_mm, (-1, 3))))
+        object.__setattr__(self, "dwell_relative_mm", frozen_floats(self.dwell_relative_mm))
+        object.__setattr__(self, "dwell_times_s", frozen_floats(self.dwell_times_s))
         n = len(self.dwell_times_s)
         if not (len(self.dwell_positions_mm) == len(self.dwell_relative_mm) == n):
             raise ValueError(f"channel {self.number}: dwell arrays disagree in length")
@@ -174,7 +167,7 @@ class CatheterPath:
     points_mm: np.ndarray
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "points_mm", _frozen(self.points_mm, (-1, 3)))
+        object.__setattr__(self, "points_mm", frozen_floats(np.reshape(self.points_mm, (-1, 3))))
 
 
 @dataclass(frozen=True, eq=False)
@@ -517,7 +510,7 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
 def _dose_reference(d: Dataset, plan: RtPlan) -> DoseReference:
     number = _int(d, "DoseReferenceNumber", 0) or 0
     coords = d.get("DoseReferencePointCoordinates")
-    position = _frozen([float(x) for x in coords]) if coords is not None and len(coords) == 3 else None
+    position = frozen_floats([float(x) for x in coords]) if coords is not None and len(coords) == 3 else None
     tps: float | None = None
     setup_dose = dict(plan.setup_doses_gy)
     terms = [

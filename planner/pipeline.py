@@ -18,6 +18,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
+from reachplan._arrays import arc_length_mm
 from reachplan.imaging.types import Grid, Roi, StructureSet, Volume
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import Organ, make_organ
@@ -289,7 +290,7 @@ def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, 
                                  f"(meshed: {', '.join(scene.meshes)})")
         if not (np.isfinite(value) and value > 0):
             raise PlanInputError(f"tissue modulus of {name} must be > 0 Pa, got {value}")
-    depth = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1))])
+    depth = arc_length_mm(path_mm)
     values = np.full(len(path_mm), default_pa)
     assigned = np.zeros(len(path_mm), dtype=bool)
     for name, value in moduli:
@@ -446,16 +447,18 @@ def planning_structures(structures: StructureSet, grid: Grid | None, target_roi:
     return PlanningStructures(grid, Structure(target_roi, roi_mask(roi, grid)), oars)
 
 
-def choose_needles(result: PlanResult, targets: Sequence[str] | None = None) -> tuple[Candidate, ...]:
+def choose_needles(result: PlanResult, targets: Sequence[str] | None = None,
+                   steered: bool | None = None) -> tuple[Candidate, ...]:
     """One needle per target: its top-ranked feasible candidate whose hole no earlier target took.
 
-    Targets without a feasible candidate on a free hole get none (their ranking says why).
+    ``steered``: True takes steered candidates only, False straight ones only, None either. Targets without a
+    feasible candidate (of that kind) on a free hole get none (their ranking says why).
     """
     used: set[str] = set()
     out: list[Candidate] = []
     for t in targets or list(result.ranking):
         for c in result.ranking.get(t, ()):
-            if c.feasible and c.hole_id not in used:
+            if c.feasible and c.hole_id not in used and (steered is None or c.steered == steered):
                 used.add(c.hole_id)
                 out.append(c)
                 break

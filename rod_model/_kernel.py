@@ -289,16 +289,11 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
                 work[q, c] = jac[q, c]
         for q in range(n):
             step[q] = -r[q]
-        if not solve_linear(work, step, n):
-            if fresh:
-                return SINGULAR, res, it
-            fd_jacobian(x, sec, nsteps_j, rdir, lam, fext, ftip, ltip, coupled, fscale, n, jac, traj)
-            fresh = True
-            continue
+        solved = solve_linear(work, step, n)
         alpha = 1.0
         improved = False
         rnew = res
-        for _ in range(12 if fresh else 2):  # backtracking line search on the residual
+        for _ in range((12 if fresh else 2) if solved else 0):  # backtracking line search on the residual
             for q in range(n):
                 xt[q] = x[q] + alpha * step[q]
             yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
@@ -307,9 +302,9 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
                 improved = True
                 break
             alpha *= 0.5
-        if not improved:
+        if not improved:  # a singular or useless step: retry once with a fresh finite-difference Jacobian
             if fresh:
-                return NOT_CONVERGED, res, it
+                return (NOT_CONVERGED if solved else SINGULAR), res, it
             fd_jacobian(x, sec, nsteps_j, rdir, lam, fext, ftip, ltip, coupled, fscale, n, jac, traj)
             fresh = True
             continue

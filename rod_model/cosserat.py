@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -49,7 +49,7 @@ import numpy as np
 from reachplan.rod_model import _kernel
 from reachplan.rod_model.design import Loads, RodDesign
 from reachplan.rod_model.protocol import Capabilities, check_loads
-from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath
+from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath, turn_per_length
 
 
 def section_table(design: RodDesign) -> np.ndarray:
@@ -156,9 +156,7 @@ class _ShootingModel:
                            self.max_iter, self.max_ramp, tips, tang, status, res)
         ok = status == _kernel.OK
         tips[~ok] = np.nan
-        cos = np.clip(np.sum(tang[:, :-1] * tang[:, 1:], axis=-1), -1.0, 1.0)
-        sin = np.linalg.norm(np.cross(tang[:, :-1], tang[:, 1:]), axis=-1)
-        curv = np.arctan2(sin, cos) / np.diff(np.r_[sec[:, 0], sec[-1, 1]])
+        curv = turn_per_length(tang, np.diff(np.r_[sec[:, 0], sec[-1, 1]]))
         curv[~ok] = np.nan
         bounds = np.r_[sec[:, 0], sec[-1, 1]] * 1e3
         joint = next(i for i, s in enumerate(design.sections()) if s.kind == "joints")
@@ -181,8 +179,7 @@ class TwoTubeCosserat(_ShootingModel):
 
     name: ClassVar[str] = "two_tube_cosserat"
     coupled: ClassVar[bool] = False
-    capabilities: ClassVar[Capabilities] = Capabilities(
-        planar_only=False, twist=True, several_tendons=True, external_load=True, large_deflection=True)
+    capabilities: ClassVar[Capabilities] = replace(CosseratRod.capabilities, twist=True)
 
 
 COSSERAT_ROD = CosseratRod()

@@ -9,16 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def _frozen(a: np.ndarray | list[float] | tuple[float, ...], shape_tail: tuple[int, ...], name: str) -> np.ndarray:
-    arr = np.array(a, dtype=float)
-    if arr.shape[1:] != shape_tail or arr.ndim != 1 + len(shape_tail):
-        raise ValueError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))}), got {arr.shape}"
-                         if shape_tail else f"{name} must be one-dimensional, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} holds non-finite values")
-    arr.setflags(write=False)
-    return arr
+from reachplan._arrays import frozen_floats
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,16 +53,16 @@ class RodPath:
     twist_rad: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        s = _frozen(self.s_mm, (), "s_mm")
+        s = frozen_floats(self.s_mm, (), "s_mm")
         object.__setattr__(self, "s_mm", s)
-        object.__setattr__(self, "positions_mm", _frozen(self.positions_mm, (3,), "positions_mm"))
-        object.__setattr__(self, "frames", _frozen(self.frames, (3, 3), "frames"))
+        object.__setattr__(self, "positions_mm", frozen_floats(self.positions_mm, (3,), "positions_mm"))
+        object.__setattr__(self, "frames", frozen_floats(self.frames, (3, 3), "frames"))
         if len(s) < 2 or len(self.positions_mm) != len(s) or len(self.frames) != len(s):
             raise ValueError("s_mm, positions_mm and frames must have the same length n >= 2")
         if np.any(np.diff(s) <= 0):
             raise ValueError("s_mm must be strictly increasing")
         if self.twist_rad is not None:
-            tw = _frozen(self.twist_rad, (), "twist_rad")
+            tw = frozen_floats(self.twist_rad, (), "twist_rad")
             if len(tw) != len(s):
                 raise ValueError("twist_rad must have the same length as s_mm")
             object.__setattr__(self, "twist_rad", tw)
@@ -212,7 +203,23 @@ def section_curvatures(frames: np.ndarray, s_mm: np.ndarray, bounds_mm: np.ndarr
     (..., k) float, 1/m
     """
     idx = np.searchsorted(s_mm, bounds_mm - 1e-9)
-    t = frames[..., idx, :, 2]
-    cos = np.clip(np.sum(t[..., :-1, :] * t[..., 1:, :], axis=-1), -1.0, 1.0)
-    sin = np.linalg.norm(np.cross(t[..., :-1, :], t[..., 1:, :]), axis=-1)
-    return np.arctan2(sin, cos) / (np.diff(bounds_mm) * 1e-3)
+    return turn_per_length(frames[..., idx, :, 2], np.diff(bounds_mm) * 1e-3)
+
+
+def turn_per_length(tangents: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """Mean curvature of consecutive pieces: the angle between the unit tangents at a piece's ends over its length.
+
+    Parameters
+    ----------
+    tangents : (..., k + 1, 3) float
+        Unit tangents at the piece boundaries.
+    lengths : (k,) float
+        Piece lengths (the unit of the result is rad per this unit).
+
+    Returns
+    -------
+    (..., k) float, rad per unit of ``lengths``
+    """
+    cos = np.clip(np.sum(tangents[..., :-1, :] * tangents[..., 1:, :], axis=-1), -1.0, 1.0)
+    sin = np.linalg.norm(np.cross(tangents[..., :-1, :], tangents[..., 1:, :]), axis=-1)
+    return np.arctan2(sin, cos) / lengths

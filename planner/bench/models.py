@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 import tracemalloc
 from collections.abc import Callable, Sequence
@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from reachplan.imaging.files import atomic_write, atomic_write_bytes
 from reachplan.rod_model.beam import PLANAR_BEAM, PlanarBeam
 from reachplan.rod_model.collocation import NS, CollocationCosserat
 from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
@@ -61,32 +62,16 @@ class Row:
     batched_peak_mb: float | None = None
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these are committed/package files
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write_text(path: Path, text: str) -> None:
-    def w(p: Path) -> None:
-        p.write_text(text, encoding="utf-8")
-    _atomic_write(path, w)
+    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
-    def w(p: Path) -> None:
-        with p.open("w", newline="", encoding="utf-8") as fh:
-            out = csv.writer(fh)
-            out.writerow(header)
-            out.writerows(rows)
-    _atomic_write(path, w)
+    buf = io.StringIO(newline="")
+    out = csv.writer(buf)
+    out.writerow(header)
+    out.writerows(rows)
+    _write_text(path, buf.getvalue())
 
 
 def _grid(quick: bool) -> list[tuple[RodDesign, float]]:
@@ -307,7 +292,7 @@ def _pareto_png(rows: list[Row], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    _atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    atomic_write(path, lambda f: fig.savefig(f, format="png"))
     plt.close(fig)
 
 
@@ -339,7 +324,7 @@ def _stability_png(cases: list[StabilityCase], path: Path) -> None:
     fig.suptitle("Two-tube solver stability (tip force (0, 0.2, -0.2) N; NC: not converged, SJ: singular, "
                  "NF: non-finite)", fontsize=9)
     fig.tight_layout()
-    _atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    atomic_write(path, lambda f: fig.savefig(f, format="png"))
     plt.close(fig)
 
 

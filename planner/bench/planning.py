@@ -18,13 +18,11 @@ import time
 from pathlib import Path
 
 import fcl
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from reachplan.imaging.dicom_io import read_series
+from reachplan.imaging.files import atomic_write_bytes
 from reachplan.imaging.phantom import write_phantom
 from reachplan.imaging.rtstruct import read_rtstruct
 from reachplan.planner.pipeline import PlanConfig, build_scene, plan
@@ -91,7 +89,7 @@ def plan_timings(out: Path, repeats: int) -> list[dict[str, object]]:
         rows.append({"plan": label, "holes": n_holes, "targets": n_targets, "schedules": n_sched,
                      "median_s": round(t, 3), "paths_per_s": round(paths / t), "fcl_queries": round(queries),
                      "fcl_queries_per_s": round(queries / t), "rerank_ms": round(rerank * 1e3, 2)})
-    workspace_figure(scene, PlanConfig(), out / "workspace.png")
+    atomic_write_bytes(out / "workspace.png", workspace_figure(scene, PlanConfig()))
     return rows
 
 
@@ -119,7 +117,8 @@ def insertion_models(out: Path, quick: bool) -> list[dict[str, object]]:
         err = np.linalg.norm(np.asarray(tips) - ref_tips, axis=1)
         rows.append({"model": label, "ms_per_path": round(per_path * 1e3, 4), "median_tip_error_mm": round(
             float(np.median(err)), 4), "max_tip_error_mm": round(float(err.max()), 4)})
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig = Figure(figsize=(7, 4.5))
+    ax = fig.add_subplot()
     for r in rows:
         kin = str(r["model"]).startswith("kinematic")
         ax.plot(r["ms_per_path"], r["max_tip_error_mm"], "o" if kin else "s", color="C0" if kin else "C3")
@@ -130,7 +129,6 @@ def insertion_models(out: Path, quick: bool) -> list[dict[str, object]]:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(out / "insertion_models.png", dpi=110)
-    plt.close(fig)
     return rows
 
 

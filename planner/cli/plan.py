@@ -73,12 +73,14 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
              config: PlanConfig, out: Path, quiet: bool, *, export: bool = True, source: str = "gammamed_plus_hdr",
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
              extra: dict[str, object] | None = None) -> dict[str, object]:
-    """Scene → plan → files (plan.json, overview.png, exports); returns the plan document."""
+    """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan
+    document."""
     from tqdm import tqdm
 
-    from reachplan.imaging.files import atomic_write_json
+    from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
     from reachplan.planner.pipeline import build_scene, plan, plan_delivery
-    from reachplan.planner.report.build import format_table, overview_figure
+    from reachplan.planner.report import figures
+    from reachplan.planner.report.build import format_table, report_html, top_candidates
     from reachplan.planner.report.workspace import workspace_figure
     from reachplan.plugins import registry
     from reachplan.plugins.exporters import ExportOptions
@@ -92,8 +94,10 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     result = plan(scene, config, quiet=quiet)
     timings["plan_s"] = time.perf_counter() - t
     doc: dict[str, object] = {**(extra or {}), **result.to_json()}
-    overview_figure(scene, result, out / "overview.png", volume)
-    workspace_figure(scene, config, out / "workspace.png")
+    overview_png = figures.overview(scene, top_candidates(result), volume)
+    workspace_png = workspace_figure(scene, config)
+    atomic_write_bytes(out / "overview.png", overview_png)
+    atomic_write_bytes(out / "workspace.png", workspace_png)
     delivery = None
     if export:
         t = time.perf_counter()
@@ -118,19 +122,16 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
             "files": files,
         }
         timings["delivery_s"] = time.perf_counter() - t
-    # --- report.html (issue 8: planner/report.py owns the content) ---
     from reachplan.planner.pipeline import rod_model_errors
-    from reachplan.planner.report.build import write_report
 
     t = time.perf_counter()
     case = str((extra or {}).get("case") or (inputs[-1].name if inputs else "case"))
-    doc["report"] = str(write_report(out / "report.html", scene, result, structures, volume=volume,
-                                     delivery=delivery, case=case, timings=timings, source_name=source,
-                                     target_roi=target_roi, quiet=quiet,
-                                     case_pngs=(out / "overview.png", out / "workspace.png"),
-                                     model_errors=rod_model_errors()))
+    html = report_html(scene, result, structures, volume=volume, delivery=delivery, case=case, timings=timings,
+                       source_name=source, target_roi=target_roi, quiet=quiet, overview_png=overview_png,
+                       workspace_png=workspace_png, model_errors=rod_model_errors())
+    atomic_write_bytes(out / "report.html", html.encode("utf-8"))
+    doc["report"] = str(out / "report.html")
     timings["report_s"] = time.perf_counter() - t
-    # --- end report ---
     doc["timings"] = timings
     atomic_write_json(out / "plan.json", doc)
     if not quiet:

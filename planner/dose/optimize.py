@@ -526,18 +526,3 @@ def compare_arms(
             needed = hi
         results.append(ArmResult(name, len(needles), full, needed))
     return Comparison(tuple(results), aims)
-
-
-def compare_straight_steered(
-    straight: Sequence[np.ndarray],
-    steered: Sequence[np.ndarray],
-    structures: PlanningStructures,
-    kernel: Tg43Kernel,
-    air_kerma_strength_u: float,
-    aims: Aims | None = None,
-    settings: OptimizerSettings | None = None,
-) -> Comparison:
-    """:func:`compare_arms` with the two arms named ``"straight"`` and ``"steered"``."""
-    return compare_arms(
-        (("straight", straight), ("steered", steered)), structures, kernel, air_kerma_strength_u, aims, settings
-    )

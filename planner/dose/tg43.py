@@ -41,6 +41,7 @@ from typing import Literal
 
 import numpy as np
 
+from reachplan._arrays import arc_length_mm
 from reachplan.imaging.rtplan import RtPlan
 from reachplan.imaging.types import Grid
 from reachplan.planner.errors import PlanInputError
@@ -533,8 +534,7 @@ def dwells_along_path(
     if not (step_mm > 0 and tip_offset_mm >= 0 and active_length_mm >= 0):
         raise ValueError("dwell step must be > 0 mm, tip offset and active length >= 0 mm")
     path = np.asarray(path_mm, dtype=float)
-    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s = arc_length_mm(path)
     if len(path) < 2 or s[-1] <= 0:
         raise ValueError("a needle path needs at least two distinct points")
     arc = tip_offset_mm + np.arange(0.0, active_length_mm + 1e-9, step_mm)

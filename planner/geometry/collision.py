@@ -17,6 +17,7 @@ import fcl
 import numpy as np
 import trimesh
 
+from reachplan._arrays import arc_length_mm
 from reachplan.planner.errors import PlanInputError
 
 
@@ -131,7 +132,7 @@ def path_clearance(
     caps = capsule_chain(p, radius_mm)
     keep = np.concatenate([[True], np.linalg.norm(np.diff(p, axis=0), axis=1) >= 1e-9])
     pts = p[keep]  # the points the capsules join (zero-length segments dropped)
-    s0 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    s0 = arc_length_mm(pts)
     req, creq = fcl.DistanceRequest(), fcl.CollisionRequest()
     best = np.inf
     for i, obj in enumerate(caps):

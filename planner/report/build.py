@@ -1,36 +1,30 @@
-"""Figures, tables and the HTML report of a plan (matplotlib, no screen needed)."""
+"""Tables and the HTML report of a plan, built in memory (the caller writes the files)."""
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
-import trimesh
 from tqdm import tqdm
 
-from reachplan.imaging.files import atomic_write_bytes
 from reachplan.imaging.types import Grid, StructureSet, Volume
 from reachplan.planner.dose.optimize import Comparison, OptimizerSettings, PlanningStructures, compare_arms
-from reachplan.planner.pipeline import DEFAULT_AIR_KERMA_U, Delivery, PlanResult, Scene, planning_structures
+from reachplan.planner.pipeline import (
+    DEFAULT_AIR_KERMA_U,
+    Delivery,
+    PlanResult,
+    Scene,
+    choose_needles,
+    planning_structures,
+)
 from reachplan.planner.report import figures
-from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, write_html
+from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.plugins.sources import SourceData
 from reachplan.rod_model.select import ErrorRow
-
-ORGAN_COLOURS = {
-    "Bladder": "#e6c229", "Rectum": "#8c564b", "Sigmoid": "#c49c94", "Bowel": "#f7b6d2", "Bone": "#bbbbbb",
-    "HR-CTV": "#d62728", "Uterus": "#9467bd", "Cervix": "#ff9896", "Obturator": "#7f7f7f",
-}
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
@@ -59,81 +53,16 @@ def format_table(result: PlanResult) -> str:
     return "\n".join(lines)
 
 
-def _section(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray) -> list[np.ndarray]:
-    sec = mesh.section(plane_origin=origin, plane_normal=normal)
-    return [] if sec is None else [np.asarray(d) for d in sec.discrete]
-
-
-def _background(ax: plt.Axes, volume: Volume | None, axis: int, value_mm: float) -> None:
-    if volume is None:
-        return
-    m = volume.grid.patient_from_index
-    if not np.allclose(m[:3, :3], np.diag(np.diag(m[:3, :3]))):
-        return  # oblique grid: organ outlines only
-    idx = volume.grid.to_index(np.array([[value_mm] * 3]))[0]
-    nk, nj, ni = volume.grid.shape
-    lo = volume.grid.to_patient(np.array([[0, 0, 0]]))[0]
-    hi = volume.grid.to_patient(np.array([[ni - 1, nj - 1, nk - 1]]))[0]
-    if axis == 2:  # axial: x across, y down
-        k = int(np.clip(round(idx[2]), 0, nk - 1))
-        ax.imshow(volume.array[k], cmap="gray", vmin=-200, vmax=300, extent=(lo[0], hi[0], hi[1], lo[1]))
-    else:  # sagittal: y across, z up
-        i = int(np.clip(round(idx[0]), 0, ni - 1))
-        ax.imshow(volume.array[:, :, i], cmap="gray", vmin=-200, vmax=300, origin="lower",
-                  extent=(lo[1], hi[1], lo[2], hi[2]), aspect="auto")
-
-
-def overview_figure(scene: Scene, result: PlanResult, path: Path, volume: Volume | None = None) -> None:
-    """Axial and sagittal slices with organ outlines and the top needle path of every target (PNG)."""
-    top = top_candidates(result)
-    tz = float(np.mean([t.position_mm[2] for t in scene.targets]))
-    fig, (ax_a, ax_s) = plt.subplots(1, 2, figsize=(12, 6))
-    _background(ax_a, volume, 2, tz)
-    _background(ax_s, volume, 0, 0.0)
-    for name, mesh in scene.meshes.items():
-        colour = ORGAN_COLOURS.get(name, "#2ca02c")
-        for loop in _section(mesh, np.array([0.0, 0.0, tz]), np.array([0.0, 0.0, 1.0])):
-            ax_a.plot(loop[:, 0], loop[:, 1], color=colour, lw=1.2)
-        for loop in _section(mesh, np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])):
-            ax_s.plot(loop[:, 1], loop[:, 2], color=colour, lw=1.2)
-    for c in top:
-        p = c.path_mm
-        style = "-" if c.steered else "--"
-        ax_a.plot(p[:, 0], p[:, 1], style, color="cyan", lw=1)
-        ax_a.plot(p[-1, 0], p[-1, 1], "o", color="cyan", ms=3)
-        ax_s.plot(p[:, 1], p[:, 2], style, color="cyan", lw=1)
-    for t in scene.targets:
-        ax_a.plot(t.position_mm[0], t.position_mm[1], "+", color="red", ms=8)
-    handles = [plt.Line2D([], [], color=ORGAN_COLOURS.get(n, "#2ca02c"), label=n) for n in scene.meshes
-               if n in ORGAN_COLOURS]
-    handles.append(plt.Line2D([], [], color="cyan", label="top needle per target (dashed: straight)"))
-    ax_a.legend(handles=handles, loc="lower right", fontsize=7)
-    ax_a.set(title=f"axial, z = {tz:.0f} mm", xlabel="x (mm, patient left +)", ylabel="y (mm, posterior +)")
-    ax_a.set_aspect("equal")
-    ax_a.set_ylim(sorted(ax_a.get_ylim(), reverse=True))  # anterior (-y) at the top, as radiology shows it
-    ax_s.set(title="sagittal, x = 0 mm", xlabel="y (mm, posterior +)", ylabel="z (mm, superior +)")
-    ax_s.set_aspect("equal")
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-# --- the HTML report (issue 8) ----------------------------------------------------------------------------
-
 #: Faster LP settings for the straight-versus-steered comparison in the report (the delivered plan keeps the
 #: full :class:`~reachplan.planner.dose.optimize.OptimizerSettings`); about 5 s for 4 + 12 needles on the demo phantom.
 COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500, relax_iterations=1)
 
 
-#: Captions of the PNG files :func:`write_report` embeds in the case section, by file name.
-CASE_PNG_CAPTIONS = {
-    "overview.png": "Overview: axial slice at the targets' mean height and the mid-sagittal slice, with the top "
-                    "needle of every target (dashed: straight).",
-    "workspace.png": "Reachable workspace: where each hole's steered needle can put its tip at the targets' depth "
-                     "(template frame), with the targets and the organ outlines at that depth.",
-}
+#: Captions of the overview and workspace figures in the case section.
+OVERVIEW_CAPTION = ("Overview: axial slice at the targets' mean height and the mid-sagittal slice, with the top "
+                    "needle of every target (solid cyan: steered, dashed orange: straight).")
+WORKSPACE_CAPTION = ("Reachable workspace: where each hole's steered needle can put its tip at the targets' depth "
+                     "(template frame), with the targets and the organ outlines at that depth.")
 
 
 @dataclass(frozen=True)
@@ -157,32 +86,20 @@ class ReportOptions:
             raise ValueError("mesh_pitch_mm must be a positive number of mm")
 
 
-def chosen_by_kind(result: PlanResult, steered: bool) -> tuple[Candidate, ...]:
-    """One needle of one kind per target: its best-ranked feasible straight (or steered) candidate on a hole
-    that no earlier target took. Targets without one get none."""
-    used: set[str] = set()
-    out: list[Candidate] = []
-    for cands in result.ranking.values():
-        c = next((c for c in cands if c.feasible and c.steered == steered and c.hole_id not in used), None)
-        if c is not None:
-            used.add(c.hole_id)
-            out.append(c)
-    return tuple(out)
-
-
 def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | None,
                    source: SourceData, target_roi: str = "HR-CTV",
                    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
                    settings: OptimizerSettings = COMPARISON_SETTINGS,
                    planning: PlanningStructures | None = None) -> Comparison | None:
     """Straight versus steered dose: each arm gets the per-target best needle of its kind
-    (:func:`chosen_by_kind`), optimised the same way (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm
-    with no feasible needle is left out; None when both are empty. ``planning``: the delivery's structures, when
-    already built (else :func:`reachplan.planner.pipeline.planning_structures` builds them). ``source``: the TG-43
-    data set (the delivery's, :attr:`~reachplan.planner.pipeline.Delivery.source`)."""
+    (:func:`~reachplan.planner.pipeline.choose_needles`), optimised the same way
+    (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm with no feasible needle is left out; None
+    when both are empty. ``planning``: the delivery's structures, when already built (else
+    :func:`reachplan.planner.pipeline.planning_structures` builds them). ``source``: the TG-43 data set (the
+    delivery's, :attr:`~reachplan.planner.pipeline.Delivery.source`)."""
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
-    arms = [(name, [c.path_mm for c in chosen_by_kind(result, steered)])
+    arms = [(name, [c.path_mm for c in choose_needles(result, steered=steered)])
             for name, steered in (("straight", False), ("steered", True))]
     arms = [a for a in arms if a[1]]
     if not arms:
@@ -412,12 +329,12 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     comparison : straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why)
     case : one line naming the case
     timings : seconds per stage, shown at the end
-    case_figures : further figures for the case section (e.g. the overview and workspace PNGs)
+    case_figures : further figures for the case section (e.g. the overview and workspace figures)
     model_errors : the measured rod-model error table (:func:`reachplan.planner.pipeline.rod_model_errors`) for
         the speed-versus-accuracy section; empty: the section says it is not available
     """
     options = options or ReportOptions()
-    straight, steered = chosen_by_kind(result, False), chosen_by_kind(result, True)
+    straight, steered = choose_needles(result, steered=False), choose_needles(result, steered=True)
     slice_targets = list(result.ranking)[: options.max_slice_targets]
     bar = tqdm(total=4 + len(slice_targets), desc="report", unit="figure", disable=quiet, leave=False)
     try:
@@ -472,16 +389,17 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     return Report(f"reachplan report: {case}", subtitle, tuple(sections))
 
 
-def write_report(path: Path, scene: Scene, result: PlanResult, structures: StructureSet, *,
-                 volume: Volume | None = None, delivery: Delivery | None = None, case: str = "case",
-                 timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
-                 target_roi: str = "HR-CTV", options: ReportOptions | None = None, quiet: bool = True,
-                 case_pngs: Sequence[Path] = (), model_errors: Sequence[ErrorRow] = ()) -> Path:
-    """Compare straight and steered needles (when a delivery was made), build the report and write it to
-    ``path`` (HTML, self-contained, atomic). Returns ``path``.
+def report_html(scene: Scene, result: PlanResult, structures: StructureSet, *, volume: Volume | None = None,
+                delivery: Delivery | None = None, case: str = "case", timings: Mapping[str, float] | None = None,
+                source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
+                options: ReportOptions | None = None, quiet: bool = True, overview_png: bytes | None = None,
+                workspace_png: bytes | None = None, model_errors: Sequence[ErrorRow] = ()) -> str:
+    """Compare straight and steered needles (when a delivery was made), build the report and render it: one
+    self-contained HTML document, returned as text for the caller to write.
 
-    ``case_pngs``: PNG files written before (``overview.png``, ``workspace.png``) to embed in the case
-    section; missing ones are left out. ``model_errors``: see :func:`build_report`.
+    ``overview_png``, ``workspace_png``: the overview (:func:`reachplan.planner.report.figures.overview`) and
+    workspace (:func:`reachplan.planner.report.workspace.workspace_figure`) figures, embedded in the case
+    section when given. ``model_errors``: see :func:`build_report`.
     """
     from importlib.metadata import PackageNotFoundError, version
 
@@ -502,11 +420,11 @@ def write_report(path: Path, scene: Scene, result: PlanResult, structures: Struc
         bar.close()
         if comparison is None:
             note = "No feasible needle of either kind: nothing to compare."
-    extra = tuple(Figure(Path(p).read_bytes(), CASE_PNG_CAPTIONS.get(Path(p).name, Path(p).name))
-                  for p in case_pngs if Path(p).is_file())
+    extra = tuple(Figure(png, caption) for png, caption in ((overview_png, OVERVIEW_CAPTION),
+                                                             (workspace_png, WORKSPACE_CAPTION)) if png is not None)
     report = build_report(scene, result, volume=volume, delivery=delivery, comparison=comparison, case=case,
                           timings=timings, source_name=source_name, comparison_note=note, options=options,
                           quiet=quiet, case_figures=extra, model_errors=model_errors)
     footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
               "research use; not a treatment plan.")
-    return write_html(report, path, footer)
+    return render_html(report, footer)

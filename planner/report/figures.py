@@ -1,4 +1,7 @@
-"""Figures of the HTML report, each returned as PNG bytes (matplotlib, Agg: no screen needed).
+"""Figures of the HTML report, each returned as PNG bytes.
+
+Drawn on :class:`matplotlib.figure.Figure` objects, not pyplot: nothing here selects a backend or keeps a
+figure alive, so importing this module changes no global state and needs no screen.
 
 Geometry is in mm, DICOM patient coordinates (LPS: +x patient left, +y posterior, +z superior). Views follow
 radiological convention: axial and coronal show the patient's left on the right of the image, axial has
@@ -11,9 +14,6 @@ import io
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
 import numpy as np
 import trimesh
 from matplotlib.figure import Figure
@@ -138,6 +138,37 @@ def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: 
     fig.suptitle(f"{target}: needles projected onto the slices through the target", fontsize=11)
     fig.subplots_adjust(left=0.05, right=0.99, top=0.88, bottom=0.2, wspace=0.25)
     return png_bytes(fig, dpi=90)
+
+
+def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None = None) -> bytes:
+    """Axial slice at the targets' mean height and the mid-sagittal slice (x = 0 mm), with organ outlines, the
+    target points (green crosses) and ``needles`` (steered: solid cyan, straight: dashed orange)."""
+    points = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)
+    tz = float(np.mean(points[:, 2]))
+    fig = Figure(figsize=(12, 6))
+    axes = fig.subplots(1, 2)
+    for ax, (normal, u, v, view), value in zip(axes, VIEWS[:2], (tz, 0.0), strict=True):
+        _background(ax, volume, normal, value)
+        for name, mesh in scene.meshes.items():
+            for loop in _section(mesh, normal, value):
+                ax.plot(loop[:, u], loop[:, v], color=organ_colour(name), lw=1.2)
+        for c in needles:
+            colour, style = (STEERED_COLOUR, "-") if c.steered else (STRAIGHT_COLOUR, "--")
+            ax.plot(c.path_mm[:, u], c.path_mm[:, v], style, color=colour, lw=1)
+            ax.plot(c.path_mm[-1, u], c.path_mm[-1, v], "o", color=colour, ms=3)
+        if view == "axial":
+            ax.plot(points[:, u], points[:, v], "+", color=TARGET_COLOUR, ms=8, ls="")
+        ax.set(title=f"{view}, {'xyz'[normal]} = {value:.0f} mm", xlabel=AXIS_LABELS[u], ylabel=AXIS_LABELS[v])
+        ax.set_aspect("equal")
+    axes[0].set_ylim(sorted(axes[0].get_ylim(), reverse=True))  # axial: anterior (-y) at the top
+    handles = [Line2D([], [], color=organ_colour(n), label=n) for n in scene.meshes
+               if not n.casefold().startswith("target")]
+    handles += [Line2D([], [], color=TARGET_COLOUR, marker="+", ls="", label="target points and ROIs"),
+                Line2D([], [], color=STEERED_COLOUR, label="top needle per target: steered"),
+                Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="top needle per target: straight")]
+    axes[0].legend(handles=handles, loc="lower right", fontsize=7)
+    fig.tight_layout()
+    return png_bytes(fig, dpi=110)
 
 
 def coarse_mesh(mesh: trimesh.Trimesh, pitch_mm: float = 4.0) -> trimesh.Trimesh:

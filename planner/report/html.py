@@ -11,9 +11,6 @@ from __future__ import annotations
 import base64
 import html
 from dataclasses import dataclass
-from pathlib import Path
-
-from reachplan.imaging.files import atomic_write_bytes
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -177,8 +174,3 @@ def render_html(report: Report, footer: str = "") -> str:
         f"<footer>{_e(footer)}</footer></body></html>\n"
     )
 
-
-def write_html(report: Report, path: Path, footer: str = "") -> Path:
-    """Render ``report`` and write it to ``path`` atomically; returns ``path``."""
-    atomic_write_bytes(Path(path), render_html(report, footer).encode("utf-8"))
-    return Path(path)

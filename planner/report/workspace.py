@@ -2,25 +2,20 @@
 
 from __future__ import annotations
 
-import io
-from pathlib import Path
-
 import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from reachplan.imaging.files import atomic_write_bytes
 from reachplan.planner.pipeline import PlanConfig, Scene
+from reachplan.planner.report.figures import png_bytes
 from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
 
 
-def workspace_figure(scene: Scene, config: PlanConfig, path: Path, depth_mm: float | None = None) -> None:
+def workspace_figure(scene: Scene, config: PlanConfig, depth_mm: float | None = None) -> bytes:
     """Axial map, in the template plane's coordinates at ``depth_mm`` beyond it (default: the targets' mean
     depth): every needle hole with the disk its needle reaches there (first design of ``config``), the
-    targets, and the organs' outlines at that depth (PNG)."""
+    targets, and the organs' outlines at that depth. Returns PNG bytes."""
     inv = np.linalg.inv(scene.patient_from_template)
     t_local = np.array([inv[:3, :3] @ np.asarray(t.position_mm) + inv[:3, 3] for t in scene.targets])
     depth = float(np.mean(t_local[:, 2])) if depth_mm is None else depth_mm
@@ -31,10 +26,11 @@ def workspace_figure(scene: Scene, config: PlanConfig, path: Path, depth_mm: flo
         bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm))
         radius = float(reach_radius_mm(bank, np.array([depth]))[0])
         label = f"{design.name}: reach {radius:.1f} mm at {depth:.0f} mm depth"
-    fig, ax = plt.subplots(figsize=(7, 7))
+    fig = Figure(figsize=(7, 7))
+    ax = fig.add_subplot()
     holes = scene.template.needle_holes
     dist = np.array([h.distance_mm for h in holes])
-    cmap = plt.get_cmap("viridis")
+    cmap = matplotlib.colormaps["viridis"]
     for h, d in zip(holes, dist, strict=True):
         colour = cmap(d / max(dist.max(), 1.0))
         ax.add_patch(Circle(h.xy_mm, radius, color=colour, alpha=0.08, lw=0))
@@ -54,7 +50,4 @@ def workspace_figure(scene: Scene, config: PlanConfig, path: Path, depth_mm: flo
     ax.set_aspect("equal")
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    return png_bytes(fig, dpi=110)

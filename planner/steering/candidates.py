@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from reachplan._arrays import arc_length_mm
 from reachplan.planner.geometry.collision import Organ, check_path
 from reachplan.planner.steering.insertion import STRAIGHT, ModelInfo
 from reachplan.planner.steering.schedule import TensionSchedule
@@ -175,7 +176,7 @@ def score_path(
     """
     tip = path_mm[-1]
     reach = float(np.linalg.norm(tip - np.asarray(target.position_mm)))
-    depth = float(np.sum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1))) if depth_mm is None else depth_mm
+    depth = float(arc_length_mm(path_mm)[-1]) if depth_mm is None else depth_mm
     checks = check_path(path_mm, needle_radius_mm, tuple(organs)) if check else ()
     hits = sorted((c for c in checks if c.collides), key=lambda c: (c.contact_s_mm or 0.0, c.organ))
     if hits:

@@ -17,8 +17,8 @@ direction, roll 0 bends toward template ``+x``), millimetres:
 
 Assumptions (stated, not hidden): the mechanics is linearised in the lateral slopes (accurate to a few
 per cent up to ~0.3 rad), and the centreline is rebuilt inextensibly from those slopes; the two
-lateral planes decouple (isotropic medium and section); tissue is linear-elastic and homogeneous along
-the path (one modulus per plan; per-organ moduli are left for later); no friction or axial load; the
+lateral planes decouple (isotropic medium and section); tissue is linear-elastic, one modulus along the
+path or one per organ crossed (``modulus_profile``, piecewise constant); no friction or axial load; the
 rod model's free-space section curvature is the tendon's preferred curvature (the tendon's compression
 stays internal to the rod). Winkler modulus after Vesic (1961), ``k = 0.65 E_s/(1-ν²) (E_s D⁴/EI)^(1/12)``,
 with the phantom's SimuGel modulus E_s = 0.19 MPa (reference: ``oncoreach.md``, Tissue and phantom).

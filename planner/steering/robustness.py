@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from reachplan._arrays import arc_length_mm
 from reachplan.planner.geometry.collision import Organ
 from reachplan.planner.steering.candidates import Candidate, Target, score_path
 from reachplan.planner.steering.insertion import KINEMATIC, KinematicInsertion, ModelInfo
@@ -69,8 +70,8 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
                    for d in (-perturbations.roll_deg, perturbations.roll_deg)]
         shapes = model.insert_array(design, [sch] + [t for _, t in trials], depth)  # template frame
         s_model = np.linspace(0.0, depth, shapes.shape[1])
-        seg = np.linalg.norm(np.diff(candidate.path_mm, axis=0), axis=1)
-        s_path = np.concatenate([[0.0], np.cumsum(seg)]) * depth / max(seg.sum(), 1e-12)
+        s_path = arc_length_mm(candidate.path_mm)
+        s_path *= depth / max(s_path[-1], 1e-12)
         for (label, _), shape in zip(trials, shapes[1:], strict=True):
             # the perturbation's effect (perturbed minus nominal, fast model) added to the candidate's path
             delta = np.column_stack([np.interp(s_path, s_model, (shape - shapes[0])[:, j]) for j in range(3)])

@@ -190,66 +190,6 @@ def refine_with(model: TissueBeamInsertion, design: RodDesign, schedule: Tension
     return sch, res
 
 
-@dataclass(frozen=True)
-class InverseResult:
-    """The schedule that brings a hole's needle to a target, or the closest it gets.
-
-    ``reachable`` is True when ``reach_error_mm`` is within the tolerance asked for; otherwise the schedule
-    and depth are those of the closest approach. ``schedule`` carries the roll (template frame).
-    """
-
-    reachable: bool
-    schedule: TensionSchedule
-    depth_mm: float
-    reach_error_mm: float
-    roll_deg: float
-
-
-def inverse_target(design: RodDesign, rel_mm: np.ndarray, tolerance_mm: float = 2.0,
-                   family: ScheduleFamily = ScheduleFamily(), model: KinematicInsertion = KINEMATIC,
-                   depth_max_mm: float = 200.0) -> InverseResult:
-    """Find onset, plateau tension and roll that reach a target from a hole.
-
-    The roll is exact (the target's azimuth about the hole axis). The bank's best ramp is then refined over
-    (onset, plateau tension) by Nelder-Mead on the tip's distance to the target, minimised over the depth.
-
-    Parameters
-    ----------
-    rel_mm : (3,) float, mm, template frame: target minus the hole's entry.
-    """
-    from scipy.optimize import minimize
-
-    bank = shape_bank(design, family, min(depth_max_mm, design.length_mm), model)
-    match = match_targets(bank, np.asarray(rel_mm, float)[None, :], keep=1)[0]
-    k = int(match.order[0])
-    base = bank.schedules[k]
-    ramp = float(np.diff(base.depth_mm)[-1])
-    onset0 = float(base.depth_mm[-2]) if len(base.depth_mm) == 3 else 0.0
-    rho, zeta = float(np.hypot(rel_mm[0], rel_mm[1])), float(rel_mm[2])
-    depth_max = min(depth_max_mm, design.length_mm)
-
-    def build(x: np.ndarray) -> TensionSchedule:
-        onset = float(np.clip(x[0], 0.0, depth_max - ramp))
-        tension = float(np.clip(x[1], 0.0, design.max_tension_n))
-        return TensionSchedule.ramp(onset, ramp, tension)
-
-    def miss(x: np.ndarray) -> tuple[float, float]:
-        path = model.insert_array(design, [build(x)], depth_max)[0]
-        d = np.hypot(path[:, 0] - rho, path[:, 2] - zeta)
-        i = int(np.argmin(d))
-        return float(d[i]), i * depth_max / (len(path) - 1)
-
-    x0 = np.array([onset0, base.peak_tension_n])
-    simplex = x0 + np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 0.1 * design.max_tension_n]])
-    best = minimize(lambda x: miss(x)[0], x0, method="Nelder-Mead",
-                    options={"xatol": 0.05, "fatol": 1e-3, "maxiter": 200, "initial_simplex": simplex})
-    x = best.x if best.fun <= match.reach_mm[0] else x0
-    reach, depth = miss(x)
-    sch = build(x)
-    sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), match.roll_deg))
-    return InverseResult(reach <= tolerance_mm, sch, depth, reach, match.roll_deg)
-
-
 def reach_radius_mm(bank: ShapeBank, depths_mm: np.ndarray) -> np.ndarray:
     """Largest lateral offset (mm) a hole reaches at each depth (mm along its axis), over the bank's
     schedules and all rolls: the reachable workspace at that depth is a disk of this radius about the

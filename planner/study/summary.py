@@ -125,11 +125,8 @@ def format_summary(summaries: Sequence[DesignSummary]) -> str:
 
 def summary_figure(table: pa.Table, summaries: Sequence[DesignSummary], path: Path) -> None:
     """Reach rates per design (bars) and the best steered candidates' clearance and peak tension (boxes)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import pyarrow.compute as pc
+    from matplotlib.figure import Figure
 
     designs = [s.design for s in summaries]
     x = np.arange(len(designs))
@@ -138,8 +135,8 @@ def summary_figure(table: pa.Table, summaries: Sequence[DesignSummary], path: Pa
         ("steered_peak_tension_n", "peak tendon tension (N)", "best steered candidate"))
     if any(s.dose_aim_met_rate is not None for s in summaries):
         panels += (("task_hrctv_d90_gy", "HR-CTV D90 (Gy)", "optimised dwell times"),)
-    fig, axes = plt.subplots(1, 1 + len(panels), figsize=(2 + (1 + len(panels)) * (0.8 + 0.6 * len(designs)), 4.2),
-                             constrained_layout=True)
+    fig = Figure(figsize=(2 + (1 + len(panels)) * (0.8 + 0.6 * len(designs)), 4.2), layout="constrained")
+    axes = fig.subplots(1, 1 + len(panels))
     ax = axes[0]
     for i, (label, attr) in enumerate((("steered", "reach_rate_steered"), ("straight", "reach_rate_straight"),
                                        ("either", "reach_rate_any"))):
@@ -164,5 +161,4 @@ def summary_figure(table: pa.Table, summaries: Sequence[DesignSummary], path: Pa
         ax.set_xticks(x, designs, rotation=30, ha="right", fontsize=8)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())

@@ -25,6 +25,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from reachplan._arrays import arc_length_mm, frozen_floats
 from reachplan.imaging.types import StructureSet, Volume
 from reachplan.plugins.errors import ExportError
 from reachplan.plugins.sources import SourceData
@@ -42,35 +43,9 @@ HALF_LIFE_DAYS: Mapping[str, float] = MappingProxyType({"Ir-192": 73.83, "Co-60"
 _SOURCE_TYPES = ("POINT", "LINE", "CYLINDER", "SPHERE")
 
 
-def _frozen(a: object, shape_tail: tuple[int, ...], what: str) -> np.ndarray:
-    arr = np.array(a, dtype=float)
-    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
-        want = ", ".join(["n", *map(str, shape_tail)])
-        raise ValueError(f"{what} must have shape ({want}), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{what} must be finite")
-    arr.setflags(write=False)
-    return arr
-
-
 def _check_short_text(value: str, what: str, max_len: int) -> None:
     if not value or len(value) > max_len or "\\" in value or any(unicodedata.category(c)[0] == "C" for c in value):
         raise ValueError(f"{what} must be 1-{max_len} printable characters without backslash, got {value!r}")
-
-
-def arc_length_mm(path_mm: np.ndarray) -> np.ndarray:
-    """Cumulative arc length along a polyline.
-
-    Parameters
-    ----------
-    path_mm : (n, 3) float, mm
-
-    Returns
-    -------
-    (n,) float, mm, starting at 0.
-    """
-    seg = np.linalg.norm(np.diff(path_mm, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(seg)])
 
 
 def project_on_path(path_mm: np.ndarray, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,9 +105,9 @@ class NeedleExport:
 
     def __post_init__(self) -> None:
         _check_short_text(self.hole_id, "hole_id", 16)
-        path = _frozen(self.path_mm, (3,), f"needle {self.hole_id}: path_mm")
-        pos = _frozen(self.dwell_positions_mm, (3,), f"needle {self.hole_id}: dwell_positions_mm")
-        times = _frozen(self.dwell_times_s, (), f"needle {self.hole_id}: dwell_times_s")
+        path = frozen_floats(self.path_mm, (3,), f"needle {self.hole_id}: path_mm")
+        pos = frozen_floats(self.dwell_positions_mm, (3,), f"needle {self.hole_id}: dwell_positions_mm")
+        times = frozen_floats(self.dwell_times_s, (), f"needle {self.hole_id}: dwell_times_s")
         if len(path) < 2 or arc_length_mm(path)[-1] <= 0:
             raise ValueError(f"needle {self.hole_id}: path_mm needs at least two distinct points")
         if np.abs(path).max() > 1e5:
@@ -152,7 +127,7 @@ class NeedleExport:
         object.__setattr__(self, "dwell_positions_mm", pos)
         object.__setattr__(self, "dwell_times_s", times)
         if self.schedule is not None:
-            sch = _frozen(self.schedule, (3,), f"needle {self.hole_id}: schedule")
+            sch = frozen_floats(self.schedule, (3,), f"needle {self.hole_id}: schedule")
             if len(sch) < 1 or sch[0, 0] < 0 or np.any(np.diff(sch[:, 0]) <= 0):
                 raise ValueError(f"needle {self.hole_id}: schedule depths must start >= 0 mm and increase strictly")
             if np.any(sch[:, 1] < 0):

@@ -19,15 +19,10 @@ from importlib import resources
 
 import numpy as np
 
+from reachplan._arrays import frozen_floats
 from reachplan.plugins.errors import PluginError
 
 FORMAT = "reachplan-tg43/1"
-
-
-def _frozen(a: object) -> np.ndarray:
-    arr = np.array(a, dtype=float)
-    arr.setflags(write=False)
-    return arr
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,7 +76,7 @@ class SourceData:
 
     def __post_init__(self) -> None:
         for field in ("radial_r_cm", "radial_g", "anisotropy_r_cm", "anisotropy_theta_deg", "anisotropy_f"):
-            object.__setattr__(self, field, _frozen(getattr(self, field)))
+            object.__setattr__(self, field, frozen_floats(getattr(self, field)))
         if not (self.dose_rate_constant > 0 and np.isfinite(self.dose_rate_constant)):
             raise ValueError(f"source {self.name}: dose rate constant must be positive and finite")
         if not (self.active_length_cm > 0 and np.isfinite(self.active_length_cm)):

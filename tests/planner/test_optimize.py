@@ -13,7 +13,7 @@ from reachplan.planner.dose.optimize import (
     PlanningStructures,
     Structure,
     candidate_dwells,
-    compare_straight_steered,
+    compare_arms,
     optimise_dwell_times,
 )
 from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid
@@ -125,7 +125,7 @@ def test_candidate_dwells_follow_settings() -> None:
 
 
 def test_steered_beats_straight(phantom: PlanningStructures, kernel: Tg43Kernel) -> None:
-    comp = compare_straight_steered(STRAIGHT, STEERED, phantom, kernel, SK)
+    comp = compare_arms((("straight", STRAIGHT), ("steered", STEERED)), phantom, kernel, SK)
     rows = {r.arm: r for r in comp.rows()}
     straight, steered = rows["straight"], rows["steered"]
     assert steered.d90_eqd2_gy > straight.d90_eqd2_gy + 10.0

@@ -5,7 +5,6 @@ from __future__ import annotations
 import base64
 import io
 import re
-from pathlib import Path
 from types import SimpleNamespace
 
 import matplotlib.image as mpimg
@@ -13,9 +12,10 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure as MplFigure
 
+from reachplan.planner.pipeline import choose_needles
 from reachplan.planner.report import figures
-from reachplan.planner.report.build import _runs, chosen_by_kind, models_used
-from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html, write_html
+from reachplan.planner.report.build import _runs, models_used
+from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.planner.steering.insertion import STRAIGHT
 
@@ -63,30 +63,24 @@ def test_plain_data_is_validated() -> None:
         Report("r", "", (Section("a", "x", ()), Section("b", "x", ())))
 
 
-def test_write_is_atomic_and_replaces(tmp_path: Path) -> None:
-    path = tmp_path / "report.html"
-    path.write_text("old")
-    write_html(_report(), path)
-    assert path.read_text(encoding="utf-8").startswith("<!DOCTYPE html>")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.html"]  # no temporary file left behind
-
-
 def _cand(target: str, hole: str, steered: bool, feasible: bool = True) -> Candidate:
     path = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 50.0]])
     return Candidate(target, hole, 10.0, 0.5, 5.0, "Bladder", 50.0, steered, 0.0, STRAIGHT, not feasible, True,
                      "" if feasible else "collides", path)
 
 
-def test_chosen_by_kind_takes_each_targets_best_of_a_kind_on_a_free_hole() -> None:
-    result = SimpleNamespace(ranking={  # the part of PlanResult chosen_by_kind reads
+def test_choose_needles_of_a_kind_takes_each_targets_best_on_a_free_hole() -> None:
+    result = SimpleNamespace(ranking={  # the part of PlanResult choose_needles reads
         "T1": (_cand("T1", "A", True), _cand("T1", "B", False, feasible=False), _cand("T1", "C", False)),
         "T2": (_cand("T2", "A", True), _cand("T2", "D", True), _cand("T2", "C", False)),
         "T3": (_cand("T3", "E", True, feasible=False),),
     })
-    steered = chosen_by_kind(result, True)  # type: ignore[arg-type]
-    straight = chosen_by_kind(result, False)  # type: ignore[arg-type]
+    steered = choose_needles(result, steered=True)  # type: ignore[arg-type]
+    straight = choose_needles(result, steered=False)  # type: ignore[arg-type]
     assert [(c.target, c.hole_id) for c in steered] == [("T1", "A"), ("T2", "D")]  # A is taken: T2 gets D
     assert [(c.target, c.hole_id) for c in straight] == [("T1", "C")]  # T2's straight would reuse C: none
+    either = choose_needles(result)  # type: ignore[arg-type]
+    assert [(c.target, c.hole_id) for c in either] == [("T1", "A"), ("T2", "D")]
 
 
 def test_schedule_runs_drop_repeated_breakpoints() -> None:
