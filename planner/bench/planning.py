@@ -16,6 +16,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TypeVar
 
@@ -33,7 +34,7 @@ from reachplan.planner.report.workspace import workspace_figure
 from reachplan.planner.steering.insertion import KinematicInsertion, TissueBeamInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import shape_bank
-from reachplan.rod_model.design import preset
+from reachplan.rod_model.design import RodDesign, preset
 
 INSTALLS = {name: f"docs/{name}" for name in ("planning_timings.csv", "insertion_models.csv", "insertion_models.png",
                                                "workspace.png")}
@@ -108,10 +109,10 @@ def plan_timings(out: Path, s: PlanningSettings) -> list[dict[str, object]]:
         shape_bank.cache_clear()
         plan(dataclasses.replace(scene, targets=scene.targets[:1]), cfg)  # warm caches (curvature tables)
         with _CountingFcl() as counter:
-            t, result = _median_time(lambda cfg=cfg: plan(scene, cfg), s.repeats)
+            t, result = _median_time(partial(plan, scene, cfg), s.repeats)
         queries = counter.n / s.repeats
         paths = n_holes * n_targets * n_sched  # steered paths matched, per design
-        rerank, _ = _median_time(lambda r=result: r.rerank(RankWeights(per_newton=0.5)), 20)
+        rerank, _ = _median_time(partial(result.rerank, RankWeights(per_newton=0.5)), 20)
         rows.append({"plan": label, "holes": n_holes, "targets": n_targets, "schedules": n_sched,
                      "median_s": round(t, 3), "paths_per_s": round(paths / t), "fcl_queries": round(queries),
                      "fcl_queries_per_s": round(queries / t), "rerank_ms": round(rerank * 1e3, 2)})
@@ -131,14 +132,20 @@ def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
     rows: list[dict[str, object]] = []
     for h in (4.0, 1.0, 0.25):
         kin = KinematicInsertion(step_mm=h)
-        t, tips = _median_time(lambda m=kin: m.insert_array(design, schedules * 25, depth)[:, -1], 3)
+        t, paths = _median_time(partial(kin.insert_array, design, schedules * 25, depth), 3)
         rows.append(_insertion_row(f"kinematic step {h} mm (batched)", t / (len(schedules) * 25),
-                                   tips[: len(schedules)], ref_tips))
+                                   paths[: len(schedules), -1], ref_tips))
     for h in s.beam_grids_mm:
         beam = TissueBeamInsertion(grid_mm=h, step_mm=h)
-        t, tips = _median_time(lambda m=beam: np.array([m.insert_one(design, sc, depth)[-1] for sc in schedules]), 1)
+        t, tips = _median_time(partial(_tips, beam, design, schedules, depth), 1)
         rows.append(_insertion_row(f"tissue_beam grid {h} mm", t / len(schedules), tips, ref_tips))
     return rows
+
+
+def _tips(model: TissueBeamInsertion, design: RodDesign, schedules: list[TensionSchedule],
+          depth_mm: float) -> np.ndarray:
+    """Tip positions (n, 3), mm, template frame, of one insertion per schedule."""
+    return np.array([model.insert_one(design, sc, depth_mm)[-1] for sc in schedules])
 
 
 def _insertion_row(label: str, s_per_path: float, tips: np.ndarray, ref_tips: np.ndarray) -> dict[str, object]:
