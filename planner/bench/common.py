@@ -43,7 +43,8 @@ def source_checkout(repo: Path) -> Path:
     try:
         name = tomllib.loads(pyproject.read_text(encoding="utf-8")).get("project", {}).get("name")
     except FileNotFoundError:
-        raise BenchError(f"--install writes into a source checkout and {repo} has no pyproject.toml; {hint}") from None
+        raise BenchError(f"--install writes into a source checkout and {Path(repo).resolve()} has no pyproject.toml; "
+                         f"{hint}") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise BenchError(f"cannot read {pyproject} ({exc}); {hint}") from None
     if name != "reachplan":
