@@ -31,7 +31,17 @@ class BenchError(PlannerError):
 
 
 def source_checkout(repo: Path) -> Path:
-    """The reachplan source checkout at ``repo`` (resolved), checked before a benchmark runs.
+    """Check that ``repo`` is a reachplan source checkout and return it resolved.
+
+    Parameters
+    ----------
+    repo : Path
+        The folder ``--install`` should write into (``--repo``).
+
+    Returns
+    -------
+    Path
+        ``repo``, resolved.
 
     Raises
     ------
@@ -53,7 +63,14 @@ def source_checkout(repo: Path) -> Path:
 
 
 def check_install(repo: Path, quick: bool) -> Path:
-    """The checkout ``--install`` will write into; refuses a quick run (its numbers must not be committed)."""
+    """Return the checkout ``--install`` will write into, before the benchmark runs.
+
+    Raises
+    ------
+    BenchError
+        ``repo`` is not a reachplan source checkout (:func:`source_checkout`), or ``quick`` is set (a smoke
+        run's numbers must not be committed).
+    """
     checkout = source_checkout(repo)
     if quick:
         raise BenchError("--install refreshes the committed numbers and figures: drop --quick (run the full grid)")
@@ -61,8 +78,22 @@ def check_install(repo: Path, quick: bool) -> Path:
 
 
 def install(out: Path, checkout: Path, files: Mapping[str, str]) -> list[Path]:
-    """Copy each result ``out/<name>`` to ``checkout/<destination>`` (atomically) for ``files`` (name ->
-    destination relative to the checkout); returns the paths written."""
+    """Copy results from ``out`` into ``checkout``, each atomically.
+
+    Parameters
+    ----------
+    out : Path
+        The results folder (``--out``).
+    checkout : Path
+        A checked source checkout (:func:`check_install`).
+    files : mapping of str to str
+        File name in ``out`` -> destination relative to ``checkout`` (a target's ``INSTALLS``).
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
     written = []
     for name, dest in files.items():
         target = checkout / dest
@@ -72,8 +103,17 @@ def install(out: Path, checkout: Path, files: Mapping[str, str]) -> list[Path]:
 
 
 def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[object] | Mapping[str, object]]) -> None:
-    """Write a CSV (header + rows, each a sequence in ``header`` order or a mapping by column) atomically;
-    a mapping's missing columns are empty cells."""
+    """Write a CSV file atomically.
+
+    Parameters
+    ----------
+    path : Path
+        The file to write.
+    header : sequence of str
+        Column names.
+    rows : iterable
+        Each a sequence in ``header`` order or a mapping by column name (a missing column is an empty cell).
+    """
     buf = io.StringIO(newline="")
     writer = csv.writer(buf)
     writer.writerow(header)
@@ -95,9 +135,21 @@ def write_json(path: Path, obj: Any) -> None:
 
 
 def settings(args: argparse.Namespace, full: S, quick: S) -> S:
-    """The target's settings: ``quick`` with ``--quick``, else ``full``, with every option given on the command
-    line (an ``args`` attribute named like a field, not ``None``) replacing its field. ``full`` and ``quick``
-    are frozen dataclass instances."""
+    """Return a target's settings for the command line ``args``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line; ``args.quick`` picks ``quick`` over ``full``.
+    full, quick : frozen dataclass
+        The target's full and quick settings (same type).
+
+    Returns
+    -------
+    frozen dataclass
+        ``quick`` or ``full`` with every field that ``args`` gives (an attribute of the same name, not
+        ``None``) replaced.
+    """
     base = quick if args.quick else full
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(base)  # type: ignore[arg-type]
              if getattr(args, f.name, None) is not None}

@@ -74,7 +74,15 @@ def _timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
 
 
 def measure(s: DoseSettings) -> tuple[list[DoseRow], int]:
-    """The timed variants (the float64 dense baseline first) and the voxel count of the grid."""
+    """Time the float64 dense baseline and the float32 chunked kernel on 1 and 2 threads.
+
+    Returns
+    -------
+    rows : list of DoseRow
+        The float64 dense baseline first, then one row per thread count and chunk size.
+    n_vox : int
+        Voxels of the cubic grid (2.5 mm voxels).
+    """
     side = max(2, round(s.voxels ** (1 / 3)))
     grid = Grid((side, side, side), np.diag([2.5, 2.5, 2.5, 1.0]))
     n_vox = side**3
@@ -142,6 +150,7 @@ def write_results(out: Path, rows: list[DoseRow], n_vox: int, dwells: int) -> No
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``reachplan bench dose`` (``--quick``, ``--voxels``, ``--dwells``, ``--repeat``) into ``args.out``."""
     s = settings(args, DoseSettings(), QUICK)
     rows, n_vox = measure(s)
     write_results(args.out, rows, n_vox, s.dwells)

@@ -33,8 +33,11 @@ READERS = ("reachplan", "simpleitk")
 
 @dataclass(frozen=True)
 class ImagingSettings:
-    """Synthetic series size (slices of ``size`` x ``size`` int16), alternating runs per reader, and the folder
-    the series is written into (``None``: a temporary folder)."""
+    """How big a series to load and how often.
+
+    ``slices`` of ``size`` x ``size`` int16 pixels, ``repeat`` alternating runs per reader, written into
+    ``workdir`` (``None``: a temporary folder).
+    """
 
     slices: int = 300
     size: int = 512
@@ -69,7 +72,7 @@ print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_mb": resource.getrusage(re
 
 
 def write_ct(folder: Path, slices: int, size: int) -> None:
-    """A plain CT series: 0.8 mm pixels, 1 mm slices, files named in reverse slice order."""
+    """Write a plain CT series: 0.8 mm pixels, 1 mm slices, files named in reverse slice order."""
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
@@ -99,6 +102,7 @@ def write_ct(folder: Path, slices: int, size: int) -> None:
 
 
 def run_child(folder: Path, which: str) -> dict[str, float]:
+    """Load the series in ``folder`` with ``which`` reader in a fresh process; its timings, memory and checksum."""
     res = subprocess.run([sys.executable, "-c", _CHILD, str(folder), which], capture_output=True, text=True,
                          check=True)
     out: dict[str, float] = json.loads(res.stdout.strip().splitlines()[-1])
@@ -106,7 +110,15 @@ def run_child(folder: Path, which: str) -> dict[str, float]:
 
 
 def measure(s: ImagingSettings) -> list[dict[str, object]]:
-    """One row per run and reader (:data:`COLUMNS`, and the shape and checksum the child read)."""
+    """Write the series and load it with both readers; one row per run and reader.
+
+    Each row holds :data:`COLUMNS` and the shape and checksum the child read.
+
+    Raises
+    ------
+    BenchError
+        The two readers disagree on the voxel values.
+    """
     with tempfile.TemporaryDirectory(dir=s.workdir) as tmp:
         folder = Path(tmp) / "ct"
         write_ct(folder, s.slices, s.size)
@@ -123,13 +135,13 @@ def measure(s: ImagingSettings) -> list[dict[str, object]]:
 
 
 def medians(rows: list[dict[str, object]]) -> dict[str, dict[str, float]]:
-    """Median of ``wall_s``, ``cpu_s`` and ``peak_mb`` per reader."""
+    """Return the median of ``wall_s``, ``cpu_s`` and ``peak_mb`` per reader."""
     return {m: {rd: float(np.median([float(row[m]) for row in rows if row["reader"] == rd]))  # type: ignore[arg-type]
                 for rd in READERS} for m in ("wall_s", "cpu_s", "peak_mb")}
 
 
 def write_results(out: Path, rows: list[dict[str, object]], title: str) -> None:
-    """``imaging_load.csv`` (:data:`COLUMNS`) and ``imaging_load.png`` (time and peak memory per reader)."""
+    """Write ``imaging_load.csv`` (:data:`COLUMNS`) and ``imaging_load.png`` (time, peak memory per reader)."""
     write_csv(out / "imaging_load.csv", COLUMNS, rows)
     med = medians(rows)
     fig = Figure(figsize=(8, 3.2))
@@ -137,8 +149,8 @@ def write_results(out: Path, rows: list[dict[str, object]], title: str) -> None:
     for ax, metric, label in ((axes[0], "wall_s", "load time (s)"), (axes[1], "peak_mb", "peak memory (MB)")):
         for i, rd in enumerate(READERS):
             vals = [float(row[metric]) for row in rows if row["reader"] == rd]  # type: ignore[arg-type]
-            ax.scatter(np.full(len(vals), i), vals, s=12, alpha=0.6)
-            ax.bar(i, med[metric][rd], alpha=0.4)
+            ax.scatter(np.full(len(vals), i), vals, s=12, alpha=0.6, color=f"C{i}")
+            ax.bar(i, med[metric][rd], alpha=0.4, color=f"C{i}")
         ax.set_xticks(range(len(READERS)), READERS)
         ax.set_ylabel(label)
     axes[1].axhline(1024, color="r", lw=0.8, ls="--")
@@ -148,6 +160,7 @@ def write_results(out: Path, rows: list[dict[str, object]], title: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``reachplan bench imaging`` (``--quick``, ``--slices``, ``--size``, ``--repeat``, ``--workdir``)."""
     s = settings(args, ImagingSettings(), QUICK)
     rows = measure(s)
     write_results(args.out, rows, f"CT series {s.slices} x {s.size}² (median of {s.repeat})")

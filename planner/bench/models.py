@@ -68,8 +68,11 @@ class Row:
 
 @dataclass(frozen=True)
 class ModelSettings:
-    """The grid (presets × tensions in N, free space), the stability map's tensions (N), the batch sizes of the
-    throughput runs, and whether to time the uncompiled kernel (a child process with numba disabled)."""
+    """What the rod-model benchmark measures.
+
+    The grid (presets × tensions in N, free space), the stability map's tensions (N) and placements, the batch
+    sizes of the throughput runs, and whether to time the uncompiled kernel (a child process without numba).
+    """
 
     presets: tuple[str, ...] = PRESET_NAMES
     tensions_n: tuple[float, ...] = tuple(float(t) for t in range(16))
@@ -156,7 +159,20 @@ def _interpreted_ms() -> float | None:
 
 
 def speed_accuracy(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[Row], dict[str, float]]:
-    """The chart's points (one per model and resolution) and the headline numbers of the loaded and batched runs."""
+    """Time every model and resolution on the grid against the converged two-tube reference.
+
+    Returns
+    -------
+    rows : list of Row
+        The chart's points, one per model and resolution (tip errors in mm, times in ms).
+    extra : dict of str to float
+        Headline numbers of the reference check and the loaded and batched runs.
+
+    Raises
+    ------
+    BenchError
+        The reference solve did not converge.
+    """
     grid = [(preset(n), t) for n in s.presets for t in s.tensions_n]
     REFERENCE.solve(*(grid[1][0], grid[1][0].loads(1.0)))  # compile
     t0 = time.perf_counter()
@@ -346,7 +362,7 @@ def stability_figure(cases: list[StabilityCase]) -> Figure:
 
 
 def error_table(rows: list[Row]) -> dict[str, object]:
-    """The package-data document read by :func:`reachplan.rod_model.select.error_table`."""
+    """Return the package-data document read by :func:`reachplan.rod_model.select.error_table`."""
     return {
         "source": "reachplan bench models",
         "generated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -360,9 +376,11 @@ def error_table(rows: list[Row]) -> dict[str, object]:
 
 
 def write_results(out: Path, rows: list[Row], cases: list[StabilityCase]) -> None:
-    """``rod_models.csv`` (:data:`ROW_COLUMNS`), ``rod_models_stability.csv`` (:data:`STABILITY_COLUMNS`), their
-    charts ``rod_models_pareto.png`` and ``rod_models_stability.png``, and the error table ``model_errors.json``
-    under ``out``."""
+    """Write the tables, the charts and the error table under ``out``.
+
+    ``rod_models.csv`` (:data:`ROW_COLUMNS`), ``rod_models_stability.csv`` (:data:`STABILITY_COLUMNS`), their
+    charts ``rod_models_pareto.png`` and ``rod_models_stability.png``, and ``model_errors.json``.
+    """
     write_csv(out / "rod_models.csv", ROW_COLUMNS,
               [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
                 f"{r.median_tip_error_mm:.4g}", r.success_rate,
@@ -377,8 +395,13 @@ def write_results(out: Path, rows: list[Row], cases: list[StabilityCase]) -> Non
 
 
 def run_benchmark(out: Path, s: ModelSettings, log: Callable[[str], None] = print) -> dict[str, object]:
-    """Run everything and write the CSV/PNG/JSON files into ``out`` (also ``summary.json``, the headline
-    numbers, which it returns)."""
+    """Run the whole benchmark and write its CSV, PNG and JSON files into ``out``.
+
+    Returns
+    -------
+    dict
+        The headline numbers, also written as ``summary.json``.
+    """
     t0 = time.perf_counter()
     rows, extra = speed_accuracy(s, log)
     cases = stability(s, log)
@@ -394,5 +417,6 @@ def run_benchmark(out: Path, s: ModelSettings, log: Callable[[str], None] = prin
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``reachplan bench models`` (``--quick``: a smoke run) into ``args.out``; progress on stderr."""
     run_benchmark(args.out, settings(args, ModelSettings(), QUICK), log=lambda m: print(m, file=sys.stderr, flush=True))
     return 0

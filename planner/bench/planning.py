@@ -46,8 +46,11 @@ T = TypeVar("T")
 
 @dataclass(frozen=True)
 class PlanningSettings:
-    """Plan repeats (the median is kept), how many phantom targets (``None``: all), the reference
-    ``tissue_beam`` grid (mm) and the ``tissue_beam`` grids (mm) compared with it."""
+    """What the planning benchmark measures.
+
+    Plan repeats (the median is kept), how many phantom targets (``None``: all), the reference ``tissue_beam``
+    grid (mm) and the ``tissue_beam`` grids (mm) compared with it.
+    """
 
     repeats: int = 3
     targets: int | None = None
@@ -92,8 +95,10 @@ def _median_time(fn: Callable[[], T], repeats: int) -> tuple[float, T]:
 
 
 def plan_timings(out: Path, s: PlanningSettings) -> list[dict[str, object]]:
-    """Screening and full plans of the phantom (median of ``s.repeats``), one row each (:data:`TIMING_COLUMNS`);
-    also writes ``workspace.png`` under ``out``."""
+    """Time the screening and the full plan of the phantom (median of ``s.repeats``).
+
+    Returns one row each (:data:`TIMING_COLUMNS`); also writes ``workspace.png`` under ``out``.
+    """
     with tempfile.TemporaryDirectory() as tmp:
         files = write_phantom(Path(tmp) / "phantom")
         volume = read_series(files.ct_dir)
@@ -121,8 +126,10 @@ def plan_timings(out: Path, s: PlanningSettings) -> list[dict[str, object]]:
 
 
 def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
-    """Time per path and tip error at 150 mm against the reference ``tissue_beam`` of each insertion model
-    variant, one row each (:data:`INSERTION_COLUMNS`)."""
+    """Time each insertion model variant and measure its tip error at 150 mm against the reference.
+
+    Returns one row per variant (:data:`INSERTION_COLUMNS`; ms per path, tip errors in mm).
+    """
     design = preset("15ga-30j-tip")
     schedules = [TensionSchedule.ramp(o, 20.0, f * design.max_tension_n, 0.0)
                  for o in (0.0, 40.0) for f in (0.5, 1.0)]
@@ -171,6 +178,7 @@ def insertion_figure(rows: list[dict[str, object]]) -> Figure:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``reachplan bench planning`` (``--quick``: two targets, coarse grids) into ``args.out``."""
     s = settings(args, PlanningSettings(), QUICK)
     out: Path = args.out
     timing = plan_timings(out, s)

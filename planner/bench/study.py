@@ -44,9 +44,12 @@ RUNS_HEADER = ("engine", "workers", "tasks", "rows", "wall_s", "cluster_start_s"
 
 @dataclass(frozen=True)
 class StudySettings:
-    """The measured study (phantom cases x the first ``designs`` of :data:`DESIGNS` x the first ``targets`` of
+    """What the study benchmark measures and estimates.
+
+    The measured study (phantom cases x the first ``designs`` of :data:`DESIGNS` x the first ``targets`` of
     :data:`TARGETS`), alternating 1- and 2-worker runs (best kept), and the estimated study (patients, designs,
-    targets, workers) with its number of simulated draws."""
+    targets, workers) with its number of simulated draws.
+    """
 
     cases: int = 4
     targets: int = 4
@@ -76,7 +79,7 @@ class StudyRun:
 
 
 def _cluster_run(spec: StudySpec, out: Path, workers: int) -> tuple[Any, float, float]:
-    """(result, study wall s, cluster start s) on a fresh loopback LocalCluster of ``workers`` processes."""
+    """Run the study on a fresh loopback LocalCluster of ``workers`` processes: (result, wall s, start s)."""
     from distributed import Client, LocalCluster
 
     t0 = time.perf_counter()
@@ -97,8 +100,11 @@ def _utilisation(table: Any, workers: int, wall_s: float) -> float:
 
 def simulate(task_costs_s: np.ndarray, scene_s: float, n_cases: int, workers: int, warmup_s: float,
              cache: int = 4) -> float:
-    """Makespan (s) of case-major tasks, ``task_costs_s`` (n_cases * designs,) in order, each given to the first
-    free worker; a worker pays ``scene_s`` for a case not among its last ``cache`` cases, and ``warmup_s`` once."""
+    """Simulate the makespan (s) of case-major tasks given in order to the first free worker.
+
+    ``task_costs_s`` is (n_cases * designs,) in s; a worker pays ``scene_s`` for a case not among its last
+    ``cache`` cases, and ``warmup_s`` once.
+    """
     per_case = len(task_costs_s) // n_cases
     free = np.full(workers, warmup_s)
     recent: list[list[int]] = [[] for _ in range(workers)]
@@ -112,9 +118,11 @@ def simulate(task_costs_s: np.ndarray, scene_s: float, n_cases: int, workers: in
 
 
 def simulate_blocks(task_costs_s: np.ndarray, scene_s: float, n_cases: int, workers: int, warmup_s: float) -> float:
-    """Makespan (s) when worker ``k`` runs the ``k``-th contiguous block of the case-major tasks, as
-    :func:`reachplan.planner.study.run_study` prefers (loading each case of its block once), without work stealing
-    (which only shortens it)."""
+    """Simulate the makespan (s) when worker ``k`` runs the ``k``-th contiguous block of the case-major tasks.
+
+    As :func:`reachplan.planner.study.run_study` prefers (loading each case of its block once), without work
+    stealing (which only shortens it).
+    """
     per_case = len(task_costs_s) // n_cases
     edges = np.arange(workers + 1) * len(task_costs_s) // workers
     spans = [warmup_s + task_costs_s[a:b].sum() + scene_s * len(set(range(a // per_case, (b - 1) // per_case + 1)))
@@ -124,9 +132,24 @@ def simulate_blocks(task_costs_s: np.ndarray, scene_s: float, n_cases: int, work
 
 def measure(out: Path, s: StudySettings) -> tuple[list[StudyRun], dict[str, float], np.ndarray, np.ndarray,
                                                  tuple[int, int]]:
-    """Run the study in process and on 1- and 2-worker clusters under ``out``; returns the runs, the estimate
-    (quantity -> value), the simulated wall times (draws,) in s of the estimated study (first free worker; case
-    blocks) and the in-process study's (tasks, rows)."""
+    """Run the study in process and on 1- and 2-worker clusters under ``out``, then estimate the large study.
+
+    Returns
+    -------
+    runs : list of StudyRun
+        The in-process run first.
+    estimate : dict of str to float
+        Quantity -> value (:data:`INSTALLS` ``study_estimate.csv``).
+    draws, blocks : ndarray
+        (s.draws,) simulated wall times in s of the estimated study: first free worker; case blocks.
+    counts : tuple of int
+        The in-process study's (tasks, rows).
+
+    Raises
+    ------
+    BenchError
+        The cohort folder under ``out`` holds fewer cases than asked.
+    """
     cohort = out / "cohort"
     if not (cohort / "cohort.json").exists():
         make_cohort(cohort, s.cases, seed=1)
@@ -189,9 +212,12 @@ def measure(out: Path, s: StudySettings) -> tuple[list[StudyRun], dict[str, floa
 
 def write_results(out: Path, s: StudySettings, runs: list[StudyRun], estimate: dict[str, float], draws: np.ndarray,
                   blocks: np.ndarray, counts: tuple[int, int]) -> None:
-    """``study_runs.csv`` (:data:`RUNS_HEADER`), ``study_estimate.csv`` (quantity, value) and
-    ``study_benchmark.png`` (wall times; histograms of the simulated wall times ``draws`` and ``blocks``, (n,) s);
-    ``counts``: the in-process study's (tasks, rows)."""
+    """Write ``study_runs.csv``, ``study_estimate.csv`` and ``study_benchmark.png`` under ``out``.
+
+    ``study_runs.csv`` has :data:`RUNS_HEADER`, ``study_estimate.csv`` (quantity, value); the chart shows the
+    wall times and histograms of the simulated wall times ``draws`` and ``blocks`` ((n,) s). ``counts``: the
+    in-process study's (tasks, rows).
+    """
     n_tasks, n_rows = counts
     write_csv(out / "study_runs.csv", RUNS_HEADER,
               [[r.engine, r.workers, n_tasks, n_rows, round(r.wall_s, 2), round(r.cluster_start_s, 2),
@@ -217,6 +243,7 @@ def write_results(out: Path, s: StudySettings, runs: list[StudyRun], estimate: d
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``reachplan bench study`` (``--quick``: 2 cases x 1 design x 1 target) into ``args.out``."""
     s = settings(args, StudySettings(), QUICK)
     out: Path = args.out
     runs, estimate, draws, blocks, counts = measure(out, s)

@@ -70,6 +70,7 @@ def _load(module: str) -> ModuleType:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add one sub-command per target, each with the common options and its own."""
     sub = parser.add_subparsers(dest="bench_target", metavar="TARGET", required=True)
     for target in TARGETS:
         p = sub.add_parser(target.name, help=target.help, description=target.help)
@@ -86,6 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Check ``--install`` first, run the target, then copy the results it owns into the checkout."""
     checkout = check_install(args.repo, args.quick) if args.install else None  # before the long run
     module = _load(args._bench_module)
     status = int(module.run(args))
