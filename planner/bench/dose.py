@@ -4,28 +4,60 @@ Compares a straightforward float64 evaluation (one dense (voxels × dwells) bloc
 library's float32 chunked kernel on 1 and 2 threads over several chunk sizes, and records peak memory
 of the Python heap in one extra run (tracemalloc traces numpy buffers; timing runs are untraced).
 
-Usage::
-
-    python benchmarks/dose.py --out results/dose [--voxels 400000] [--dwells 100] [--repeat 3]
-
-Writes ``dose_benchmark.csv`` and ``dose_benchmark.png`` under ``--out``.
+Run: ``reachplan bench dose --out DIR [--quick] [--voxels N] [--dwells N] [--repeat N] [--install]``. Writes
+``dose_benchmark.csv`` and ``dose_benchmark.png``; ``--install`` copies both to ``docs/``.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import time
 import tracemalloc
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from reachplan.imaging.types import Grid
+from reachplan.planner.bench.common import settings, write_csv, write_png
 from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid, grid_points_mm, rate_matrix
 from reachplan.planner.pipeline import get_source
+
+INSTALLS = {"dose_benchmark.csv": "docs/dose_benchmark.csv", "dose_benchmark.png": "docs/dose_benchmark.png"}
+COLUMNS = ("variant", "workers", "chunk_pairs", "seconds", "mpairs_per_s", "peak_mb", "max_rel_err",
+           "load_avg_1min")
+#: air-kerma strength (U) of the benchmark's source; dwell times are in s
+SK_U = 40000.0
+
+
+@dataclass(frozen=True)
+class DoseSettings:
+    """Grid size (``voxels``, about; a cube of 2.5 mm voxels), dwell count, timed runs, chunk sizes (pairs)."""
+
+    voxels: int = 400_000
+    dwells: int = 100
+    repeat: int = 3
+    chunks: tuple[int, ...] = (1 << 14, 1 << 16, 1 << 18, 1 << 20)
+
+
+QUICK = DoseSettings(voxels=8_000, dwells=20, repeat=1, chunks=(1 << 12, 1 << 14))
+
+
+@dataclass(frozen=True)
+class DoseRow:
+    """One timed variant: ``seconds`` is the best of the timed runs; ``max_rel_err`` against float64."""
+
+    variant: str
+    workers: int
+    chunk_pairs: int
+    seconds: float
+    mpairs_per_s: float
+    peak_mb: float
+    max_rel_err: float | None
+    load_avg_1min: float
 
 
 def _timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
@@ -39,90 +71,91 @@ def _timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
     fn()
     peak = tracemalloc.get_traced_memory()[1] / 1e6
     tracemalloc.stop()
-    return best, peak
+    return float(best), peak
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--voxels", type=int, default=400_000, help="approximate voxel count")
-    ap.add_argument("--dwells", type=int, default=100)
-    ap.add_argument("--repeat", type=int, default=3)
-    args = ap.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+def measure(s: DoseSettings) -> tuple[list[DoseRow], int]:
+    """Time the float64 dense baseline and the float32 chunked kernel on 1 and 2 threads.
 
-    side = round(args.voxels ** (1 / 3))
+    Returns
+    -------
+    rows : list of DoseRow
+        The float64 dense baseline first, then one row per thread count and chunk size.
+    n_vox : int
+        Voxels of the cubic grid (2.5 mm voxels).
+    """
+    side = max(2, round(s.voxels ** (1 / 3)))
     grid = Grid((side, side, side), np.diag([2.5, 2.5, 2.5, 1.0]))
     n_vox = side**3
     rng = np.random.default_rng(0)
     extent = 2.5 * side
     dwells = DwellSet(
-        rng.uniform(0.2 * extent, 0.8 * extent, (args.dwells, 3)),
-        rng.normal(size=(args.dwells, 3)),
-        rng.uniform(1.0, 10.0, args.dwells),
+        rng.uniform(0.2 * extent, 0.8 * extent, (s.dwells, 3)),
+        rng.normal(size=(s.dwells, 3)),
+        rng.uniform(1.0, 10.0, s.dwells),
     )
     kernel = Tg43Kernel(get_source("gammamed_plus_hdr"))
-    pairs = n_vox * args.dwells
-    rows: list[dict[str, object]] = []
-
+    pairs = n_vox * s.dwells
     # baseline: the straightforward float64 evaluation, one dense block (on at most 2 M pairs: it needs
     # about 100 bytes per pair), rate extrapolated per pair
     pts = grid_points_mm(grid)
-    w = dwells.times_s * 40000.0 / 360000.0
-    sub = pts[: max(1, min(n_vox, 2_000_000 // args.dwells))]
+    w = dwells.times_s * SK_U / 360000.0
+    sub = pts[: max(1, min(n_vox, 2_000_000 // s.dwells))]
 
     def naive() -> None:
         rate_matrix(sub, dwells.positions_mm, dwells.directions, kernel, np.float64) @ w
 
-    t, mem = _timed(naive, args.repeat)
-    rows.append({"variant": "float64 dense", "workers": 1, "chunk_pairs": len(sub) * args.dwells, "seconds": t,
-                 "mpairs_per_s": len(sub) * args.dwells / t / 1e6, "peak_mb": mem,
-                 "load_avg_1min": round(os.getloadavg()[0], 2)})  # the machine may be shared
+    t, mem = _timed(naive, s.repeat)
+    rows = [DoseRow("float64 dense", 1, len(sub) * s.dwells, t, len(sub) * s.dwells / t / 1e6, mem, None,
+                    round(os.getloadavg()[0], 2))]  # the machine may be shared
     reference = np.concatenate([
-        rate_matrix(pts[s : s + 20000], dwells.positions_mm, dwells.directions, kernel, np.float64) @ w
-        for s in range(0, n_vox, 20000)
+        rate_matrix(pts[i : i + 20000], dwells.positions_mm, dwells.directions, kernel, np.float64) @ w
+        for i in range(0, n_vox, 20000)
     ])
     for workers in (1, 2):
-        for chunk in (1 << 14, 1 << 16, 1 << 18, 1 << 20):
-            t, mem = _timed(lambda c=chunk, wk=workers: dose_on_grid(grid, dwells, kernel, 40000.0,
-                                                                     chunk_pairs=c, workers=wk), args.repeat)
-            got = dose_on_grid(grid, dwells, kernel, 40000.0, chunk_pairs=chunk, workers=workers).ravel()
+        for chunk in s.chunks:
+            def chunked(c: int = chunk, wk: int = workers) -> np.ndarray:
+                return dose_on_grid(grid, dwells, kernel, SK_U, chunk_pairs=c, workers=wk)
+
+            t, mem = _timed(chunked, s.repeat)
+            got = chunked().ravel()
             err = float(np.max(np.abs(got - reference) / np.maximum(reference, 1e-12)))
-            rows.append({"variant": "float32 chunked", "workers": workers, "chunk_pairs": chunk, "seconds": t,
-                         "mpairs_per_s": pairs / t / 1e6, "peak_mb": mem, "max_rel_err": err,
-                         "load_avg_1min": round(os.getloadavg()[0], 2)})
-    load = max(float(r["load_avg_1min"]) for r in rows)
-    with (args.out / "dose_benchmark.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["variant", "workers", "chunk_pairs", "seconds", "mpairs_per_s",
-                                               "peak_mb", "max_rel_err", "load_avg_1min"])
-        writer.writeheader()
-        writer.writerows(rows)
-    for r in rows:
-        print(f"{r['variant']:<16} workers={r['workers']} chunk={r['chunk_pairs']:>9} "
-              f"{r['mpairs_per_s']:7.1f} Mpairs/s  peak {r['peak_mb']:8.1f} MB  "
-              f"err {r.get('max_rel_err', 0.0):.1e}")
+            rows.append(DoseRow("float32 chunked", workers, chunk, t, pairs / t / 1e6, mem, err,
+                                round(os.getloadavg()[0], 2)))
+    return rows, n_vox
 
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+def write_results(out: Path, rows: list[DoseRow], n_vox: int, dwells: int) -> None:
+    """``dose_benchmark.csv`` (one row per variant, :data:`COLUMNS`) and ``dose_benchmark.png`` under ``out``."""
+    write_csv(out / "dose_benchmark.csv", COLUMNS,
+              [["" if v is None else v for v in (r.variant, r.workers, r.chunk_pairs, r.seconds, r.mpairs_per_s,
+                                                 r.peak_mb, r.max_rel_err, r.load_avg_1min)] for r in rows])
+    load = max(r.load_avg_1min for r in rows)
+    fig = Figure(figsize=(6.5, 4))
+    ax = fig.subplots()
     for workers, marker in ((1, "o"), (2, "s")):
-        sel = [r for r in rows if r["variant"] == "float32 chunked" and r["workers"] == workers]
-        ax.plot([r["chunk_pairs"] for r in sel], [r["mpairs_per_s"] for r in sel], marker=marker,
+        sel = [r for r in rows if r.variant == "float32 chunked" and r.workers == workers]
+        ax.plot([r.chunk_pairs for r in sel], [r.mpairs_per_s for r in sel], marker=marker,
                 label=f"float32 chunked, {workers} thread(s)")
-    ax.axhline(float(rows[0]["mpairs_per_s"]), color="grey", ls="--", label="float64 dense (baseline)")
+    dense = [r for r in rows if r.variant == "float64 dense"]
+    if dense:
+        ax.axhline(dense[0].mpairs_per_s, color="grey", ls="--", label="float64 dense (baseline)")
     ax.axhline(20.0, color="red", ls=":", label="target 20 M pairs/s")
     ax.set_xscale("log", base=2)
     ax.set_xlabel("voxel-dwell pairs per chunk")
     ax.set_ylabel("million voxel-dwell pairs / s")
-    ax.set_title(f"TG-43 grid dose, {n_vox} voxels x {args.dwells} dwells (max load {load:.1f})")
+    ax.set_title(f"TG-43 grid dose, {n_vox} voxels x {dwells} dwells (max load {load:.1f})")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(args.out / "dose_benchmark.png", dpi=120)
+    write_png(out / "dose_benchmark.png", fig, dpi=120)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``reachplan bench dose`` (``--quick``, ``--voxels``, ``--dwells``, ``--repeat``) into ``args.out``."""
+    s = settings(args, DoseSettings(), QUICK)
+    rows, n_vox = measure(s)
+    write_results(args.out, rows, n_vox, s.dwells)
+    for r in rows:
+        print(f"{r.variant:<16} workers={r.workers} chunk={r.chunk_pairs:>9} {r.mpairs_per_s:7.1f} Mpairs/s  "
+              f"peak {r.peak_mb:8.1f} MB  err {r.max_rel_err or 0.0:.1e}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -5,25 +5,47 @@ intercept) into a work folder, then loads it alternately with both readers, each
 process (imports excluded from the timing), after one warm-up run each (warm file cache). Records wall time,
 CPU time and peak resident memory (``ru_maxrss`` of the child process).
 
-Usage::
-
-    python benchmarks/imaging_load.py --out results/imaging_load [--slices 300] [--size 512] [--repeat 5]
-
-Writes ``imaging_load.csv`` and ``imaging_load.png`` under ``--out``; prints the ratio of medians. The
-acceptance target (issue 4) is ours <= 1.2 x SimpleITK's time and < 1 GB peak.
+Run: ``reachplan bench imaging --out DIR [--quick] [--slices N] [--size N] [--repeat N] [--install]``.
+Writes ``imaging_load.csv`` and ``imaging_load.png`` under ``--out`` (``--install`` copies both to ``docs/``);
+prints the ratio of medians. The acceptance target (issue 4) is ours <= 1.2 x SimpleITK's time and < 1 GB peak.
+``--quick``: 12 slices of 64 x 64, one run each.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
+
+from reachplan.planner.bench.common import BenchError, settings, write_csv, write_png
+
+INSTALLS = {"imaging_load.csv": "docs/imaging_load.csv", "imaging_load.png": "docs/imaging_load.png"}
+COLUMNS = ("reader", "run", "wall_s", "cpu_s", "peak_mb")
+READERS = ("reachplan", "simpleitk")
+
+
+@dataclass(frozen=True)
+class ImagingSettings:
+    """How big a series to load and how often.
+
+    ``slices`` of ``size`` x ``size`` int16 pixels, ``repeat`` alternating runs per reader, written into
+    ``workdir`` (``None``: a temporary folder).
+    """
+
+    slices: int = 300
+    size: int = 512
+    repeat: int = 5
+    workdir: Path | None = None
+
+
+QUICK = ImagingSettings(slices=12, size=64, repeat=1)
 
 _CHILD = r"""
 import json, resource, sys, time
@@ -50,7 +72,7 @@ print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_mb": resource.getrusage(re
 
 
 def write_ct(folder: Path, slices: int, size: int) -> None:
-    """A plain CT series: 0.8 mm pixels, 1 mm slices, files named in reverse slice order."""
+    """Write a plain CT series: 0.8 mm pixels, 1 mm slices, files named in reverse slice order."""
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
@@ -80,65 +102,73 @@ def write_ct(folder: Path, slices: int, size: int) -> None:
 
 
 def run_child(folder: Path, which: str) -> dict[str, float]:
+    """Load the series in ``folder`` with ``which`` reader in a fresh process; its timings, memory and checksum."""
     res = subprocess.run([sys.executable, "-c", _CHILD, str(folder), which], capture_output=True, text=True,
                          check=True)
     out: dict[str, float] = json.loads(res.stdout.strip().splitlines()[-1])
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--slices", type=int, default=300)
-    ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--workdir", type=Path, default=None, help="where to write the series (default: a temp dir)")
-    args = ap.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=args.workdir) as tmp:
+def measure(s: ImagingSettings) -> list[dict[str, object]]:
+    """Write the series and load it with both readers; one row per run and reader.
+
+    Each row holds :data:`COLUMNS` and the shape and checksum the child read.
+
+    Raises
+    ------
+    BenchError
+        The two readers disagree on the voxel values.
+    """
+    with tempfile.TemporaryDirectory(dir=s.workdir) as tmp:
         folder = Path(tmp) / "ct"
-        write_ct(folder, args.slices, args.size)
-        readers = ("reachplan", "simpleitk")
-        for which in readers:  # warm-up (file cache, imports compiled)
+        write_ct(folder, s.slices, s.size)
+        for which in READERS:  # warm-up (file cache, imports compiled)
             run_child(folder, which)
-        rows = []
-        for r in range(args.repeat):
-            for which in readers:
+        rows: list[dict[str, object]] = []
+        for r in range(s.repeat):
+            for which in READERS:
                 rows.append({"reader": which, "run": r, **run_child(folder, which)})
-    checks = {row["reader"]: row["checksum"] for row in rows}
+    checks = {str(row["reader"]): float(row["checksum"]) for row in rows}  # type: ignore[arg-type]
     if abs(checks["reachplan"] - checks["simpleitk"]) > 1e-6 * max(1.0, abs(checks["simpleitk"])):
-        raise SystemExit(f"the readers disagree on the voxel values: {checks}")
-    with (args.out / "imaging_load.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=["reader", "run", "wall_s", "cpu_s", "peak_mb"], extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
-    med = {m: {rd: float(np.median([row[m] for row in rows if row["reader"] == rd])) for rd in readers}
-           for m in ("wall_s", "cpu_s", "peak_mb")}
-    print(f"{args.slices} x {args.size} x {args.size} CT, median of {args.repeat} runs")
-    for rd in readers:
+        raise BenchError(f"the readers disagree on the voxel values ({checks}): a reader bug, report it")
+    return rows
+
+
+def medians(rows: list[dict[str, object]]) -> dict[str, dict[str, float]]:
+    """Return the median of ``wall_s``, ``cpu_s`` and ``peak_mb`` per reader."""
+    return {m: {rd: float(np.median([float(row[m]) for row in rows if row["reader"] == rd]))  # type: ignore[arg-type]
+                for rd in READERS} for m in ("wall_s", "cpu_s", "peak_mb")}
+
+
+def write_results(out: Path, rows: list[dict[str, object]], title: str) -> None:
+    """Write ``imaging_load.csv`` (:data:`COLUMNS`) and ``imaging_load.png`` (time, peak memory per reader)."""
+    write_csv(out / "imaging_load.csv", COLUMNS, rows)
+    med = medians(rows)
+    fig = Figure(figsize=(8, 3.2))
+    axes = fig.subplots(1, 2)
+    for ax, metric, label in ((axes[0], "wall_s", "load time (s)"), (axes[1], "peak_mb", "peak memory (MB)")):
+        for i, rd in enumerate(READERS):
+            vals = [float(row[metric]) for row in rows if row["reader"] == rd]  # type: ignore[arg-type]
+            ax.scatter(np.full(len(vals), i), vals, s=12, alpha=0.6, color=f"C{i}")
+            ax.bar(i, med[metric][rd], alpha=0.4, color=f"C{i}")
+        ax.set_xticks(range(len(READERS)), READERS)
+        ax.set_ylabel(label)
+    axes[1].axhline(1024, color="r", lw=0.8, ls="--")
+    fig.suptitle(title)
+    fig.tight_layout()
+    write_png(out / "imaging_load.png", fig, dpi=120)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``reachplan bench imaging`` (``--quick``, ``--slices``, ``--size``, ``--repeat``, ``--workdir``)."""
+    s = settings(args, ImagingSettings(), QUICK)
+    rows = measure(s)
+    write_results(args.out, rows, f"CT series {s.slices} x {s.size}² (median of {s.repeat})")
+    med = medians(rows)
+    print(f"{s.slices} x {s.size} x {s.size} CT, median of {s.repeat} runs")
+    for rd in READERS:
         print(f"  {rd:10s} wall {med['wall_s'][rd]:.2f} s  cpu {med['cpu_s'][rd]:.2f} s  "
               f"peak {med['peak_mb'][rd]:.0f} MB")
     print(f"  ratio reachplan / SimpleITK: wall {med['wall_s']['reachplan'] / med['wall_s']['simpleitk']:.2f}, "
           f"cpu {med['cpu_s']['reachplan'] / med['cpu_s']['simpleitk']:.2f}")
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
-    for ax, metric, label in ((axes[0], "wall_s", "load time (s)"), (axes[1], "peak_mb", "peak memory (MB)")):
-        for i, rd in enumerate(readers):
-            vals = [row[metric] for row in rows if row["reader"] == rd]
-            ax.scatter(np.full(len(vals), i), vals, s=12, alpha=0.6)
-            ax.bar(i, med[metric][rd], alpha=0.4)
-        ax.set_xticks(range(len(readers)), readers)
-        ax.set_ylabel(label)
-    axes[1].axhline(1024, color="r", lw=0.8, ls="--")
-    fig.suptitle(f"CT series {args.slices} x {args.size}² (median of {args.repeat})")
-    fig.tight_layout()
-    fig.savefig(args.out / "imaging_load.png", dpi=120)
-
-
-if __name__ == "__main__":
-    main()
+    return 0

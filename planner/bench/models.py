@@ -1,7 +1,8 @@
 """Benchmark of the rod models: time per solve against tip error, batched throughput, and a stability map.
 
 Run through ``reachplan bench models --out DIR`` (add ``--install`` to refresh the package's error table
-``rod_model/model_errors.json`` and the figures ``docs/rod_models_pareto.png``, ``docs/rod_models_stability.png``).
+``rod_model/model_errors.json`` and the figures ``docs/rod_models_pareto.png``, ``docs/rod_models_stability.png``
+in a source checkout). ``--quick``: three presets × four tensions, small batches, no uncompiled run.
 
 Speed vs accuracy
     Grid: every preset of :data:`reachplan.rod_model.design.PRESET_NAMES` × tensions 0-15 N (1 N steps), free space.
@@ -18,8 +19,6 @@ Stability map
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import os
 import statistics
@@ -27,25 +26,30 @@ import subprocess
 import sys
 import time
 import tracemalloc
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
+from matplotlib.figure import Figure
 
-from reachplan.imaging.files import atomic_write, atomic_write_bytes
+from reachplan.planner.bench.common import BenchError, settings, write_csv, write_json, write_png
 from reachplan.rod_model.beam import PLANAR_BEAM, PlanarBeam
 from reachplan.rod_model.collocation import NS, CollocationCosserat
 from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
 from reachplan.rod_model.design import PRESET_NAMES, Loads, RodDesign, gravity_load, preset
 from reachplan.rod_model.kinematic import CONSTANT_CURVATURE, ConstantCurvature
-from reachplan.rod_model.result import RodPath
+from reachplan.rod_model.protocol import RodModel
+from reachplan.rod_model.result import FailedSolve, RodPath
 
-REPO = Path(__file__).resolve().parents[1]
+INSTALLS = {"model_errors.json": "rod_model/model_errors.json", "rod_models_pareto.png": "docs/rod_models_pareto.png",
+            "rod_models_stability.png": "docs/rod_models_stability.png"}
+ROW_COLUMNS = ("model", "resolution", "median_ms", "max_tip_error_mm", "median_tip_error_mm", "success_rate",
+               "batched_solves_per_s", "batched_peak_mb")
+STABILITY_COLUMNS = ("solver", "placement", "tension_n", "guess", "success", "residual_n", "ms", "reason")
 STEPS_PER_MM = (0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
 REFERENCE = TwoTubeCosserat(steps_per_mm=8.0, tol=1e-12)
-BATCH = 10_000
 
 
 @dataclass(frozen=True)
@@ -62,30 +66,50 @@ class Row:
     batched_peak_mb: float | None = None
 
 
-def _write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+@dataclass(frozen=True)
+class ModelSettings:
+    """What the rod-model benchmark measures.
+
+    The grid (presets × tensions in N, free space), the stability map's tensions (N) and placements, the batch
+    sizes of the throughput runs, and whether to time the uncompiled kernel (a child process without numba).
+    """
+
+    presets: tuple[str, ...] = PRESET_NAMES
+    tensions_n: tuple[float, ...] = tuple(float(t) for t in range(16))
+    stability_tensions_n: tuple[float, ...] = (0.0, 5.0, 10.0, 15.0)
+    stability_placements: tuple[str, ...] = ("tip", "mid", "base")
+    batch: int = 10_000
+    planar_batch: int = 100_000
+    interpreted: bool = True
 
 
-def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
-    buf = io.StringIO(newline="")
-    out = csv.writer(buf)
-    out.writerow(header)
-    out.writerows(rows)
-    _write_text(path, buf.getvalue())
+QUICK = ModelSettings(presets=("15ga-20j-tip", "15ga-20j-base", "13ga-20j-tip"), tensions_n=(0.0, 5.0, 10.0, 15.0),
+                      stability_tensions_n=(7.5,),
+                      stability_placements=("tip",), batch=200, planar_batch=2_000, interpreted=False)
 
 
-def _grid(quick: bool) -> list[tuple[RodDesign, float]]:
-    names = ("15ga-20j-tip", "15ga-20j-base", "13ga-20j-tip") if quick else PRESET_NAMES
-    tensions = (0.0, 5.0, 10.0, 15.0) if quick else tuple(float(t) for t in range(16))
-    return [(preset(n), t) for n in names for t in tensions]
+class _Solver(Protocol):
+    """What the speed/accuracy chart times (a rod model, or the collocation cross-check)."""
+
+    @property
+    def name(self) -> str: ...
+
+    def solve(self, design: RodDesign, loads: Loads) -> RodPath | FailedSolve: ...
 
 
-def _time_model(model: object, grid: list[tuple[RodDesign, float]], ref: np.ndarray) -> tuple[float, np.ndarray, float]:
+def _tip(r: RodPath | FailedSolve) -> np.ndarray:
+    """Tip position (3,), mm, of a converged solve; NaN for a failed one (its error is then infinite)."""
+    return r.tip_position_mm if isinstance(r, RodPath) else np.full(3, np.nan)
+
+
+def _time_model(model: _Solver, grid: list[tuple[RodDesign, float]],
+                ref: np.ndarray) -> tuple[float, np.ndarray, float]:
+    """(median ms per solve, tip error (n,) in mm against ``ref`` (n, 3) mm, inf when failed; success rate)."""
     times, errs = [], []
     ok = 0
     for (d, t), tip in zip(grid, ref, strict=True):
         t0 = time.perf_counter()
-        r = model.solve(d, d.loads(t))  # type: ignore[attr-defined]
+        r = model.solve(d, d.loads(t))
         times.append((time.perf_counter() - t0) * 1e3)
         if isinstance(r, RodPath):
             ok += 1
@@ -95,16 +119,17 @@ def _time_model(model: object, grid: list[tuple[RodDesign, float]], ref: np.ndar
     return statistics.median(times), np.array(errs), ok / len(grid)
 
 
-def _batched(model: object, design: RodDesign, n: int) -> tuple[float, float]:
+def _batched(model: RodModel, design: RodDesign, n: int) -> tuple[float, float]:
+    """(median solves/s of ``n`` tensions in one ``solve_batch``, peak traced memory in MB of one more run)."""
     tensions = np.linspace(0.0, 15.0, n)
-    model.solve_batch(design, tensions[:10])  # type: ignore[attr-defined]  # warm-up / compile
+    model.solve_batch(design, tensions[:10])  # warm-up / compile
     rates = []
     for _ in range(3):
         t0 = time.perf_counter()
-        model.solve_batch(design, tensions)  # type: ignore[attr-defined]
+        model.solve_batch(design, tensions)
         rates.append(n / (time.perf_counter() - t0))
     tracemalloc.start()
-    model.solve_batch(design, tensions)  # type: ignore[attr-defined]
+    model.solve_batch(design, tensions)
     peak = tracemalloc.get_traced_memory()[1] / 2**20
     tracemalloc.stop()
     return statistics.median(rates), peak
@@ -127,43 +152,58 @@ def _interpreted_ms() -> float | None:
     env = dict(os.environ, NUMBA_DISABLE_JIT="1")
     try:
         out = subprocess.run([sys.executable, "-c", _INTERPRETED], env=env, capture_output=True, text=True,
-                             timeout=120, check=True, cwd=REPO)
+                             timeout=120, check=True)
     except (subprocess.SubprocessError, OSError):
         return None
     return float(json.loads(out.stdout.strip().splitlines()[-1]))
 
 
-def speed_accuracy(quick: bool, log: Callable[[str], None]) -> tuple[list[Row], dict[str, float]]:
-    grid = _grid(quick)
+def speed_accuracy(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[Row], dict[str, float]]:
+    """Time every model and resolution on the grid against the converged two-tube reference.
+
+    Returns
+    -------
+    rows : list of Row
+        The chart's points, one per model and resolution (tip errors in mm, times in ms).
+    extra : dict of str to float
+        Headline numbers of the reference check and the loaded and batched runs.
+
+    Raises
+    ------
+    BenchError
+        The reference solve did not converge.
+    """
+    grid = [(preset(n), t) for n in s.presets for t in s.tensions_n]
     REFERENCE.solve(*(grid[1][0], grid[1][0].loads(1.0)))  # compile
     t0 = time.perf_counter()
     refs = [REFERENCE.solve(d, d.loads(t)) for d, t in grid]
-    if not all(isinstance(r, RodPath) for r in refs):
-        raise RuntimeError("reference solve failed")
-    ref = np.array([r.tip_position_mm for r in refs])  # type: ignore[union-attr]
+    failed = [r for r in refs if not isinstance(r, RodPath)]
+    if failed:
+        raise BenchError(f"the reference two-tube solve did not converge ({failed[0]}); the chart needs it")
+    ref = np.array([_tip(r) for r in refs])
     check = TwoTubeCosserat(steps_per_mm=4.0, tol=1e-12)
-    ref_conv = max(float(np.linalg.norm(check.solve(d, d.loads(t)).tip_position_mm - tip))  # type: ignore[union-attr]
+    ref_conv = max(float(np.linalg.norm(_tip(check.solve(d, d.loads(t))) - tip))
                    for (d, t), tip in zip(grid, ref, strict=True))
     log(f"reference: {len(grid)} solves in {time.perf_counter() - t0:.1f} s; change vs 4 steps/mm {ref_conv:.1e} mm")
     rows: list[Row] = []
-    configs: list[tuple[object, str]] = [(ConstantCurvature(), "closed form"), (PlanarBeam(), "closed form")]
+    configs: list[tuple[RodModel, str]] = [(ConstantCurvature(), "closed form"), (PlanarBeam(), "closed form")]
     for cls in (CosseratRod, TwoTubeCosserat):
         for spm in STEPS_PER_MM:
             configs.append((cls(steps_per_mm=spm), f"{spm:g} steps/mm"))
-    defaults = {CONSTANT_CURVATURE.name: CONSTANT_CURVATURE, PLANAR_BEAM.name: PLANAR_BEAM,
-                COSSERAT_ROD.name: COSSERAT_ROD, TWO_TUBE_COSSERAT.name: TWO_TUBE_COSSERAT}
+    defaults: dict[str, RodModel] = {CONSTANT_CURVATURE.name: CONSTANT_CURVATURE, PLANAR_BEAM.name: PLANAR_BEAM,
+                                     COSSERAT_ROD.name: COSSERAT_ROD, TWO_TUBE_COSSERAT.name: TWO_TUBE_COSSERAT}
     for model, res in configs:
-        model.solve(grid[0][0], grid[0][0].loads(1.0))  # type: ignore[attr-defined]  # warm-up
+        model.solve(grid[0][0], grid[0][0].loads(1.0))  # warm-up
         med, errs, rate = _time_model(model, grid, ref)
-        name = model.name  # type: ignore[attr-defined]
-        is_default = model == defaults[name]
-        bps = peak = None
-        if is_default:
-            bps, peak = _batched(model, preset("15ga-20j-tip"), BATCH)
+        name = model.name
+        bps: float | None = None
+        peak: float | None = None
+        if model == defaults[name]:
+            bps, peak = _batched(model, preset("15ga-20j-tip"), s.batch)
             res += " (default)"
         rows.append(Row(name, res, med, float(np.max(errs)), float(np.median(errs)), rate, bps, peak))
         log(f"{name:20s} {res:24s} {med:8.3f} ms  max err {rows[-1].max_tip_error_mm:.2e} mm"
-            + (f"  batched {bps:,.0f}/s  peak {peak:.0f} MB" if bps else ""))
+            + (f"  batched {bps:,.0f}/s  peak {peak:.0f} MB" if bps is not None and peak is not None else ""))
     # collocation on a subset (it is slow)
     sub = [grid[i] for i in range(0, len(grid), max(1, len(grid) // 6))][:6]
     sub_ref = np.array([ref[grid.index(g)] for g in sub])
@@ -183,15 +223,16 @@ def speed_accuracy(quick: bool, log: Callable[[str], None]) -> tuple[list[Row], 
             r = model.solve(d, ld)
             ltimes.append((time.perf_counter() - t1) * 1e3)
             ok = isinstance(r, RodPath) and isinstance(rr, RodPath)
-            lerrs.append(float(np.linalg.norm(r.tip_position_mm - rr.tip_position_mm)) if ok else np.inf)  # type: ignore[union-attr]
+            lerrs.append(float(np.linalg.norm(_tip(r) - _tip(rr))) if ok else np.inf)
         extra[f"{model.name}_loaded_median_ms"] = statistics.median(ltimes)
         extra[f"{model.name}_loaded_max_tip_error_mm"] = max(lerrs)
         log(f"{model.name:20s} loaded (tip force + weight) {statistics.median(ltimes):8.3f} ms  max err "
             f"{max(lerrs):.2e} mm")
-    planar_rate, planar_peak = _batched(PLANAR_BEAM, preset("15ga-20j-tip"), 100_000)
-    extra.update(planar_100k_solves_per_s=planar_rate, planar_100k_peak_mb=planar_peak)
-    log(f"planar_beam 100k batched: {planar_rate:,.0f}/s, peak {planar_peak:.0f} MB")
-    interp = _interpreted_ms()
+    planar_rate, planar_peak = _batched(PLANAR_BEAM, preset("15ga-20j-tip"), s.planar_batch)
+    extra.update(planar_batch=float(s.planar_batch), planar_batch_solves_per_s=planar_rate,
+                 planar_batch_peak_mb=planar_peak)
+    log(f"planar_beam {s.planar_batch:,} batched: {planar_rate:,.0f}/s, peak {planar_peak:.0f} MB")
+    interp = _interpreted_ms() if s.interpreted else None
     if interp is not None:
         extra["two_tube_interpreted_ms"] = interp
         log(f"two_tube_cosserat without numba (NUMBA_DISABLE_JIT=1): {interp:.1f} ms per solve")
@@ -212,17 +253,17 @@ class StabilityCase:
     reason: str
 
 
-def stability(quick: bool, log: Callable[[str], None]) -> list[StabilityCase]:
-    tensions = (0.0, 7.5, 15.0) if quick else (0.0, 5.0, 10.0, 15.0)
+def stability(s: ModelSettings, log: Callable[[str], None]) -> list[StabilityCase]:
+    """Every solver on placement × tension × initial guess, with an out-of-plane tip force."""
     rng = np.random.default_rng(7)
     out: list[StabilityCase] = []
     collocation = CollocationCosserat(tol=1e-6, nodes_per_section=11, max_nodes=300, max_ramp=2)
     solvers: dict[str, tuple[Any, bool]] = {"shooting": (TWO_TUBE_COSSERAT, False),
                                             "shooting+continuation": (TWO_TUBE_COSSERAT, True),
                                             "collocation": (collocation, True)}
-    for placement in ("tip", "mid", "base"):
+    for placement in s.stability_placements:
         d = preset(f"15ga-20j-{placement}")
-        for t in tensions:
+        for t in s.stability_tensions_n:
             loads = Loads((t, 0.0, 0.0, 0.0), tip_force_n=(0.0, 0.2, -0.2))
             scale = 1.0 + t + 0.4
             for guess, mag in (("zero", 0.0), ("small", 0.1), ("large", 10.0)):
@@ -243,7 +284,7 @@ def stability(quick: bool, log: Callable[[str], None]) -> list[StabilityCase]:
                     else:
                         r = solver.solve(d, loads, initial_guess=x0, continuation=cont)
                     ok = isinstance(r, RodPath)
-                    reason = "" if ok else r.reason  # type: ignore[union-attr]
+                    reason = r.reason if isinstance(r, FailedSolve) else ""
                     out.append(StabilityCase(label, placement, t, guess, ok, float(r.residual),
                                              float(r.solve_ms), reason))
     for label in solvers:
@@ -252,14 +293,11 @@ def stability(quick: bool, log: Callable[[str], None]) -> list[StabilityCase]:
     return out
 
 
-def _pareto_png(rows: list[Row], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def pareto_figure(rows: list[Row]) -> Figure:
+    """Median time per solve against the worst tip error (log-log), with the Pareto front."""
     floor = 1e-10
-    fig, ax = plt.subplots(figsize=(9, 6), dpi=110)
+    fig = Figure(figsize=(9, 6))
+    ax = fig.subplots()
     colors = {"constant_curvature": "tab:red", "planar_beam": "tab:orange", "cosserat_rod": "tab:blue",
               "two_tube_cosserat": "tab:green", "two_tube_collocation": "tab:purple"}
     for name, c in colors.items():
@@ -272,10 +310,10 @@ def _pareto_png(rows: list[Row], path: Path) -> None:
             if "default" in r.resolution or len(pts) == 1:
                 ax.annotate(r.resolution, (r.median_ms, max(r.max_tip_error_mm, floor)), fontsize=7,
                             xytext=(4, 4), textcoords="offset points")
-    batched = [r for r in rows if r.batched_solves_per_s]
-    ax.scatter([1e3 / r.batched_solves_per_s for r in batched],  # type: ignore[operator]
-               [max(r.max_tip_error_mm, floor) for r in batched], marker="s", facecolors="none",
-               edgecolors=[colors[r.model] for r in batched], s=60, label="same model, batched (time per solve)")
+    batched = [(r, r.batched_solves_per_s) for r in rows if r.batched_solves_per_s]
+    ax.scatter([1e3 / bps for _, bps in batched],
+               [max(r.max_tip_error_mm, floor) for r, _ in batched], marker="s", facecolors="none",
+               edgecolors=[colors[r.model] for r, _ in batched], s=60, label="same model, batched (time per solve)")
     front: list[Row] = []
     for r in sorted(rows, key=lambda r: r.median_ms):
         if not front or r.max_tip_error_mm < front[-1].max_tip_error_mm:
@@ -292,20 +330,16 @@ def _pareto_png(rows: list[Row], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    atomic_write(path, lambda f: fig.savefig(f, format="png"))
-    plt.close(fig)
+    return fig
 
 
-def _stability_png(cases: list[StabilityCase], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def stability_figure(cases: list[StabilityCase]) -> Figure:
+    """Converged / failed map of each solver over placement × initial guess (rows) and tension (columns)."""
     solvers = list(dict.fromkeys(c.solver for c in cases))
     tensions = sorted({c.tension_n for c in cases})
-    rows = [(p, g) for p in ("tip", "mid", "base") for g in ("zero", "small", "large")]
-    fig, axes = plt.subplots(1, len(solvers), figsize=(4.2 * len(solvers), 4.8), dpi=110, sharey=True)
+    rows = list(dict.fromkeys((c.placement, c.guess) for c in cases))
+    fig = Figure(figsize=(4.2 * len(solvers), 4.8))
+    axes = fig.subplots(1, len(solvers), sharey=True)
     for ax, s in zip(np.atleast_1d(axes), solvers, strict=True):
         img = np.zeros((len(rows), len(tensions)))
         for c in cases:
@@ -324,14 +358,13 @@ def _stability_png(cases: list[StabilityCase], path: Path) -> None:
     fig.suptitle("Two-tube solver stability (tip force (0, 0.2, -0.2) N; NC: not converged, SJ: singular, "
                  "NF: non-finite)", fontsize=9)
     fig.tight_layout()
-    atomic_write(path, lambda f: fig.savefig(f, format="png"))
-    plt.close(fig)
+    return fig
 
 
 def error_table(rows: list[Row]) -> dict[str, object]:
-    """The package-data document read by :func:`reachplan.rod_model.select.error_table`."""
+    """Return the package-data document read by :func:`reachplan.rod_model.select.error_table`."""
     return {
-        "source": "benchmarks/rod_models.py (reachplan bench models)",
+        "source": "reachplan bench models",
         "generated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "reference": "two_tube_cosserat, 8 RK4 steps/mm, tol 1e-12",
         "grid": f"presets {', '.join(PRESET_NAMES)} x tensions 0-15 N, free space",
@@ -342,54 +375,48 @@ def error_table(rows: list[Row]) -> dict[str, object]:
     }
 
 
-def run_benchmark(out: Path, quick: bool = False, install: bool = False,
-                  log: Callable[[str], None] = print) -> dict[str, object]:
-    """Run everything, write the CSV/PNG/JSON files into ``out``; with ``install`` also refresh the package's
-    error table and the figures under ``docs/``. Returns the headline numbers."""
+def write_results(out: Path, rows: list[Row], cases: list[StabilityCase]) -> None:
+    """Write the tables, the charts and the error table under ``out``.
+
+    ``rod_models.csv`` (:data:`ROW_COLUMNS`), ``rod_models_stability.csv`` (:data:`STABILITY_COLUMNS`), their
+    charts ``rod_models_pareto.png`` and ``rod_models_stability.png``, and ``model_errors.json``.
+    """
+    write_csv(out / "rod_models.csv", ROW_COLUMNS,
+              [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
+                f"{r.median_tip_error_mm:.4g}", r.success_rate,
+                "" if r.batched_solves_per_s is None else f"{r.batched_solves_per_s:.0f}",
+                "" if r.batched_peak_mb is None else f"{r.batched_peak_mb:.1f}"] for r in rows])
+    write_csv(out / "rod_models_stability.csv", STABILITY_COLUMNS,
+              [[c.solver, c.placement, c.tension_n, c.guess, c.success, f"{c.residual:.3g}", f"{c.ms:.2f}",
+                c.reason] for c in cases])
+    write_png(out / "rod_models_pareto.png", pareto_figure(rows))
+    write_png(out / "rod_models_stability.png", stability_figure(cases))
+    write_json(out / "model_errors.json", error_table(rows))
+
+
+def run_benchmark(out: Path, s: ModelSettings, log: Callable[[str], None] = print) -> dict[str, object]:
+    """Run the whole benchmark and write its CSV, PNG and JSON files into ``out``.
+
+    Returns
+    -------
+    dict
+        The headline numbers, also written as ``summary.json``.
+    """
     t0 = time.perf_counter()
-    rows, extra = speed_accuracy(quick, log)
-    cases = stability(quick, log)
-    _write_csv(out / "rod_models.csv", ["model", "resolution", "median_ms", "max_tip_error_mm",
-                                        "median_tip_error_mm", "success_rate", "batched_solves_per_s",
-                                        "batched_peak_mb"],
-               [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
-                 f"{r.median_tip_error_mm:.4g}", r.success_rate,
-                 "" if r.batched_solves_per_s is None else f"{r.batched_solves_per_s:.0f}",
-                 "" if r.batched_peak_mb is None else f"{r.batched_peak_mb:.1f}"] for r in rows])
-    _write_csv(out / "rod_models_stability.csv", ["solver", "placement", "tension_n", "guess", "success",
-                                                  "residual_n", "ms", "reason"],
-               [[c.solver, c.placement, c.tension_n, c.guess, c.success, f"{c.residual:.3g}", f"{c.ms:.2f}",
-                 c.reason] for c in cases])
-    _pareto_png(rows, out / "rod_models_pareto.png")
-    _stability_png(cases, out / "rod_models_stability.png")
-    table = json.dumps(error_table(rows), indent=1) + "\n"
-    _write_text(out / "model_errors.json", table)
+    rows, extra = speed_accuracy(s, log)
+    cases = stability(s, log)
+    write_results(out, rows, cases)
     summary: dict[str, object] = {"rows": [r.__dict__ for r in rows], **extra,
-                                  "stability": {s: f"{sum(c.success for c in cases if c.solver == s)}/"
-                                                   f"{sum(c.solver == s for c in cases)}"
-                                                for s in dict.fromkeys(c.solver for c in cases)},
+                                  "stability": {v: f"{sum(c.success for c in cases if c.solver == v)}/"
+                                                   f"{sum(c.solver == v for c in cases)}"
+                                                for v in dict.fromkeys(c.solver for c in cases)},
                                   "wall_s": time.perf_counter() - t0}
-    _write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
-    if install:
-        if quick:
-            raise ValueError("--install needs the full grid; drop --quick")
-        _write_text(REPO / "rod_model" / "model_errors.json", table)
-        _pareto_png(rows, REPO / "docs" / "rod_models_pareto.png")
-        _stability_png(cases, REPO / "docs" / "rod_models_stability.png")
+    write_json(out / "summary.json", summary)
     log(f"benchmark done in {summary['wall_s']:.0f} s; results in {out}")
     return summary
 
 
 def run(args: argparse.Namespace) -> int:
-    run_benchmark(args.out, quick=args.quick, install=args.install,
-                  log=lambda m: print(m, file=sys.stderr, flush=True))
+    """Run ``reachplan bench models`` (``--quick``: a smoke run) into ``args.out``; progress on stderr."""
+    run_benchmark(args.out, settings(args, ModelSettings(), QUICK), log=lambda m: print(m, file=sys.stderr, flush=True))
     return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", required=True, type=Path, help="results folder (CSV, PNG, JSON)")
-    p.add_argument("--quick", action="store_true", help="small grid (a smoke run, seconds)")
-    p.add_argument("--install", action="store_true",
-                   help="also refresh rod_model/model_errors.json and docs/rod_models_*.png")
-    sys.exit(run(p.parse_args()))

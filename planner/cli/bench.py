@@ -1,41 +1,97 @@
 """``reachplan bench <target>``: run a benchmark of :mod:`reachplan.planner.bench` (CSV + PNG).
 
-Each target is a module ``reachplan.planner.bench.<module>`` exposing ``run(args) -> int``; every target takes
-the common options ``--out DIR`` (results folder), ``--quick`` (smoke run) and ``--install`` (refresh the committed
-package data / figures the benchmark owns). Add a target by adding a line to :data:`TARGETS` (e.g.
-``planning``, ``dose``). The module is imported only when its target runs.
+Each target is a module ``reachplan.planner.bench.<module>`` exposing ``run(args) -> int`` and ``INSTALLS``
+(see :mod:`reachplan.planner.bench.common`); every target takes the common options ``--out DIR`` (results
+folder), ``--quick`` (small grid: a smoke run of seconds), ``--install`` and ``--repo DIR`` (refresh the package
+data and docs/ files the benchmark owns in the source checkout ``DIR``, default the current folder). The
+module is imported only when its target runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
-NAME = "bench"
-HELP = "Run a benchmark (models: rod models speed vs accuracy and stability) and write CSV + PNG."
+from reachplan.planner.bench.common import check_install, install
 
-#: (sub-command, module file under benchmarks/, help)
-TARGETS: tuple[tuple[str, str, str], ...] = (
-    ("models", "models", "rod models: time per solve vs tip error (Pareto chart), batched speed, stability"),
-    ("planning", "planning", "whole phantom plan (paths/s, FCL queries/s, re-rank) and insertion models' chart"),
+NAME = "bench"
+HELP = "Run a benchmark (rod models, planning, dose, imaging, study) and write CSV + PNG."
+
+
+@dataclass(frozen=True)
+class Option:
+    """A target's own option (default ``None``: the target's full or quick setting)."""
+
+    flag: str
+    type: type
+    help: str
+
+
+@dataclass(frozen=True)
+class Target:
+    """A ``reachplan bench`` sub-command and the module under :mod:`reachplan.planner.bench` that runs it."""
+
+    name: str
+    module: str
+    help: str
+    options: tuple[Option, ...] = ()
+
+
+TARGETS: tuple[Target, ...] = (
+    Target("models", "models", "rod models: time per solve vs tip error (Pareto chart), batched speed, stability"),
+    Target("planning", "planning",
+           "whole phantom plan (paths/s, FCL queries/s, re-rank) and the insertion models' speed vs accuracy"),
+    Target("dose", "dose", "TG-43 grid dose throughput (voxel-dwell pairs/s) by thread count and chunk size",
+           (Option("--voxels", int, "approximate voxel count (400,000; quick 8,000)"),
+            Option("--dwells", int, "dwell positions (100; quick 20)"),
+            Option("--repeat", int, "timed runs, the best is kept (3; quick 1)"))),
+    Target("imaging", "imaging_load", "loading a CT series: reachplan's reader against SimpleITK's (time, memory)",
+           (Option("--slices", int, "slices of the synthetic series (300; quick 12)"),
+            Option("--size", int, "rows = columns per slice (512; quick 64)"),
+            Option("--repeat", int, "alternating runs per reader (5; quick 1)"),
+            Option("--workdir", Path, "where to write the series (default: a temporary folder)"))),
+    Target("study", "study", "design study on a Dask LocalCluster: 2 workers against 1, and a cohort estimate",
+           (Option("--cases", int, "phantom cases (4; quick 2)"),
+            Option("--targets", int, "targets per case (4; quick 1)"),
+            Option("--designs", int, "stylet designs (3; quick 1)"),
+            Option("--repeat", int, "alternating 1- and 2-worker runs, the best is kept (2; quick 1)"),
+            Option("--est-cases", int, "patients of the estimated study (100)"),
+            Option("--est-designs", int, "designs of the estimated study (7)"),
+            Option("--est-targets", int, "targets per patient of the estimated study (10)"),
+            Option("--est-workers", int, "workers of the estimated study (32)"))),
 )
+
 
 def _load(module: str) -> ModuleType:
     return importlib.import_module(f"reachplan.planner.bench.{module}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add one sub-command per target, each with the common options and its own."""
     sub = parser.add_subparsers(dest="bench_target", metavar="TARGET", required=True)
-    for name, module, help_ in TARGETS:
-        p = sub.add_parser(name, help=help_, description=help_)
-        p.set_defaults(_bench_module=module)
+    for target in TARGETS:
+        p = sub.add_parser(target.name, help=target.help, description=target.help)
+        p.set_defaults(_bench_module=target.module)
         p.add_argument("--out", required=True, type=Path, help="results folder (CSV, PNG, JSON)")
-        p.add_argument("--quick", action="store_true", help="small grid: a smoke run")
+        p.add_argument("--quick", action="store_true", help="small grid: a smoke run of seconds")
         p.add_argument("--install", action="store_true",
-                       help="also refresh the package data and docs/ figures this benchmark produces")
+                       help="also copy the results this benchmark owns (package data, docs/ figures and tables) "
+                            "into the source checkout --repo")
+        p.add_argument("--repo", type=Path, default=Path("."),
+                       help="the reachplan source checkout --install writes into (default: the current folder)")
+        for option in target.options:
+            p.add_argument(option.flag, type=option.type, default=None, help=option.help)
 
 
 def run(args: argparse.Namespace) -> int:
-    return int(_load(args._bench_module).run(args))
+    """Check ``--install`` first, run the target, then copy the results it owns into the checkout."""
+    checkout = check_install(args.repo, args.quick) if args.install else None  # before the long run
+    module = _load(args._bench_module)
+    status = int(module.run(args))
+    if checkout is not None and status == 0:
+        for path in install(args.out, checkout, module.INSTALLS):
+            print(f"installed {path}")
+    return status

@@ -58,15 +58,3 @@ def test_rod_errors_are_one_line(argv: list[str], message: str, capsys: pytest.C
     err = capsys.readouterr().err
     assert message in err
     assert err.count("\n") == 1
-
-
-def test_bench_is_a_subcommand_structure(capsys: pytest.CaptureFixture[str]) -> None:
-    from reachplan.planner.cli import bench
-
-    assert bench.TARGETS[0][:2] == ("models", "models")
-    with pytest.raises(SystemExit) as exc:
-        main(["bench", "models"])  # --out is required
-    assert exc.value.code == 2
-    capsys.readouterr()
-    for _, module, _ in bench.TARGETS:  # every target is installed with the package
-        assert callable(bench._load(module).run)

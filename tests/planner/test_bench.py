@@ -1,0 +1,171 @@
+"""``reachplan bench``: every target runs from the installed package, writes real CSV + PNG into ``--out``, and
+``--install`` writes only into a reachplan source checkout (never into this repository from a test)."""
+
+from __future__ import annotations
+
+import csv
+import struct
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reachplan.planner.bench import dose, models, planning
+from reachplan.planner.bench.common import BenchError, install, source_checkout, write_csv, write_png
+from reachplan.planner.cli import bench, main
+
+REPO = Path(__file__).resolve().parents[2]
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _owned_files() -> list[Path]:
+    return [REPO / dest for t in bench.TARGETS for dest in bench._load(t.module).INSTALLS.values()]
+
+
+@pytest.fixture(autouse=True)
+def _outside_the_repository(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Run from a temporary folder (the default ``--repo`` is the current one) and check afterwards that no file a
+    benchmark owns in this checkout was touched."""
+    monkeypatch.chdir(tmp_path)
+    before = {p: p.stat().st_mtime_ns for p in _owned_files() if p.exists()}
+    yield
+    assert {p: p.stat().st_mtime_ns for p in _owned_files() if p.exists()} == before
+
+
+def _read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        return list(reader.fieldnames or ()), list(reader)
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    """(width, height) in pixels from the IHDR chunk; asserts the PNG signature."""
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE, f"{path.name} is not a PNG"
+    assert data[12:16] == b"IHDR"
+    width, height = struct.unpack(">II", data[16:24])
+    return width, height
+
+
+def _assert_real_png(path: Path) -> None:
+    width, height = _png_size(path)
+    assert width >= 300 and height >= 200
+    assert path.stat().st_size > 10_000  # a chart, not an empty canvas
+
+
+def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.CaptureFixture[str]) -> None:
+    assert [t.name for t in bench.TARGETS] == ["models", "planning", "dose", "imaging", "study"]
+    for target in bench.TARGETS:
+        module = bench._load(target.module)
+        assert callable(module.run)
+        for name, dest in module.INSTALLS.items():  # owned files: package data or docs/, relative to a checkout
+            assert Path(dest).parts[0] in {"docs", "rod_model"} and not Path(dest).is_absolute()
+            assert Path(dest).name == name
+        with pytest.raises(SystemExit) as exc:
+            main(["bench", target.name])  # --out is required
+        assert exc.value.code == 2
+    capsys.readouterr()
+
+
+def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert main(["bench", "models", "--quick", "--out", str(out)]) == 0
+    capsys.readouterr()
+    header, rows = _read_csv(out / "rod_models.csv")
+    assert header == list(models.ROW_COLUMNS)
+    default = {r["model"]: r for r in rows if r["resolution"].endswith("(default)")}
+    assert set(default) == {"constant_curvature", "planar_beam", "cosserat_rod", "two_tube_cosserat"}
+    # against the reference (the same two-tube model at 16x finer steps): the default resolution has converged,
+    # while a constant curvature misses the tube's bending by millimetres
+    assert float(default["two_tube_cosserat"]["max_tip_error_mm"]) < 1e-3
+    assert float(default["constant_curvature"]["max_tip_error_mm"]) > 1.0
+    assert all(float(r["median_ms"]) > 0 for r in rows)
+    header, cases = _read_csv(out / "rod_models_stability.csv")
+    assert header == list(models.STABILITY_COLUMNS) and cases
+    assert all(c["reason"] for c in cases if c["success"] == "False")
+    for name in ("rod_models_pareto.png", "rod_models_stability.png"):
+        _assert_real_png(out / name)
+    assert (out / "model_errors.json").stat().st_size > 0
+
+
+def test_dose_quick_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert main(["bench", "dose", "--quick", "--out", str(out)]) == 0
+    capsys.readouterr()
+    header, rows = _read_csv(out / "dose_benchmark.csv")
+    assert header == list(dose.COLUMNS)
+    assert rows[0]["variant"] == "float64 dense" and rows[0]["max_rel_err"] == ""
+    chunked = [r for r in rows[1:] if r["variant"] == "float32 chunked"]
+    assert {r["workers"] for r in chunked} == {"1", "2"}
+    # float32 chunks against the float64 evaluation of the same kernel: single precision, not a different dose
+    assert all(0.0 <= float(r["max_rel_err"]) < 1e-4 for r in chunked)
+    assert all(float(r["mpairs_per_s"]) > 0 for r in rows)
+    _assert_real_png(out / "dose_benchmark.png")
+
+
+def test_planning_insertion_rows_and_writers_on_a_tiny_input(tmp_path: Path) -> None:
+    # the whole quick planning run takes about ten seconds; its parts on a tiny input instead
+    s = planning.PlanningSettings(reference_grid_mm=1.0, beam_grids_mm=(1.0,))
+    rows = planning.insertion_models(s)
+    assert [r["model"] for r in rows][-1] == "tissue_beam grid 1.0 mm"
+    assert rows[-1]["max_tip_error_mm"] == 0.0  # the reference itself
+    kinematic = [r for r in rows if str(r["model"]).startswith("kinematic")]
+    assert len(kinematic) == 3 and all(0.0 < float(r["max_tip_error_mm"]) < 10.0 for r in kinematic)
+    write_csv(tmp_path / "insertion_models.csv", planning.INSERTION_COLUMNS, rows)
+    header, back = _read_csv(tmp_path / "insertion_models.csv")
+    assert header == list(planning.INSERTION_COLUMNS)
+    assert [float(r["ms_per_path"]) for r in back] == pytest.approx([float(r["ms_per_path"]) for r in rows])
+    timing = [{"plan": "screening", "holes": 62, "targets": 1, "schedules": 110, "median_s": 0.5}]
+    write_csv(tmp_path / "planning_timings.csv", planning.TIMING_COLUMNS, timing)
+    header, back = _read_csv(tmp_path / "planning_timings.csv")
+    assert header == list(planning.TIMING_COLUMNS)
+    assert back[0]["holes"] == "62" and back[0]["rerank_ms"] == ""  # a missing column is an empty cell
+    write_png(tmp_path / "insertion_models.png", planning.insertion_figure(rows))
+    _assert_real_png(tmp_path / "insertion_models.png")
+
+
+def test_install_outside_a_checkout_is_one_typed_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert main(["bench", "models", "--install", "--out", str(out)]) == 2  # cwd: no pyproject.toml
+    err = capsys.readouterr().err
+    assert "pyproject.toml" in err and "--repo" in err and err.count("\n") == 1
+    assert not out.exists()  # refused before running
+    site = Path(models.__file__).resolve().parents[2]  # the installed package: never written into
+    with pytest.raises(BenchError, match=r"no pyproject\.toml"):
+        source_checkout(site)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "pyproject.toml").write_text('[project]\nname = "notreachplan"\n', encoding="utf-8")
+    assert main(["bench", "dose", "--install", "--repo", str(other), "--out", str(out)]) == 2
+    assert "not reachplan" in capsys.readouterr().err
+
+
+def _fake_checkout(tmp_path: Path) -> Path:
+    repo = tmp_path / "checkout"
+    (repo / "docs").mkdir(parents=True)
+    (repo / "pyproject.toml").write_text('[project]\nname = "reachplan"\n', encoding="utf-8")
+    return repo
+
+
+def test_install_refuses_quick_numbers(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    repo = _fake_checkout(tmp_path)
+    assert main(["bench", "dose", "--quick", "--install", "--repo", str(repo), "--out", str(tmp_path / "o")]) == 2
+    assert "drop --quick" in capsys.readouterr().err
+    assert list((repo / "docs").iterdir()) == []
+
+
+def test_install_copies_the_owned_files_into_the_checkout(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    repo = _fake_checkout(tmp_path)
+    out = tmp_path / "out"
+    argv = ["bench", "dose", "--voxels", "1000", "--dwells", "10", "--repeat", "1", "--install", "--repo", str(repo),
+            "--out", str(out)]
+    assert main(argv) == 0
+    assert "installed" in capsys.readouterr().out
+    for name, dest in dose.INSTALLS.items():
+        assert (repo / dest).read_bytes() == (out / name).read_bytes()
+    _, rows = _read_csv(repo / "docs" / "dose_benchmark.csv")
+    side = round(1000 ** (1 / 3))
+    assert int(rows[0]["chunk_pairs"]) == side**3 * 10  # the options replaced the full-size defaults
+    assert install(out, source_checkout(repo), {}) == []
+    assert np.isfinite([float(r["seconds"]) for r in rows]).all()
