@@ -10,7 +10,11 @@ from typing import Any
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically: readers see the old file or the new one, never a part."""
+    """Write ``data`` to ``path`` atomically: readers see the old file or the new one, never a part.
+
+    The parent folder is created when missing; the file gets the permissions of a file the process would
+    create (``0o666`` less the umask).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -33,5 +37,13 @@ def _umask() -> int:
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON, atomically."""
+    """Write ``obj`` as indented JSON (UTF-8, final newline), atomically.
+
+    Raises
+    ------
+    ValueError
+        ``obj`` holds NaN or infinity (not valid JSON).
+    TypeError
+        ``obj`` holds a value JSON cannot represent.
+    """
     atomic_write_bytes(path, (json.dumps(obj, indent=2, allow_nan=False) + "\n").encode("utf-8"))
