@@ -575,7 +575,7 @@ class PhantomSpec:
 
     @property
     def first_pixel_xy_mm(self) -> float:
-        """X (= y) of the centre of the first pixel, LPS mm; the field of view is centred on the z axis."""
+        """Coordinate x (= y) of the centre of the first pixel, LPS mm; the field of view is centred on the z axis."""
         return -0.5 * (self.matrix - 1) * self.pixel_mm
 
 
