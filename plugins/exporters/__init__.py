@@ -2,7 +2,7 @@
 
 The planner fills one :class:`~reachplan.plugins.exporters.base.ExportPlan` and hands it to an exporter:
 
->>> from plugins import registry                                    # doctest: +SKIP
+>>> from reachplan.plugins import registry                          # doctest: +SKIP
 >>> files = registry.get("exporters", "dicom_rt").export(plan, out_dir)  # doctest: +SKIP
 
 Built-ins: ``dicom_rt`` (:mod:`reachplan.plugins.exporters.dicom_rt`: RT Plan + RT Structure Set), ``device_json`` and

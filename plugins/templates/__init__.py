@@ -111,7 +111,9 @@ def load_template_csv(path: Path, name: str | None = None) -> Template:
     Raises
     ------
     TemplateFileError
-        A missing column, a bad number, duplicate hole ids or an unknown kind.
+        A missing column, a bad number, an empty hole id or an unknown kind.
+    ValueError
+        Duplicate hole ids or no holes (raised by :class:`Template`, not turned into a TemplateFileError).
     OSError
         The file cannot be read.
     """
