@@ -52,7 +52,10 @@ def _crossings(polys_uv: Sequence[np.ndarray], v0: float, dv: float, n_rows: int
 
     Returns
     -------
-    rows : (m,) int, u : (m,) float
+    rows : (m,) int
+        Row index of each crossing.
+    u : (m,) float
+        Its column coordinate, index units.
     """
     a = np.concatenate(polys_uv)
     b = np.concatenate([np.roll(p, -1, axis=0) for p in polys_uv])

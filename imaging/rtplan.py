@@ -121,6 +121,7 @@ class Channel:
     total_time_s : float
         Channel Total Time as written (per pulse for PDR).
     dwell_positions_mm : (n, 3) float, mm, LPS
+        Control Point 3D Position of each dwell, in file order.
     dwell_relative_mm : (n,) float, mm
         Control Point Relative Position of each dwell.
     dwell_times_s : (n,) float, s

@@ -40,6 +40,8 @@ _MAX_TENSION_N: dict[int, float] = {15: 10.0, 13: 14.0}
 class Calibration:
     """The two global, physical parameters fitted by :func:`reachplan.rod_model.calibrate.calibrate`.
 
+    The defaults are the fitted values (see :mod:`reachplan.rod_model.calibrate`).
+
     Parameters
     ----------
     joint_stiffness_scale : float
@@ -50,8 +52,6 @@ class Calibration:
     tube_arm_fraction : float
         Moment arm of a tendon inside the nitinol tube, as a fraction of the tube's inner radius. In the tube
         a tendon is not held in a channel (as it is in the disks); it shares the lumen with the other three.
-
-    The defaults are the fitted values (see :mod:`reachplan.rod_model.calibrate`).
 
     Raises
     ------
@@ -330,7 +330,9 @@ class RodDesign:
     name : str
         Preset name or a user label.
     stylet : StyletDesign
+        The steerable stylet (tube 1).
     needle : NeedleSpec
+        The plastic needle it runs in (tube 2), same gauge.
     max_tension_n : float
         Largest tendon tension the design is meant for (documented default: 10 N on 15 ga, 14 N on 13 ga,
         the published benchtop settings). The planner should not ask for more.

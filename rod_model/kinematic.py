@@ -198,7 +198,7 @@ class ConstantCurvature(ArcModel):
     name: ClassVar[str] = "constant_curvature"
 
     def curvatures(self, design: RodDesign, moment_factor_n: np.ndarray) -> np.ndarray:
-        """Return ``λ·r_disk / (EI_joints + EI_needle)`` in the joint section and 0 elsewhere, (b, k) 1/m."""
+        """Return ``λ·r_disk / (EI_joints + EI_needle)`` in the joints, 0 elsewhere: (b, k) 1/m for (b,) N."""
         secs = design.sections()
         c = np.array([s.arm_m / (s.ei1 + s.ei2) if s.kind == "joints" else 0.0 for s in secs])
         return np.asarray(moment_factor_n, dtype=float)[:, None] * c[None, :]
