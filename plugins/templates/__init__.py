@@ -133,5 +133,6 @@ def load_template_csv(path: Path, name: str | None = None) -> Template:
 
 
 def needlefinder_syed_63() -> Template:
-    """Load the 63-hole Syed-Neblett-style layout of 3D Slicer's NeedleFinder module (see the CSV header)."""
+    # The registry shows this docstring's first line as the plugin's description: a noun phrase on purpose.
+    """The 63-hole Syed-Neblett-style layout of 3D Slicer's NeedleFinder module (see the CSV header)."""  # noqa: D401
     return load_template_csv(_HERE / "needlefinder_syed_63.csv", "needlefinder_syed_63")
