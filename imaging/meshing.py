@@ -178,7 +178,8 @@ def roi_mask(roi: Roi, grid: Grid) -> np.ndarray:
     Raises
     ------
     StructureError
-        No closed contour, or a contour that does not lie in one slice plane of ``grid``.
+        No closed contour, a contour that does not lie in one slice plane of ``grid``, or contours on two
+        planes that fall onto one slice.
     """
     nk, nj, ni = grid.shape
     mask = np.zeros(grid.shape, dtype=bool)

@@ -634,7 +634,7 @@ _PAINT_ORDER = ("Body", "Rectum", "Sigmoid", "Bowel", "Bladder", "Uterus", "Cerv
 
 
 def phantom_ct_hu(spec: PhantomSpec) -> np.ndarray:
-    """Paint the CT of the phantom in HU: each voxel takes the CT number of the structure at its centre.
+    """Paint the CT of the phantom in HU, sampled at the voxel centres (later structures in the paint order win).
 
     Parameters
     ----------

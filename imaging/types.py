@@ -142,7 +142,7 @@ class Contour:
     Parameters
     ----------
     points_mm : (n, 3) float, mm, LPS
-        The contour's points in order; a closed contour does not repeat its first point.
+        The contour's points in order; a CLOSED_PLANAR contour closes from its last point back to its first.
     geometric_type : str
         ``"CLOSED_PLANAR"``, ``"OPEN_NONPLANAR"``, ``"OPEN_PLANAR"`` or ``"POINT"``.
 
