@@ -10,7 +10,7 @@ import numpy as np
 
 
 def frozen_floats(a: object, shape_tail: tuple[int, ...] | None = None, name: str = "array") -> np.ndarray:
-    """A read-only float copy of ``a``.
+    """Copy ``a`` as a read-only float array.
 
     Parameters
     ----------

@@ -42,7 +42,7 @@ NON_IMAGE_MODALITIES = frozenset({"RTSTRUCT", "RTPLAN", "RTDOSE", "RTRECORD", "R
 
 
 def list_files(path: Path) -> list[Path]:
-    """Every regular, non-hidden file at ``path`` (itself, or recursively below a folder), sorted.
+    """List every regular, non-hidden file at ``path`` (itself, or recursively below a folder), sorted.
 
     Raises
     ------
@@ -62,7 +62,7 @@ def list_files(path: Path) -> list[Path]:
 
 
 def _looks_like_dicom(path: Path) -> bool:
-    """True when the file claims to be DICOM: ``DICM`` magic at byte 128 or a ``.dcm`` name."""
+    """Tell whether the file claims to be DICOM: ``DICM`` magic at byte 128 or a ``.dcm`` name."""
     if path.suffix.lower() in (".dcm", ".dicom"):
         return True
     try:
@@ -109,13 +109,25 @@ def read_dataset(
 
     Parameters
     ----------
-    header_only : stop before the pixel data (no completeness check)
-    defer_size : values longer than this many bytes are read from the file only when used
-    required : a file that is not DICOM at all is an error too (:class:`NoDicomError`)
+    path : Path
+        The file.
+    header_only : bool
+        Stop before the pixel data (no completeness check).
+    required : bool
+        A file that is not DICOM at all is an error too (:class:`NoDicomError`).
+    defer_size : int, optional
+        Values longer than this many bytes are read from the file only when used.
+
+    Returns
+    -------
+    pydicom.Dataset or None
 
     Raises
     ------
-    CorruptFileError, NoDicomError
+    CorruptFileError
+        The file claims to be DICOM (or is parsed as such) but is truncated or cannot be parsed.
+    NoDicomError
+        With ``required``: the file is not DICOM.
     """
     from pydicom import dcmread
     from pydicom.errors import InvalidDicomError
@@ -190,7 +202,19 @@ class _Frame:
 
 @dataclass(frozen=True)
 class SeriesSummary:
-    """What a folder holds for one image series (no pixel data read)."""
+    """What a folder holds for one image series (no pixel data read).
+
+    Parameters
+    ----------
+    series_instance_uid, modality, description, frame_of_reference_uid : str
+        From the first object of the series (empty when not given).
+    n_frames : int
+        Image frames over all the series' objects.
+    rows, columns : int
+        Image size of the first object, pixels.
+    paths : tuple of Path
+        The series' files, in scan order.
+    """
 
     series_instance_uid: str
     modality: str
@@ -226,7 +250,7 @@ def _rescale(ds: Any, path: Path) -> tuple[float, float]:
 
 
 def _frames_of(ds: Any, path: Path) -> list[_Frame]:
-    """The image frames of one object with their geometry."""
+    """Return the image frames of one object with their geometry."""
     rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
     if rows < 1 or cols < 1:
         raise _invalid(path, f"image has {rows} rows and {cols} columns")
@@ -284,7 +308,17 @@ _SUMMARY_KEYWORDS = ("SeriesInstanceUID", "FrameOfReferenceUID", "SeriesDescript
 
 @dataclass(frozen=True)
 class FolderScan:
-    """Headers of every DICOM object below a path (pixel data not read)."""
+    """Headers of every DICOM object below a path (pixel data not read).
+
+    Parameters
+    ----------
+    images : tuple of (pydicom.Dataset, Path)
+        Image objects (CT, MR, ...; see :data:`NON_IMAGE_MODALITIES`), with their file.
+    others : tuple of (pydicom.Dataset, Path)
+        The other DICOM objects (structure sets, plans, DICOMDIR, ...).
+    n_non_dicom : int
+        Files that are not DICOM.
+    """
 
     images: tuple[tuple[Any, Path], ...]
     others: tuple[tuple[Any, Path], ...]
@@ -309,8 +343,10 @@ class FolderScan:
 
 
 def scan(path: Path) -> FolderScan:
-    """Read every file at ``path`` (a file or a folder, recursively); values over 1 KiB (pixel data, long
-    contour lists) stay on disk until used. Every DICOM file is checked to be complete.
+    """Read the headers of every file at ``path`` (a file or a folder, recursively).
+
+    Values over 1 KiB (pixel data, long contour lists) stay on disk until used. Every DICOM file is checked to
+    be complete.
 
     Raises
     ------
@@ -346,7 +382,26 @@ def _describe(s: SeriesSummary) -> str:
 def select_series(
     found: FolderScan, folder: Path, series_uid: str | None = None, modality: str | None = None
 ) -> SeriesSummary:
-    """The one image series matching ``series_uid`` and ``modality``; a typed error otherwise."""
+    """Pick the one image series of a scan matching ``series_uid`` and ``modality`` (None matches any).
+
+    Parameters
+    ----------
+    found : FolderScan
+        What :func:`scan` found.
+    folder : Path
+        Where it was found (for the messages).
+    series_uid : str, optional
+        SeriesInstanceUID to pick.
+    modality : str, optional
+        ``"CT"``, ``"MR"``, ... (case-insensitive).
+
+    Raises
+    ------
+    NoDicomError
+        No image series matches; the message lists what the folder holds.
+    SeriesError
+        More than one series matches.
+    """
     all_series = found.series()
     chosen = [s for s in all_series
               if (series_uid is None or s.series_instance_uid == series_uid)
@@ -376,10 +431,20 @@ def select_series(
 class SeriesTolerance:
     """How strictly a series must be regular.
 
-    ``spacing`` : relative tolerance on slice-to-slice spacing (and on positions along the slice axis).
-    ``orientation`` : absolute tolerance on ImageOrientationPatient components.
-    ``allow_gantry_tilt`` : accept slices whose positions step sideways (gantry tilt) with an
-    :class:`~reachplan.imaging.errors.ObliqueSliceWarning`; the affine then carries the shear exactly.
+    Parameters
+    ----------
+    spacing : float
+        Relative tolerance on slice-to-slice spacing (and on positions along the slice axis), in (0, 0.5).
+    orientation : float
+        Absolute tolerance on ImageOrientationPatient components (direction cosines), in (0, 0.1).
+    allow_gantry_tilt : bool
+        Accept slices whose positions step sideways (gantry tilt) with an
+        :class:`~reachplan.imaging.errors.ObliqueSliceWarning`; the affine then carries the shear exactly.
+
+    Raises
+    ------
+    ValueError
+        A tolerance out of its range.
     """
 
     spacing: float = 0.01
@@ -393,6 +458,23 @@ class SeriesTolerance:
 
 def assemble_geometry(frames: Sequence[_Frame], tol: SeriesTolerance, label: str) -> tuple[Grid, list[int]]:
     """Check that ``frames`` form one regular volume; return its grid and the frames' order along k.
+
+    Parameters
+    ----------
+    frames : sequence of _Frame
+        The frames of one series with their geometry (positions and orientations in LPS mm).
+    tol : SeriesTolerance
+        How regular the frames must be.
+    label : str
+        Names the series in messages.
+
+    Returns
+    -------
+    grid : Grid
+        Shape ``(n_frames, rows, columns)``; ``patient_from_index`` in LPS mm, sheared when gantry tilt is
+        allowed.
+    order : list of int
+        ``order[k]`` is the index into ``frames`` of slice ``k`` (sorted along the slice normal).
 
     Raises
     ------
@@ -515,7 +597,7 @@ def _check_pixel_length(ds: Any, path: Path) -> None:
 
 
 def _sitk_pixels(ds: Any, path: Path) -> np.ndarray | None:
-    """Stored values of a single-frame image decoded by SimpleITK (GDCM); None when it cannot.
+    """Decode a single-frame image with SimpleITK (GDCM) into stored values; None when it cannot.
 
     GDCM applies the rescale slope and intercept; they are undone here so that every decoder returns stored
     values and the rescale is applied in one place.
@@ -571,10 +653,14 @@ def read_series(
 
     Parameters
     ----------
-    folder : a folder (searched recursively) or a single (multi-frame) file
-    series_uid : SeriesInstanceUID to pick when the folder holds several series
-    modality : ``"CT"``, ``"MR"``, ... to pick by modality
-    tolerance : regularity checks (default :class:`SeriesTolerance`)
+    folder : Path
+        A folder (searched recursively) or a single (multi-frame) file.
+    series_uid : str, optional
+        SeriesInstanceUID to pick when the folder holds several series.
+    modality : str, optional
+        ``"CT"``, ``"MR"``, ... to pick by modality.
+    tolerance : SeriesTolerance, optional
+        Regularity checks (default :class:`SeriesTolerance`).
 
     Returns
     -------
@@ -584,7 +670,14 @@ def read_series(
 
     Raises
     ------
-    NoDicomError, CorruptFileError, SeriesError, UnsupportedDataError
+    NoDicomError
+        No file, or no (single) matching image series.
+    CorruptFileError
+        A file is truncated or breaks the standard.
+    SeriesError
+        The slices do not form one regular volume, or several series match.
+    UnsupportedDataError
+        Pixel data that cannot be decoded, or a volume too large for memory.
     """
     folder = Path(folder)
     found = scan(folder)
@@ -594,7 +687,29 @@ def read_series(
 def load_series(
     found: FolderScan, chosen: SeriesSummary, tolerance: SeriesTolerance | None = None, folder: Path | None = None
 ) -> Volume:
-    """Read the pixel data of one series of a :func:`scan` (see :func:`read_series`)."""
+    """Read the pixel data of one series of a :func:`scan` into a volume.
+
+    Parameters
+    ----------
+    found : FolderScan
+        What :func:`scan` found.
+    chosen : SeriesSummary
+        The series to read (from :func:`select_series` or :meth:`FolderScan.series`).
+    tolerance : SeriesTolerance, optional
+        Regularity checks (default :class:`SeriesTolerance`).
+    folder : Path, optional
+        Where the series was found (for the messages).
+
+    Returns
+    -------
+    Volume
+        As for :func:`read_series`.
+
+    Raises
+    ------
+    CorruptFileError, SeriesError, UnsupportedDataError
+        As for :func:`read_series`.
+    """
     tol = tolerance or SeriesTolerance()
     where = folder if folder is not None else (chosen.paths[0].parent if chosen.paths else Path("."))
     label = f"series {chosen.series_instance_uid} in {where}"
@@ -641,7 +756,22 @@ def load_series(
 
 
 def check_reference(volume: Volume, frame_of_reference_uid: str | None, series_uid: str | None, what: str) -> None:
-    """Raise :class:`ReferenceMismatchError` when ``what`` refers to another FoR or series than ``volume``."""
+    """Check that an object drawn on images refers to ``volume``.
+
+    Parameters
+    ----------
+    volume : Volume
+        The images at hand.
+    frame_of_reference_uid, series_uid : str or None
+        What the object refers to; empty or None is not checked.
+    what : str
+        Names the object in the message.
+
+    Raises
+    ------
+    ReferenceMismatchError
+        The object refers to another Frame of Reference or series than ``volume``.
+    """
     if frame_of_reference_uid and volume.frame_of_reference_uid and \
             frame_of_reference_uid != volume.frame_of_reference_uid:
         raise ReferenceMismatchError(

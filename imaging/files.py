@@ -53,5 +53,13 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON, atomically."""
+    """Write ``obj`` as indented JSON (UTF-8, final newline), atomically.
+
+    Raises
+    ------
+    ValueError
+        ``obj`` holds NaN or infinity (not valid JSON).
+    TypeError
+        ``obj`` holds a value JSON cannot represent.
+    """
     atomic_write_bytes(path, (json.dumps(obj, indent=2, allow_nan=False) + "\n").encode("utf-8"))

@@ -22,7 +22,21 @@ from reachplan.imaging.types import Volume
 
 @dataclass(frozen=True)
 class SeriesInfo:
-    """An image series: ``shape`` (nk, nj, ni) voxels, ``spacing_mm`` along (i, j, k)."""
+    """An image series, read completely.
+
+    Parameters
+    ----------
+    series_instance_uid, modality, description, frame_of_reference_uid : str
+        As written.
+    shape : (int, int, int)
+        Voxels ``(nk, nj, ni)``: slices, rows, columns.
+    spacing_mm : (float, float, float), mm
+        Voxel size along i (columns), j (rows), k (slices).
+    n_files : int
+        Files the series is stored in.
+    folder : str
+        The first (sorted) folder holding them.
+    """
 
     series_instance_uid: str
     modality: str
@@ -36,7 +50,26 @@ class SeriesInfo:
 
 @dataclass(frozen=True)
 class StructureInfo:
-    """One ROI: names, RTROIInterpretedType, contour count and kinds, volume of its closed contours."""
+    """One ROI of a structure set.
+
+    Parameters
+    ----------
+    number : int
+        ROI Number.
+    name, normalized_name : str
+        As written, and the standard name it maps to.
+    type : str
+        RT ROI Interpreted Type; empty when not given.
+    n_contours : int
+        Contours of every kind.
+    geometric_types : tuple of str
+        The distinct contour geometric types, sorted.
+    volume_cc : float or None, cm³
+        Volume of the closed planar contours (on the image slices when possible); None without closed
+        contours or when they cannot be stacked.
+    note : str
+        Why the volume is missing or was computed without the images; empty otherwise.
+    """
 
     number: int
     name: str
@@ -50,6 +83,8 @@ class StructureInfo:
 
 @dataclass(frozen=True)
 class StructureSetInfo:
+    """An RT Structure Set: its file, label, Frame of Reference, referenced series and ROIs."""
+
     path: str
     label: str
     frame_of_reference_uid: str
@@ -59,6 +94,8 @@ class StructureSetInfo:
 
 @dataclass(frozen=True)
 class ChannelInfo:
+    """A channel of a brachy plan: number, dwell count, Channel Total Time (s) and ROI number (None if none)."""
+
     channel_number: int
     n_dwells: int
     total_time_s: float
@@ -67,6 +104,8 @@ class ChannelInfo:
 
 @dataclass(frozen=True)
 class PlanInfo:
+    """A brachy RT Plan: file, treatment type, technique, source label and channels; ``note`` when unread."""
+
     path: str
     type: str  # HDR, PDR, ... (the plan's brachy treatment type)
     technique: str
@@ -77,6 +116,8 @@ class PlanInfo:
 
 @dataclass(frozen=True)
 class OtherInfo:
+    """A DICOM object that is neither an image, a structure set nor a plan."""
+
     path: str
     modality: str
     sop_class_uid: str
@@ -84,7 +125,19 @@ class OtherInfo:
 
 @dataclass(frozen=True)
 class Inspection:
-    """The result of :func:`inspect_path`."""
+    """The result of :func:`inspect_path`.
+
+    Parameters
+    ----------
+    path : str
+        What was inspected.
+    series, structure_sets, plans, others
+        What was found, by kind.
+    n_non_dicom : int
+        Files that are not DICOM.
+    warnings : tuple of str
+        ``"WarningClass: message"`` of each distinct quirk the readers worked around.
+    """
 
     path: str
     series: tuple[SeriesInfo, ...]
@@ -95,7 +148,7 @@ class Inspection:
     warnings: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
-        """A JSON-ready dict (``series``, ``structure_sets`` with ``structures``, ``plans`` with ``channels``)."""
+        """Return a JSON-ready dict: ``series``, ``structure_sets`` with ``structures``, ``plans`` with ``channels``."""
         from dataclasses import asdict
 
         return asdict(self)
@@ -116,7 +169,7 @@ def _volume_cc(roi: Any, volume: Volume | None) -> tuple[float | None, str]:
 
 
 def _first(obj: Any, *names: str) -> Any:
-    """The first of ``obj``'s attributes ``names`` that exists and is not None (plan readers differ in naming)."""
+    """Return the first of ``obj``'s attributes ``names`` that is not None (plan readers differ in naming)."""
     for name in names:
         value = getattr(obj, name, None)
         if value is not None:
@@ -141,7 +194,7 @@ def _source_label(plan: Any) -> str:
 
 
 def _plan_info(path: Path) -> PlanInfo:
-    """Summary of a brachy RT Plan through :func:`reachplan.imaging.rtplan.read_rtplan` (loaded lazily)."""
+    """Summarise a brachy RT Plan through :func:`reachplan.imaging.rtplan.read_rtplan` (loaded lazily)."""
     try:
         rtplan = importlib.import_module("reachplan.imaging.rtplan")
     except ModuleNotFoundError as exc:
@@ -205,6 +258,13 @@ def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection
 
     Warnings about quirks the readers worked around (:class:`~reachplan.imaging.errors.ImagingWarning`) are collected
     in :attr:`Inspection.warnings` instead of being emitted.
+
+    Parameters
+    ----------
+    path : Path
+        A DICOM file or folder.
+    synonyms : SynonymTable, optional
+        ROI name table (default :data:`reachplan.imaging.names.DEFAULT_SYNONYMS`).
 
     Raises
     ------

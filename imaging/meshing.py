@@ -52,7 +52,10 @@ def _crossings(polys_uv: Sequence[np.ndarray], v0: float, dv: float, n_rows: int
 
     Returns
     -------
-    rows : (m,) int, u : (m,) float
+    rows : (m,) int
+        Row index of each crossing.
+    u : (m,) float
+        Its column coordinate, index units.
     """
     a = np.concatenate(polys_uv)
     b = np.concatenate([np.roll(p, -1, axis=0) for p in polys_uv])
@@ -122,7 +125,7 @@ def _inside_slice(polys_uv: Sequence[np.ndarray], nj: int, ni: int) -> np.ndarra
 
 
 def _slices_in_grid(roi: Roi, grid: Grid) -> dict[int, list[np.ndarray]]:
-    """Closed contours of ``roi`` in the index frame of ``grid``: ``{k: [(n, 2) (i, j) ...]}``.
+    """Return the closed contours of ``roi`` in the index frame of ``grid``: ``{k: [(n, 2) (i, j) ...]}``.
 
     Raises
     ------
@@ -155,14 +158,28 @@ def _slices_in_grid(roi: Roi, grid: Grid) -> dict[int, list[np.ndarray]]:
 
 
 def roi_mask(roi: Roi, grid: Grid) -> np.ndarray:
-    """Boolean mask of a ROI's closed planar contours on ``grid`` (even-odd filling).
+    """Rasterise a ROI's closed planar contours on ``grid`` into a boolean mask (even-odd filling).
 
     A voxel is inside when its centre is inside the contours of its slice; each contour is assigned to the
     nearest slice; contours outside the grid are left out.
 
+    Parameters
+    ----------
+    roi : Roi
+        Its CLOSED_PLANAR contours are used (LPS mm).
+    grid : Grid
+        The voxel grid, usually that of the images the contours were drawn on.
+
     Returns
     -------
-    mask : (nk, nj, ni) bool, ``grid.shape``
+    mask : (nk, nj, ni) bool
+        ``grid.shape``, indexed ``[k, j, i]``.
+
+    Raises
+    ------
+    StructureError
+        No closed contour, a contour that does not lie in one slice plane of ``grid``, or contours on two
+        planes that fall onto one slice.
     """
     nk, nj, ni = grid.shape
     mask = np.zeros(grid.shape, dtype=bool)
@@ -173,11 +190,28 @@ def roi_mask(roi: Roi, grid: Grid) -> np.ndarray:
 
 
 def roi_coverage(roi: Roi, grid: Grid, supersample: int = 4) -> np.ndarray:
-    """Fraction (0..1) of each voxel of ``grid`` inside the ROI (contours cover their whole slab).
+    """Compute the fraction (0..1) of each voxel of ``grid`` inside the ROI (contours cover their whole slab).
+
+    Parameters
+    ----------
+    roi : Roi
+        Its CLOSED_PLANAR contours are used (LPS mm).
+    grid : Grid
+        The voxel grid.
+    supersample : int
+        Sub-rows per pixel (exact along rows); at least 1.
 
     Returns
     -------
-    coverage : (nk, nj, ni) float32, ``grid.shape``
+    coverage : (nk, nj, ni) float32
+        ``grid.shape``, indexed ``[k, j, i]``.
+
+    Raises
+    ------
+    ValueError
+        ``supersample < 1``.
+    StructureError
+        As for :func:`roi_mask`.
     """
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
@@ -201,13 +235,23 @@ def _newell_normal(pts: np.ndarray) -> np.ndarray:
 
 
 def contour_plane_frame(roi: Roi, slice_spacing_mm: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
-    """The common plane of a ROI's closed contours.
+    """Find the common plane of a ROI's closed contours and the positions of its slices.
+
+    Parameters
+    ----------
+    roi : Roi
+        Its CLOSED_PLANAR contours are used (LPS mm).
+    slice_spacing_mm : float, optional
+        The slice spacing, mm; needed when all contours lie on one plane.
 
     Returns
     -------
-    axes : (3, 3) float, columns u, v, n (orthonormal, right-handed; n = contour normal, +z for axial)
-    positions_mm : (m,) float, sorted distinct plane positions along n
-    spacing_mm : the slice spacing (smallest gap between planes, or ``slice_spacing_mm`` when given)
+    axes : (3, 3) float, LPS
+        Columns u, v, n: orthonormal, right-handed; n is the contour normal (+z for axial contours).
+    positions_mm : (m,) float, mm
+        Sorted distinct plane positions along n (``n · x`` with x in LPS).
+    spacing_mm : float, mm
+        The slice spacing: the smallest gap between planes, or ``slice_spacing_mm`` when given.
 
     Raises
     ------
@@ -254,12 +298,35 @@ def contour_plane_frame(roi: Roi, slice_spacing_mm: float | None = None) -> tupl
 def fit_grid(
     roi: Roi, grid: Grid | None = None, pixel_mm: float | None = None, pad_pixels: int = 2
 ) -> Grid:
-    """A grid that holds ``roi`` with empty voxels all around (for marching cubes and volumes).
+    """Build a grid that holds ``roi`` with empty voxels all around (for marching cubes and volumes).
 
     With ``grid``: the grid's slices and orientation, cropped to the ROI, padded by one slice below and
     above, in-plane pixels refined to about ``pixel_mm``. Without: a grid built from the contours (their
-    plane, their slice spacing, ``pixel_mm`` in-plane). ``pixel_mm=None`` picks the grid's pixel (or
-    :data:`DEFAULT_PIXEL_MM`), refined so that the ROI spans at least :data:`PIXELS_ACROSS` pixels.
+    plane, their slice spacing, ``pixel_mm`` in-plane).
+
+    Parameters
+    ----------
+    roi : Roi
+        Its CLOSED_PLANAR contours are used (LPS mm).
+    grid : Grid, optional
+        The image grid the contours were drawn on.
+    pixel_mm : float, optional
+        In-plane pixel size, mm. None picks the grid's pixel (or :data:`DEFAULT_PIXEL_MM`), refined so that
+        the ROI spans at least :data:`PIXELS_ACROSS` pixels (not below :data:`MIN_AUTO_PIXEL_MM`).
+    pad_pixels : int
+        Empty pixels added on each in-plane side.
+
+    Returns
+    -------
+    Grid
+        ``patient_from_index`` maps to LPS mm.
+
+    Raises
+    ------
+    ValueError
+        ``pixel_mm`` not a positive number.
+    StructureError
+        Contours that do not stack into slices, or a grid of more than :data:`MAX_VOXELS` voxels.
     """
     if pixel_mm is not None and not (np.isfinite(pixel_mm) and pixel_mm > 0):
         raise ValueError(f"pixel_mm must be a positive number of mm, got {pixel_mm}")
@@ -321,21 +388,31 @@ def roi_mesh(
     smooth_iterations: int = 0,
     max_faces: int | None = None,
 ) -> trimesh.Trimesh:
-    """A watertight triangle mesh of a ROI's closed planar contours, LPS mm.
+    """Mesh a ROI's closed planar contours into a watertight triangle mesh in LPS mm.
 
     Parameters
     ----------
-    grid : the image grid the contours were drawn on (its slices and orientation are used); None = a grid
-        built from the contours themselves (works from an RT Structure Set alone)
-    pixel_mm : in-plane pixel size of the meshing grid (level of detail); default: the grid's own pixels
-        (:data:`DEFAULT_PIXEL_MM` without a grid), refined for small ROIs (see :func:`fit_grid`)
-    supersample : sub-rows per pixel of the anti-aliased coverage
-    step_size : marching cubes step (coarser mesh for larger values)
-    z_supersample : sub-slices per slice (each a copy of its slab's coverage) so that marching cubes cuts
-        the slab corners less; default ``ceil(slice spacing / pixel size)``
-    smooth_iterations : Taubin smoothing passes (volume-preserving to first order), 0 = none
-    max_faces : decimate to at most this many faces (needs the optional ``fast-simplification`` package);
-        when that breaks watertightness, twice as many are tried, and so on (the result may then exceed it)
+    roi : Roi
+        Its CLOSED_PLANAR contours are used (LPS mm).
+    grid : Grid, optional
+        The image grid the contours were drawn on (its slices and orientation are used); None builds a grid
+        from the contours themselves (works from an RT Structure Set alone).
+    pixel_mm : float, optional
+        In-plane pixel size of the meshing grid, mm (level of detail); default: the grid's own pixels
+        (:data:`DEFAULT_PIXEL_MM` without a grid), refined for small ROIs (see :func:`fit_grid`).
+    supersample : int
+        Sub-rows per pixel of the anti-aliased coverage.
+    step_size : int
+        Marching cubes step (coarser mesh for larger values).
+    z_supersample : int, optional
+        Sub-slices per slice (each a copy of its slab's coverage) so that marching cubes cuts the slab
+        corners less; default ``ceil(slice spacing / pixel size)``.
+    smooth_iterations : int
+        Taubin smoothing passes (volume-preserving to first order), 0 = none.
+    max_faces : int, optional
+        Decimate to at most this many faces (needs the optional ``fast-simplification`` package); when that
+        breaks watertightness, twice as many are tried, and so on (the result may then exceed it, with a
+        :class:`~reachplan.imaging.errors.MeshDecimationWarning`).
 
     Returns
     -------
@@ -346,7 +423,8 @@ def roi_mesh(
     Raises
     ------
     StructureError
-        No closed contours, contours that do not stack, or a mesh that is not watertight.
+        No closed contours, contours that do not stack, a mesh that is not watertight, or ``max_faces``
+        without the ``fast-simplification`` package.
     """
     from skimage.measure import marching_cubes
 
@@ -395,9 +473,28 @@ def _decimate(mesh: trimesh.Trimesh, max_faces: int, name: str) -> trimesh.Trime
 
 
 def structure_volume_cc(roi: Roi, grid: Grid | None = None, pixel_mm: float | None = None) -> float:
-    """Volume (cm³) of a ROI's closed planar contours: coverage of a fitted grid times voxel volume.
+    """Compute the volume (cm³) of a ROI's closed planar contours: coverage of a fitted grid times voxel volume.
 
     Each contour covers its slice's slab; with ``grid`` the grid's slices are used, otherwise the contours'.
+
+    Parameters
+    ----------
+    roi : Roi
+        Its CLOSED_PLANAR contours are used (LPS mm).
+    grid : Grid, optional
+        The image grid the contours were drawn on.
+    pixel_mm : float, optional
+        In-plane pixel size, mm (see :func:`fit_grid`).
+
+    Returns
+    -------
+    float
+        Volume in cm³.
+
+    Raises
+    ------
+    StructureError
+        As for :func:`fit_grid`.
     """
     fit = fit_grid(roi, grid, pixel_mm)
     cov = roi_coverage(roi, fit)

@@ -44,7 +44,7 @@ _SEPARATORS = re.compile(r"[\s_\-.]+")
 
 
 def name_key(name: str) -> str:
-    """The matching key of a name: case-folded, without spaces, ``_``, ``-`` and ``.``."""
+    """Return the matching key of a name: case-folded, without spaces, ``_``, ``-`` and ``.``."""
     return _SEPARATORS.sub("", name.casefold())
 
 
@@ -54,7 +54,13 @@ class SynonymTable:
 
     Parameters
     ----------
-    entries : ``((standard_name, (synonym, ...)), ...)``; the standard name matches itself.
+    entries : tuple of (str, tuple of str)
+        ``((standard_name, (synonym, ...)), ...)``; each standard name also matches itself.
+
+    Raises
+    ------
+    ValueError
+        An empty standard name or synonym, or a synonym that maps to two standard names.
     """
 
     entries: tuple[tuple[str, tuple[str, ...]], ...] = _DEFAULT
@@ -75,11 +81,17 @@ class SynonymTable:
         object.__setattr__(self, "_lookup", seen)
 
     def normalize(self, name: str) -> str:
-        """The standard name for ``name``; ``name`` itself (stripped) when no synonym matches."""
+        """Return the standard name for ``name``; ``name`` itself (stripped) when no synonym matches."""
         return self._lookup.get(name_key(name), name.strip())
 
     def extended(self, entries: tuple[tuple[str, tuple[str, ...]], ...]) -> SynonymTable:
-        """A new table with ``entries`` added (synonyms of an existing standard name are merged)."""
+        """Return a new table with ``entries`` added (synonyms of an existing standard name are merged).
+
+        Raises
+        ------
+        ValueError
+            A new synonym maps to two standard names.
+        """
         merged: dict[str, tuple[str, ...]] = dict(self.entries)
         for standard, synonyms in entries:
             merged[standard] = (*merged.get(standard, ()), *synonyms)
@@ -88,6 +100,13 @@ class SynonymTable:
     @classmethod
     def from_csv(cls, path: Path, base: SynonymTable | None = None) -> SynonymTable:
         """Read ``standard,synonym`` rows (header line ``standard,synonym``) on top of ``base``.
+
+        Parameters
+        ----------
+        path : Path
+            CSV file, UTF-8, one synonym per row.
+        base : SynonymTable, optional
+            The table to extend (default: the built-in table).
 
         Raises
         ------

@@ -85,7 +85,20 @@ def _check_positive(obj: object, *names: str) -> None:
 
 @dataclass(frozen=True)
 class Cylinder:
-    """A circular cylinder with its axis along patient z, ``z0_mm <= z < z1_mm``."""
+    """A circular cylinder with its axis along patient z, ``z0_mm <= z < z1_mm``.
+
+    Parameters
+    ----------
+    center_xy_mm : (float, float), mm, LPS
+        The axis' x and y.
+    radius_mm, z0_mm, z1_mm : float, mm
+        Radius and axial extent (LPS z).
+
+    Raises
+    ------
+    ValueError
+        A radius that is not positive, or ``z1_mm <= z0_mm``.
+    """
 
     center_xy_mm: tuple[float, float]
     radius_mm: float
@@ -99,19 +112,23 @@ class Cylinder:
 
     @property
     def analytic_volume_mm3(self) -> float:
+        """Exact volume, mm³."""
         return math.pi * self.radius_mm**2 * (self.z1_mm - self.z0_mm)
 
     def contains(self, p: np.ndarray) -> np.ndarray:
+        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
         cx, cy = self.center_xy_mm
         r2 = (p[..., 0] - cx) ** 2 + (p[..., 1] - cy) ** 2
         return (r2 <= self.radius_mm**2) & (p[..., 2] >= self.z0_mm) & (p[..., 2] < self.z1_mm)
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
+        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
         if not self.z0_mm <= z0 < self.z1_mm:
             return []
         return [_ellipse(*self.center_xy_mm, self.radius_mm, self.radius_mm)]
 
     def bounds(self) -> np.ndarray:
+        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
         cx, cy = self.center_xy_mm
         r = self.radius_mm
         return np.array([[cx - r, cy - r, self.z0_mm], [cx + r, cy + r, self.z1_mm]])
@@ -119,7 +136,20 @@ class Cylinder:
 
 @dataclass(frozen=True)
 class EllipticCylinder:
-    """An elliptic cylinder (semi-axes along patient x and y), axis along z, ``z0_mm <= z < z1_mm``."""
+    """An elliptic cylinder (semi-axes along patient x and y), axis along z, ``z0_mm <= z < z1_mm``.
+
+    Parameters
+    ----------
+    center_xy_mm, semi_axes_xy_mm : (float, float), mm, LPS
+        The axis' x and y, and the semi-axes along x and y.
+    z0_mm, z1_mm : float, mm
+        Axial extent (LPS z).
+
+    Raises
+    ------
+    ValueError
+        A semi-axis that is not positive, or ``z1_mm <= z0_mm``.
+    """
 
     center_xy_mm: tuple[float, float]
     semi_axes_xy_mm: tuple[float, float]
@@ -132,27 +162,42 @@ class EllipticCylinder:
 
     @property
     def analytic_volume_mm3(self) -> float:
+        """Exact volume, mm³."""
         a, b = self.semi_axes_xy_mm
         return math.pi * a * b * (self.z1_mm - self.z0_mm)
 
     def contains(self, p: np.ndarray) -> np.ndarray:
+        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
         (cx, cy), (a, b) = self.center_xy_mm, self.semi_axes_xy_mm
         q = ((p[..., 0] - cx) / a) ** 2 + ((p[..., 1] - cy) / b) ** 2
         return (q <= 1.0) & (p[..., 2] >= self.z0_mm) & (p[..., 2] < self.z1_mm)
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
+        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
         if not self.z0_mm <= z0 < self.z1_mm:
             return []
         return [_ellipse(*self.center_xy_mm, *self.semi_axes_xy_mm)]
 
     def bounds(self) -> np.ndarray:
+        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
         (cx, cy), (a, b) = self.center_xy_mm, self.semi_axes_xy_mm
         return np.array([[cx - a, cy - b, self.z0_mm], [cx + a, cy + b, self.z1_mm]])
 
 
 @dataclass(frozen=True)
 class Box:
-    """An axis-aligned box ``lo_mm <= p < hi_mm``."""
+    """An axis-aligned box ``lo_mm <= p < hi_mm``.
+
+    Parameters
+    ----------
+    lo_mm, hi_mm : (float, float, float), mm, LPS
+        Lower and upper corner.
+
+    Raises
+    ------
+    ValueError
+        ``hi_mm <= lo_mm`` on some axis.
+    """
 
     lo_mm: tuple[float, float, float]
     hi_mm: tuple[float, float, float]
@@ -163,23 +208,27 @@ class Box:
 
     @property
     def analytic_volume_mm3(self) -> float:
+        """Exact volume, mm³."""
         return float(np.prod(np.subtract(self.hi_mm, self.lo_mm)))
 
     def contains(self, p: np.ndarray) -> np.ndarray:
+        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
         return np.all((p >= self.lo_mm) & (p < self.hi_mm), axis=-1)
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
+        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
         (x0, y0, za), (x1, y1, zb) = self.lo_mm, self.hi_mm
         if not za <= z0 < zb:
             return []
         return [np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)]
 
     def bounds(self) -> np.ndarray:
+        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
         return np.array([self.lo_mm, self.hi_mm], dtype=float)
 
 
 def rotation_x(angle_deg: float) -> np.ndarray:
-    """(3, 3) rotation about patient x by ``angle_deg`` (right-handed)."""
+    """Return the (3, 3) rotation about patient x by ``angle_deg`` degrees (right-handed)."""
     a = math.radians(angle_deg)
     c, s = math.cos(a), math.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
@@ -187,7 +236,21 @@ def rotation_x(angle_deg: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Ellipsoid:
-    """An ellipsoid with semi-axes along the columns of ``rotation`` (patient_from_local, (3, 3))."""
+    """An ellipsoid with semi-axes along the columns of ``rotation``.
+
+    Parameters
+    ----------
+    center_mm : (float, float, float), mm, LPS
+    semi_axes_mm : (float, float, float), mm
+        Along the columns of ``rotation``.
+    rotation : (3, 3) float
+        ``patient_from_local``: orthonormal; its columns are the ellipsoid's axes in LPS.
+
+    Raises
+    ------
+    ValueError
+        A rotation that is not orthonormal, or a semi-axis that is not positive.
+    """
 
     center_mm: tuple[float, float, float]
     semi_axes_mm: tuple[float, float, float]
@@ -204,14 +267,17 @@ class Ellipsoid:
 
     @property
     def analytic_volume_mm3(self) -> float:
+        """Exact volume, mm³."""
         a, b, c = self.semi_axes_mm
         return 4.0 / 3.0 * math.pi * a * b * c
 
     def contains(self, p: np.ndarray) -> np.ndarray:
+        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
         d = p - np.asarray(self.center_mm)
         return np.einsum("...i,ij,...j->...", d, self._quad, d) <= 1.0
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
+        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
         q = self._quad
         dz = z0 - self.center_mm[2]
         a2, b = q[:2, :2], q[:2, 2] * dz
@@ -224,6 +290,7 @@ class Ellipsoid:
         return [_ellipse(self.center_mm[0] + m[0], self.center_mm[1] + m[1], semi[0], semi[1], v)]
 
     def bounds(self) -> np.ndarray:
+        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
         half = np.sqrt(np.diag(np.linalg.inv(self._quad)))
         c = np.asarray(self.center_mm)
         return np.array([c - half, c + half])
@@ -235,6 +302,22 @@ class TorusSection:
 
     The arc is ``centre + major (cos φ u + sin φ v)`` for ``φ0 <= φ <= φ1`` (degrees); ``u`` and ``v``
     are orthonormal (LPS). Its volume is exact by Pappus: ``π r² · R · Δφ``.
+
+    Parameters
+    ----------
+    center_mm : (float, float, float), mm, LPS
+        Centre of the arc's circle.
+    major_mm, minor_mm : float, mm
+        Radius of the arc and of the tube, ``0 < minor_mm < major_mm``.
+    u, v : (float, float, float), LPS
+        Orthonormal directions spanning the arc's plane.
+    phi0_deg, phi1_deg : float, degrees
+        The arc, ``0 < phi1_deg - phi0_deg <= 360``.
+
+    Raises
+    ------
+    ValueError
+        Radii, directions or angles out of range.
     """
 
     center_mm: tuple[float, float, float]
@@ -257,10 +340,12 @@ class TorusSection:
 
     @property
     def full(self) -> bool:
+        """The arc is a whole circle (a full torus)."""
         return self.phi1_deg - self.phi0_deg >= 360
 
     @property
     def analytic_volume_mm3(self) -> float:
+        """Exact volume, mm³."""
         return math.pi * self.minor_mm**2 * self.major_mm * math.radians(self.phi1_deg - self.phi0_deg)
 
     def _field(self, p: np.ndarray) -> np.ndarray:
@@ -280,9 +365,14 @@ class TorusSection:
         return np.maximum(f, out)
 
     def contains(self, p: np.ndarray) -> np.ndarray:
+        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
         return self._field(p) <= 0.0
 
     def cross_section(self, z0: float, step_mm: float = 0.2) -> list[np.ndarray]:
+        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``.
+
+        The cut is traced as the zero level of the tube's distance field sampled every ``step_mm`` mm.
+        """
         from skimage.measure import find_contours
 
         lo, hi = self.bounds()
@@ -305,6 +395,7 @@ class TorusSection:
         return out
 
     def bounds(self) -> np.ndarray:
+        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
         c = np.asarray(self.center_mm)
         ext = self.major_mm + self.minor_mm
         if self.full:
@@ -329,8 +420,25 @@ Shape = Cylinder | EllipticCylinder | Box | Ellipsoid | TorusSection
 class PhantomStructure:
     """One ROI of the phantom: a union of disjoint solids.
 
-    ``interpreted_type`` is the RTROIInterpretedType written to the file; ``hu`` the CT number painted
-    inside; ``is_oar`` marks organs at risk a needle must avoid (bone included).
+    Parameters
+    ----------
+    name : str
+        ROI name written to the file.
+    interpreted_type : str
+        RT ROI Interpreted Type written to the file.
+    shapes : tuple of Cylinder, EllipticCylinder, Box, Ellipsoid or TorusSection
+        Disjoint solids, LPS mm; at least one.
+    hu : float, HU
+        CT number painted inside.
+    color : (int, int, int)
+        ROI Display Color, RGB 0-255.
+    is_oar : bool
+        An organ at risk a needle must avoid (bone included).
+
+    Raises
+    ------
+    ValueError
+        No shapes.
     """
 
     name: str
@@ -356,18 +464,18 @@ class PhantomStructure:
         return float(sum(s.analytic_volume_mm3 for s in self.shapes))
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """``(..., 3)`` LPS mm -> ``(...)`` bool."""
+        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
         inside = np.zeros(p.shape[:-1], dtype=bool)
         for s in self.shapes:
             inside |= s.contains(p)
         return inside
 
     def cross_section(self, z_mm: float) -> list[np.ndarray]:
-        """Closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z_mm``."""
+        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z_mm``."""
         return [poly for s in self.shapes for poly in s.cross_section(z_mm)]
 
     def bounds(self) -> np.ndarray:
-        """(2, 3) float, LPS mm: lower and upper corner of the bounding box."""
+        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
         b = np.array([s.bounds() for s in self.shapes])
         return np.array([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
@@ -378,16 +486,32 @@ class PhantomSpec:
 
     Parameters
     ----------
-    structures : every ROI, in the order written (targets last)
-    slice_thickness_mm, pixel_mm : CT slice spacing and in-plane pixel size
-    z_range_mm : (z0, z1) extent of the CT slabs; slice centres at ``z0 + (k + 0.5) * slice_thickness_mm``
-    matrix : rows = columns of the CT
-    air_hu, fat_hu, fat_thickness_mm : CT numbers outside the body and of a subcutaneous fat layer under the
-        body outline (the body's own ``hu`` is the gel inside it); painted only, not a ROI
-    patient_from_template : (4, 4) float: template frame (origin at the obturator axis on the perineal
-        plane, x/y in the template plane, +z = insertion direction) to LPS mm.
-    case_id : "" for the reference phantom; a variant's id (e.g. ``case_003``) gives it its own DICOM UIDs
-        and Patient ID, so variants are distinct patients, studies and Frames of Reference.
+    structures : tuple of PhantomStructure
+        Every ROI, in the order written (targets last); names unique.
+    slice_thickness_mm, pixel_mm : float, mm
+        CT slice spacing and in-plane pixel size.
+    z_range_mm : (float, float), mm, LPS z
+        ``(z0, z1)`` extent of the CT slabs, a whole number of slices; slice centres at
+        ``z0 + (k + 0.5) * slice_thickness_mm``.
+    matrix : int
+        Rows = columns of the CT.
+    air_hu, fat_hu : float, HU
+        CT numbers outside the body and of a subcutaneous fat layer under the body outline (the body's own
+        ``hu`` is the gel inside it); painted only, not a ROI.
+    fat_thickness_mm : float, mm
+        Thickness of that fat layer.
+    patient_from_template : (4, 4) float
+        Template frame (origin at the obturator axis on the perineal plane, x/y in the template plane, +z the
+        insertion direction; mm) to LPS mm.
+    case_id : str
+        Empty for the reference phantom; a variant's id (e.g. ``case_003``) gives it its own DICOM UIDs and
+        Patient ID, so variants are distinct patients, studies and Frames of Reference.
+
+    Raises
+    ------
+    ValueError
+        A bad ``case_id``, duplicate names, non-positive sizes, a z range that is not whole slices, or a
+        ``patient_from_template`` that is not 4x4.
     """
 
     structures: tuple[PhantomStructure, ...]
@@ -428,9 +552,11 @@ class PhantomSpec:
 
     @property
     def oars(self) -> tuple[PhantomStructure, ...]:
+        """The organs at risk (``is_oar``), bone included."""
         return tuple(s for s in self.structures if s.is_oar)
 
     def get(self, name: str) -> PhantomStructure:
+        """Return the structure called ``name`` (exact match); KeyError when there is none."""
         for s in self.structures:
             if s.name == name:
                 return s
@@ -438,6 +564,7 @@ class PhantomSpec:
 
     @property
     def n_slices(self) -> int:
+        """Number of CT slices."""
         return round((self.z_range_mm[1] - self.z_range_mm[0]) / self.slice_thickness_mm)
 
     @property
@@ -447,12 +574,12 @@ class PhantomSpec:
 
     @property
     def first_pixel_xy_mm(self) -> float:
-        """x (= y) of the centre of the first pixel; the field of view is centred on the z axis."""
+        """Coordinate x (= y) of the centre of the first pixel, LPS mm; the field of view is centred on the z axis."""
         return -0.5 * (self.matrix - 1) * self.pixel_mm
 
 
 def _targets() -> list[PhantomStructure]:
-    """Reference target cylinders (10 mm diameter, axes along z); angle 0 = patient left, 90 = anterior."""
+    """Build the reference target cylinders (10 mm diameter, axes along z); angle 0 = patient left, 90 = anterior."""
     out = []
     for diameter, height, z_centre, angles in ((65.0, 15.0, 75.0, range(0, 360, 60)),
                                                (80.0, 5.0, 80.0, range(30, 360, 60))):
@@ -467,7 +594,7 @@ def _targets() -> list[PhantomStructure]:
 
 
 def phantom_spec() -> PhantomSpec:
-    """The analytic description of the built-in phantom (see the module docstring for frames)."""
+    """Describe the built-in phantom analytically (see the module docstring for frames and values)."""
     tilt = rotation_x(45.0)  # uterus long axis: +z tilted 45 degrees toward anterior (-y)
     structures = [
         PhantomStructure("Body", "EXTERNAL", (EllipticCylinder((0.0, 0.0), (95.0, 90.0), -30.0, 180.0),),
@@ -506,11 +633,18 @@ _PAINT_ORDER = ("Body", "Rectum", "Sigmoid", "Bowel", "Bladder", "Uterus", "Cerv
 
 
 def phantom_ct_hu(spec: PhantomSpec) -> np.ndarray:
-    """The CT of the phantom in HU.
+    """Paint the CT of the phantom in HU, sampled at the voxel centres (later structures in the paint order win).
+
+    Parameters
+    ----------
+    spec : PhantomSpec
+        The phantom (structures, CT geometry and CT numbers).
 
     Returns
     -------
-    hu : (n_slices, matrix, matrix) int16, indexed ``[k, j, i]`` (slice, row = y, column = x)
+    hu : (n_slices, matrix, matrix) int16, HU
+        Indexed ``[k, j, i]`` (slice, row = y, column = x); voxel centres at LPS ``z = spec.slice_z_mm[k]``,
+        ``y = x0 + j * pixel_mm``, ``x = x0 + i * pixel_mm`` with ``x0 = spec.first_pixel_xy_mm``.
     """
     n, z = spec.matrix, spec.slice_z_mm
     xy = spec.first_pixel_xy_mm + np.arange(n) * spec.pixel_mm
@@ -571,8 +705,10 @@ class PhantomFiles:
 
 
 def _uid(*parts: str, case_id: str = "") -> str:
-    """A deterministic UID ``2.25.<128-bit hash>`` (ISO/IEC 9834-8 UUID arc) of the phantom version, the
-    case id (when not empty) and ``parts``."""
+    """Derive a deterministic UID ``2.25.<128-bit hash>`` (ISO/IEC 9834-8 UUID arc).
+
+    The hash covers the phantom version, the case id (when not empty) and ``parts``.
+    """
     case = ["case", case_id] if case_id else []
     digest = hashlib.sha256("\0".join(["reachplan phantom", PHANTOM_VERSION, *case, *parts]).encode()).hexdigest()
     return f"2.25.{int(digest[:32], 16)}"
@@ -721,7 +857,7 @@ def _rtstruct_dataset(spec: PhantomSpec, ct: list[Any]) -> Any:
 
 
 def _raw_ds(tag: int, values: np.ndarray) -> Any:
-    """A DS element holding ``values`` (3 decimals) as raw bytes (pydicom's per-value checks are slow)."""
+    """Build a DS element holding ``values`` (3 decimals) as raw bytes (pydicom's per-value checks are slow)."""
     from pydicom.dataelem import RawDataElement
     from pydicom.tag import Tag
 
@@ -732,7 +868,7 @@ def _raw_ds(tag: int, values: np.ndarray) -> Any:
 
 
 def _is_phantom_file(path: Path) -> bool:
-    """True when ``path`` is a DICOM file this module wrote (any version)."""
+    """Tell whether ``path`` is a DICOM file this module wrote (any version)."""
     from pydicom import dcmread
 
     try:
@@ -756,8 +892,19 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFile
 
     Parameters
     ----------
-    out_dir : folder to create or reuse
-    spec : the phantom to write (default :func:`phantom_spec`)
+    out_dir : Path
+        Folder to create or reuse.
+    spec : PhantomSpec, optional
+        The phantom to write (default :func:`phantom_spec`).
+
+    Returns
+    -------
+    PhantomFiles
+
+    Raises
+    ------
+    OutputExistsError
+        ``out_dir`` is a file, or a file that is not a reachplan phantom file is in the way.
     """
     spec = spec or phantom_spec()
     out_dir = Path(out_dir)

@@ -61,7 +61,25 @@ class PlanQuirkWarning(DicomQuirkWarning):
 
 @dataclass(frozen=True)
 class BrachySource:
-    """One item of the Source Sequence."""
+    """One item of the Source Sequence.
+
+    Parameters
+    ----------
+    number : int
+        Source Number (0 when missing).
+    isotope_name, source_type, manufacturer : str
+        As written; empty when missing.
+    air_kerma_rate_u : float, U (µGy m² h⁻¹)
+        Reference Air Kerma Rate at the reference date and time (0 when missing).
+    reference_date, reference_time : str
+        Source Strength Reference Date (``YYYYMMDD``) and Time (``HHMMSS``), as written.
+    half_life_days : float or None, d
+        Source Isotope Half Life.
+    active_length_mm, diameter_mm : float or None, mm
+        Active Source Length and Diameter.
+    model_id : str
+        Source Model ID; empty when missing.
+    """
 
     number: int
     isotope_name: str
@@ -96,12 +114,35 @@ class Channel:
     total_time_s : float
         Channel Total Time as written (per pulse for PDR).
     dwell_positions_mm : (n, 3) float, mm, LPS
+        Control Point 3D Position of each dwell, in file order.
     dwell_relative_mm : (n,) float, mm
         Control Point Relative Position of each dwell.
     dwell_times_s : (n,) float, s
         Per fraction, per pulse for PDR.
+    source_number : int or None
+        Referenced Source Number.
+    applicator_id : str
+        Source Applicator ID.
+    source_movement : str
+        Source Movement Type (``"STEPWISE"``, ``"FIXED"``, ...).
+    final_weight : float
+        The Final Cumulative Time Weight the dwell times were normalised by (the sum of the dwell weights when
+        the file's value is missing or unusable).
+    n_pulses : int or None
+        Number of Pulses (PDR).
+    pulse_interval_s : float or None, s
+        Pulse Repetition Interval (PDR).
+    length_mm : float or None, mm
+        Channel Effective Length, else Channel Length.
+    step_mm : float or None, mm
+        Source Applicator Step Size.
     dose_coefficients : tuple of (int, float)
         (dose reference number, cumulative dose reference coefficient at the last control point).
+
+    Raises
+    ------
+    ValueError
+        Dwell arrays of different lengths.
     """
 
     number: int
@@ -131,11 +172,14 @@ class Channel:
 
     @property
     def n_dwells(self) -> int:
+        """Number of dwell positions."""
         return len(self.dwell_times_s)
 
 
 @dataclass(frozen=True)
 class ApplicationSetup:
+    """An item of the Application Setup Sequence: Application Setup Number, Name and Type, and its channels."""
+
     number: int
     name: str
     setup_type: str
@@ -146,9 +190,18 @@ class ApplicationSetup:
 class DoseReference:
     """A dose reference of the plan.
 
-    ``position_mm`` is (3,) mm LPS for point references, else None; ``tps_dose_gy`` the TPS's total
-    dose there (all fractions, all pulses) from the cumulative dose reference coefficients, None when
-    the plan does not carry them.
+    Parameters
+    ----------
+    number : int
+        Dose Reference Number.
+    description, structure_type, reference_type : str
+        Dose Reference Description, Structure Type (``"POINT"``, ``"VOLUME"``, ...) and Type
+        (``"TARGET"``, ``"ORGAN_AT_RISK"``).
+    position_mm : (3,) float, mm, LPS, or None
+        Dose Reference Point Coordinates; None when the reference is not a point.
+    tps_dose_gy : float or None, Gy
+        The TPS's total dose there (all fractions, all pulses) from the cumulative dose reference
+        coefficients (see the module docstring); None when the plan does not carry them.
     """
 
     number: int
@@ -161,7 +214,15 @@ class DoseReference:
 
 @dataclass(frozen=True, eq=False)
 class CatheterPath:
-    """A catheter reconstruction from Oncentra's private sequence: ROI number and (k, 3) mm LPS points."""
+    """A catheter reconstruction from Oncentra's private sequence (300F,1000).
+
+    Parameters
+    ----------
+    roi_number : int
+        The ROI the catheter belongs to (channels refer to it).
+    points_mm : (k, 3) float, mm, LPS
+        The catheter's centre line, as written.
+    """
 
     roi_number: int
     points_mm: np.ndarray
@@ -172,7 +233,36 @@ class CatheterPath:
 
 @dataclass(frozen=True, eq=False)
 class RtPlan:
-    """An RT Plan. For brachy plans ``setups`` holds the channels; ``is_brachy`` is False otherwise."""
+    """An RT Plan: for brachy plans ``setups`` holds the channels; ``is_brachy`` is False otherwise.
+
+    Parameters
+    ----------
+    path : str
+        The file it was read from.
+    sop_instance_uid, frame_of_reference_uid, label, name, manufacturer : str
+        As written (RT Plan Label and Name); empty when missing.
+    is_brachy : bool
+        The plan has a Brachy Treatment Type or application setups.
+    treatment_type : str
+        Brachy Treatment Type: ``"HDR"``, ``"PDR"``, ``"MDR"``, ``"LDR"``; empty for a beam plan.
+    technique : str
+        Brachy Treatment Technique: ``"INTERSTITIAL"``, ``"INTRACAVITARY"``, ...
+    n_fractions : int
+        Number of Fractions Planned of the first fraction group (1 when missing).
+    n_beams : int
+        External beams (0 for brachy).
+    sources : tuple of BrachySource
+    setups : tuple of ApplicationSetup
+    dose_references : tuple of DoseReference
+    setup_doses_gy : tuple of (int, float)
+        (application setup number, Brachy Application Setup Dose in Gy) of the first fraction group.
+    catheter_paths : tuple of CatheterPath
+        From Oncentra's private catheter sequence; empty otherwise.
+    machine_name, study_instance_uid, patient_id, patient_name : str
+        As written; empty when missing.
+    quirks : tuple of str
+        Every rule the file breaks that was read anyway (also warned as :class:`PlanQuirkWarning`).
+    """
 
     path: str
     sop_instance_uid: str
@@ -198,6 +288,7 @@ class RtPlan:
 
     @property
     def channels(self) -> tuple[Channel, ...]:
+        """Every channel of every application setup, in file order."""
         return tuple(c for s in self.setups for c in s.channels)
 
     @property
@@ -208,6 +299,7 @@ class RtPlan:
 
     @property
     def n_dwells(self) -> int:
+        """Number of dwell positions over all channels."""
         return sum(c.n_dwells for c in self.channels)
 
     @property
@@ -216,7 +308,15 @@ class RtPlan:
         return float(sum(c.total_time_s for c in self.channels))
 
     def source(self, number: int | None = None) -> BrachySource:
-        """The source with ``number`` (or the only / first one)."""
+        """Return the source with ``number`` (or the only / first one).
+
+        Raises
+        ------
+        NoDicomError
+            The plan has no sources (it is not a brachy plan).
+        CorruptFileError
+            No source has ``number``.
+        """
         if not self.sources:
             raise NoDicomError(f"{self.path}: the plan has no Source Sequence; it is not a brachy plan")
         for s in self.sources:
@@ -365,7 +465,7 @@ def _plan_from_dataset(ds: Dataset, path: str, found: list[str]) -> RtPlan:
 
 
 def _overlong_decimal_strings(ds: Dataset) -> list[str]:
-    """Keywords of DS elements holding a value longer than the 16 characters PS3.5 allows."""
+    """List the keywords of DS elements holding a value longer than the 16 characters PS3.5 allows."""
     names: list[str] = []
 
     def visit(_: Dataset, elem: Any) -> None:
@@ -560,7 +660,7 @@ def _oncentra_catheters(ds: Dataset, path: str, found: list[str]) -> tuple[Cathe
 
 
 def channel_paths(plan: RtPlan, structures: StructureSet | None = None) -> Mapping[int, np.ndarray]:
-    """Centre line of each channel, ordered as written (Eclipse: tip first), keyed by channel number.
+    """Find the centre line of each channel, ordered as written (Eclipse: tip first), keyed by channel number.
 
     Looked up through the channel's ReferencedROINumber in ``structures`` (an OPEN_NONPLANAR contour
     of that ROI) or in the plan's Oncentra catheter sequence.
@@ -568,7 +668,9 @@ def channel_paths(plan: RtPlan, structures: StructureSet | None = None) -> Mappi
     Parameters
     ----------
     plan : RtPlan
+        The plan whose channels are looked up.
     structures : StructureSet, optional
+        The structure set the plan refers to (its BRACHY_CHANNEL ROIs).
 
     Returns
     -------

@@ -74,9 +74,12 @@ def read_rtstruct(
 
     Parameters
     ----------
-    path : the RT Structure Set file
-    volume : the images it was drawn on; when given, its Frame of Reference and referenced series must match
-    synonyms : ROI name table (default :data:`reachplan.imaging.names.DEFAULT_SYNONYMS`)
+    path : Path
+        The RT Structure Set file.
+    volume : Volume, optional
+        The images it was drawn on; when given, its Frame of Reference and referenced series must match.
+    synonyms : SynonymTable, optional
+        ROI name table (default :data:`reachplan.imaging.names.DEFAULT_SYNONYMS`).
 
     Returns
     -------

@@ -36,7 +36,13 @@ class Grid:
     shape : (3,) int
         ``(nk, nj, ni)``: slices, rows, columns.
     patient_from_index : (4, 4) float
-        Maps ``(i, j, k, 1)`` to LPS mm.
+        Maps the homogeneous index ``(i, j, k, 1)`` to ``(x, y, z, 1)`` in LPS mm; columns 0-2 are the
+        voxel steps along i, j, k in mm.
+
+    Raises
+    ------
+    ValueError
+        A shape that is not three positive sizes, or a singular or non-homogeneous matrix.
     """
 
     shape: tuple[int, int, int]
@@ -62,12 +68,32 @@ class Grid:
         return np.linalg.inv(self.patient_from_index)
 
     def to_patient(self, ijk: np.ndarray) -> FloatArray:
-        """Map ``(n, 3)`` continuous indices ``(i, j, k)`` to ``(n, 3)`` LPS mm."""
+        """Map continuous voxel indices to patient coordinates.
+
+        Parameters
+        ----------
+        ijk : (n, 3) float
+            Continuous indices ``(i, j, k)`` (column, row, slice); voxel centres at integers.
+
+        Returns
+        -------
+        (n, 3) float, mm, LPS
+        """
         ijk = np.asarray(ijk, dtype=float)
         return ijk @ self.patient_from_index[:3, :3].T + self.patient_from_index[:3, 3]
 
     def to_index(self, xyz_mm: np.ndarray) -> FloatArray:
-        """Map ``(n, 3)`` LPS mm to ``(n, 3)`` continuous indices ``(i, j, k)``."""
+        """Map patient coordinates to continuous voxel indices.
+
+        Parameters
+        ----------
+        xyz_mm : (n, 3) float, mm, LPS
+
+        Returns
+        -------
+        (n, 3) float
+            Continuous indices ``(i, j, k)`` (column, row, slice); voxel centres at integers.
+        """
         inv = self.index_from_patient
         return np.asarray(xyz_mm, dtype=float) @ inv[:3, :3].T + inv[:3, 3]
 
@@ -88,6 +114,11 @@ class Volume:
         Identity of the series it was read from.
     patient_id, patient_name : str
         Carried over to exports.
+
+    Raises
+    ------
+    ValueError
+        ``array.shape`` differs from ``grid.shape``.
     """
 
     array: np.ndarray
@@ -111,8 +142,14 @@ class Contour:
     Parameters
     ----------
     points_mm : (n, 3) float, mm, LPS
+        The contour's points in order; a CLOSED_PLANAR contour closes from its last point back to its first.
     geometric_type : str
         ``"CLOSED_PLANAR"``, ``"OPEN_NONPLANAR"``, ``"OPEN_PLANAR"`` or ``"POINT"``.
+
+    Raises
+    ------
+    ValueError
+        Points that are not a non-empty finite ``(n, 3)`` array.
     """
 
     points_mm: FloatArray
@@ -132,8 +169,21 @@ class Contour:
 class Roi:
     """A region of interest of an RT Structure Set.
 
-    ``name`` is the name as written in the file; ``normalized_name`` the standard name it maps to
-    through the synonym table (equal to ``name`` when no synonym matched).
+    Parameters
+    ----------
+    number : int
+        ROI Number in the file.
+    name : str
+        The name as written in the file.
+    contours : tuple of Contour
+        In file order.
+    normalized_name : str
+        The standard name ``name`` maps to through the synonym table (``name`` when no synonym matched,
+        or when left empty).
+    interpreted_type : str
+        RT ROI Interpreted Type (``"ORGAN"``, ``"CTV"``, ``"BRACHY_CHANNEL"``, ...); empty when not given.
+    color : (int, int, int) or None
+        ROI Display Color, RGB 0-255.
     """
 
     number: int
@@ -150,7 +200,24 @@ class Roi:
 
 @dataclass(frozen=True, eq=False)
 class StructureSet:
-    """The ROIs of an RT Structure Set and what they refer to."""
+    """The ROIs of an RT Structure Set and what they refer to.
+
+    Parameters
+    ----------
+    rois : tuple of Roi
+        In file order.
+    frame_of_reference_uid : str
+        Frame of Reference of every contour.
+    referenced_series_uid : str or None
+        SeriesInstanceUID of the images the contours were drawn on, when the file names one.
+    sop_instance_uid, study_instance_uid, patient_id, patient_name, label : str
+        Identity of the file (``label`` is its Structure Set Label); empty when not given.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The normalised names of ``rois``, in order.
+    """
 
     rois: tuple[Roi, ...]
     frame_of_reference_uid: str
@@ -166,7 +233,7 @@ class StructureSet:
         object.__setattr__(self, "names", tuple(r.normalized_name for r in self.rois))
 
     def get(self, name: str) -> Roi:
-        """The ROI whose normalised (or original) name is ``name``, case-insensitively.
+        """Return the ROI whose normalised (or original) name is ``name``, case-insensitively.
 
         Raises
         ------

@@ -54,7 +54,13 @@ def _zero_argument_factory(obj: Any, kind: str) -> Any:
 
 
 def check_template_factory(obj: Any) -> None:
-    """Raise ``TypeError`` unless ``obj()`` returns a :class:`reachplan.plugins.templates.Template`."""
+    """Check that ``obj()`` returns a :class:`reachplan.plugins.templates.Template` (the templates check).
+
+    Raises
+    ------
+    TypeError
+        ``obj`` is not a zero-argument callable, or returns something else.
+    """
     from reachplan.plugins.templates import Template
 
     made = _zero_argument_factory(obj, "templates")
@@ -64,7 +70,13 @@ def check_template_factory(obj: Any) -> None:
 
 
 def check_source_factory(obj: Any) -> None:
-    """Raise ``TypeError`` unless ``obj()`` returns a :class:`reachplan.plugins.sources.SourceData`."""
+    """Check that ``obj()`` returns a :class:`reachplan.plugins.sources.SourceData` (the sources check).
+
+    Raises
+    ------
+    TypeError
+        ``obj`` is not a zero-argument callable, or returns something else.
+    """
     from reachplan.plugins.sources import SourceData
 
     made = _zero_argument_factory(obj, "sources")
@@ -86,8 +98,22 @@ DEFAULT_CHECKS: Mapping[str, str] = MappingProxyType({
 class PluginInfo:
     """What the registry knows of one plugin.
 
-    ``target`` is the entry point's ``module:attribute``; ``reason`` says why an unavailable plugin is
-    unavailable; ``description`` is the plugin's ``description`` attribute or the first docstring line.
+    Parameters
+    ----------
+    kind : str
+        One of :data:`KINDS`.
+    name : str
+        Entry-point name.
+    target : str
+        The entry point's ``module:attribute``.
+    distribution : str
+        The distribution that registers it (empty when unknown).
+    available : bool
+        Loaded and passed its kind's check.
+    reason : str
+        Why an unavailable plugin is unavailable.
+    description : str
+        The plugin's ``description`` attribute or the first line of its docstring.
     """
 
     kind: str
@@ -161,7 +187,7 @@ def _load_group(kind: str) -> tuple[dict[str, Any], tuple[PluginInfo, ...]]:
 
 
 def refresh() -> None:
-    """Forget what was loaded: the next call re-reads the entry points (after installing a plugin)."""
+    """Forget what was loaded so that the next call re-reads the entry points (after installing a plugin)."""
     _load_group.cache_clear()
 
 
@@ -169,6 +195,11 @@ def set_check(kind: str, check: Callable[[Any], None]) -> None:
     """Replace the Protocol check of ``kind`` (clears the cache so it applies on the next load).
 
     ``check(obj)`` raises ``TypeError`` or ``ValueError`` with the reason when ``obj`` does not qualify.
+
+    Raises
+    ------
+    PluginError
+        An unknown kind.
     """
     _group(kind)
     _CHECKS[kind] = check
@@ -176,23 +207,35 @@ def set_check(kind: str, check: Callable[[Any], None]) -> None:
 
 
 def names(kind: str) -> tuple[str, ...]:
-    """Names of the available plugins of ``kind``, sorted."""
+    """List the names of the available plugins of ``kind``, sorted.
+
+    Raises
+    ------
+    PluginError
+        An unknown kind.
+    """
     return tuple(sorted(_load_group(kind)[0]))
 
 
 def info(kind: str | None = None) -> tuple[PluginInfo, ...]:
-    """Every plugin of ``kind`` (or of all kinds), available or not, with the reason when not."""
+    """Describe every plugin of ``kind`` (or of all kinds), available or not, with the reason when not.
+
+    Raises
+    ------
+    PluginError
+        An unknown kind.
+    """
     kinds = KINDS if kind is None else (kind,)
     return tuple(i for k in kinds for i in _load_group(k)[1])
 
 
 def get(kind: str, name: str) -> Any:
-    """The plugin ``name`` of ``kind``.
+    """Return the plugin ``name`` of ``kind`` (loading the kind's entry points on first use).
 
     Raises
     ------
     PluginError
-        When no such plugin is installed, or it is unavailable (the message says why).
+        An unknown kind, no such plugin installed, or an unavailable one (the message says why).
     """
     loaded, infos = _load_group(kind)
     if name in loaded:

@@ -43,7 +43,7 @@ NON_FINITE = 3
 @_jit
 def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, coupled: bool,
              out: np.ndarray) -> None:
-    """Strains from loads: ``out = (u (3), v (3), u2z, beta)`` in the stylet's body frame."""
+    """Compute the strains from the loads: ``out = (u (3), v (3), u2z, beta)`` in the stylet's body frame."""
     ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm = (sec[2], sec[3], sec[4], sec[5], sec[6], sec[7], sec[8],
                                                      sec[9], sec[10])
     nb0 = y[3] * y[12] + y[6] * y[13] + y[9] * y[14]
@@ -235,9 +235,11 @@ def solve_linear(a: np.ndarray, b: np.ndarray, n: int) -> bool:
 def fd_jacobian(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
                 lam: np.ndarray, fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, fscale: float,
                 n: int, jac: np.ndarray, traj: np.ndarray) -> None:
-    """Forward-difference Jacobian of the tip residual with respect to the base unknowns, on the (coarser)
-    grid ``nsteps``: a quasi-Newton iteration only needs an approximate Jacobian, the residual it drives to
-    zero is always evaluated on the full grid."""
+    """Fill ``jac`` with the forward-difference Jacobian of the tip residual with respect to the base unknowns.
+
+    It is taken on the (coarser) grid ``nsteps``: a quasi-Newton iteration only needs an approximate Jacobian,
+    the residual it drives to zero is always evaluated on the full grid.
+    """
     length = sec[sec.shape[0] - 1, 1]
     xt = np.empty(NX)
     rt = np.empty(NX)
@@ -259,8 +261,11 @@ def fd_jacobian(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.nda
 def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
            fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
            fscale: float, traj: np.ndarray) -> tuple[int, float, int]:
-    """Damped quasi-Newton on the base unknowns: finite-difference Jacobian, Broyden rank-one updates while
-    they keep reducing the residual, a fresh Jacobian when they stop. Returns (status, residual, iters)."""
+    """Solve for the base unknowns ``x`` (in place) by damped quasi-Newton.
+
+    Finite-difference Jacobian, Broyden rank-one updates while they keep reducing the residual, a fresh
+    Jacobian when they stop. Returns (status, residual, iters).
+    """
     n = 6 if coupled else NX
     length = sec[sec.shape[0] - 1, 1]
     nsteps_j = np.empty_like(nsteps)
@@ -332,10 +337,13 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
 def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
            fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
            max_ramp: int, traj: np.ndarray) -> tuple[int, float, int, int]:
-    """Shooting with continuation: try the full load from ``x``; on failure ramp tension and external loads
-    from zero in 4, then 16, ... steps (each step starting from the previous solution). ``x`` is updated in
-    place; ``traj`` receives the converged trajectory. Returns (status, residual in N, iterations, ramp steps).
-    ``tol`` is relative to the load scale ``1 N + Σλ + |external loads|``."""
+    """Shoot with continuation: try the full load from ``x``, then ramp it up from zero.
+
+    On failure tension and external loads are ramped from zero in 4, then 16, ... steps (each step starting
+    from the previous solution). ``x`` is updated in place; ``traj`` receives the converged trajectory. Returns
+    (status, residual in N, iterations, ramp steps). ``tol`` is relative to the load scale
+    ``1 N + Σλ + |external loads|``.
+    """
     fscale = 1.0
     for j in range(lam.shape[0]):
         fscale += lam[j]
@@ -373,8 +381,11 @@ def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, 
 def batch_free(tensions: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, coupled: bool,
                 tol: float, max_iter: int, max_ramp: int, tips: np.ndarray, tangents: np.ndarray,
                 status: np.ndarray, resid: np.ndarray) -> None:
-    """Free-space solves pulling tendon 0 with each of ``tensions`` (b,): tip positions (b, 3), tangents at the
-    section bounds (b, k + 1, 3), status (b,), residual (b,), N."""
+    """Solve free-space pulls of tendon 0 with each of ``tensions`` (b,), N, into the output arrays.
+
+    Outputs: tip positions ``tips`` (b, 3), m, base frame; unit tangents at the section bounds ``tangents``
+    (b, k + 1, 3); ``status`` (b,); residual ``resid`` (b,), N.
+    """
     nrow = 1
     for i in range(nsteps.shape[0]):
         nrow += nsteps[i]

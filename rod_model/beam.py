@@ -27,6 +27,7 @@ class PlanarBeam(ArcModel):
     name: ClassVar[str] = "planar_beam"
 
     def curvatures(self, design: RodDesign, moment_factor_n: np.ndarray) -> np.ndarray:
+        """Return ``κ = λ·r / (EI_stylet + EI_needle)`` of every section, (b, k) 1/m, for ``moment_factor_n`` (b,) N."""
         c = np.array([s.arm_m / (s.ei1 + s.ei2) for s in design.sections()])
         return np.asarray(moment_factor_n, dtype=float)[:, None] * c[None, :]
 

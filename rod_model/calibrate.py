@@ -70,7 +70,16 @@ CALIBRATION_ROWS: tuple[CalibrationRow, ...] = (
 class CalibrationResult:
     """Fitted parameters and the row-by-row fit.
 
-    ``predicted_mm`` and ``residual_mm`` (predicted − measured) are (r,) arrays in the order of ``rows``.
+    Parameters
+    ----------
+    calibration : Calibration
+        The fitted parameters.
+    rows : tuple of CalibrationRow
+        The r measurements fitted.
+    predicted_mm : (r,) float, mm
+        Tip deflection predicted for each row, in the order of ``rows``.
+    residual_mm : (r,) float, mm
+        Predicted − measured.
     """
 
     calibration: Calibration
@@ -86,7 +95,27 @@ class CalibrationResult:
 
 def predict(calibration: Calibration, rows: tuple[CalibrationRow, ...] = CALIBRATION_ROWS,
             model: RodModel = TWO_TUBE_COSSERAT) -> np.ndarray:
-    """(r,) float, mm: tip deflection predicted for each row with ``calibration``."""
+    """Predict the tip deflection of each row with ``calibration``.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The parameters to try.
+    rows : tuple of CalibrationRow
+        The r measurements (preset and tension).
+    model : RodModel
+        The rod model solved for each row.
+
+    Returns
+    -------
+    (r,) float, mm
+        Lateral tip deflection, in the order of ``rows``.
+
+    Raises
+    ------
+    RodModelError
+        A solve does not converge.
+    """
     out = np.empty(len(rows))
     for i, row in enumerate(rows):
         d = preset(row.preset, calibration)
@@ -104,9 +133,23 @@ def calibrate(rows: tuple[CalibrationRow, ...] = CALIBRATION_ROWS, model: RodMod
 
     Parameters
     ----------
-    rows : the measurements (at least two).
-    model : the rod model to calibrate (default: the two-tube Cosserat model).
-    start : initial values (default: :class:`Calibration` defaults).
+    rows : tuple of CalibrationRow
+        The measurements (at least two).
+    model : RodModel
+        The rod model to calibrate (default: the two-tube Cosserat model).
+    start : Calibration, optional
+        Initial values (default: :class:`Calibration` defaults).
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    ValueError
+        Fewer than two rows.
+    RodModelError
+        A solve does not converge during the fit.
     """
     if len(rows) < 2:
         raise ValueError("calibrating two parameters needs at least two rows")

@@ -1,11 +1,12 @@
-"""Second, independent solver of the two-tube (and single-rod) Cosserat boundary-value problem: collocation
-with :func:`scipy.integrate.solve_bvp`.
+"""Second, independent solver of the two-tube (and single-rod) Cosserat boundary-value problem by collocation.
 
-Same equations as :mod:`reachplan.rod_model.cosserat` (see there), re-implemented vectorised in numpy in millimetre /
-newton units, solved on the whole rod at once (4th-order Lobatto IIIA collocation with mesh refinement,
-no shooting). Each section of constant properties is mapped onto ``τ ∈ [0, 1]`` as its own block of 21 states
-so that the jumps of stiffness and moment arm fall on block boundaries; the blocks are tied by continuity.
-It exists to check the shooting solver (they must agree to ≤ 1 µm) and as a fallback; it is much slower.
+The solver is :func:`scipy.integrate.solve_bvp`.
+
+Same equations as :mod:`reachplan.rod_model.cosserat` (see there), re-implemented vectorised in numpy in
+millimetre / newton units, solved on the whole rod at once (4th-order Lobatto IIIA collocation with mesh
+refinement, no shooting). Each section of constant properties is mapped onto ``τ ∈ [0, 1]`` as its own block of
+21 states so that the jumps of stiffness and moment arm fall on block boundaries; the blocks are tied by
+continuity. It exists to check the shooting solver (they must agree to ≤ 1 µm) and as a fallback; it is much slower.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ NS = 21
 
 def _strains(y: np.ndarray, sec: np.ndarray, r: np.ndarray, lam: np.ndarray,
              coupled: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """u (3, m) 1/mm, v (3, m), u2z (m,) 1/mm, beta (m,) from states y (21, m) (mm, N, N·mm units)."""
+    """Return u (3, m) 1/mm, v (3, m), u2z (m,) 1/mm, beta (m,) from states y (21, m) (mm, N, N·mm units)."""
     ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2 = sec[2:10]
     rot = y[3:12].reshape(3, 3, -1)  # rot[i, j] = R_ij
     nb = np.einsum("ijm,im->jm", rot, y[12:15])
@@ -98,6 +99,7 @@ class CollocationCosserat:
     nodes_per_section : int
         Initial mesh nodes per section.
     max_nodes : int
+        Largest mesh ``solve_bvp`` may refine to.
     max_ramp : int
         Largest number of load-continuation steps.
     """
@@ -113,8 +115,30 @@ class CollocationCosserat:
 
     def solve(self, design: RodDesign, loads: Loads, initial_guess: np.ndarray | None = None,
               *, continuation: bool = True) -> RodPath | FailedSolve:
-        """Solve ``design`` under ``loads``; ``initial_guess`` (21, n_mesh) in block form is for the stability
-        map only (default: the straight, unloaded rod)."""
+        """Solve ``design`` under ``loads`` by collocation.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        loads : Loads
+            One tension per tendon (N), roll, and external loads in the needle's base frame.
+        initial_guess : (21 k, n_mesh) float, optional
+            States of the k section blocks on a common mesh in ``τ ∈ [0, 1]`` (mm, N, N·mm); for the stability
+            map only (default: the straight, unloaded rod).
+        continuation : bool
+            Ramp the loads from zero (2, 4, ... steps) when the direct solve fails.
+
+        Returns
+        -------
+        RodPath or FailedSolve
+            Positions in mm in the needle frame at the final mesh; ``iterations`` holds the continuation steps.
+
+        Raises
+        ------
+        UnsupportedLoadError
+            Not one tension per tendon.
+        """
         t0 = time.perf_counter()
         check_loads(self.name, self.capabilities, design, loads)
         sec = section_table(design)

@@ -53,15 +53,29 @@ from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath, turn_per_
 
 
 def section_table(design: RodDesign) -> np.ndarray:
-    """(k, 11) float, SI: ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm`` per section."""
+    """Tabulate the sections for the compiled kernel.
+
+    Returns
+    -------
+    (k, 11) float, SI
+        One row per section: ``start, end`` (m), ``ei1, gj1`` (N·m²), ``ea1, ga1`` (N), ``ei2, gj2`` (N·m²),
+        ``ea2, ga2`` (N), ``arm`` (m); see :class:`reachplan.rod_model.design.Section`.
+    """
     return np.array([[s.start_m, s.end_m, s.ei1, s.gj1, s.ea1, s.ga1, s.ei2, s.gj2, s.ea2, s.ga2, s.arm_m]
                      for s in design.sections()])
 
 
 def linear_guess(design: RodDesign, loads: Loads) -> np.ndarray:
-    """(8,) float: base unknowns of the undeformed rod: ``N(0) = F_tip + f L`` (exact: dead loads),
-    ``M(0) = L_tip + L e3 × F_tip + L²/2 e3 × f`` (undeformed lever arms), needle ``n2z = F_z + f_z L``,
-    ``m2z = L_tip,z``. Zero in free space (where it is the exact solution)."""
+    """Guess the shooting unknowns at the base from the undeformed rod.
+
+    ``N(0) = F_tip + f L`` (exact: dead loads), ``M(0) = L_tip + L e3 × F_tip + L²/2 e3 × f`` (undeformed lever
+    arms), needle ``n2z = F_z + f_z L``, ``m2z = L_tip,z``. Zero in free space, where it is the exact solution.
+
+    Returns
+    -------
+    (8,) float, SI, base frame
+        ``N(0)`` (N), ``M(0)`` (N·m), ``n2z(0)`` (N), ``m2z(0)`` (N·m).
+    """
     length = design.length_mm * 1e-3
     f = np.array(loads.distributed_n_per_m)
     ftip = np.array(loads.tip_force_n)
@@ -106,15 +120,32 @@ class _ShootingModel:
 
     def solve(self, design: RodDesign, loads: Loads, initial_guess: np.ndarray | None = None,
               *, continuation: bool = True) -> RodPath | FailedSolve:
-        """Solve ``design`` under ``loads``.
+        """Solve ``design`` under ``loads`` by shooting.
 
         Parameters
         ----------
+        design : RodDesign
+            The stylet in its needle.
+        loads : Loads
+            One tension per tendon (N), roll, and external loads in the needle's base frame.
         initial_guess : (8,) float or None
             Base unknowns ``N(0)`` (N, world), ``M(0)`` (N·m, world), ``n2z(0)`` (N), ``m2z(0)`` (N·m);
             default :func:`linear_guess` (exact in free space).
         continuation : bool
             Ramp the loads from zero when the direct solve fails.
+
+        Returns
+        -------
+        RodPath or FailedSolve
+            Positions in mm in the needle frame, sampled at the RK4 steps; a :class:`FailedSolve` with the
+            residual reached when shooting does not converge.
+
+        Raises
+        ------
+        UnsupportedLoadError
+            Not one tension per tendon.
+        ValueError
+            An ``initial_guess`` that is not 8 finite numbers.
         """
         t0 = time.perf_counter()
         check_loads(self.name, self.capabilities, design, loads)
@@ -141,7 +172,15 @@ class _ShootingModel:
                        loads.roll_deg, None if self.coupled else traj[:, 18])
 
     def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch:
-        """Free-space solves pulling tendon 0 with each tension (b,), N (compiled loop)."""
+        """Solve free-space pulls of tendon 0 with each of ``tensions_n`` (b,), N (compiled loop).
+
+        Failed solves are NaN in the tip positions and curvatures and False in ``converged``.
+
+        Raises
+        ------
+        ValueError
+            A negative or non-finite tension.
+        """
         t = np.asarray(tensions_n, dtype=float).ravel()
         if not np.all(np.isfinite(t)) or np.any(t < 0):
             raise ValueError("tensions_n must be finite and non-negative")

@@ -40,6 +40,8 @@ _MAX_TENSION_N: dict[int, float] = {15: 10.0, 13: 14.0}
 class Calibration:
     """The two global, physical parameters fitted by :func:`reachplan.rod_model.calibrate.calibrate`.
 
+    The defaults are the fitted values (see :mod:`reachplan.rod_model.calibrate`).
+
     Parameters
     ----------
     joint_stiffness_scale : float
@@ -51,7 +53,10 @@ class Calibration:
         Moment arm of a tendon inside the nitinol tube, as a fraction of the tube's inner radius. In the tube
         a tendon is not held in a channel (as it is in the disks); it shares the lumen with the other three.
 
-    The defaults are the fitted values (see :mod:`reachplan.rod_model.calibrate`).
+    Raises
+    ------
+    ValueError
+        ``joint_stiffness_scale`` outside (0, 10] or ``tube_arm_fraction`` outside [0, 1].
     """
 
     joint_stiffness_scale: float = 0.1181
@@ -78,6 +83,12 @@ class NeedleSpec:
         Published: 3.2 GPa and 1.06 GPa.
     density_kg_m3 : float
         ASSUMED 1410 kg/m³ (acetal); only used for a gravity load.
+
+    Raises
+    ------
+    ValueError
+        Another gauge, ``inner_diameter_mm`` not in (0, ``outer_diameter_mm``), or a non-positive modulus or
+        density.
     """
 
     gauge: int
@@ -97,7 +108,7 @@ class NeedleSpec:
 
     @classmethod
     def for_gauge(cls, gauge: int) -> NeedleSpec:
-        """The needle with the ASSUMED default diameters of ``gauge``."""
+        """Build the needle of ``gauge`` (13 or 15) with its ASSUMED default diameters; ValueError otherwise."""
         if gauge not in _NEEDLE_DIAMETERS_MM:
             raise ValueError(f"needle gauge must be 13 or 15, got {gauge}")
         od, id_ = _NEEDLE_DIAMETERS_MM[gauge]
@@ -148,6 +159,13 @@ class StyletDesign:
         disk), scaled with the disk diameter for 13 ga, x1.5 for the asymmetric disk.
     calibration : Calibration
         The two fitted global parameters.
+
+    Raises
+    ------
+    ValueError
+        Another gauge, no joints, an unknown placement, 0 or more than 4 tendons (more than 1 on the asymmetric
+        disk), tube radii out of order, a non-positive length, modulus, stiffness or arm, a disk arm outside
+        the disk, or a joint section that does not fit in the stylet.
     """
 
     gauge: int
@@ -197,7 +215,26 @@ class StyletDesign:
     @classmethod
     def for_gauge(cls, gauge: int, n_joints: int = 20, placement: Placement = "tip", *,
                   asymmetric: bool = False, calibration: Calibration | None = None) -> StyletDesign:
-        """A stylet with the published (and ASSUMED default) values of ``gauge``."""
+        """Build a stylet with the published (and ASSUMED default) values of ``gauge``.
+
+        Parameters
+        ----------
+        gauge : int
+            13 or 15.
+        n_joints : int
+            Number of spherical joints.
+        placement : {"tip", "mid", "base"}
+            Where the joint section sits.
+        asymmetric : bool
+            The asymmetric disk (one tendon, moment arm x1.5).
+        calibration : Calibration, optional
+            Default: the fitted values.
+
+        Raises
+        ------
+        ValueError
+            Another gauge, or a design that does not validate (see the class docstring).
+        """
         if gauge not in _TUBE_RADII_MM:
             raise ValueError(f"stylet gauge must be 13 or 15, got {gauge}")
         r_in, r_out, disk = _TUBE_RADII_MM[gauge]
@@ -251,9 +288,18 @@ class StyletDesign:
 class Section:
     """One stretch of constant properties along the rod (SI units, for the solvers).
 
-    ``ei1, gj1, ea1, ga1`` are the stylet's bending, torsion, axial and shear stiffness (N·m², N·m², N, N);
-    ``ei2, gj2, ea2, ga2`` the needle's; ``arm_m`` the tendon moment arm; ``kind`` is ``"tube"`` or
-    ``"joints"``.
+    Parameters
+    ----------
+    start_m, end_m : float, m
+        Arc length from the base where the stretch starts and ends.
+    kind : str
+        ``"tube"`` or ``"joints"``.
+    ei1, gj1, ea1, ga1 : float, N·m², N·m², N, N
+        The stylet's bending, torsion, axial and shear stiffness.
+    ei2, gj2, ea2, ga2 : float, N·m², N·m², N, N
+        The needle's.
+    arm_m : float, m
+        The tendon moment arm (disk arm in the joints, calibrated tube arm in the tube).
     """
 
     start_m: float
@@ -284,10 +330,18 @@ class RodDesign:
     name : str
         Preset name or a user label.
     stylet : StyletDesign
+        The steerable stylet (tube 1).
     needle : NeedleSpec
+        The plastic needle it runs in (tube 2), same gauge.
     max_tension_n : float
         Largest tendon tension the design is meant for (documented default: 10 N on 15 ga, 14 N on 13 ga,
         the published benchtop settings). The planner should not ask for more.
+
+    Raises
+    ------
+    ValueError
+        Stylet and needle of different gauges, a disk that does not fit in the needle's lumen, or
+        ``max_tension_n`` outside (0, 100] N.
     """
 
     name: str
@@ -315,20 +369,26 @@ class RodDesign:
         return len(self.stylet.tendon_angles_deg)
 
     def with_calibration(self, calibration: Calibration) -> RodDesign:
-        """The same design with other calibrated parameters."""
+        """Return the same design with other calibrated parameters."""
         return replace(self, stylet=replace(self.stylet, calibration=calibration))
 
     def tendon_unit_offsets(self, roll_deg: float = 0.0) -> np.ndarray:
-        """(k, 3) float: unit direction of each tendon's offset in the stylet's body frame, rolled by ``roll_deg``."""
+        """Return the unit direction of each tendon's offset from the axis, rolled by ``roll_deg`` degrees.
+
+        Returns
+        -------
+        (k, 3) float, stylet body frame
+            One row per tendon, in the order of ``StyletDesign.tendon_angles_deg``; z component 0.
+        """
         a = np.radians(np.asarray(self.stylet.tendon_angles_deg, dtype=float) + roll_deg)
         return np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
 
     def sections(self) -> tuple[Section, ...]:
-        """The rod split into stretches of constant properties, base to tip (SI units)."""
+        """Split the rod into stretches of constant properties, base to tip (SI units; cached)."""
         return _sections(self)
 
     def loads(self, tension_n: float, roll_deg: float = 0.0) -> Loads:
-        """Free-space loads pulling tendon 0 (the one at ``+x`` at roll 0) with ``tension_n``."""
+        """Return free-space loads pulling tendon 0 (the one at ``+x`` at roll 0) with ``tension_n`` newtons."""
         return Loads(tensions_n=(tension_n,) + (0.0,) * (self.n_tendons - 1), roll_deg=roll_deg)
 
 
@@ -375,6 +435,12 @@ class Loads:
         External moment on the needle tip.
     distributed_n_per_m : (3,) float, N/m, base frame
         Uniform distributed force on the needle (e.g. gravity: ``rho * A * g``).
+
+    Raises
+    ------
+    ValueError
+        No tension, a negative or non-finite tension, a non-finite roll, or a vector that is not three finite
+        numbers.
     """
 
     tensions_n: tuple[float, ...]
@@ -402,7 +468,20 @@ class Loads:
 
 def gravity_load(design: RodDesign,
                  direction: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> tuple[float, float, float]:
-    """Distributed weight of the needle (N/m, base frame) along the unit ``direction`` of gravity."""
+    """Compute the distributed weight of the needle along ``direction``.
+
+    Parameters
+    ----------
+    design : RodDesign
+        Its needle's density and cross-section give the weight per length.
+    direction : (3,) float, base frame
+        Direction of gravity; normalised here.
+
+    Returns
+    -------
+    (3,) float, N/m, base frame
+        For :attr:`Loads.distributed_n_per_m`.
+    """
     d = np.asarray(direction, dtype=float)
     d = d / np.linalg.norm(d)
     w = design.needle.density_kg_m3 * design.needle.area_m2 * 9.80665
@@ -417,8 +496,17 @@ _PRESET_RE = re.compile(r"^(13|15)ga-(\d+)j-(tip|mid|base|asym)$")
 
 
 def preset(name: str, calibration: Calibration | None = None) -> RodDesign:
-    """The design called ``name``: ``{13|15}ga-{joints}j-{tip|mid|base|asym}`` (``asym``: asymmetric disk at the
-    tip), e.g. ``15ga-20j-tip``. :data:`PRESET_NAMES` lists the usual ones.
+    """Build the design called ``name``.
+
+    Names follow ``{13|15}ga-{joints}j-{tip|mid|base|asym}`` (``asym``: asymmetric disk at the tip), e.g.
+    ``15ga-20j-tip``; :data:`PRESET_NAMES` lists the usual ones.
+
+    Parameters
+    ----------
+    name : str
+        The preset name.
+    calibration : Calibration, optional
+        Default: the fitted values.
 
     Raises
     ------

@@ -1,5 +1,6 @@
-"""Constant-curvature model, and the closed-form geometry of piecewise circular arcs it shares with
-:mod:`reachplan.rod_model.beam`.
+"""Constant-curvature model, and the closed-form geometry of piecewise circular arcs.
+
+The arc geometry is shared with :mod:`reachplan.rod_model.beam`.
 
 Constant curvature (the classic continuum-robot assumption, Webster & Jones, IJRR 2010): only the actuated
 joint section bends, with the curvature of a beam under the tendon's moment ``λ·r_disk / (EI_joints + EI_needle)``;
@@ -26,7 +27,13 @@ DEFAULT_STEP_MM = 1.0
 
 
 def sample_s_mm(design: RodDesign, step_mm: float = DEFAULT_STEP_MM) -> np.ndarray:
-    """(n,) float, mm: arc lengths at about ``step_mm`` spacing that include every section boundary."""
+    """Sample arc lengths at about ``step_mm`` spacing, every section boundary included.
+
+    Returns
+    -------
+    (n,) float, mm
+        Increasing, from 0 (the base) to the design's length.
+    """
     bounds = section_bounds_mm(design)
     parts = [np.linspace(a, b, max(1, int(np.ceil((b - a) / step_mm))) + 1)[:-1]
              for a, b in itertools.pairwise(bounds)]
@@ -34,23 +41,25 @@ def sample_s_mm(design: RodDesign, step_mm: float = DEFAULT_STEP_MM) -> np.ndarr
 
 
 def section_bounds_mm(design: RodDesign) -> np.ndarray:
-    """(k + 1,) float, mm: boundaries of the design's sections."""
+    """Return the boundaries of the design's sections as (k + 1,) float arc lengths from the base, mm."""
     secs = design.sections()
     return np.array([secs[0].start_m * 1e3] + [s.end_m * 1e3 for s in secs])
 
 
 def joint_section_index(design: RodDesign) -> int:
-    """Index of the joint section in :meth:`RodDesign.sections`."""
+    """Return the index of the joint section in :meth:`RodDesign.sections`."""
     return next(i for i, s in enumerate(design.sections()) if s.kind == "joints")
 
 
 def tendon_moment_direction(design: RodDesign, loads: Loads) -> tuple[np.ndarray, float]:
-    """Unit in-plane direction toward which the tendons bend the rod, and the tension-weighted sum.
+    """Find the in-plane direction toward which the tendons bend the rod, and the tension-weighted sum.
 
     Returns
     -------
-    direction : (3,) float, unit, needle frame (``+x`` for tendon 0 at roll 0)
-    magnitude_n : float, N: length of ``Σ λ_j e_j`` (multiplied by a section's arm it is the bending moment)
+    direction : (3,) float, unit, needle frame
+        In the x-y plane; ``+x`` for tendon 0 at roll 0 (tendon 0's direction when no tendon is pulled).
+    magnitude_n : float, N
+        Length of ``Σ λ_j e_j``; multiplied by a section's arm it is the bending moment.
     """
     e = design.tendon_unit_offsets(loads.roll_deg)
     v = np.asarray(loads.tensions_n) @ e
@@ -62,19 +71,25 @@ def tendon_moment_direction(design: RodDesign, loads: Loads) -> tuple[np.ndarray
 
 def arc_path(bounds_mm: np.ndarray, curvature_per_m: np.ndarray, s_mm: np.ndarray,
              direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact centreline and frames of a rod made of circular arcs (closed form).
+    """Compute the exact centreline and frames of a rod made of circular arcs (closed form).
 
     Parameters
     ----------
-    bounds_mm : (k + 1,) float, mm: section boundaries.
-    curvature_per_m : (..., k) float, 1/m: curvature of each section, bending toward ``direction``.
-    s_mm : (n,) float, mm: where to evaluate.
-    direction : (3,) float, unit, in the x-y plane: the bending direction.
+    bounds_mm : (k + 1,) float, mm
+        Section boundaries, arc length from the base.
+    curvature_per_m : (..., k) float, 1/m
+        Curvature of each section, bending toward ``direction``.
+    s_mm : (n,) float, mm
+        Arc lengths where to evaluate.
+    direction : (3,) float, unit, needle frame
+        The bending direction, in the x-y plane.
 
     Returns
     -------
     positions_mm : (..., n, 3) float, mm, needle frame
-    frames : (..., n, 3, 3) float: columns ``d1, d2, d3`` (base frame = identity)
+        Base at the origin, unbent axis ``+z``.
+    frames : (..., n, 3, 3) float, needle frame
+        Columns ``d1, d2, d3`` (``d3`` the tangent); identity at the base.
     """
     kap = np.asarray(curvature_per_m, dtype=float)[..., None, :] * 1e-3  # 1/mm, (..., 1, k)
     lengths = np.diff(bounds_mm)
@@ -137,15 +152,41 @@ class ArcModel(ABC):
 
     @abstractmethod
     def curvatures(self, design: RodDesign, moment_factor_n: np.ndarray) -> np.ndarray:
-        """(b, k) float, 1/m: curvature of each section for ``|Σλ_j e_j|`` = ``moment_factor_n`` (b,), N."""
+        """Return the curvature of each section for a tension-weighted sum ``|Σλ_j e_j|``.
+
+        Parameters
+        ----------
+        design : RodDesign
+            Its sections' stiffnesses and moment arms.
+        moment_factor_n : (b,) float, N
+            ``|Σλ_j e_j|`` of each solve (see :func:`tendon_moment_direction`).
+
+        Returns
+        -------
+        (b, k) float, 1/m
+        """
 
     def solve(self, design: RodDesign, loads: Loads) -> RodPath:
+        """Solve in closed form (see :meth:`RodModel.solve`); never fails, zero residual.
+
+        Raises
+        ------
+        UnsupportedLoadError
+            External loads, or not one tension per tendon.
+        """
         t0 = time.perf_counter()
         check_loads(self.name, self.capabilities, design, loads)
         _, mag = tendon_moment_direction(design, loads)
         return _arc_solution(self.name, design, loads, self.curvatures(design, np.array([mag]))[0], t0, self.step_mm)
 
     def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch:
+        """Solve free-space pulls of tendon 0 with each of ``tensions_n`` (b,), N, in closed form.
+
+        Raises
+        ------
+        ValueError
+            A negative or non-finite tension.
+        """
         t = _tensions(tensions_n)
         return _arc_batch(self.name, design, t, roll_deg, self.curvatures(design, t))
 
@@ -157,6 +198,7 @@ class ConstantCurvature(ArcModel):
     name: ClassVar[str] = "constant_curvature"
 
     def curvatures(self, design: RodDesign, moment_factor_n: np.ndarray) -> np.ndarray:
+        """Return ``λ·r_disk / (EI_joints + EI_needle)`` in the joints, 0 elsewhere: (b, k) 1/m for (b,) N."""
         secs = design.sections()
         c = np.array([s.arm_m / (s.ei1 + s.ei2) if s.kind == "joints" else 0.0 for s in secs])
         return np.asarray(moment_factor_n, dtype=float)[:, None] * c[None, :]

@@ -58,13 +58,57 @@ class RodModel(Protocol):
     def capabilities(self) -> Capabilities:
         """What the model can represent."""
 
-    def solve(self, design: RodDesign, loads: Loads) -> RodPath | FailedSolve: ...
+    def solve(self, design: RodDesign, loads: Loads) -> RodPath | FailedSolve:
+        """Solve the shape of ``design`` under ``loads``.
 
-    def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch: ...
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        loads : Loads
+            One tension per tendon (N), roll, and external loads in the needle's base frame.
+
+        Returns
+        -------
+        RodPath or FailedSolve
+            Positions in mm in the needle frame; a falsy :class:`FailedSolve` with its reason when the solver
+            does not converge.
+
+        Raises
+        ------
+        UnsupportedLoadError
+            Loads the model cannot represent (see :func:`check_loads`).
+        """
+        ...
+
+    def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch:
+        """Solve many free-space pulls of tendon 0 at once.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        tensions_n : (b,) float, N
+            Tension on tendon 0 of each solve, ≥ 0.
+        roll_deg : float
+            Roll of the stylet, degrees, shared by all solves.
+
+        Returns
+        -------
+        RodBatch
+            Tip positions (mm, needle frame) and section curvatures; failed solves are marked in ``converged``.
+        """
+        ...
 
 
 def check_rod_model(obj: object) -> None:
-    """Raise ``TypeError`` when ``obj`` does not implement :class:`RodModel` (the registry's check)."""
+    """Check that ``obj`` implements :class:`RodModel` (the registry's check).
+
+    Raises
+    ------
+    TypeError
+        A missing member, a name that is not a str or capabilities that are not :class:`Capabilities`.
+    """
     if not isinstance(obj, RodModel):
         raise TypeError(f"{obj!r} does not implement rod_model.protocol.RodModel (name, capabilities, solve, "
                         "solve_batch)")
@@ -73,8 +117,14 @@ def check_rod_model(obj: object) -> None:
 
 
 def check_loads(name: str, caps: Capabilities, design: RodDesign, loads: Loads) -> None:
-    """Raise :class:`UnsupportedLoadError` when ``loads`` do not fit ``design`` or the capabilities ``caps`` of
-    the model called ``name``."""
+    """Check that ``loads`` fit ``design`` and the capabilities ``caps`` of the model called ``name``.
+
+    Raises
+    ------
+    UnsupportedLoadError
+        Not one tension per tendon, external loads the model cannot represent, or several pulled tendons for
+        a model that takes one.
+    """
     if len(loads.tensions_n) != design.n_tendons:
         raise UnsupportedLoadError(f"{len(loads.tensions_n)} tensions given for a design with {design.n_tendons} "
                                    "tendons; give one tension per tendon")

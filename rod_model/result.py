@@ -39,6 +39,16 @@ class RodPath:
         Roll solved for.
     twist_rad : (n,) float or None
         Relative twist of needle against stylet (two-tube model only).
+
+    Attributes
+    ----------
+    converged : bool
+        Always True (a :class:`FailedSolve` has False); a RodPath is truthy.
+
+    Raises
+    ------
+    ValueError
+        Arrays of the wrong shape or length (n < 2), non-finite values, or ``s_mm`` not strictly increasing.
     """
 
     model: str
@@ -83,7 +93,7 @@ class RodPath:
         return float(np.hypot(self.positions_mm[-1, 0], self.positions_mm[-1, 1]))
 
     def to_json(self) -> dict[str, object]:
-        """Plain JSON-able summary (positions rounded to 1 nm)."""
+        """Return a plain JSON-able summary (positions in mm rounded to 1 nm, needle frame)."""
         return {
             "model": self.model,
             "converged": True,
@@ -106,13 +116,22 @@ class FailedSolve:
     Parameters
     ----------
     model : str
+        Name of the model that failed.
     reason : str
         One line: what failed (e.g. ``"shooting residual 3.1e-02 N after 30 iterations"``).
     residual : float
         Best boundary-condition residual reached, N (``inf`` if none).
     solve_ms : float
+        Wall time spent, ms.
     tensions_n : tuple of float
+        Tendon tensions asked for, N.
     roll_deg : float
+        Roll asked for, degrees.
+
+    Attributes
+    ----------
+    converged : bool
+        Always False; a FailedSolve is falsy.
     """
 
     model: str
@@ -128,7 +147,7 @@ class FailedSolve:
         return False
 
     def to_json(self) -> dict[str, object]:
-        """Plain JSON-able summary."""
+        """Return a plain JSON-able summary (a residual of ``inf`` becomes None)."""
         return {"model": self.model, "converged": False, "reason": self.reason,
                 "residual": self.residual if np.isfinite(self.residual) else None,
                 "solve_ms": round(self.solve_ms, 4), "tensions_n": list(self.tensions_n), "roll_deg": self.roll_deg}
@@ -141,10 +160,13 @@ class RodBatch:
     Parameters
     ----------
     model : str
+        Name of the model that produced it.
     tensions_n : (b,) float, N
         Tension on tendon 0 for each solve.
     roll_deg : float
-    tip_positions_mm : (b, 3) float, mm, needle frame (rows of failed solves are NaN).
+        Roll of every solve, degrees.
+    tip_positions_mm : (b, 3) float, mm, needle frame
+        Rows of failed solves are NaN.
     section_bounds_mm : (k + 1,) float, mm
         Arc-length boundaries of the design's sections (see :meth:`RodDesign.sections`).
     section_curvature_per_m : (b, k) float, 1/m
@@ -153,7 +175,14 @@ class RodBatch:
     joint_section : int
         Index of the joint section among the ``k`` sections.
     converged : (b,) bool
+        Which solves converged.
     residual : (b,) float, N
+        Boundary-condition residual of each solve (0 for closed forms).
+
+    Raises
+    ------
+    ValueError
+        Arrays whose lengths disagree with ``tensions_n`` or with the sections.
     """
 
     model: str
@@ -190,13 +219,18 @@ class RodBatch:
 
 
 def section_curvatures(frames: np.ndarray, s_mm: np.ndarray, bounds_mm: np.ndarray) -> np.ndarray:
-    """Mean curvature (1/m) of each section from the tangents at its ends.
+    """Compute the mean curvature of each section from the tangents at its ends.
+
+    The angle between the end tangents over the section's length: exact for a section of constant curvature.
 
     Parameters
     ----------
-    frames : (..., n, 3, 3) float
+    frames : (..., n, 3, 3) float, needle frame
+        Directors ``d1, d2, d3`` as columns at each ``s_mm`` (``d3`` the tangent), as in :attr:`RodPath.frames`.
     s_mm : (n,) float, mm
-    bounds_mm : (k + 1,) float, mm (each bound must be one of ``s_mm``)
+        Arc length of the frames, increasing.
+    bounds_mm : (k + 1,) float, mm
+        Section boundaries; each must be one of ``s_mm``.
 
     Returns
     -------

@@ -41,8 +41,11 @@ class Scene:
 
     @classmethod
     def of(cls, loads: Loads) -> Scene:
-        """The scene of ``loads``: tendons alone always bend the rod in one plane (their net moment keeps its
-        direction); external loads need a Cosserat model, a torque about the axis the two-tube one."""
+        """Return the scene of ``loads``.
+
+        Tendons alone always bend the rod in one plane (their net moment keeps its direction); external loads
+        need a Cosserat model, a torque about the axis the two-tube one.
+        """
         return cls(planar=not loads.has_external, twist=loads.tip_moment_nm[2] != 0.0,
                    external_load=loads.has_external)
 
@@ -51,11 +54,21 @@ class Scene:
 class ErrorRow:
     """One row of the benchmark's error table.
 
-    ``resolution`` is ``"default"`` for the configuration registered as the plugin (the one the selector can
-    return); other rows (coarser or finer steps) are there for the chart.
-
-    ``max_tip_error_mm`` is the worst tip error against the reference over the grid; ``median_ms`` the median
-    wall time of one solve; ``batched_solves_per_s`` the throughput of ``solve_batch``.
+    Parameters
+    ----------
+    model : str
+        Plugin name of the model.
+    resolution : str
+        ``"default"`` for the configuration registered as the plugin (the one the selector can return); other
+        rows (coarser or finer steps) are there for the chart.
+    max_tip_error_mm : float, mm
+        Worst tip error against the reference over the grid.
+    median_ms : float, ms
+        Median wall time of one ``solve``.
+    batched_solves_per_s : float or None, 1/s
+        Throughput of ``solve_batch``; None when not measured.
+    success_rate : float
+        Fraction of the grid's solves that converged (0..1); the selector takes only 1.
     """
 
     model: str
@@ -68,7 +81,13 @@ class ErrorRow:
 
 @cache
 def error_table() -> tuple[ErrorRow, ...]:
-    """The rows of the packaged error table."""
+    """Read the rows of the packaged error table (once; cached).
+
+    Raises
+    ------
+    RodModelError
+        The table is missing or unreadable.
+    """
     try:
         text = resources.files("reachplan.rod_model").joinpath(ERROR_TABLE).read_text(encoding="utf-8")
         doc = json.loads(text)
@@ -80,19 +99,41 @@ def error_table() -> tuple[ErrorRow, ...]:
 
 def select_model(tolerance_mm: float, scene: Scene, capabilities: Mapping[str, Capabilities],
                  rows: tuple[ErrorRow, ...] | None = None, *, batched: bool = False) -> str:
-    """Name of the cheapest model of ``capabilities`` (name -> what the model can represent; the caller looks the
-    installed models up) able to represent ``scene`` whose measured tip error is within
-    ``tolerance_mm``: cheapest by the median time of one ``solve``, or with ``batched`` by the throughput of
-    ``solve_batch`` (what a planner screening many candidates pays).
+    """Name the cheapest model able to represent ``scene`` whose measured tip error is within ``tolerance_mm``.
+
+    Cheapest by the median time of one ``solve``, or with ``batched`` by the throughput of ``solve_batch``
+    (what a planner screening many candidates pays).
 
     The errors are measured in free space over the benchmark grid; for a scene with external loads or twist
     only the Cosserat models qualify by their capabilities, and their tabulated error is then their numerical
     error against the converged reference.
 
+    Parameters
+    ----------
+    tolerance_mm : float, mm
+        Largest tip error accepted; positive.
+    scene : Scene
+        What the solve has to represent.
+    capabilities : mapping of str to Capabilities
+        The installed models (name -> what it can represent); the caller looks them up.
+    rows : tuple of ErrorRow, optional
+        The error table (default :func:`error_table`).
+    batched : bool
+        Rank by ``solve_batch`` throughput instead of single-solve time.
+
+    Returns
+    -------
+    str
+        The model's plugin name.
+
     Raises
     ------
+    ValueError
+        ``tolerance_mm`` not positive.
     NoModelWithinToleranceError
         When no model qualifies (the message gives the best error available).
+    RodModelError
+        The packaged table is missing or unreadable.
     """
     if not tolerance_mm > 0:
         raise ValueError(f"tolerance_mm must be positive, got {tolerance_mm}")

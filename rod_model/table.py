@@ -25,12 +25,24 @@ class CurvatureTable:
     Parameters
     ----------
     model : str
+        Name of the model the table was built from.
     design_name : str
-    tensions_n : (t,) float, N, increasing from 0 to the design's ``max_tension_n`` (or more)
-    section_bounds_mm : (k + 1,) float, mm, arc length from the base
-    curvature_per_m : (t, k) float, 1/m, bending toward the pulled tendon
-    joint_section : int, index of the joint section
-    max_interp_error_per_m : float, 1/m: worst interpolation error found at the grid midpoints
+        Name of the design.
+    tensions_n : (t,) float, N
+        Strictly increasing, from 0 to the design's ``max_tension_n`` (or more).
+    section_bounds_mm : (k + 1,) float, mm
+        Arc length from the base.
+    curvature_per_m : (t, k) float, 1/m
+        Bending toward the pulled tendon.
+    joint_section : int
+        Index of the joint section.
+    max_interp_error_per_m : float, 1/m
+        Worst interpolation error found at the grid midpoints.
+
+    Raises
+    ------
+    ValueError
+        ``tensions_n`` not increasing, or ``curvature_per_m`` not (t, k).
     """
 
     model: str
@@ -51,7 +63,16 @@ class CurvatureTable:
             raise ValueError("tensions_n must increase and curvature_per_m must be (t, k)")
 
     def curvature(self, tension_n: np.ndarray | float) -> np.ndarray:
-        """(..., k) float, 1/m: curvature of each section at ``tension_n`` (any shape, N), linear interpolation.
+        """Interpolate (linearly) the curvature of each section at ``tension_n``.
+
+        Parameters
+        ----------
+        tension_n : (...) float, N
+            Any shape, within the table.
+
+        Returns
+        -------
+        (..., k) float, 1/m
 
         Raises
         ------
@@ -66,17 +87,29 @@ class CurvatureTable:
         return (1 - w) * self.curvature_per_m[i] + w * self.curvature_per_m[i + 1]
 
     def joint_curvature(self, tension_n: np.ndarray | float) -> np.ndarray:
-        """(...) float, 1/m: curvature of the joint section at ``tension_n``."""
+        """Interpolate the curvature of the joint section at ``tension_n`` ((...) float, N): (...) float, 1/m."""
         return self.curvature(tension_n)[..., self.joint_section]
 
 
 def curvature_table(model: RodModel, design: RodDesign, max_tension_n: float | None = None,
                     n: int = 61) -> CurvatureTable:
-    """Build and check the table of ``model`` for ``design`` on ``n`` tensions from 0 to ``max_tension_n``
-    (default: the design's ``max_tension_n``).
+    """Build and check the table of ``model`` for ``design`` on ``n`` tensions from 0 to ``max_tension_n``.
+
+    Parameters
+    ----------
+    model : RodModel
+        The model solved on the grid and at its midpoints (one ``solve_batch`` call).
+    design : RodDesign
+        The design.
+    max_tension_n : float, optional
+        Top of the grid, N (default: the design's ``max_tension_n``).
+    n : int
+        Grid points, at least 2.
 
     Raises
     ------
+    ValueError
+        ``max_tension_n`` not positive or ``n < 2``.
     RodModelError
         When any solve of the grid fails.
     """

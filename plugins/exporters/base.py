@@ -49,17 +49,21 @@ def _check_short_text(value: str, what: str, max_len: int) -> None:
 
 
 def project_on_path(path_mm: np.ndarray, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Arc length (from ``path_mm[0]``) of the nearest point of the polyline to each point, and the distance.
+    """Project points on a polyline: the arc length of the nearest polyline point, and the distance to it.
 
     Parameters
     ----------
     path_mm : (n, 3) float, mm
+        Polyline vertices (LPS for a needle path).
     points_mm : (m, 3) float, mm
+        Points in the same frame.
 
     Returns
     -------
-    arc_mm : (m,) float, mm from the first path point
-    distance_mm : (m,) float, mm from the polyline
+    arc_mm : (m,) float, mm
+        Arc length of the nearest point, from ``path_mm[0]``.
+    distance_mm : (m,) float, mm
+        Distance from the polyline.
     """
     a, b = path_mm[:-1], path_mm[1:]
     d = b - a
@@ -94,6 +98,13 @@ class NeedleExport:
         Breakpoints (depth_mm, tension_n, roll_deg) of the insertion schedule: depth along the path from
         its entry, strictly increasing and >= 0; tension >= 0 N; roll in degrees, taken as given (not
         wrapped). Piecewise linear between breakpoints, constant outside. None: no tendon pulled.
+
+    Raises
+    ------
+    ValueError
+        A bad hole id, arrays of the wrong shape or non-finite, a path shorter than two distinct points or
+        beyond 100 m (not mm), negative dwell times, a dwell off the path or two dwells closer than
+        :data:`MIN_DWELL_SPACING_MM`, or a schedule whose depths do not increase or whose tension is negative.
     """
 
     hole_id: str
@@ -172,6 +183,12 @@ class SourceSpec:
         Active dimensions, mm; None when unknown.
     half_life_days : float or None
         None: taken from :data:`HALF_LIFE_DAYS` for ``isotope``.
+
+    Raises
+    ------
+    ValueError
+        A non-positive air-kerma rate, half-life or active dimension, an isotope without a known half-life
+        (and none given), an unknown source type, or a text too long.
     """
 
     name: str
@@ -213,6 +230,17 @@ class SourceSpec:
         ``extra`` sets the fields SourceData does not hold (manufacturer, active_diameter_mm, ...). Source Model
         ID defaults to the data set's first alias of at most 16 characters (e.g. ``gammamedplushdr``), which
         :func:`reachplan.planner.pipeline.recognise_source` maps back to the data set.
+
+        Parameters
+        ----------
+        data : SourceData
+            The TG-43 data set (its active length in cm becomes ``active_length_mm``).
+        air_kerma_rate_u : float, U (µGy m² h⁻¹)
+            Reference air-kerma rate at ``reference_datetime``.
+        reference_datetime : datetime
+            Date and time of the source strength calibration.
+        **extra
+            Other fields of :class:`SourceSpec`.
         """
         aliases = [a for a in data.aliases if 0 < len(a) <= 16]
         spec = cls(name=data.name, air_kerma_rate_u=air_kerma_rate_u, reference_datetime=reference_datetime,
@@ -232,6 +260,7 @@ class ExportPlan:
     needles : tuple of NeedleExport
         One channel per needle, in channel order; hole ids unique.
     source : SourceSpec
+        The treatment source (HDR only).
     structure_set : StructureSet or None
         The patient's structures as read; carried over into the exported structure set.
     volume : Volume or None
@@ -242,6 +271,7 @@ class ExportPlan:
     name : str
         RT Plan Name (<= 64 characters, optional).
     fractions_planned : int
+        Number of Fractions Planned, >= 1.
     prescription_dose_gy : float or None
         Dose per fraction at the prescription (Brachy Application Setup Dose), Gy, when known.
     application_setup_type : str
@@ -251,6 +281,12 @@ class ExportPlan:
         channel length in the BrachyVision example, reference/tps_examples/hdr). Must exceed every path.
     input_paths : tuple of Path
         Files (or series folders) the plan was made from: never written, nor written into, by an export.
+
+    Raises
+    ------
+    ValueError
+        A bad label or name, no needles or duplicate hole ids, fewer than one fraction, a non-positive
+        prescription, a channel length not beyond the longest path, or a source that is not HDR.
     """
 
     label: str
@@ -309,6 +345,11 @@ class ExportOptions:
         times are multiples of it). Cumulative weights are then exact decimals.
     uid_prefix : str or None
         Root of new DICOM UIDs (digits and dots, ending with a dot); None: pydicom's registered root.
+
+    Raises
+    ------
+    ValueError
+        A malformed ``uid_prefix``, a non-positive ``step_mm`` or ``time_resolution_s`` outside 1e-6 .. 10 s.
     """
 
     overwrite: bool = False
@@ -339,14 +380,24 @@ class ExportedFile:
 
 @dataclass(frozen=True)
 class ExportedFiles:
-    """What an export wrote, and anything the user must know (placeholders, rounding)."""
+    """What an export wrote, and anything the user must know.
+
+    Parameters
+    ----------
+    exporter : str
+        Plugin name of the exporter.
+    files : tuple of ExportedFile
+        In the order written.
+    notes : tuple of str
+        One line each: placeholders generated, values rounded, ...
+    """
 
     exporter: str
     files: tuple[ExportedFile, ...]
     notes: tuple[str, ...] = ()
 
     def path(self, role: str) -> Path:
-        """The one file of ``role``.
+        """Return the one file of ``role``.
 
         Raises
         ------
@@ -368,12 +419,37 @@ class Exporter(Protocol):
     """
 
     @property
-    def name(self) -> str: ...
+    def name(self) -> str:
+        """Plugin name (``dicom_rt``, ...)."""
+        ...
 
     @property
-    def description(self) -> str: ...
+    def description(self) -> str:
+        """One line for ``reachplan plugins``."""
+        ...
 
-    def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles: ...
+    def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
+        """Write ``plan`` into ``out_dir`` (created when missing).
+
+        Parameters
+        ----------
+        plan : ExportPlan
+            What to write (needle paths and dwells in LPS mm).
+        out_dir : Path
+            Output folder.
+        options : ExportOptions, optional
+            How to write (default :class:`ExportOptions`).
+
+        Returns
+        -------
+        ExportedFiles
+
+        Raises
+        ------
+        ExportError
+            An expected failure (a file in the way, an input that would be overwritten, ...).
+        """
+        ...
 
 
 @dataclass(frozen=True)
@@ -385,11 +461,18 @@ class FunctionExporter:
     function: Callable[[ExportPlan, Path, ExportOptions | None], ExportedFiles]
 
     def export(self, plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
+        """Call the export function (see :meth:`Exporter.export`)."""
         return self.function(plan, out_dir, options)
 
 
 def check_exporter(obj: object) -> None:
-    """Raise ``TypeError`` when ``obj`` does not implement :class:`Exporter` (the registry's check)."""
+    """Check that ``obj`` implements :class:`Exporter` (the registry's check).
+
+    Raises
+    ------
+    TypeError
+        A missing member, an empty or non-str name, or a non-str description.
+    """
     if not isinstance(obj, Exporter):
         raise TypeError(f"{obj!r} does not implement plugins.exporters.base.Exporter (name, description, export)")
     if not isinstance(obj.name, str) or not obj.name or not isinstance(obj.description, str):
@@ -400,14 +483,14 @@ def check_exporter(obj: object) -> None:
 
 
 def safe_name(text: str, fallback: str = "plan", max_len: int = 64) -> str:
-    """``text`` reduced to ASCII ``[A-Za-z0-9._-]`` (others become ``_``), never empty, never hidden."""
+    """Reduce ``text`` to ASCII ``[A-Za-z0-9._-]`` (others become ``_``), never empty, never hidden."""
     ascii_text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode("ascii")
     out = re.sub(r"[^A-Za-z0-9._-]+", "_", ascii_text).strip("._-")[:max_len].strip("._-")
     return out or fallback
 
 
 def file_stem(plan: ExportPlan, options: ExportOptions) -> str:
-    """The safe file-name stem of ``plan`` (patient name only with ``include_patient_name``)."""
+    """Build the safe file-name stem of ``plan`` (patient name only with ``include_patient_name``)."""
     stem = safe_name(options.stem or plan.label)
     if options.include_patient_name:
         who = (plan.volume.patient_name if plan.volume is not None else "") or (
@@ -425,12 +508,13 @@ def _same(a: Path, b: Path) -> bool:
 
 
 def check_targets(targets: Iterable[Path], plan: ExportPlan, options: ExportOptions) -> None:
-    """Refuse to write over an input file of ``plan`` or into an input folder, over an existing file without
-    ``overwrite``, or twice to one path.
+    """Check that an export may write ``targets``.
 
     Raises
     ------
     ExportError
+        A target is an input file of ``plan`` or lies in an input folder, exists without ``overwrite`` (or is
+        not a file), or is written twice.
     """
     seen: list[Path] = []
     for t in targets:
@@ -449,7 +533,13 @@ def check_targets(targets: Iterable[Path], plan: ExportPlan, options: ExportOpti
 
 
 def prepare_out_dir(out_dir: Path) -> Path:
-    """Create ``out_dir`` if needed; raise :class:`ExportError` when it is not a writable folder."""
+    """Create ``out_dir`` if needed and return it.
+
+    Raises
+    ------
+    ExportError
+        It cannot be created, or is not a writable folder.
+    """
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -45,18 +45,25 @@ COLUMNS = ("hole_id", "stylet_preset", "depth_mm", "tension_n", "roll_deg")
 
 
 def schedule_rows(needle: NeedleExport, step_mm: float) -> np.ndarray:
-    """The needle's schedule at depths ``0, step, 2 step, ...`` and at the tip.
+    """Resample the needle's schedule at depths ``0, step, 2 step, ...`` and at the tip.
 
     Parameters
     ----------
     needle : NeedleExport
-    step_mm : float, mm, > 0
+        Its schedule breakpoints (none: 0 N throughout) and path length.
+    step_mm : float, mm
+        Depth step, > 0.
 
     Returns
     -------
     (n, 3) float
         Rows ``(depth_mm, tension_n, roll_deg)``; depth along the path from its entry, the last row at the tip
         (``needle.length_mm``).
+
+    Raises
+    ------
+    ValueError
+        ``step_mm`` not positive.
     """
     if not step_mm > 0:
         raise ValueError("step_mm must be > 0")
@@ -77,7 +84,10 @@ def _r(x: float, nd: int) -> float:
 
 
 def device_document(plan: ExportPlan, step_mm: float) -> dict[str, object]:
-    """The JSON document (plain dict) of the device instructions of ``plan``."""
+    """Build the JSON document (plain dict, format ``reachplan-device/1``) of the device instructions of ``plan``.
+
+    Rows as in :func:`schedule_rows` every ``step_mm`` mm; depths in mm, tensions in N, rolls in degrees.
+    """
     needles = []
     for k, n in enumerate(plan.needles, start=1):
         rows = schedule_rows(n, step_mm)
@@ -101,7 +111,14 @@ def device_document(plan: ExportPlan, step_mm: float) -> dict[str, object]:
 
 
 def export_device_json(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-    """Write ``<stem>_device.json`` (all needles) into ``out_dir``."""
+    """Write ``<stem>_device.json`` (all needles) into ``out_dir``.
+
+    Raises
+    ------
+    ExportError
+        The output folder cannot be used, or the file may not be written (see
+        :func:`~reachplan.plugins.exporters.base.check_targets`).
+    """
     opts = options or ExportOptions()
     path = prepare_out_dir(out_dir) / f"{file_stem(plan, opts)}_device.json"
     check_targets((path,), plan, opts)
@@ -111,7 +128,14 @@ def export_device_json(plan: ExportPlan, out_dir: Path, options: ExportOptions |
 
 
 def export_device_csv(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-    """Write one ``<stem>_needle_<hole>.csv`` per needle into ``out_dir``."""
+    """Write one ``<stem>_needle_<hole>.csv`` per needle into ``out_dir``.
+
+    Raises
+    ------
+    ExportError
+        The output folder cannot be used, or a file may not be written (see
+        :func:`~reachplan.plugins.exporters.base.check_targets`).
+    """
     opts = options or ExportOptions()
     out, stem = prepare_out_dir(out_dir), file_stem(plan, opts)
     paths = [out / f"{stem}_needle_{safe_name(n.hole_id, fallback=f'channel{k}')}.csv"

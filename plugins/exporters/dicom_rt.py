@@ -67,7 +67,7 @@ def _version() -> str:
 
 
 def _ds(x: float, decimals: int = 4) -> str:
-    """A decimal string (DS, <= 16 characters) with at most ``decimals`` decimals."""
+    """Format ``x`` as a decimal string (DS, <= 16 characters) with at most ``decimals`` decimals."""
     s = f"{x:.{decimals}f}".rstrip("0").rstrip(".")
     s = "0" if s in ("-0", "") else s
     if len(s) > 16:
@@ -83,7 +83,7 @@ def _dsd(x: Decimal) -> str:
 
 
 def new_uid(prefix: str | None = None) -> str:
-    """A new UID under ``prefix`` (default: pydicom's registered root ``1.2.826.0.1.3680043.8.498.``)."""
+    """Generate a new UID under ``prefix`` (default: pydicom's registered root ``1.2.826.0.1.3680043.8.498.``)."""
     return str(generate_uid() if prefix is None else generate_uid(prefix=prefix))
 
 
@@ -99,8 +99,13 @@ def _time(t: datetime) -> str:
 class Identity:
     """Patient, study and Frame of Reference identity shared by both files.
 
-    ``generated`` names what the input did not give and was generated (placeholders), e.g.
-    ``("Study Instance UID", "Frame of Reference UID")``.
+    Parameters
+    ----------
+    patient_id, patient_name, study_instance_uid, frame_of_reference_uid : str
+        As written to both files.
+    generated : tuple of str
+        What the input did not give and was generated (placeholders), e.g.
+        ``("Study Instance UID", "Frame of Reference UID")``.
     """
 
     patient_id: str
@@ -111,7 +116,7 @@ class Identity:
 
 
 def plan_identity(plan: ExportPlan, uid_prefix: str | None = None) -> Identity:
-    """The identity of the input CT (else of the input structure set); what is missing is generated.
+    """Take the identity of the input CT (else of the input structure set); generate what is missing.
 
     Raises
     ------
@@ -186,14 +191,22 @@ def _interpreted_type(roi: Roi) -> str:
 
 
 def channel_roi_numbers(plan: ExportPlan) -> tuple[int, ...]:
-    """ROI numbers of the needles' BRACHY_CHANNEL ROIs: after the highest input ROI number, in needle order."""
+    """Choose the ROI numbers of the needles' BRACHY_CHANNEL ROIs: after the highest input one, in needle order."""
     first = 1 + max((r.number for r in plan.structure_set.rois), default=0) if plan.structure_set else 1
     return tuple(range(first, first + len(plan.needles)))
 
 
 def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetime,
                    uid_prefix: str | None = None) -> Dataset:
-    """The RT Structure Set dataset (no file meta): input ROIs plus one BRACHY_CHANNEL ROI per needle."""
+    """Build the RT Structure Set dataset (no file meta): input ROIs plus one BRACHY_CHANNEL ROI per needle.
+
+    Each needle's ROI is its path, tip first, as an OPEN_NONPLANAR contour in LPS mm.
+
+    Raises
+    ------
+    ExportError
+        The input structure set has duplicate or non-positive ROI numbers.
+    """
     ds = Dataset()
     _common(ds, ident, RT_STRUCTURE_SET_STORAGE, sop_uid, "RTSTRUCT", now, new_uid(uid_prefix))
     ds.FrameOfReferenceUID = ident.frame_of_reference_uid
@@ -256,7 +269,20 @@ def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetim
 
 
 def dwell_ticks(times_s: np.ndarray, resolution_s: float) -> np.ndarray:
-    """Dwell times as integer multiples of ``resolution_s`` (round half to even)."""
+    """Round dwell times to integer multiples of ``resolution_s`` (half to even).
+
+    Parameters
+    ----------
+    times_s : (m,) float, s
+        Dwell times.
+    resolution_s : float, s
+        The time step.
+
+    Returns
+    -------
+    (m,) int64
+        Multiples of ``resolution_s``.
+    """
     return np.rint(np.asarray(times_s, dtype=float) / resolution_s).astype(np.int64)
 
 
@@ -311,7 +337,11 @@ def _channel(needle: NeedleExport, number: int, roi_number: int, plan: ExportPla
 
 def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: str, now: datetime,
                  time_resolution_s: float = 0.1, uid_prefix: str | None = None) -> Dataset:
-    """The RT Plan dataset (no file meta): brachy, HDR, interstitial, one channel per needle."""
+    """Build the RT Plan dataset (no file meta): brachy, HDR, interstitial, one channel per needle.
+
+    Dwell times are rounded to ``time_resolution_s`` s and written as cumulative time weights; control point
+    positions are the dwell positions in LPS mm.
+    """
     when = plan.plan_datetime or now
     res = Decimal(repr(time_resolution_s))
     ds = Dataset()
@@ -407,6 +437,7 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
     Parameters
     ----------
     plan : ExportPlan
+        The plan; needle paths and dwells in LPS mm.
     out_dir : Path
         Created when missing.
     options : ExportOptions, optional

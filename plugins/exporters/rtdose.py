@@ -33,7 +33,24 @@ MANUFACTURER = "reachplan"
 
 @dataclass(frozen=True)
 class DoseContext:
-    """Identity the RT Dose carries over from its inputs (all optional except the Frame of Reference)."""
+    """Identity the RT Dose carries over from its inputs (all optional except the Frame of Reference).
+
+    Parameters
+    ----------
+    frame_of_reference_uid : str
+        Of the plan or images; required.
+    study_instance_uid, patient_id, patient_name : str
+        Carried over; an invalid study UID is replaced by a new one.
+    referenced_plan_uid : str
+        SOP Instance UID of the RT Plan the dose belongs to; empty: none referenced.
+    series_description : str
+        Written as Series Description.
+
+    Raises
+    ------
+    ValueError
+        No Frame of Reference UID.
+    """
 
     frame_of_reference_uid: str
     study_instance_uid: str = ""
@@ -48,7 +65,7 @@ class DoseContext:
 
 
 def _ds(v: float) -> str:
-    """A DS string of at most 16 characters."""
+    """Format ``v`` as a DS string of at most 16 characters."""
     s = f"{v:.10g}"
     if len(s) > 16:
         s = f"{v:.8e}"
@@ -68,13 +85,22 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     dose_gy : (nk, nj, ni) float, Gy
         Dose on ``grid`` (array order: slice, row, column), finite and >= 0.
     grid : Grid
+        Where the dose is, LPS mm; rows and columns orthogonal, slices along their normal (no shear).
     context : DoseContext
+        Identity carried over.
     bits : {16, 32}
         Bits per pixel.
 
     Returns
     -------
-    pydicom Dataset with file meta (Explicit VR Little Endian).
+    pydicom.Dataset
+        With file meta (Explicit VR Little Endian).
+
+    Raises
+    ------
+    ValueError
+        Other bits, a dose that does not match ``grid`` or is negative or not finite, or a grid RT Dose
+        cannot describe (rows and columns not orthogonal, sheared slices).
     """
     if bits not in (16, 32):
         raise ValueError(f"RT Dose pixels are 16 or 32 bits, got {bits}")
@@ -182,19 +208,25 @@ def write_rtdose(
     path : path-like
         Output file. An existing file is replaced only if it is an RT Dose written by reachplan.
     dose_gy : (nk, nj, ni) float, Gy
+        Dose on ``grid`` (see :func:`rtdose_dataset`).
     grid : Grid
+        Where the dose is, LPS mm.
     context : DoseContext
+        Identity carried over.
     bits : {16, 32}
         Bits per pixel (see the module docstring).
 
     Returns
     -------
-    Path of the written file.
+    Path
+        The written file.
 
     Raises
     ------
     OutputExistsError
         ``path`` holds another file.
+    ValueError
+        As for :func:`rtdose_dataset`.
     """
     out = Path(path)
     if out.exists() and not _is_ours(out):
@@ -207,7 +239,28 @@ def write_rtdose(
 
 
 def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
-    """Read an RT Dose: ``(dose (nk, nj, ni) float64 Gy, grid)``; used for ``--like`` and round trips."""
+    """Read an RT Dose and its grid; used for ``--like`` and round trips.
+
+    Parameters
+    ----------
+    path : path-like
+        The RD file.
+
+    Returns
+    -------
+    dose_gy : (nk, nj, ni) float64, Gy
+        Pixel values times Dose Grid Scaling, indexed ``[k, j, i]``.
+    grid : Grid
+        ``patient_from_index`` to LPS mm.
+
+    Raises
+    ------
+    NoDicomError
+        No such file, or not an RT Dose.
+    CorruptFileError
+        Unreadable, incomplete geometry, or frames that are not evenly spaced (or absolute offsets on a
+        non-axial grid).
+    """
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     p = Path(path)

@@ -58,6 +58,12 @@ class SourceData:
     aliases : tuple of str
         Normalised strings (lower case, no spaces, dashes or underscores) that identify this source
         in a DICOM RT Plan (Source Isotope Name, Treatment Machine Name).
+
+    Raises
+    ------
+    ValueError
+        A non-positive dose rate constant or active length, tables of the wrong shape, radii or angles not
+        strictly increasing, angles not covering 0 to 180 degrees, or g_L or F not positive and finite.
     """
 
     name: str
@@ -94,7 +100,15 @@ class SourceData:
 
     @classmethod
     def from_json(cls, text: str) -> SourceData:
-        """Parse this package's JSON format (``"format": "reachplan-tg43/1"``)."""
+        """Parse this package's JSON format (``"format": "reachplan-tg43/1"``).
+
+        Raises
+        ------
+        ValueError
+            Not JSON, another format, or tables that do not validate.
+        KeyError
+            A required key is missing.
+        """
         doc = json.loads(text)
         if doc.get("format") != FORMAT:
             raise ValueError(f"not a {FORMAT} document (format={doc.get('format')!r})")
@@ -116,13 +130,19 @@ class SourceData:
 
 
 def normalise_label(text: str) -> str:
-    """Lower case with spaces, dashes, underscores and dots removed (for matching DICOM strings)."""
+    """Case-fold ``text`` and remove spaces, dashes, underscores and dots (for matching DICOM strings)."""
     return re.sub(r"[\s_\-.]+", "", text).casefold()
 
 
 @cache
 def load_builtin(name: str) -> SourceData:
-    """Load the built-in data set ``name`` from the package data (cached: the result is immutable)."""
+    """Load the built-in data set ``name`` from the package data (cached: the result is immutable).
+
+    Raises
+    ------
+    PluginError
+        No built-in data set ``name``.
+    """
     try:
         text = resources.files(__name__).joinpath(f"{name}.json").read_text()
     except FileNotFoundError:

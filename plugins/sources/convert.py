@@ -1,6 +1,6 @@
 """Re-write the consensus TG-43 tables of ``reference/tg43/<source>/`` as this package's JSON data.
 
-Run once by a maintainer (``python -m plugins.sources.convert REFERENCE_TG43_DIR``); the runtime only
+Run once by a maintainer (``python -m reachplan.plugins.sources.convert REFERENCE_TG43_DIR``); the runtime only
 reads the JSON files beside this module. The conversion keeps the published numbers and drops
 the ``r = 0`` row/column that the reference CSVs carry as a copy of the first measured distance: the
 kernel applies the same nearest-neighbour rule explicitly (see :mod:`reachplan.planner.dose.tg43`).
@@ -33,6 +33,19 @@ def _drop_duplicate_r0(r: list[float], cols: list[list[float]]) -> tuple[list[fl
 
 
 def convert_one(src: Path) -> dict[str, object]:
+    """Convert one source folder of the reference into this package's JSON document.
+
+    Parameters
+    ----------
+    src : Path
+        ``reference/tg43/<source>/`` with ``params.json``, ``radial_dose_gL.csv`` (r in cm, g_L) and
+        ``anisotropy_F.csv`` (θ in degrees by row, ``r=<cm>cm`` by column); the folder name is the plugin name.
+
+    Returns
+    -------
+    dict
+        The ``reachplan-tg43/1`` document; radii in cm, angles in degrees, Λ in cGy h⁻¹ U⁻¹.
+    """
     params = json.loads((src / "params.json").read_text())
     with (src / "radial_dose_gL.csv").open() as f:
         rows = [row for row in csv.reader(f)][1:]
@@ -64,7 +77,7 @@ def convert_one(src: Path) -> dict[str, object]:
 
 
 def dumps(doc: dict[str, object]) -> str:
-    """JSON with one top-level key per line and each table row on one line (readable diffs)."""
+    """Format ``doc`` as JSON with one key per line and each table row on one line (readable diffs)."""
 
     def block(value: object, indent: str) -> str:
         if isinstance(value, dict):
@@ -79,6 +92,7 @@ def dumps(doc: dict[str, object]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Convert every source folder of the directory given in ``argv``; return the exit status (2: usage)."""
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1:
         print("usage: python -m plugins.sources.convert REFERENCE_TG43_DIR", file=sys.stderr)

@@ -32,8 +32,14 @@ class Hole:
     hole_id : str
         Label as printed on the template.
     xy_mm : (2,) float, mm, template frame
+        Hole centre in the template plane.
     kind : str
         ``"needle"`` or ``"tandem"`` (the central channel the tandem/obturator occupies).
+
+    Raises
+    ------
+    ValueError
+        An empty id, a non-finite position or an unknown kind.
     """
 
     hole_id: str
@@ -56,7 +62,22 @@ class Hole:
 
 @dataclass(frozen=True)
 class Template:
-    """A hole layout (from a template plugin)."""
+    """A hole layout (from a template plugin).
+
+    Parameters
+    ----------
+    name : str
+        Plugin or file name.
+    holes : tuple of Hole
+        At least one; ids unique.
+    source : str
+        Where the layout comes from (its citation).
+
+    Raises
+    ------
+    ValueError
+        No holes, or duplicate hole ids.
+    """
 
     name: str
     holes: tuple[Hole, ...]
@@ -79,6 +100,22 @@ def load_template_csv(path: Path, name: str | None = None) -> Template:
     """Read a template layout: CSV with ``hole_id,x_mm,y_mm[,kind]``; lines starting with ``#`` are comments.
 
     The comment lines are kept as the template's ``source`` (its citation).
+
+    Parameters
+    ----------
+    path : Path
+        The CSV file (UTF-8); positions in mm in the template frame.
+    name : str, optional
+        Template name (default: the file's stem).
+
+    Raises
+    ------
+    TemplateFileError
+        A missing column, a bad number, an empty hole id or an unknown kind.
+    ValueError
+        Duplicate hole ids or no holes (raised by :class:`Template`, not turned into a TemplateFileError).
+    OSError
+        The file cannot be read.
     """
     text = Path(path).read_text(encoding="utf-8").splitlines()
     comments = [line[1:].strip() for line in text if line.startswith("#")]
@@ -96,5 +133,6 @@ def load_template_csv(path: Path, name: str | None = None) -> Template:
 
 
 def needlefinder_syed_63() -> Template:
-    """The 63-hole Syed-Neblett-style layout of 3D Slicer's NeedleFinder module (see the CSV header)."""
+    # The registry shows this docstring's first line as the plugin's description: a noun phrase on purpose.
+    """The 63-hole Syed-Neblett-style layout of 3D Slicer's NeedleFinder module (see the CSV header)."""  # noqa: D401
     return load_template_csv(_HERE / "needlefinder_syed_63.csv", "needlefinder_syed_63")
