@@ -139,9 +139,16 @@ def template_pose(args: argparse.Namespace, structures: StructureSet, config: Pl
         matrix = read_pose_file(args.template_pose)
         return TemplatePose(matrix, f"command line: --template-pose {args.template_pose.name}")
     if args.rtplan:
-        from reachplan.imaging.rtplan import read_rtplan
+        import warnings
 
-        return pose_from_rtplan(read_rtplan(args.rtplan), structures, config.obturator_depth_mm)
+        from reachplan.imaging.rtplan import PlanQuirkWarning, read_rtplan
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PlanQuirkWarning)  # the quirks are printed below
+            rtplan = read_rtplan(args.rtplan)
+        for quirk in rtplan.quirks:
+            print(f"reachplan: warning: RT Plan {args.rtplan.name}: {quirk}; read anyway", file=sys.stderr)
+        return pose_from_rtplan(rtplan, structures, config.obturator_depth_mm)
     return None
 
 

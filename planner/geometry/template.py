@@ -221,8 +221,9 @@ def pose_from_rtplan(rtplan: RtPlan, structures: StructureSet | None = None, dep
     roi_names = {r.number: r.name for r in structures.rois} if structures is not None else {}
 
     def label(c: Channel) -> str:
-        return " / ".join(x for x in (c.applicator_id, roi_names.get(c.roi_number, "") if c.roi_number is not None
-                                      else "") if x) or f"channel {c.number}"
+        roi = roi_names.get(c.roi_number, "") if c.roi_number is not None else ""
+        parts = [c.applicator_id.strip(), roi.strip()]
+        return " / ".join(dict.fromkeys(x for x in parts if x)) or f"channel {c.number}"
 
     def kind(c: Channel) -> str | None:
         keys = [name_key(x) for x in label(c).split(" / ")]
