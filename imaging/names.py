@@ -140,8 +140,8 @@ def rename(structures: StructureSet, overrides: Mapping[str, str]) -> StructureS
     Parameters
     ----------
     overrides : original ROI name -> standard name. Matching of the ROI name ignores case. Any other ROI that
-        the table had mapped to one of these standard names keeps its original name instead, so the choice by
-        hand is the only ROI with that standard name.
+        the table had mapped to one of these standard names keeps its original name instead (``NAME (ROI n)``
+        when that is the standard name itself), so the choice by hand is the only ROI with that standard name.
 
     Raises
     ------
@@ -160,5 +160,7 @@ def rename(structures: StructureSet, overrides: Mapping[str, str]) -> StructureS
         new = by_key.get(r.name.strip().casefold())
         if new is None and r.normalized_name.casefold() in taken:
             new = r.name.strip()
+            if new.casefold() in taken:  # its own name is the standard name chosen for another ROI
+                new = f"{new} (ROI {r.number})"
         rois.append(r if new is None else dataclasses.replace(r, normalized_name=new))
     return dataclasses.replace(structures, rois=tuple(rois))
