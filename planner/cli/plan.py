@@ -84,7 +84,7 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
             try:
                 x, y, z = _triple(spec, "target")
             except PlanInputError:
-                raise PlanInputError(f"target {spec!r}: a point is three finite numbers 'x,y,z' in mm") from None
+                raise PlanInputError(f"target {spec!r}: a point is three numbers 'x,y,z' in mm, all finite") from None
             points.append(Target(f"point_{len(points) + 1}", (x, y, z)))
         else:
             names.append(spec)
