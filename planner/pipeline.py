@@ -160,7 +160,7 @@ def mesh_structures(
     out: dict[str, trimesh.Trimesh] = {}
     for name in tqdm(wanted, desc="meshing organs", unit="roi", disable=quiet, leave=False):
         roi = structures.get(name)
-        if any(c.geometric_type == "CLOSED_PLANAR" for c in roi.contours):
+        if has_closed(roi):
             out[roi.normalized_name] = roi_mesh(roi, grid)
     return out
 

@@ -18,13 +18,15 @@ from reachplan.planner.errors import PlanInputError
 
 
 def has_closed(roi: Roi) -> bool:
-    """Whether ``roi`` has at least one closed planar contour (something to mesh)."""
-    return any(c.geometric_type == "CLOSED_PLANAR" for c in roi.contours)
+    """Whether ``roi`` has at least one closed planar contour of 3 or more points (something to mesh)."""
+    return any(c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3 for c in roi.contours)
 
 
 def _kinds(roi: Roi) -> str:
     if not roi.contours:
         return "no contours"
+    if all(c.geometric_type == "CLOSED_PLANAR" for c in roi.contours):
+        return "only closed contours of fewer than 3 points"
     return "only " + "/".join(sorted({c.geometric_type for c in roi.contours})) + " contours"
 
 

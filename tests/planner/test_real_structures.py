@@ -248,7 +248,8 @@ def test_duplicate_roi_names_are_an_error_that_lists_them(phantom_rs: Path, tmp_
 # --- empty and POINT ROIs --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("kind", "says"), [(None, "no contours"), ("POINT", "only POINT contours")])
+@pytest.mark.parametrize(("kind", "says"), [(None, "no contours"), ("POINT", "only POINT contours"),
+                                            ("CLOSED_PLANAR", "only closed contours of fewer than 3 points")])
 def test_organ_without_closed_contours_is_skipped_with_a_warning(phantom_rs: Path, tmp_path: Path,
                                                                  capsys: pytest.CaptureFixture[str],
                                                                  kind: str | None, says: str) -> None:
