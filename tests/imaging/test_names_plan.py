@@ -19,8 +19,14 @@ from reachplan.imaging.types import Contour, Roi, StructureSet
 ])
 def test_tg263_names_and_variants(name: str, standard: str) -> None:
     assert DEFAULT_SYNONYMS.normalize(name) == standard
-    # every standard name's first synonym is itself or a TG-263 name (the table lists those first)
-    assert DEFAULT_SYNONYMS.synonyms_of("Sigmoid")[0] == "Colon_Sigmoid"
+
+
+def test_tg263_primary_names_come_first() -> None:
+    # gyn_anatomy.md §5 (TG-263 worksheet v20170815): the primary name heads each entry
+    firsts = {s: DEFAULT_SYNONYMS.synonyms_of(s)[0] for s in ("Sigmoid", "Bowel", "Bone", "Bladder", "Rectum")}
+    assert firsts == {"Sigmoid": "Colon_Sigmoid", "Bowel": "Bowel_Small", "Bone": "Bone_Pelvic",
+                      "Bladder": "Bladder", "Rectum": "Rectum"}
+    assert DEFAULT_SYNONYMS.synonyms_of("NoSuchOrgan") == ()
 
 
 def test_table_from_a_binary_or_broken_file_is_a_typed_error(tmp_path: Path) -> None:
