@@ -3,15 +3,25 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from reachplan.imaging.types import StructureSet, Volume
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.candidates import Target
+
+if TYPE_CHECKING:
+    from reachplan.imaging.names import SynonymTable
+    from reachplan.planner.geometry.template import TemplatePose
 
 NAME = "plan"
 HELP = "rank template holes, stylet designs and tension schedules for targets; write plan.json, figures, exports"
@@ -21,8 +31,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ct", type=Path, help="CT/MR series folder (optional: organs from contours suffice)")
     parser.add_argument("--rtstruct", type=Path, required=True, help="RT Structure Set file")
     parser.add_argument("--targets", nargs="+", required=True, metavar="ROI_OR_POINT",
-                        help="target ROI names, or points 'x,y,z' in mm (DICOM patient coordinates, LPS)")
+                        help="target ROI names, or points 'x,y,z' in mm (DICOM patient coordinates, LPS); an ROI "
+                             "of POINT contours is planned to its points")
     parser.add_argument("--template", default="needlefinder_syed_63", help="template plugin name")
+    pose = parser.add_argument_group(
+        "template pose", "where the template sits; without these it is fitted to the Obturator (vaginal cylinder) "
+        "ROI. Template +x is the patient's left made perpendicular to the axis (posterior when the axis is "
+        "within 10 degrees of left-right)")
+    pose.add_argument("--template-origin", metavar="X,Y,Z",
+                      help="template centre (the obturator axis on the template plane), mm, LPS")
+    pose.add_argument("--template-axis", metavar="X,Y,Z", help="insertion direction (LPS, any length)")
+    pose.add_argument("--template-pose", type=Path, metavar="FILE",
+                      help="rigid 4x4 patient_from_template (mm, LPS): JSON (a 4x4 list, or an object with "
+                           "'patient_from_template', e.g. a previous plan.json's 'template_pose') or 4 text rows")
+    pose.add_argument("--rtplan", type=Path, metavar="FILE",
+                      help="brachy RT Plan of the same Frame of Reference: the template is placed on its "
+                           "obturator or tandem channel")
+    parser.add_argument("--oar", action="append", default=[], metavar="ORGAN=ROI_NAME",
+                        help="use ROI_NAME as organ at risk ORGAN (e.g. Rectum=Rect_PRV); repeatable; an ORGAN "
+                             "outside the default list (Bladder, Rectum, Sigmoid, Bowel, Bone) is added to it")
+    parser.add_argument("--synonyms", type=Path, default=None,
+                        help="CSV file with 'standard,synonym' rows added to the built-in ROI name table")
+    parser.add_argument("--allow-no-oars", action="store_true",
+                        help="plan even when no organ at risk is found (needles are then checked against nothing)")
     parser.add_argument("--design", nargs="*", default=["15ga-30j-tip"], metavar="PRESET",
                         help="stylet presets to steer with (none: straight needles only)")
     parser.add_argument("--target-roi", default="HR-CTV", help="ROI the dwell times are optimised on")
@@ -33,36 +64,136 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
 
 
+def _triple(spec: str, what: str) -> tuple[float, float, float]:
+    """Three finite numbers 'x,y,z'."""
+    parts = spec.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise PlanInputError(f"{what} {spec!r}: give three finite numbers 'x,y,z' in mm")
+    return values[0], values[1], values[2]
+
+
 def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
     names: list[str] = []
     points: list[Target] = []
     for spec in specs:
-        parts = spec.split(",")
-        if len(parts) == 3:
+        if len(spec.split(",")) == 3:
             try:
-                x, y, z = (float(p) for p in parts)
-            except ValueError:
-                raise PlanInputError(f"target {spec!r}: a point is three numbers 'x,y,z' in mm") from None
+                x, y, z = _triple(spec, "target")
+            except PlanInputError:
+                raise PlanInputError(f"target {spec!r}: a point is three numbers 'x,y,z' in mm, all finite") from None
             points.append(Target(f"point_{len(points) + 1}", (x, y, z)))
         else:
             names.append(spec)
     return names, points
 
 
+def read_pose_file(path: Path) -> np.ndarray:
+    """A 4x4 matrix from JSON (a 4x4 list, or an object holding 'patient_from_template' at any depth) or from
+    text (4 rows of 4 numbers separated by spaces or commas). Rigidity is checked by the caller."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise PlanInputError(f"cannot read the template pose {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise PlanInputError(f"template pose {path} is not a text file; give a 4x4 matrix as JSON or text") from None
+    value: object
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        value = [line.replace(",", " ").split() for line in text.splitlines() if line.strip()
+                 and not line.lstrip().startswith("#")]
+    while isinstance(value, dict):
+        value = value.get("template_pose", value.get("patient_from_template"))
+    try:
+        m = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise PlanInputError(f"template pose {path} must hold a finite 4x4 matrix (JSON list of 4 rows, or 4 text "
+                             f"rows of 4 numbers)")
+    return m
+
+
+def template_pose(args: argparse.Namespace, structures: StructureSet, config: PlanConfig) -> TemplatePose | None:
+    """The pose asked for on the command line (None: fit it to the Obturator ROI)."""
+    from reachplan.planner.geometry.template import TemplatePose, pose_from_axis, pose_from_rtplan
+
+    given = [n for n, v in (("--template-origin/--template-axis", args.template_origin or args.template_axis),
+                            ("--template-pose", args.template_pose), ("--rtplan", args.rtplan)) if v]
+    if len(given) > 1:
+        raise PlanInputError(f"give the template pose one way, not with {' and '.join(given)}")
+    if args.template_origin or args.template_axis:
+        if not (args.template_origin and args.template_axis):
+            raise PlanInputError("--template-origin and --template-axis go together (centre and insertion "
+                                 "direction)")
+        origin = _triple(args.template_origin, "--template-origin")
+        axis = _triple(args.template_axis, "--template-axis")
+        return TemplatePose(pose_from_axis(origin, axis),
+                            f"command line: origin {','.join(f'{v:g}' for v in origin)} mm, axis "
+                            f"{','.join(f'{v:g}' for v in axis)}")
+    if args.template_pose:
+        matrix = read_pose_file(args.template_pose)
+        return TemplatePose(matrix, f"command line: --template-pose {args.template_pose.name}")
+    if args.rtplan:
+        import warnings
+
+        from reachplan.imaging.rtplan import PlanQuirkWarning, read_rtplan
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PlanQuirkWarning)  # the quirks are printed below
+            rtplan = read_rtplan(args.rtplan)
+        for quirk in rtplan.quirks:
+            print(f"reachplan: warning: RT Plan {args.rtplan.name}: {quirk}; read anyway", file=sys.stderr)
+        return pose_from_rtplan(rtplan, structures, config.obturator_depth_mm)
+    return None
+
+
+def _names(args: argparse.Namespace, config: PlanConfig) -> tuple[SynonymTable, dict[str, str], PlanConfig]:
+    """The synonym table, the hand mapping ROI name -> organ (``--oar``) and the config with added organs."""
+    from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
+
+    table = SynonymTable.from_csv(args.synonyms) if args.synonyms else DEFAULT_SYNONYMS
+    overrides: dict[str, str] = {}
+    oars = list(config.oar_names)
+    for spec in args.oar:
+        organ, sep, roi = (x.strip() for x in spec.partition("="))
+        if not sep or not organ or not roi:
+            raise PlanInputError(f"--oar {spec!r}: write ORGAN=ROI_NAME, e.g. Rectum=Rect_PRV")
+        organ = table.normalize(organ)
+        if roi.casefold() in {k.casefold() for k in overrides}:
+            raise PlanInputError(f"--oar names ROI {roi!r} twice")
+        if organ.casefold() in {v.casefold() for v in overrides.values()}:
+            raise PlanInputError(f"--oar maps two ROIs to {organ}; give one ROI per organ")
+        overrides[roi] = organ
+        if organ not in oars:
+            oars.append(organ)
+    return table, overrides, dataclasses.replace(config, oar_names=tuple(oars))
+
+
 def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.dicom_io import read_series
+    from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
 
     quiet = args.quiet or args.json
-    volume = read_series(args.ct) if args.ct else None
-    structures = read_rtstruct(args.rtstruct, volume)
     names, points = _targets(args.targets)
+    config = PlanConfig(template=args.template, designs=tuple(args.design))
+    table, overrides, config = _names(args, config)
+    volume = read_series(args.ct) if args.ct else None
+    structures = read_rtstruct(args.rtstruct, volume, synonyms=table)
+    if overrides:
+        structures = rename(structures, overrides)
     for n in names:
         structures.get(n)  # a typed error naming the available ROIs
-    config = PlanConfig(template=args.template, designs=tuple(args.design))
+    pose = template_pose(args, structures, config)
     doc = run_plan(structures, volume, names, points, config, args.out, quiet,
                    export=not args.no_export, source=args.source, target_roi=args.target_roi,
-                   inputs=[p for p in (args.ct, args.rtstruct) if p is not None])
+                   inputs=[p for p in (args.ct, args.rtstruct) if p is not None], pose=pose,
+                   allow_no_oars=args.allow_no_oars, standard_names=table.standard_names)
     if args.json:
         json.dump(doc, sys.stdout, indent=2)
         print()
@@ -72,12 +203,18 @@ def run(args: argparse.Namespace) -> int:
 def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], points: list[Target],
              config: PlanConfig, out: Path, quiet: bool, *, export: bool = True, source: str = "gammamed_plus_hdr",
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
-             extra: dict[str, object] | None = None) -> dict[str, object]:
-    """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan
-    document."""
+             extra: dict[str, object] | None = None, pose: TemplatePose | None = None, allow_no_oars: bool = False,
+             standard_names: Sequence[str] | None = None) -> dict[str, object]:
+    """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan document.
+
+    ``pose``: the template pose (None: fitted to the Obturator ROI). The pose and how it was found, and the
+    warnings about the input (organs at risk not found, targets planned to points), are printed and saved in
+    plan.json (``template_pose``, ``warnings``).
+    """
     from tqdm import tqdm
 
     from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
+    from reachplan.planner.geometry.organs import has_closed
     from reachplan.planner.pipeline import build_scene, plan, plan_delivery
     from reachplan.planner.report import figures
     from reachplan.planner.report.build import format_table, report_html, top_candidates
@@ -85,15 +222,31 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     from reachplan.plugins import registry
     from reachplan.plugins.exporters import ExportOptions
 
+    if export:  # the dose target is checked before any work
+        roi = structures.get(target_roi)
+        if not has_closed(roi):
+            raise PlanInputError(f"the dose target ROI {roi.name!r} has no closed contours; name another with "
+                                 "--target-roi or plan with --no-export")
     timings: dict[str, float] = {}
     t = time.perf_counter()
     grid = volume.grid if volume is not None else None
-    scene = build_scene(structures, names, points, grid=grid, config=config, quiet=quiet)
+    scene = build_scene(structures, names, points, grid=grid, patient_from_template=pose, config=config,
+                        quiet=quiet, allow_no_oars=allow_no_oars, standard_names=standard_names)
     timings["scene_s"] = time.perf_counter() - t
+    config = dataclasses.replace(config, oar_names=tuple(o.name for o in scene.organs))
+    for note in scene.notes:
+        print(f"reachplan: warning: {note}", file=sys.stderr)
+    if scene.pose is not None and not quiet:
+        m = scene.pose.patient_from_template
+        print(f"template pose: {scene.pose.method}; centre {np.round(m[:3, 3], 2).tolist()} mm, axis "
+              f"{np.round(m[:3, 2], 4).tolist()} (LPS)")
     t = time.perf_counter()
     result = plan(scene, config, quiet=quiet)
     timings["plan_s"] = time.perf_counter() - t
     doc: dict[str, object] = {**(extra or {}), **result.to_json()}
+    if scene.pose is not None:
+        doc["template_pose"] = scene.pose.to_json()
+    doc["warnings"] = list(scene.notes)
     overview_png = figures.overview(scene, top_candidates(result), volume)
     workspace_png = workspace_figure(scene, config)
     atomic_write_bytes(out / "overview.png", overview_png)

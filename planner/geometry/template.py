@@ -7,9 +7,13 @@ the template plane, ``+z`` the insertion direction. A template is placed with a 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 
-from reachplan.imaging.types import Roi
+from reachplan.imaging.rtplan import Channel, RtPlan
+from reachplan.imaging.types import Roi, StructureSet
 from reachplan.planner.errors import PlanInputError
 from reachplan.plugins.templates import Hole, Template
 
@@ -44,38 +48,206 @@ def check_rigid(patient_from_template: np.ndarray) -> np.ndarray:
     return m
 
 
-def pose_from_obturator(obturator: Roi, depth_mm: float = 60.0) -> np.ndarray:
-    """``patient_from_template`` for a template that sits on the obturator.
+@dataclass(frozen=True, eq=False)
+class TemplatePose:
+    """Where the template sits and how that was found.
 
-    The obturator axis is the principal axis of its contour points; its cranial end (larger patient z,
-    the end inside the patient) is the tip, half a contour spacing beyond the last contour. The template
-    plane is ``depth_mm`` behind the tip along the axis (how far the obturator is inserted beyond the
-    template; 60 mm is our documented default, the
-    vaginal length of the phantom); template ``+z`` points along the axis into the patient, template
-    ``+x`` is the patient's left (+x LPS) made perpendicular to the axis.
+    Parameters
+    ----------
+    patient_from_template : (4, 4) float, rigid, template frame -> LPS mm
+    method : one line saying where the pose came from (printed and saved with the plan)
+    """
+
+    patient_from_template: np.ndarray
+    method: str
+
+    def __post_init__(self) -> None:
+        m = check_rigid(self.patient_from_template).copy()
+        m.setflags(write=False)
+        object.__setattr__(self, "patient_from_template", m)
+
+    def to_json(self) -> dict[str, object]:
+        return {"method": self.method,
+                "patient_from_template": [[round(float(v), 6) for v in row] for row in self.patient_from_template]}
+
+
+def pose_from_axis(origin_mm: np.ndarray | tuple[float, float, float],
+                   axis: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """``patient_from_template`` from the template centre and the insertion direction.
+
+    Template ``+z`` is ``axis`` (normalised); template ``+x`` is the patient's left (LPS ``+x``) made
+    perpendicular to the axis, and ``+y = z × x`` (the patient's posterior for an axis along ``+z``). When the
+    axis lies within 10 degrees of left-right, ``+y`` is taken from the patient's posterior (LPS ``+y``) instead
+    and ``+x = y × z``, so every axis gives one deterministic pose.
+
+    Parameters
+    ----------
+    origin_mm : (3,) float, mm, LPS: the template centre (the obturator axis on the template plane)
+    axis : (3,) float, LPS: the insertion direction (any non-zero length)
 
     Returns
     -------
     patient_from_template : (4, 4) float
     """
-    pts = np.concatenate([c.points_mm for c in obturator.contours])
-    if len(pts) < 4:
-        raise PlanInputError(f"ROI {obturator.name!r} has too few points to find the obturator axis")
+    o = np.asarray(origin_mm, dtype=float).reshape(-1)
+    a = np.asarray(axis, dtype=float).reshape(-1)
+    if o.shape != (3,) or a.shape != (3,) or not (np.all(np.isfinite(o)) and np.all(np.isfinite(a))):
+        raise PlanInputError("the template origin and axis must be three finite numbers each (mm, LPS)")
+    norm = float(np.linalg.norm(a))
+    if norm < 1e-9:
+        raise PlanInputError("the template axis has zero length; give the insertion direction, e.g. 0,0,1")
+    z = a / norm
+    if abs(z[0]) < np.cos(np.radians(10.0)):
+        x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+    else:
+        y = np.array([0.0, 1.0, 0.0]) - z[1] * z
+        y /= np.linalg.norm(y)
+        x = np.cross(y, z)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, o
+    return m
+
+
+def _principal_axis(pts: np.ndarray) -> np.ndarray:
+    """Unit principal direction of ``(n, 3)`` points (sign arbitrary)."""
     centre = pts.mean(axis=0)
     _, _, vt = np.linalg.svd(pts - centre, full_matrices=False)
-    axis = vt[0] if vt[0][2] >= 0 else -vt[0]
+    return np.asarray(vt[0], dtype=float)
+
+
+def pose_from_obturator(obturator: Roi, depth_mm: float = 60.0) -> np.ndarray:
+    """``patient_from_template`` for a template that sits on the obturator (or a vaginal cylinder ROI).
+
+    The obturator axis is the principal axis of its contour points; its cranial end (larger patient z,
+    the end inside the patient) is the tip, half a contour spacing beyond the last contour. The template
+    plane is ``depth_mm`` behind the tip along the axis (how far the obturator is inserted beyond the
+    template; 60 mm is our documented default, the
+    vaginal length of the phantom); template ``+z`` points along the axis into the patient; the in-plane
+    orientation is that of :func:`pose_from_axis`.
+
+    Returns
+    -------
+    patient_from_template : (4, 4) float
+    """
+    closed = [c for c in obturator.contours if c.geometric_type == "CLOSED_PLANAR"]
+    pts = np.concatenate([c.points_mm for c in closed]) if closed else np.zeros((0, 3))
+    if len(pts) < 4:
+        raise PlanInputError(f"ROI {obturator.name!r} has too few contour points to find the obturator axis; "
+                             "give the pose with --template-origin/--template-axis or --template-pose")
+    centre = pts.mean(axis=0)
+    axis = _principal_axis(pts)
+    axis = axis if axis[2] >= 0 else -axis
     proj = (pts - centre) @ axis
     # each planar contour stands for a slab one contour spacing thick: the tip is half a spacing beyond
     # the last contour's plane
-    planes = np.unique(np.round([float(np.mean((c.points_mm - centre) @ axis)) for c in obturator.contours], 3))
+    planes = np.unique(np.round([float(np.mean((c.points_mm - centre) @ axis)) for c in closed], 3))
     half = 0.5 * float(np.median(np.diff(planes))) if len(planes) > 1 else 0.0
     tip = centre + axis * (proj.max() + half)
-    origin = tip - axis * depth_mm
-    x = np.array([1.0, 0.0, 0.0]) - axis[0] * axis
-    if np.linalg.norm(x) < 1e-6:
-        raise PlanInputError("the obturator axis is along patient left-right; give patient_from_template explicitly")
-    x /= np.linalg.norm(x)
-    y = np.cross(axis, x)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, axis, origin
-    return m
+    return pose_from_axis(tip - axis * depth_mm, axis)
+
+
+#: Words that name a channel the template sits on (applicator IDs / ROI names, case-insensitive).
+CENTRAL_CHANNEL_WORDS: tuple[str, ...] = ("tandem", "obturator", "cylinder", "intrauterine", "uterine", "iu")
+
+
+def pose_from_channel(path_mm: np.ndarray, dwell_positions_mm: np.ndarray, tandem: bool,
+                      depth_mm: float = 60.0) -> np.ndarray:
+    """``patient_from_template`` from the centre line of a brachy plan's tandem or obturator channel.
+
+    The path is written tip first (Eclipse, Oncentra: ``rtplan_conventions.md`` §7). The template sits on
+    the vaginal obturator, whose axis continues the channel's part outside the uterus (Syed-Neblett: the
+    tandem passes through the obturator's central bore). The reference point is the channel's tip for an
+    obturator/cylinder channel, and for a tandem its most proximal dwell position, ASSUMED to lie at the
+    external cervical os where the obturator tip rests. The axis is the principal axis of the path points at
+    or proximal of the reference point (all points when fewer than two are), pointing toward the tip; the
+    template plane is ``depth_mm`` (the obturator depth, 60 mm by default) behind the reference point; the
+    in-plane orientation is that of :func:`pose_from_axis`.
+
+    Parameters
+    ----------
+    path_mm : (k, 3) float, mm, LPS, tip first
+    dwell_positions_mm : (n, 3) float, mm, LPS (may be empty)
+    tandem : whether the channel is a tandem (else an obturator or cylinder)
+    """
+    path = np.asarray(path_mm, dtype=float).reshape(-1, 3)
+    if len(path) < 2 or float(np.linalg.norm(path[-1] - path[0])) < 1.0:
+        raise PlanInputError("the channel's centre line is shorter than 1 mm; give the pose with "
+                             "--template-origin/--template-axis or --template-pose")
+    tip = path[0]
+    dwells = np.asarray(dwell_positions_mm, dtype=float).reshape(-1, 3)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    if tandem and len(dwells):
+        # the dwell farthest from the tip along the path
+        d = np.linalg.norm(path[None, :, :] - dwells[:, None, :], axis=2)
+        depth_along = arc[np.argmin(d, axis=1)]
+        ref = dwells[int(np.argmax(depth_along))]
+        ref_arc = float(depth_along.max())
+    else:
+        ref, ref_arc = tip, 0.0
+    part = path[arc >= ref_arc - 1e-9]
+    part = part if len(part) >= 2 and float(np.ptp(part, axis=0).max()) > 1.0 else path
+    axis = _principal_axis(part)
+    if float(np.dot(axis, path[0] - path[-1])) < 0:
+        axis = -axis
+    return pose_from_axis(ref - axis * depth_mm, axis)
+
+
+def pose_from_rtplan(rtplan: RtPlan, structures: StructureSet | None = None, depth_mm: float = 60.0) -> TemplatePose:
+    """The template pose from the obturator (preferred) or tandem channel of a brachy RT Plan.
+
+    The channel is the one whose applicator ID or channel ROI name contains one of
+    :data:`CENTRAL_CHANNEL_WORDS` (obturator/cylinder before tandem); its centre line is the channel ROI's
+    contour in ``structures`` or the plan's catheter sequence, else the dwell positions in order of relative
+    position (from the tip). See :func:`pose_from_channel`.
+
+    Raises
+    ------
+    PlanInputError
+        Another Frame of Reference than ``structures``, no brachy channel, no channel named as a tandem or
+        obturator, or no centre line.
+    """
+    from reachplan.imaging.names import name_key
+    from reachplan.imaging.rtplan import channel_paths
+
+    where = f"RT Plan {Path(rtplan.path).name}"
+    if structures is not None and rtplan.frame_of_reference_uid and structures.frame_of_reference_uid \
+            and rtplan.frame_of_reference_uid != structures.frame_of_reference_uid:
+        raise PlanInputError(f"{where} is in another Frame of Reference than the structure set; give the plan of "
+                             "this case")
+    if not rtplan.channels:
+        raise PlanInputError(f"{where} has no brachy channels to place the template on")
+    roi_names = {r.number: r.name for r in structures.rois} if structures is not None else {}
+
+    def label(c: Channel) -> str:
+        roi = roi_names.get(c.roi_number, "") if c.roi_number is not None else ""
+        parts = [c.applicator_id.strip(), roi.strip()]
+        return " / ".join(dict.fromkeys(x for x in parts if x)) or f"channel {c.number}"
+
+    def kind(c: Channel) -> str | None:
+        keys = [name_key(x) for x in label(c).split(" / ")]
+        if any(w in k for k in keys for w in ("obturator", "cylinder")):
+            return "obturator"
+        if any((w in k if len(w) > 2 else k == w) for k in keys for w in CENTRAL_CHANNEL_WORDS):
+            return "tandem"
+        return None
+
+    kinds = [(kind(c), c) for c in rtplan.channels]
+    chosen = [c for k, c in kinds if k == "obturator"] or [c for k, c in kinds if k == "tandem"]
+    if not chosen:
+        raise PlanInputError(f"{where}: no channel is named as a tandem or obturator (channels: "
+                             f"{', '.join(repr(label(c)) for c in rtplan.channels)}); give the pose with "
+                             "--template-origin/--template-axis or --template-pose")
+    ch = chosen[0]
+    paths = channel_paths(rtplan, structures)
+    if ch.number in paths:
+        path, source = paths[ch.number], "its channel contour"
+    else:
+        order = np.argsort(ch.dwell_relative_mm, kind="stable")
+        path, source = ch.dwell_positions_mm[order], "its dwell positions"
+    tandem = kind(ch) == "tandem"
+    m = pose_from_channel(path, ch.dwell_positions_mm, tandem, depth_mm)
+    ref = "its most proximal dwell (the cervical os, assumed)" if tandem else "its tip"
+    return TemplatePose(m, f"from {where}, channel {ch.number} {label(ch)!r} ({source}; template {depth_mm:g} mm "
+                           f"behind {ref})")

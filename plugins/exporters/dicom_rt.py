@@ -222,8 +222,10 @@ def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetim
     rois: list[tuple[Roi, str]] = []  # (roi, generation algorithm)
     if plan.structure_set is not None:
         numbers = [r.number for r in plan.structure_set.rois]
-        if len(set(numbers)) != len(numbers) or min(numbers, default=1) < 1:
-            raise ExportError("the input structure set has duplicate or non-positive ROI numbers; fix it first")
+        # ROI numbers need only be unique (PS3.3 C.8.8.5); Oncentra/Vitesse starts at 0 (rtplan_conventions.md
+        # §8), so input numbers are kept as they are, 0 included
+        if len(set(numbers)) != len(numbers) or min(numbers, default=0) < 0:
+            raise ExportError("the input structure set has duplicate or negative ROI numbers; fix it first")
         rois += [(r, "") for r in plan.structure_set.rois]
     for number, needle in zip(channel_roi_numbers(plan), plan.needles, strict=True):
         tip_first = Contour(needle.path_mm[::-1], "OPEN_NONPLANAR")

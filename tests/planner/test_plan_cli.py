@@ -31,6 +31,8 @@ def test_plan_from_structures_alone_with_roi_and_point_targets(rtstruct: Path, t
 @pytest.mark.parametrize(("targets", "message"), [
     (["NoSuchOrgan"], "no ROI named 'NoSuchOrgan'"),
     (["1,2,x"], "a point is three numbers"),
+    (["nan,0,0"], "all finite"),
+    (["0,inf,0"], "all finite"),
 ])
 def test_plan_input_errors_are_one_line_exit_2(rtstruct: Path, tmp_path: Path, targets: list[str], message: str,
                                                capsys: pytest.CaptureFixture[str]) -> None:

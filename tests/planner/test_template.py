@@ -50,3 +50,56 @@ def test_template_pose_from_the_phantom_obturator_matches_the_phantom(tmp_path) 
     ss = read_rtstruct(write_phantom(tmp_path / "p").rtstruct_path)
     np.testing.assert_allclose(pose_from_obturator(ss.get("Obturator")), phantom_spec().patient_from_template,
                                atol=0.05)
+
+
+def _check_frame(m: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> None:
+    r = m[:3, :3]
+    np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    np.testing.assert_allclose(m[:3, 2], axis / np.linalg.norm(axis), atol=1e-12)
+    np.testing.assert_allclose(m[:3, 3], origin, atol=1e-12)
+
+
+def test_pose_from_axis_is_rigid_and_keeps_the_patients_left_on_template_x() -> None:
+    from reachplan.planner.geometry.template import pose_from_axis
+
+    np.testing.assert_allclose(pose_from_axis((0, 0, 0), (0, 0, 5)), np.eye(4), atol=1e-12)
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        origin, axis = rng.normal(size=3) * 50, rng.normal(size=3)
+        m = pose_from_axis(origin, axis)
+        _check_frame(m, origin, axis)
+        z = axis / np.linalg.norm(axis)
+        if abs(z[0]) < np.cos(np.radians(10)):
+            # template +x is the patient's left projected on the template plane
+            left = np.array([1.0, 0, 0]) - z[0] * z
+            np.testing.assert_allclose(m[:3, 0], left / np.linalg.norm(left), atol=1e-12)
+    # an axis along left-right: template +y is the patient's posterior
+    m = pose_from_axis((1, 2, 3), (-1, 0, 0))
+    _check_frame(m, np.array([1.0, 2, 3]), np.array([-1.0, 0, 0]))
+    np.testing.assert_allclose(m[:3, 1], [0, 1, 0], atol=1e-12)
+    for bad in [((0, 0, 0), (0, 0, 0)), ((0, np.nan, 0), (0, 0, 1)), ((0, 0), (0, 0, 1))]:
+        with pytest.raises(PlanInputError):
+            pose_from_axis(*bad)
+
+
+def test_pose_from_a_straight_obturator_channel_and_a_bent_tandem() -> None:
+    from reachplan.planner.geometry.template import pose_from_channel
+
+    d = np.array([0.0, -0.4, 1.0]) / np.linalg.norm([0.0, -0.4, 1.0])  # insertion direction
+    tip = np.array([3.0, -20.0, 40.0])
+    obturator = tip - np.outer(np.linspace(0, 120, 25), d)  # tip first
+    m = pose_from_channel(obturator, np.zeros((0, 3)), tandem=False, depth_mm=60.0)
+    _check_frame(m, tip - 60.0 * d, d)
+    # a tandem: straight through the vagina and cervix along d up to the os, then bent 30 degrees forward in
+    # the uterus; loaded from the os (last dwell) to the tip
+    os_ = np.array([0.0, 10.0, -20.0])
+    bend = np.array([0.0, -np.sin(np.radians(30)), np.cos(np.radians(30))])
+    uterine = os_ + np.outer(np.linspace(60, 0, 13), bend)  # tip ... os
+    vaginal = os_ - np.outer(np.linspace(5, 150, 30), d)
+    path = np.vstack([uterine, vaginal])
+    dwells = uterine[::2]
+    m = pose_from_channel(path, dwells, tandem=True, depth_mm=55.0)
+    _check_frame(m, os_ - 55.0 * d, d)
+    with pytest.raises(PlanInputError, match="shorter than 1 mm"):
+        pose_from_channel(np.zeros((3, 3)), dwells, tandem=True)
