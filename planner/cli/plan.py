@@ -18,6 +18,7 @@ HELP = "rank template holes, stylet designs and tension schedules for targets; w
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the input, target, template, design, dose and output options."""
     parser.add_argument("--ct", type=Path, help="CT/MR series folder (optional: organs from contours suffice)")
     parser.add_argument("--rtstruct", type=Path, required=True, help="RT Structure Set file")
     parser.add_argument("--targets", nargs="+", required=True, metavar="ROI_OR_POINT",
@@ -50,6 +51,7 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Read the case, plan the targets and write the files into ``--out``; return 0."""
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.rtstruct import read_rtstruct
 
@@ -73,8 +75,10 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
              config: PlanConfig, out: Path, quiet: bool, *, export: bool = True, source: str = "gammamed_plus_hdr",
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
              extra: dict[str, object] | None = None) -> dict[str, object]:
-    """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan
-    document."""
+    """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html).
+
+    Returns the plan document.
+    """
     from tqdm import tqdm
 
     from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
