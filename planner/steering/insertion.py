@@ -85,7 +85,7 @@ class ModelInfo:
     def of(insertion: str, model: object, rod_model: RodModel | None = None) -> ModelInfo:
         """Return the info of an insertion model ``model`` (a dataclass) named ``insertion`` on ``rod_model``.
 
-        Its settings are its scalar fields, and the rod model's prefixed ``rod_model.``.
+        The settings are ``model``'s scalar fields, then the rod model's prefixed ``rod_model.``.
         """
         settings = _scalar_fields(model)
         if rod_model is None:
