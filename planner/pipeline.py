@@ -95,8 +95,9 @@ class PlanConfig:
 
     @cached_property
     def rod_designs(self) -> tuple[RodDesign, ...]:
-        """The stylet designs of ``designs``, resolved once from their preset names (the candidates carry these
-        objects).
+        """The stylet designs of ``designs``, resolved once from their preset names.
+
+        The candidates carry these objects.
 
         Raises
         ------
@@ -108,8 +109,10 @@ class PlanConfig:
 
 @dataclass(frozen=True)
 class PlanModels:
-    """The insertion models a plan uses, resolved once per plan (:meth:`for_config` looks the screening rod model
-    up in the plugin registry; nothing below the pipeline looks plugins up).
+    """The insertion models a plan uses, resolved once per plan.
+
+    :meth:`for_config` looks the screening rod model up in the plugin registry; nothing below the pipeline looks
+    plugins up.
 
     ``screening`` screens every schedule of the family; ``reference`` re-solves the shortlist
     (``PlanConfig.refine_top``); ``robustness`` re-evaluates the shortlist under the perturbations.
@@ -121,7 +124,7 @@ class PlanModels:
 
     @classmethod
     def for_config(cls, config: PlanConfig) -> PlanModels:
-        """The default models, with the screening model of ``config`` (:func:`screening_model`)."""
+        """Return the default models, with the screening model of ``config`` (:func:`screening_model`)."""
         return cls(screening=screening_model(config))
 
 
@@ -152,15 +155,16 @@ class PlanResult:
     config: PlanConfig
 
     def rerank(self, weights: RankWeights) -> PlanResult:
-        """The same candidates in the order of other weights (nothing is re-solved)."""
+        """Return the same candidates in the order of other weights (nothing is re-solved)."""
         return PlanResult(self.candidates, rank(self.candidates, weights), dataclasses.replace(self.config,
                                                                                               weights=weights))
 
     def best(self, target: str, steered: bool) -> Candidate | None:
-        """The best-ranked feasible straight (or steered) candidate of a target, if any."""
+        """Return the best-ranked feasible straight (or steered) candidate of a target, if any."""
         return next((c for c in self.ranking[target] if c.feasible and c.steered == steered), None)
 
     def to_json(self) -> dict[str, object]:
+        """Return the configuration and, per target, the ranked candidates as JSON-ready values (mm, N, LPS)."""
         targets: dict[str, object] = {}
         for t, cands in self.ranking.items():
             front = {id(c) for c in pareto_front(cands)}
@@ -179,7 +183,7 @@ class PlanResult:
 
 
 def load_template(name: str) -> Template:
-    """A template layout from the plugin registry."""
+    """Load a template layout from the plugin registry."""
     factory = registry.get("templates", name)
     template = factory()
     if not isinstance(template, Template):
@@ -308,8 +312,10 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
 
 def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, float], ...],
                     default_pa: float = TISSUE_BEAM.tissue_modulus_pa) -> tuple[np.ndarray, np.ndarray] | None:
-    """Tissue modulus along a needle path: ``(depth_mm, modulus_pa)`` from the organ each point lies in
-    (the first of ``moduli`` that contains it), ``default_pa`` elsewhere; None when ``moduli`` is empty.
+    """Return the tissue modulus along a needle path, ``(depth_mm, modulus_pa)``; None when ``moduli`` is empty.
+
+    The modulus of the organ each point lies in (the first of ``moduli`` that contains it), ``default_pa``
+    elsewhere.
 
     Raises
     ------
@@ -336,8 +342,10 @@ def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, 
 
 def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig,
                      model: KinematicInsertion = KINEMATIC) -> list[Candidate]:
-    """Robustness of the ``config.robust_top`` best feasible straight and steered candidates per target, with
-    ``model``; a candidate whose assessment fails is marked failed with the reason."""
+    """Assess the robustness of the ``config.robust_top`` best feasible straight and steered candidates per target.
+
+    With ``model``; a candidate whose assessment fails is marked failed with the reason.
+    """
     if config.robust_top <= 0:
         return cands
     targets = {t.name: t for t in scene.targets}
@@ -365,8 +373,10 @@ def _template_offsets(scene: Scene, target: Target) -> np.ndarray:
 
 
 def screening_model(config: PlanConfig) -> KinematicInsertion:
-    """The kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm`` (looked
-    up in the plugin registry)."""
+    """Return the kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm``.
+
+    The rod model is looked up in the plugin registry.
+    """
     from reachplan.rod_model.select import Scene as RodScene
     from reachplan.rod_model.select import select_model
 
@@ -377,8 +387,9 @@ def screening_model(config: PlanConfig) -> KinematicInsertion:
 def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: PlanConfig,
                        skip: frozenset[str] | set[str] = frozenset(),
                        model: KinematicInsertion | None = None) -> list[Candidate]:
-    """One steered candidate per hole (holes in ``skip`` excluded), screened with ``model`` (default
-    :func:`screening_model` of ``config``).
+    """Return one steered candidate per hole (holes in ``skip`` excluded), screened with ``model``.
+
+    ``model`` defaults to :func:`screening_model` of ``config``.
 
     Among the bank's schedules that reach the target, the gentlest (lowest peak tension, then smallest
     reach error) that clears every organ is kept, trying at most ``config.alternatives``; when none is
@@ -418,10 +429,12 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
 
 def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: list[Candidate],
                      config: PlanConfig, reference: TissueBeamInsertion = TISSUE_BEAM) -> list[Candidate]:
-    """Re-solve the best feasible steered candidates with the ``reference`` model until the top
-    ``config.refine_top`` feasible ones all carry the reference's numbers (at most ``refine_top + 4`` solves:
-    a refined candidate that no longer reaches, or that the reference fails to solve (marked failed, with the
-    reason), drops down and the next one is refined)."""
+    """Re-solve the best feasible steered candidates with the ``reference`` model.
+
+    It stops when the top ``config.refine_top`` feasible ones all carry the reference's numbers (at most
+    ``refine_top + 4`` solves: a refined candidate that no longer reaches, or that the reference fails to solve
+    (marked failed, with the reason), drops down and the next one is refined).
+    """
     rel_all = _template_offsets(scene, target)
     index = {h.hole_id: i for i, h in enumerate(scene.template.needle_holes)}
     holes = {h.hole_id: h for h in scene.template.needle_holes}
@@ -458,8 +471,10 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
 
 def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str,
                         oar_names: Sequence[str]) -> PlanningStructures:
-    """The target and organs at risk (bone excluded) as masks for dose: on ``grid`` (the CT's), or without
-    a CT on a 2 mm grid on the contours' own slices that holds the target and every organ.
+    """Return the target and organs at risk (bone excluded) as masks for dose.
+
+    On ``grid`` (the CT's), or without a CT on a 2 mm grid on the contours' own slices that holds the target and
+    every organ.
 
     Raises
     ------
@@ -505,8 +520,10 @@ DEFAULT_AIR_KERMA_U = 40_700.0
 
 @dataclass(frozen=True, eq=False)
 class Delivery:
-    """Chosen needles with optimised dwell times, ready for the exporters; ``source`` the TG-43 data set the
-    dwell times were optimised with."""
+    """Chosen needles with optimised dwell times, ready for the exporters.
+
+    ``source``: the TG-43 data set the dwell times were optimised with.
+    """
 
     needles: tuple[Candidate, ...]
     optimisation: OptimisationResult
@@ -526,8 +543,10 @@ def plan_delivery(
     volume: Volume | None = None,
     input_paths: Sequence[Path] = (),
 ) -> Delivery:
-    """Choose needles, optimise their dwell times on the target (TG-43, EMBRACE II aims) and assemble the
-    export plan (RT Plan + RT Structure Set + device instructions).
+    """Choose needles, optimise their dwell times on the target and assemble the export plan.
+
+    Dose by TG-43 against the EMBRACE II aims; the export plan holds RT Plan + RT Structure Set + device
+    instructions.
 
     Raises
     ------
@@ -561,12 +580,12 @@ def plan_delivery(
 
 
 def rod_model_capabilities() -> dict[str, Capabilities]:
-    """What every loadable rod-model plugin can represent, by name (the selector's input)."""
+    """Return what every loadable rod-model plugin can represent, by name (the selector's input)."""
     return {name: registry.get("rod_models", name).capabilities for name in registry.names("rod_models")}
 
 
 def rod_model(name: str) -> RodModel:
-    """The rod-model plugin called ``name``.
+    """Return the rod-model plugin called ``name``.
 
     Raises
     ------
@@ -578,7 +597,7 @@ def rod_model(name: str) -> RodModel:
 
 
 def get_source(name: str) -> SourceData:
-    """The TG-43 data set ``name`` through the plugin registry (built-ins as fallback).
+    """Return the TG-43 data set ``name`` through the plugin registry (built-ins as fallback).
 
     Raises
     ------
@@ -612,8 +631,10 @@ def recognise_source(*labels: str) -> str | None:
 
 
 def rod_model_errors() -> tuple[ErrorRow, ...]:
-    """The measured rod-model error table (the rod-model benchmark's, packaged) for the report's
-    speed-versus-accuracy section; () when it is not available."""
+    """Return the measured rod-model error table (the rod-model benchmark's, packaged); () when not available.
+
+    For the report's speed-versus-accuracy section.
+    """
     from reachplan.rod_model.select import error_table
 
     try:

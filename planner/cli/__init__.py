@@ -28,6 +28,7 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """Return the ``reachplan`` parser with one sub-command per module of :data:`COMMAND_MODULES`."""
     parser = argparse.ArgumentParser(
         prog="reachplan",
         description="Pre-plan steered needle paths for interstitial gynecologic brachytherapy.",
@@ -42,6 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command in ``argv`` (default: the process's) and return its exit code.
+
+    A :class:`ReachplanError` becomes one line on stderr and its ``exit_code`` (2); Ctrl-C gives 130.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -13,12 +13,14 @@ HELP = "write the built-in phantom as DICOM, read it back, plan needles; write p
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--out``, ``--quiet`` and ``--json``."""
     parser.add_argument("--out", type=Path, required=True, help="output folder (created; phantom in OUT/phantom)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print the ranking as JSON on stdout")
 
 
 def run(args: argparse.Namespace) -> int:
+    """Write the phantom, read it back and plan it into ``--out``; return the exit code (0)."""
     from tqdm import tqdm
 
     from reachplan.imaging.dicom_io import read_series

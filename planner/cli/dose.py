@@ -20,6 +20,7 @@ HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary ch
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the plan, structure set, grid, source, model and output options."""
     parser.add_argument("--plan", required=True, type=Path, help="brachy RT Plan (RP) file")
     parser.add_argument("--structures", required=True, type=Path, help="RT Structure Set with the channels")
     parser.add_argument("--points", action="store_true", help="report the dose at the plan's dose reference points")
@@ -38,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Recompute the plan's dose with TG-43, write the RT Dose and print the point checks; return 0."""
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.imaging.types import Grid

@@ -12,6 +12,7 @@ HELP = "list the image series, structure sets (with volumes) and brachy plans in
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the path, ``--json`` and ``--synonyms``."""
     parser.add_argument("path", type=Path, help="a DICOM file or a folder (searched recursively)")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     parser.add_argument("--synonyms", type=Path, default=None,
@@ -19,6 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Print what the DICOM file or folder holds (text or JSON); return 0."""
     from reachplan.imaging.inspect import inspect_path
     from reachplan.imaging.names import SynonymTable
 

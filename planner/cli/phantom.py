@@ -12,12 +12,14 @@ HELP = "write the built-in pelvic phantom (CT series + RT Structure Set) as DICO
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--out`` and ``--json``."""
     parser.add_argument("--out", type=Path, required=True,
                         help="output folder (CT in OUT/CT, structures in OUT/RS.phantom.dcm)")
     parser.add_argument("--json", action="store_true", help="print the written paths and the analytic volumes as JSON")
 
 
 def run(args: argparse.Namespace) -> int:
+    """Write the built-in phantom as DICOM and print what was written; return 0."""
     from reachplan.imaging.phantom import phantom_spec, write_phantom
 
     spec = phantom_spec()

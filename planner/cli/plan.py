@@ -28,6 +28,7 @@ HELP = "rank template holes, stylet designs and tension schedules for targets; w
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the ``plan`` options to ``parser``."""
     parser.add_argument("--ct", type=Path, help="CT/MR series folder (optional: organs from contours suffice)")
     parser.add_argument("--rtstruct", type=Path, required=True, help="RT Structure Set file")
     parser.add_argument("--targets", nargs="+", required=True, metavar="ROI_OR_POINT",
@@ -92,8 +93,11 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
 
 
 def read_pose_file(path: Path) -> np.ndarray:
-    """A 4x4 matrix from JSON (a 4x4 list, or an object holding 'patient_from_template' at any depth) or from
-    text (4 rows of 4 numbers separated by spaces or commas). Rigidity is checked by the caller."""
+    """Read a 4x4 template pose.
+
+    The file holds JSON (a 4x4 list, or an object holding 'patient_from_template' at any depth) or text (4 rows
+    of 4 numbers separated by spaces or commas). Rigidity is checked by the caller.
+    """
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -119,7 +123,7 @@ def read_pose_file(path: Path) -> np.ndarray:
 
 
 def template_pose(args: argparse.Namespace, structures: StructureSet, config: PlanConfig) -> TemplatePose | None:
-    """The pose asked for on the command line (None: fit it to the Obturator ROI)."""
+    """Return the pose asked for on the command line (None: fit it to the Obturator ROI)."""
     from reachplan.planner.geometry.template import TemplatePose, pose_from_axis, pose_from_rtplan
 
     given = [n for n, v in (("--template-origin/--template-axis", args.template_origin or args.template_axis),
@@ -153,7 +157,7 @@ def template_pose(args: argparse.Namespace, structures: StructureSet, config: Pl
 
 
 def _names(args: argparse.Namespace, config: PlanConfig) -> tuple[SynonymTable, dict[str, str], PlanConfig]:
-    """The synonym table, the hand mapping ROI name -> organ (``--oar``) and the config with added organs."""
+    """Return the synonym table, the hand mapping ROI name -> organ (``--oar``) and the config with added organs."""
     from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
 
     table = SynonymTable.from_csv(args.synonyms) if args.synonyms else DEFAULT_SYNONYMS
@@ -175,6 +179,7 @@ def _names(args: argparse.Namespace, config: PlanConfig) -> tuple[SynonymTable, 
 
 
 def run(args: argparse.Namespace) -> int:
+    """Plan a case from the command line; returns the exit code."""
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct

@@ -11,6 +11,7 @@ HELP = "list installed plugins (rod models, insertion models, templates, sources
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--kind`` and ``--json``."""
     from reachplan.plugins.registry import KINDS
 
     parser.add_argument("--kind", choices=KINDS, help="only this kind of plugin")
@@ -18,6 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Print the installed plugins and whether they load; return 0."""
     from reachplan.plugins import registry
 
     infos = registry.info(args.kind)

@@ -19,6 +19,7 @@ class RodArgumentError(ReachplanError):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the preset, tension, model, roll and ``--json`` options."""
     parser.add_argument("--preset", required=True, help=f"design preset, e.g. {', '.join(PRESET_NAMES)}")
     parser.add_argument("--tension", type=float, help="tension of tendon 0, N")
     parser.add_argument("--tensions", help="comma-separated tensions for a sweep, N (one object per tension)")
@@ -46,6 +47,7 @@ def _tensions(args: argparse.Namespace) -> tuple[list[float], bool]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Solve the preset at each tension and print the shapes; return 0, or 1 when a solve did not converge."""
     values, sweep = _tensions(args)
     design = preset(args.preset)
     if args.model == "auto":

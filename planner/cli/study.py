@@ -19,6 +19,7 @@ COARSE_FAMILY = {"onsets_mm": (0.0, 40.0, 80.0), "ramps_mm": (10.0,), "plateau_f
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the cohort, design, cluster, resume and output options."""
     parser.add_argument("--cases", nargs="+", type=Path, metavar="DIR",
                         help="case folders (each holding an RS*.dcm), or folders of case folders")
     parser.add_argument("--designs", nargs="+", default=["15ga-30j-tip"], metavar="PRESET",
@@ -43,6 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Write a phantom cohort (``--make-cohort``) or run the study and print its summary; return 0."""
     quiet = args.quiet or args.json
     if args.make_cohort is not None:
         from reachplan.planner.study.cohort import make_cohort

@@ -103,6 +103,7 @@ class Dvh:
 
     @property
     def total_cc(self) -> float:
+        """Volume of the whole structure, cm³."""
         return float(self.volume_cc[0])
 
     @property

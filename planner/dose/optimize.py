@@ -428,6 +428,7 @@ class Comparison:
     aims: Aims
 
     def rows(self) -> tuple[ComparisonRow, ...]:
+        """Return one :class:`ComparisonRow` per arm, in the arms' order."""
         out = []
         for a in self.arms:
             t = a.plan.target
@@ -447,7 +448,7 @@ class Comparison:
         return tuple(out)
 
     def format_table(self) -> str:
-        """The table as aligned text (EQD2 totals)."""
+        """Return the table as aligned text (EQD2 totals)."""
         rows = self.rows()
         organs = [n for n, _ in rows[0].oar_d2cc_eqd2_gy] if rows else []
         head = ["arm", "needles", "needed", "D90 EQD2", "D98 EQD2", "V100 %", *[f"{o} D2cc" for o in organs]]

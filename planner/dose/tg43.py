@@ -122,6 +122,7 @@ class Tg43Kernel:
 
     @property
     def length_cm(self) -> float:
+        """Active length of the source, cm."""
         return self.source.active_length_cm
 
     def rate_per_u(self, r_cm: np.ndarray, cos_theta: np.ndarray, dtype: type = np.float64) -> np.ndarray:
@@ -285,16 +286,17 @@ class DwellSet:
         return len(self.times_s)
 
     def with_times(self, times_s: np.ndarray) -> DwellSet:
-        """The same dwells with other times."""
+        """Return the same dwells with other times (``times_s``: (n,) float, s)."""
         return DwellSet(self.positions_mm, self.directions, times_s, self.channels)
 
     def select(self, mask: np.ndarray) -> DwellSet:
-        """The dwells where ``mask`` (n,) bool is true."""
+        """Return the dwells where ``mask`` (n,) bool is true."""
         m = np.asarray(mask, dtype=bool)
         return DwellSet(self.positions_mm[m], self.directions[m], self.times_s[m], self.channels[m])
 
     @staticmethod
     def concatenate(parts: Iterable[DwellSet]) -> DwellSet:
+        """Join dwell sets in order into one (an empty set when there are none)."""
         ps = list(parts)
         if not ps:
             return DwellSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int))

@@ -1,0 +1,1 @@
+"""Geometry: template pose in the patient, hole frames, and organ clearance and collision (mm, LPS)."""

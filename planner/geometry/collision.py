@@ -32,8 +32,10 @@ class Organ:
     components: tuple[trimesh.Trimesh, ...] = ()  # connected parts, for cheap containment tests
 
     def contains(self, point_mm: np.ndarray) -> bool:
-        """Whether a point ((3,) float, mm, LPS) lies inside the organ (ray parity, only in the connected
-        parts whose bounding box holds the point)."""
+        """Tell whether a point ((3,) float, mm, LPS) lies inside the organ.
+
+        By ray parity, only in the connected parts whose bounding box holds the point.
+        """
         q = np.asarray(point_mm, dtype=float).reshape(1, 3)
         for part in self.components or (self.mesh,):
             lo, hi = part.bounds
@@ -149,8 +151,10 @@ def path_clearance(
 
 
 def _box_gap_mm(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> float:
-    """Distance between two axis-aligned boxes (0 when they overlap): a lower bound on any distance
-    between what they contain."""
+    """Return the distance (mm) between two axis-aligned boxes, 0 when they overlap.
+
+    A lower bound on any distance between what they contain.
+    """
     gap = np.maximum(0.0, np.maximum(lo_a - hi_b, lo_b - hi_a))
     return float(np.linalg.norm(gap))
 

@@ -125,7 +125,7 @@ def select_oars(structures: StructureSet, oar_names: Sequence[str],
 
 
 def roi_points(roi: Roi) -> np.ndarray:
-    """The points of a target ROI made only of POINT contours.
+    """Return the points of a target ROI made only of POINT contours.
 
     Returns
     -------

@@ -67,6 +67,7 @@ class TemplatePose:
         object.__setattr__(self, "patient_from_template", m)
 
     def to_json(self) -> dict[str, object]:
+        """Return the pose as JSON-ready values (method, 4x4 ``patient_from_template``, mm, LPS)."""
         return {"method": self.method,
                 "patient_from_template": [[round(float(v), 6) for v in row] for row in self.patient_from_template]}
 
@@ -111,7 +112,7 @@ def pose_from_axis(origin_mm: np.ndarray | tuple[float, float, float],
 
 
 def _principal_axis(pts: np.ndarray) -> np.ndarray:
-    """Unit principal direction of ``(n, 3)`` points (sign arbitrary)."""
+    """Return the unit principal direction of ``(n, 3)`` points (sign arbitrary)."""
     centre = pts.mean(axis=0)
     _, _, vt = np.linalg.svd(pts - centre, full_matrices=False)
     return np.asarray(vt[0], dtype=float)
@@ -195,7 +196,7 @@ def pose_from_channel(path_mm: np.ndarray, dwell_positions_mm: np.ndarray, tande
 
 
 def pose_from_rtplan(rtplan: RtPlan, structures: StructureSet | None = None, depth_mm: float = 60.0) -> TemplatePose:
-    """The template pose from the obturator (preferred) or tandem channel of a brachy RT Plan.
+    """Find the template pose from the obturator (preferred) or tandem channel of a brachy RT Plan.
 
     The channel is the one whose applicator ID or channel ROI name contains one of
     :data:`CENTRAL_CHANNEL_WORDS` (obturator/cylinder before tandem); its centre line is the channel ROI's

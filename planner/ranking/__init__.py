@@ -1,5 +1,8 @@
-"""Ranking of candidates (:class:`~reachplan.planner.steering.candidates.Candidate`): per-target order,
-weights and the Pareto front."""
+"""Ranking of candidates: per-target order, weights and the Pareto front.
+
+The candidates are :class:`~reachplan.planner.steering.candidates.Candidate` objects; ranking only reorders them
+and never re-solves a needle.
+"""
 
 from __future__ import annotations
 
@@ -14,9 +17,9 @@ from reachplan.planner.steering.candidates import Candidate
 
 @dataclass(frozen=True)
 class RankWeights:
-    """Weights of the feasible candidates' order (lower score ranks first); changing them re-ranks without
-    re-solving anything.
+    """Weights of the feasible candidates' order (lower score ranks first).
 
+    Changing them re-ranks without re-solving anything.
     ``score = hole_distance_mm·per_mm_from_centre + peak_tension_n·per_newton + reach_error_mm·per_mm_reach
     − min(clearance_mm, clearance_cap_mm)·per_mm_clearance + steered·steering_cost``. Defaults: 1 per mm from
     the centre (medial entry), 1 per newton, 2 per mm of reach error, 1 per mm of clearance up to 5 mm
@@ -40,6 +43,7 @@ class RankWeights:
                 raise ValueError(f"rank weight {k} must be a finite number >= 0, got {v}")
 
     def score(self, c: Candidate) -> float:
+        """Return the score of ``c`` (lower ranks first), with the worst-case clearance and reach when assessed."""
         nominal = c.clearance_mm if np.isfinite(c.clearance_mm) else 0.0
         worst = c.worst_clearance_mm if np.isfinite(c.worst_clearance_mm) else nominal
         clear = min(nominal, worst, self.clearance_cap_mm)  # the worst case when assessed
@@ -51,10 +55,12 @@ class RankWeights:
 
 
 def rank_key(c: Candidate, weights: RankWeights = RankWeights()) -> tuple[float, ...]:
-    """Feasible candidates first, by :class:`RankWeights` score. Then the infeasible ones, most
-    informative first: those that reach but collide, by reach error, then those that miss, by reach error,
-    then those a model failed to solve.
-    Ties keep a fixed order (by hole id, then design, applied in :func:`rank`): the ranking is deterministic."""
+    """Return the sort key of ``c``: feasible candidates first, by :class:`RankWeights` score.
+
+    Then the infeasible ones, most informative first: those that reach but collide, by reach error, then those
+    that miss, by reach error, then those a model failed to solve.
+    Ties keep a fixed order (by hole id, then design, applied in :func:`rank`): the ranking is deterministic.
+    """
     clear = -round(c.clearance_mm, 6) if np.isfinite(c.clearance_mm) else 0.0
     if c.feasible:  # assessed candidates (the shortlist) first: their score carries the robustness term
         return (0, 0 if np.isfinite(c.worst_reach_mm) else 1, round(weights.score(c), 6),
@@ -73,7 +79,7 @@ def rank(candidates: Iterable[Candidate], weights: RankWeights = RankWeights()) 
 
 
 def pareto_front(candidates: Iterable[Candidate]) -> tuple[Candidate, ...]:
-    """The feasible candidates not dominated in (hole distance ↓, reach error ↓, clearance ↑)."""
+    """Return the feasible candidates not dominated in (hole distance ↓, reach error ↓, clearance ↑)."""
     feas = [c for c in candidates if c.feasible]
     pts = np.array([[c.hole_distance_mm, c.reach_error_mm, -c.clearance_mm] for c in feas]).reshape(-1, 3)
     keep = [i for i in range(len(feas))

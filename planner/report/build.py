@@ -28,7 +28,7 @@ from reachplan.rod_model.select import ErrorRow
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
-    """The best ``n_per_target`` feasible candidates of every target."""
+    """Return the best ``n_per_target`` feasible candidates of every target."""
     return [c for cs in result.ranking.values() for c in [c for c in cs if c.feasible][:n_per_target]]
 
 
@@ -91,12 +91,14 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
                    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
                    settings: OptimizerSettings = COMPARISON_SETTINGS,
                    planning: PlanningStructures | None = None) -> Comparison | None:
-    """Straight versus steered dose: each arm gets the per-target best needle of its kind
-    (:func:`~reachplan.planner.pipeline.choose_needles`), optimised the same way
-    (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm with no feasible needle is left out; None
-    when both are empty. ``planning``: the delivery's structures, when already built (else
+    """Compare straight and steered dose with the per-target best needle of each kind.
+
+    Each arm gets the per-target best needle of its kind (:func:`~reachplan.planner.pipeline.choose_needles`),
+    optimised the same way (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm with no feasible needle
+    is left out; None when both are empty. ``planning``: the delivery's structures, when already built (else
     :func:`reachplan.planner.pipeline.planning_structures` builds them). ``source``: the TG-43 data set (the
-    delivery's, :attr:`~reachplan.planner.pipeline.Delivery.source`)."""
+    delivery's, :attr:`~reachplan.planner.pipeline.Delivery.source`).
+    """
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
     arms = [(name, [c.path_mm for c in choose_needles(result, steered=steered)])
@@ -115,8 +117,10 @@ def _f(v: float, digits: int = 1) -> str:
 
 
 def models_used(result: PlanResult) -> dict[str, str]:
-    """What each rod model did in this plan, by rod model name (from the candidates' models),
-    e.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``."""
+    """Say what each rod model did in this plan, by rod model name (from the candidates' models).
+
+    E.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``.
+    """
     from reachplan.planner.steering.insertion import TISSUE_BEAM
 
     counts: dict[tuple[str, str], int] = {}
@@ -394,8 +398,9 @@ def report_html(scene: Scene, result: PlanResult, structures: StructureSet, *, v
                 source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
                 options: ReportOptions | None = None, quiet: bool = True, overview_png: bytes | None = None,
                 workspace_png: bytes | None = None, model_errors: Sequence[ErrorRow] = ()) -> str:
-    """Compare straight and steered needles (when a delivery was made), build the report and render it: one
-    self-contained HTML document, returned as text for the caller to write.
+    """Compare straight and steered needles, build the report and render it as one self-contained HTML document.
+
+    The comparison runs when a delivery was made; the document is returned as text for the caller to write.
 
     ``overview_png``, ``workspace_png``: the overview (:func:`reachplan.planner.report.figures.overview`) and
     workspace (:func:`reachplan.planner.report.workspace.workspace_figure`) figures, embedded in the case

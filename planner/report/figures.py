@@ -51,7 +51,7 @@ def organ_colour(name: str) -> str:
 
 
 def _section(mesh: trimesh.Trimesh, axis: int, value_mm: float) -> list[np.ndarray]:
-    """Closed loops (each (n, 3) float, mm, LPS) where the plane ``x[axis] = value_mm`` cuts ``mesh``."""
+    """Return the closed loops (each (n, 3) float, mm, LPS) where the plane ``x[axis] = value_mm`` cuts ``mesh``."""
     lo, hi = mesh.bounds[:, axis]
     if not lo < value_mm < hi:
         return []
@@ -64,7 +64,7 @@ def _section(mesh: trimesh.Trimesh, axis: int, value_mm: float) -> list[np.ndarr
 
 
 def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float) -> None:
-    """The image slice of ``volume`` at ``x[axis] = value_mm`` (axis-aligned grids only) in grey."""
+    """Draw the image slice of ``volume`` at ``x[axis] = value_mm`` (axis-aligned grids only) in grey."""
     if volume is None:
         return
     m = volume.grid.patient_from_index
@@ -141,8 +141,11 @@ def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: 
 
 
 def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None = None) -> bytes:
-    """Axial slice at the targets' mean height and the mid-sagittal slice (x = 0 mm), with organ outlines, the
-    target points (green crosses) and ``needles`` (steered: solid cyan, straight: dashed orange)."""
+    """Draw the axial slice at the targets' mean height and the mid-sagittal slice (x = 0 mm) as PNG bytes.
+
+    With organ outlines, the target points (green crosses) and ``needles`` (steered: solid cyan, straight: dashed
+    orange).
+    """
     points = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)
     tz = float(np.mean(points[:, 2]))
     fig = Figure(figsize=(12, 6))
@@ -172,8 +175,10 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
 
 
 def coarse_mesh(mesh: trimesh.Trimesh, pitch_mm: float = 4.0) -> trimesh.Trimesh:
-    """A light version of a closed mesh for 3-D drawing: voxelised at ``pitch_mm``, filled and re-meshed
-    by marching cubes (mm, LPS; a few thousand faces for an organ)."""
+    """Return a light version of a closed mesh for 3-D drawing.
+
+    Voxelised at ``pitch_mm``, filled and re-meshed by marching cubes (mm, LPS; a few thousand faces for an organ).
+    """
     vox = mesh.voxelized(pitch=pitch_mm).fill()
     out = vox.marching_cubes
     out.apply_transform(vox.transform)
@@ -188,8 +193,9 @@ VIEWS_3D: tuple[tuple[float, float, str], ...] = (
 
 def views_3d(scene: Scene, needles: Sequence[Candidate], organs: Sequence[str] | None = None,
              pitch_mm: float = 4.0, meshes: Mapping[str, trimesh.Trimesh] | None = None) -> bytes:
-    """Organs, target points (green dots) and needles in 3-D from three angles (steered solid cyan,
-    straight dashed orange).
+    """Draw organs, target points (green dots) and needles in 3-D from three angles as PNG bytes.
+
+    Steered needles solid cyan, straight dashed orange.
 
     ``organs``: meshes to draw (default: organs at risk without bone, and HR-CTV);
     ``meshes``: pre-coarsened meshes by name (default: :func:`coarse_mesh` of the scene's).
@@ -243,7 +249,7 @@ def views_3d(scene: Scene, needles: Sequence[Candidate], organs: Sequence[str] |
 
 
 def template_map(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> bytes:
-    """The template's holes (mm, template frame) with the holes the chosen needles use."""
+    """Draw the template's holes (mm, template frame) with the holes the chosen needles use, as PNG bytes."""
     fig = Figure(figsize=(6.4, 4.4))
     ax = fig.add_subplot()
     holes = {h.hole_id: h for h in scene.template.holes}
@@ -304,5 +310,5 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
 
 
 def dvh_png(comparison: Any) -> bytes:
-    """The DVH figure of a :class:`reachplan.planner.dose.optimize.Comparison` as PNG bytes."""
+    """Render the DVH figure of a :class:`reachplan.planner.dose.optimize.Comparison` as PNG bytes."""
     return png_bytes(comparison.figure(), dpi=90)

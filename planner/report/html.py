@@ -157,7 +157,7 @@ def _block(b: Block) -> str:
 
 
 def render_html(report: Report, footer: str = "") -> str:
-    """The report as one self-contained HTML5 document (no script, no external resource)."""
+    """Render the report as one self-contained HTML5 document (no script, no external resource)."""
     nav = "".join(f'<a href="#{s.anchor}">{_e(s.title)}</a>' for s in report.sections)
     sections = "\n".join(
         f'<section id="{s.anchor}"><h2>{_e(s.title)}</h2>{"".join(_block(b) for b in s.blocks)}</section>'

@@ -13,9 +13,12 @@ from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
 
 
 def workspace_figure(scene: Scene, config: PlanConfig, depth_mm: float | None = None) -> bytes:
-    """Axial map, in the template plane's coordinates at ``depth_mm`` beyond it (default: the targets' mean
-    depth): every needle hole with the disk its needle reaches there (first design of ``config``), the
-    targets, and the organs' outlines at that depth. Returns PNG bytes."""
+    """Draw the reachable-workspace map at ``depth_mm`` beyond the template plane as PNG bytes.
+
+    An axial map in the template plane's coordinates (mm) at ``depth_mm`` (default: the targets' mean depth):
+    every needle hole with the disk its needle reaches there (first design of ``config``), the targets, and the
+    organs' outlines at that depth.
+    """
     inv = np.linalg.inv(scene.patient_from_template)
     t_local = np.array([inv[:3, :3] @ np.asarray(t.position_mm) + inv[:3, 3] for t in scene.targets])
     depth = float(np.mean(t_local[:, 2])) if depth_mm is None else depth_mm

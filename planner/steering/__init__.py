@@ -1,0 +1,1 @@
+"""Steering: tension schedules, insertion models, candidates (straight and steered), robustness, shape banks."""

@@ -109,7 +109,7 @@ class Candidate:
         return "" if self.design is None else self.design.name
 
     def to_json(self) -> dict[str, Any]:
-        """The candidate as JSON-ready values (mm, N)."""
+        """Return the candidate as JSON-ready values (mm, N, LPS)."""
         sched = None if self.schedule is None else [
             [round(float(d), 3), round(float(t), 3), round(float(r), 3)]
             for d, t, r in zip(self.schedule.depth_mm, self.schedule.tension_n, self.schedule.roll_deg, strict=True)]
@@ -141,14 +141,18 @@ class Candidate:
 
 
 def mark_failed(candidate: Candidate, reason: str) -> Candidate:
-    """The candidate marked as failed (not feasible) with ``reason`` added to its reasons; its numbers stay
-    those of the model that did solve it (``model`` names it)."""
+    """Return the candidate marked as failed (not feasible) with ``reason`` added to its reasons.
+
+    Its numbers stay those of the model that did solve it (``model`` names it).
+    """
     return dataclasses.replace(candidate, failed=True, reason="; ".join(r for r in (candidate.reason, reason) if r))
 
 
 def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float) -> np.ndarray:
-    """A straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``: (2, 3) float, mm, LPS
-    (one capsule; collision depths are still resolved to 1 mm by the collision check)."""
+    """Return a straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``: (2, 3) float, mm, LPS.
+
+    One capsule; collision depths are still resolved to 1 mm by the collision check.
+    """
     return np.asarray(entry_mm, float) + np.outer([0.0, depth_mm], direction)
 
 

@@ -71,18 +71,22 @@ class ModelInfo:
 
     @property
     def label(self) -> str:
-        """``insertion+rod_model`` (e.g. ``kinematic+planar_beam``), or the insertion name alone: the JSON
-        ``model`` string."""
+        """``insertion+rod_model`` (e.g. ``kinematic+planar_beam``), or the insertion name alone.
+
+        The JSON ``model`` string.
+        """
         return f"{self.insertion}+{self.rod_model}" if self.rod_model else self.insertion
 
     def to_json(self) -> dict[str, Any]:
-        """``{"insertion", "rod_model", "settings": {name: value}}``."""
+        """Return ``{"insertion", "rod_model", "settings": {name: value}}``."""
         return {"insertion": self.insertion, "rod_model": self.rod_model, "settings": dict(self.settings)}
 
     @staticmethod
     def of(insertion: str, model: object, rod_model: RodModel | None = None) -> ModelInfo:
-        """The info of an insertion model ``model`` (a dataclass) named ``insertion`` on ``rod_model``: its
-        scalar fields, and the rod model's prefixed ``rod_model.``."""
+        """Return the info of an insertion model ``model`` (a dataclass) named ``insertion`` on ``rod_model``.
+
+        The settings are ``model``'s scalar fields, then the rod model's prefixed ``rod_model.``.
+        """
         settings = _scalar_fields(model)
         if rod_model is None:
             return ModelInfo(insertion, "", settings)
@@ -91,7 +95,7 @@ class ModelInfo:
 
 
 def _scalar_fields(obj: object) -> tuple[Setting, ...]:
-    """The (name, value) pairs of a dataclass instance's scalar fields; () for anything else."""
+    """Return the (name, value) pairs of a dataclass instance's scalar fields; () for anything else."""
     if not dataclasses.is_dataclass(obj):
         return ()
     pairs = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
@@ -136,10 +140,14 @@ class InsertionModel(Protocol):
     """What the planner needs of an insertion model (entry-point group ``reachplan.insertion_models``)."""
 
     @property
-    def name(self) -> str: ...
+    def name(self) -> str:
+        """The name the model registers under (``InsertionPath.model.insertion``)."""
+        ...
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
-               depth_mm: float) -> list[InsertionPath | FailedInsertion]: ...
+               depth_mm: float) -> list[InsertionPath | FailedInsertion]:
+        """Insert ``design`` to ``depth_mm`` once per schedule: one path or failure per schedule, in order."""
+        ...
 
 
 def check_insertion_model(obj: object) -> None:
@@ -228,15 +236,17 @@ class KinematicInsertion:
 
     @property
     def name(self) -> str:
+        """``"kinematic"``."""
         return "kinematic"
 
     @property
     def info(self) -> ModelInfo:
-        """This model, its rod model and their settings."""
+        """The model that produced a path: this model, its rod model and their settings."""
         return ModelInfo.of(self.name, self, self.rod_model)
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
+        """Insert ``design`` to ``depth_mm`` once per schedule (positions mm, template frame)."""
         paths = self.insert_array(design, schedules, depth_mm)
         return [InsertionPath(p, depth_mm, self.info) for p in paths]
 
@@ -277,8 +287,11 @@ class KinematicInsertion:
 
 
 def _planar_paths(kappa: np.ndarray, phi: np.ndarray, h: float) -> np.ndarray:
-    """Tip-following paths of constant roll: the tangent angle is the running integral of the curvature,
-    each step an exact circular arc (chord along the mid-step tangent). (S, n+1, 3) float, mm."""
+    """Return tip-following paths of constant roll: (S, n+1, 3) float, mm.
+
+    The tangent angle is the running integral of the curvature, each step an exact circular arc (chord along the
+    mid-step tangent).
+    """
     km = 0.5 * (kappa[:, 1:] + kappa[:, :-1])  # (S, n)
     theta = np.concatenate([np.zeros((len(km), 1)), np.cumsum(km * h, axis=1)], axis=1)
     mid = theta[:, :-1] + 0.5 * km * h
@@ -290,8 +303,10 @@ def _planar_paths(kappa: np.ndarray, phi: np.ndarray, h: float) -> np.ndarray:
 
 def winkler_modulus_pa(design: RodDesign, tissue_modulus_pa: float = SIMUGEL_MODULUS_PA,
                        poisson: float = TISSUE_POISSON) -> float:
-    """Subgrade modulus (N/m per m of needle) of a beam of the needle's diameter in an elastic medium
-    (Vesic 1961), using the bending stiffness of the stylet-in-needle tube section."""
+    """Return the subgrade modulus (N/m per m of needle) of a beam of the needle's diameter in an elastic medium.
+
+    Vesic 1961, using the bending stiffness of the stylet-in-needle tube section.
+    """
     if tissue_modulus_pa <= 0 or not (0 <= poisson < 0.5):
         raise PlanInputError("tissue modulus must be > 0 Pa and Poisson's ratio in [0, 0.5)")
     d = design.needle.outer_diameter_mm * 1e-3
@@ -325,15 +340,20 @@ class TissueBeamInsertion:
 
     @property
     def name(self) -> str:
+        """``"tissue_beam"``."""
         return "tissue_beam"
 
     @property
     def info(self) -> ModelInfo:
-        """This model, its rod model and their settings."""
+        """The model that produced a path: this model, its rod model and their settings."""
         return ModelInfo.of(self.name, self, self.rod_model)
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
+        """Insert ``design`` to ``depth_mm`` once per schedule (positions mm, template frame).
+
+        A schedule whose equilibrium system is singular gives a :class:`FailedInsertion` with the reason.
+        """
         label = self.info
         out: list[InsertionPath | FailedInsertion] = []
         for sch in schedules:
@@ -409,8 +429,11 @@ class TissueBeamInsertion:
 
 
 def _cell_average(bounds: np.ndarray, values: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
-    """Average of a piecewise-constant function (``values[i]`` on ``[bounds[i], bounds[i+1])``) over the
-    cells ``[c - h/2, c + h/2]``, so that a jump between sections sits where it is, not on a node."""
+    """Return the average of a piecewise-constant function over the cells ``[c - h/2, c + h/2]``.
+
+    The function is ``values[i]`` on ``[bounds[i], bounds[i+1])``; averaging over cells puts a jump between
+    sections where it is, not on a node.
+    """
     cum = np.concatenate([[0.0], np.cumsum(values * np.diff(bounds))])
 
     def integral(x: np.ndarray) -> np.ndarray:

@@ -24,8 +24,10 @@ from reachplan.planner.steering.schedule import TensionSchedule
 
 @dataclass(frozen=True)
 class Perturbations:
-    """Errors to test: tension × (1 ± ``tension_fraction``), roll ± ``roll_deg``, and the entry direction
-    tilted by ``tilt_deg`` about the two axes of the template plane (both signs)."""
+    """Errors to test: tension × (1 ± ``tension_fraction``), roll ± ``roll_deg`` and an entry tilt of ``tilt_deg``.
+
+    The entry direction is tilted about the two axes of the template plane (both signs).
+    """
 
     tension_fraction: float = 0.10
     roll_deg: float = 10.0
@@ -95,6 +97,6 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
 
 
 def with_robustness(c: Candidate, r: Robustness) -> Candidate:
-    """The candidate carrying its robustness numbers."""
+    """Return the candidate carrying its robustness numbers."""
     return dataclasses.replace(c, worst_reach_mm=r.worst_reach_mm, worst_clearance_mm=r.worst_clearance_mm,
                                worst_case=r.worst_case)

@@ -50,6 +50,7 @@ class TensionSchedule:
 
     @property
     def peak_tension_n(self) -> float:
+        """Largest tendon tension of the schedule, N."""
         return float(self.tension_n.max())
 
     def at(self, depth_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -58,8 +59,13 @@ class TensionSchedule:
         return np.interp(q, self.depth_mm, self.tension_n), np.interp(q, self.depth_mm, self.roll_deg)
 
     def rows(self, step_mm: float, end_mm: float) -> np.ndarray:
-        """Device instructions resampled every ``step_mm`` to ``end_mm``: (n, 3) rows of
-        (depth mm, tension N, roll deg), the breakpoints included."""
+        """Return the device instructions resampled every ``step_mm`` to ``end_mm``.
+
+        Returns
+        -------
+        (n, 3) float
+            Rows of (depth mm, tension N, roll deg), the breakpoints included.
+        """
         if step_mm <= 0 or end_mm < 0:
             raise ValueError("step_mm must be > 0 and end_mm >= 0")
         q = np.union1d(np.arange(0.0, end_mm + 1e-9, step_mm), self.depth_mm[self.depth_mm <= end_mm])
@@ -68,7 +74,7 @@ class TensionSchedule:
 
     @classmethod
     def constant(cls, tension_n: float = 0.0, roll_deg: float = 0.0) -> TensionSchedule:
-        """The same tension and roll from the template on (``tension_n = 0``: a straight needle)."""
+        """Return the same tension and roll from the template on (``tension_n = 0``: a straight needle)."""
         return cls(np.array([0.0]), np.array([tension_n]), np.array([roll_deg]))
 
     @classmethod

@@ -44,6 +44,7 @@ class ScheduleFamily:
             raise ValueError("plateau fractions must be in (0, 1] of the design's maximum tension")
 
     def schedules(self, design: RodDesign, roll_deg: float = 0.0) -> tuple[TensionSchedule, ...]:
+        """Return every onset × ramp × plateau (fraction of ``design``'s maximum tension) ramp at ``roll_deg``."""
         return tuple(TensionSchedule.ramp(o, r, f * design.max_tension_n, roll_deg)
                      for o in self.onsets_mm for r in self.ramps_mm for f in self.plateau_fractions)
 
@@ -123,7 +124,7 @@ def match_targets(bank: ShapeBank, rel_mm: np.ndarray, keep: int = 8) -> list[Ma
 
 def place(shape_mm: np.ndarray, step_mm: float, depth_mm: float, roll_deg: float, entry_xy_mm: np.ndarray,
           patient_from_template: np.ndarray, sample_mm: float = 5.0) -> np.ndarray:
-    """A bank shape cut at ``depth_mm``, rolled by ``roll_deg`` and put at a hole, in the patient.
+    """Cut a bank shape at ``depth_mm``, roll it by ``roll_deg`` and put it at a hole, in the patient.
 
     Returns
     -------
@@ -191,9 +192,11 @@ def refine_with(model: TissueBeamInsertion, design: RodDesign, schedule: Tension
 
 
 def reach_radius_mm(bank: ShapeBank, depths_mm: np.ndarray) -> np.ndarray:
-    """Largest lateral offset (mm) a hole reaches at each depth (mm along its axis), over the bank's
-    schedules and all rolls: the reachable workspace at that depth is a disk of this radius about the
-    hole's axis (organs not considered)."""
+    """Return the largest lateral offset (mm) a hole reaches at each depth (mm along its axis).
+
+    Over the bank's schedules and all rolls: the reachable workspace at that depth is a disk of this radius about
+    the hole's axis (organs not considered). ``depths_mm``: (k,) float; returns (k,) float, mm.
+    """
     xz = bank.shapes_mm[:, :, [0, 2]]
     out = np.zeros(len(depths_mm))
     for i, z in enumerate(np.asarray(depths_mm, float)):

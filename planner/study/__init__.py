@@ -76,7 +76,7 @@ class StudySpec:
         return tuple(StudyTask(c, d, self.targets, self.dose) for c in self.cases for d in self.designs)
 
     def manifest(self) -> dict[str, Any]:
-        """What identifies the study's results (JSON-ready); a resumed study must match it."""
+        """Return what identifies the study's results (JSON-ready); a resumed study must match it."""
         config = dataclasses.asdict(dataclasses.replace(self.config, designs=()))
         return {"version": MANIFEST_VERSION, "cases": {c.case_id: str(c.rtstruct) for c in self.cases},
                 "designs": list(self.designs), "targets": None if self.targets is None else list(self.targets),
@@ -86,9 +86,12 @@ class StudySpec:
 
 @dataclass(frozen=True, eq=False)
 class StudyResult:
-    """A finished study: the consolidated ``table`` (one row per case x design x target, or per failed task
-    whose targets were not known), the per-design ``summaries``, how many tasks there were, how many were
-    already done before this run (``n_resumed``), how many failed, and the wall time of this run (s)."""
+    """A finished study.
+
+    The consolidated ``table`` (one row per case x design x target, or per failed task whose targets were not
+    known), the per-design ``summaries``, how many tasks there were, how many were already done before this run
+    (``n_resumed``), how many failed, and the wall time of this run (s).
+    """
 
     out: Path
     table: pa.Table = field(repr=False)
@@ -203,8 +206,10 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
 
 
 def _client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any:
-    """A ``distributed.Client`` on ``scheduler``, or on a new loopback-only local cluster of worker processes
-    (closed with the client)."""
+    """Connect a ``distributed.Client`` to ``scheduler``, or to a new loopback-only local cluster.
+
+    The local cluster runs worker processes and is closed with the client.
+    """
     try:
         from distributed import Client, LocalCluster
     except ModuleNotFoundError:

@@ -61,7 +61,7 @@ _SCALE = {"Bladder": (0.85, 1.2), "Rectum": (0.85, 1.15), "HR-CTV": (0.85, 1.15)
 
 
 def perturbation(seed: int, index: int) -> Perturbation:
-    """The deterministic perturbation of variant ``index`` (0 = the reference phantom, unperturbed)."""
+    """Return the deterministic perturbation of variant ``index`` (0 = the reference phantom, unperturbed)."""
     if index == 0:
         return Perturbation(seed, 0, (), (), 0.0, 0.0, 1.0)
     rng = np.random.default_rng([seed, index])
@@ -97,7 +97,7 @@ def _structure(s: PhantomStructure, fn: Callable[[Shape], Shape]) -> PhantomStru
 
 
 def perturbed_spec(p: Perturbation, base: PhantomSpec | None = None) -> PhantomSpec:
-    """The phantom ``base`` (default: the built-in one) with perturbation ``p`` applied."""
+    """Return the phantom ``base`` (default: the built-in one) with perturbation ``p`` applied."""
     base = base or phantom_spec()
     shift = {n: (dx, dy) for n, dx, dy in p.shift_xy_mm}
     scale = dict(p.scale)

@@ -26,6 +26,7 @@ _ARROW_TYPES = {"str": "string", "bool": "bool_", "int": "int64", "float": "floa
 
 
 def require_pyarrow() -> None:
+    """Check that pyarrow can be imported; raise :class:`StudyError` saying how to install it if not."""
     try:
         import pyarrow  # noqa: F401
     except ModuleNotFoundError:
@@ -33,7 +34,7 @@ def require_pyarrow() -> None:
 
 
 def schema() -> pa.Schema:
-    """The Arrow schema of :class:`StudyRow` (``X | None`` fields are nullable, the others not)."""
+    """Return the Arrow schema of :class:`StudyRow` (``X | None`` fields are nullable, the others not)."""
     import pyarrow as pa
 
     fields = []
@@ -44,6 +45,7 @@ def schema() -> pa.Schema:
 
 
 def to_table(rows: Sequence[StudyRow]) -> pa.Table:
+    """Return ``rows`` as an Arrow table of :func:`schema`, one row each, in order."""
     import pyarrow as pa
 
     names = [f.name for f in dataclasses.fields(StudyRow)]
@@ -60,6 +62,7 @@ def _write_table(table: pa.Table, path: Path) -> None:
 
 
 def part_path(out: Path, key: str) -> Path:
+    """Return the part file of task ``key`` in the study folder ``out`` (``parts/<key>.parquet``)."""
     return Path(out) / PARTS / f"{key}.parquet"
 
 
@@ -81,6 +84,7 @@ def finished(out: Path) -> dict[str, Path]:
 
 
 def read_parts(paths: Iterable[Path]) -> pa.Table:
+    """Read part files into one Arrow table of :func:`schema` (empty when there are none)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 

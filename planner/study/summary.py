@@ -92,7 +92,7 @@ def summarise(table: pa.Table) -> tuple[DesignSummary, ...]:
 
 
 def write_summary_csv(summaries: Sequence[DesignSummary], path: Path) -> None:
-    """The summary as CSV (empty cells for None), written atomically."""
+    """Write the summary as CSV (empty cells for None), atomically."""
     buf = io.StringIO()
     names = [f.name for f in dataclasses.fields(DesignSummary)]
     w = csv.writer(buf, lineterminator="\n")
@@ -103,7 +103,7 @@ def write_summary_csv(summaries: Sequence[DesignSummary], path: Path) -> None:
 
 
 def format_summary(summaries: Sequence[DesignSummary]) -> str:
-    """A plain-text table: one line per design."""
+    """Return a plain-text table: one line per design."""
     def pct(v: float | None) -> str:
         return "   -" if v is None else f"{100 * v:3.0f}%"
 

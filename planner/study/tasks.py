@@ -126,7 +126,7 @@ def _now() -> str:
 
 
 def failed_rows(task: StudyTask, reason: str) -> tuple[StudyRow, ...]:
-    """The rows recording a failed task: one per requested target (one with target "" when unknown)."""
+    """Return the rows recording a failed task: one per requested target (one with target "" when unknown)."""
     reason = " ".join(reason.split())[:500] or "failed without a message"
     none: dict[str, object] = {f.name: None for f in dataclasses.fields(StudyRow) if str(f.type).endswith("| None")}
     worker, now = _worker_name(), _now()
@@ -143,8 +143,9 @@ _SCENE_LOCK = threading.Lock()
 
 def load_scene(case: Case, targets: tuple[str, ...] | None,
                config: PlanConfig) -> tuple[Scene, StructureSet, float]:
-    """The case's scene and structures from this process's cache (loaded on first use), and the seconds spent
-    loading them (0 when they were cached).
+    """Return the case's scene and structures from this process's cache, and the seconds spent loading them.
+
+    They are loaded on first use; the seconds are 0 when they were cached.
 
     The cache key holds the file's modification time, so an edited case is reloaded, and the configuration
     without its designs (a scene does not depend on them).
@@ -173,8 +174,10 @@ def _num(v: float) -> float:
 
 @dataclass(frozen=True)
 class DoseOutcome:
-    """The dwell-time optimisation of a task's needles: HR-CTV D90 (Gy), whether the aims were met, and why
-    there is no dose when ``d90_gy`` is None."""
+    """The dwell-time optimisation of a task's needles.
+
+    HR-CTV D90 (Gy), whether the aims were met, and why there is no dose when ``d90_gy`` is None.
+    """
 
     d90_gy: float | None
     aim_met: bool | None
@@ -196,7 +199,7 @@ def task_dose(result: PlanResult, structures: StructureSet) -> DoseOutcome:
 
 def rows_from_result(task: StudyTask, result: PlanResult, scene_s: float, plan_s: float,
                      cpu_s: float, dose: DoseOutcome | None = None) -> tuple[StudyRow, ...]:
-    """The task's rows (one per target, in ranking order) from a plan result."""
+    """Return the task's rows (one per target, in ranking order) from a plan result."""
     rows = []
     worker, now = _worker_name(), _now()
     for target, cands in result.ranking.items():
@@ -228,8 +231,9 @@ def rows_from_result(task: StudyTask, result: PlanResult, scene_s: float, plan_s
 
 
 def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
-    """Plan one task as ``reachplan plan --no-export`` would (ranking; with ``task.dose`` also the dwell-time
-    optimisation) and return its rows.
+    """Plan one task as ``reachplan plan --no-export`` would and return its rows.
+
+    The ranking, and with ``task.dose`` also the dwell-time optimisation.
 
     An expected failure (unreadable case, missing ROI, unknown design...) becomes failed rows with the
     reason; anything else propagates (the driver records it as a failure too).
@@ -252,7 +256,7 @@ def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
 
 
 def _rtstruct_in(folder: Path) -> Path | None:
-    """The one RT Structure Set directly in ``folder`` (``RS*.dcm`` first, else any RTSTRUCT .dcm), or None."""
+    """Return the one RT Structure Set directly in ``folder`` (``RS*.dcm`` first, else any RTSTRUCT .dcm), or None."""
     found = sorted(folder.glob("RS*.dcm"))
     if not found:
         from pydicom import dcmread
@@ -270,8 +274,10 @@ def _rtstruct_in(folder: Path) -> Path | None:
 
 
 def discover_cases(paths: Sequence[Path]) -> tuple[Case, ...]:
-    """Cases from folders: a folder holding an RT Structure Set is a case (named after the folder); a folder
-    without one contributes each of its sub-folders that holds one (a cohort folder).
+    """Find the cases in folders.
+
+    A folder holding an RT Structure Set is a case (named after the folder); a folder without one contributes
+    each of its sub-folders that holds one (a cohort folder).
 
     Raises
     ------
