@@ -336,9 +336,10 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
 @_jit
 def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
            fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
-           max_ramp: int, traj: np.ndarray) -> tuple[int, float, int, int]:
-    """Shooting with continuation: try the full load from ``x``; on failure ramp tension and external loads
-    from zero in 4, then 16, ... steps (each step starting from the previous solution). ``x`` is updated in
+           max_ramp: int, traj: np.ndarray, min_ramp: int = 1) -> tuple[int, float, int, int]:
+    """Shooting with continuation: try the full load from ``x`` (when ``min_ramp`` is 1); on failure ramp
+    tension and external loads from zero in ``4 min_ramp``, then ``16 min_ramp``, ... steps (each step starting
+    from the previous solution; ``min_ramp > 1`` starts with a ramp of that many steps). ``x`` is updated in
     place; ``traj`` receives the converged trajectory. Returns (status, residual in N, iterations, ramp steps).
     ``tol`` is relative to the load scale ``1 N + Σλ + |external loads|``."""
     fscale = 1.0
@@ -348,7 +349,7 @@ def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, 
     for i in range(3):
         fscale += abs(ftip[i]) + abs(fext[i]) * length + abs(ltip[i]) / length
     x_start = x.copy()
-    ramp = 1
+    ramp = max(1, min_ramp)
     total_it = 0
     status = NOT_CONVERGED
     res = np.inf
@@ -392,7 +393,7 @@ def batch_free(tensions: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: 
         for q in range(NX):
             x[q] = 0.0
         st, res, _, _ = shoot(x, sec, nsteps, rdir, lam, zero, zero, zero, coupled, tol, max_iter, max_ramp,
-                               traj)
+                               traj, 1)
         status[b] = st
         resid[b] = res
         tips[b, :] = traj[nrow - 1, 0:3]

@@ -75,6 +75,85 @@ def _steps(sec: np.ndarray, steps_per_mm: float) -> np.ndarray:
     return np.array([max(2, math.ceil((b - a) * 1e3 * steps_per_mm)) for a, b in sec[:, :2]], dtype=np.int64)
 
 
+#: With external loads the continuation starts with this many load steps (the direct solve from the
+#: undeformed guess can converge to an unstable branch: e.g. a cantilever bent back against a lateral force).
+EXTERNAL_FIRST_RAMP = 16
+#: ... and refines (x4) up to this many while the equilibrium found is unstable.
+EXTERNAL_MAX_RAMP = 1024
+#: Rows of the shooting state holding the section loads: ``N``, ``M``, ``n2z``, ``m2z``.
+_LOAD_ROWS = np.array([12, 13, 14, 15, 16, 17, 19, 20])
+
+
+def integration_error(x: np.ndarray, traj: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
+                      lam: np.ndarray, fext: np.ndarray, coupled: bool) -> tuple[float, float]:
+    """Error estimate of a converged integration.
+
+    Parameters
+    ----------
+    x : (8,) float, the converged base unknowns; ``traj`` : (n + 1, 21) its recorded trajectory.
+    sec, nsteps, rdir, lam, fext : the kernel's inputs (see :mod:`reachplan.rod_model._kernel`).
+
+    Returns
+    -------
+    step_mm : float, mm
+        Tip displacement when the same base values are integrated with half the step (step doubling: RK4's
+        error on the coarse grid is about 16/15 of it). ``inf`` when the finer integration is not finite.
+    frame_error : float
+        ``max |RᵀR − I|`` along the trajectory (RK4 does not preserve orthonormality; a blown-up integration
+        loses it).
+    """
+    fine = _kernel.integrate(x, sec, 2 * nsteps, rdir, lam, fext, coupled, traj[:1], False)
+    step_mm = float(np.linalg.norm(fine[0:3] - traj[-1, 0:3])) * 1e3
+    r = traj[:, 3:12].reshape(-1, 3, 3)
+    with np.errstate(invalid="ignore", over="ignore"):
+        frame = float(np.max(np.abs(np.einsum("nki,nkj->nij", r, r) - np.eye(3))))
+    return (step_mm if np.isfinite(step_mm) else np.inf), (frame if np.isfinite(frame) else np.inf)
+
+
+def conjugate_point(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
+                    fext: np.ndarray, coupled: bool, tol: float = 1e-6) -> float | None:
+    """Arc length (mm) of the first conjugate point of an equilibrium, or None when it is stable.
+
+    Jacobi (conjugate-point) criterion for a rod clamped at the base with dead loads (Till & Rucker, "Elastic
+    stability of Cosserat rods and parallel continuum robots", IEEE T-RO 33(3), 2017; Dhanakoti, "Stability of
+    cantilever-like structures", arXiv:2407.07601): the shooting matrix ``J(σ) = ∂(N, M, n2z, m2z)(σ) /
+    ∂(N, M, n2z, m2z)(0)`` (base values varied, base clamped) is the identity at the base; the equilibrium is
+    stable when ``J(σ)`` stays regular on ``(0, L]``. It is computed by finite differences of the trajectory
+    along the whole rod; a real eigenvalue of ``J`` at or below zero (``-tol``) marks the conjugate point (a
+    determinant test alone misses the double root of a round rod bending in two planes at once). For an Euler
+    column this is ``cos(√(P/EI) σ) ≤ 0``, i.e. the Euler load ``π² EI / (4 L²)``.
+
+    Parameters
+    ----------
+    x : (8,) float, converged base unknowns; the other inputs as the kernel's (SI units).
+    """
+    n = 6 if coupled else _kernel.NX
+    rows = int(nsteps.sum()) + 1
+    length = float(sec[-1, 1])
+    base = np.empty((rows, _kernel.NSTATE))
+    _kernel.integrate(x, sec, nsteps, rdir, lam, fext, coupled, base, True)
+    scale = np.array([1.0, 1.0, 1.0, 1 / length, 1 / length, 1 / length, 1.0, 1 / length])[:n]  # N
+    fscale = 1.0 + float(np.max(np.abs(x[:3]))) + float(np.sum(lam))
+    jac = np.empty((rows, n, n))
+    pert = np.empty_like(base)
+    for c in range(n):
+        xt = x.copy()
+        eps = 1e-6 * fscale / scale[c]
+        xt[c] += eps
+        _kernel.integrate(xt, sec, nsteps, rdir, lam, fext, coupled, pert, True)
+        jac[:, :, c] = (pert[:, _LOAD_ROWS[:n]] - base[:, _LOAD_ROWS[:n]]) / eps
+    jac *= scale[None, :, None] / scale[None, None, :]  # a similarity: same eigenvalues, O(1) entries
+    if not np.all(np.isfinite(jac)):
+        return 0.0
+    ev = np.linalg.eigvals(jac)
+    real = np.where(np.abs(ev.imag) <= 1e-9 + 1e-6 * np.abs(ev), ev.real, np.inf).min(axis=1)
+    bad = np.nonzero(real <= -tol)[0]
+    if len(bad) == 0:
+        return None
+    s = np.concatenate([[0.0], np.cumsum(np.repeat((sec[:, 1] - sec[:, 0]) / nsteps, nsteps))])
+    return float(s[bad[0]] * 1e3)
+
+
 @dataclass(frozen=True)
 class _ShootingModel:
     """Shared solver of :class:`CosseratRod` and :class:`TwoTubeCosserat`.
@@ -88,21 +167,30 @@ class _ShootingModel:
     max_iter : int
         Newton iterations per continuation step.
     max_ramp : int
-        Largest number of continuation steps tried (1, 4, 16, ... up to this).
+        Largest number of continuation steps tried in free space (1, 4, 16, ... up to this); with external
+        loads at least :data:`EXTERNAL_MAX_RAMP`.
+    max_step_error_mm : float
+        Largest tip change allowed when the RK4 step is halved (step doubling, :func:`integration_error`), mm.
+    max_frame_error : float
+        Largest departure of the integrated directors from orthonormality, ``max |RᵀR − I|``.
     """
 
     steps_per_mm: float = 0.5
     tol: float = 1e-10
     max_iter: int = 25
     max_ramp: int = 64
+    max_step_error_mm: float = 0.05
+    max_frame_error: float = 1e-3
 
     name: ClassVar[str] = ""
     coupled: ClassVar[bool] = True
     capabilities: ClassVar[Capabilities]
 
     def __post_init__(self) -> None:
-        if not (self.steps_per_mm > 0 and self.tol > 0 and self.max_iter >= 1 and self.max_ramp >= 1):
-            raise ValueError("steps_per_mm and tol must be positive, max_iter and max_ramp at least 1")
+        if not (self.steps_per_mm > 0 and self.tol > 0 and self.max_iter >= 1 and self.max_ramp >= 1
+                and self.max_step_error_mm > 0 and self.max_frame_error > 0):
+            raise ValueError("steps_per_mm, tol, max_step_error_mm and max_frame_error must be positive, max_iter "
+                             "and max_ramp at least 1")
 
     def solve(self, design: RodDesign, loads: Loads, initial_guess: np.ndarray | None = None,
               *, continuation: bool = True) -> RodPath | FailedSolve:
@@ -114,26 +202,60 @@ class _ShootingModel:
             Base unknowns ``N(0)`` (N, world), ``M(0)`` (N·m, world), ``n2z(0)`` (N), ``m2z(0)`` (N·m);
             default :func:`linear_guess` (exact in free space).
         continuation : bool
-            Ramp the loads from zero when the direct solve fails.
+            Ramp the loads from zero (always first when external loads act; in free space when the direct
+            solve fails). Without it one Newton solve from the initial guess, still checked.
+
+        A converged shape is returned only when its integration error estimate (:func:`integration_error`) is
+        within ``max_step_error_mm`` and its frames are orthonormal, and, when external loads act, when it is
+        stable (:func:`conjugate_point`); otherwise a :class:`FailedSolve` says which check failed.
         """
         t0 = time.perf_counter()
         check_loads(self.name, self.capabilities, design, loads)
         sec = section_table(design)
         nsteps = _steps(sec, self.steps_per_mm)
-        x = linear_guess(design, loads) if initial_guess is None else np.array(initial_guess, dtype=float)
-        if x.shape != (_kernel.NX,) or not np.all(np.isfinite(x)):
+        x0 = linear_guess(design, loads) if initial_guess is None else np.array(initial_guess, dtype=float)
+        if x0.shape != (_kernel.NX,) or not np.all(np.isfinite(x0)):
             raise ValueError("initial_guess must be 8 finite numbers: N(0), M(0), n2z(0), m2z(0)")
         traj = np.empty((int(nsteps.sum()) + 1, _kernel.NSTATE))
-        status, res, iters, ramp = _kernel.shoot(
-            x, sec, nsteps, design.tendon_unit_offsets(loads.roll_deg), np.array(loads.tensions_n),
-            np.array(loads.distributed_n_per_m), np.array(loads.tip_force_n), np.array(loads.tip_moment_nm),
-            self.coupled, self.tol, self.max_iter, self.max_ramp if continuation else 1, traj)
+        args = (sec, nsteps, design.tendon_unit_offsets(loads.roll_deg), np.array(loads.tensions_n),
+                np.array(loads.distributed_n_per_m), np.array(loads.tip_force_n), np.array(loads.tip_moment_nm))
+        # With external loads the direct solve may land on any branch: follow the load from zero instead
+        # (continuation), finer and finer until the equilibrium found is stable.
+        cap = max(self.max_ramp, EXTERNAL_MAX_RAMP) if loads.has_external else self.max_ramp
+        first = EXTERNAL_FIRST_RAMP if loads.has_external and continuation else 1
+        unstable = ""
+        while True:
+            x = x0.copy()
+            status, res, iters, ramp = _kernel.shoot(x, *args, self.coupled, self.tol, self.max_iter,
+                                                     cap if continuation else 1, traj, first)
+            ms = (time.perf_counter() - t0) * 1e3
+            if status != _kernel.OK:
+                why = {_kernel.SINGULAR: "singular shooting Jacobian", _kernel.NON_FINITE: "non-finite state"}
+                reason = (f"{why.get(status, 'shooting did not converge')}: tip residual {res:.2e} N after {iters} "
+                          f"Newton iterations, continuation up to {ramp} load steps")
+                if unstable:
+                    reason = f"{unstable}; finer continuation: {reason}"
+                return FailedSolve(self.name, reason, float(res), ms, loads.tensions_n, loads.roll_deg)
+            step_mm, frame_err = integration_error(x, traj, *args[:5], self.coupled)
+            if not (step_mm <= self.max_step_error_mm and frame_err <= self.max_frame_error):
+                ms = (time.perf_counter() - t0) * 1e3
+                reason = (f"integration error: tip moves {step_mm:.2e} mm when the RK4 step is halved (limit "
+                          f"{self.max_step_error_mm:g} mm), frames off orthonormal by {frame_err:.1e}; the load is "
+                          "beyond what this resolution integrates (raise steps_per_mm or lower the load)")
+                return FailedSolve(self.name, reason, float(res), ms, loads.tensions_n, loads.roll_deg)
+            if not loads.has_external:
+                break  # tendons alone: N = M = 0 along the rod, the Jacobi fields never degenerate
+            at_mm = conjugate_point(x, *args[:5], self.coupled)
+            if at_mm is None:
+                break
+            unstable = (f"unstable equilibrium: conjugate point at s = {at_mm:.1f} mm (shooting Jacobian "
+                        f"singular there) after continuation in {ramp} load steps")
+            if not continuation or ramp * 4 > cap:
+                ms = (time.perf_counter() - t0) * 1e3
+                return FailedSolve(self.name, unstable + " (a load beyond a buckling or snap-through load?)",
+                                   float(res), ms, loads.tensions_n, loads.roll_deg)
+            first = ramp * 4
         ms = (time.perf_counter() - t0) * 1e3
-        if status != _kernel.OK:
-            why = {_kernel.SINGULAR: "singular shooting Jacobian", _kernel.NON_FINITE: "non-finite state"}
-            reason = (f"{why.get(status, 'shooting did not converge')}: tip residual {res:.2e} N after {iters} "
-                      f"Newton iterations, continuation up to {ramp} load steps")
-            return FailedSolve(self.name, reason, float(res), ms, loads.tensions_n, loads.roll_deg)
         s = np.concatenate([[0.0], np.concatenate([np.linspace(a, b, n + 1)[1:] for (a, b), n in
                                                    zip(sec[:, :2], nsteps, strict=True)])]) * 1e3
         frames = traj[:, 3:12].reshape(-1, 3, 3)

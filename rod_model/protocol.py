@@ -6,13 +6,14 @@ Built-in models and third-party ones register as plugins of kind ``rod_models`` 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from reachplan.rod_model.design import Loads, RodDesign
-from reachplan.rod_model.errors import UnsupportedLoadError
+from reachplan.rod_model.errors import TensionAboveLimitWarning, UnsupportedLoadError
 from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath
 
 
@@ -74,13 +75,18 @@ def check_rod_model(obj: object) -> None:
 
 def check_loads(name: str, caps: Capabilities, design: RodDesign, loads: Loads) -> None:
     """Raise :class:`UnsupportedLoadError` when ``loads`` do not fit ``design`` or the capabilities ``caps`` of
-    the model called ``name``."""
+    the model called ``name``; warn (:class:`TensionAboveLimitWarning`) when a tension exceeds the design's
+    ``max_tension_n``."""
     if len(loads.tensions_n) != design.n_tendons:
         raise UnsupportedLoadError(f"{len(loads.tensions_n)} tensions given for a design with {design.n_tendons} "
                                    "tendons; give one tension per tendon")
     if loads.has_external and not caps.external_load:
         raise UnsupportedLoadError(f"model {name} cannot represent external loads; use cosserat_rod or "
                                    "two_tube_cosserat")
+    if max(loads.tensions_n) > design.max_tension_n:
+        warnings.warn(f"tension {max(loads.tensions_n):g} N exceeds {design.name}'s limit of "
+                      f"{design.max_tension_n:g} N; the stylet is not built for it", TensionAboveLimitWarning,
+                      stacklevel=3)
     if not caps.several_tendons and sum(t > 0 for t in loads.tensions_n) > 1:
         raise UnsupportedLoadError(f"model {name} represents one pulled tendon at a time; use "
                                    "cosserat_rod or two_tube_cosserat")
