@@ -3,10 +3,13 @@
 Plain functions on arrays (SI units), compiled with numba when it is installed; without numba the very same
 functions run as plain Python (slowly). The maths is documented in :mod:`reachplan.rod_model.cosserat`.
 
-State ``y`` (21): ``p`` (3, world, m), ``R`` (9, row-major, stylet directors as columns), ``N`` (3, world, N),
+State ``y`` (22): ``p`` (3, world, m), ``R`` (9, row-major, stylet directors as columns), ``N`` (3, world, N),
 ``M`` (3, world, N·m), ``θ`` (relative twist of needle against stylet, rad), ``n2z`` (needle axial force, N),
-``m2z`` (needle torsional moment, N·m).
-Section table ``sec`` (k, 11): ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm``.
+``m2z`` (needle torsional moment, N·m), ``φ`` (wrap angle of the tendon routing from the base, rad).
+Section table ``sec`` (k, 16): ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm``, then friction:
+``mu`` (capstan coefficient of the tendon on its routing), ``jf`` (joint friction arm: Coulomb coefficient ×
+ball radius, m; 0 outside the joint section), ``d`` (+1 tension increasing, −1 decreasing), ``λr`` (proximal
+tension of tendon 0 at the last reversal, N), ``κr`` (the section's curvature at the last reversal, 1/m).
 Unknowns at the base ``x`` (8): ``N(0)``, ``M(0)``, ``n2z(0)``, ``m2z(0)`` (the last two unused when coupled).
 """
 
@@ -30,7 +33,7 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     return _njit(cache=True)(fn) if HAVE_NUMBA else fn
 
 
-NSTATE = 21
+NSTATE = 22
 NX = 8
 
 # status codes of shoot()
@@ -38,6 +41,19 @@ OK = 0
 NOT_CONVERGED = 1
 SINGULAR = 2
 NON_FINITE = 3
+
+
+@_jit
+def local_tension(lam0: float, j: int, sec: np.ndarray, phi: float) -> float:
+    """Tension (N) of tendon ``j`` at wrap angle ``phi`` (rad) for the load-cell tension ``lam0`` (capstan law,
+    see :func:`closure`)."""
+    mu = sec[11]
+    if mu == 0.0 or lam0 == 0.0:
+        return lam0
+    lo = lam0 * np.exp(-mu * phi)
+    hi = lam0 * np.exp(mu * phi)
+    prev = sec[14] * np.exp(sec[13] * mu * phi) if j == 0 else 0.0
+    return min(max(prev, lo), hi)
 
 
 @_jit
@@ -60,11 +76,18 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
     u2z = 0.0
     beta = 1.0
     ei = ei1 + ei2
+    # Capstan friction (tendon sliding in its routing): with the load-cell (proximal) tension λ0 the local
+    # tension lies within λ0 exp(∓μ φ) of the wrap angle φ; where the tendon sticks it keeps the profile of
+    # the last reversal (``λr exp(d μ φ)``, exact for one reversal): clip(previous, λ0 e^{−μφ}, λ0 e^{μφ}).
+    compression = 0.0
+    for j in range(lam.shape[0]):
+        compression += local_tension(lam[j], j, sec, y[21])
     for _ in range(4):  # fixed point on the tendon directions (coupling ~ λ/GA, λ·r²/EI ~ 1e-3)
         ft0 = ft1 = ft2 = 0.0
         mt0 = mt1 = mt2 = 0.0
         for j in range(lam.shape[0]):
-            if lam[j] == 0.0:
+            lamj = local_tension(lam[j], j, sec, y[21])
+            if lamj == 0.0:
                 continue
             rx = arm * rdir[j, 0]
             ry = arm * rdir[j, 1]
@@ -73,7 +96,7 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
             ty = v1 + u2 * rx
             tz = v2 + u0 * ry - u1 * rx
             nt = np.sqrt(tx * tx + ty * ty + tz * tz)
-            tx, ty, tz = lam[j] * tx / nt, lam[j] * ty / nt, lam[j] * tz / nt
+            tx, ty, tz = lamj * tx / nt, lamj * ty / nt, lamj * tz / nt
             ft0 += tx
             ft1 += ty
             ft2 += tz
@@ -84,6 +107,17 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
         mr0, mr1, mr2 = mb0 - mt0, mb1 - mt1, mb2 - mt2
         u0 = mr0 / ei
         u1 = mr1 / ei
+        if sec[12] > 0.0:
+            # Coulomb friction in the ball joints: a moment jf·(stack compression) opposes any change of the
+            # joint curvature; the curvature sticks at its value of the last reversal κr until the bending
+            # moment has changed by twice the friction moment (play operator).
+            um = np.sqrt(u0 * u0 + u1 * u1)
+            if um > 0.0:
+                slack = sec[12] * compression / ei
+                ue = min(max(sec[15], um - slack), um + slack)
+                ue = max(ue, 0.0)
+                u0 *= ue / um
+                u1 *= ue / um
         if coupled:
             v2 = 1.0 + nr2 / (ea1 + ea2)
             beta = 1.0
@@ -139,6 +173,7 @@ def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext:
         fz = y[5] * fext[0] + y[8] * fext[1] + y[11] * fext[2]  # (R^T f)_z
         dy[19] = -sec[9] * beta * (u0 * v1 - u1 * v0) - fz
     dy[20] = 0.0  # isotropic needle, no distributed torque: (u2 x m2)_z = (v2 x n2)_z = 0
+    dy[21] = np.sqrt(u0 * u0 + u1 * u1)  # the tendon turns with the centreline (offset/radius ~1 % neglected)
 
 
 @_jit

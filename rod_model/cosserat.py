@@ -47,14 +47,20 @@ from typing import ClassVar
 import numpy as np
 
 from reachplan.rod_model import _kernel
-from reachplan.rod_model.design import Loads, RodDesign
+from reachplan.rod_model.design import Loads, RodDesign, TensionHistory
 from reachplan.rod_model.protocol import Capabilities, check_loads
 from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath
 
 
-def section_table(design: RodDesign) -> np.ndarray:
-    """(k, 11) float, SI: ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm`` per section."""
-    return np.array([[s.start_m, s.end_m, s.ei1, s.gj1, s.ea1, s.ga1, s.ei2, s.gj2, s.ea2, s.ga2, s.arm_m]
+def section_table(design: RodDesign, history: TensionHistory | None = None) -> np.ndarray:
+    """(k, 16) float, SI: ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm`` per section, then the
+    friction columns ``mu, jf, d, λr, κr`` (see :mod:`reachplan.rod_model._kernel`) for the tension ``history``
+    (default: a first pull from rest)."""
+    h = history or TensionHistory()
+    d = 1.0 if h.increasing else -1.0
+    return np.array([[s.start_m, s.end_m, s.ei1, s.gj1, s.ea1, s.ga1, s.ei2, s.gj2, s.ea2, s.ga2, s.arm_m,
+                      s.capstan_mu, s.joint_friction_arm_m, d, h.reversal_tension_n,
+                      h.reversal_joint_curvature_per_m if s.kind == "joints" else 0.0]
                      for s in design.sections()])
 
 
@@ -211,7 +217,7 @@ class _ShootingModel:
         """
         t0 = time.perf_counter()
         check_loads(self.name, self.capabilities, design, loads)
-        sec = section_table(design)
+        sec = section_table(design, loads.history)
         nsteps = _steps(sec, self.steps_per_mm)
         x0 = linear_guess(design, loads) if initial_guess is None else np.array(initial_guess, dtype=float)
         if x0.shape != (_kernel.NX,) or not np.all(np.isfinite(x0)):
@@ -294,7 +300,8 @@ class CosseratRod(_ShootingModel):
     name: ClassVar[str] = "cosserat_rod"
     coupled: ClassVar[bool] = True
     capabilities: ClassVar[Capabilities] = Capabilities(
-        planar_only=False, twist=False, several_tendons=True, external_load=True, large_deflection=True)
+        planar_only=False, twist=False, several_tendons=True, external_load=True, large_deflection=True,
+        friction=True)
 
 
 @dataclass(frozen=True)
@@ -304,7 +311,8 @@ class TwoTubeCosserat(_ShootingModel):
     name: ClassVar[str] = "two_tube_cosserat"
     coupled: ClassVar[bool] = False
     capabilities: ClassVar[Capabilities] = Capabilities(
-        planar_only=False, twist=True, several_tendons=True, external_load=True, large_deflection=True)
+        planar_only=False, twist=True, several_tendons=True, external_load=True, large_deflection=True,
+        friction=True)
 
 
 COSSERAT_ROD = CosseratRod()

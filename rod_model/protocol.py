@@ -33,6 +33,8 @@ class Capabilities:
         Tip force/moment and distributed loads.
     large_deflection : bool
         Geometrically exact (no small-angle assumption).
+    friction : bool
+        Capstan friction of the tendons and Coulomb friction in the joints (the design's coefficients).
     """
 
     planar_only: bool
@@ -40,6 +42,7 @@ class Capabilities:
     several_tendons: bool
     external_load: bool
     large_deflection: bool
+    friction: bool = False
 
 
 @runtime_checkable
@@ -83,6 +86,9 @@ def check_loads(name: str, caps: Capabilities, design: RodDesign, loads: Loads) 
     if loads.has_external and not caps.external_load:
         raise UnsupportedLoadError(f"model {name} cannot represent external loads; use cosserat_rod or "
                                    "two_tube_cosserat")
+    if design.has_friction and not caps.friction:
+        raise UnsupportedLoadError(f"model {name} has no friction but {design.name} has friction coefficients; use "
+                                   "cosserat_rod or two_tube_cosserat, or set the coefficients to 0")
     if max(loads.tensions_n) > design.max_tension_n:
         warnings.warn(f"tension {max(loads.tensions_n):g} N exceeds {design.name}'s limit of "
                       f"{design.max_tension_n:g} N; the stylet is not built for it", TensionAboveLimitWarning,

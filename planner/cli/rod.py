@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import warnings
+from dataclasses import replace
 
 from reachplan import ReachplanError
 from reachplan.plugins import registry
 from reachplan.rod_model.design import PRESET_NAMES, preset
 from reachplan.rod_model.errors import TensionAboveLimitWarning
+from reachplan.rod_model.friction import loop_width_mm, solve_sweep
 from reachplan.rod_model.select import Scene, select_model
 
 NAME = "rod"
@@ -23,7 +25,12 @@ class RodArgumentError(ReachplanError):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", required=True, help=f"design preset, e.g. {', '.join(PRESET_NAMES)}")
     parser.add_argument("--tension", type=float, help="tension of tendon 0, N")
-    parser.add_argument("--tensions", help="comma-separated tensions for a sweep, N (one object per tension)")
+    parser.add_argument("--tensions", help="comma-separated tensions for a quasi-static sweep in that order, N (one "
+                        "object per tension); up then down (0,2,...,10,...,0) shows the friction hysteresis loop")
+    parser.add_argument("--tendon-friction", type=float, default=None, metavar="MU",
+                        help="capstan friction coefficient of the tendon on its routing (design default 0)")
+    parser.add_argument("--joint-friction", type=float, default=None, metavar="MU",
+                        help="Coulomb friction coefficient in the ball joints (design default 0)")
     parser.add_argument("--model", default="two_tube_cosserat",
                         help="rod model plugin name, or 'auto' to pick the cheapest within --tolerance "
                              "(default two_tube_cosserat)")
@@ -56,6 +63,13 @@ def _tensions(args: argparse.Namespace) -> tuple[list[float], bool]:
 def run(args: argparse.Namespace) -> int:
     values, sweep = _tensions(args)
     design = preset(args.preset)
+    friction = {k: v for k, v in (("tendon_friction_coefficient", args.tendon_friction),
+                                  ("joint_friction_coefficient", args.joint_friction)) if v is not None}
+    if friction:
+        try:
+            design = replace(design, stylet=replace(design.stylet, **friction))
+        except ValueError as exc:
+            raise RodArgumentError(f"{exc}; give friction coefficients between 0 and 2") from None
     over = [t for t in values if t > design.max_tension_n]
     if over and not args.allow_over_limit:
         raise RodArgumentError(f"tension {max(over):g} N exceeds {design.name}'s limit of {design.max_tension_n:g} N; "
@@ -69,18 +83,27 @@ def run(args: argparse.Namespace) -> int:
     model = registry.get("rod_models", name)
     model.solve(design, design.loads(0.0))  # load compiled kernels before timing (solve_ms is the solve only)
     out = []
-    for t in values:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", TensionAboveLimitWarning)  # refused above unless explicitly allowed
-            result = model.solve(design, design.loads(t, args.roll))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TensionAboveLimitWarning)  # refused above unless explicitly allowed
+        results = solve_sweep(model, design, values, args.roll)
+    previous = 0.0
+    for t, result in zip(values, results, strict=True):
         doc = result.to_json()
-        doc.update(preset=design.name, tension_n=t, max_tension_n=design.max_tension_n)
+        doc.update(preset=design.name, tension_n=t, max_tension_n=design.max_tension_n,
+                   pulling=t >= previous if t != previous else None)
         out.append(doc)
+        previous = t
     if args.json:
         print(json.dumps(out if sweep else out[0]))
     else:
         for d in out:
             state = (f"tip deflection {d['tip_deflection_mm']:.3f} mm" if d["converged"]
                      else f"FAILED: {d['reason']}")
-            print(f"{design.name} {d['model']} tension {d['tension_n']:g} N roll {args.roll:g} deg: {state}")
+            way = {True: " (pulling)", False: " (releasing)", None: ""}[d["pulling"]]
+            print(f"{design.name} {d['model']} tension {d['tension_n']:g} N{way} roll {args.roll:g} deg: {state}")
+        if sweep and all(d["converged"] for d in out) and max(values) != values[-1]:
+            width = loop_width_mm(values, [float(d["tip_deflection_mm"]) for d in out])
+            print(f"hysteresis: largest release-minus-pull tip difference {width:.3f} mm "
+                  f"(tendon friction {design.stylet.tendon_friction_coefficient:g}, "
+                  f"joint friction {design.stylet.joint_friction_coefficient:g})")
     return 0 if all(d["converged"] for d in out) else 1
