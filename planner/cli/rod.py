@@ -6,6 +6,7 @@ import argparse
 import json
 import warnings
 from dataclasses import replace
+from typing import Any
 
 from reachplan import ReachplanError
 from reachplan.plugins import registry
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         name = args.model
     model = registry.get("rod_models", name)
     model.solve(design, design.loads(0.0))  # load compiled kernels before timing (solve_ms is the solve only)
-    out = []
+    out: list[dict[str, Any]] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", TensionAboveLimitWarning)  # refused above unless explicitly allowed
         results = solve_sweep(model, design, values, args.roll)
@@ -99,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         for d in out:
             state = (f"tip deflection {d['tip_deflection_mm']:.3f} mm" if d["converged"]
                      else f"FAILED: {d['reason']}")
-            way = {True: " (pulling)", False: " (releasing)", None: ""}[d["pulling"]]
+            way = {True: " (pulling)", False: " (releasing)"}.get(d["pulling"], "")
             print(f"{design.name} {d['model']} tension {d['tension_n']:g} N{way} roll {args.roll:g} deg: {state}")
         if sweep and all(d["converged"] for d in out) and max(values) != values[-1]:
             width = loop_width_mm(values, [float(d["tip_deflection_mm"]) for d in out])
