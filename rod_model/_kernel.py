@@ -80,13 +80,14 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
     # tension lies within λ0 exp(∓μ φ) of the wrap angle φ; where the tendon sticks it keeps the profile of
     # the last reversal (``λr exp(d μ φ)``, exact for one reversal): clip(previous, λ0 e^{−μφ}, λ0 e^{μφ}).
     compression = 0.0
-    for j in range(lam.shape[0]):
-        compression += local_tension(lam[j], j, sec, y[21])
+    if sec[12] > 0.0:
+        for j in range(lam.shape[0]):
+            compression += local_tension(lam[j], j, sec, y[21])
     for _ in range(4):  # fixed point on the tendon directions (coupling ~ λ/GA, λ·r²/EI ~ 1e-3)
         ft0 = ft1 = ft2 = 0.0
         mt0 = mt1 = mt2 = 0.0
         for j in range(lam.shape[0]):
-            lamj = local_tension(lam[j], j, sec, y[21])
+            lamj = lam[j] if sec[11] == 0.0 else local_tension(lam[j], j, sec, y[21])
             if lamj == 0.0:
                 continue
             rx = arm * rdir[j, 0]
@@ -371,10 +372,12 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
 @_jit
 def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
            fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
-           max_ramp: int, traj: np.ndarray, min_ramp: int = 1) -> tuple[int, float, int, int]:
+           max_ramp: int, traj: np.ndarray, min_ramp: int, predictor: np.ndarray) -> tuple[int, float, int, int]:
     """Shooting with continuation: try the full load from ``x`` (when ``min_ramp`` is 1); on failure ramp
     tension and external loads from zero in ``4 min_ramp``, then ``16 min_ramp``, ... steps (each step starting
-    from the previous solution; ``min_ramp > 1`` starts with a ramp of that many steps). ``x`` is updated in
+    from the previous solution plus ``predictor / ramp``, the undeformed rod's share of the load step, e.g.
+    :func:`reachplan.rod_model.cosserat.linear_guess`; ``min_ramp > 1`` starts with a ramp of that many
+    steps). ``x`` is updated in
     place; ``traj`` receives the converged trajectory. Returns (status, residual in N, iterations, ramp steps).
     ``tol`` is relative to the load scale ``1 N + Σλ + |external loads|``."""
     fscale = 1.0
@@ -398,6 +401,9 @@ def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, 
         status = OK
         for k in range(1, ramp + 1):
             f = k / ramp
+            if ramp > 1:
+                for q in range(NX):
+                    x[q] += predictor[q] / ramp
             status, res, it = newton(x, sec, nsteps, rdir, f * lam, f * fext, f * ftip, f * ltip, coupled,
                                       tol * fscale, max_iter, fscale, traj)
             total_it += it
@@ -423,12 +429,13 @@ def batch_free(tensions: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: 
     lam = np.zeros(rdir.shape[0])
     zero = np.zeros(3)
     x = np.zeros(NX)
+    nopred = np.zeros(NX)
     for b in range(tensions.shape[0]):
         lam[0] = tensions[b]
         for q in range(NX):
             x[q] = 0.0
         st, res, _, _ = shoot(x, sec, nsteps, rdir, lam, zero, zero, zero, coupled, tol, max_iter, max_ramp,
-                               traj, 1)
+                               traj, 1, nopred)
         status[b] = st
         resid[b] = res
         tips[b, :] = traj[nrow - 1, 0:3]

@@ -83,7 +83,7 @@ def _steps(sec: np.ndarray, steps_per_mm: float) -> np.ndarray:
 
 #: With external loads the continuation starts with this many load steps (the direct solve from the
 #: undeformed guess can converge to an unstable branch: e.g. a cantilever bent back against a lateral force).
-EXTERNAL_FIRST_RAMP = 16
+EXTERNAL_FIRST_RAMP = 4
 #: ... and refines (x4) up to this many while the equilibrium found is unstable.
 EXTERNAL_MAX_RAMP = 1024
 #: Rows of the shooting state holding the section loads: ``N``, ``M``, ``n2z``, ``m2z``.
@@ -219,7 +219,8 @@ class _ShootingModel:
         check_loads(self.name, self.capabilities, design, loads)
         sec = section_table(design, loads.history)
         nsteps = _steps(sec, self.steps_per_mm)
-        x0 = linear_guess(design, loads) if initial_guess is None else np.array(initial_guess, dtype=float)
+        predictor = linear_guess(design, loads)
+        x0 = predictor if initial_guess is None else np.array(initial_guess, dtype=float)
         if x0.shape != (_kernel.NX,) or not np.all(np.isfinite(x0)):
             raise ValueError("initial_guess must be 8 finite numbers: N(0), M(0), n2z(0), m2z(0)")
         traj = np.empty((int(nsteps.sum()) + 1, _kernel.NSTATE))
@@ -233,7 +234,7 @@ class _ShootingModel:
         while True:
             x = x0.copy()
             status, res, iters, ramp = _kernel.shoot(x, *args, self.coupled, self.tol, self.max_iter,
-                                                     cap if continuation else 1, traj, first)
+                                                     cap if continuation else 1, traj, first, predictor)
             ms = (time.perf_counter() - t0) * 1e3
             if status != _kernel.OK:
                 why = {_kernel.SINGULAR: "singular shooting Jacobian", _kernel.NON_FINITE: "non-finite state"}

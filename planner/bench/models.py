@@ -9,6 +9,14 @@ Speed vs accuracy
     against 4 steps/mm is reported). For every model and resolution: median wall time of one ``solve`` and the
     largest / median tip error against the reference. Batched throughput of each registered configuration: 10,000
     tensions in one ``solve_batch`` (and the peak memory, by ``tracemalloc``).
+Friction
+    The two-tube model with capstan and joint friction (coefficients 0.1 / 0.1) against the same model at
+    8 steps/mm (its own numerical error, pulled from rest), and the width of the hysteresis loop of a
+    0-10-0 N sweep per preset.
+Honesty
+    The load cases a reviewer found wrong: a 2 N lateral tip force on 15ga-20j-base (used to converge 67 mm on
+    the wrong side), a dead axial load at 0.9 / 1.1 / 1.5 of the Euler load (straight and imperfect), 5000 N of
+    tension (used to blow up to 7e18 mm "converged"): what the solver returns now, with its reason.
 Stability map
     Each solver (shooting without continuation, shooting with continuation, collocation) on tension ×
     placement × initial guess (zero, small, large), with an out-of-plane tip force so that the boundary-value
@@ -20,6 +28,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -27,8 +36,9 @@ import sys
 import tempfile
 import time
 import tracemalloc
+import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +48,8 @@ from reachplan.rod_model.beam import PLANAR_BEAM, PlanarBeam
 from reachplan.rod_model.collocation import NS, CollocationCosserat
 from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
 from reachplan.rod_model.design import PRESET_NAMES, Loads, RodDesign, gravity_load, preset
+from reachplan.rod_model.errors import TensionAboveLimitWarning
+from reachplan.rod_model.friction import loop_width_mm, solve_sweep
 from reachplan.rod_model.kinematic import CONSTANT_CURVATURE, ConstantCurvature
 from reachplan.rod_model.result import RodPath
 
@@ -267,6 +279,75 @@ def stability(quick: bool, log: Callable[[str], None]) -> list[StabilityCase]:
     return out
 
 
+def _with_friction(d: RodDesign, mu: float) -> RodDesign:
+    return replace(d, stylet=replace(d.stylet, tendon_friction_coefficient=mu, joint_friction_coefficient=mu))
+
+
+def friction(quick: bool, log: Callable[[str], None]) -> tuple[list[Row], dict[str, float]]:
+    """Speed/accuracy of the friction model (against itself at 8 steps/mm) and loop widths per preset."""
+    grid = [(_with_friction(d, 0.1), t) for d, t in _grid(quick)]
+    ref_model = TwoTubeCosserat(steps_per_mm=8.0, tol=1e-12)
+    refs = [ref_model.solve(d, d.loads(t)) for d, t in grid]
+    ok = [isinstance(r, RodPath) for r in refs]
+    grid = [g for g, good in zip(grid, ok, strict=True) if good]
+    ref = np.array([r.tip_position_mm for r in refs if isinstance(r, RodPath)])
+    TWO_TUBE_COSSERAT.solve(grid[0][0], grid[0][0].loads(1.0))
+    med, errs, rate = _time_model(TWO_TUBE_COSSERAT, grid, ref)
+    row = Row("two_tube_cosserat+friction", "mu 0.1/0.1 (default steps)", med, float(np.max(errs)),
+              float(np.median(errs)), rate)
+    log(f"{row.model:26s} {row.resolution:26s} {med:8.3f} ms  max err {row.max_tip_error_mm:.2e} mm")
+    up_down = [0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 8.0, 6.0, 4.0, 2.0, 0.0]
+    widths: dict[str, float] = {}
+    for name in ("15ga-20j-tip", "15ga-20j-base") if quick else PRESET_NAMES:
+        res = solve_sweep(TWO_TUBE_COSSERAT, _with_friction(preset(name), 0.1), up_down)
+        if all(isinstance(r, RodPath) for r in res):
+            widths[f"loop_width_mm_{name}_mu0.1"] = loop_width_mm(up_down, [r.tip_deflection_mm for r in res])  # type: ignore[union-attr]
+    log("hysteresis loop width (mu 0.1/0.1, 0-10-0 N): " + ", ".join(f"{k}: {v:.2f} mm" for k, v in widths.items()))
+    return [row], widths
+
+
+@dataclass(frozen=True)
+class HonestyCase:
+    """One load case of the honesty table."""
+
+    case: str
+    converged: bool
+    tip_mm: tuple[float, float, float] | None
+    ms: float
+    reason: str
+
+
+def honesty(log: Callable[[str], None]) -> list[HonestyCase]:
+    """The reviewer's wrong-branch and blow-up cases through the checked solver."""
+    base, tip = preset("15ga-20j-base"), preset("15ga-20j-tip")
+    sec = tip.sections()[0]
+    p_cr = math.pi**2 * (sec.ei1 + sec.ei2) / (4 * (tip.length_mm * 1e-3) ** 2)  # tube + needle column
+    cases: list[tuple[str, RodDesign, Loads, bool]] = [
+        ("15ga-20j-base, 2 N lateral tip force (+y)", base, Loads((0.0,) * 4, tip_force_n=(0.0, 2.0, 0.0)), True),
+        ("same, direct solve (no continuation)", base, Loads((0.0,) * 4, tip_force_n=(0.0, 2.0, 0.0)), False),
+        ("15ga-20j-base, 9.9 N + 2 N lateral (+y)", base, Loads((9.9, 0, 0, 0), tip_force_n=(0.0, 2.0, 0.0)), True),
+        ("same, direct solve (no continuation)", base, Loads((9.9, 0, 0, 0), tip_force_n=(0.0, 2.0, 0.0)), False),
+        ("15ga-20j-tip, axial 0.9 P_euler(tube)", tip, Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, -0.9 * p_cr)), True),
+        ("15ga-20j-tip, axial 1.1 P_euler(tube)", tip, Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, -1.1 * p_cr)), True),
+        ("15ga-20j-tip, 1.5 P_euler + 1 % lateral", tip,
+         Loads((0.0,) * 4, tip_force_n=(0.015 * p_cr, 0.0, -1.5 * p_cr)), True),
+        ("15ga-20j-tip, 5000 N tension", tip, tip.loads(5000.0), True),
+    ]
+    out = []
+    for label, d, loads, cont in cases:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TensionAboveLimitWarning)
+            r = TWO_TUBE_COSSERAT.solve(d, loads, continuation=cont)
+        if isinstance(r, RodPath):
+            x, y, z = (float(v) for v in r.tip_position_mm)
+            out.append(HonestyCase(label, True, (x, y, z), r.solve_ms, ""))
+        else:
+            out.append(HonestyCase(label, False, None, r.solve_ms, r.reason))
+        c = out[-1]
+        log(f"honesty: {label:44s} " + (f"tip {np.round(c.tip_mm, 2)} mm" if c.converged else f"FAILED: {c.reason}"))
+    return out
+
+
 def _pareto_png(rows: list[Row], path: Path) -> None:
     import matplotlib
 
@@ -276,7 +357,8 @@ def _pareto_png(rows: list[Row], path: Path) -> None:
     floor = 1e-10
     fig, ax = plt.subplots(figsize=(9, 6), dpi=110)
     colors = {"constant_curvature": "tab:red", "planar_beam": "tab:orange", "cosserat_rod": "tab:blue",
-              "two_tube_cosserat": "tab:green", "two_tube_collocation": "tab:purple"}
+              "two_tube_cosserat": "tab:green", "two_tube_collocation": "tab:purple",
+              "two_tube_cosserat+friction": "tab:olive"}
     for name, c in colors.items():
         pts = [r for r in rows if r.model == name]
         if not pts:
@@ -362,8 +444,13 @@ def run_benchmark(out: Path, quick: bool = False, install: bool = False,
     """Run everything, write the CSV/PNG/JSON files into ``out``; with ``install`` also refresh the package's
     error table and the figures under ``docs/``. Returns the headline numbers."""
     t0 = time.perf_counter()
-    rows, extra = speed_accuracy(quick, log)
-    cases = stability(quick, log)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TensionAboveLimitWarning)  # the grid goes to 15 N on purpose
+        rows, extra = speed_accuracy(quick, log)
+        frows, widths = friction(quick, log)
+        extra.update(widths)
+        honest = honesty(log)
+        cases = stability(quick, log)
     _write_csv(out / "rod_models.csv", ["model", "resolution", "median_ms", "max_tip_error_mm",
                                         "median_tip_error_mm", "success_rate", "batched_solves_per_s",
                                         "batched_peak_mb"],
@@ -375,11 +462,20 @@ def run_benchmark(out: Path, quick: bool = False, install: bool = False,
                                                   "residual_n", "ms", "reason"],
                [[c.solver, c.placement, c.tension_n, c.guess, c.success, f"{c.residual:.3g}", f"{c.ms:.2f}",
                  c.reason] for c in cases])
-    _pareto_png(rows, out / "rod_models_pareto.png")
+    _write_csv(out / "rod_models_friction.csv", ["model", "resolution", "median_ms", "max_tip_error_mm",
+                                                 "median_tip_error_mm", "success_rate"],
+               [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
+                 f"{r.median_tip_error_mm:.4g}", r.success_rate] for r in frows])
+    _write_csv(out / "rod_models_honesty.csv", ["case", "converged", "tip_x_mm", "tip_y_mm", "tip_z_mm", "ms",
+                                                "reason"],
+               [[c.case, c.converged, *(f"{v:.3f}" for v in (c.tip_mm or (math.nan,) * 3)), f"{c.ms:.2f}",
+                 c.reason] for c in honest])
+    _pareto_png(rows + frows, out / "rod_models_pareto.png")
     _stability_png(cases, out / "rod_models_stability.png")
     table = json.dumps(error_table(rows), indent=1) + "\n"
     _write_text(out / "model_errors.json", table)
-    summary: dict[str, object] = {"rows": [r.__dict__ for r in rows], **extra,
+    summary: dict[str, object] = {"rows": [r.__dict__ for r in rows + frows], **extra,
+                                  "honesty": [c.__dict__ for c in honest],
                                   "stability": {s: f"{sum(c.success for c in cases if c.solver == s)}/"
                                                    f"{sum(c.solver == s for c in cases)}"
                                                 for s in dict.fromkeys(c.solver for c in cases)},
