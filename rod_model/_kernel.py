@@ -5,7 +5,10 @@ functions run as plain Python (slowly). The maths is documented in :mod:`reachpl
 
 State ``y`` (22): ``p`` (3, world, m), ``R`` (9, row-major, stylet directors as columns), ``N`` (3, world, N),
 ``M`` (3, world, N·m), ``θ`` (relative twist of needle against stylet, rad), ``n2z`` (needle axial force, N),
-``m2z`` (needle torsional moment, N·m), ``φ`` (wrap angle of the tendon routing from the base, rad).
+``m2z`` (needle torsional moment, N·m), ``φ`` (wrap angle of the tendon routing from the base, rad), ``s`` (arc
+length, m).
+External distributed load ``fext`` (3 + 6m): a uniform force per length (3, world, N/m), then an optional elastic
+foundation of m nodes ``s (m), k (N/m²), track (3, world, m), slip (m)`` (see :func:`foundation_force`).
 Section table ``sec`` (k, 16): ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm``, then friction:
 ``mu`` (capstan coefficient of the tendon on its routing), ``jf`` (joint friction arm: Coulomb coefficient ×
 ball radius, m; 0 outside the joint section), ``d`` (+1 tension increasing, −1 decreasing), ``λr`` (proximal
@@ -33,7 +36,7 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     return _njit(cache=True)(fn) if HAVE_NUMBA else fn
 
 
-NSTATE = 22
+NSTATE = 23
 NX = 8
 
 # status codes of shoot()
@@ -144,10 +147,54 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
 
 
 @_jit
+def foundation_force(y: np.ndarray, fext: np.ndarray) -> tuple[float, float, float]:
+    """Distributed force (N/m, world) on the rod at state ``y``: the uniform part of ``fext`` plus the elastic
+    foundation tied to its track: ``−k δ`` with ``δ`` the lateral offset (perpendicular to the rod's tangent) of
+    the centreline from the track point at the same arc length, capped at ``k·slip`` (beyond the slip offset
+    the tissue gives way: it cannot hold the rod harder). Node values are interpolated linearly in ``s``."""
+    m = (fext.shape[0] - 3) // 6
+    if m == 0:
+        return fext[0], fext[1], fext[2]
+    s = y[22]
+    lo = 0
+    hi = m - 1
+    if s <= fext[3]:
+        hi = 0
+    elif s >= fext[3 + 6 * (m - 1)]:
+        lo = m - 1
+    else:
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if fext[3 + 6 * mid] <= s:
+                lo = mid
+            else:
+                hi = mid
+    a = 3 + 6 * lo
+    b = 3 + 6 * hi
+    w = 0.0 if hi == lo else (s - fext[a]) / (fext[b] - fext[a])
+    k = (1 - w) * fext[a + 1] + w * fext[b + 1]
+    if k <= 0.0:
+        return fext[0], fext[1], fext[2]
+    dx = y[0] - ((1 - w) * fext[a + 2] + w * fext[b + 2])
+    dy_ = y[1] - ((1 - w) * fext[a + 3] + w * fext[b + 3])
+    dz = y[2] - ((1 - w) * fext[a + 4] + w * fext[b + 4])
+    slip = (1 - w) * fext[a + 5] + w * fext[b + 5]
+    t0, t1, t2 = y[5], y[8], y[11]  # d3
+    along = dx * t0 + dy_ * t1 + dz * t2
+    dx -= along * t0
+    dy_ -= along * t1
+    dz -= along * t2
+    mag = np.sqrt(dx * dx + dy_ * dy_ + dz * dz)
+    scale = k if mag <= slip else k * slip / mag
+    return fext[0] - scale * dx, fext[1] - scale * dy_, fext[2] - scale * dz
+
+
+@_jit
 def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext: np.ndarray, coupled: bool,
          st: np.ndarray, dy: np.ndarray) -> None:
     closure(y, sec, rdir, lam, coupled, st)
     u0, u1, u2, v0, v1, v2, u2z, beta = st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7]
+    fo0, fo1, fo2 = foundation_force(y, fext)
     # p' = R v
     for i in range(3):
         dy[i] = y[3 + 3 * i] * v0 + y[4 + 3 * i] * v1 + y[5 + 3 * i] * v2
@@ -157,9 +204,9 @@ def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext:
         dy[3 + 3 * i] = r1 * u2 - r2 * u1
         dy[4 + 3 * i] = r2 * u0 - r0 * u2
         dy[5 + 3 * i] = r0 * u1 - r1 * u0
-    dy[12] = -fext[0]
-    dy[13] = -fext[1]
-    dy[14] = -fext[2]
+    dy[12] = -fo0
+    dy[13] = -fo1
+    dy[14] = -fo2
     # M' = -p' x N
     px, py, pz = dy[0], dy[1], dy[2]
     nx, ny, nz = y[12], y[13], y[14]
@@ -171,10 +218,11 @@ def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext:
         dy[19] = 0.0
     else:
         dy[18] = u2z - u2
-        fz = y[5] * fext[0] + y[8] * fext[1] + y[11] * fext[2]  # (R^T f)_z
+        fz = y[5] * fo0 + y[8] * fo1 + y[11] * fo2  # (R^T f)_z
         dy[19] = -sec[9] * beta * (u0 * v1 - u1 * v0) - fz
     dy[20] = 0.0  # isotropic needle, no distributed torque: (u2 x m2)_z = (v2 x n2)_z = 0
     dy[21] = np.sqrt(u0 * u0 + u1 * u1)  # the tendon turns with the centreline (offset/radius ~1 % neglected)
+    dy[22] = 1.0
 
 
 @_jit
@@ -188,6 +236,7 @@ def integrate(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarr
     y[12:18] = x[0:6]
     y[19] = x[6]
     y[20] = x[7]
+    y[22] = sec[0, 0]
     k1 = np.empty(NSTATE)
     k2 = np.empty(NSTATE)
     k3 = np.empty(NSTATE)
@@ -404,7 +453,10 @@ def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, 
             if ramp > 1:
                 for q in range(NX):
                     x[q] += predictor[q] / ramp
-            status, res, it = newton(x, sec, nsteps, rdir, f * lam, f * fext, f * ftip, f * ltip, coupled,
+            fx = fext.copy()
+            for q in range(3):
+                fx[q] *= f  # the uniform load ramps; a foundation is a stiffness, not a load
+            status, res, it = newton(x, sec, nsteps, rdir, f * lam, fx, f * ftip, f * ltip, coupled,
                                       tol * fscale, max_iter, fscale, traj)
             total_it += it
             if status != OK:

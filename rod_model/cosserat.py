@@ -64,11 +64,23 @@ def section_table(design: RodDesign, history: TensionHistory | None = None) -> n
                      for s in design.sections()])
 
 
-def linear_guess(design: RodDesign, loads: Loads) -> np.ndarray:
+def _distal(sec: np.ndarray, length_m: float) -> np.ndarray:
+    """The section table of the distal ``length_m`` of the rod, re-based so that it starts at 0."""
+    total = sec[-1, 1]
+    if not (0.0 < length_m <= total + 1e-12):
+        raise ValueError(f"inserted length must be in (0, {total * 1e3:.1f}] mm, got {length_m * 1e3:g}")
+    cut = total - length_m
+    out = sec[sec[:, 1] > cut + 1e-12].copy()
+    out[0, 0] = cut
+    out[:, :2] -= cut
+    return out
+
+
+def linear_guess(design: RodDesign, loads: Loads, length_m: float | None = None) -> np.ndarray:
     """(8,) float: base unknowns of the undeformed rod: ``N(0) = F_tip + f L`` (exact: dead loads),
     ``M(0) = L_tip + L e3 × F_tip + L²/2 e3 × f`` (undeformed lever arms), needle ``n2z = F_z + f_z L``,
     ``m2z = L_tip,z``. Zero in free space (where it is the exact solution)."""
-    length = design.length_mm * 1e-3
+    length = design.length_mm * 1e-3 if length_m is None else length_m
     f = np.array(loads.distributed_n_per_m)
     ftip = np.array(loads.tip_force_n)
     e3 = np.array([0.0, 0.0, 1.0])
@@ -125,9 +137,10 @@ def conjugate_point(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np
     cantilever-like structures", arXiv:2407.07601): the shooting matrix ``J(σ) = ∂(N, M, n2z, m2z)(σ) /
     ∂(N, M, n2z, m2z)(0)`` (base values varied, base clamped) is the identity at the base; the equilibrium is
     stable when ``J(σ)`` stays regular on ``(0, L]``. It is computed by finite differences of the trajectory
-    along the whole rod; a real eigenvalue of ``J`` at or below zero (``-tol``) marks the conjugate point (a
-    determinant test alone misses the double root of a round rod bending in two planes at once). For an Euler
-    column this is ``cos(√(P/EI) σ) ≤ 0``, i.e. the Euler load ``π² EI / (4 L²)``.
+    along the whole rod; a real eigenvalue of ``J`` crossing zero (to ``-tol``) marks the conjugate point (a
+    determinant test alone misses the double root of a round rod bending in two planes at once; a complex
+    pair that turns real and negative without passing zero, as on an elastic foundation, is not a crossing).
+    For an Euler column this is ``cos(√(P/EI) σ) ≤ 0``, i.e. the Euler load ``π² EI / (4 L²)``.
 
     Parameters
     ----------
@@ -152,8 +165,12 @@ def conjugate_point(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np
     if not np.all(np.isfinite(jac)):
         return 0.0
     ev = np.linalg.eigvals(jac)
-    real = np.where(np.abs(ev.imag) <= 1e-9 + 1e-6 * np.abs(ev), ev.real, np.inf).min(axis=1)
-    bad = np.nonzero(real <= -tol)[0]
+    real = np.abs(ev.imag) <= 1e-9 + 1e-6 * np.abs(ev)
+    negative = np.sum(real & (ev.real <= -tol), axis=1)
+    complex_ = np.sum(~real, axis=1)
+    # an eigenvalue crossing zero adds a negative real one without a complex pair turning real
+    crossing = np.diff(negative) > np.maximum(np.diff(-complex_), 0)
+    bad = np.nonzero(np.r_[negative[0] > 0, crossing])[0]
     if len(bad) == 0:
         return None
     s = np.concatenate([[0.0], np.cumsum(np.repeat((sec[:, 1] - sec[:, 0]) / nsteps, nsteps))])
@@ -199,7 +216,7 @@ class _ShootingModel:
                              "and max_ramp at least 1")
 
     def solve(self, design: RodDesign, loads: Loads, initial_guess: np.ndarray | None = None,
-              *, continuation: bool = True) -> RodPath | FailedSolve:
+              *, continuation: bool = True, inserted_mm: float | None = None) -> RodPath | FailedSolve:
         """Solve ``design`` under ``loads``.
 
         Parameters
@@ -210,6 +227,9 @@ class _ShootingModel:
         continuation : bool
             Ramp the loads from zero (always first when external loads act; in free space when the direct
             solve fails). Without it one Newton solve from the initial guess, still checked.
+        inserted_mm : float or None
+            Solve only the distal ``inserted_mm`` of the rod, clamped where it enters (the template); arc
+            lengths and positions are then measured from there. None: the whole rod, clamped at its base.
 
         A converged shape is returned only when its integration error estimate (:func:`integration_error`) is
         within ``max_step_error_mm`` and its frames are orthonormal, and, when external loads act, when it is
@@ -218,18 +238,24 @@ class _ShootingModel:
         t0 = time.perf_counter()
         check_loads(self.name, self.capabilities, design, loads)
         sec = section_table(design, loads.history)
+        if inserted_mm is not None:
+            sec = _distal(sec, inserted_mm * 1e-3)
         nsteps = _steps(sec, self.steps_per_mm)
-        predictor = linear_guess(design, loads)
+        predictor = linear_guess(design, loads, None if inserted_mm is None else inserted_mm * 1e-3)
         x0 = predictor if initial_guess is None else np.array(initial_guess, dtype=float)
         if x0.shape != (_kernel.NX,) or not np.all(np.isfinite(x0)):
             raise ValueError("initial_guess must be 8 finite numbers: N(0), M(0), n2z(0), m2z(0)")
         traj = np.empty((int(nsteps.sum()) + 1, _kernel.NSTATE))
-        args = (sec, nsteps, design.tendon_unit_offsets(loads.roll_deg), np.array(loads.tensions_n),
-                np.array(loads.distributed_n_per_m), np.array(loads.tip_force_n), np.array(loads.tip_moment_nm))
+        fext = np.array(loads.distributed_n_per_m)
+        if loads.foundation is not None:
+            fext = np.r_[fext, loads.foundation.packed_si()]
+        args = (sec, nsteps, design.tendon_unit_offsets(loads.roll_deg), np.array(loads.tensions_n), fext,
+                np.array(loads.tip_force_n), np.array(loads.tip_moment_nm))
         # With external loads the direct solve may land on any branch: follow the load from zero instead
         # (continuation), finer and finer until the equilibrium found is stable.
         cap = max(self.max_ramp, EXTERNAL_MAX_RAMP) if loads.has_external else self.max_ramp
-        first = EXTERNAL_FIRST_RAMP if loads.has_external and continuation else 1
+        # a caller's initial guess (a warm start) is tried first, then continuation from zero
+        first = EXTERNAL_FIRST_RAMP if loads.has_external and continuation and initial_guess is None else 1
         unstable = ""
         while True:
             x = x0.copy()
@@ -267,7 +293,7 @@ class _ShootingModel:
                                                    zip(sec[:, :2], nsteps, strict=True)])]) * 1e3
         frames = traj[:, 3:12].reshape(-1, 3, 3)
         return RodPath(self.name, s, traj[:, 0:3] * 1e3, frames, float(res), ms, int(iters), loads.tensions_n,
-                       loads.roll_deg, None if self.coupled else traj[:, 18])
+                       loads.roll_deg, None if self.coupled else traj[:, 18], x.copy())
 
     def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch:
         """Free-space solves pulling tendon 0 with each tension (b,), N (compiled loop)."""

@@ -389,6 +389,52 @@ def _vec3(v: tuple[float, float, float] | np.ndarray, name: str) -> tuple[float,
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
+@dataclass(frozen=True, eq=False)
+class Foundation:
+    """An elastic foundation holding the rod (tissue around an inserted needle), tied to a track.
+
+    Parameters
+    ----------
+    s_mm : (m,) float, mm, increasing
+        Arc lengths (from the solve's base) of the nodes; values are linear between nodes, constant beyond.
+    stiffness_n_per_mm2 : (m,) float, N/mm per mm of rod
+        Winkler modulus ``k`` of the medium at each node (0: no tissue there).
+    track_mm : (m, 3) float, mm, base frame
+        Rest position of the tissue at each node (where the tip cut it).
+    slip_mm : (m,) float, mm
+        Lateral offset beyond which the tissue gives way: the force per length is capped at ``k·slip``.
+
+    The force per length on the rod is ``−k δ`` with ``δ`` the centreline's offset from the track point at the
+    same arc length, perpendicular to the rod's tangent (the rod slides freely along its track).
+    """
+
+    s_mm: np.ndarray
+    stiffness_n_per_mm2: np.ndarray
+    track_mm: np.ndarray
+    slip_mm: np.ndarray
+
+    def __post_init__(self) -> None:
+        s = np.array(self.s_mm, dtype=float)
+        k = np.array(self.stiffness_n_per_mm2, dtype=float)
+        tr = np.array(self.track_mm, dtype=float)
+        sl = np.array(self.slip_mm, dtype=float)
+        m = len(s)
+        if (s.ndim != 1 or m < 1 or k.shape != (m,) or tr.shape != (m, 3) or sl.shape != (m,)
+                or np.any(np.diff(s) <= 0)):
+            raise ValueError("foundation: s_mm (m,) increasing, stiffness (m,), track (m, 3), slip (m,)")
+        if not (np.all(np.isfinite(tr)) and np.all(np.isfinite(s)) and np.all(k >= 0) and np.all(sl > 0)
+                and np.all(np.isfinite(k)) and np.all(np.isfinite(sl))):
+            raise ValueError("foundation: values must be finite, stiffness >= 0 and slip > 0")
+        for name, a in (("s_mm", s), ("stiffness_n_per_mm2", k), ("track_mm", tr), ("slip_mm", sl)):
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    def packed_si(self) -> np.ndarray:
+        """(6m,) float, SI: the kernel's layout ``s, k, track (3), slip`` per node (m, N/m², m, m)."""
+        return np.column_stack([self.s_mm * 1e-3, self.stiffness_n_per_mm2 * 1e6, self.track_mm * 1e-3,
+                                self.slip_mm * 1e-3]).ravel()
+
+
 @dataclass(frozen=True)
 class TensionHistory:
     """Where a quasi-static tension sweep comes from (only matters with friction, see :class:`StyletDesign`).
@@ -433,6 +479,8 @@ class Loads:
         Uniform distributed force on the needle (e.g. gravity: ``rho * A * g``).
     history : TensionHistory
         Pulling from rest by default; a release or a second pull for the hysteresis of a friction model.
+    foundation : Foundation or None
+        Elastic medium holding the rod (an external load).
     """
 
     tensions_n: tuple[float, ...]
@@ -441,6 +489,7 @@ class Loads:
     tip_moment_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     distributed_n_per_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     history: TensionHistory = TensionHistory()
+    foundation: Foundation | None = None
 
     def __post_init__(self) -> None:
         t = tuple(float(x) for x in self.tensions_n)
@@ -456,7 +505,8 @@ class Loads:
     @property
     def has_external(self) -> bool:
         """True when any external force or moment is applied."""
-        return any(any(v) for v in (self.tip_force_n, self.tip_moment_nm, self.distributed_n_per_m))
+        return self.foundation is not None or any(
+            any(v) for v in (self.tip_force_n, self.tip_moment_nm, self.distributed_n_per_m))
 
 
 def gravity_load(design: RodDesign,

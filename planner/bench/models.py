@@ -17,6 +17,11 @@ Honesty
     The load cases a reviewer found wrong: a 2 N lateral tip force on 15ga-20j-base (used to converge 67 mm on
     the wrong side), a dead axial load at 0.9 / 1.1 / 1.5 of the Euler load (straight and imperfect), 5000 N of
     tension (used to blow up to 7e18 mm "converged"): what the solver returns now, with its reason.
+In tissue
+    The in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`) of 15ga-20j-tip at its
+    maximum tension from the template, tip deflection against the tissue modulus (1 kPa - 10 MPa) and depth,
+    beside the kinematic model; the kinematic model's curvature factor fitted per modulus (least squares on
+    the lateral tip over the depths), ``rod_models_tissue.csv`` / ``.png``.
 Stability map
     Each solver (shooting without continuation, shooting with continuation, collocation) on tension ×
     placement × initial guess (zero, small, large), with an out-of-plane tip force so that the boundary-value
@@ -348,6 +353,95 @@ def honesty(log: Callable[[str], None]) -> list[HonestyCase]:
     return out
 
 
+TISSUE_MODULI_PA = (1e3, 1e4, 1e5, 1.9e5, 1e6, 3e6, 1e7)
+TISSUE_DEPTHS_MM = (30.0, 60.0, 90.0, 120.0, 150.0)
+
+
+@dataclass(frozen=True)
+class TissuePoint:
+    """One point of the in-tissue chart."""
+
+    modulus_pa: float
+    depth_mm: float
+    tissue_rod_mm: float
+    kinematic_mm: float
+    factor: float
+    ms: float
+    status: str
+
+
+def tissue(quick: bool, log: Callable[[str], None]) -> list[TissuePoint]:
+    """Tip deflection of the in-tissue rod against modulus and depth, and the kinematic factor per modulus."""
+    from scipy.optimize import minimize_scalar
+
+    from reachplan.planner.steering.insertion import KinematicInsertion
+    from reachplan.planner.steering.schedule import TensionSchedule
+    from reachplan.planner.steering.tissue_rod import TissueRodInsertion
+
+    design = preset("15ga-20j-tip")
+    schedule = TensionSchedule.constant(design.max_tension_n)
+    moduli = (1e3, 1.9e5, 1e7) if quick else TISSUE_MODULI_PA
+    depths = np.array(TISSUE_DEPTHS_MM)
+    out: list[TissuePoint] = []
+
+    def kinematic(factor: float) -> np.ndarray:
+        paths = KinematicInsertion(tissue_factor=factor).insert_array(design, [schedule], float(depths[-1]))[0]
+        return np.hypot(paths[:, 0], paths[:, 1])[np.round(depths).astype(int)]  # 1 mm steps from 0
+
+    kin1 = kinematic(1.0)
+    for e in moduli:
+        t0 = time.perf_counter()
+        final, steps = TissueRodInsertion(tissue_modulus_pa=e).insert_steps(design, schedule, float(depths[-1]))
+        ms = (time.perf_counter() - t0) * 1e3
+        tips = {round(d): float(np.hypot(tip[0], tip[1])) for d, tip in steps}
+        got = np.array([tips.get(round(d), np.nan) for d in depths])
+        ok = np.isfinite(got)
+        factor = math.nan
+        if ok.sum() >= 2:
+            def misfit(f: float, ok: np.ndarray = ok, got: np.ndarray = got) -> float:
+                return float(np.sum((kinematic(f)[ok] - got[ok]) ** 2))
+
+            factor = float(minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4}).x)
+        status = "ok" if isinstance(final, np.ndarray) else final.reason
+        for d, g, k in zip(depths, got, kin1, strict=True):
+            out.append(TissuePoint(e, float(d), float(g), float(k), factor, ms,
+                                   status if not np.isfinite(g) else "ok"))
+        tip_text = ", ".join(f"{d:.0f} mm {g:.2f}" for d, g in zip(depths, got, strict=True))
+        log(f"tissue_rod E = {e:9.3g} Pa: tip at {tip_text} mm; kinematic factor {factor:.3f}; {ms:.0f} ms"
+            + ("" if status == "ok" else f"; FAILED {status}"))
+    return out
+
+
+def _tissue_png(points: list[TissuePoint], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 5), dpi=110)
+    moduli = sorted({p.modulus_pa for p in points})
+    for d in sorted({p.depth_mm for p in points}):
+        pts = sorted((p for p in points if p.depth_mm == d), key=lambda p: p.modulus_pa)
+        line = a1.plot([p.modulus_pa for p in pts], [p.tissue_rod_mm for p in pts], "o-",
+                       label=f"tissue_rod {d:.0f} mm")
+        a1.axhline(pts[0].kinematic_mm, color=line[0].get_color(), ls=":", lw=1)
+    a1.set_xscale("log")
+    a1.set_xlabel("tissue Young's modulus (Pa, log)")
+    a1.set_ylabel("lateral tip deflection (mm)")
+    a1.set_title("15ga-20j-tip at 10 N: in-tissue Cosserat (dots: kinematic, factor 1)", fontsize=9)
+    a1.grid(True, which="both", alpha=0.3)
+    a1.legend(fontsize=7)
+    fac = [next(p.factor for p in points if p.modulus_pa == e) for e in moduli]
+    a2.plot(moduli, fac, "s-")
+    a2.set_xscale("log")
+    a2.set_xlabel("tissue Young's modulus (Pa, log)")
+    a2.set_ylabel("kinematic curvature factor fitted to tissue_rod")
+    a2.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    _atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+
+
 def _pareto_png(rows: list[Row], path: Path) -> None:
     import matplotlib
 
@@ -450,6 +544,7 @@ def run_benchmark(out: Path, quick: bool = False, install: bool = False,
         frows, widths = friction(quick, log)
         extra.update(widths)
         honest = honesty(log)
+        tissue_points = tissue(quick, log)
         cases = stability(quick, log)
     _write_csv(out / "rod_models.csv", ["model", "resolution", "median_ms", "max_tip_error_mm",
                                         "median_tip_error_mm", "success_rate", "batched_solves_per_s",
@@ -470,6 +565,11 @@ def run_benchmark(out: Path, quick: bool = False, install: bool = False,
                                                 "reason"],
                [[c.case, c.converged, *(f"{v:.3f}" for v in (c.tip_mm or (math.nan,) * 3)), f"{c.ms:.2f}",
                  c.reason] for c in honest])
+    _write_csv(out / "rod_models_tissue.csv", ["modulus_pa", "depth_mm", "tissue_rod_tip_mm", "kinematic_tip_mm",
+                                               "kinematic_factor_fitted", "insertion_ms", "status"],
+               [[f"{p.modulus_pa:g}", f"{p.depth_mm:g}", f"{p.tissue_rod_mm:.4f}", f"{p.kinematic_mm:.4f}",
+                 f"{p.factor:.4f}", f"{p.ms:.0f}", p.status] for p in tissue_points])
+    _tissue_png(tissue_points, out / "rod_models_tissue.png")
     _pareto_png(rows + frows, out / "rod_models_pareto.png")
     _stability_png(cases, out / "rod_models_stability.png")
     table = json.dumps(error_table(rows), indent=1) + "\n"
