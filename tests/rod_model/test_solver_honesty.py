@@ -93,3 +93,15 @@ def test_tension_above_the_limit_is_an_error_in_the_cli(capsys: pytest.CaptureFi
     assert "--allow-over-limit" in err and err.count("\n") == 1
     assert main(["rod", "--preset", "15ga-20j-tip", "--tensions", "5,12", "--allow-over-limit", "--json"]) == 0
     capsys.readouterr()
+
+
+def test_collocation_reports_an_unstable_equilibrium_too(uniform_design: RodDesign) -> None:
+    from reachplan.rod_model.collocation import CollocationCosserat
+
+    sec = uniform_design.sections()[0]
+    p_cr = math.pi**2 * (sec.ei1 + sec.ei2) / (4 * (uniform_design.length_mm * 1e-3) ** 2)
+    coll = CollocationCosserat(tol=1e-6)
+    above = coll.solve(uniform_design, Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, -1.1 * p_cr)))
+    assert isinstance(above, FailedSolve) and "unstable" in above.reason
+    below = coll.solve(uniform_design, Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, -0.9 * p_cr)))
+    assert isinstance(below, RodPath), getattr(below, "reason", "")
