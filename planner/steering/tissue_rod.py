@@ -60,7 +60,9 @@ class TissueRodInsertion:
         The rod model solving each step (its ``inserted_mm`` and foundation support); 2 RK4 steps per mm by
         default: the default 0.5 fails its own step-doubling check in tissue of 0.19 MPa and stiffer.
     step_mm : float
-        Insertion step, mm.
+        Insertion step, mm. The track is cut in straight chords along the tip's tangent, so the result
+        converges at first order in the step: at 0.19 MPa, 120 mm deep, 5 / 2.5 / 1.25 mm steps give 28.87 /
+        30.60 / 31.20 mm of tip deflection (Richardson estimate 31.5 mm); the default 2 mm is within about 1 mm.
     node_mm : float
         Spacing of the foundation's nodes along the track, mm.
     slip_mm : float
@@ -73,7 +75,7 @@ class TissueRodInsertion:
 
     tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
     rod_model: TwoTubeCosserat = field(default_factory=lambda: TwoTubeCosserat(steps_per_mm=2.0))
-    step_mm: float = 5.0
+    step_mm: float = 2.0
     node_mm: float = 1.0
     slip_mm: float = 1.0
     cut_force_n: float = 0.0

@@ -71,3 +71,14 @@ def test_unsolvable_insertion_is_a_failure_with_its_reason() -> None:
     assert isinstance(r, FailedInsertion)
     assert "at depth" in r.reason and ("converge" in r.reason or "unstable" in r.reason
                                        or "integration error" in r.reason)
+
+
+def test_insertion_step_refinement_converges() -> None:
+    # the track is cut in chords along the tip's tangent: first-order convergence in the insertion step
+    tips = []
+    for step in (5.0, 2.5, 1.25):
+        path = TissueRodInsertion(tissue_modulus_pa=1.9e5, step_mm=step).insert_one(DESIGN, PULL, 90.0)
+        assert isinstance(path, np.ndarray)
+        tips.append(float(np.hypot(path[-1, 0], path[-1, 1])))
+    d1, d2 = abs(tips[1] - tips[0]), abs(tips[2] - tips[1])
+    assert d1 > 1e-3 and d2 < 0.7 * d1, tips
