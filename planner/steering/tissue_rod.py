@@ -21,8 +21,8 @@ Tip force
 What it shows (``reachplan bench models``, ``rod_models_tissue.csv``): the steered tip deflection is not
 monotonic in the modulus. From zero (the free-space shape of the inserted length: nothing holds the track)
 it *rises* as the tissue starts to hold the needle on the track its tip cut, so that the tip's heading
-accumulates (tip following, as the kinematic model assumes); past a peak near the phantom's gel modulus it
-falls, because the tissue also resists the bending that the tendon drives near the tip: only the tip region
+accumulates (tip following, as the kinematic model assumes); past a peak between about 0.2 and 1 MPa (the
+phantom's gel is 0.19 MPa) it falls, because the tissue also resists the bending that the tendon drives near the tip: only the tip region
 within about a Winkler length ``(4 EI / k)^(1/4)`` still turns with the tension, and that length shrinks as
 ``k^(-1/4)``. Limits: single shooting over the whole inserted length; in the stiffest tissue (about 10 MPa)
 the solve fails past a few centimetres and says so (a FailedInsertion with the reason), it is not guessed.
