@@ -3,10 +3,16 @@
 Plain functions on arrays (SI units), compiled with numba when it is installed; without numba the very same
 functions run as plain Python (slowly). The maths is documented in :mod:`reachplan.rod_model.cosserat`.
 
-State ``y`` (21): ``p`` (3, world, m), ``R`` (9, row-major, stylet directors as columns), ``N`` (3, world, N),
+State ``y`` (22): ``p`` (3, world, m), ``R`` (9, row-major, stylet directors as columns), ``N`` (3, world, N),
 ``M`` (3, world, N·m), ``θ`` (relative twist of needle against stylet, rad), ``n2z`` (needle axial force, N),
-``m2z`` (needle torsional moment, N·m).
-Section table ``sec`` (k, 11): ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm``.
+``m2z`` (needle torsional moment, N·m), ``φ`` (wrap angle of the tendon routing from the base, rad), ``s`` (arc
+length, m).
+External distributed load ``fext`` (3 + 6m): a uniform force per length (3, world, N/m), then an optional elastic
+foundation of m nodes ``s (m), k (N/m²), track (3, world, m), slip (m)`` (see :func:`foundation_force`).
+Section table ``sec`` (k, 16): ``start, end, ei1, gj1, ea1, ga1, ei2, gj2, ea2, ga2, arm``, then friction:
+``mu`` (capstan coefficient of the tendon on its routing), ``jf`` (joint friction arm: Coulomb coefficient ×
+ball radius, m; 0 outside the joint section), ``d`` (+1 tension increasing, −1 decreasing), ``λr`` (proximal
+tension of tendon 0 at the last reversal, N), ``κr`` (the section's curvature at the last reversal, 1/m).
 Unknowns at the base ``x`` (8): ``N(0)``, ``M(0)``, ``n2z(0)``, ``m2z(0)`` (the last two unused when coupled).
 """
 
@@ -30,7 +36,7 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     return _njit(cache=True)(fn) if HAVE_NUMBA else fn
 
 
-NSTATE = 21
+NSTATE = 23
 NX = 8
 
 # status codes of shoot()
@@ -38,6 +44,19 @@ OK = 0
 NOT_CONVERGED = 1
 SINGULAR = 2
 NON_FINITE = 3
+
+
+@_jit
+def local_tension(lam0: float, j: int, sec: np.ndarray, phi: float) -> float:
+    """Tension (N) of tendon ``j`` at wrap angle ``phi`` (rad) for the load-cell tension ``lam0`` (capstan law,
+    see :func:`closure`)."""
+    mu = sec[11]
+    if mu == 0.0 or lam0 == 0.0:
+        return lam0
+    lo = lam0 * np.exp(-mu * phi)
+    hi = lam0 * np.exp(mu * phi)
+    prev = sec[14] * np.exp(sec[13] * mu * phi) if j == 0 else 0.0
+    return min(max(prev, lo), hi)
 
 
 @_jit
@@ -60,11 +79,19 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
     u2z = 0.0
     beta = 1.0
     ei = ei1 + ei2
+    # Capstan friction (tendon sliding in its routing): with the load-cell (proximal) tension λ0 the local
+    # tension lies within λ0 exp(∓μ φ) of the wrap angle φ; where the tendon sticks it keeps the profile of
+    # the last reversal (``λr exp(d μ φ)``, exact for one reversal): clip(previous, λ0 e^{−μφ}, λ0 e^{μφ}).
+    compression = 0.0
+    if sec[12] > 0.0:
+        for j in range(lam.shape[0]):
+            compression += local_tension(lam[j], j, sec, y[21])
     for _ in range(4):  # fixed point on the tendon directions (coupling ~ λ/GA, λ·r²/EI ~ 1e-3)
         ft0 = ft1 = ft2 = 0.0
         mt0 = mt1 = mt2 = 0.0
         for j in range(lam.shape[0]):
-            if lam[j] == 0.0:
+            lamj = lam[j] if sec[11] == 0.0 else local_tension(lam[j], j, sec, y[21])
+            if lamj == 0.0:
                 continue
             rx = arm * rdir[j, 0]
             ry = arm * rdir[j, 1]
@@ -73,7 +100,7 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
             ty = v1 + u2 * rx
             tz = v2 + u0 * ry - u1 * rx
             nt = np.sqrt(tx * tx + ty * ty + tz * tz)
-            tx, ty, tz = lam[j] * tx / nt, lam[j] * ty / nt, lam[j] * tz / nt
+            tx, ty, tz = lamj * tx / nt, lamj * ty / nt, lamj * tz / nt
             ft0 += tx
             ft1 += ty
             ft2 += tz
@@ -84,6 +111,17 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
         mr0, mr1, mr2 = mb0 - mt0, mb1 - mt1, mb2 - mt2
         u0 = mr0 / ei
         u1 = mr1 / ei
+        if sec[12] > 0.0:
+            # Coulomb friction in the ball joints: a moment jf·(stack compression) opposes any change of the
+            # joint curvature; the curvature sticks at its value of the last reversal κr until the bending
+            # moment has changed by twice the friction moment (play operator).
+            um = np.sqrt(u0 * u0 + u1 * u1)
+            if um > 0.0:
+                slack = sec[12] * compression / ei
+                ue = min(max(sec[15], um - slack), um + slack)
+                ue = max(ue, 0.0)
+                u0 *= ue / um
+                u1 *= ue / um
         if coupled:
             v2 = 1.0 + nr2 / (ea1 + ea2)
             beta = 1.0
@@ -109,10 +147,54 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
 
 
 @_jit
+def foundation_force(y: np.ndarray, fext: np.ndarray) -> tuple[float, float, float]:
+    """Distributed force (N/m, world) on the rod at state ``y``: the uniform part of ``fext`` plus the elastic
+    foundation tied to its track: ``−k δ`` with ``δ`` the lateral offset (perpendicular to the rod's tangent) of
+    the centreline from the track point at the same arc length, capped at ``k·slip`` (beyond the slip offset
+    the tissue gives way: it cannot hold the rod harder). Node values are interpolated linearly in ``s``."""
+    m = (fext.shape[0] - 3) // 6
+    if m == 0:
+        return fext[0], fext[1], fext[2]
+    s = y[22]
+    lo = 0
+    hi = m - 1
+    if s <= fext[3]:
+        hi = 0
+    elif s >= fext[3 + 6 * (m - 1)]:
+        lo = m - 1
+    else:
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if fext[3 + 6 * mid] <= s:
+                lo = mid
+            else:
+                hi = mid
+    a = 3 + 6 * lo
+    b = 3 + 6 * hi
+    w = 0.0 if hi == lo else (s - fext[a]) / (fext[b] - fext[a])
+    k = (1 - w) * fext[a + 1] + w * fext[b + 1]
+    if k <= 0.0:
+        return fext[0], fext[1], fext[2]
+    dx = y[0] - ((1 - w) * fext[a + 2] + w * fext[b + 2])
+    dy_ = y[1] - ((1 - w) * fext[a + 3] + w * fext[b + 3])
+    dz = y[2] - ((1 - w) * fext[a + 4] + w * fext[b + 4])
+    slip = (1 - w) * fext[a + 5] + w * fext[b + 5]
+    t0, t1, t2 = y[5], y[8], y[11]  # d3
+    along = dx * t0 + dy_ * t1 + dz * t2
+    dx -= along * t0
+    dy_ -= along * t1
+    dz -= along * t2
+    mag = np.sqrt(dx * dx + dy_ * dy_ + dz * dz)
+    scale = k if mag <= slip else k * slip / mag
+    return fext[0] - scale * dx, fext[1] - scale * dy_, fext[2] - scale * dz
+
+
+@_jit
 def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext: np.ndarray, coupled: bool,
          st: np.ndarray, dy: np.ndarray) -> None:
     closure(y, sec, rdir, lam, coupled, st)
     u0, u1, u2, v0, v1, v2, u2z, beta = st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7]
+    fo0, fo1, fo2 = foundation_force(y, fext)
     # p' = R v
     for i in range(3):
         dy[i] = y[3 + 3 * i] * v0 + y[4 + 3 * i] * v1 + y[5 + 3 * i] * v2
@@ -122,9 +204,9 @@ def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext:
         dy[3 + 3 * i] = r1 * u2 - r2 * u1
         dy[4 + 3 * i] = r2 * u0 - r0 * u2
         dy[5 + 3 * i] = r0 * u1 - r1 * u0
-    dy[12] = -fext[0]
-    dy[13] = -fext[1]
-    dy[14] = -fext[2]
+    dy[12] = -fo0
+    dy[13] = -fo1
+    dy[14] = -fo2
     # M' = -p' x N
     px, py, pz = dy[0], dy[1], dy[2]
     nx, ny, nz = y[12], y[13], y[14]
@@ -136,9 +218,11 @@ def rhs(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, fext:
         dy[19] = 0.0
     else:
         dy[18] = u2z - u2
-        fz = y[5] * fext[0] + y[8] * fext[1] + y[11] * fext[2]  # (R^T f)_z
+        fz = y[5] * fo0 + y[8] * fo1 + y[11] * fo2  # (R^T f)_z
         dy[19] = -sec[9] * beta * (u0 * v1 - u1 * v0) - fz
     dy[20] = 0.0  # isotropic needle, no distributed torque: (u2 x m2)_z = (v2 x n2)_z = 0
+    dy[21] = np.sqrt(u0 * u0 + u1 * u1)  # the tendon turns with the centreline (offset/radius ~1 % neglected)
+    dy[22] = 1.0
 
 
 @_jit
@@ -152,6 +236,7 @@ def integrate(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarr
     y[12:18] = x[0:6]
     y[19] = x[6]
     y[20] = x[7]
+    y[22] = sec[0, 0]
     k1 = np.empty(NSTATE)
     k2 = np.empty(NSTATE)
     k3 = np.empty(NSTATE)
@@ -336,13 +421,14 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
 @_jit
 def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
            fext: np.ndarray, ftip: np.ndarray, ltip: np.ndarray, coupled: bool, tol: float, max_iter: int,
-           max_ramp: int, traj: np.ndarray) -> tuple[int, float, int, int]:
-    """Shoot with continuation: try the full load from ``x``, then ramp it up from zero.
+           max_ramp: int, traj: np.ndarray, min_ramp: int, predictor: np.ndarray) -> tuple[int, float, int, int]:
+    """Shoot with continuation: try the full load from ``x`` (when ``min_ramp`` is 1), then ramp it up from zero.
 
-    On failure tension and external loads are ramped from zero in 4, then 16, ... steps (each step starting
-    from the previous solution). ``x`` is updated in place; ``traj`` receives the converged trajectory. Returns
-    (status, residual in N, iterations, ramp steps). ``tol`` is relative to the load scale
-    ``1 N + Σλ + |external loads|``.
+    On failure tension and external loads are ramped from zero in ``4 min_ramp``, then ``16 min_ramp``, ... steps
+    (each step starting from the previous solution plus ``predictor / ramp``, the undeformed rod's share of the load
+    step, e.g. :func:`reachplan.rod_model.cosserat.linear_guess`; ``min_ramp > 1`` starts with a ramp of that many
+    steps). ``x`` is updated in place; ``traj`` receives the converged trajectory. Returns (status, residual in N,
+    iterations, ramp steps). ``tol`` is relative to the load scale ``1 N + Σλ + |external loads|``.
     """
     fscale = 1.0
     for j in range(lam.shape[0]):
@@ -351,7 +437,7 @@ def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, 
     for i in range(3):
         fscale += abs(ftip[i]) + abs(fext[i]) * length + abs(ltip[i]) / length
     x_start = x.copy()
-    ramp = 1
+    ramp = max(1, min_ramp)
     total_it = 0
     status = NOT_CONVERGED
     res = np.inf
@@ -365,7 +451,13 @@ def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, 
         status = OK
         for k in range(1, ramp + 1):
             f = k / ramp
-            status, res, it = newton(x, sec, nsteps, rdir, f * lam, f * fext, f * ftip, f * ltip, coupled,
+            if ramp > 1:
+                for q in range(NX):
+                    x[q] += predictor[q] / ramp
+            fx = fext.copy()
+            for q in range(3):
+                fx[q] *= f  # the uniform load ramps; a foundation is a stiffness, not a load
+            status, res, it = newton(x, sec, nsteps, rdir, f * lam, fx, f * ftip, f * ltip, coupled,
                                       tol * fscale, max_iter, fscale, traj)
             total_it += it
             if status != OK:
@@ -393,12 +485,13 @@ def batch_free(tensions: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: 
     lam = np.zeros(rdir.shape[0])
     zero = np.zeros(3)
     x = np.zeros(NX)
+    nopred = np.zeros(NX)
     for b in range(tensions.shape[0]):
         lam[0] = tensions[b]
         for q in range(NX):
             x[q] = 0.0
         st, res, _, _ = shoot(x, sec, nsteps, rdir, lam, zero, zero, zero, coupled, tol, max_iter, max_ramp,
-                               traj)
+                               traj, 1, nopred)
         status[b] = st
         resid[b] = res
         tips[b, :] = traj[nrow - 1, 0:3]

@@ -18,8 +18,9 @@ from typing import ClassVar
 import numpy as np
 from scipy.integrate import solve_bvp
 
-from reachplan.rod_model.cosserat import section_table
+from reachplan.rod_model.cosserat import _steps, conjugate_point, section_table
 from reachplan.rod_model.design import Loads, RodDesign
+from reachplan.rod_model.errors import UnsupportedLoadError
 from reachplan.rod_model.protocol import Capabilities, check_loads
 from reachplan.rod_model.result import FailedSolve, RodPath
 
@@ -141,6 +142,8 @@ class CollocationCosserat:
         """
         t0 = time.perf_counter()
         check_loads(self.name, self.capabilities, design, loads)
+        if loads.foundation is not None:
+            raise UnsupportedLoadError(f"model {self.name} has no elastic foundation; use two_tube_cosserat")
         sec = section_table(design)
         sec_mm = sec.copy()
         sec_mm[:, :2] *= 1e3
@@ -229,6 +232,14 @@ class CollocationCosserat:
             why = messages[-1].rstrip(".") if messages else "no attempt"
             return FailedSolve(self.name, f"collocation did not converge: {why} (residual {res:.2e}, continuation "
                                f"up to {ramp // 2} load steps)", res, ms, loads.tensions_n, loads.roll_deg)
+        if loads.has_external:  # the same Jacobi test as the shooting models, on the collocation's base values
+            base = guess[:, 0]
+            x = np.r_[base[12:15], base[15:18] * 1e-3, base[19], base[20] * 1e-3]
+            at_mm = conjugate_point(x, sec, _steps(sec, 2.0), r, lam_full, np.array(loads.distributed_n_per_m),
+                                    self.coupled)
+            if at_mm is not None:
+                return FailedSolve(self.name, f"unstable equilibrium: conjugate point at s = {at_mm:.1f} mm",
+                                   res, ms, loads.tensions_n, loads.roll_deg)
         s = np.concatenate([sec_mm[i, 0] + mesh[(1 if i else 0):] * lengths[i] for i in range(k)])
         ys = np.concatenate([guess[NS * i:NS * (i + 1), (1 if i else 0):] for i in range(k)], axis=1)
         keep = np.r_[True, np.diff(s) > 1e-12]

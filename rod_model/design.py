@@ -159,13 +159,26 @@ class StyletDesign:
         disk), scaled with the disk diameter for 13 ga, x1.5 for the asymmetric disk.
     calibration : Calibration
         The two fitted global parameters.
+    tendon_friction_coefficient : float
+        Capstan (Coulomb) friction coefficient of a tendon on its routing (tube lumen and disk channels): the
+        tension decays as ``exp(−μ φ)`` with the wrap angle ``φ`` accumulated along the bent routing while
+        the tendon is pulled, and grows so while it is released (capstan law; tendon-sheath hysteresis as in
+        Kaneko et al., IEEE T-RA 1991, and Do et al., Mechatronics 2015). Default 0 until calibrated: the
+        published calibration subset has no unloading data to separate it from the moment arm.
+    joint_friction_coefficient : float
+        Coulomb coefficient at the ball-disk contacts of the joint section: a friction moment
+        ``μ_j × ball radius × stack compression`` (the compression is the local tendon tension) opposes any
+        change of the joint curvature. Default 0 until calibrated (the paper blames joint friction for its
+        base-placement error but publishes no coefficient).
+    ball_diameter_mm : float
+        Diameter of the steel balls between the disks, published 0.8 mm.
 
     Raises
     ------
     ValueError
         Another gauge, no joints, an unknown placement, 0 or more than 4 tendons (more than 1 on the asymmetric
         disk), tube radii out of order, a non-positive length, modulus, stiffness or arm, a disk arm outside
-        the disk, or a joint section that does not fit in the stylet.
+        the disk, a joint section that does not fit in the stylet, or a negative friction coefficient.
     """
 
     gauge: int
@@ -185,10 +198,17 @@ class StyletDesign:
     joint_torsion_stiffness_nm2: float = 0.0047
     disk_arm_mm: float = 0.42
     calibration: Calibration = field(default_factory=Calibration)
+    tendon_friction_coefficient: float = 0.0
+    joint_friction_coefficient: float = 0.0
+    ball_diameter_mm: float = 0.8
 
     def __post_init__(self) -> None:
         if self.gauge not in (13, 15):
             raise ValueError(f"stylet gauge must be 13 or 15, got {self.gauge}")
+        if not (0.0 <= self.tendon_friction_coefficient <= 2.0 and 0.0 <= self.joint_friction_coefficient <= 2.0):
+            raise ValueError("friction coefficients must be in [0, 2]")
+        if not (0.0 < self.ball_diameter_mm < self.disk_diameter_mm):
+            raise ValueError("ball_diameter_mm must be positive and smaller than the disk")
         if self.n_joints < 1:
             raise ValueError(f"n_joints must be at least 1, got {self.n_joints}")
         if self.placement not in ("tip", "mid", "base"):
@@ -300,6 +320,10 @@ class Section:
         The needle's.
     arm_m : float, m
         The tendon moment arm (disk arm in the joints, calibrated tube arm in the tube).
+    capstan_mu : float
+        The tendon's friction coefficient on its routing.
+    joint_friction_arm_m : float, m
+        The joints' Coulomb coefficient × ball radius (0 in a tube section).
     """
 
     start_m: float
@@ -314,6 +338,8 @@ class Section:
     ea2: float
     ga2: float
     arm_m: float
+    capstan_mu: float = 0.0
+    joint_friction_arm_m: float = 0.0
 
     @property
     def length_m(self) -> float:
@@ -387,9 +413,15 @@ class RodDesign:
         """Split the rod into stretches of constant properties, base to tip (SI units; cached)."""
         return _sections(self)
 
-    def loads(self, tension_n: float, roll_deg: float = 0.0) -> Loads:
+    def loads(self, tension_n: float, roll_deg: float = 0.0, history: TensionHistory | None = None) -> Loads:
         """Return free-space loads pulling tendon 0 (the one at ``+x`` at roll 0) with ``tension_n`` newtons."""
-        return Loads(tensions_n=(tension_n,) + (0.0,) * (self.n_tendons - 1), roll_deg=roll_deg)
+        return Loads(tensions_n=(tension_n,) + (0.0,) * (self.n_tendons - 1), roll_deg=roll_deg,
+                     history=history or TensionHistory())
+
+    @property
+    def has_friction(self) -> bool:
+        """True when a friction coefficient is non-zero."""
+        return self.stylet.tendon_friction_coefficient > 0 or self.stylet.joint_friction_coefficient > 0
 
 
 @lru_cache(maxsize=256)
@@ -402,10 +434,12 @@ def _sections(design: RodDesign) -> tuple[Section, ...]:
     # ASSUMED: the chain of balls is axially and in shear as stiff as the tube (balls in contact).
     ea1 = st.tube_young_modulus_pa * st.tube_area_m2
     ga1 = st.tube_shear_modulus_pa * st.tube_area_m2
+    mu = st.tendon_friction_coefficient
     tube = (st.tube_bending_stiffness_nm2, st.tube_torsion_stiffness_nm2, ea1, ga1, ei2, gj2, ea2, ga2,
-            st.tube_arm_mm * 1e-3)
+            st.tube_arm_mm * 1e-3, mu, 0.0)
     joints = (st.joint_bending_stiffness_nm2 * st.calibration.joint_stiffness_scale,
-              st.joint_torsion_stiffness_nm2, ea1, ga1, ei2, gj2, ea2, ga2, st.disk_arm_mm * 1e-3)
+              st.joint_torsion_stiffness_nm2, ea1, ga1, ei2, gj2, ea2, ga2, st.disk_arm_mm * 1e-3, mu,
+              st.joint_friction_coefficient * st.ball_diameter_mm / 2 * 1e-3)
     a, b = st.joint_span_mm
     spans = [(0.0, a, "tube", tube), (a, b, "joints", joints), (b, st.length_mm, "tube", tube)]
     return tuple(Section(s0 * 1e-3, s1 * 1e-3, kind, *props) for s0, s1, kind, props in spans if s1 - s0 > 1e-9)
@@ -416,6 +450,77 @@ def _vec3(v: tuple[float, float, float] | np.ndarray, name: str) -> tuple[float,
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be three finite numbers, got {v!r}")
     return (float(a[0]), float(a[1]), float(a[2]))
+
+
+@dataclass(frozen=True, eq=False)
+class Foundation:
+    """An elastic foundation holding the rod (tissue around an inserted needle), tied to a track.
+
+    Parameters
+    ----------
+    s_mm : (m,) float, mm, increasing
+        Arc lengths (from the solve's base) of the nodes; values are linear between nodes, constant beyond.
+    stiffness_n_per_mm2 : (m,) float, N/mm per mm of rod
+        Winkler modulus ``k`` of the medium at each node (0: no tissue there).
+    track_mm : (m, 3) float, mm, base frame
+        Rest position of the tissue at each node (where the tip cut it).
+    slip_mm : (m,) float, mm
+        Lateral offset beyond which the tissue gives way: the force per length is capped at ``k·slip``.
+
+    The force per length on the rod is ``−k δ`` with ``δ`` the centreline's offset from the track point at the
+    same arc length, perpendicular to the rod's tangent (the rod slides freely along its track).
+    """
+
+    s_mm: np.ndarray
+    stiffness_n_per_mm2: np.ndarray
+    track_mm: np.ndarray
+    slip_mm: np.ndarray
+
+    def __post_init__(self) -> None:
+        s = np.array(self.s_mm, dtype=float)
+        k = np.array(self.stiffness_n_per_mm2, dtype=float)
+        tr = np.array(self.track_mm, dtype=float)
+        sl = np.array(self.slip_mm, dtype=float)
+        m = len(s)
+        if (s.ndim != 1 or m < 1 or k.shape != (m,) or tr.shape != (m, 3) or sl.shape != (m,)
+                or np.any(np.diff(s) <= 0)):
+            raise ValueError("foundation: s_mm (m,) increasing, stiffness (m,), track (m, 3), slip (m,)")
+        if not (np.all(np.isfinite(tr)) and np.all(np.isfinite(s)) and np.all(k >= 0) and np.all(sl > 0)
+                and np.all(np.isfinite(k)) and np.all(np.isfinite(sl))):
+            raise ValueError("foundation: values must be finite, stiffness >= 0 and slip > 0")
+        for name, a in (("s_mm", s), ("stiffness_n_per_mm2", k), ("track_mm", tr), ("slip_mm", sl)):
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    def packed_si(self) -> np.ndarray:
+        """(6m,) float, SI: the kernel's layout ``s, k, track (3), slip`` per node (m, N/m², m, m)."""
+        return np.column_stack([self.s_mm * 1e-3, self.stiffness_n_per_mm2 * 1e6, self.track_mm * 1e-3,
+                                self.slip_mm * 1e-3]).ravel()
+
+
+@dataclass(frozen=True)
+class TensionHistory:
+    """Where a quasi-static tension sweep comes from (only matters with friction, see :class:`StyletDesign`).
+
+    Parameters
+    ----------
+    increasing : bool
+        The tendon is being pulled (True) or released (False).
+    reversal_tension_n : float
+        Load-cell tension of tendon 0 at the last reversal of the sweep (the peak before a release, the
+        valley before a pull), N; 0 for a first pull from rest.
+    reversal_joint_curvature_per_m : float
+        Curvature of the joint section at that reversal, 1/m (where friction holds the joints).
+    """
+
+    increasing: bool = True
+    reversal_tension_n: float = 0.0
+    reversal_joint_curvature_per_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (self.reversal_tension_n >= 0 and self.reversal_joint_curvature_per_m >= 0
+                and math.isfinite(self.reversal_tension_n) and math.isfinite(self.reversal_joint_curvature_per_m)):
+            raise ValueError("reversal tension and curvature must be finite and non-negative")
 
 
 @dataclass(frozen=True)
@@ -435,6 +540,10 @@ class Loads:
         External moment on the needle tip.
     distributed_n_per_m : (3,) float, N/m, base frame
         Uniform distributed force on the needle (e.g. gravity: ``rho * A * g``).
+    history : TensionHistory
+        Pulling from rest by default; a release or a second pull for the hysteresis of a friction model.
+    foundation : Foundation or None
+        Elastic medium holding the rod (an external load).
 
     Raises
     ------
@@ -448,6 +557,8 @@ class Loads:
     tip_force_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
     tip_moment_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     distributed_n_per_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    history: TensionHistory = TensionHistory()
+    foundation: Foundation | None = None
 
     def __post_init__(self) -> None:
         t = tuple(float(x) for x in self.tensions_n)
@@ -463,7 +574,8 @@ class Loads:
     @property
     def has_external(self) -> bool:
         """True when any external force or moment is applied."""
-        return any(any(v) for v in (self.tip_force_n, self.tip_moment_nm, self.distributed_n_per_m))
+        return self.foundation is not None or any(
+            any(v) for v in (self.tip_force_n, self.tip_moment_nm, self.distributed_n_per_m))
 
 
 def gravity_load(design: RodDesign,

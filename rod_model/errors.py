@@ -23,3 +23,8 @@ class UnsupportedLoadError(RodModelError):
 
 class NoModelWithinToleranceError(RodModelError):
     """The model selector found no model whose measured error is within the tolerance asked for."""
+
+
+class TensionAboveLimitWarning(UserWarning):
+    """A tendon tension above the design's ``max_tension_n`` was solved (the API warns; ``reachplan rod``
+    refuses unless ``--allow-over-limit``)."""

@@ -6,13 +6,14 @@ Built-in models and third-party ones register as plugins of kind ``rod_models`` 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from reachplan.rod_model.design import Loads, RodDesign
-from reachplan.rod_model.errors import UnsupportedLoadError
+from reachplan.rod_model.errors import TensionAboveLimitWarning, UnsupportedLoadError
 from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath
 
 
@@ -32,6 +33,8 @@ class Capabilities:
         Tip force/moment and distributed loads.
     large_deflection : bool
         Geometrically exact (no small-angle assumption).
+    friction : bool
+        Capstan friction of the tendons and Coulomb friction in the joints (the design's coefficients).
     """
 
     planar_only: bool
@@ -39,6 +42,7 @@ class Capabilities:
     several_tendons: bool
     external_load: bool
     large_deflection: bool
+    friction: bool = False
 
 
 @runtime_checkable
@@ -119,6 +123,8 @@ def check_rod_model(obj: object) -> None:
 def check_loads(name: str, caps: Capabilities, design: RodDesign, loads: Loads) -> None:
     """Check that ``loads`` fit ``design`` and the capabilities ``caps`` of the model called ``name``.
 
+    Warns (:class:`TensionAboveLimitWarning`) when a tension exceeds the design's ``max_tension_n``.
+
     Raises
     ------
     UnsupportedLoadError
@@ -131,6 +137,13 @@ def check_loads(name: str, caps: Capabilities, design: RodDesign, loads: Loads) 
     if loads.has_external and not caps.external_load:
         raise UnsupportedLoadError(f"model {name} cannot represent external loads; use cosserat_rod or "
                                    "two_tube_cosserat")
+    if design.has_friction and not caps.friction:
+        raise UnsupportedLoadError(f"model {name} has no friction but {design.name} has friction coefficients; use "
+                                   "cosserat_rod or two_tube_cosserat, or set the coefficients to 0")
+    if max(loads.tensions_n) > design.max_tension_n:
+        warnings.warn(f"tension {max(loads.tensions_n):g} N exceeds {design.name}'s limit of "
+                      f"{design.max_tension_n:g} N; the stylet is not built for it", TensionAboveLimitWarning,
+                      stacklevel=3)
     if not caps.several_tendons and sum(t > 0 for t in loads.tensions_n) > 1:
         raise UnsupportedLoadError(f"model {name} represents one pulled tendon at a time; use "
                                    "cosserat_rod or two_tube_cosserat")

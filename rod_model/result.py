@@ -39,6 +39,9 @@ class RodPath:
         Roll solved for.
     twist_rad : (n,) float or None
         Relative twist of needle against stylet (two-tube model only).
+    base_unknowns : (8,) float or None
+        The shooting models' converged base values ``N(0), M(0), n2z(0), m2z(0)`` (SI), a warm start for a
+        neighbouring solve.
 
     Attributes
     ----------
@@ -61,6 +64,7 @@ class RodPath:
     tensions_n: tuple[float, ...]
     roll_deg: float
     twist_rad: np.ndarray | None = None
+    base_unknowns: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         s = frozen_floats(self.s_mm, (), "s_mm")

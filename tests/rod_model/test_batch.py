@@ -14,6 +14,7 @@ from reachplan.rod_model.result import RodPath, section_curvatures
 MODELS = [CONSTANT_CURVATURE, PLANAR_BEAM, COSSERAT_ROD, TWO_TUBE_COSSERAT]
 
 
+@pytest.mark.filterwarnings("ignore::reachplan.rod_model.errors.TensionAboveLimitWarning")  # 15 N on purpose
 @pytest.mark.parametrize("model", MODELS, ids=lambda m: m.name)
 @pytest.mark.parametrize("name", ["15ga-20j-tip", "15ga-20j-mid"])
 def test_batch_matches_single_solves(model: object, name: str) -> None:
@@ -81,7 +82,7 @@ def test_selector_uses_measured_errors_and_capabilities() -> None:
 
     rows = (ErrorRow("constant_curvature", "default", 12.0, 0.01, 1e6, 1.0),
             ErrorRow("planar_beam", "default", 0.08, 0.3, 2e6, 1.0),
-            ErrorRow("cosserat_rod", "default", 0.006, 0.2, 4e3, 1.0),
+            ErrorRow("cosserat_rod", "default", 0.006, 0.1, 4e3, 1.0),
             ErrorRow("two_tube_cosserat", "default", 0.0, 0.4, 5e3, 1.0),
             ErrorRow("two_tube_cosserat", "0.02 steps/mm", 0.001, 0.05, None, 1.0))
     planar = Scene()
@@ -121,3 +122,27 @@ def test_tendon_compression_stays_internal_up_to_15_n(name: str) -> None:
     assert two.converged.all()
     np.testing.assert_allclose(two.tip_positions_mm, beam.tip_positions_mm, atol=0.1)
     assert np.all(np.diff(two.tip_deflection_mm) > 0)
+
+
+def test_selector_breaks_cost_ties_by_model_rank_not_by_timing_noise() -> None:
+    from reachplan.rod_model.beam import PLANAR_BEAM
+    from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT
+    from reachplan.rod_model.select import COST_TIE_FACTOR, MODEL_RANK, ErrorRow, Scene, select_model
+
+    caps = {m.name: m.capabilities for m in (PLANAR_BEAM, COSSERAT_ROD, TWO_TUBE_COSSERAT)}
+    rng = np.random.default_rng(3)
+    picks = set()
+    for _ in range(50):  # medians that wobble by +-20 % around the same cost: always the same choice
+        ms = 0.4 * (1 + 0.2 * rng.uniform(-1, 1, 3))
+        rows = (ErrorRow("two_tube_cosserat", "default", 0.0, ms[0], None, 1.0),
+                ErrorRow("cosserat_rod", "default", 0.006, ms[1], None, 1.0),
+                ErrorRow("planar_beam", "default", 0.08, ms[2], None, 1.0))
+        picks.add(select_model(0.5, Scene(), caps, rows))
+    assert picks == {"planar_beam"}
+    assert MODEL_RANK["planar_beam"] < MODEL_RANK["cosserat_rod"] < MODEL_RANK["two_tube_cosserat"]
+    # a model clearly cheaper (beyond the tie factor) still wins on cost, whatever its rank
+    rows = (ErrorRow("two_tube_cosserat", "default", 0.0, 0.1, None, 1.0),
+            ErrorRow("planar_beam", "default", 0.08, 0.1 * COST_TIE_FACTOR * 1.1, None, 1.0))
+    assert select_model(0.5, Scene(), caps, rows) == "two_tube_cosserat"
+    # the tolerance is against the two-tube model, which the docstring says (not against experiment)
+    assert "not against experiment" in (select_model.__doc__ or "")

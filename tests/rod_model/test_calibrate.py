@@ -39,3 +39,27 @@ def test_one_moment_arm_cannot_fit_tip_and_base() -> None:
     best = min(np.max(np.abs(predict(Calibration(1.0, f)) - [r.tip_deflection_mm for r in CALIBRATION_ROWS]))
                for f in np.linspace(0.3, 1.0, 8))
     assert best > 3.0
+
+
+def test_every_published_row_is_reported_and_fitted_ones_are_marked() -> None:
+    from reachplan.rod_model.calibrate import VALIDATION_ROWS, CalibrationResult, every_published_row
+
+    shipped = Calibration()
+    pred = predict(shipped)
+    result = CalibrationResult(shipped, CALIBRATION_ROWS, pred, pred - [r.tip_deflection_mm for r in CALIBRATION_ROWS])
+    table = every_published_row(result)
+    assert [r for r, _, _ in table] == list(CALIBRATION_ROWS + VALIDATION_ROWS)
+    assert [f for _, _, f in table] == [True] * 3 + [False] * 2
+    # the validation rows really are predictions: the pilot design (30 joints) is over-predicted by ~1.6 mm
+    over = {r.preset: p - r.tip_deflection_mm for r, p, _ in table}
+    assert 0.5 < over["15ga-30j-tip"] < 3.0
+
+
+def test_calibration_can_fit_a_friction_coefficient() -> None:
+    base = calibrate()
+    fitted = calibrate(fit_friction=("joint_friction_coefficient",))
+    assert fitted.friction[0] == 0.0 and fitted.friction[1] >= 0.0
+    # one more free parameter never fits worse (least squares, same start)
+    assert np.sum(fitted.residual_mm**2) <= np.sum(base.residual_mm**2) + 1e-9
+    with pytest.raises(ValueError, match="unknown friction"):
+        calibrate(fit_friction=("nope",))

@@ -1,0 +1,179 @@
+"""In-tissue insertion with the geometrically exact rod: the two-tube Cosserat model pushed in steps through an
+elastic foundation tied to the track its tip cut.
+
+Model (template frame: entry at the origin, ``+z`` the insertion direction, roll 0 bends toward ``+x``; mm)
+    At each insertion step the inserted length ``d`` of the stylet-in-needle (its distal ``d`` mm: the joint
+    section first) is solved as a Cosserat rod clamped at the template (:meth:`TwoTubeCosserat.solve` with
+    ``inserted_mm``), tendon tension and roll from the schedule at that depth, held by a Winkler foundation:
+    a force per length ``−k δ`` toward the tissue's rest position at the same arc length, ``δ`` the lateral
+    offset (:class:`reachplan.rod_model.design.Foundation`). The tissue ahead of the tip is cut along the tip's
+    tangent (tip following: the needle slides along its own track, the virtual-spring models of Glozman &
+    Shoham, IEEE T-RO 23(3), 2007, and Misra, Reed et al., IJRR 29(13), 2010). Nonlinear: the holding force
+    per length saturates at ``k · slip_mm``; where the needle moves further from its track, the track is moved
+    with it (the tissue gives way: plastic slip, kept for the later steps). The modulus may vary along the
+    track (per organ); ``k`` follows Vesic's formula (:func:`reachplan.planner.steering.insertion.winkler_modulus_pa`).
+Tip force
+    An axial cutting force ``cut_force_n`` against the tip's previous tangent (a dead load updated each step;
+    cutting plus friction forces of the order of 1 N, Okamura, Simone & O'Leary, IEEE TBME 51(10), 2004).
+    ASSUMED default 0: no value is published for the phantom's gel, and with it the zero-modulus limit is the
+    free-space shape. A symmetric tip has no lateral cutting force.
+
+What it shows (``reachplan bench models``, ``rod_models_tissue.csv``): the steered tip deflection is not
+monotonic in the modulus. From zero (the free-space shape of the inserted length: nothing holds the track)
+it *rises* as the tissue starts to hold the needle on the track its tip cut, so that the tip's heading
+accumulates (tip following, as the kinematic model assumes); past a peak between about 0.2 and 1 MPa (the
+phantom's gel is 0.19 MPa) it falls, because the tissue also resists the bending that the tendon drives near the tip: only the tip region
+within about a Winkler length ``(4 EI / k)^(1/4)`` still turns with the tension, and that length shrinks as
+``k^(-1/4)``. Limits: single shooting over the whole inserted length; in the stiffest tissue (about 10 MPa)
+the solve fails past a few centimetres and says so (a FailedInsertion with the reason), it is not guessed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.steering.insertion import (
+    SIMUGEL_MODULUS_PA,
+    TISSUE_POISSON,
+    FailedInsertion,
+    InsertionPath,
+    winkler_modulus_pa,
+)
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.rod_model.cosserat import TwoTubeCosserat
+from reachplan.rod_model.design import Foundation, Loads, RodDesign
+
+
+@dataclass(frozen=True)
+class TissueRodInsertion:
+    """Quasi-static insertion of the Cosserat rod in an elastic, slipping medium (see the module docstring).
+
+    Parameters
+    ----------
+    tissue_modulus_pa : float
+        Young's modulus of the medium (default SimuGel #3, 0.19 MPa); 0 gives free space.
+    rod_model : TwoTubeCosserat
+        The rod model solving each step (its ``inserted_mm`` and foundation support); 2 RK4 steps per mm by
+        default: the default 0.5 fails its own step-doubling check in tissue of 0.19 MPa and stiffer.
+    step_mm : float
+        Insertion step, mm. The track is cut in straight chords along the tip's tangent, so the result
+        converges at first order in the step: at 0.19 MPa, 120 mm deep, 5 / 2.5 / 1.25 mm steps give 28.87 /
+        30.60 / 31.20 mm of tip deflection (Richardson estimate 31.5 mm); the default 2 mm is within about 1 mm.
+    node_mm : float
+        Spacing of the foundation's nodes along the track, mm.
+    slip_mm : float
+        Lateral offset from the track beyond which the tissue gives way, mm (ASSUMED 1 mm).
+    cut_force_n : float
+        Axial cutting force at the tip, N (ASSUMED 0).
+    poisson : float
+        Poisson's ratio of the medium.
+    """
+
+    tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
+    rod_model: TwoTubeCosserat = field(default_factory=lambda: TwoTubeCosserat(steps_per_mm=2.0))
+    step_mm: float = 2.0
+    node_mm: float = 1.0
+    slip_mm: float = 1.0
+    cut_force_n: float = 0.0
+    poisson: float = TISSUE_POISSON
+
+    def __post_init__(self) -> None:
+        if not (self.tissue_modulus_pa >= 0 and self.step_mm > 0 and self.node_mm > 0 and self.slip_mm > 0
+                and self.cut_force_n >= 0):
+            raise PlanInputError("tissue_rod: modulus and cut force must be >= 0, steps and slip > 0")
+
+    @property
+    def name(self) -> str:
+        return "tissue_rod"
+
+    def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
+               depth_mm: float) -> list[InsertionPath | FailedInsertion]:
+        out: list[InsertionPath | FailedInsertion] = []
+        for sch in schedules:
+            r = self.insert_one(design, sch, depth_mm)
+            out.append(r if isinstance(r, FailedInsertion) else InsertionPath(r, depth_mm, self.name))
+        return out
+
+    def _stiffness(self, design: RodDesign, modulus_pa: np.ndarray) -> np.ndarray:
+        """N/mm per mm of needle at each node (0 where the modulus is 0)."""
+        k = np.zeros(len(modulus_pa))
+        for e in np.unique(modulus_pa):
+            if e > 0:
+                k[modulus_pa == e] = winkler_modulus_pa(design, float(e), self.poisson) * 1e-6
+        return k
+
+    def insert_one(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+                   modulus_profile: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray | FailedInsertion:
+        """(n, 3) float, mm, template frame: the centreline of the inserted needle at ``depth_mm``, or the failure.
+
+        ``modulus_profile``: optional ``(depth_mm (p,), modulus_pa (p,))``, the medium's modulus along the track,
+        piecewise constant from each depth on (per organ); None = ``tissue_modulus_pa`` everywhere.
+        """
+        path, _ = self.insert_steps(design, schedule, depth_mm, modulus_profile)
+        return path
+
+    def insert_steps(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+                     modulus_profile: tuple[np.ndarray, np.ndarray] | None = None
+                     ) -> tuple[np.ndarray | FailedInsertion, list[tuple[float, np.ndarray]]]:
+        """As :meth:`insert_one`, with the tip (3,) mm after every insertion step: ``[(depth_mm, tip_mm), ...]``
+        (up to the failure, if any)."""
+        steps: list[tuple[float, np.ndarray]] = []
+        if not (np.isfinite(depth_mm) and 0 < depth_mm <= design.length_mm):
+            raise PlanInputError(f"insertion depth must be in (0, {design.length_mm:.0f}] mm, got {depth_mm}")
+        if schedule.peak_tension_n > design.max_tension_n + 1e-9:
+            raise PlanInputError(f"the schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
+        nodes = np.linspace(0.0, depth_mm, max(2, round(depth_mm / self.node_mm)) + 1)
+        if modulus_profile is None:
+            moduli = np.full(len(nodes), float(self.tissue_modulus_pa))
+        else:
+            at, values = (np.asarray(a, dtype=float) for a in modulus_profile)
+            if at.shape != values.shape or at.ndim != 1 or len(at) == 0 or np.any(np.diff(at) <= 0):
+                raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
+            moduli = values[np.clip(np.searchsorted(at, nodes, side="right") - 1, 0, len(at) - 1)]
+        stiffness = self._stiffness(design, moduli)
+        track = np.zeros((len(nodes), 3))
+        n_steps = max(1, int(np.ceil(depth_mm / self.step_mm - 1e-9)))
+        tip = np.zeros(3)
+        tangent = np.array([0.0, 0.0, 1.0])
+        cut_to = 0.0
+        path = None
+        for depth in np.linspace(0.0, depth_mm, n_steps + 1)[1:]:
+            new = (nodes > cut_to + 1e-9) & (nodes <= depth + 1e-9)
+            track[new] = tip + np.outer(nodes[new] - cut_to, tangent)  # new tissue, cut along the tip's tangent
+            cut_to = depth
+            inside = nodes <= depth + 1e-9
+            s_in = nodes[inside]
+            if s_in[-1] < depth - 1e-9:
+                s_in = np.r_[s_in, depth]
+            k_in = np.interp(s_in, nodes, stiffness)
+            tr_in = np.column_stack([np.interp(s_in, nodes, track[:, i]) for i in range(3)])
+            found = Foundation(s_in, k_in, tr_in, np.full(len(s_in), self.slip_mm))
+            tension, roll = schedule.at(np.array([depth]))
+            loads = Loads((float(tension[0]),) + (0.0,) * (design.n_tendons - 1), roll_deg=float(roll[0]),
+                          tip_force_n=tuple(-self.cut_force_n * tangent), foundation=found)
+            warm = None if path is None else path.base_unknowns
+            result = self.rod_model.solve(design, loads, warm, inserted_mm=float(depth))
+            if not result:
+                return FailedInsertion(self.name, f"at depth {depth:.1f} mm: {getattr(result, 'reason', '')}"), steps
+            path = result
+            # the tissue gives way where the needle left its track by more than the slip offset
+            pos = np.column_stack([np.interp(nodes[inside], result.s_mm, result.positions_mm[:, i])  # type: ignore[union-attr]
+                                   for i in range(3)])
+            off = pos - track[inside]
+            dist = np.linalg.norm(off, axis=1)
+            far = dist > self.slip_mm
+            if np.any(far):
+                idx = np.nonzero(inside)[0][far]
+                track[idx] += off[far] * (1.0 - self.slip_mm / dist[far])[:, None]
+            tip = result.positions_mm[-1]  # type: ignore[union-attr]
+            tangent = result.frames[-1][:, 2]  # type: ignore[union-attr]
+            steps.append((float(depth), tip.copy()))
+        assert path is not None
+        return np.asarray(path.positions_mm), steps  # type: ignore[union-attr]
+
+
+TISSUE_ROD = TissueRodInsertion()
