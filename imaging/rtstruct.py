@@ -15,7 +15,13 @@ from typing import Any
 import numpy as np
 
 from reachplan.imaging.dicom_io import check_reference, parsing, read_dataset
-from reachplan.imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError, StructureError
+from reachplan.imaging.errors import (
+    CorruptFileError,
+    DicomQuirkWarning,
+    NoDicomError,
+    SparseContourWarning,
+    StructureError,
+)
 from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
 from reachplan.imaging.types import Contour, Roi, StructureSet, Volume
 
@@ -52,6 +58,22 @@ def _contour_points(item: Any, path: Path, roi_label: str) -> np.ndarray:
             f"{path}: ROI {roi_label}: NumberOfContourPoints is {int(n_declared)} but ContourData holds "
             f"{len(pts)} points; using ContourData"), stacklevel=4)
     return pts
+
+
+#: Fewest points a contour of each kind needs to describe anything (a polygon, a polyline, a point).
+MIN_POINTS = {"CLOSED_PLANAR": 3, "OPEN_PLANAR": 2, "OPEN_NONPLANAR": 2, "POINT": 1}
+
+
+def _warn_sparse(path: Path, label: str, contours: list[Contour]) -> None:
+    """One :class:`SparseContourWarning` per ROI whose contours have fewer points than their kind needs."""
+    sparse = [c for c in contours if len(c.points_mm) < MIN_POINTS.get(c.geometric_type, 1)]
+    if sparse:
+        counts = sorted({len(c.points_mm) for c in sparse})
+        kinds = sorted({c.geometric_type for c in sparse})
+        warnings.warn(SparseContourWarning(
+            f"{path}: ROI {label}: {len(sparse)} {'/'.join(kinds)} contour(s) with only "
+            f"{' or '.join(str(n) for n in counts)} point(s); they enclose nothing and are left out of masks and "
+            "volumes: check the contouring"), stacklevel=4)
 
 
 def _referenced(ds: Any) -> tuple[str, str | None]:
@@ -140,6 +162,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
             if gtype == "CLOSEDPLANAR_XOR":  # DICOM 2020+: XOR-combined closed planar contours
                 gtype = "CLOSED_PLANAR"
             contours[number].append(Contour(pts, gtype))
+        _warn_sparse(path, label, contours[number])
     rois = []
     for number, item in declared.items():
         name = str(item.get("ROIName", "") or f"ROI_{number}")
