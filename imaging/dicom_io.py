@@ -545,7 +545,7 @@ def _check_pixel_length(ds: Any, path: Path) -> None:
         if elem is None:
             raise _invalid(path, "the image has no Pixel Data")
         length = getattr(elem, "length", None)
-        if length is None or length == 0xFFFFFFFF and getattr(elem, "value", None) is not None:
+        if length is None or (length == 0xFFFFFFFF and getattr(elem, "value", None) is not None):
             length = len(elem.value or b"")
     need = (n * bits + 7) // 8
     if length != 0xFFFFFFFF and length not in (need, need + 1):

@@ -113,7 +113,7 @@ def output_folder(out: Path, inputs: Iterable[Path | None] = (), option: str = "
     if resolved.exists() and not resolved.is_dir():
         raise ArgumentError(f"{option} {out} is an existing file; give a folder (new or existing)")
     for given, folder in _input_folders(inputs):
-        if resolved == folder or _inside(resolved, folder) and given.resolve().is_dir():
+        if resolved == folder or (_inside(resolved, folder) and given.resolve().is_dir()):
             raise ArgumentError(f"{option} {out} is the input folder of {given} or inside it; "
                                 "choose an output folder outside the inputs")
     _check_writable(resolved / "x", option)
