@@ -169,20 +169,48 @@ def staged_folder(out: Path) -> Iterator[Path]:
 
 
 def _commit(stage: Path, out: Path) -> None:
+    """Move the staged entries into ``out``: a new ``out`` is one rename; into an existing one, folders merge
+    and files replace their namesakes one rename each (nothing else in ``out`` is touched)."""
     if not out.exists():
         os.replace(stage, out)
         return
-    for entry in sorted(stage.iterdir()):
-        dest = out / entry.name
-        if dest.is_dir() and not dest.is_symlink():
-            old = dest.with_name(f".{dest.name}.replaced")
-            shutil.rmtree(old, ignore_errors=True)
-            os.replace(dest, old)
-            os.replace(entry, dest)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(entry, dest)
+    _merge(stage, out)
     shutil.rmtree(stage, ignore_errors=True)
+
+
+def _merge(src: Path, dest: Path) -> None:
+    for entry in sorted(src.iterdir()):
+        target = dest / entry.name
+        if entry.is_dir() and not entry.is_symlink() and target.is_dir() and not target.is_symlink():
+            _merge(entry, target)
+        elif target.is_dir() and not target.is_symlink():
+            raise ArgumentError(f"{target} is a folder in the way of an output file; move it away")
+        else:
+            os.replace(entry, target)
+
+
+def relocate(stage: Path, out: Path, doc: Any = None) -> Any:
+    """Rewrite the staging folder's path as ``out`` in the text files written under ``stage`` (JSON, HTML, CSV)
+    and in ``doc`` (returned), before the stage is moved into place."""
+    old, new = str(stage), str(out)
+    for path in stage.rglob("*"):
+        if path.is_file() and path.suffix.lower() in (".json", ".html", ".csv", ".txt"):
+            text = path.read_text(encoding="utf-8", errors="surrogateescape")
+            if old in text:
+                from reachplan.imaging.files import atomic_write_bytes
+
+                atomic_write_bytes(path, text.replace(old, new).encode("utf-8", errors="surrogateescape"))
+
+    def walk(obj: Any) -> Any:
+        if isinstance(obj, str):
+            return obj.replace(old, new)
+        if isinstance(obj, dict):
+            return {k: walk(v) for k, v in obj.items()}
+        if isinstance(obj, list | tuple):
+            return [walk(v) for v in obj]
+        return obj
+
+    return walk(doc)
 
 
 # --- JSON and warnings -----------------------------------------------------------------------------------

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
+import math
 import time
 from pathlib import Path
 
 from reachplan.imaging.types import StructureSet, Volume
+from reachplan.planner.cli.edges import output_folder, print_json, relocate, staged_folder
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.candidates import Target
@@ -43,29 +43,58 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
                 x, y, z = (float(p) for p in parts)
             except ValueError:
                 raise PlanInputError(f"target {spec!r}: a point is three numbers 'x,y,z' in mm") from None
+            if not all(math.isfinite(v) and abs(v) <= 1e5 for v in (x, y, z)):
+                raise PlanInputError(f"target {spec!r}: a point needs three finite coordinates within 100 m, in mm")
             points.append(Target(f"point_{len(points) + 1}", (x, y, z)))
         else:
             names.append(spec)
     return names, points
 
 
+def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
+    """Everything about ``plan``'s arguments that can be checked before any work: the output folder, the template,
+    stylet designs and TG-43 source names, the target points.
+
+    Raises
+    ------
+    ReachplanError
+    """
+    from reachplan.planner.dose.tg43 import get_source
+    from reachplan.plugins import registry
+    from reachplan.rod_model.design import preset
+
+    output_folder(args.out, inputs)
+    registry.get("templates", args.template)
+    for name in args.design:
+        preset(name)
+    if not args.no_export:
+        get_source(args.source)
+    _targets(args.targets)
+
+
 def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.rtstruct import read_rtstruct
 
+    inputs = [p for p in (args.ct, args.rtstruct) if p is not None]
+    check_plan_arguments(args, inputs)
     quiet = args.quiet or args.json
     volume = read_series(args.ct) if args.ct else None
     structures = read_rtstruct(args.rtstruct, volume)
     names, points = _targets(args.targets)
     for n in names:
         structures.get(n)  # a typed error naming the available ROIs
+    if not args.no_export:
+        structures.get(args.target_roi)  # the ROI the dwell times are optimised on, checked before planning
     config = PlanConfig(template=args.template, designs=tuple(args.design))
-    doc = run_plan(structures, volume, names, points, config, args.out, quiet,
-                   export=not args.no_export, source=args.source, target_roi=args.target_roi,
-                   inputs=[p for p in (args.ct, args.rtstruct) if p is not None])
+    with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole plan succeeds
+        doc = run_plan(structures, volume, names, points, config, stage, quiet,
+                       export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs)
+        doc = relocate(stage, args.out, doc)
     if args.json:
-        json.dump(doc, sys.stdout, indent=2)
-        print()
+        print_json(doc, NAME)
+    elif not quiet:
+        print(f"\nwrote {args.out / 'plan.json'}, {args.out / 'overview.png'} and {args.out / 'report.html'}")
     return 0
 
 
@@ -133,5 +162,4 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     atomic_write_json(out / "plan.json", doc)
     if not quiet:
         print(format_table(result))
-        print(f"\nwrote {out / 'plan.json'}, {out / 'overview.png'} and {out / 'report.html'}")
     return doc

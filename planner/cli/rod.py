@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from reachplan import ReachplanError
+from reachplan.planner.cli.edges import finite, print_json
 from reachplan.plugins import registry
 from reachplan.rod_model.design import PRESET_NAMES, preset
 from reachplan.rod_model.select import Scene, select_model
@@ -40,13 +40,19 @@ def _tensions(args: argparse.Namespace) -> tuple[list[float], bool]:
             values, sweep = [float(t) for t in args.tensions.split(",") if t.strip()], True
         except ValueError:
             raise RodArgumentError(f"--tensions must be comma-separated numbers, got {args.tensions!r}") from None
-    if not values or any(not (0.0 <= t < 1e3) for t in values):
+    if not values or any(not (0.0 <= t < 1e3) for t in values):  # also refuses NaN
         raise RodArgumentError("tensions must be numbers between 0 and 1000 N")
     return values, sweep
 
 
+def _check(args: argparse.Namespace) -> None:
+    finite(args.roll, "--roll", lo=-3600.0, hi=3600.0)
+    finite(args.tolerance, "--tolerance", lo=0.0, lo_open=True, hi=1e3)
+
+
 def run(args: argparse.Namespace) -> int:
     values, sweep = _tensions(args)
+    _check(args)
     design = preset(args.preset)
     if args.model == "auto":
         from reachplan.planner.pipeline import rod_model_capabilities
@@ -63,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         doc.update(preset=design.name, tension_n=t, max_tension_n=design.max_tension_n)
         out.append(doc)
     if args.json:
-        print(json.dumps(out if sweep else out[0]))
+        print_json(out if sweep else out[0], NAME)
     else:
         for d in out:
             state = (f"tip deflection {d['tip_deflection_mm']:.3f} mm" if d["converged"]
