@@ -231,8 +231,9 @@ def _rescale(ds: Any, path: Path) -> tuple[float, float]:
     slope = float(_floats(ds, "RescaleSlope", 1, path)[0]) if ds.get("RescaleSlope") is not None else 1.0
     intercept = float(_floats(ds, "RescaleIntercept", 1, path)[0]) if ds.get("RescaleIntercept") is not None \
         else 0.0
-    if slope == 0:
-        raise _invalid(path, "RescaleSlope is 0")
+    if slope == 0 or abs(slope) > 1e6 or abs(intercept) > 1e7:
+        raise InvalidValueError(f"{path}: RescaleSlope is {slope:g} and RescaleIntercept {intercept:g}; the slope must "
+                                "be non-zero within 1e6 and the intercept within 1e7: fix the header or re-export")
     return slope, intercept
 
 
