@@ -142,7 +142,7 @@ def test_any_header_value_gives_a_finite_volume_or_a_typed_error(
 
     def edit(k: int, ds: Any) -> None:
         if k == slice_index:
-            elem = ds[keyword] if keyword in ds else None
+            elem = ds.data_element(keyword)
             vr = elem.VR if elem is not None else "DS"
             text = "\\".join(values)
             if vr in ("US", "SS"):  # binary VRs: write the number if it is one, else a mangled value
