@@ -68,3 +68,7 @@ class CalibrationDateWarning(QuestionableValueWarning):
 
 class SparseContourWarning(QuestionableValueWarning):
     """A closed contour has fewer than 3 points (1 or 2): it encloses nothing and is left out of masks and volumes."""
+
+
+class OutsideImageWarning(QuestionableValueWarning):
+    """A ROI's contours lie wholly or partly outside the images they are said to be drawn on."""

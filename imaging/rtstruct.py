@@ -19,6 +19,7 @@ from reachplan.imaging.errors import (
     CorruptFileError,
     DicomQuirkWarning,
     NoDicomError,
+    OutsideImageWarning,
     SparseContourWarning,
     StructureError,
 )
@@ -74,6 +75,32 @@ def _warn_sparse(path: Path, label: str, contours: list[Contour]) -> None:
             f"{path}: ROI {label}: {len(sparse)} {'/'.join(kinds)} contour(s) with only "
             f"{' or '.join(str(n) for n in counts)} point(s); they enclose nothing and are left out of masks and "
             "volumes: check the contouring"), stacklevel=4)
+
+
+#: How far outside the image volume (mm) a contour point may lie before its ROI is reported (half a slice or so is
+#: normal: contours are drawn on slice centres and may touch the border).
+OUTSIDE_MARGIN_MM = 5.0
+
+
+def _warn_outside(path: Path, rois: list[Roi], volume: Volume) -> None:
+    """One :class:`OutsideImageWarning` per ROI with contour points more than :data:`OUTSIDE_MARGIN_MM` outside the
+    image volume (its voxel centres' box)."""
+    grid = volume.grid
+    upper = np.array(grid.shape[::-1], dtype=float) - 1.0  # (i, j, k)
+    tol = OUTSIDE_MARGIN_MM / np.asarray(grid.spacing_mm, dtype=float)
+    for roi in rois:
+        if not roi.contours:
+            continue
+        pts = np.concatenate([c.points_mm for c in roi.contours])
+        ijk = grid.to_index(pts)
+        out = np.any((ijk < -tol) | (ijk > upper + tol), axis=1)
+        if out.any():
+            far = float(np.max(np.maximum(-ijk - tol, ijk - upper - tol).clip(min=0) * grid.spacing_mm))
+            share = "all" if out.all() else f"{out.mean():.0%} of the"
+            warnings.warn(OutsideImageWarning(
+                f"{path}: ROI {roi.number} ({roi.name}): {share} contour points lie outside the images (up to "
+                f"{far + OUTSIDE_MARGIN_MM:.0f} mm beyond); check that the structure set belongs to these images"),
+                stacklevel=4)
 
 
 def _referenced(ds: Any) -> tuple[str, str | None]:
@@ -172,6 +199,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
     for_uid, series_uid = _referenced(ds)
     if volume is not None:
         check_reference(volume, for_uid, series_uid, f"RT Structure Set {path}")
+        _warn_outside(path, rois, volume)
     return StructureSet(
         rois=tuple(rois), frame_of_reference_uid=for_uid, referenced_series_uid=series_uid,
         sop_instance_uid=str(ds.get("SOPInstanceUID", "")), study_instance_uid=str(ds.get("StudyInstanceUID", "")),

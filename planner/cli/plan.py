@@ -7,8 +7,9 @@ import math
 import time
 from pathlib import Path
 
+from reachplan.imaging.files import atomic_write_json
 from reachplan.imaging.types import StructureSet, Volume
-from reachplan.planner.cli.edges import output_folder, print_json, relocate, staged_folder
+from reachplan.planner.cli.edges import json_safe, output_folder, print_json, relocate, seen_warnings, staged_folder
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.candidates import Target
@@ -90,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
     with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole plan succeeds
         doc = run_plan(structures, volume, names, points, config, stage, quiet,
                        export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs)
+        doc["warnings"] = seen_warnings(args)  # named warnings met on the way (readers, planning), also in plan.json
+        atomic_write_json(stage / "plan.json", json_safe(doc))
         doc = relocate(stage, args.out, doc)
     if args.json:
         print_json(doc, NAME)

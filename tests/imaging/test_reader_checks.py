@@ -21,6 +21,7 @@ from reachplan.imaging.dicom_io import read_series
 from reachplan.imaging.errors import (
     ImagingError,
     InvalidValueError,
+    OutsideImageWarning,
     SeriesError,
     SparseContourWarning,
 )
@@ -166,3 +167,20 @@ def test_any_header_value_gives_a_finite_volume_or_a_typed_error(
             return
     assert np.all(np.isfinite(v.array)) and np.all(np.isfinite(v.grid.patient_from_index))
     assert np.all(np.asarray(v.grid.spacing_mm) > 0)
+
+
+def test_a_roi_a_metre_outside_the_images_warns_by_name(tmp_path: Path, dicom: Any) -> None:
+    dicom.write_series(tmp_path / "ct")
+    volume = read_series(tmp_path / "ct")
+    inside = [dicom.circle(2.0, 10.0 + 2 * k, n=12) for k in range(3)]
+    far = [dicom.circle(2.0, 1000.0 + 2 * k, n=12) for k in range(3)]
+    rs = dicom.write_rtstruct(tmp_path / "RS.dcm", [("Target", inside, "CLOSED_PLANAR"),
+                                                    ("Bladder", far, "CLOSED_PLANAR")],
+                              series_uid=volume.series_instance_uid, for_uid=volume.frame_of_reference_uid)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_rtstruct(rs, volume)
+    named = [str(w.message) for w in caught if issubclass(w.category, OutsideImageWarning)]
+    assert len(named) == 1 and "ROI 2 (Bladder): all contour points lie outside the images" in named[0]
+    far_mm = float(named[0].split("up to ")[1].split(" mm")[0])
+    assert 975 < far_mm < 1000  # the top slice is at z = 20 mm, the far ROI at z = 1000 to 1004 mm
