@@ -4,7 +4,8 @@ Seeds: a CT slice and a (thinned) RT Structure Set of the built-in phantom, and 
 and PDR RT Plans, their structure sets and the Eclipse prostate structure set, thinned so that each run is short).
 Mutations: byte flips, truncations, inserted bytes, and element mutations (a value set to NaN, infinity, a negative,
 zero or huge number, an empty or odd string, a wrong multiplicity; an element or a sequence item deleted).
-Each mutant goes through ``reachplan inspect --json`` (RT Plans also through ``reachplan dose --points --json``).
+Each mutant goes through ``reachplan inspect --json`` (RT Plans also through ``reachplan dose --points --json``; an
+RT Dose written by reachplan is mutated and given to ``dose --like``).
 
 Every run must: end with exit code 0, 1 or 2 (never a traceback, never the internal-error code), print JSON without
 NaN or Infinity, leave its input unchanged, and leave no partial output (no RT Dose after a failure, no temporary
@@ -33,7 +34,7 @@ from reachplan.planner.cli import main
 
 SEED = 14
 #: Mutants per seed file (the whole fuzz takes about 20-40 s on a shared 2-core machine).
-N_MUTANTS = {"ct": 90, "rs_phantom": 30, "rp_hdr": 70, "rp_pdr": 50, "rs_hdr": 25, "rs_prostate": 25}
+N_MUTANTS = {"ct": 90, "rs_phantom": 30, "rp_hdr": 70, "rp_pdr": 50, "rs_hdr": 25, "rs_prostate": 25, "rd": 20}
 DOSE_EVERY = 3  # one RT Plan mutant in DOSE_EVERY also goes through `reachplan dose`
 
 VALUES = ["nan", "-nan", "inf", "-inf", "-1", "0", "-0", "1e30", "-1e30", "1e308", "", " ", "x", "1\\2\\3\\4",
@@ -58,6 +59,7 @@ class Seeds:
     rs_hdr: Path
     rs_pdr: Path
     rs_prostate: Path
+    rd: Path
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +77,10 @@ def seeds(tmp_path_factory: pytest.TempPathFactory, reference_dir: Path) -> Seed
             path = root / f"{name}.dcm"
             _thin(pydicom.dcmread(src), keep).save_as(path)
             out[name] = path
-    return Seeds(ct=ct, rp_hdr=tps / "hdr" / "RP.HDR.dcm", rp_pdr=tps / "pdr" / "RP.PDR.dcm", **out)
+        rp_hdr = tps / "hdr" / "RP.HDR.dcm"
+        assert main(["dose", "--plan", str(rp_hdr), "--structures", str(out["rs_hdr"]), "--spacing", "8",
+                     "--out", str(root / "RD.dcm")]) == 0
+    return Seeds(ct=ct, rp_hdr=rp_hdr, rp_pdr=tps / "pdr" / "RP.PDR.dcm", rd=root / "RD.dcm", **out)
 
 
 # --- mutations ---------------------------------------------------------------------------------------------------
@@ -228,6 +233,13 @@ def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
                 out.mkdir()
                 _run(["dose", "--plan", str(path), "--structures", str(rs), "--points", "--json", "--spacing", "8",
                       "--out", str(out / "RD.dcm")], tally, f"{name} #{k} dose", [path, rs], out)
+    for k, data in enumerate(_mutants(seeds.rd, N_MUTANTS["rd"], rng)):
+        folder = tmp_path / f"rd_{k}"
+        (folder / "out").mkdir(parents=True)
+        (folder / "RD.dcm").write_bytes(data)
+        _run(["dose", "--plan", str(seeds.rp_hdr), "--structures", str(seeds.rs_hdr), "--like", str(folder / "RD.dcm"),
+              "--json", "--out", str(folder / "out" / "RD.dcm")], tally, f"rd #{k} dose --like",
+             [folder / "RD.dcm", seeds.rp_hdr, seeds.rs_hdr], folder / "out")
     assert tally.codes is not None and tally.failures is not None
     assert not tally.failures, f"{len(tally.failures)} of {tally.runs} runs failed:\n" + "\n".join(tally.failures[:20])
     # the fuzz reaches both outcomes: some mutants are still readable, many are refused with a typed error
