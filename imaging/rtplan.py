@@ -324,12 +324,22 @@ def read_rtplan(path: str | os.PathLike[str]) -> RtPlan:
     NoDicomError
         The file is DICOM but not an RT Plan.
     CorruptFileError
-        Not DICOM, truncated, or a brachy channel without the data needed to place its dwells.
+        Not DICOM, truncated, a value pydicom cannot parse, or a brachy channel without the data needed to place
+        its dwells.
+    InvalidValueError
+        A value that no real plan holds: a Channel Total Time negative, not finite or above
+        :data:`MAX_CHANNEL_TOTAL_TIME_S`; cumulative time weights negative, not finite or decreasing (other than
+        the known restart-at-0 quirk); a Final Cumulative Time Weight not finite or 0 while the control points
+        carry weight; a negative or non-finite Reference Air Kerma Rate, source length or half-life; a dose
+        reference point that is not finite.
 
     Warns
     -----
     PlanQuirkWarning
         Once per distinct quirk met (see the module docstring).
+    CalibrationDateWarning
+        A source's Source Strength Reference Date is not a date, or is more than :data:`MAX_CALIBRATION_AGE_DAYS`
+        from the plan's date (a 1950 date, say): the Reference Air Kerma Rate is used as written.
     """
     p = str(path)
     found: list[str] = []
