@@ -77,14 +77,15 @@ def _warn_sparse(path: Path, label: str, contours: list[Contour]) -> None:
             "volumes: check the contouring"), stacklevel=4)
 
 
-#: How far outside the image volume (mm) a contour point may lie before its ROI is reported (half a slice or so is
-#: normal: contours are drawn on slice centres and may touch the border).
+#: How far outside the image volume (mm) a contour point may lie (contours are drawn on slice centres and may touch
+#: the border), and how far any point may lie before its ROI is reported even when the rest is inside.
 OUTSIDE_MARGIN_MM = 5.0
+FAR_OUTSIDE_MM = 50.0
 
 
 def _warn_outside(path: Path, rois: list[Roi], volume: Volume) -> None:
-    """One :class:`OutsideImageWarning` per ROI with contour points more than :data:`OUTSIDE_MARGIN_MM` outside the
-    image volume (its voxel centres' box)."""
+    """One :class:`OutsideImageWarning` per ROI that lies wholly more than :data:`OUTSIDE_MARGIN_MM` outside the
+    image volume (its voxel centres' box), or reaches more than :data:`FAR_OUTSIDE_MM` beyond it."""
     grid = volume.grid
     upper = np.array(grid.shape[::-1], dtype=float) - 1.0  # (i, j, k)
     tol = OUTSIDE_MARGIN_MM / np.asarray(grid.spacing_mm, dtype=float)
@@ -94,8 +95,8 @@ def _warn_outside(path: Path, rois: list[Roi], volume: Volume) -> None:
         pts = np.concatenate([c.points_mm for c in roi.contours])
         ijk = grid.to_index(pts)
         out = np.any((ijk < -tol) | (ijk > upper + tol), axis=1)
-        if out.any():
-            far = float(np.max(np.maximum(-ijk - tol, ijk - upper - tol).clip(min=0) * grid.spacing_mm))
+        far = float(np.max(np.maximum(-ijk - tol, ijk - upper - tol).clip(min=0) * grid.spacing_mm))
+        if out.all() or far + OUTSIDE_MARGIN_MM > FAR_OUTSIDE_MM:
             share = "all" if out.all() else f"{out.mean():.0%} of the"
             warnings.warn(OutsideImageWarning(
                 f"{path}: ROI {roi.number} ({roi.name}): {share} contour points lie outside the images (up to "
