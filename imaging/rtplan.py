@@ -571,6 +571,11 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
         if abs(final - last) > 1e-6 * max(abs(final), 1.0):
             found.append("Final Cumulative Time Weight differs from the last control point's (used the former)")
     times = total * w / norm if norm > 0 else np.zeros_like(w)
+    if times.sum() > total * (1 + 1e-6) + 1e-9:
+        raise InvalidValueError(
+            f"{where}: the dwell times add up to {times.sum():g} s, more than the Channel Total Time {total:g} s "
+            f"(Final Cumulative Time Weight {norm:g} below the control points' {last:g}); fix the plan in the "
+            "planning system and export it again")
     coeffs: list[tuple[int, float]] = []
     if cps:
         for item in cps[-1].get("BrachyReferencedDoseReferenceSequence", []):
