@@ -234,13 +234,16 @@ def json_safe(obj: Any, where: str = "", nulled: list[str] | None = None) -> Any
 
 
 def print_json(doc: Any, command: str = "") -> None:
-    """Print ``doc`` as indented JSON on stdout, never NaN or Infinity (see :func:`json_safe`)."""
+    """Print ``doc`` as indented JSON on stdout, never NaN or Infinity (see :func:`json_safe`). When values had to be
+    set to null, a dict document says which under ``"not_computable"`` (JSON paths), and stderr says so too."""
     nulled: list[str] = []
-    text = json.dumps(json_safe(doc, "", nulled), indent=2, allow_nan=False)
+    safe = json_safe(doc, "", nulled)
     if nulled:
+        if isinstance(safe, dict):
+            safe["not_computable"] = [f"{p}: not a finite number" for p in nulled]
         print(f"reachplan {command}: warning: not computable (null in the JSON): {', '.join(nulled[:10])}",
               file=sys.stderr)
-    sys.stdout.write(text + "\n")
+    sys.stdout.write(json.dumps(safe, indent=2, allow_nan=False) + "\n")
 
 
 def warning_lines(caught: Iterable[warnings.WarningMessage]) -> list[str]:
