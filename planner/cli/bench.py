@@ -38,4 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from reachplan.planner.cli.edges import output_folder
+
+    output_folder(args.out)  # not a file, writable: checked before the benchmark runs
     return int(_load(args._bench_module).run(args))
