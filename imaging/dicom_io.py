@@ -176,8 +176,13 @@ def parsing(path: Path) -> Iterator[None]:
 
 
 def _one_line(exc: BaseException, limit: int = 160) -> str:
-    text = " ".join(str(exc).split())
+    """``exc``'s message on one line, without the traceback pydicom embeds in nested errors; the chain of
+    "With tag X got exception:" prefixes is kept as the path of tags to the damaged element."""
+    text = " ".join(str(exc).split("Traceback (most recent call last)")[0].split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+one_line = _one_line
 
 
 # --------------------------------------------------------------------------------------------------

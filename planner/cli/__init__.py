@@ -53,6 +53,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(exc: BaseException, limit: int) -> str:
+    """The message on one line, without an embedded traceback (pydicom nests them in its messages)."""
+    text = " ".join(str(exc).split("Traceback (most recent call last)")[0].split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -62,13 +68,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             code = int(args._run(args))
         except ReachplanError as exc:
             code = exc.exit_code
-            message = f"reachplan {args.command}: error: {exc}"
+            message = f"reachplan {args.command}: error: {_one_line(exc, 1000)}"
         except KeyboardInterrupt:
             code, message = 130, "reachplan: interrupted"
         except Exception as exc:  # the last resort: an exception that escapes is a bug
             code = INTERNAL_ERROR_EXIT
-            text = " ".join(str(exc).split())[:200]
-            message = (f"reachplan {args.command}: internal error: {type(exc).__name__}: {text}; "
+            message = (f"reachplan {args.command}: internal error: {type(exc).__name__}: {_one_line(exc, 200)}; "
                        "this is a bug in reachplan, please report it with the command and its inputs")
         else:
             message = ""

@@ -209,6 +209,7 @@ def write_rtdose(
 
 def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read an RT Dose: ``(dose (nk, nj, ni) float64 Gy, grid)``; used for ``--like`` and round trips."""
+    from reachplan.imaging.dicom_io import one_line
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     p = Path(path)
@@ -217,18 +218,19 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     except FileNotFoundError:
         raise NoDicomError(f"{p}: no such file; pass an RT Dose (RD) file") from None
     except Exception as exc:
-        raise CorruptFileError(f"{p}: not readable as DICOM ({type(exc).__name__}: {exc})") from None
+        raise CorruptFileError(f"{p}: not readable as DICOM ({type(exc).__name__}: {one_line(exc)})") from None
     try:
         return _dose_and_grid(ds, p)
     except CorruptFileError:
         raise
     except (AttributeError, ValueError, TypeError, IndexError, KeyError, OverflowError, NotImplementedError,
             RuntimeError, MemoryError, EOFError, OSError) as exc:
-        raise CorruptFileError(f"{p}: RT Dose cannot be read ({type(exc).__name__}: {' '.join(str(exc).split())[:160]})"
-                               "; re-export it") from None
+        raise CorruptFileError(f"{p}: RT Dose cannot be read ({type(exc).__name__}: {one_line(exc)}); re-export it") \
+            from None
 
 
 def _dose_and_grid(ds: Any, p: Path) -> tuple[np.ndarray, Grid]:
+    from reachplan.imaging.dicom_io import one_line
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     if str(ds.get("Modality", "")) != "RTDOSE":
@@ -241,7 +243,7 @@ def _dose_and_grid(ds: Any, p: Path) -> tuple[np.ndarray, Grid]:
         offsets = np.array([float(x) for x in ds.get("GridFrameOffsetVector", [0.0])], dtype=float)
         rows, cols = int(ds.Rows), int(ds.Columns)
     except (AttributeError, ValueError, TypeError) as exc:
-        raise CorruptFileError(f"{p}: RT Dose geometry is incomplete ({exc})") from None
+        raise CorruptFileError(f"{p}: RT Dose geometry is incomplete ({one_line(exc)})") from None
     if len(offsets) != nk:
         raise CorruptFileError(f"{p}: GridFrameOffsetVector has {len(offsets)} values for {nk} frames")
     normal = np.cross(iop[:3], iop[3:])

@@ -289,3 +289,21 @@ def test_staged_folder_leaves_nothing_on_failure_and_merges_on_success(tmp_path:
     assert (keep / "export" / "mine.txt").read_text() == "user file"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
     shutil.rmtree(keep)
+
+
+def test_error_messages_are_one_line_without_embedded_tracebacks(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import reachplan.planner.cli.plugins as plugins_cli
+    from reachplan.imaging.dicom_io import parsing
+
+    def nested(args: argparse.Namespace) -> int:  # what pydicom raises for a damaged nested sequence
+        with parsing(Path("RP.dcm")):
+            raise OSError("With tag (300A,0230) got exception: No tag to read at file position 170A\n"
+                          "Traceback (most recent call last):\n  File \"x.py\", line 1, in <module>\n")
+        return 0
+
+    monkeypatch.setattr(plugins_cli, "run", nested)
+    code, _, err = _run(["plugins"], capsys)
+    line = _one_error_line(err, "plugins")
+    assert code == 2 and "No tag to read at file position 170A" in line and "Traceback" not in err
