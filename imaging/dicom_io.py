@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import struct
 import warnings
+import zlib
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from pydicom.errors import BytesLengthException
 from reachplan.imaging.errors import (
     CorruptFileError,
     ImagingError,
+    InvalidValueError,
     NoDicomError,
     ObliqueSliceWarning,
     ReferenceMismatchError,
@@ -81,8 +83,17 @@ def _invalid(path: Path, what: str) -> CorruptFileError:
     return CorruptFileError(f"{path}: {what}; the file breaks the DICOM standard: fix or re-export it")
 
 
+DEFLATED = frozenset({"1.2.840.10008.1.2.1.99", "1.2.840.10008.1.2.8.1"})  # Deflated Explicit VR LE, Deflated Image
+
+
 def _check_complete(ds: Any, path: Path) -> None:
-    """Raise :class:`CorruptFileError` when the last element of ``ds`` runs past the end of the file."""
+    """Raise :class:`CorruptFileError` when the last element of ``ds`` runs past the end of the file.
+
+    Deflated files are not checked here: their element offsets count in the inflated stream, and a truncated
+    deflate stream already fails while pydicom reads it.
+    """
+    if str(getattr(getattr(ds, "file_meta", None), "get", lambda *_: "")("TransferSyntaxUID", "")) in DEFLATED:
+        return
     size = path.stat().st_size
     tags = list(ds.keys())
     if not tags:
@@ -161,7 +172,7 @@ def read_dataset(
 #: What pydicom raises on damaged bytes, when a file is read or when its values are first used.
 PARSE_ERRORS: tuple[type[Exception], ...] = (
     OSError, EOFError, ValueError, KeyError, TypeError, IndexError, AttributeError, OverflowError, struct.error,
-    NotImplementedError, RuntimeError, BytesLengthException,
+    NotImplementedError, RuntimeError, BytesLengthException, zlib.error, MemoryError,
 )
 
 
@@ -177,8 +188,15 @@ def parsing(path: Path) -> Iterator[None]:
 
 
 def _one_line(exc: BaseException, limit: int = 160) -> str:
-    text = " ".join(str(exc).split())
+    """Return ``exc``'s message on one line, without the traceback pydicom embeds in nested errors.
+
+    The chain of "With tag X got exception:" prefixes is kept as the path of tags to the damaged element.
+    """
+    text = " ".join(str(exc).split("Traceback (most recent call last)")[0].split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+one_line = _one_line
 
 
 # --------------------------------------------------------------------------------------------------
@@ -244,8 +262,9 @@ def _rescale(ds: Any, path: Path) -> tuple[float, float]:
     slope = float(_floats(ds, "RescaleSlope", 1, path)[0]) if ds.get("RescaleSlope") is not None else 1.0
     intercept = float(_floats(ds, "RescaleIntercept", 1, path)[0]) if ds.get("RescaleIntercept") is not None \
         else 0.0
-    if slope == 0:
-        raise _invalid(path, "RescaleSlope is 0")
+    if slope == 0 or abs(slope) > 1e6 or abs(intercept) > 1e7:
+        raise InvalidValueError(f"{path}: RescaleSlope is {slope:g} and RescaleIntercept {intercept:g}; the slope must "
+                                "be non-zero within 1e6 and the intercept within 1e7: fix the header or re-export")
     return slope, intercept
 
 
@@ -265,7 +284,7 @@ def _frames_of(ds: Any, path: Path) -> list[_Frame]:
         ps = _floats(ds, "PixelSpacing", 2, path)
         thickness = ds.get("SliceThickness")
         try:
-            thick = float(thickness) if thickness not in (None, "") and float(thickness) > 0 else None
+            thick = float(thickness) if thickness not in (None, "") and 0 < float(thickness) <= 1e3 else None
         except (TypeError, ValueError):
             thick = None
         return [_Frame(path, None, _floats(ds, "ImagePositionPatient", 3, path),
@@ -494,11 +513,14 @@ def assemble_geometry(frames: Sequence[_Frame], tol: SeriesTolerance, label: str
         raise SeriesError(f"{label}: ImageOrientationPatient {ori[0].tolist()} is not two orthogonal unit vectors")
     row, col = row / np.linalg.norm(row), col / np.linalg.norm(col)
     spacing = np.array([f.spacing for f in frames])
-    if np.any(spacing <= 0) or np.abs(spacing - spacing[0]).max() > 1e-4 * spacing[0].max():
-        raise SeriesError(f"{label}: PixelSpacing is not positive or differs between slices; "
-                          "it is not one regular volume")
-    normal = np.cross(row, col)
+    if np.any(spacing <= 0) or np.any(spacing > 1e3) or np.abs(spacing - spacing[0]).max() > 1e-4 * spacing[0].max():
+        raise SeriesError(f"{label}: PixelSpacing {spacing[0].tolist()} mm is not positive (up to 1000 mm) or differs "
+                          "between slices; fix the header or re-export the series")
     pos = np.array([f.position for f in frames])
+    if np.abs(pos).max() > 1e6:
+        raise SeriesError(f"{label}: ImagePositionPatient beyond 1 km ({np.abs(pos).max():g} mm); fix the header "
+                          "or re-export the series")
+    normal = np.cross(row, col)
     d = pos @ normal
     order = [int(i) for i in np.argsort(d, kind="stable")]
     d_sorted, pos_sorted = d[order], pos[order]
@@ -539,6 +561,10 @@ def assemble_geometry(frames: Sequence[_Frame], tol: SeriesTolerance, label: str
     m[:3, 1] = col * spacing[0][0]
     m[:3, 2] = step
     m[:3, 3] = pos_sorted[0]
+    slice_mm = float(np.linalg.norm(step))
+    if not np.all(np.isfinite(m)) or not 1e-3 <= slice_mm <= 1e3:
+        raise SeriesError(f"{label}: the slice spacing is {slice_mm:g} mm (allowed 0.001 to 1000 mm); fix the "
+                          "positions or SliceThickness, or re-export the series")
     rows, columns = frames[0].rows, frames[0].columns
     return Grid((len(frames), rows, columns), m), order
 
@@ -577,23 +603,47 @@ def _native_pixels(ds: Any, path: Path) -> np.ndarray | None:
     return np.frombuffer(data, dtype=dtype, count=n).reshape(rows, cols)
 
 
+_NATIVE = _NATIVE_LE | {"1.2.840.10008.1.2.2", "1.2.840.10008.1.2.1.99"}  # + big endian, deflated
+
+
 def _check_pixel_length(ds: Any, path: Path) -> None:
-    """For uncompressed pixel data: its length must hold Rows x Columns x frames values."""
+    """Check that the pixel description is coherent and fits the pixel data.
+
+    BitsAllocated 1, 8, 16, 32 or 64; BitsStored <= BitsAllocated; HighBit = BitsStored - 1; and, for
+    uncompressed pixel data, its length must be Rows x Columns x frames x samples x BitsAllocated / 8 (plus at
+    most one padding byte): a BitsAllocated of 8 on 16-bit data would otherwise give a garbled volume.
+
+    Raises
+    ------
+    InvalidValueError
+    """
+    with parsing(path):
+        bits = int(ds.get("BitsAllocated", 16) or 16)
+        stored = int(ds.get("BitsStored", bits) or bits)
+        high = ds.get("HighBit")
+        high = stored - 1 if high in (None, "") else int(high)
+        rows, cols = int(ds.Rows), int(ds.Columns)
+        n = rows * cols * int(ds.get("NumberOfFrames", 1) or 1) * int(ds.get("SamplesPerPixel", 1) or 1)
+    if bits not in (1, 8, 16, 32, 64) or not (1 <= stored <= bits) or high != stored - 1:
+        raise InvalidValueError(
+            f"{path}: BitsAllocated {bits}, BitsStored {stored}, HighBit {high} do not describe valid pixels "
+            "(BitsStored <= BitsAllocated, HighBit = BitsStored - 1); fix the header or re-export the image")
     meta = getattr(ds, "file_meta", None)
-    if meta is None or str(meta.get("TransferSyntaxUID", "")) not in _NATIVE_LE:
+    if meta is None or str(meta.get("TransferSyntaxUID", "")) not in _NATIVE:
         return
     with parsing(path):
         elem = ds.get_item(0x7FE00010, keep_deferred=True) if 0x7FE00010 in ds else None
         if elem is None:
             raise _invalid(path, "the image has no Pixel Data")
         length = getattr(elem, "length", None)
-        if length is None:
+        if length is None or (length == 0xFFFFFFFF and getattr(elem, "value", None) is not None):
             length = len(elem.value or b"")
-        bits = int(ds.get("BitsAllocated", 16) or 16)
-        need = int(ds.Rows) * int(ds.Columns) * int(ds.get("NumberOfFrames", 1) or 1) * \
-            int(ds.get("SamplesPerPixel", 1) or 1) * bits // 8
-    if length != 0xFFFFFFFF and length < need:
-        raise _corrupt(path, f"pixel data has {length} bytes, {need} needed for its rows, columns and frames")
+    need = (n * bits + 7) // 8
+    if length != 0xFFFFFFFF and length not in (need, need + 1):
+        raise InvalidValueError(
+            f"{path}: pixel data (7FE0,0010) has {length} bytes but Rows {rows} x Columns {cols} x frames x samples at "
+            f"BitsAllocated {bits} need {need}; the header does not describe the pixels (damaged or mis-edited "
+            "BitsAllocated, Rows or Columns): re-export the image")
 
 
 def _sitk_pixels(ds: Any, path: Path) -> np.ndarray | None:

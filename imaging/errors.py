@@ -51,3 +51,27 @@ class DicomQuirkWarning(ImagingWarning):
 
 class MeshDecimationWarning(ImagingWarning):
     """A mesh could not be decimated to the requested size without losing watertightness."""
+
+
+class InvalidValueError(CorruptFileError):
+    """A value is readable but impossible.
+
+    E.g. a negative time, a NaN weight, a pixel data length that does not fit the image's declared size; the
+    message names the file, the element and what to do.
+    """
+
+
+class QuestionableValueWarning(ImagingWarning):
+    """A value is possible but unlikely to be right; it was used as written (the message says what to check)."""
+
+
+class CalibrationDateWarning(QuestionableValueWarning):
+    """A source's strength reference (calibration) date is far from the plan's date, or cannot be read."""
+
+
+class SparseContourWarning(QuestionableValueWarning):
+    """A closed contour has fewer than 3 points (1 or 2): it encloses nothing and is left out of masks and volumes."""
+
+
+class OutsideImageWarning(QuestionableValueWarning):
+    """A ROI's contours lie wholly or partly outside the images they are said to be drawn on."""

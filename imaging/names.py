@@ -134,11 +134,13 @@ class SynonymTable:
                 rows = list(csv.DictReader(fh))
         except OSError as exc:
             raise ImagingError(f"cannot read synonym table {path}: {exc.strerror}") from None
-        except (UnicodeDecodeError, csv.Error):
-            raise ImagingError(f"synonym table {path} is not a UTF-8 CSV text file; give 'standard,synonym' "
-                               "rows") from None
+        except (UnicodeDecodeError, csv.Error) as exc:
+            raise ImagingError(f"synonym table {path} is not UTF-8 CSV text ({type(exc).__name__}); give a CSV file "
+                               "with 'standard,synonym' rows") from None
         if rows and not {"standard", "synonym"} <= set(rows[0]):
             raise ImagingError(f"synonym table {path} needs the header line 'standard,synonym'")
+        if any(not isinstance(r.get("standard"), str) or not isinstance(r.get("synonym"), str) for r in rows):
+            raise ImagingError(f"synonym table {path}: every row needs two columns 'standard,synonym'")
         add: dict[str, tuple[str, ...]] = {}
         for r in rows:
             if not (r.get("standard") or "").strip() or not (r.get("synonym") or "").strip():

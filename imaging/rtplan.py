@@ -42,8 +42,14 @@ from pydicom.dataset import Dataset
 from pydicom.filereader import read_sequence
 
 from reachplan._arrays import frozen_floats
-from reachplan.imaging.dicom_io import read_dataset
-from reachplan.imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError
+from reachplan.imaging.dicom_io import parsing, read_dataset
+from reachplan.imaging.errors import (
+    CalibrationDateWarning,
+    CorruptFileError,
+    DicomQuirkWarning,
+    InvalidValueError,
+    NoDicomError,
+)
 from reachplan.imaging.types import StructureSet
 
 RT_PLAN_SOP_CLASSES = {
@@ -53,6 +59,12 @@ RT_PLAN_SOP_CLASSES = {
 ONCENTRA_CATHETER_TAG = (0x300F, 0x1000)
 ONCENTRA_CHANNEL_ROI_TAG = (0x300B, 0x1000)
 _SAME_POSITION_MM = 1e-3
+#: Largest Channel Total Time accepted, s (about 116 days): far above any HDR/PDR channel (minutes) and above a
+#: temporary LDR implant (days); a larger value is a damaged or mis-scaled file, not a treatment.
+MAX_CHANNEL_TOTAL_TIME_S = 1e7
+#: A source calibrated more than this many days before (or after) the plan's date is questionable: Ir-192
+#: (half-life 73.8 d, NUDAT) sources are exchanged about every 3 months, so a year-old calibration is not current.
+MAX_CALIBRATION_AGE_DAYS = 365.0
 
 
 class PlanQuirkWarning(DicomQuirkWarning):
@@ -354,7 +366,33 @@ def _float(ds: Dataset, keyword: str, default: float | None = None) -> float | N
 
 def _int(ds: Dataset, keyword: str, default: int | None = None) -> int | None:
     v = _float(ds, keyword)
-    return default if v is None else round(v)
+    return default if v is None or not np.isfinite(v) else round(v)
+
+
+def _value(ds: Dataset, keyword: str, where: str, *, lo: float | None = None, hi: float | None = None,
+           lo_open: bool = False, unit: str = "") -> float | None:
+    """Read a numeric element that must be finite and within [lo, hi] ((lo, hi] with ``lo_open``); None when absent.
+
+    Raises
+    ------
+    InvalidValueError
+        Not a number, not finite or out of range; the message names the file, the element and what to do.
+    """
+    v = ds.get(keyword)
+    if v is None or v == "":
+        return None
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise InvalidValueError(f"{where}: {keyword} {v!r} is not a number; fix the plan in the planning system "
+                                "and export it again") from None
+    bad = not np.isfinite(x) or (lo is not None and (x < lo or (lo_open and x == lo))) or (hi is not None and x > hi)
+    if bad:
+        rng = f"{'>' if lo_open else '>='} {lo:g}" if hi is None and lo is not None else \
+            f"between {lo:g} and {hi:g}" if lo is not None and hi is not None else "finite"
+        raise InvalidValueError(f"{where}: {keyword} is {x:g}{unit}, it must be finite and {rng}{unit}; fix the "
+                                "plan in the planning system and export it again")
+    return x
 
 
 def _str(ds: Dataset, keyword: str) -> str:
@@ -379,12 +417,22 @@ def read_rtplan(path: str | os.PathLike[str]) -> RtPlan:
     NoDicomError
         The file is DICOM but not an RT Plan.
     CorruptFileError
-        Not DICOM, truncated, or a brachy channel without the data needed to place its dwells.
+        Not DICOM, truncated, a value pydicom cannot parse, or a brachy channel without the data needed to place
+        its dwells.
+    InvalidValueError
+        A value that no real plan holds: a Channel Total Time negative, not finite or above
+        :data:`MAX_CHANNEL_TOTAL_TIME_S`; cumulative time weights negative, not finite or decreasing (other than
+        the known restart-at-0 quirk); a Final Cumulative Time Weight not finite or 0 while the control points
+        carry weight; a negative or non-finite Reference Air Kerma Rate, source length or half-life; a dose
+        reference point that is not finite.
 
     Warns
     -----
     PlanQuirkWarning
         Once per distinct quirk met (see the module docstring).
+    CalibrationDateWarning
+        A source's Source Strength Reference Date is not a date, or is more than :data:`MAX_CALIBRATION_AGE_DAYS`
+        from the plan's date (a 1950 date, say): the Reference Air Kerma Rate is used as written.
     """
     p = str(path)
     found: list[str] = []
@@ -394,12 +442,41 @@ def read_rtplan(path: str | os.PathLike[str]) -> RtPlan:
         ds = read_dataset(Path(p), required=True)
         if ds is None:  # not reached: required=True raises instead
             raise NoDicomError(f"{p} is not a DICOM file; pass an RT Plan (RP) file")
-        try:
+        with parsing(Path(p)):  # pydicom errors met while values are used become typed errors
             plan = _plan_from_dataset(ds, p, found)
-        except (EOFError, OSError) as exc:
-            raise CorruptFileError(f"{p}: the file is truncated ({exc})") from None
     quirks = _emit(p, found)
+    _check_calibration_dates(plan, _str(ds, "RTPlanDate"))
     return replace(plan, quirks=quirks)
+
+
+def _check_calibration_dates(plan: RtPlan, plan_date: str) -> None:
+    """Warn (:class:`CalibrationDateWarning`) about a source calibration date that is unreadable or far off.
+
+    Far off: more than :data:`MAX_CALIBRATION_AGE_DAYS` from the plan's date (today when the plan has none).
+    """
+    import datetime as dt
+
+    def parse(text: str) -> dt.date | None:
+        try:
+            return dt.datetime.strptime(text.strip()[:8], "%Y%m%d").date()
+        except ValueError:
+            return None
+
+    when = parse(plan_date) or dt.date.today()
+    for src in plan.sources:
+        if not src.reference_date:
+            continue
+        ref = parse(src.reference_date)
+        name = Path(plan.path).name
+        if ref is None:
+            warnings.warn(CalibrationDateWarning(
+                f"{name}: source {src.number}: Source Strength Reference Date {src.reference_date!r} is not a date; "
+                "check the Reference Air Kerma Rate against the source certificate"), stacklevel=3)
+        elif abs((when - ref).days) > MAX_CALIBRATION_AGE_DAYS:
+            warnings.warn(CalibrationDateWarning(
+                f"{name}: source {src.number}: Source Strength Reference Date {ref.isoformat()} is "
+                f"{abs((when - ref).days)} days from the plan's date {when.isoformat()}; the Reference Air Kerma Rate "
+                "is used as written (no decay): check it against the source certificate"), stacklevel=3)
 
 
 def _emit(path: str, found: list[str]) -> tuple[str, ...]:
@@ -423,15 +500,16 @@ def _plan_from_dataset(ds: Dataset, path: str, found: list[str]) -> RtPlan:
         found.append("missing Frame of Reference UID")
     is_brachy = "BrachyTreatmentType" in ds or "ApplicationSetupSequence" in ds
     fg = ds.FractionGroupSequence[0] if ds.get("FractionGroupSequence") else Dataset()
-    n_fractions = _int(fg, "NumberOfFractionsPlanned", 1) or 1
+    fractions = _value(fg, "NumberOfFractionsPlanned", f"{path}: fraction group", lo=0, hi=1e4)
+    n_fractions = max(1, round(fractions)) if fractions is not None else 1
     setup_doses = tuple(
         (
             _int(item, "ReferencedBrachyApplicationSetupNumber", 0) or 0,
-            _float(item, "BrachyApplicationSetupDose", 0.0) or 0.0,
+            _value(item, "BrachyApplicationSetupDose", f"{path}: fraction group", lo=0, hi=1e6, unit=" Gy") or 0.0,
         )
         for item in fg.get("ReferencedBrachyApplicationSetupSequence", [])
     )
-    sources = tuple(_source(s) for s in ds.get("SourceSequence", []))
+    sources = tuple(_source(s, path) for s in ds.get("SourceSequence", []))
     catheters = _oncentra_catheters(ds, path, found)
     setups = tuple(_setup(s, path, found) for s in ds.get("ApplicationSetupSequence", []))
     treatment_type = _str(ds, "BrachyTreatmentType")
@@ -481,18 +559,21 @@ def _overlong_decimal_strings(ds: Dataset) -> list[str]:
     return names
 
 
-def _source(s: Dataset) -> BrachySource:
+def _source(s: Dataset, path: str) -> BrachySource:
+    number = _int(s, "SourceNumber", 0) or 0
+    where = f"{path}: source {number}"
     return BrachySource(
-        number=_int(s, "SourceNumber", 0) or 0,
+        number=number,
         isotope_name=_str(s, "SourceIsotopeName"),
         source_type=_str(s, "SourceType"),
         manufacturer=_str(s, "SourceManufacturer"),
-        air_kerma_rate_u=_float(s, "ReferenceAirKermaRate", 0.0) or 0.0,
+        # 1e7 U: ten times the strongest Ir-192 HDR source (10 Ci is about 4e4 U)
+        air_kerma_rate_u=_value(s, "ReferenceAirKermaRate", where, lo=0, hi=1e7, unit=" U") or 0.0,
         reference_date=_str(s, "SourceStrengthReferenceDate"),
         reference_time=_str(s, "SourceStrengthReferenceTime"),
-        half_life_days=_float(s, "SourceIsotopeHalfLife"),
-        active_length_mm=_float(s, "ActiveSourceLength"),
-        diameter_mm=_float(s, "ActiveSourceDiameter"),
+        half_life_days=_value(s, "SourceIsotopeHalfLife", where, lo=0, lo_open=True, unit=" d"),
+        active_length_mm=_value(s, "ActiveSourceLength", where, lo=0, hi=1e3, unit=" mm"),
+        diameter_mm=_value(s, "ActiveSourceDiameter", where, lo=0, hi=1e3, unit=" mm"),
         model_id=_str(s, "SourceModelID"),
     )
 
@@ -523,9 +604,10 @@ def _private_roi_number(c: Dataset) -> int | None:
 def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Channel:
     number = _int(c, "ChannelNumber", 0) or 0
     where = f"{path}: channel {number}"
-    total = _float(c, "ChannelTotalTime")
-    if total is None:
+    if c.get("ChannelTotalTime") in (None, ""):
         raise CorruptFileError(f"{where} has no Channel Total Time; the dwell times cannot be known")
+    total = _value(c, "ChannelTotalTime", where, lo=0, hi=MAX_CHANNEL_TOTAL_TIME_S, unit=" s")
+    assert total is not None
     cps = list(c.get("BrachyControlPointSequence", []))
     rel = np.array([_float(cp, "ControlPointRelativePosition", np.nan) for cp in cps], dtype=float)
     pos = np.full((len(cps), 3), np.nan)
@@ -539,7 +621,14 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
             f"{where}: a control point lacks its 3D position or cumulative time weight; "
             "re-export the plan with control point positions"
         )
-    final = _float(c, "FinalCumulativeTimeWeight")
+    if not np.all(np.isfinite(pos)) or np.abs(pos).max(initial=0.0) > 1e5:
+        raise InvalidValueError(f"{where}: a Control Point 3D Position is infinite or beyond 100 m; fix the plan in "
+                                "the planning system and export it again")
+    if not np.all(np.isfinite(ctw)) or np.any(ctw < 0):
+        raise InvalidValueError(f"{where}: a Cumulative Time Weight is negative or infinite; time weights must be "
+                                "finite and >= 0: fix the plan in the planning system and export it again")
+    _check_accumulating(ctw, pos, where)
+    final = _value(c, "FinalCumulativeTimeWeight", where, lo=0)
     dwell_pos: list[np.ndarray] = []
     dwell_rel: list[float] = []
     weights: list[float] = []
@@ -565,6 +654,9 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
         found.append("time weight between two different positions of a stepwise channel (ignored)")
     w = np.array(weights, dtype=float)
     last = float(ctw[-1]) if len(ctw) else 0.0
+    if final is not None and final <= 0 and w.sum() > 0:
+        raise InvalidValueError(f"{where}: Final Cumulative Time Weight is {final:g} but the control points carry "
+                                "weight; it must be > 0: fix the plan in the planning system and export it again")
     if restarts or final is None or final <= 0:
         norm = float(w.sum())
         if final is None and not restarts:
@@ -574,11 +666,16 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
         if abs(final - last) > 1e-6 * max(abs(final), 1.0):
             found.append("Final Cumulative Time Weight differs from the last control point's (used the former)")
     times = total * w / norm if norm > 0 else np.zeros_like(w)
+    if times.sum() > total * (1 + 1e-6) + 1e-9:
+        raise InvalidValueError(
+            f"{where}: the dwell times add up to {times.sum():g} s, more than the Channel Total Time {total:g} s "
+            f"(Final Cumulative Time Weight {norm:g} below the control points' {last:g}); fix the plan in the "
+            "planning system and export it again")
     coeffs: list[tuple[int, float]] = []
     if cps:
         for item in cps[-1].get("BrachyReferencedDoseReferenceSequence", []):
             ref = _int(item, "ReferencedDoseReferenceNumber")
-            coef = _float(item, "CumulativeDoseReferenceCoefficient")
+            coef = _value(item, "CumulativeDoseReferenceCoefficient", where, lo=-1e6, hi=1e6)
             if ref is not None and coef is not None:
                 coeffs.append((ref, coef))
     roi = _int(c, "ReferencedROINumber")
@@ -596,8 +693,8 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
         source_movement=movement,
         total_time_s=total,
         final_weight=norm,
-        n_pulses=_int(c, "NumberOfPulses"),
-        pulse_interval_s=_float(c, "PulseRepetitionInterval"),
+        n_pulses=None if (pulses := _value(c, "NumberOfPulses", where, lo=0, hi=1e4)) is None else round(pulses),
+        pulse_interval_s=_value(c, "PulseRepetitionInterval", where, lo=0, hi=1e7, unit=" s"),
         length_mm=length,
         step_mm=_float(c, "SourceApplicatorStepSize"),
         dwell_positions_mm=np.array(dwell_pos).reshape(-1, 3),
@@ -607,10 +704,38 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
     )
 
 
+def _check_accumulating(ctw: np.ndarray, pos: np.ndarray, where: str) -> None:
+    """Check that cumulative time weights do not decrease.
+
+    The known quirk of weights that restart at 0 at every dwell (each pair of control points at one position
+    going 0 -> w) is accepted.
+
+    Raises
+    ------
+    InvalidValueError
+        A weight decreases in any other way.
+    """
+    drops = np.flatnonzero(np.diff(ctw) < 0)
+    if not len(drops):
+        return
+    same = np.linalg.norm(np.diff(pos, axis=0), axis=1) <= _SAME_POSITION_MM
+    starts = [k for k in range(len(ctw) - 1) if same[k] and (k == 0 or not same[k - 1])]
+    if all(ctw[k] == 0 for k in starts) and all(ctw[k + 1] == 0 for k in drops):
+        return  # restarts at 0 for every dwell (reported as a quirk)
+    k = int(drops[0])
+    raise InvalidValueError(
+        f"{where}: Cumulative Time Weight decreases from {ctw[k]:g} to {ctw[k + 1]:g} at control point {k + 1}; "
+        "cumulative weights must not decrease: fix the plan in the planning system and export it again")
+
+
 def _dose_reference(d: Dataset, plan: RtPlan) -> DoseReference:
     number = _int(d, "DoseReferenceNumber", 0) or 0
     coords = d.get("DoseReferencePointCoordinates")
     position = frozen_floats([float(x) for x in coords]) if coords is not None and len(coords) == 3 else None
+    if position is not None and (not np.all(np.isfinite(position)) or np.abs(position).max() > 1e5):
+        raise InvalidValueError(
+            f"{plan.path}: dose reference {number}: DoseReferencePointCoordinates {position.tolist()} are not finite "
+            "coordinates within 100 m; fix the point in the planning system and export the plan again")
     tps: float | None = None
     setup_dose = dict(plan.setup_doses_gy)
     terms = [

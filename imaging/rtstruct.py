@@ -15,7 +15,14 @@ from typing import Any
 import numpy as np
 
 from reachplan.imaging.dicom_io import check_reference, parsing, read_dataset
-from reachplan.imaging.errors import CorruptFileError, DicomQuirkWarning, NoDicomError, StructureError
+from reachplan.imaging.errors import (
+    CorruptFileError,
+    DicomQuirkWarning,
+    NoDicomError,
+    OutsideImageWarning,
+    SparseContourWarning,
+    StructureError,
+)
 from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
 from reachplan.imaging.types import Contour, Roi, StructureSet, Volume
 
@@ -52,6 +59,52 @@ def _contour_points(item: Any, path: Path, roi_label: str) -> np.ndarray:
             f"{path}: ROI {roi_label}: NumberOfContourPoints is {int(n_declared)} but ContourData holds "
             f"{len(pts)} points; using ContourData"), stacklevel=4)
     return pts
+
+
+#: Fewest points a contour of each kind needs to describe anything (a polygon, a polyline, a point).
+MIN_POINTS = {"CLOSED_PLANAR": 3, "OPEN_PLANAR": 2, "OPEN_NONPLANAR": 2, "POINT": 1}
+
+
+def _warn_sparse(path: Path, label: str, contours: list[Contour]) -> None:
+    """One :class:`SparseContourWarning` per ROI whose contours have fewer points than their kind needs."""
+    sparse = [c for c in contours if len(c.points_mm) < MIN_POINTS.get(c.geometric_type, 1)]
+    if sparse:
+        counts = sorted({len(c.points_mm) for c in sparse})
+        kinds = sorted({c.geometric_type for c in sparse})
+        warnings.warn(SparseContourWarning(
+            f"{path}: ROI {label}: {len(sparse)} {'/'.join(kinds)} contour(s) with only "
+            f"{' or '.join(str(n) for n in counts)} point(s); they enclose nothing and are left out of masks and "
+            "volumes: check the contouring"), stacklevel=4)
+
+
+#: How far outside the image volume (mm) a contour point may lie (contours are drawn on slice centres and may touch
+#: the border), and how far any point may lie before its ROI is reported even when the rest is inside.
+OUTSIDE_MARGIN_MM = 5.0
+FAR_OUTSIDE_MM = 50.0
+
+
+def _warn_outside(path: Path, rois: list[Roi], volume: Volume) -> None:
+    """Warn about ROIs outside the image volume.
+
+    One :class:`OutsideImageWarning` per ROI that lies wholly more than :data:`OUTSIDE_MARGIN_MM` outside the
+    image volume (its voxel centres' box), or reaches more than :data:`FAR_OUTSIDE_MM` beyond it.
+    """
+    grid = volume.grid
+    upper = np.array(grid.shape[::-1], dtype=float) - 1.0  # (i, j, k)
+    tol = OUTSIDE_MARGIN_MM / np.asarray(grid.spacing_mm, dtype=float)
+    for roi in rois:
+        if not roi.contours:
+            continue
+        pts = np.concatenate([c.points_mm for c in roi.contours])
+        ijk = grid.to_index(pts)
+        out = np.any((ijk < -tol) | (ijk > upper + tol), axis=1)
+        far = float(np.max(np.maximum(-ijk - tol, ijk - upper - tol).clip(min=0) * grid.spacing_mm))
+        if out.all() or far + OUTSIDE_MARGIN_MM > FAR_OUTSIDE_MM:
+            share = "all" if out.all() else f"{out.mean():.0%} of the"
+            warnings.warn(OutsideImageWarning(
+                f"{path}: ROI {roi.number} ({roi.name}): {share} contour points lie outside the images (up to "
+                f"{far + OUTSIDE_MARGIN_MM:.0f} mm beyond); check that the structure set belongs to these images"),
+                stacklevel=4)
 
 
 def _referenced(ds: Any) -> tuple[str, str | None]:
@@ -143,6 +196,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
             if gtype == "CLOSEDPLANAR_XOR":  # DICOM 2020+: XOR-combined closed planar contours
                 gtype = "CLOSED_PLANAR"
             contours[number].append(Contour(pts, gtype))
+        _warn_sparse(path, label, contours[number])
     rois = []
     for number, item in declared.items():
         name = str(item.get("ROIName", "") or f"ROI_{number}")
@@ -152,6 +206,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
     for_uid, series_uid = _referenced(ds)
     if volume is not None:
         check_reference(volume, for_uid, series_uid, f"RT Structure Set {path}")
+        _warn_outside(path, rois, volume)
     return StructureSet(
         rois=tuple(rois), frame_of_reference_uid=for_uid, referenced_series_uid=series_uid,
         sop_instance_uid=str(ds.get("SOPInstanceUID", "")), study_instance_uid=str(ds.get("StudyInstanceUID", "")),

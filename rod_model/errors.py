@@ -27,4 +27,5 @@ class NoModelWithinToleranceError(RodModelError):
 
 class TensionAboveLimitWarning(UserWarning):
     """A tendon tension above the design's ``max_tension_n`` was solved (the API warns; ``reachplan rod``
-    refuses unless ``--allow-over-limit``)."""
+    refuses unless ``--allow-over-limit``).
+    """

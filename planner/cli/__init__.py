@@ -2,7 +2,10 @@
 
 Each command lives in its own module under :mod:`reachplan.planner.cli` and exposes ``NAME``, ``HELP``,
 ``add_arguments(parser)`` and ``run(args) -> int``. Expected failures (any :class:`ReachplanError`)
-become one line on stderr and exit code 2, never a traceback.
+become one line on stderr and exit code 2, never a traceback. Warnings met while a command runs are recorded
+(commands put them into their JSON through :func:`reachplan.planner.cli.edges.seen_warnings`) and printed on
+stderr, one line each. Any other exception is a bug: the last-resort handler prints one line saying
+"internal error" and exits with :data:`INTERNAL_ERROR_EXIT` (70, EX_SOFTWARE).
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 from collections.abc import Sequence
 
 from reachplan import ReachplanError
@@ -25,6 +29,9 @@ COMMAND_MODULES: tuple[str, ...] = (
     "reachplan.planner.cli.plugins",
     "reachplan.planner.cli.study",
 )
+
+#: Exit code of an unexpected exception (a bug): EX_SOFTWARE of sysexits.h.
+INTERNAL_ERROR_EXIT = 70
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,6 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(exc: BaseException, limit: int) -> str:
+    """Return the message on one line, without an embedded traceback (pydicom nests them in its messages)."""
+    text = " ".join(str(exc).split("Traceback (most recent call last)")[0].split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command in ``argv`` (default: the process's) and return its exit code.
 
@@ -49,12 +62,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return int(args._run(args))
-    except ReachplanError as exc:
-        print(f"reachplan {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except KeyboardInterrupt:
-        print("reachplan: interrupted", file=sys.stderr)
-        return 130
+    with warnings.catch_warnings(record=True) as caught:  # the filters in force stay as they are
+        args._warnings = caught
+        try:
+            code = int(args._run(args))
+        except ReachplanError as exc:
+            code = exc.exit_code
+            message = f"reachplan {args.command}: error: {_one_line(exc, 1000)}"
+        except KeyboardInterrupt:
+            code, message = 130, "reachplan: interrupted"
+        except Exception as exc:  # the last resort: an exception that escapes is a bug
+            code = INTERNAL_ERROR_EXIT
+            message = (f"reachplan {args.command}: internal error: {type(exc).__name__}: {_one_line(exc, 200)}; "
+                       "this is a bug in reachplan, please report it with the command and its inputs")
+        else:
+            message = ""
+    from reachplan.planner.cli.edges import warning_lines
 
+    for line in warning_lines(caught):
+        print(f"reachplan {args.command}: warning: {line}", file=sys.stderr)
+    if message:
+        print(message, file=sys.stderr)
+    return code

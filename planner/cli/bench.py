@@ -87,7 +87,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Check ``--install`` first, run the target, then copy the results it owns into the checkout."""
+    """Check ``--install`` and the output folder first, run the target, then copy the results it owns."""
+    from reachplan.planner.cli.edges import output_folder
+
+    output_folder(args.out)  # not a file, writable: checked before the benchmark runs
     checkout = check_install(args.repo, args.quick) if args.install else None  # before the long run
     module = _load(args._bench_module)
     status = int(module.run(args))

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
+
+from reachplan.planner.cli.edges import output_folder, print_json, relocate, staged_folder
 
 NAME = "demo"
 HELP = "write the built-in phantom as DICOM, read it back, plan needles; write plan/ranking JSON, figures, exports"
@@ -21,6 +22,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Write the phantom, read it back and plan it into ``--out``; return the exit code (0)."""
+    output_folder(args.out)
+    quiet = args.quiet or args.json
+    with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole demo succeeds
+        doc = _demo(stage, quiet)
+        doc = relocate(stage, args.out, doc)
+    if args.json:
+        print_json(doc, NAME)
+    return 0
+
+
+def _demo(out: Path, quiet: bool) -> dict[str, object]:
     from tqdm import tqdm
 
     from reachplan.imaging.dicom_io import read_series
@@ -30,8 +42,6 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.planner.cli.plan import run_plan
     from reachplan.planner.pipeline import PlanConfig
 
-    out: Path = args.out
-    quiet = args.quiet or args.json
     t0 = time.perf_counter()
     bar = tqdm(total=2, desc="phantom: write, read back", unit="step", disable=quiet, leave=False)
     files = write_phantom(out / "phantom")
@@ -53,9 +63,6 @@ def run(args: argparse.Namespace) -> int:
     targets_doc = doc["targets"]
     assert isinstance(targets_doc, dict)
     atomic_write_json(out / "ranking.json", {t: v["candidates"] for t, v in targets_doc.items()})
-    if args.json:
-        json.dump(doc, sys.stdout, indent=2)
-        print()
-    elif not args.quiet:
+    if not quiet:
         print(f"demo finished in {time.perf_counter() - t0:.1f} s")
-    return 0
+    return doc

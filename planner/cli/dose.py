@@ -8,12 +8,12 @@ Eclipse conventions (see :mod:`reachplan.imaging.rtplan`), doses are totals over
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
+
+from reachplan.planner.cli.edges import ArgumentError, finite, finite_float, output_file, print_json, seen_warnings
 
 NAME = "dose"
 HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary check of TPS point doses)"
@@ -26,8 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points", action="store_true", help="report the dose at the plan's dose reference points")
     grid = parser.add_mutually_exclusive_group()
     grid.add_argument("--like", type=Path, help="RT Dose (RD) whose grid to use")
-    grid.add_argument("--spacing", type=float, metavar="MM", help="grid spacing in mm (default 2.5)")
-    parser.add_argument("--margin", type=float, default=30.0, metavar="MM",
+    grid.add_argument("--spacing", type=finite_float, metavar="MM", help="grid spacing in mm (default 2.5)")
+    parser.add_argument("--margin", type=finite_float, default=30.0, metavar="MM",
                         help="with --spacing: margin around the dwell positions, mm (default 30)")
     parser.add_argument("--source", help="TG-43 data set when the plan's source is not recognised")
     parser.add_argument("--model", choices=("line", "point"), default="line",
@@ -35,7 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bits", type=int, choices=(16, 32), default=16,
                         help="RT Dose pixel depth (default 16; dciodvfy cannot read 32-bit RT Dose)")
     parser.add_argument("--out", required=True, type=Path, help="RT Dose file to write")
-    parser.add_argument("--json", action="store_true", help="print JSON on stdout")
+    parser.add_argument("--json", action="store_true",
+                        help="print JSON on stdout (with --points the points are under 'points'; warnings met are "
+                             "under 'warnings')")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,19 +45,19 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.imaging.types import Grid
-    from reachplan.planner.dose.tg43 import Tg43Kernel, check_points, dose_on_grid, plan_dwells
+    from reachplan.planner.dose.tg43 import Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
     from reachplan.planner.errors import PlanInputError
     from reachplan.planner.pipeline import get_source, recognise_source
     from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
 
-    out = args.out.resolve()
-    for given in (args.plan, args.structures, args.like):
-        if given is not None and given.exists() and given.resolve() == out:
-            raise PlanInputError(f"--out {args.out} is one of the inputs; choose another output file")
-    if args.spacing is not None and not (0.1 <= args.spacing <= 50.0):
-        raise PlanInputError(f"--spacing must be between 0.1 and 50 mm, got {args.spacing}")
-    if not (0.0 <= args.margin <= 500.0):
-        raise PlanInputError(f"--margin must be between 0 and 500 mm, got {args.margin}")
+    # --- arguments and the output place, before any work ---
+    output_file(args.out, (args.plan, args.structures, args.like))
+    finite(args.spacing, "--spacing", lo=0.1, hi=50.0)
+    finite(args.margin, "--margin", lo=0.0, hi=500.0)
+    for given, option in ((args.plan, "--plan"), (args.structures, "--structures"), (args.like, "--like")):
+        if given is not None and not given.is_file():
+            raise ArgumentError(f"{option} {given} is not a file; give the path of the DICOM file")
+    chosen = get_source(args.source) if args.source else None  # an unknown name is an error now, not after work
 
     plan = read_rtplan(args.plan)
     if not plan.is_brachy or not plan.channels:
@@ -73,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if recognised and args.source and args.source != recognised:
         warnings.warn(f"the plan's source is {recognised}; --source {args.source} ignored", stacklevel=1)
-    data = get_source(name)
+    data = chosen if chosen is not None and name == args.source else get_source(name)
+    check_isotope(src, data, str(args.plan))
     if src.active_length_mm and abs(src.active_length_mm - 10 * data.active_length_cm) > 0.01:
         warnings.warn(
             f"the plan's active length {src.active_length_mm} mm differs from {name}'s "
@@ -82,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
         )
     kernel = Tg43Kernel(data, args.model)
     dwells = plan_dwells(plan, channel_paths(plan, structures))
+    if not len(dwells):
+        raise PlanInputError(f"{args.plan}: the plan has no dwell positions; there is no dose to compute")
 
     if args.like is not None:
         _, grid = read_rtdose_grid(args.like)
@@ -95,10 +100,14 @@ def run(args: argparse.Namespace) -> int:
         grid = Grid((int(n[2]), int(n[1]), int(n[0])), affine)
     if int(np.prod(grid.shape)) > 60_000_000:
         raise PlanInputError(f"the dose grid {grid.shape} is too large; use a coarser --spacing")
-    dose = dose_on_grid(grid, dwells, kernel, src.air_kerma_rate_u)
     for_uid = plan.frame_of_reference_uid or structures.frame_of_reference_uid
     if not for_uid:
         raise PlanInputError("neither the plan nor the structure set gives a Frame of Reference UID")
+    dose = dose_on_grid(grid, dwells, kernel, src.air_kerma_rate_u)
+    if not np.all(np.isfinite(dose)):
+        raise PlanInputError(f"{args.plan}: the dose is not finite on the grid (a dwell time or strength out of "
+                             "range); check the plan's times and source")
+    checks = check_points(plan, dwells, kernel, src.air_kerma_rate_u) if args.points else ()
     context = DoseContext(
         frame_of_reference_uid=for_uid,
         study_instance_uid=plan.study_instance_uid,
@@ -106,12 +115,20 @@ def run(args: argparse.Namespace) -> int:
         patient_name=plan.patient_name,
         referenced_plan_uid=plan.sop_instance_uid,
     )
-    write_rtdose(args.out, dose, grid, context, bits=args.bits)
+    write_rtdose(args.out, dose, grid, context, bits=args.bits)  # the only output, written last and atomically
 
-    checks = check_points(plan, dwells, kernel, src.air_kerma_rate_u) if args.points else ()
     if args.json:
+        doc: dict[str, object] = {
+            "out": str(args.out),
+            "source": name,
+            "model": args.model,
+            "grid_shape": list(grid.shape),
+            "spacing_mm": [float(x) for x in grid.spacing_mm],
+            "max_dose_gy": float(dose.max()),
+            "n_dwells": len(dwells),
+        }
         if args.points:
-            doc: object = [
+            doc["points"] = [
                 {
                     "name": c.name,
                     "position_mm": [float(x) for x in c.position_mm],
@@ -121,18 +138,8 @@ def run(args: argparse.Namespace) -> int:
                 }
                 for c in checks
             ]
-        else:
-            doc = {
-                "out": str(args.out),
-                "source": name,
-                "model": args.model,
-                "grid_shape": list(grid.shape),
-                "spacing_mm": [float(x) for x in grid.spacing_mm],
-                "max_dose_gy": float(dose.max()),
-                "n_dwells": len(dwells),
-            }
-        json.dump(doc, sys.stdout, indent=2)
-        print()
+        doc["warnings"] = seen_warnings(args)
+        print_json(doc, NAME)
         return 0
     print(f"source {name} ({args.model}), S_K {src.air_kerma_rate_u} U, {len(dwells)} dwells, "
           f"{plan.n_fractions} fraction(s) x {plan.n_pulses} pulse(s)")

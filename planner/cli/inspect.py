@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
+
+from reachplan.planner.cli.edges import print_json
 
 NAME = "inspect"
 HELP = "list the image series, structure sets (with volumes) and brachy plans in a DICOM file or folder"
@@ -27,8 +27,7 @@ def run(args: argparse.Namespace) -> int:
     synonyms = SynonymTable.from_csv(args.synonyms) if args.synonyms else None
     result = inspect_path(args.path, synonyms)
     if args.json:
-        json.dump(result.to_json(), sys.stdout, indent=2)
-        print()
+        print_json(result.to_json(), NAME)
         return 0
     out: list[str] = []
     for s in result.series:

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
+
+from reachplan.planner.cli.edges import output_folder, print_json
 
 NAME = "phantom"
 HELP = "write the built-in pelvic phantom (CT series + RT Structure Set) as DICOM"
@@ -22,6 +22,7 @@ def run(args: argparse.Namespace) -> int:
     """Write the built-in phantom as DICOM and print what was written; return 0."""
     from reachplan.imaging.phantom import phantom_spec, write_phantom
 
+    output_folder(args.out)
     spec = phantom_spec()
     files = write_phantom(args.out, spec)
     if args.json:
@@ -35,8 +36,7 @@ def run(args: argparse.Namespace) -> int:
             ],
             "patient_from_template": spec.patient_from_template.tolist(),
         }
-        json.dump(doc, sys.stdout, indent=2)
-        print()
+        print_json(doc, NAME)
     else:
         print(f"wrote {spec.n_slices} CT slices to {files.ct_dir} and {len(spec.structures)} ROIs to "
               f"{files.rtstruct_path}")

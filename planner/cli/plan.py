@@ -14,7 +14,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from reachplan.imaging.files import atomic_write_json
 from reachplan.imaging.types import StructureSet, Volume
+from reachplan.planner.cli.edges import json_safe, output_folder, print_json, relocate, seen_warnings, staged_folder
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.candidates import Target
@@ -86,6 +88,8 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
                 x, y, z = _triple(spec, "target")
             except PlanInputError:
                 raise PlanInputError(f"target {spec!r}: a point is three numbers 'x,y,z' in mm, all finite") from None
+            if not all(abs(v) <= 1e5 for v in (x, y, z)):
+                raise PlanInputError(f"target {spec!r}: a point needs three finite coordinates within 100 m, in mm")
             points.append(Target(f"point_{len(points) + 1}", (x, y, z)))
         else:
             names.append(spec)
@@ -178,12 +182,35 @@ def _names(args: argparse.Namespace, config: PlanConfig) -> tuple[SynonymTable, 
     return table, overrides, dataclasses.replace(config, oar_names=tuple(oars))
 
 
+def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
+    """Check what can be checked before any work: the output folder, template, designs, source and targets.
+
+    Raises
+    ------
+    ReachplanError
+        The first argument found wrong (one line saying what to do).
+    """
+    from reachplan.planner.pipeline import get_source
+    from reachplan.plugins import registry
+    from reachplan.rod_model.design import preset
+
+    output_folder(args.out, inputs)
+    registry.get("templates", args.template)
+    for name in args.design:
+        preset(name)
+    if not args.no_export:
+        get_source(args.source)
+    _targets(args.targets)
+
+
 def run(args: argparse.Namespace) -> int:
     """Plan a case from the command line; returns the exit code."""
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
 
+    inputs = [p for p in (args.ct, args.rtstruct) if p is not None]
+    check_plan_arguments(args, inputs)
     quiet = args.quiet or args.json
     names, points = _targets(args.targets)
     config = PlanConfig(template=args.template, designs=tuple(args.design))
@@ -194,14 +221,23 @@ def run(args: argparse.Namespace) -> int:
         structures = rename(structures, overrides)
     for n in names:
         structures.get(n)  # a typed error naming the available ROIs
+    if not args.no_export:
+        structures.get(args.target_roi)  # the ROI the dwell times are optimised on, checked before planning
     pose = template_pose(args, structures, config)
-    doc = run_plan(structures, volume, names, points, config, args.out, quiet,
-                   export=not args.no_export, source=args.source, target_roi=args.target_roi,
-                   inputs=[p for p in (args.ct, args.rtstruct) if p is not None], pose=pose,
-                   allow_no_oars=args.allow_no_oars, standard_names=table.standard_names)
+    with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole plan succeeds
+        doc = run_plan(structures, volume, names, points, config, stage, quiet,
+                       export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs,
+                       pose=pose, allow_no_oars=args.allow_no_oars, standard_names=table.standard_names)
+        # the scene's notes (organs not found, targets planned to points) and the named warnings met on the way
+        # (readers, planning), also in plan.json
+        notes = doc.get("warnings")
+        doc["warnings"] = [*(notes if isinstance(notes, list) else []), *seen_warnings(args)]
+        atomic_write_json(stage / "plan.json", json_safe(doc))
+        doc = relocate(stage, args.out, doc)
     if args.json:
-        json.dump(doc, sys.stdout, indent=2)
-        print()
+        print_json(doc, NAME)
+    elif not quiet:
+        print(f"\nwrote {args.out / 'plan.json'}, {args.out / 'overview.png'} and {args.out / 'report.html'}")
     return 0
 
 
@@ -294,5 +330,4 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     atomic_write_json(out / "plan.json", doc)
     if not quiet:
         print(format_table(result))
-        print(f"\nwrote {out / 'plan.json'}, {out / 'overview.png'} and {out / 'report.html'}")
     return doc

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
+
+from reachplan.planner.cli.edges import print_json
 
 NAME = "plugins"
 HELP = "list installed plugins (rod models, insertion models, templates, sources, exporters) and whether they load"
@@ -24,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
 
     infos = registry.info(args.kind)
     if args.json:
-        print(json.dumps([dataclasses.asdict(i) for i in infos], indent=2))
+        print_json([dataclasses.asdict(i) for i in infos], NAME)
         return 0
     if not infos:
         print("no plugins installed" + (f" of kind {args.kind}" if args.kind else ""))

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import warnings
 from dataclasses import replace
 from typing import Any
 
 from reachplan import ReachplanError
+from reachplan.planner.cli.edges import finite, print_json
 from reachplan.plugins import registry
 from reachplan.rod_model.design import PRESET_NAMES, preset
 from reachplan.rod_model.errors import TensionAboveLimitWarning
@@ -57,14 +57,20 @@ def _tensions(args: argparse.Namespace) -> tuple[list[float], bool]:
             values, sweep = [float(t) for t in args.tensions.split(",") if t.strip()], True
         except ValueError:
             raise RodArgumentError(f"--tensions must be comma-separated numbers, got {args.tensions!r}") from None
-    if not values or any(not (0.0 <= t < 1e3) for t in values):
+    if not values or any(not (0.0 <= t < 1e3) for t in values):  # also refuses NaN
         raise RodArgumentError("tensions must be numbers between 0 and 1000 N")
     return values, sweep
+
+
+def _check(args: argparse.Namespace) -> None:
+    finite(args.roll, "--roll", lo=-3600.0, hi=3600.0)
+    finite(args.tolerance, "--tolerance", lo=0.0, lo_open=True, hi=1e3)
 
 
 def run(args: argparse.Namespace) -> int:
     """Solve the preset at each tension and print the shapes; return 0, or 1 when a solve did not converge."""
     values, sweep = _tensions(args)
+    _check(args)
     design = preset(args.preset)
     friction = {k: v for k, v in (("tendon_friction_coefficient", args.tendon_friction),
                                   ("joint_friction_coefficient", args.joint_friction)) if v is not None}
@@ -97,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         out.append(doc)
         previous = t
     if args.json:
-        print(json.dumps(out if sweep else out[0]))
+        print_json(out if sweep else out[0], NAME)
     else:
         for d in out:
             state = (f"tip deflection {d['tip_deflection_mm']:.3f} mm" if d["converged"]

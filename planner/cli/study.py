@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import sys
 from pathlib import Path
 
+from reachplan.planner.cli.edges import output_folder, print_json
 from reachplan.planner.errors import StudyError
 
 NAME = "study"
@@ -51,10 +50,10 @@ def run(args: argparse.Namespace) -> int:
 
         if args.make_cohort < 1:
             raise StudyError(f"--make-cohort needs at least 1 case, got {args.make_cohort}")
+        output_folder(args.out)
         cases = make_cohort(args.out, args.make_cohort, args.seed)
         if args.json:
-            json.dump({"cases": [str(c) for c in cases]}, sys.stdout, indent=2)
-            print()
+            print_json({"cases": [str(c) for c in cases]}, NAME)
         elif not quiet:
             print(f"wrote {len(cases)} phantom cases to {args.out} (cohort.json lists their perturbations)")
         return 0
@@ -62,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
         raise StudyError("give --cases DIR... (or --make-cohort N to write phantom cases)")
     if args.scheduler is not None and args.workers is not None:
         raise StudyError("--workers sets the local pool; with --scheduler the cluster's workers are used")
+    if args.workers is not None and not 0 <= args.workers <= 1024:
+        raise StudyError(f"--workers must be between 0 and 1024, got {args.workers}")
+    output_folder(args.out, args.cases)
     from reachplan.planner.pipeline import PlanConfig
     from reachplan.planner.steering.steered import ScheduleFamily
     from reachplan.planner.study import StudySpec, discover_cases, run_study
@@ -77,11 +79,10 @@ def run(args: argparse.Namespace) -> int:
     result = run_study(spec, args.out, scheduler=args.scheduler, workers=args.workers,
                        retry_failed=args.retry_failed, quiet=quiet)
     if args.json:
-        json.dump({"out": str(result.out), "tasks": result.n_tasks, "resumed": result.n_resumed,
+        print_json({"out": str(result.out), "tasks": result.n_tasks, "resumed": result.n_resumed,
                    "failed_tasks": result.n_failed_tasks, "rows": result.table.num_rows,
                    "wall_s": round(result.wall_s, 3),
-                   "designs": [dataclasses.asdict(s) for s in result.summaries]}, sys.stdout, indent=2)
-        print()
+                   "designs": [dataclasses.asdict(s) for s in result.summaries]}, NAME)
     elif not quiet:
         print(format_summary(result.summaries))
         print(f"\n{result.n_tasks} tasks ({result.n_resumed} already done, {result.n_failed_tasks} failed) in "

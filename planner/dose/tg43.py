@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -42,7 +43,7 @@ from typing import Literal
 import numpy as np
 
 from reachplan._arrays import arc_length_mm
-from reachplan.imaging.rtplan import RtPlan
+from reachplan.imaging.rtplan import BrachySource, RtPlan
 from reachplan.imaging.types import Grid
 from reachplan.planner.errors import PlanInputError
 from reachplan.plugins.sources import SourceData
@@ -545,6 +546,41 @@ def dwells_along_path(
         return np.zeros((0, 3)), np.zeros((0, 3))
     pos = np.stack([np.interp(arc, s, path[:, c]) for c in range(3)], axis=1)
     return pos, dwell_directions(path, pos)
+
+
+# --- isotope check -------------------------------------------------------------------------------
+
+
+_ISOTOPE = re.compile(r"(?<![a-z])([a-z]{1,2})\s*-?\s*(\d{2,3})(?!\d)|(?<!\d)(\d{2,3})\s*-?\s*([a-z]{1,2})(?![a-z])")
+#: Brachytherapy isotopes (element symbol, mass number) that a Source Isotope Name may name.
+_KNOWN_ISOTOPES = frozenset({"ir192", "co60", "cs137", "i125", "pd103", "yb169", "cs131", "se75", "au198", "ra226"})
+
+
+def isotope_of(text: str) -> str | None:
+    """Return the isotope named in ``text`` as ``"ir192"`` (``"Ir-192"``, ``"192Ir"``, ``"GammaMed Ir192 HDR"``).
+
+    None when it names no known brachytherapy isotope.
+    """
+    for m in _ISOTOPE.finditer(text.lower()):
+        key = f"{m.group(1)}{m.group(2)}" if m.group(1) else f"{m.group(4)}{m.group(3)}"
+        if key in _KNOWN_ISOTOPES:
+            return key
+    return None
+
+
+def check_isotope(source: BrachySource, data: SourceData, where: str) -> None:
+    """Refuse TG-43 data of another isotope than the plan's source.
+
+    Raises
+    ------
+    PlanInputError
+        The plan's Source Isotope Name names another isotope than ``data.isotope``.
+    """
+    ours, theirs = isotope_of(data.isotope), isotope_of(source.isotope_name)
+    if ours and theirs and ours != theirs:
+        raise PlanInputError(
+            f"{where}: the plan's source is {source.isotope_name!r} but the TG-43 data {data.name!r} are for "
+            f"{data.isotope}; choose data of the plan's isotope with --source (see `reachplan plugins`)")
 
 
 # --- existing plans (secondary check) -----------------------------------------------------------------

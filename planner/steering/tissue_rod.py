@@ -120,7 +120,8 @@ class TissueRodInsertion:
                      modulus_profile: tuple[np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray | FailedInsertion, list[tuple[float, np.ndarray]]]:
         """As :meth:`insert_one`, with the tip (3,) mm after every insertion step: ``[(depth_mm, tip_mm), ...]``
-        (up to the failure, if any)."""
+        (up to the failure, if any).
+        """
         steps: list[tuple[float, np.ndarray]] = []
         if not (np.isfinite(depth_mm) and 0 < depth_mm <= design.length_mm):
             raise PlanInputError(f"insertion depth must be in (0, {design.length_mm:.0f}] mm, got {depth_mm}")

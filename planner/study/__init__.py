@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
@@ -192,9 +193,12 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
                 client = stack.enter_context(_client(scheduler, workers, len(todo)))
             results = _dask(client, todo, spec.config, task_fn)
         bar = stack.enter_context(tqdm(total=len(todo), desc="study tasks", unit="task", disable=quiet or not todo))
-        for task, rows in results:
+        kill_after = _kill_after_parts()
+        for n_written, (task, rows) in enumerate(results, start=1):
             store.write_part(out, task.key, rows)
             bar.update()
+            if n_written == kill_after:  # test hook: die like a killed process, after a whole part file
+                os.kill(os.getpid(), signal.SIGKILL)
     table = store.consolidate(out, [t.key for t in tasks])
     summaries = summarise(table)
     write_summary_csv(summaries, out / "summary.csv")
@@ -203,6 +207,15 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
                     if s == "failed"})
     return StudyResult(out, table, summaries, len(tasks), len(tasks) - len(todo), n_failed,
                        time.perf_counter() - t0)
+
+
+#: Test hook: the study process kills itself (SIGKILL) right after writing this many part files.
+KILL_AFTER_PARTS_ENV = "REACHPLAN_STUDY_KILL_AFTER_PARTS"
+
+
+def _kill_after_parts() -> int | None:
+    value = os.environ.get(KILL_AFTER_PARTS_ENV, "")
+    return int(value) if value.strip().isdigit() else None
 
 
 def _client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any:

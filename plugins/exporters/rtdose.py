@@ -16,6 +16,7 @@ import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pydicom
@@ -261,6 +262,7 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         Unreadable, incomplete geometry, or frames that are not evenly spaced (or absolute offsets on a
         non-axial grid).
     """
+    from reachplan.imaging.dicom_io import one_line
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     p = Path(path)
@@ -269,7 +271,21 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     except FileNotFoundError:
         raise NoDicomError(f"{p}: no such file; pass an RT Dose (RD) file") from None
     except Exception as exc:
-        raise CorruptFileError(f"{p}: not readable as DICOM ({type(exc).__name__}: {exc})") from None
+        raise CorruptFileError(f"{p}: not readable as DICOM ({type(exc).__name__}: {one_line(exc)})") from None
+    try:
+        return _dose_and_grid(ds, p)
+    except CorruptFileError:
+        raise
+    except (AttributeError, ValueError, TypeError, IndexError, KeyError, OverflowError, NotImplementedError,
+            RuntimeError, MemoryError, EOFError, OSError) as exc:
+        raise CorruptFileError(f"{p}: RT Dose cannot be read ({type(exc).__name__}: {one_line(exc)}); re-export it") \
+            from None
+
+
+def _dose_and_grid(ds: Any, p: Path) -> tuple[np.ndarray, Grid]:
+    from reachplan.imaging.dicom_io import one_line
+    from reachplan.imaging.errors import CorruptFileError, NoDicomError
+
     if str(ds.get("Modality", "")) != "RTDOSE":
         raise NoDicomError(f"{p}: is not an RT Dose (Modality {ds.get('Modality', '')!r}); pass an RD file")
     try:
@@ -280,7 +296,7 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         offsets = np.array([float(x) for x in ds.get("GridFrameOffsetVector", [0.0])], dtype=float)
         rows, cols = int(ds.Rows), int(ds.Columns)
     except (AttributeError, ValueError, TypeError) as exc:
-        raise CorruptFileError(f"{p}: RT Dose geometry is incomplete ({exc})") from None
+        raise CorruptFileError(f"{p}: RT Dose geometry is incomplete ({one_line(exc)})") from None
     if len(offsets) != nk:
         raise CorruptFileError(f"{p}: GridFrameOffsetVector has {len(offsets)} values for {nk} frames")
     normal = np.cross(iop[:3], iop[3:])
@@ -292,6 +308,11 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     if nk > 1 and (np.ptp(steps) > 1e-3 * max(1.0, abs(steps).max()) or np.any(steps == 0)):
         raise CorruptFileError(f"{p}: RT Dose frames are not evenly spaced; cannot use it as a grid")
     step = float(steps[0]) if nk > 1 else 1.0
+    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(iop)) and len(iop) == 6 and len(pos) == 3
+            and 0 < row_sp <= 1e3 and 0 < col_sp <= 1e3 and 0 < abs(step) <= 1e3 and rows > 0 and cols > 0
+            and nk > 0 and np.all(np.isfinite(offsets))):
+        raise CorruptFileError(f"{p}: RT Dose geometry is not finite and positive (position, orientation, spacing, "
+                               "frame offsets); re-export it")
     affine = np.eye(4)
     affine[:3, 0] = iop[:3] * col_sp
     affine[:3, 1] = iop[3:] * row_sp

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pydicom.data import get_testdata_file
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.filebase import DicomBytesIO
@@ -293,3 +295,32 @@ def test_oncentra_private_catheters(tmp_path: Path, raw: bool) -> None:
     assert any("raw bytes" in q for q in plan.quirks) == raw
     named = [str(w.message) for w in caught if issubclass(w.category, PlanQuirkWarning)]
     assert all("read anyway" in m for m in named)
+
+
+# --- property-based: any times and weights give sound dwell times or a typed error ----------------------------
+
+_WEIGHT = st.one_of(st.floats(-10, 1e3), st.sampled_from([float("nan"), float("inf"), -1.0, 0.0]))
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(weights=st.lists(_WEIGHT, min_size=6, max_size=6),
+       total=st.one_of(st.floats(-10, 1e3), st.sampled_from([float("nan"), float("inf"), 1e30])),
+       final=st.one_of(st.none(), _WEIGHT))
+def test_any_times_and_weights_give_sound_dwell_times_or_a_typed_error(
+    tmp_path_factory: pytest.TempPathFactory, weights: list[float], total: float, final: float | None
+) -> None:
+    path = tmp_path_factory.mktemp("prop") / "rp.dcm"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = _brachy_plan(weights=[float(f"{w:.6g}") for w in weights], total=float(f"{total:.6g}"),
+                          final=None if final is None else float(f"{final:.6g}"))
+        _write(ds, path)
+        try:
+            plan = read_rtplan(path)
+        except CorruptFileError as exc:  # InvalidValueError included
+            assert "\n" not in str(exc) and "rp.dcm" in str(exc)
+            return
+    (ch,) = plan.channels
+    assert np.all(np.isfinite(ch.dwell_times_s)) and np.all(ch.dwell_times_s >= 0)
+    assert 0 <= ch.total_time_s <= 1e7
+    assert ch.dwell_times_s.sum() <= ch.total_time_s * (1 + 1e-6) + 1e-9  # never more time than the channel has

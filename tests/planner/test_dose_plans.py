@@ -136,8 +136,9 @@ def test_cli_points_json_and_like(reference_dir: Path, tmp_path: Path, capsys: p
                      "--out", str(out), "--json"])
     assert code == 0
     doc = json.loads(capsys.readouterr().out)
-    assert [d["name"] for d in doc] == ["PtA_left", "PtA_right"]
-    for d in doc:
+    assert doc["out"] == str(out) and isinstance(doc["warnings"], list)
+    assert [d["name"] for d in doc["points"]] == ["PtA_left", "PtA_right"]
+    for d in doc["points"]:
         assert set(d) == {"name", "position_mm", "dose_gy", "tps_gy", "diff_percent"}
         assert abs(d["diff_percent"]) < 0.2
         assert d["dose_gy"] == pytest.approx(d["tps_gy"], rel=2e-3)
@@ -212,7 +213,7 @@ def test_cli_unrecognised_source_needs_option(
         assert main(["dose", "--plan", str(rp), "--structures", str(rs), "--source", "gammamed_plus_hdr",
                      "--points", "--json", "--spacing", "10", "--out", str(tmp_path / "b.dcm")]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert all(abs(d["diff_percent"]) < 0.2 for d in doc)
+    assert all(abs(d["diff_percent"]) < 0.2 for d in doc["points"])
 
 
 def test_rtdose_absolute_frame_offsets(tmp_path: Path) -> None:

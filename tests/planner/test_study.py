@@ -25,7 +25,15 @@ from reachplan.planner.cli.study import COARSE_FAMILY
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.steered import ScheduleFamily
-from reachplan.planner.study import StudyRow, StudySpec, StudyTask, discover_cases, run_study, run_task
+from reachplan.planner.study import (
+    KILL_AFTER_PARTS_ENV,
+    StudyRow,
+    StudySpec,
+    StudyTask,
+    discover_cases,
+    run_study,
+    run_task,
+)
 from reachplan.planner.study.cohort import make_cohort, perturbation, perturbed_spec
 
 if TYPE_CHECKING:
@@ -139,18 +147,13 @@ def test_killed_run_resumes_with_every_row_once(spec: StudySpec, cohort: Path, r
     out = tmp_path / "study"
     cmd = [sys.executable, "-m", "reachplan.planner.cli", "study", "--cases", str(cohort), "--designs", *DESIGNS,
            "--targets", *TARGETS, "--family", "coarse", "--workers", "0", "--quiet", "--out", str(out)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        deadline = time.monotonic() + 60
-        while not list((out / "parts").glob("*.parquet")) and time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.05)
-        proc.kill()
-    finally:
-        proc.wait()
-        assert proc.stderr is not None
-        proc.stderr.close()
+    # the process kills itself (SIGKILL) right after its first part file: no timing involved
+    env = {**os.environ, KILL_AFTER_PARTS_ENV: "1"}
+    proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, timeout=600)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode(errors="replace")[-2000:]
     n_done = len(list((out / "parts").glob("*.parquet")))
-    assert 1 <= n_done < 4, "the run should have been killed mid-study"
+    assert n_done == 1, "the run should have been killed after its first part file"
+    assert not (out / "study.parquet").exists()
     res = run_study(spec, out, workers=0)
     assert res.n_resumed == n_done
     assert _result_rows(res.table) == _result_rows(reference[1])

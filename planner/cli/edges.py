@@ -1,0 +1,268 @@
+"""The command line's edges, shared by every command: argument checks, output staging, JSON and warnings.
+
+* Arguments are checked before any work: :func:`finite` for numbers, :func:`output_folder` /
+  :func:`output_file` for where results go (not an input, not an existing file, writable).
+* Outputs are staged beside their destination (:func:`staged_folder`, a hidden folder in the same parent) and
+  moved into place only when the command succeeds, so a failure leaves nothing partial.
+* :func:`print_json` never writes NaN or Infinity: a value that cannot be computed is ``null``, and the fields
+  set to ``null`` are named on stderr.
+* :func:`seen_warnings`: the named warnings a command met (``main`` records them), so they go into its JSON
+  as well as to stderr.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+import warnings
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from reachplan import ReachplanError
+
+
+class ArgumentError(ReachplanError):
+    """A command-line argument is invalid (not finite, out of range, unknown name, unusable output place)."""
+
+
+# --- numbers ---------------------------------------------------------------------------------------------
+
+
+def finite(value: float | None, option: str, *, lo: float | None = None, hi: float | None = None,
+           lo_open: bool = False) -> float | None:
+    """``value`` when it is a finite number within [lo, hi] (or (lo, hi] with ``lo_open``); None stays None.
+
+    Raises
+    ------
+    ArgumentError
+        NaN, infinite or out of range, with the option's name and the allowed range.
+    """
+    if value is None:
+        return None
+    rng = f"{'(' if lo_open else '['}{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]"
+    if not math.isfinite(value):
+        raise ArgumentError(f"{option} must be a finite number in {rng}, got {value}")
+    if (lo is not None and (value < lo or (lo_open and value == lo))) or (hi is not None and value > hi):
+        raise ArgumentError(f"{option} must be in {rng}, got {value:g}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """Argparse ``type=`` for a finite float (``nan``, ``inf`` are refused by argparse with exit code 2)."""
+    import argparse
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+# --- where outputs go ------------------------------------------------------------------------------------
+
+
+def _inside(child: Path, parent: Path) -> bool:
+    try:
+        child.relative_to(parent)
+        return True
+    except ValueError:
+        return False
+
+
+def _input_folders(inputs: Iterable[Path | None]) -> list[tuple[Path, Path]]:
+    """(given path, resolved folder) of every input: a folder itself, a file's parent folder."""
+    out = []
+    for given in inputs:
+        if given is None:
+            continue
+        p = Path(given).resolve()
+        out.append((Path(given), p if p.is_dir() else p.parent))
+    return out
+
+
+def _check_writable(path: Path, option: str) -> None:
+    """Check that the nearest existing ancestor of ``path`` is a writable folder."""
+    probe = path.parent
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ArgumentError(f"{option} {path}: {probe} is a file, not a folder; choose another output place")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ArgumentError(f"{option} {path}: cannot write in {probe}; choose a writable output place")
+
+
+def output_folder(out: Path, inputs: Iterable[Path | None] = (), option: str = "--out") -> Path:
+    """Check an output folder before any work; return it resolved.
+
+    Not an existing file, not an input folder (nor inside one, nor holding an input file directly), and
+    writable.
+
+    Raises
+    ------
+    ArgumentError
+    """
+    resolved = Path(out).resolve()
+    if resolved.exists() and not resolved.is_dir():
+        raise ArgumentError(f"{option} {out} is an existing file; give a folder (new or existing)")
+    for given, folder in _input_folders(inputs):
+        if resolved == folder or (_inside(resolved, folder) and given.resolve().is_dir()):
+            raise ArgumentError(f"{option} {out} is the input folder of {given} or inside it; "
+                                "choose an output folder outside the inputs")
+    _check_writable(resolved / "x", option)
+    return resolved
+
+
+def output_file(out: Path, inputs: Iterable[Path | None] = (), option: str = "--out") -> Path:
+    """Check an output file before any work: not an input, not a folder, and in a writable place.
+
+    Raises
+    ------
+    ArgumentError
+    """
+    resolved = Path(out).resolve()
+    if resolved.is_dir():
+        raise ArgumentError(f"{option} {out} is a folder; give the path of the file to write")
+    for given in inputs:
+        if given is not None and Path(given).exists() and Path(given).resolve() == resolved:
+            raise ArgumentError(f"{option} {out} is one of the inputs; choose another output file")
+    _check_writable(resolved, option)
+    return resolved
+
+
+@contextmanager
+def staged_folder(out: Path) -> Iterator[Path]:
+    """Give a hidden folder beside ``out`` to write into, moved into place on success.
+
+    On success its entries move into ``out`` (created when missing, entries of the same name replaced); on any
+    failure it is removed and ``out`` is left as it was.
+
+    Yields
+    ------
+    Path
+        The staging folder (same file system as ``out``, so every move is a rename).
+    """
+    out = Path(out).resolve()
+    created: list[Path] = []
+    parent = out.parent
+    while not parent.exists():
+        created.append(parent)
+        parent = parent.parent
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".staging"))
+    try:
+        yield stage
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        for folder in created:  # the parents made for the stage, innermost first
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
+    _commit(stage, out)
+
+
+def _commit(stage: Path, out: Path) -> None:
+    """Move the staged entries into ``out``.
+
+    A new ``out`` is one rename; into an existing one, folders merge and files replace their namesakes one rename
+    each (nothing else in ``out`` is touched).
+    """
+    if not out.exists():
+        os.replace(stage, out)
+        return
+    _merge(stage, out)
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+def _merge(src: Path, dest: Path) -> None:
+    for entry in sorted(src.iterdir()):
+        target = dest / entry.name
+        if entry.is_dir() and not entry.is_symlink() and target.is_dir() and not target.is_symlink():
+            _merge(entry, target)
+        elif target.is_dir() and not target.is_symlink():
+            raise ArgumentError(f"{target} is a folder in the way of an output file; move it away")
+        else:
+            os.replace(entry, target)
+
+
+def relocate(stage: Path, out: Path, doc: Any = None) -> Any:
+    """Rewrite the staging folder's path as ``out`` in the staged text files and in ``doc`` (returned).
+
+    Text files: JSON, HTML, CSV written under ``stage``; done before the stage is moved into place.
+    """
+    old, new = str(stage), str(out)
+    for path in stage.rglob("*"):
+        if path.is_file() and path.suffix.lower() in (".json", ".html", ".csv", ".txt"):
+            text = path.read_text(encoding="utf-8", errors="surrogateescape")
+            if old in text:
+                from reachplan.imaging.files import atomic_write_bytes
+
+                atomic_write_bytes(path, text.replace(old, new).encode("utf-8", errors="surrogateescape"))
+
+    def walk(obj: Any) -> Any:
+        if isinstance(obj, str):
+            return obj.replace(old, new)
+        if isinstance(obj, dict):
+            return {k: walk(v) for k, v in obj.items()}
+        if isinstance(obj, list | tuple):
+            return [walk(v) for v in obj]
+        return obj
+
+    return walk(doc)
+
+
+# --- JSON and warnings -----------------------------------------------------------------------------------
+
+
+def json_safe(obj: Any, where: str = "", nulled: list[str] | None = None) -> Any:
+    """``obj`` with every NaN or infinite float replaced by None; the JSON paths replaced are added to ``nulled``."""
+    if isinstance(obj, float):
+        if math.isfinite(obj):
+            return obj
+        if nulled is not None:
+            nulled.append(where or "$")
+        return None
+    if isinstance(obj, dict):
+        return {k: json_safe(v, f"{where}.{k}", nulled) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v, f"{where}[{i}]", nulled) for i, v in enumerate(obj)]
+    if hasattr(obj, "item") and callable(obj.item) and getattr(obj, "ndim", None) == 0:  # numpy scalars
+        return json_safe(obj.item(), where, nulled)
+    return obj
+
+
+def print_json(doc: Any, command: str = "") -> None:
+    """Print ``doc`` as indented JSON on stdout, never NaN or Infinity (see :func:`json_safe`).
+
+    When values had to be set to null, a dict document says which under ``"not_computable"`` (JSON paths), and
+    stderr says so too.
+    """
+    nulled: list[str] = []
+    safe = json_safe(doc, "", nulled)
+    if nulled:
+        if isinstance(safe, dict):
+            safe["not_computable"] = [f"{p}: not a finite number" for p in nulled]
+        print(f"reachplan {command}: warning: not computable (null in the JSON): {', '.join(nulled[:10])}",
+              file=sys.stderr)
+    sys.stdout.write(json.dumps(safe, indent=2, allow_nan=False) + "\n")
+
+
+def warning_lines(caught: Iterable[warnings.WarningMessage]) -> list[str]:
+    """``"Category: message"`` of recorded warnings, in order, without repeats (for stderr and the JSON)."""
+    return list(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))
+
+
+def seen_warnings(args: Any) -> list[str]:
+    """Return the warnings the running command has met so far (recorded by :func:`reachplan.planner.cli.main`)."""
+    return warning_lines(getattr(args, "_warnings", []))

@@ -1,0 +1,246 @@
+"""A seeded mutation fuzz of reachplan's readers and commands (issue 14), run in the suite in well under a minute.
+
+Seeds: a CT slice and a (thinned) RT Structure Set of the built-in phantom, and the shared TPS examples (Eclipse HDR
+and PDR RT Plans, their structure sets and the Eclipse prostate structure set, thinned so that each run is short).
+Mutations: byte flips, truncations, inserted bytes, and element mutations (a value set to NaN, infinity, a negative,
+zero or huge number, an empty or odd string, a wrong multiplicity; an element or a sequence item deleted).
+Each mutant goes through ``reachplan inspect --json`` (RT Plans also through ``reachplan dose --points --json``; an
+RT Dose written by reachplan is mutated and given to ``dose --like``).
+
+Every run must: end with exit code 0, 1 or 2 (never a traceback, never the internal-error code), print JSON without
+NaN or Infinity, leave its input unchanged, and leave no partial output (no RT Dose after a failure, no temporary
+file ever).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import random
+import warnings
+from collections.abc import Callable
+from contextlib import redirect_stderr, redirect_stdout
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pydicom
+import pytest
+from pydicom.dataset import Dataset
+
+from reachplan.imaging.phantom import write_phantom
+from reachplan.planner.cli import main
+
+SEED = 14
+#: Mutants per seed file (the whole fuzz takes about 20-40 s on a shared 2-core machine).
+N_MUTANTS = {"ct": 90, "rs_phantom": 30, "rp_hdr": 70, "rp_pdr": 50, "rs_hdr": 25, "rs_prostate": 25, "rd": 20}
+DOSE_EVERY = 3  # one RT Plan mutant in DOSE_EVERY also goes through `reachplan dose`
+
+VALUES = ["nan", "-nan", "inf", "-inf", "-1", "0", "-0", "1e30", "-1e30", "1e308", "", " ", "x", "1\\2\\3\\4",
+          "19500101", "99999999", "\x00", "3.4e38", "-5", "0.5"]
+
+
+def _thin(ds: Dataset, keep: int) -> Dataset:
+    """Keep the first ``keep`` contours of every closed-planar ROI (short runs; channels and points kept)."""
+    for rc in ds.get("ROIContourSequence", []):
+        items = list(rc.get("ContourSequence", []))
+        if items and str(items[0].get("ContourGeometricType", "")) == "CLOSED_PLANAR":
+            rc.ContourSequence = items[:keep]
+    return ds
+
+
+@dataclass(frozen=True)
+class Seeds:
+    ct: Path
+    rs_phantom: Path
+    rp_hdr: Path
+    rp_pdr: Path
+    rs_hdr: Path
+    rs_pdr: Path
+    rs_prostate: Path
+    rd: Path
+
+
+@pytest.fixture(scope="module")
+def seeds(tmp_path_factory: pytest.TempPathFactory, reference_dir: Path) -> Seeds:
+    root = tmp_path_factory.mktemp("fuzz_seeds")
+    files = write_phantom(root / "phantom")
+    ct = sorted(files.ct_dir.iterdir())[len(list(files.ct_dir.iterdir())) // 2]
+    tps = reference_dir / "tps_examples"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = {}
+        for name, src, keep in [("rs_phantom", files.rtstruct_path, 2), ("rs_hdr", tps / "hdr" / "RS.HDR.dcm", 2),
+                                ("rs_pdr", tps / "pdr" / "RS.PDR.dcm", 2),
+                                ("rs_prostate", tps / "eclipse_prostate_phantom" / "RS.dcm", 2)]:
+            path = root / f"{name}.dcm"
+            _thin(pydicom.dcmread(src), keep).save_as(path)
+            out[name] = path
+        rp_hdr = tps / "hdr" / "RP.HDR.dcm"
+        assert main(["dose", "--plan", str(rp_hdr), "--structures", str(out["rs_hdr"]), "--spacing", "8",
+                     "--out", str(root / "RD.dcm")]) == 0
+    return Seeds(ct=ct, rp_hdr=rp_hdr, rp_pdr=tps / "pdr" / "RP.PDR.dcm", rd=root / "RD.dcm", **out)
+
+
+# --- mutations ---------------------------------------------------------------------------------------------------
+
+
+def _bytes_mutant(data: bytes, rng: random.Random) -> bytes:
+    buf = bytearray(data)
+    kind = rng.random()
+    if kind < 0.3:
+        return bytes(buf[: rng.randrange(132, len(buf))])
+    if kind < 0.45:
+        at = rng.randrange(132, len(buf))
+        return bytes(buf[:at] + bytes(rng.randrange(256) for _ in range(rng.randint(1, 9))) + buf[at:])
+    for _ in range(rng.randint(1, 16)):
+        buf[rng.randrange(132, len(buf))] = rng.randrange(256)
+    return bytes(buf)
+
+
+def _elements(ds: Dataset) -> list[tuple[Dataset, Any]]:
+    found: list[tuple[Dataset, Any]] = []
+
+    def visit(d: Dataset, elem: Any) -> None:
+        if elem.tag != 0x7FE00010:
+            found.append((d, elem))
+
+    ds.walk(visit)
+    return found
+
+
+def _element_mutant(src: Path, rng: random.Random) -> bytes | None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = pydicom.dcmread(src)
+        for _ in range(rng.randint(1, 3)):
+            parent, elem = rng.choice(_elements(ds))
+            action = rng.random()
+            try:
+                if action < 0.15:
+                    del parent[elem.tag]
+                elif elem.VR == "SQ":
+                    items = list(elem.value)
+                    if items:
+                        del items[rng.randrange(len(items))]
+                        elem.value = items
+                elif elem.VR in ("US", "SS", "UL", "SL", "FL", "FD", "AT"):
+                    elem.value = rng.choice([0, 1, 7, 8, 255, 65535, 2**31 - 1]) if elem.VR not in ("FL", "FD") \
+                        else rng.choice([float("nan"), float("inf"), -1.0, 0.0, 1e30])
+                else:
+                    value = rng.choice(VALUES)
+                    parent.add_new(elem.tag, elem.VR, value)
+            except (ValueError, TypeError, OverflowError, KeyError):
+                continue
+        buf = io.BytesIO()
+        try:
+            ds.save_as(buf)
+        except Exception:  # pydicom cannot write this mutant at all: nothing to read
+            return None
+    return buf.getvalue()
+
+
+# --- running -----------------------------------------------------------------------------------------------------
+
+
+def _no_constants(token: str) -> Any:
+    raise AssertionError(f"JSON holds {token}")
+
+
+@dataclass
+class Tally:
+    runs: int = 0
+    codes: dict[int, int] | None = None
+    failures: list[str] | None = None
+
+    def __post_init__(self) -> None:
+        self.codes, self.failures = {}, []
+
+
+def _run(args: list[str], tally: Tally, label: str, inputs: list[Path], out_dir: Path | None = None) -> int:
+    assert tally.codes is not None and tally.failures is not None
+    before = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in inputs}
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with warnings.catch_warnings(), redirect_stdout(stdout), redirect_stderr(stderr):
+        warnings.simplefilter("always")
+        try:
+            code = main(args)
+        except SystemExit as exc:  # argparse
+            code = int(exc.code or 0)
+    tally.runs += 1
+    tally.codes[code] = tally.codes.get(code, 0) + 1
+    problems = []
+    if code not in (0, 1, 2):
+        problems.append(f"exit {code}: {stderr.getvalue().strip()[-300:]}")
+    if "Traceback" in stderr.getvalue():
+        problems.append("traceback on stderr")
+    if code == 0 and "--json" in args:
+        try:
+            json.loads(stdout.getvalue(), parse_constant=_no_constants)
+        except (AssertionError, ValueError) as exc:
+            problems.append(f"bad JSON: {exc}")
+    if any(hashlib.sha256(p.read_bytes()).hexdigest() != h for p, h in before.items()):
+        problems.append("an input file changed")
+    if out_dir is not None:
+        left = sorted(p.name for p in out_dir.iterdir())
+        if code != 0 and left:
+            problems.append(f"partial output after a failure: {left}")
+        if any(n.startswith(".") for n in left):
+            problems.append(f"temporary files left: {left}")
+    if problems:
+        tally.failures.append(f"{label}: {'; '.join(problems)}")
+    return code
+
+
+def _mutants(src: Path, n: int, rng: random.Random) -> list[bytes]:
+    data = src.read_bytes()
+    out: list[bytes] = []
+    while len(out) < n:
+        m = _bytes_mutant(data, rng) if rng.random() < 0.5 else _element_mutant(src, rng)
+        if m is not None:
+            out.append(m)
+    return out
+
+
+def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
+    rng = random.Random(SEED)
+    tally = Tally()
+    plans: list[tuple[str, Path, Path]] = [("rp_hdr", seeds.rp_hdr, seeds.rs_hdr),
+                                           ("rp_pdr", seeds.rp_pdr, seeds.rs_pdr)]
+    singles: list[tuple[str, Path, Callable[[Path], list[str]]]] = [
+        ("ct", seeds.ct, lambda p: ["inspect", str(p.parent), "--json"]),
+        ("rs_phantom", seeds.rs_phantom, lambda p: ["inspect", str(p), "--json"]),
+        ("rs_hdr", seeds.rs_hdr, lambda p: ["inspect", str(p), "--json"]),
+        ("rs_prostate", seeds.rs_prostate, lambda p: ["inspect", str(p), "--json"]),
+    ]
+    for name, src, command in singles:
+        for k, data in enumerate(_mutants(src, N_MUTANTS[name], rng)):
+            folder = tmp_path / f"{name}_{k}"
+            folder.mkdir()
+            path = folder / "x.dcm"
+            path.write_bytes(data)
+            _run(command(path), tally, f"{name} #{k}", [path])
+    for name, rp, rs in plans:
+        for k, data in enumerate(_mutants(rp, N_MUTANTS[name], rng)):
+            folder = tmp_path / f"{name}_{k}"
+            folder.mkdir()
+            path = folder / "RP.dcm"
+            path.write_bytes(data)
+            _run(["inspect", str(path), "--json"], tally, f"{name} #{k} inspect", [path])
+            if k % DOSE_EVERY == 0:
+                out = folder / "out"
+                out.mkdir()
+                _run(["dose", "--plan", str(path), "--structures", str(rs), "--points", "--json", "--spacing", "8",
+                      "--out", str(out / "RD.dcm")], tally, f"{name} #{k} dose", [path, rs], out)
+    for k, data in enumerate(_mutants(seeds.rd, N_MUTANTS["rd"], rng)):
+        folder = tmp_path / f"rd_{k}"
+        (folder / "out").mkdir(parents=True)
+        (folder / "RD.dcm").write_bytes(data)
+        _run(["dose", "--plan", str(seeds.rp_hdr), "--structures", str(seeds.rs_hdr), "--like", str(folder / "RD.dcm"),
+              "--json", "--out", str(folder / "out" / "RD.dcm")], tally, f"rd #{k} dose --like",
+             [folder / "RD.dcm", seeds.rp_hdr, seeds.rs_hdr], folder / "out")
+    assert tally.codes is not None and tally.failures is not None
+    assert not tally.failures, f"{len(tally.failures)} of {tally.runs} runs failed:\n" + "\n".join(tally.failures[:20])
+    # the fuzz reaches both outcomes: some mutants are still readable, many are refused with a typed error
+    assert tally.codes.get(0, 0) >= 20 and tally.codes.get(2, 0) >= 50, tally.codes
