@@ -87,7 +87,8 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
             try:
                 x, y, z = _triple(spec, "target")
             except PlanInputError:
-                raise PlanInputError(f"target {spec!r}: a point is three numbers 'x,y,z' in mm, all finite") from None
+                raise PlanInputError(f"target {spec!r}: a point is three numbers 'x,y,z' in mm, all finite (three "
+                                     "finite coordinates)") from None
             if not all(abs(v) <= 1e5 for v in (x, y, z)):
                 raise PlanInputError(f"target {spec!r}: a point needs three finite coordinates within 100 m, in mm")
             points.append(Target(f"point_{len(points) + 1}", (x, y, z)))

@@ -32,7 +32,7 @@ def test_tg263_primary_names_come_first() -> None:
 def test_table_from_a_binary_or_broken_file_is_a_typed_error(tmp_path: Path) -> None:
     f = tmp_path / "t.csv"
     f.write_bytes(b"\xff\xfe\x00binary")
-    with pytest.raises(ImagingError, match="not a UTF-8 CSV"):
+    with pytest.raises(ImagingError, match="not UTF-8 CSV"):
         SynonymTable.from_csv(f)
     f.write_text("standard,synonym\nBladder,\n")
     with pytest.raises(ImagingError, match="empty"):
