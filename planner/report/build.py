@@ -71,6 +71,11 @@ PLAIN_MODELS = {
 }
 
 
+#: The models in a few words, for the terminal.
+SHORT_MODELS = {"straight": "exact straight line", "kinematic": "fast screening model",
+                "tissue_beam": "reference model (beam in tissue)"}
+
+
 def plain_model(c: Candidate) -> str:
     """The model behind a candidate's numbers in plain words, e.g. ``fast screening: ... bending from a planar
     beam model of the stylet``."""
@@ -92,7 +97,7 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
 
     def over(organs: Sequence[tuple[str, float]]) -> str:
         bad = [f"{o} {v:.1f} Gy" for o, v in organs if o.casefold() in limit and v > limit[o.casefold()]]
-        return f" (over the limit: {', '.join(bad)})" if bad else ""
+        return f"; over the limit: {', '.join(bad)}" if bad else ""
 
     arms: list[tuple[str, int, float, bool, str]] = []
     if comparison is not None:
@@ -102,12 +107,15 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
         opt = delivery.optimisation
         arms.append(("delivered plan", len(delivery.needles), opt.target.d90_eqd2_gy if opt.success else np.nan,
                      opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]) if opt.success
-                     else f" (not solved: {opt.reason})"))
+                     else f"; not solved: {opt.reason}"))
     if not arms:
         return ["dose: not computed (--no-export)"]
     width = max(len(a[0]) for a in arms)
-    lines += [f"  {name:<{width}}  {n:>3} needles  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
-              f"{'aims met' if met else 'aims NOT met'}{why}" for name, n, d90, met, why in arms]
+    for name, n, d90, met, why in arms:
+        low = "" if met or not d90 < aims.target_d90_eqd2_gy else f"; D90 below {aims.target_d90_eqd2_gy:g} Gy"
+        why = f"{low}{why}".removeprefix("; ")
+        lines.append(f"  {name:<{width}}  {n:>3} needles  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
+                     f"{'aims met' if met else 'aims NOT met'}{f' ({why})' if why else ''}")
     return lines
 
 
@@ -117,9 +125,9 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
     best straight and best steered needle with units in every header, then one line per arm with the dose aims
     met or not, then the files written (``files``: (what, path) pairs)."""
     tol = result.config.reach_tolerance_mm
-    head = (f"{'target':<16}{'needle':<10}{'hole':<6}{'from centre (mm)':>17}{'reach error (mm)':>18}"
-            f"{'clearance (mm)':>16}{'worst miss (mm)':>17}{'peak tension (N)':>18}  model")
-    lines = [head, "-" * (len(head) + 20)]
+    head = (f"{'target':<15} {'needle':<9} {'hole':<5} {'from centre (mm)':>16} {'reach error (mm)':>16} "
+            f"{'clearance (mm)':>14} {'worst miss (mm)':>17} {'peak tension (N)':>16}  model")
+    lines = [head, "-" * (len(head) + 26)]
     order = [t for t in (targets or result.ranking) if t in result.ranking]
     for t in order:
         cands = result.ranking[t]
@@ -129,13 +137,14 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
             kind = ("steered" if steered else "straight") + ("*" if c is not None and c is top else "")
             name = t if i == 0 else ""
             if c is None:
-                lines.append(f"{name:<16}{kind:<10}{'none feasible'}")
+                lines.append(f"{name:<15} {kind:<9} none feasible")
                 continue
             miss = _cell(c.worst_reach_mm) + (" !" if miss_flag(c, tol) else "  ")
             tension = "-" if not steered else (f"{c.peak_tension_n:.1f}" + (
                 f" of {c.design.max_tension_n:g} !" if c.design is not None and tension_flag(c) else ""))
-            lines.append(f"{name:<16}{kind:<10}{c.hole_id:<6}{c.hole_distance_mm:>17.1f}{c.reach_error_mm:>18.1f}"
-                         f"{_cell(c.clearance_mm):>16}{miss:>17}{tension:>18}  {plain_model(c).split(':')[0]}")
+            lines.append(f"{name:<15} {kind:<9} {c.hole_id:<5} {c.hole_distance_mm:>16.1f} {c.reach_error_mm:>16.1f} "
+                         f"{_cell(c.clearance_mm):>14} {miss:>17} {tension:>16}  "
+                         f"{SHORT_MODELS.get(c.model.insertion, c.model.label)}")
     lines += [f"* ranked first for its target.  ! worst case over the {tol:g} mm reach tolerance, or peak tension "
               f"within {TENSION_MARGIN:.0%} of the stylet's limit.", ""]
     lines += _arm_lines(delivery, comparison)
