@@ -163,7 +163,8 @@ COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=5
 OVERVIEW_CAPTION = ("Overview: axial slice at the targets' mean height and the mid-sagittal slice, with the top "
                     "needle of every target (solid cyan: steered, dashed orange: straight).")
 WORKSPACE_CAPTION = ("Reachable workspace: where each hole's steered needle can put its tip at the targets' depth "
-                     "(template frame), with the targets and the organ outlines at that depth.")
+                     "(template frame, seen from the patient's feet like the template map), with the targets and the "
+                     "organ outlines at that depth.")
 
 
 @dataclass(frozen=True)
@@ -262,8 +263,9 @@ def _case_section(scene: Scene, result: PlanResult, case: str, template_png: byt
               numeric=(1, 2, 3)),
         Paragraph(template),
         Paragraph(settings),
-        Figure(template_png, "Template holes; the holes of the per-target best straight (orange) and best "
-                             "steered (cyan) needles are labelled."),
+        Figure(template_png, f"Template holes with their names, {figures.RADIOLOGICAL} (the same orientation as "
+                             "the axial slices); the holes of the per-target best straight (orange) and best "
+                             "steered (cyan) needles are filled and their names in bold."),
     ))
 
 
@@ -275,9 +277,16 @@ def _cand_cells(c: Candidate | None, steered: bool) -> tuple[str, ...]:
     return (c.hole_id, geometry, _f(c.peak_tension_n), model) if steered else (c.hole_id, geometry, model)
 
 
-def _ranking_section(result: PlanResult) -> Section:
+def target_order(scene: Scene, result: PlanResult) -> list[str]:
+    """The ranked targets in the scene's order (the order the user gave them), then any others."""
+    named = [t.name for t in scene.targets if t.name in result.ranking]
+    return named + [t for t in result.ranking if t not in named]
+
+
+def _ranking_section(result: PlanResult, order: Sequence[str]) -> Section:
     rows = []
-    for target, cands in result.ranking.items():
+    for target in order:
+        cands = result.ranking[target]
         top = cands[0] if cands else None
         first = "none" if top is None or not top.feasible else "steered" if top.steered else "straight"
         rows.append((target, first, *_cand_cells(result.best(target, False), False),
@@ -288,15 +297,16 @@ def _ranking_section(result: PlanResult) -> Section:
     main = Table(head, tuple(rows), "Best straight next to best steered needle per target", numeric=(7,))
     weights = result.config.weights
     detail_rows = []
-    for target, cands in result.ranking.items():
-        for i, c in enumerate(cands[:5], start=1):
+    for target in order:
+        for i, c in enumerate(result.ranking[target][:5], start=1):
             detail_rows.append((target, str(i), c.hole_id, "steered" if c.steered else "straight", c.design_name or "-",
                                 _f(weights.score(c)), _f(c.reach_error_mm), _f(c.clearance_mm),
                                 _f(c.insertion_depth_mm), _f(c.peak_tension_n), c.model.label,
                                 "yes" if c.feasible else f"no: {c.reason}"))
     detail = Table(("target", "rank", "hole", "kind", "stylet", "score", "reach error (mm)", "clearance (mm)",
                     "depth (mm)", "peak tension (N)", "model", "feasible"), tuple(detail_rows),
-                   "Top 5 candidates of every target (lower score ranks first)", numeric=(1, 5, 6, 7, 8, 9),
+                   "Top 5 candidates of every target (feasible first; among them the robustness-assessed "
+                   "shortlist first, then by score, lower first; infeasible ones last)", numeric=(1, 5, 6, 7, 8, 9),
                    collapsed=True)
     counts: dict[str, int] = {}
     for c in result.candidates:
@@ -445,12 +455,13 @@ def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Seque
                         dwell_labels=labels, pitch_mm=pitch_mm)
 
 
-def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> Section:
+def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered: Sequence[Candidate],
+                     order: Sequence[str]) -> Section:
     """Per chosen needle: robustness, peak tension against the design limit, and the models in plain words."""
     cfg = result.config
     tol, p = cfg.reach_tolerance_mm, cfg.perturbations
     rows = []
-    for c in sorted((*straight, *steered), key=lambda c: (list(result.ranking).index(c.target), c.steered)):
+    for c in sorted((*straight, *steered), key=lambda c: (list(order).index(c.target), c.steered)):
         flags = []
         if miss_flag(c, tol):
             flags.append(f"worst-case miss over {tol:g} mm")
@@ -502,7 +513,8 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     """
     options = options or ReportOptions()
     straight, steered = choose_needles(result, steered=False), choose_needles(result, steered=True)
-    slice_targets = list(result.ranking)[: options.max_slice_targets]
+    order = target_order(scene, result)
+    slice_targets = order[: options.max_slice_targets]
     bar = tqdm(total=4 + len(slice_targets), desc="report", unit="figure", disable=quiet, leave=False)
     try:
         case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
@@ -542,7 +554,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                       f"EQD2 ({'aim met' if delivery.optimisation.aim_met else 'aim not met'})"))
     sections = [
         case_sec,
-        _ranking_section(result),
+        _ranking_section(result, order),
         Section("Slices through the targets", "slices", tuple(slices)),
         Section("3-D view", "views-3d", (
             Paragraph("Organs, the target points, the template holes, each target's best straight and best steered "
@@ -553,7 +565,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                       f"{options.mesh_pitch_mm:g} mm grid for drawing only."),
             Interactive(view, "3-D view of organs, needles, dwell positions and template (mm, LPS)"),
         )),
-        _needles_section(result, straight, steered),
+        _needles_section(result, straight, steered, order),
         _dose_section(delivery, comparison, dvh, source_name, comparison_note, options.comparison_settings),
         _device_section(delivery),
         _models_section(result, chart, rows, used),

@@ -147,8 +147,10 @@ class DoseOverlay:
 
 
 #: Isodose levels, % of the prescription, and their colours.
-ISODOSE_PERCENT: tuple[tuple[int, str], ...] = ((50, "#1f77b4"), (100, "#2ca02c"), (150, "#ff00ff"),
-                                                (200, "#d62728"))
+ISODOSE_PERCENT: tuple[tuple[int, str], ...] = ((50, "#1f77b4"), (100, "#00e5a0"), (150, "#ff00ff"),
+                                                (200, "#ffee00"))
+#: Isodose lines are dash-dotted, organ outlines solid.
+ISODOSE_STYLE = "-."
 
 
 def _isodoses(ax: Any, dose: DoseOverlay, normal: int, value_mm: float, u: int, v: int, lo: np.ndarray,
@@ -162,7 +164,7 @@ def _isodoses(ax: Any, dose: DoseOverlay, normal: int, value_mm: float, u: int, 
     d = dose.dose_at(pts).reshape(uu.shape) / dose.prescription_gy * 100.0
     for pct, colour in ISODOSE_PERCENT:
         if d.min() < pct < d.max():
-            cs = ax.contour(uu, vv, d, levels=[pct], colors=[colour], linewidths=1.0)
+            cs = ax.contour(uu, vv, d, levels=[pct], colors=[colour], linewidths=1.2, linestyles=ISODOSE_STYLE)
             cs.set_gid(f"isodose:{pct}")
     near = np.abs(dose.dwell_positions_mm[:, normal] - value_mm) <= 2.5
     p, t = dose.dwell_positions_mm[near], dose.dwell_times_s[near]
@@ -227,7 +229,7 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
     if steered is not None:
         handles.append(Line2D([], [], color=STEERED_COLOUR, label=f"steered {steered.hole_id}"))
     if dose is not None:
-        handles += [Line2D([], [], color=c, lw=1, label=f"{p} %") for p, c in ISODOSE_PERCENT]
+        handles += [Line2D([], [], color=c, lw=1.2, ls=ISODOSE_STYLE, label=f"{p} %") for p, c in ISODOSE_PERCENT]
         handles.append(Line2D([], [], color="k", marker="o", ls="", ms=3, label="dwell (s)"))
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 9), fontsize=8, facecolor="#cfcfcf")
     fig.suptitle(f"{target}: needles projected onto the slices through the target", fontsize=11)
@@ -273,7 +275,7 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
                 Line2D([], [], color=STEERED_COLOUR, label="top needle per target: steered"),
                 Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="top needle per target: straight")]
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.tight_layout(rect=(0, 0.08, 1, 0.97))
     return png_bytes(fig, dpi=110)
 
 

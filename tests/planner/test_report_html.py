@@ -105,3 +105,17 @@ def test_models_used_names_each_rod_models_role() -> None:
     used = models_used(SimpleNamespace(candidates=cands))  # type: ignore[arg-type]
     assert used == {"planar_beam": f"screening with {KINEMATIC.name} (2 candidates)",
                     "two_tube_cosserat": f"reference re-solve with {TISSUE_BEAM.name} (1 candidates)"}
+
+
+def test_interactive_figures_embed_plotly_once_and_escape_their_data() -> None:
+    from reachplan.planner.report.html import Interactive
+
+    fig = {"data": [{"type": "scatter3d", "name": "</script><b>x", "x": [1], "y": [2], "z": [3]}], "layout": {}}
+    doc = render_html(Report("t", "s", (Section("A", "a", (Interactive(fig, "one"), Interactive(fig, "two"))),)))
+    assert doc.count("<script>") == 3  # plotly.js once, then one call per figure
+    assert 'Plotly.newPlot("plot-1"' in doc and 'Plotly.newPlot("plot-2"' in doc
+    assert "</script><b>" not in doc and "<\\/script><b>x" in doc  # data cannot end the script element
+    assert "script-src 'unsafe-inline'" in doc and "://" not in doc.split("<script>")[0]
+    assert "<script" not in render_html(_report())  # no interactive figure: no script at all
+    with pytest.raises(ValueError, match="data"):
+        Interactive({"layout": {}}, "no traces")
