@@ -173,7 +173,7 @@ class ReportOptions:
 
     ``max_slice_targets``: targets that get slice overlays (in ranking order); ``comparison``: run the
     straight-versus-steered dose comparison; ``comparison_settings``: its LP settings; ``mesh_pitch_mm``:
-    voxel size of the light meshes in the 3-D views.
+    voxel size of the light meshes in the 3-D view.
     """
 
     max_slice_targets: int = 12
@@ -368,6 +368,12 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                    "D2cm³ EQD2 (Gy)"), tuple(rows2), "Delivered plan: dose-volume metrics",
                   numeric=(1, 2, 3, 4, 5, 6)),
         ]
+        if opt.success and opt.dvhs:
+            from reachplan.planner.dose.optimize import Aims
+
+            png = figures.png_bytes(figures.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
+            blocks.append(Figure(png, "Delivered plan: cumulative DVHs per fraction with the EMBRACE II aim "
+                                      "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
     return Section("Dose and coverage", "dose", tuple(blocks))
 
 

@@ -371,6 +371,44 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
     return png_bytes(fig, dpi=90)
 
 
+def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "HR-CTV",
+                    title: str = "delivered plan") -> Figure:
+    """Cumulative DVHs of one plan (volume in cm³, log scale, against Gy per fraction) with the aims marked.
+
+    Parameters
+    ----------
+    dvhs : sequence of (structure name, :class:`reachplan.planner.dose.coverage.Dvh`)
+    aims : :class:`reachplan.planner.dose.optimize.Aims`
+        Its D90 aim becomes a diamond at (prescription, 90 % of the target volume) that the target's curve must
+        pass to the right of; each organ limit a cross at (D2cm³ limit per fraction, 2 cm³) that the organ's
+        curve must pass to the left of.
+    """
+    fig = Figure(figsize=(7.5, 4.8))
+    ax = fig.add_subplot()
+    for name, dvh in dvhs:
+        colour = organ_colour(name)
+        v = np.maximum(np.asarray(dvh.volume_cc, dtype=float), 1e-3)
+        ax.plot(dvh.dose_gy, v, color=colour, lw=1.6, label=name, gid=f"dvh:{name}")
+        if name == target:
+            ax.plot([aims.prescription_gy], [0.9 * v[0]], "D", color=colour, mec="k", ms=8, gid="aim:D90",
+                    label=f"{name} D90 aim ({aims.target_d90_eqd2_gy:g} Gy EQD2)")
+        elif (limit := aims.oar_limit_gy(name)) is not None:
+            ax.plot([limit], [2.0], "X", color=colour, mec="k", ms=9, gid=f"limit:{name}",
+                    label=f"{name} D2cm³ limit")
+    ax.axvline(aims.prescription_gy, color="grey", lw=0.8, ls=":")
+    ax.set_yscale("log")
+    ax.set_xlim(0, 3 * aims.prescription_gy)
+    ax.set_ylim(0.1, None)
+    ax.set_xlabel("dose per fraction (Gy)")
+    ax.set_ylabel("volume receiving at least the dose (cm³, log)")
+    ax.set_title(f"cumulative DVH, {title}: ◆ the target's curve must pass right of its aim, "
+                 "✕ an organ's left of its limit", fontsize=9)
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    return fig
+
+
 def dvh_png(comparison: Any) -> bytes:
     """The DVH figure of a :class:`reachplan.planner.dose.optimize.Comparison` as PNG bytes."""
     return png_bytes(comparison.figure(), dpi=90)

@@ -87,8 +87,8 @@ def test_plan_writes_a_self_contained_report(planned: tuple[Path, dict[str, obje
     assert ids >= {"case", "ranking", "slices", "views-3d", "needles", "dose", "device", "models"}
     assert len(report.read_bytes()) < 10e6
     images = _images(html)
-    # template map, overview, workspace, one slice figure per target, DVH, speed-accuracy chart
-    assert len(images) == 3 + len(TARGETS) + 2
+    # template map, overview, workspace, one slice figure per target, both DVHs, speed-accuracy chart
+    assert len(images) == 3 + len(TARGETS) + 3
     for img in images:
         rgb = img[..., :3].reshape(-1, 3)
         assert rgb.std(axis=0).max() > 0.05, "blank figure"

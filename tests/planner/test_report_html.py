@@ -119,3 +119,19 @@ def test_interactive_figures_embed_plotly_once_and_escape_their_data() -> None:
     assert "<script" not in render_html(_report())  # no interactive figure: no script at all
     with pytest.raises(ValueError, match="data"):
         Interactive({"layout": {}}, "no traces")
+
+
+def test_delivered_dvh_marks_each_aim_where_the_aims_put_it() -> None:
+    from reachplan.planner.dose.coverage import Dvh
+    from reachplan.planner.dose.optimize import Aims
+
+    aims = Aims()
+    dose = np.linspace(0.0, 30.0, 301)
+    dvhs = [("HR-CTV", Dvh(dose, 60.0 * np.exp(-dose / 10))), ("Rectum", Dvh(dose, 50.0 * np.exp(-dose / 2))),
+            ("Uterus", Dvh(dose, 70.0 * np.exp(-dose / 5)))]
+    ax = figures.dvh_aims_figure(dvhs, aims).axes[0]
+    marks = {ln.get_gid(): ln.get_xydata()[0] for ln in ax.lines if (ln.get_gid() or "").startswith(("aim", "limit"))}
+    assert np.allclose(marks["aim:D90"], (aims.prescription_gy, 0.9 * 60.0))
+    assert np.allclose(marks["limit:Rectum"], (aims.oar_limit_gy("Rectum"), 2.0))
+    assert "limit:Uterus" not in marks  # no limit, no mark
+    assert ax.get_yscale() == "log"
