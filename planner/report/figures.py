@@ -383,7 +383,7 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
         pass to the right of; each organ limit a cross at (D2cm³ limit per fraction, 2 cm³) that the organ's
         curve must pass to the left of.
     """
-    fig = Figure(figsize=(7.5, 4.8))
+    fig = Figure(figsize=(7.5, 5.6))
     ax = fig.add_subplot()
     for name, dvh in dvhs:
         colour = organ_colour(name)
@@ -401,11 +401,12 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
     ax.set_ylim(0.1, None)
     ax.set_xlabel("dose per fraction (Gy)")
     ax.set_ylabel("volume receiving at least the dose (cm³, log)")
-    ax.set_title(f"cumulative DVH, {title}: ◆ the target's curve must pass right of its aim, "
-                 "✕ an organ's left of its limit", fontsize=9)
+    ax.set_title(f"cumulative DVH, {title}\n◆ the target's curve must pass right of its aim, "
+                 "✕ an organ's curve left of its limit", fontsize=9)
     ax.grid(True, which="both", alpha=0.25)
-    ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.tight_layout()
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, ncol=3, loc="lower center", frameon=False)
+    fig.tight_layout(rect=(0, 0.05 + 0.035 * ((len(labels) + 2) // 3), 1, 1))
     return fig
 
 
