@@ -127,7 +127,7 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
     tol = result.config.reach_tolerance_mm
     head = (f"{'target':<15} {'needle':<9} {'hole':<5} {'from centre (mm)':>16} {'reach error (mm)':>16} "
             f"{'clearance (mm)':>14} {'worst miss (mm)':>17} {'peak tension (N)':>16}  model")
-    lines = [head, "-" * (len(head) + 26)]
+    lines = [head, ""]
     order = [t for t in (targets or result.ranking) if t in result.ranking]
     for t in order:
         cands = result.ranking[t]
@@ -145,6 +145,7 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
             lines.append(f"{name:<15} {kind:<9} {c.hole_id:<5} {c.hole_distance_mm:>16.1f} {c.reach_error_mm:>16.1f} "
                          f"{_cell(c.clearance_mm):>14} {miss:>17} {tension:>16}  "
                          f"{SHORT_MODELS.get(c.model.insertion, c.model.label)}")
+    lines[1] = "-" * max(len(ln) for ln in lines)
     lines += [f"* ranked first for its target.  ! worst case over the {tol:g} mm reach tolerance, or peak tension "
               f"within {TENSION_MARGIN:.0%} of the stylet's limit.", ""]
     lines += _arm_lines(delivery, comparison)
