@@ -135,3 +135,17 @@ def test_delivered_dvh_marks_each_aim_where_the_aims_put_it() -> None:
     assert np.allclose(marks["limit:Rectum"], (aims.oar_limit_gy("Rectum"), 2.0))
     assert "limit:Uterus" not in marks  # no limit, no mark
     assert ax.get_yscale() == "log"
+
+
+def test_3d_cameras_follow_the_slices_convention() -> None:
+    """plotly's camera looks along -eye with ``up`` at the top and ``-eye × up`` to the right (checked by eye in
+    headless Chromium: from the front, the phantom's left-sided target is on the right)."""
+    from reachplan.planner.report.view3d import CAMERAS
+
+    expected = {"the patient's feet": ("L", "A"), "the front": ("L", "S"), "the patient's left": ("P", "S")}
+    for name, eye, up in CAMERAS:
+        key = next((k for k in expected if name.startswith(k)), None)
+        if key is None:
+            continue
+        right = np.cross(-np.asarray(eye), np.asarray(up))
+        assert (figures.direction_letter(right), figures.direction_letter(np.asarray(up))) == expected[key], name
