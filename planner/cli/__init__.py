@@ -2,21 +2,28 @@
 
 Each command lives in its own module under :mod:`reachplan.planner.cli` and exposes ``NAME``, ``HELP``,
 ``add_arguments(parser)`` and ``run(args) -> int``. Expected failures (any :class:`ReachplanError`)
-become one line on stderr and exit code 2, never a traceback. Warnings met while a command runs are recorded
-(commands put them into their JSON through :func:`reachplan.planner.cli.edges.seen_warnings`) and printed on
-stderr, one line each. Any other exception is a bug: the last-resort handler prints one line saying
-"internal error" and exits with :data:`INTERNAL_ERROR_EXIT` (70, EX_SOFTWARE).
+become one line on stderr and exit code 2, never a traceback; the line is written through ``tqdm.write``, so it
+never shares a line with a progress bar. Warnings met while a command runs are recorded (commands put them into
+their JSON through :func:`reachplan.planner.cli.edges.seen_warnings`) and printed on stderr, one line each. Any
+other exception is a bug: the last-resort handler prints one line saying "internal error" and exits with
+:data:`INTERNAL_ERROR_EXIT` (70, EX_SOFTWARE).
+
+Every command takes ``--quiet``: nothing on stdout or stderr but errors and the JSON asked for with ``--json``
+(a command that defines ``--quiet`` itself also uses it to skip its work for the screen). ``reachplan --version``
+prints the version.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import io
 import sys
 import warnings
 from collections.abc import Sequence
 
-from reachplan import ReachplanError
+from reachplan import ReachplanError, __version__
 
 COMMAND_MODULES: tuple[str, ...] = (
     "reachplan.planner.cli.demo",
@@ -40,11 +47,14 @@ def build_parser() -> argparse.ArgumentParser:
         prog="reachplan",
         description="Pre-plan steered needle paths for interstitial gynecologic brachytherapy.",
     )
+    parser.add_argument("--version", action="version", version=f"reachplan {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         module = importlib.import_module(name)
         p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
         module.add_arguments(p)
+        if not any("--quiet" in a.option_strings for a in p._actions):
+            p.add_argument("--quiet", action="store_true", help="print nothing but errors (and --json output)")
         p.set_defaults(_run=module.run)
     return parser
 
@@ -62,7 +72,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
-    with warnings.catch_warnings(record=True) as caught:  # the filters in force stay as they are
+    from tqdm import tqdm
+
+    from reachplan.planner.cli.edges import warning_lines
+
+    quiet = bool(getattr(args, "quiet", False))
+    sink = io.StringIO()
+    with contextlib.ExitStack() as stack:
+        if quiet:
+            stack.enter_context(contextlib.redirect_stderr(sink))
+            if not getattr(args, "json", False):
+                stack.enter_context(contextlib.redirect_stdout(sink))
+        caught = stack.enter_context(warnings.catch_warnings(record=True))  # the filters in force stay
         args._warnings = caught
         try:
             code = int(args._run(args))
@@ -77,10 +98,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                        "this is a bug in reachplan, please report it with the command and its inputs")
         else:
             message = ""
-    from reachplan.planner.cli.edges import warning_lines
-
-    for line in warning_lines(caught):
-        print(f"reachplan {args.command}: warning: {line}", file=sys.stderr)
+        if not quiet:
+            for line in warning_lines(caught):
+                tqdm.write(f"reachplan {args.command}: warning: {line}", file=sys.stderr)
     if message:
-        print(message, file=sys.stderr)
+        tqdm.write(message, file=sys.stderr)  # clears any bar left open, so the message has its own line
     return code

@@ -259,7 +259,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     from reachplan.planner.geometry.organs import has_closed
     from reachplan.planner.pipeline import build_scene, plan, plan_delivery
     from reachplan.planner.report import figures
-    from reachplan.planner.report.build import format_table, report_html, top_candidates
+    from reachplan.planner.report.build import format_summary, report_html, top_candidates
     from reachplan.planner.report.workspace import workspace_figure
     from reachplan.plugins import registry
     from reachplan.plugins.exporters import ExportOptions
@@ -277,7 +277,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     timings["scene_s"] = time.perf_counter() - t
     config = dataclasses.replace(config, oar_names=tuple(o.name for o in scene.organs))
     for note in scene.notes:
-        print(f"reachplan: warning: {note}", file=sys.stderr)
+        tqdm.write(f"reachplan: warning: {note}", file=sys.stderr)
     if scene.pose is not None and not quiet:
         m = scene.pose.patient_from_template
         print(f"template pose: {scene.pose.method}; centre {np.round(m[:3, 3], 2).tolist()} mm, axis "
@@ -294,6 +294,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     atomic_write_bytes(out / "overview.png", overview_png)
     atomic_write_bytes(out / "workspace.png", workspace_png)
     delivery = None
+    files: list[str] = []
     if export:
         t = time.perf_counter()
         bar = tqdm(total=4, desc="delivery", unit="step", disable=quiet, leave=False)
@@ -301,7 +302,6 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         delivery = plan_delivery(result, structures, grid, source_name=source, target_roi=target_roi,
                                  volume=volume, input_paths=inputs or [])
         bar.update()
-        files = []
         for name in ("dicom_rt", "device_json", "device_csv"):
             bar.set_postfix_str(f"export {name}")
             exporter = registry.get("exporters", name)
@@ -321,14 +321,18 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
 
     t = time.perf_counter()
     case = str((extra or {}).get("case") or (inputs[-1].name if inputs else "case"))
-    html = report_html(scene, result, structures, volume=volume, delivery=delivery, case=case, timings=timings,
-                       source_name=source, target_roi=target_roi, quiet=quiet, overview_png=overview_png,
-                       workspace_png=workspace_png, model_errors=rod_model_errors())
-    atomic_write_bytes(out / "report.html", html.encode("utf-8"))
+    rendered = report_html(scene, result, structures, volume=volume, delivery=delivery, case=case,
+                           timings=timings, source_name=source, target_roi=target_roi, quiet=quiet,
+                           overview_png=overview_png, workspace_png=workspace_png, model_errors=rod_model_errors())
+    atomic_write_bytes(out / "report.html", rendered.html.encode("utf-8"))
     doc["report"] = str(out / "report.html")
     timings["report_s"] = time.perf_counter() - t
     doc["timings"] = timings
     atomic_write_json(out / "plan.json", doc)
     if not quiet:
-        print(format_table(result))
+        written = [("report", str(out / "report.html")), ("plan", str(out / "plan.json"))]
+        device = [f for f in files if "device" in Path(f).name and f.endswith(".json")] if export else []
+        written += [("device instructions", f) for f in device]
+        print(format_summary(result, targets=[t.name for t in scene.targets], delivery=delivery,
+                             comparison=rendered.comparison, files=written))
     return doc

@@ -21,7 +21,17 @@ from reachplan.planner.pipeline import (
     planning_structures,
 )
 from reachplan.planner.report import figures
-from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html
+from reachplan.planner.report.html import (
+    Block,
+    Figure,
+    Interactive,
+    Paragraph,
+    Report,
+    Section,
+    Table,
+    render_html,
+)
+from reachplan.planner.report.view3d import Needle3d, scene_figure
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.plugins.sources import SourceData
 from reachplan.rod_model.select import ErrorRow
@@ -32,24 +42,121 @@ def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]
     return [c for cs in result.ranking.values() for c in [c for c in cs if c.feasible][:n_per_target]]
 
 
-def format_table(result: PlanResult) -> str:
-    """Per target: the top-ranked candidate, and the best straight next to the best steered one."""
+def _cell(v: float, digits: int = 1) -> str:
+    return f"{v:.{digits}f}" if np.isfinite(v) else "-"
 
-    def cell(c: Candidate | None) -> str:
-        if c is None:
-            return f"{'none feasible':<34}"
-        return (f"{c.hole_id:>4} {c.hole_distance_mm:5.1f} mm r{c.reach_error_mm:4.1f} c{c.clearance_mm:5.1f} "
-                f"{c.peak_tension_n:4.1f} N")
 
-    head = (f"{'target':<15} {'top':<8} {'best straight (hole, from centre, reach, clear)':<34}   "
-            f"{'best steered':<34}  model")
-    lines = [head, "-" * len(head)]
-    for target, cands in result.ranking.items():
-        top = cands[0]
-        first = ("steered" if top.steered else "straight") if top.feasible else "none"
-        steered = result.best(target, True)
-        lines.append(f"{target:<15} {first:<8} {cell(result.best(target, False))}   {cell(steered)}  "
-                     f"{steered.model.label if steered else ''}")
+def tension_flag(c: Candidate) -> bool:
+    """Return True when a needle's peak tension is within :data:`TENSION_MARGIN` of its stylet's design limit."""
+    return c.design is not None and c.peak_tension_n >= (1 - TENSION_MARGIN) * c.design.max_tension_n
+
+
+def miss_flag(c: Candidate, tolerance_mm: float) -> bool:
+    """Return True when the worst-case reach error under the perturbations exceeds the reach tolerance."""
+    return bool(np.isfinite(c.worst_reach_mm) and c.worst_reach_mm > tolerance_mm)
+
+
+#: A peak tension within this fraction of the stylet's limit is flagged.
+TENSION_MARGIN = 0.05
+
+#: Rod and insertion models in plain words.
+PLAIN_MODELS = {
+    "straight": "a straight line from the hole (exact geometry)",
+    "kinematic": "fast screening: the shaft follows the tip (kinematic insertion)",
+    "tissue_beam": "reference: the needle as a beam held by the surrounding tissue",
+    "planar_beam": "a planar beam model of the stylet",
+    "two_tube_cosserat": "the two-tube Cosserat model of stylet inside needle",
+    "cosserat_rod": "a single-rod Cosserat model",
+    "constant_curvature": "a constant-curvature arc",
+}
+
+
+#: The models in a few words, for the terminal.
+SHORT_MODELS = {"straight": "exact straight line", "kinematic": "fast screening model",
+                "tissue_beam": "reference model (beam in tissue)"}
+
+
+def plain_model(c: Candidate) -> str:
+    """Return the model behind a candidate's numbers in plain words.
+
+    E.g. ``fast screening: ... bending from a planar beam model of the stylet``.
+    """
+    words = PLAIN_MODELS.get(c.model.insertion, c.model.insertion)
+    if c.model.rod_model:
+        words += f", bending from {PLAIN_MODELS.get(c.model.rod_model, c.model.rod_model)}"
+    return words
+
+
+def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list[str]:
+    """One line per arm: needles, HR-CTV D90 (EQD2) and whether the aims are met (and the organs over)."""
+    from reachplan.planner.dose.optimize import Aims
+
+    aims = comparison.aims if comparison is not None else Aims()
+    limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
+    lines = [f"dose aims (EMBRACE II, EQD2): HR-CTV D90 >= {aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}"]
+
+    limit = {k.casefold(): v for k, v in aims.oar_d2cc_eqd2_gy}
+
+    def over(organs: Sequence[tuple[str, float]]) -> str:
+        bad = [f"{o} {v:.1f} Gy" for o, v in organs if o.casefold() in limit and v > limit[o.casefold()]]
+        return f"; over the limit: {', '.join(bad)}" if bad else ""
+
+    arms: list[tuple[str, int, float, bool, str]] = []
+    if comparison is not None:
+        arms += [(f"{r.arm} arm", r.n_needles, r.d90_eqd2_gy, r.aim_met, over(r.oar_d2cc_eqd2_gy))
+                 for r in comparison.rows()]
+    if delivery is not None:
+        opt = delivery.optimisation
+        arms.append(("delivered plan", len(delivery.needles), opt.target.d90_eqd2_gy if opt.success else np.nan,
+                     opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]) if opt.success
+                     else f"; not solved: {opt.reason}"))
+    if not arms:
+        return ["dose: not computed (--no-export)"]
+    width = max(len(a[0]) for a in arms)
+    for name, n, d90, met, why in arms:
+        low = "" if met or not d90 < aims.target_d90_eqd2_gy else f"; D90 below {aims.target_d90_eqd2_gy:g} Gy"
+        why = f"{low}{why}".removeprefix("; ")
+        lines.append(f"  {name:<{width}}  {n:>3} needles  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
+                     f"{'aims met' if met else 'aims NOT met'}{f' ({why})' if why else ''}")
+    return lines
+
+
+def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, delivery: Delivery | None = None,
+                   comparison: Comparison | None = None, files: Sequence[tuple[str, str]] = ()) -> str:
+    """Return the terminal summary of a plan.
+
+    Per target (in ``targets``' order, the user's; default the ranking's) its best straight and best steered
+    needle with units in every header, then one line per arm with the dose aims met or not, then the files
+    written (``files``: (what, path) pairs).
+    """
+    tol = result.config.reach_tolerance_mm
+    head = (f"{'target':<15} {'needle':<9} {'hole':<5} {'from centre (mm)':>16} {'reach error (mm)':>16} "
+            f"{'clearance (mm)':>14} {'worst miss (mm)':>17} {'peak tension (N)':>16}  model")
+    lines = [head, ""]
+    order = [t for t in (targets or result.ranking) if t in result.ranking]
+    for t in order:
+        cands = result.ranking[t]
+        top = cands[0] if cands and cands[0].feasible else None
+        for i, steered in enumerate((False, True)):
+            c = result.best(t, steered)
+            kind = ("steered" if steered else "straight") + ("*" if c is not None and c is top else "")
+            name = t if i == 0 else ""
+            if c is None:
+                lines.append(f"{name:<15} {kind:<9} none feasible")
+                continue
+            miss = _cell(c.worst_reach_mm) + (" !" if miss_flag(c, tol) else "  ")
+            tension = "-" if not steered else (f"{c.peak_tension_n:.1f}" + (
+                f" of {c.design.max_tension_n:g} !" if c.design is not None and tension_flag(c) else ""))
+            lines.append(f"{name:<15} {kind:<9} {c.hole_id:<5} {c.hole_distance_mm:>16.1f} {c.reach_error_mm:>16.1f} "
+                         f"{_cell(c.clearance_mm):>14} {miss:>17} {tension:>16}  "
+                         f"{SHORT_MODELS.get(c.model.insertion, c.model.label)}")
+    lines[1] = "-" * max(len(ln) for ln in lines)
+    lines += [f"* ranked first for its target.  ! worst case over the {tol:g} mm reach tolerance, or peak tension "
+              f"within {TENSION_MARGIN:.0%} of the stylet's limit.", ""]
+    lines += _arm_lines(delivery, comparison)
+    if files:
+        width = max(len(w) for w, _ in files)
+        lines += ["", *(f"{w:<{width}}  {p}" for w, p in files)]
     return "\n".join(lines)
 
 
@@ -62,7 +169,8 @@ COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=5
 OVERVIEW_CAPTION = ("Overview: axial slice at the targets' mean height and the mid-sagittal slice, with the top "
                     "needle of every target (solid cyan: steered, dashed orange: straight).")
 WORKSPACE_CAPTION = ("Reachable workspace: where each hole's steered needle can put its tip at the targets' depth "
-                     "(template frame), with the targets and the organ outlines at that depth.")
+                     "(template frame, seen from the patient's feet like the template map), with the targets and the "
+                     "organ outlines at that depth.")
 
 
 @dataclass(frozen=True)
@@ -71,7 +179,7 @@ class ReportOptions:
 
     ``max_slice_targets``: targets that get slice overlays (in ranking order); ``comparison``: run the
     straight-versus-steered dose comparison; ``comparison_settings``: its LP settings; ``mesh_pitch_mm``:
-    voxel size of the light meshes in the 3-D views.
+    voxel size of the light meshes in the 3-D view.
     """
 
     max_slice_targets: int = 12
@@ -165,8 +273,9 @@ def _case_section(scene: Scene, result: PlanResult, case: str, template_png: byt
               numeric=(1, 2, 3)),
         Paragraph(template),
         Paragraph(settings),
-        Figure(template_png, "Template holes; the holes of the per-target best straight (orange) and best "
-                             "steered (cyan) needles are labelled."),
+        Figure(template_png, f"Template holes with their names, {figures.RADIOLOGICAL} (the same orientation as "
+                             "the axial slices); the holes of the per-target best straight (orange) and best "
+                             "steered (cyan) needles are filled and their names in bold."),
     ))
 
 
@@ -178,9 +287,16 @@ def _cand_cells(c: Candidate | None, steered: bool) -> tuple[str, ...]:
     return (c.hole_id, geometry, _f(c.peak_tension_n), model) if steered else (c.hole_id, geometry, model)
 
 
-def _ranking_section(result: PlanResult) -> Section:
+def target_order(scene: Scene, result: PlanResult) -> list[str]:
+    """Return the ranked targets in the scene's order (the order the user gave them), then any others."""
+    named = [t.name for t in scene.targets if t.name in result.ranking]
+    return named + [t for t in result.ranking if t not in named]
+
+
+def _ranking_section(result: PlanResult, order: Sequence[str]) -> Section:
     rows = []
-    for target, cands in result.ranking.items():
+    for target in order:
+        cands = result.ranking[target]
         top = cands[0] if cands else None
         first = "none" if top is None or not top.feasible else "steered" if top.steered else "straight"
         rows.append((target, first, *_cand_cells(result.best(target, False), False),
@@ -191,15 +307,16 @@ def _ranking_section(result: PlanResult) -> Section:
     main = Table(head, tuple(rows), "Best straight next to best steered needle per target", numeric=(7,))
     weights = result.config.weights
     detail_rows = []
-    for target, cands in result.ranking.items():
-        for i, c in enumerate(cands[:5], start=1):
+    for target in order:
+        for i, c in enumerate(result.ranking[target][:5], start=1):
             detail_rows.append((target, str(i), c.hole_id, "steered" if c.steered else "straight", c.design_name or "-",
                                 _f(weights.score(c)), _f(c.reach_error_mm), _f(c.clearance_mm),
                                 _f(c.insertion_depth_mm), _f(c.peak_tension_n), c.model.label,
                                 "yes" if c.feasible else f"no: {c.reason}"))
     detail = Table(("target", "rank", "hole", "kind", "stylet", "score", "reach error (mm)", "clearance (mm)",
                     "depth (mm)", "peak tension (N)", "model", "feasible"), tuple(detail_rows),
-                   "Top 5 candidates of every target (lower score ranks first)", numeric=(1, 5, 6, 7, 8, 9),
+                   "Top 5 candidates of every target (feasible first; among them the robustness-assessed "
+                   "shortlist first, then by score, lower first; infeasible ones last)", numeric=(1, 5, 6, 7, 8, 9),
                    collapsed=True)
     counts: dict[str, int] = {}
     for c in result.candidates:
@@ -261,6 +378,12 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                    "D2cm³ EQD2 (Gy)"), tuple(rows2), "Delivered plan: dose-volume metrics",
                   numeric=(1, 2, 3, 4, 5, 6)),
         ]
+        if opt.success and opt.dvhs:
+            from reachplan.planner.dose.optimize import Aims
+
+            png = figures.png_bytes(figures.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
+            blocks.append(Figure(png, "Delivered plan: cumulative DVHs per fraction with the EMBRACE II aim "
+                                      "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
     return Section("Dose and coverage", "dose", tuple(blocks))
 
 
@@ -318,6 +441,73 @@ def _models_section(result: PlanResult, chart: bytes | None, rows: Sequence[Any]
     ))
 
 
+def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
+    """Isodoses and dwell positions of the delivered plan for the slices (None without a solved delivery)."""
+    if delivery is None or not delivery.optimisation.success:
+        return None
+    from reachplan.planner.dose.optimize import Aims
+    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_at_points
+
+    dwells = delivery.optimisation.dwells
+    active = dwells.select(dwells.times_s > 0)
+    kernel = Tg43Kernel(delivery.source)
+    sk = delivery.export.source.air_kerma_rate_u
+    return figures.DoseOverlay(lambda p: dose_at_points(p, active, kernel, sk), Aims().prescription_gy,
+                               active.positions_mm, active.times_s)
+
+
+def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate],
+                     delivery: Delivery | None, pitch_mm: float) -> dict[str, Any]:
+    """Return the 3-D view's plotly figure: both arms' needles and the delivered plan's active dwells."""
+    needles = [Needle3d.of(c) for c in (*straight, *steered)]
+    if delivery is None or not delivery.optimisation.success:
+        return scene_figure(scene, needles, pitch_mm=pitch_mm)
+    dwells = delivery.optimisation.dwells
+    on = dwells.times_s > 0
+    holes = [c.hole_id for c in delivery.needles]
+    labels = [f"channel {ch} ({holes[ch - 1]})" if 0 < ch <= len(holes) else f"channel {ch}"
+              for ch in dwells.channels[on]]
+    return scene_figure(scene, needles, dwell_positions_mm=dwells.positions_mm[on], dwell_times_s=dwells.times_s[on],
+                        dwell_labels=labels, pitch_mm=pitch_mm)
+
+
+def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered: Sequence[Candidate],
+                     order: Sequence[str]) -> Section:
+    """Per chosen needle: robustness, peak tension against the design limit, and the models in plain words."""
+    cfg = result.config
+    tol, p = cfg.reach_tolerance_mm, cfg.perturbations
+    rows = []
+    for c in sorted((*straight, *steered), key=lambda c: (list(order).index(c.target), c.steered)):
+        flags = []
+        if miss_flag(c, tol):
+            flags.append(f"worst-case miss over {tol:g} mm")
+        if np.isfinite(c.worst_clearance_mm) and c.worst_clearance_mm <= 0:
+            flags.append("touches an organ in the worst case")
+        if tension_flag(c):
+            flags.append(f"tension within {TENSION_MARGIN:.0%} of the limit")
+        limit = "-" if c.design is None else f"{c.design.max_tension_n:g}"
+        rows.append((c.target, "steered" if c.steered else "straight", c.hole_id, c.design_name or "-",
+                     _f(c.reach_error_mm), _f(c.worst_reach_mm), _f(c.clearance_mm), _f(c.worst_clearance_mm),
+                     c.worst_case or "not assessed", _f(c.peak_tension_n) if c.steered else "-", limit,
+                     "; ".join(flags) or "ok", plain_model(c)))
+    infos = {c.model.label: c.model for c in (*straight, *steered)}
+    settings = tuple((label, ", ".join(f"{k} = {v:g}" if isinstance(v, float) else f"{k} = {v}"
+                                       for k, v in info.settings) or "-") for label, info in infos.items())
+    return Section("Per needle: robustness and tension", "needles", (
+        Paragraph(f"Each target's best straight and best steered needle. Robustness: the needle re-evaluated with "
+                  f"the fast kinematic model under tension × (1 ± {p.tension_fraction:.0%}), roll ± {p.roll_deg:g}° "
+                  f"and an entry tilt of ± {p.tilt_deg:g}° about both template axes (handheld insertions deflect "
+                  "by 3.6-7.9 mm even when straight: Karius et al., Strahlenther. Onkol. 2025); the worst reach "
+                  f"error is flagged when over the {tol:g} mm reach tolerance. The peak tendon tension is flagged "
+                  f"within {TENSION_MARGIN:.0%} of the stylet's design limit. The last column says in words which "
+                  "model produced the needle's numbers."),
+        Table(("target", "needle", "hole", "stylet", "reach error (mm)", "worst-case miss (mm)", "clearance (mm)",
+               "worst-case clearance (mm)", "worst case", "peak tension (N)", "design limit (N)", "flags",
+               "model"), tuple(rows), "Robustness and tension per needle", numeric=(4, 5, 6, 7, 9, 10)),
+        Table(("model", "settings"), settings, "Model settings (units in the names)", collapsed=True),
+    ))
+
+
 def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = None,
                  delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
@@ -339,24 +529,31 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     """
     options = options or ReportOptions()
     straight, steered = choose_needles(result, steered=False), choose_needles(result, steered=True)
-    slice_targets = list(result.ranking)[: options.max_slice_targets]
+    order = target_order(scene, result)
+    slice_targets = order[: options.max_slice_targets]
     bar = tqdm(total=4 + len(slice_targets), desc="report", unit="figure", disable=quiet, leave=False)
     try:
         case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
         case_sec = Section(case_sec.title, case_sec.anchor, (*case_sec.blocks, *case_figures))
         bar.update()
-        slices: list[Paragraph | Table | Figure] = [Paragraph(
+        dose = dose_overlay(delivery)
+        slices: list[Block] = [Paragraph(
             "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
-            "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane.")]
+            "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane. "
+            f"Axial slices are {figures.RADIOLOGICAL}, like the template map; coronal slices are seen from the "
+            "front (patient left on the right), sagittal slices from the patient's left (anterior on the left); "
+            "the letters on the edges say which side is which."
+            + ("" if dose is None else " Isodose lines of the delivered plan at 50, 100, 150 and 200 % of the "
+               f"prescription ({dose.prescription_gy:.2f} Gy per fraction); black dots are its active dwell "
+               "positions within 2.5 mm of the plane, labelled with their dwell times in seconds."))]
         for t in slice_targets:
             s, st = result.best(t, False), result.best(t, True)
             desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "
                              f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
                              for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
-            slices.append(Figure(figures.slice_views(scene, t, s, st, volume), f"{t}: {desc}"))
+            slices.append(Figure(figures.slice_views(scene, t, s, st, volume, dose=dose), f"{t}: {desc}"))
             bar.update()
-        needles = [*straight, *steered]
-        view = figures.views_3d(scene, needles, pitch_mm=options.mesh_pitch_mm)
+        view = interactive_view(scene, straight, steered, delivery, options.mesh_pitch_mm)
         bar.update()
         dvh = figures.dvh_png(comparison) if comparison is not None else None
         bar.update()
@@ -373,14 +570,18 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                       f"EQD2 ({'aim met' if delivery.optimisation.aim_met else 'aim not met'})"))
     sections = [
         case_sec,
-        _ranking_section(result),
+        _ranking_section(result, order),
         Section("Slices through the targets", "slices", tuple(slices)),
-        Section("3-D views", "views-3d", (
-            Paragraph("Organs at risk (bone hidden), HR-CTV and the target points with each target's best straight and "
-                      f"steered needles, from three angles (organs re-meshed on a {options.mesh_pitch_mm:g} mm grid "
-                      "for drawing only)."),
-            Figure(view, "3-D views of organs and needles"),
+        Section("3-D view", "views-3d", (
+            Paragraph("Organs, the target points, the template holes, each target's best straight and best steered "
+                      "needle and the delivered plan's dwell positions, in an interactive view: drag to turn, scroll "
+                      "to zoom, click a legend entry to hide or show it (bone and obturator start hidden); the "
+                      "buttons turn it to the named views and the title says from where it is seen. It opens "
+                      f"{figures.RADIOLOGICAL.removeprefix('seen ')}. Organs are re-meshed on a "
+                      f"{options.mesh_pitch_mm:g} mm grid for drawing only."),
+            Interactive(view, "3-D view of organs, needles, dwell positions and template (mm, LPS)"),
         )),
+        _needles_section(result, straight, steered, order),
         _dose_section(delivery, comparison, dvh, source_name, comparison_note, options.comparison_settings),
         _device_section(delivery),
         _models_section(result, chart, rows, used),
@@ -393,14 +594,27 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     return Report(f"reachplan report: {case}", subtitle, tuple(sections))
 
 
+@dataclass(frozen=True, eq=False)
+class RenderedReport:
+    """A rendered report and the comparison it shows.
+
+    ``html``: the report as one HTML document; ``comparison``: the straight-versus-steered dose comparison it
+    shows (None when not computed).
+    """
+
+    html: str
+    comparison: Comparison | None
+
+
 def report_html(scene: Scene, result: PlanResult, structures: StructureSet, *, volume: Volume | None = None,
                 delivery: Delivery | None = None, case: str = "case", timings: Mapping[str, float] | None = None,
                 source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
                 options: ReportOptions | None = None, quiet: bool = True, overview_png: bytes | None = None,
-                workspace_png: bytes | None = None, model_errors: Sequence[ErrorRow] = ()) -> str:
+                workspace_png: bytes | None = None, model_errors: Sequence[ErrorRow] = ()) -> RenderedReport:
     """Compare straight and steered needles, build the report and render it as one self-contained HTML document.
 
-    The comparison runs when a delivery was made; the document is returned as text for the caller to write.
+    The comparison runs when a delivery was made; the document is returned as text for the caller to write, with
+    the comparison (for the terminal summary).
 
     ``overview_png``, ``workspace_png``: the overview (:func:`reachplan.planner.report.figures.overview`) and
     workspace (:func:`reachplan.planner.report.workspace.workspace_figure`) figures, embedded in the case
@@ -432,4 +646,4 @@ def report_html(scene: Scene, result: PlanResult, structures: StructureSet, *, v
                           quiet=quiet, case_figures=extra, model_errors=model_errors)
     footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
               "research use; not a treatment plan.")
-    return render_html(report, footer)
+    return RenderedReport(render_html(report, footer), comparison)

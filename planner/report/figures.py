@@ -3,15 +3,21 @@
 Drawn on :class:`matplotlib.figure.Figure` objects, not pyplot: nothing here selects a backend or keeps a
 figure alive, so importing this module changes no global state and needs no screen.
 
-Geometry is in mm, DICOM patient coordinates (LPS: +x patient left, +y posterior, +z superior). Views follow
-radiological convention: axial and coronal show the patient's left on the right of the image, axial has
-anterior at the top, sagittal has anterior on the left.
+Geometry is in mm, DICOM patient coordinates (LPS: +x patient left, +y posterior, +z superior). Every view follows
+one convention, the radiological one, and says so with A/P, L/R, S/I letters on its edges: axial slices and the
+template map are seen from the patient's feet (the operator's view along the needles), patient left on the right
+of the image and anterior at the top; coronal slices have the patient's left on the right and superior at the
+top; sagittal slices are seen from the patient's left, anterior on the left and superior at the top.
+
+The drawing functions ending in ``_figure`` return the :class:`matplotlib.figure.Figure` (tests read its
+coordinates); the others return PNG bytes.
 """
 
 from __future__ import annotations
 
 import io
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -34,6 +40,36 @@ STEERED_COLOUR = "#17becf"
 #: (axis normal to the plane, horizontal axis, vertical axis, name) of the three slice views.
 VIEWS: tuple[tuple[int, int, int, str], ...] = ((2, 0, 1, "axial"), (0, 1, 2, "sagittal"), (1, 0, 2, "coronal"))
 AXIS_LABELS = ("x (mm, patient left +)", "y (mm, posterior +)", "z (mm, superior +)")
+#: Letters of the negative and positive ends of the LPS axes.
+DIRECTION_LETTERS = (("R", "L"), ("A", "P"), ("I", "S"))
+#: Caption words for the orientation of the axial slices and the template map.
+RADIOLOGICAL = ("seen from the patient's feet, as the operator sees the template (radiological convention): "
+                "patient left on the right, anterior at the top")
+
+
+def direction_letter(v: np.ndarray) -> str:
+    """Return the anatomical letter (R/L, A/P, I/S) of the LPS component that dominates direction ``v`` (3,)."""
+    v = np.asarray(v, dtype=float)
+    i = int(np.argmax(np.abs(v)))
+    return DIRECTION_LETTERS[i][int(v[i] > 0)]
+
+
+def label_edges(ax: Any, right: np.ndarray, up: np.ndarray) -> None:
+    """Write the anatomical letter of each edge of a 2-D axes inside it.
+
+    ``right`` and ``up`` (3,) are the patient (LPS) directions of the axes' +horizontal and +vertical data axes;
+    inverted axes are taken into account.
+    """
+    r = -np.asarray(right, float) if ax.xaxis_inverted() else np.asarray(right, float)
+    u = -np.asarray(up, float) if ax.yaxis_inverted() else np.asarray(up, float)
+    box = {"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.75}
+    for (x, y), d, ha, va in (((0.01, 0.5), -r, "left", "center"), ((0.99, 0.5), r, "right", "center"),
+                              ((0.5, 0.99), u, "center", "top"), ((0.5, 0.01), -u, "center", "bottom")):
+        ax.text(x, y, direction_letter(d), transform=ax.transAxes, ha=ha, va=va, fontsize=10, fontweight="bold",
+                color="#1d2b45", bbox=box, gid="orientation")
+
+
+_UNIT = np.eye(3)
 
 
 def png_bytes(fig: Figure, dpi: int = 100) -> bytes:
@@ -91,29 +127,85 @@ def _box(points: Sequence[np.ndarray], margin_mm: float) -> tuple[np.ndarray, np
     return p.min(axis=0) - margin_mm, p.max(axis=0) + margin_mm
 
 
-def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: Candidate | None,
-                volume: Volume | None = None, organs: Sequence[str] | None = None,
-                window_mm: float = 120.0) -> bytes:
+@dataclass(frozen=True, eq=False)
+class DoseOverlay:
+    """The delivered dose, for isodose lines and dwell positions on the slices.
+
+    Parameters
+    ----------
+    dose_at : callable, (n, 3) float mm LPS -> (n,) float Gy
+        Dose per fraction at points.
+    prescription_gy : float
+        Per-fraction prescription (Gy); the lines are drawn at :data:`ISODOSE_PERCENT` of it.
+    dwell_positions_mm : (m, 3) float, mm, LPS
+        Active dwell positions (time > 0).
+    dwell_times_s : (m,) float, s
+    """
+
+    dose_at: Callable[[np.ndarray], np.ndarray]
+    prescription_gy: float
+    dwell_positions_mm: np.ndarray
+    dwell_times_s: np.ndarray
+
+
+#: Isodose levels, % of the prescription, and their colours.
+ISODOSE_PERCENT: tuple[tuple[int, str], ...] = ((50, "#1f77b4"), (100, "#00e5a0"), (150, "#ff00ff"),
+                                                (200, "#ffee00"))
+#: Isodose lines are dash-dotted, organ outlines solid.
+ISODOSE_STYLE = "-."
+
+
+def _isodoses(ax: Any, dose: DoseOverlay, normal: int, value_mm: float, u: int, v: int, lo: np.ndarray,
+              hi: np.ndarray, n: int = 70) -> None:
+    """Draw isodose lines of ``dose`` on the plane ``x[normal] = value_mm`` and the dwells near it.
+
+    Over the box ``lo``..``hi`` (mm, LPS); the dwell positions within 2.5 mm of the plane are dots sized by dwell
+    time, labelled in s.
+    """
+    gu, gv = np.linspace(lo[u], hi[u], n), np.linspace(lo[v], hi[v], n)
+    uu, vv = np.meshgrid(gu, gv)
+    pts = np.zeros((uu.size, 3))
+    pts[:, normal], pts[:, u], pts[:, v] = value_mm, uu.ravel(), vv.ravel()
+    d = dose.dose_at(pts).reshape(uu.shape) / dose.prescription_gy * 100.0
+    for pct, colour in ISODOSE_PERCENT:
+        if d.min() < pct < d.max():
+            cs = ax.contour(uu, vv, d, levels=[pct], colors=[colour], linewidths=1.2, linestyles=ISODOSE_STYLE)
+            cs.set_gid(f"isodose:{pct}")
+    near = np.abs(dose.dwell_positions_mm[:, normal] - value_mm) <= 2.5
+    p, t = dose.dwell_positions_mm[near], dose.dwell_times_s[near]
+    if len(p):
+        ax.scatter(p[:, u], p[:, v], s=6 + 40 * t / max(float(dose.dwell_times_s.max()), 1e-9), color="k",
+                   zorder=6, gid="dwells")
+        for q, ti in zip(p, t, strict=True):
+            ax.annotate(f"{ti:.0f}", (q[u], q[v]), xytext=(2, 2), textcoords="offset points", fontsize=5)
+
+
+def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered: Candidate | None,
+                 volume: Volume | None = None, organs: Sequence[str] | None = None,
+                 window_mm: float = 120.0, dose: DoseOverlay | None = None) -> Figure:
     """Axial, sagittal and coronal slices through a target with organ outlines and its two needles.
 
     The needles (best straight: dashed orange, best steered: solid cyan) are drawn projected onto each
     plane, with their tips as dots; the target point is a green cross. ``organs`` names the meshes to
     outline (default: the organs at risk, HR-CTV and the target's own ROI). Each view shows the needles and
-    the outlines in its plane, at most ``window_mm`` from the target.
+    the outlines in its plane, at most ``window_mm`` from the target. ``dose``: isodose lines (50, 100, 150,
+    200 % of the prescription) and dwell positions with their times (s). Organ outlines carry the gid
+    ``organ:NAME``, the axes the gid of their view (``axial``, ``sagittal``, ``coronal``).
     """
     point = np.asarray(next(t.position_mm for t in scene.targets if t.name == target), dtype=float)
     names = list(organs) if organs is not None else [*(o.name for o in scene.organs), "HR-CTV", target]
     meshes = {n: scene.meshes[n] for n in names if n in scene.meshes}
     needles = [(c, STRAIGHT_COLOUR, "--") for c in (straight,) if c is not None]
     needles += [(c, STEERED_COLOUR, "-") for c in (steered,) if c is not None]
-    fig = Figure(figsize=(13.5, 4.8))
+    fig = Figure(figsize=(13.5, 5.2))
     axes = fig.subplots(1, 3)
     for ax, (normal, u, v, view) in zip(axes, VIEWS, strict=True):
+        ax.set_gid(view)
         _background(ax, volume, normal, float(point[normal]))
         around = [point[None], *(c.path_mm for c, _, _ in needles)]
         for name, mesh in meshes.items():
             for loop in _section(mesh, normal, float(point[normal])):
-                ax.plot(loop[:, u], loop[:, v], color=organ_colour(name), lw=1.4)
+                ax.plot(loop[:, u], loop[:, v], color=organ_colour(name), lw=1.4, gid=f"organ:{name}")
                 around.append(loop)
         for c, colour, style in needles:
             ax.plot(c.path_mm[:, u], c.path_mm[:, v], style, color=colour, lw=1.6)
@@ -121,23 +213,40 @@ def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: 
         ax.plot(point[u], point[v], "+", color=TARGET_COLOUR, ms=12, mew=2)
         lo, hi = _box(around, 10.0)
         lo, hi = np.maximum(lo, point - window_mm), np.minimum(hi, point + window_mm)
+        span = max(hi[u] - lo[u], hi[v] - lo[v]) / 2  # square panels: no view cropped to a thin strip
+        lo[[u, v]] = (lo[[u, v]] + hi[[u, v]]) / 2 - span
+        hi[[u, v]] = lo[[u, v]] + 2 * span
+        if dose is not None:
+            _isodoses(ax, dose, normal, float(point[normal]), u, v, lo, hi)
         ax.set_xlim(lo[u], hi[u])
         ax.set_ylim((hi[v], lo[v]) if view == "axial" else (lo[v], hi[v]))  # axial: anterior (-y) at the top
         ax.set_aspect("equal")
-        ax.set_title(f"{view}, {'xyz'[normal]} = {point[normal]:.0f} mm", fontsize=10)
+        seen = {"axial": "from the feet", "sagittal": "from the patient's left", "coronal": "from the front"}[view]
+        ax.set_title(f"{view} ({seen}), {'xyz'[normal]} = {point[normal]:.0f} mm", fontsize=10)
         ax.set_xlabel(AXIS_LABELS[u], fontsize=8)
         ax.set_ylabel(AXIS_LABELS[v], fontsize=8)
         ax.tick_params(labelsize=7)
         ax.locator_params(nbins=5)
+        label_edges(ax, _UNIT[u], _UNIT[v])
     handles = [Line2D([], [], color=organ_colour(n), label=n) for n in meshes]
     if straight is not None:
         handles.append(Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label=f"straight {straight.hole_id}"))
     if steered is not None:
         handles.append(Line2D([], [], color=STEERED_COLOUR, label=f"steered {steered.hole_id}"))
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=8, facecolor="#cfcfcf")
+    if dose is not None:
+        handles += [Line2D([], [], color=c, lw=1.2, ls=ISODOSE_STYLE, label=f"{p} %") for p, c in ISODOSE_PERCENT]
+        handles.append(Line2D([], [], color="k", marker="o", ls="", ms=3, label="dwell (s)"))
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 9), fontsize=8, facecolor="#cfcfcf")
     fig.suptitle(f"{target}: needles projected onto the slices through the target", fontsize=11)
-    fig.subplots_adjust(left=0.05, right=0.99, top=0.88, bottom=0.2, wspace=0.25)
-    return png_bytes(fig, dpi=90)
+    fig.subplots_adjust(left=0.05, right=0.99, top=0.9, bottom=0.2, wspace=0.25)
+    return fig
+
+
+def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: Candidate | None,
+                volume: Volume | None = None, organs: Sequence[str] | None = None,
+                window_mm: float = 120.0, dose: DoseOverlay | None = None) -> bytes:
+    """:func:`slice_figure` as PNG bytes."""
+    return png_bytes(slice_figure(scene, target, straight, steered, volume, organs, window_mm, dose), dpi=90)
 
 
 def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None = None) -> bytes:
@@ -164,13 +273,17 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
         ax.set(title=f"{view}, {'xyz'[normal]} = {value:.0f} mm", xlabel=AXIS_LABELS[u], ylabel=AXIS_LABELS[v])
         ax.set_aspect("equal")
     axes[0].set_ylim(sorted(axes[0].get_ylim(), reverse=True))  # axial: anterior (-y) at the top
+    axes[0].set_title(f"axial (from the feet), z = {tz:.0f} mm")
+    axes[1].set_title("sagittal (from the patient's left), x = 0 mm")
+    for ax, (_, u, v, _) in zip(axes, VIEWS[:2], strict=True):
+        label_edges(ax, _UNIT[u], _UNIT[v])
     handles = [Line2D([], [], color=organ_colour(n), label=n) for n in scene.meshes
                if not n.casefold().startswith("target")]
     handles += [Line2D([], [], color=TARGET_COLOUR, marker="+", ls="", label="target points and ROIs"),
                 Line2D([], [], color=STEERED_COLOUR, label="top needle per target: steered"),
                 Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="top needle per target: straight")]
-    axes[0].legend(handles=handles, loc="lower right", fontsize=7)
-    fig.tight_layout()
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.08, 1, 0.97))
     return png_bytes(fig, dpi=110)
 
 
@@ -185,92 +298,53 @@ def coarse_mesh(mesh: trimesh.Trimesh, pitch_mm: float = 4.0) -> trimesh.Trimesh
     return out
 
 
-#: (elevation, azimuth, title) of the 3-D views.
-VIEWS_3D: tuple[tuple[float, float, str], ...] = (
-    (15.0, -60.0, "anterior-oblique"), (5.0, 0.0, "from the patient's left"), (-70.0, -90.0, "from the template"),
-)
+def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> Figure:
+    """Draw the template's holes with their names (mm, template frame), as the operator sees the template.
 
-
-def views_3d(scene: Scene, needles: Sequence[Candidate], organs: Sequence[str] | None = None,
-             pitch_mm: float = 4.0, meshes: Mapping[str, trimesh.Trimesh] | None = None) -> bytes:
-    """Draw organs, target points (green dots) and needles in 3-D from three angles as PNG bytes.
-
-    Steered needles solid cyan, straight dashed orange.
-
-    ``organs``: meshes to draw (default: organs at risk without bone, and HR-CTV);
-    ``meshes``: pre-coarsened meshes by name (default: :func:`coarse_mesh` of the scene's).
+    Seen from the patient's feet along the needles: the same orientation as the axial slices
+    (:data:`RADIOLOGICAL`). The axes are flipped as the pose requires (patient left to the right, anterior up)
+    and the edges carry the anatomical letters of the pose. The holes of the chosen needles are filled and named
+    in bold; the hole markers carry the gid ``holes``.
     """
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # type: ignore[import-untyped]
-
-    names = list(organs) if organs is not None else (
-        [o.name for o in scene.organs if o.name != "Bone"] + ["HR-CTV"])
-    light = dict(meshes) if meshes is not None else {}
-    for n in names:
-        if n not in light and n in scene.meshes:
-            light[n] = coarse_mesh(scene.meshes[n], pitch_mm)
-    fig = Figure(figsize=(15, 5.4))
-    points = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)
-    pts = [points, *(m.vertices for n, m in light.items() if n in names), *(c.path_mm for c in needles)]
-    lo, hi = _box(pts, 5.0)
-    centre, half = (lo + hi) / 2, float((hi - lo).max()) / 2
-    for i, (elev, azim, title) in enumerate(VIEWS_3D):
-        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
-        for n in names:
-            if n not in light:
-                continue
-            m = light[n]
-            alpha = 0.35 if n.casefold().startswith("target") else 0.18
-            ax.add_collection3d(Poly3DCollection(m.vertices[m.faces], facecolor=organ_colour(n), alpha=alpha,
-                                                 edgecolor="none"))
-        for c in needles:
-            colour, style = (STEERED_COLOUR, "-") if c.steered else (STRAIGHT_COLOUR, "--")
-            ax.plot(c.path_mm[:, 0], c.path_mm[:, 1], c.path_mm[:, 2], style, color=colour, lw=1.5)
-            ax.scatter(*c.path_mm[-1], color=colour, s=8)
-        ax.scatter(points[:, 0], points[:, 1], points[:, 2], marker="o", color=TARGET_COLOUR, s=30,
-                   depthshade=False)
-        ax.set_xlim(centre[0] - half, centre[0] + half)
-        ax.set_ylim(centre[1] - half, centre[1] + half)
-        ax.set_zlim(centre[2] - half, centre[2] + half)
-        ax.set_box_aspect((1, 1, 1))
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_title(title, fontsize=10)
-        ax.set_xlabel("x (L+)", fontsize=7)
-        ax.set_ylabel("y (P+)", fontsize=7)
-        ax.set_zlabel("z (S+)", fontsize=7)
-        ax.tick_params(labelsize=6)
-    handles = [Line2D([], [], color=organ_colour(n), lw=6, alpha=0.5, label=n) for n in names
-               if n in light and not n.casefold().startswith("target")]
-    handles += [Line2D([], [], color=TARGET_COLOUR, marker="o", ls="", label="target points"),
-                Line2D([], [], color=STEERED_COLOUR, label="steered needle"),
-                Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="straight needle")]
-    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-    fig.subplots_adjust(left=0.0, right=1.0, top=0.95, bottom=0.08, wspace=0.0)
-    return png_bytes(fig, dpi=90)
-
-
-def template_map(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> bytes:
-    """Draw the template's holes (mm, template frame) with the holes the chosen needles use, as PNG bytes."""
-    fig = Figure(figsize=(6.4, 4.4))
+    m = scene.patient_from_template
+    fig = Figure(figsize=(8.0, 5.2))
     ax = fig.add_subplot()
     holes = {h.hole_id: h for h in scene.template.holes}
     xy = np.array([h.xy_mm for h in scene.template.holes])
-    ax.scatter(xy[:, 0], xy[:, 1], s=18, facecolors="none", edgecolors="#999999", label="hole")
+    ax.scatter(xy[:, 0], xy[:, 1], s=22, facecolors="none", edgecolors="#999999", label="hole", gid="holes")
     for h in scene.template.holes:
         if h.kind != "needle":
             ax.scatter(*h.xy_mm, s=60, marker="s", color="#7f7f7f", label=h.kind)
+    used_all: set[str] = set()
     for cands, colour, label in ((straight, STRAIGHT_COLOUR, "straight"), (steered, STEERED_COLOUR, "steered")):
         used = sorted({c.hole_id for c in cands})
+        used_all |= set(used)
         if not used:
             continue
         p = np.array([holes[u].xy_mm for u in used])
-        ax.scatter(p[:, 0], p[:, 1], s=60 if label == "straight" else 30, color=colour, label=f"{label} needle")
-        for u, q in zip(used, p, strict=True):
-            ax.annotate(u, q, xytext=(3, 3), textcoords="offset points", fontsize=7)
+        ax.scatter(p[:, 0], p[:, 1], s=70 if label == "straight" else 34, color=colour, label=f"{label} needle")
+    for h in scene.template.holes:
+        ax.annotate(h.hole_id, h.xy_mm, xytext=(0, 4.5), textcoords="offset points", fontsize=5.5, ha="center",
+                    fontweight="bold" if h.hole_id in used_all else "normal",
+                    color="#000000" if h.hole_id in used_all else "#555555")
     ax.set_aspect("equal")
-    ax.set(xlabel="template x (mm)", ylabel="template y (mm)", title=f"template {scene.template.name}")
+    ax.margins(0.08)
+    if m[0, 0] < 0:  # template +x towards the patient's right: flip so that the patient's left is on the right
+        ax.invert_xaxis()
+    if m[1, 1] > 0:  # template +y posterior: flip so that anterior is at the top
+        ax.invert_yaxis()
+    label_edges(ax, m[:3, 0], m[:3, 1])
+    ax.set(xlabel="template x (mm)", ylabel="template y (mm)",
+           title=f"template {scene.template.name}, seen from the patient's feet (operator's view)")
+    ax.title.set_fontsize(10)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     fig.tight_layout()
-    return png_bytes(fig, dpi=90)
+    return fig
+
+
+def template_map(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> bytes:
+    """:func:`template_map_figure` as PNG bytes."""
+    return png_bytes(template_map_figure(scene, straight, steered), dpi=90)
 
 
 def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
@@ -307,6 +381,45 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
     ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()
     return png_bytes(fig, dpi=90)
+
+
+def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "HR-CTV",
+                    title: str = "delivered plan") -> Figure:
+    """Cumulative DVHs of one plan (volume in cm³, log scale, against Gy per fraction) with the aims marked.
+
+    Parameters
+    ----------
+    dvhs : sequence of (structure name, :class:`reachplan.planner.dose.coverage.Dvh`)
+    aims : :class:`reachplan.planner.dose.optimize.Aims`
+        Its D90 aim becomes a diamond at (prescription, 90 % of the target volume) that the target's curve must
+        pass to the right of; each organ limit a cross at (D2cm³ limit per fraction, 2 cm³) that the organ's
+        curve must pass to the left of.
+    """
+    fig = Figure(figsize=(7.5, 5.6))
+    ax = fig.add_subplot()
+    for name, dvh in dvhs:
+        colour = organ_colour(name)
+        v = np.maximum(np.asarray(dvh.volume_cc, dtype=float), 1e-3)
+        ax.plot(dvh.dose_gy, v, color=colour, lw=1.6, label=name, gid=f"dvh:{name}")
+        if name == target:
+            ax.plot([aims.prescription_gy], [0.9 * v[0]], "D", color=colour, mec="k", ms=8, gid="aim:D90",
+                    label=f"{name} D90 aim ({aims.target_d90_eqd2_gy:g} Gy EQD2)")
+        elif (limit := aims.oar_limit_gy(name)) is not None:
+            ax.plot([limit], [2.0], "X", color=colour, mec="k", ms=9, gid=f"limit:{name}",
+                    label=f"{name} D2cm³ limit")
+    ax.axvline(aims.prescription_gy, color="grey", lw=0.8, ls=":")
+    ax.set_yscale("log")
+    ax.set_xlim(0, 3 * aims.prescription_gy)
+    ax.set_ylim(0.1, None)
+    ax.set_xlabel("dose per fraction (Gy)")
+    ax.set_ylabel("volume receiving at least the dose (cm³, log)")
+    ax.set_title(f"cumulative DVH, {title}\n◆ the target's curve must pass right of its aim, "
+                 "✕ an organ's curve left of its limit", fontsize=9)
+    ax.grid(True, which="both", alpha=0.25)
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, ncol=3, loc="lower center", frameon=False)
+    fig.tight_layout(rect=(0, 0.05 + 0.035 * ((len(labels) + 2) // 3), 1, 1))
+    return fig
 
 
 def dvh_png(comparison: Any) -> bytes:

@@ -2,15 +2,19 @@
 
 Nothing here knows about plans: :mod:`reachplan.planner.report.build` turns a plan into a :class:`Report`, and
 :func:`render_html` turns any :class:`Report` into one HTML document. Images are embedded as base64 PNG
-data URIs and the style sheet is inline, so the file opens offline, from anywhere, in any browser; there
-is no script at all.
+data URIs and the style sheet is inline, so the file opens offline, from anywhere, in any browser. The only
+script is plotly.js, embedded once (from the installed ``plotly`` package) when the report holds an
+:class:`Interactive` figure; the page's Content-Security-Policy lets it load nothing from outside.
 """
 
 from __future__ import annotations
 
 import base64
 import html
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -59,7 +63,19 @@ class Figure:
             raise ValueError(f"figure {self.caption!r}: not a PNG image")
 
 
-Block = Paragraph | Table | Figure
+@dataclass(frozen=True, eq=False)
+class Interactive:
+    """A plotly.js figure (``{"data": [...], "layout": {...}}``, JSON-ready) with its caption."""
+
+    figure: dict[str, Any] = field(repr=False)
+    caption: str
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.figure.get("data"), list):
+            raise ValueError(f"interactive figure {self.caption!r}: needs a 'data' list of traces")
+
+
+Block = Paragraph | Table | Figure | Interactive
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,6 +111,11 @@ class Report:
         """Every figure, in document order."""
         return tuple(b for s in self.sections for b in s.blocks if isinstance(b, Figure))
 
+    @property
+    def interactive(self) -> tuple[Interactive, ...]:
+        """Every interactive figure, in document order."""
+        return tuple(b for s in self.sections for b in s.blocks if isinstance(b, Interactive))
+
 
 STYLE = """
 body { font: 14px/1.45 system-ui, -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; color: #1d2330;
@@ -117,6 +138,7 @@ td.num { text-align: right; font-variant-numeric: tabular-nums; }
 tbody tr:nth-child(even) { background: #fafbfc; }
 figure { margin: 10px 0 16px 0; }
 figure img { max-width: 100%; height: auto; border: 1px solid #e1e4ea; }
+.plot { width: 100%; min-height: 500px; border: 1px solid #e1e4ea; }
 figcaption { font-size: 12.5px; color: #4a5263; margin-top: 4px; }
 details summary { cursor: pointer; font-weight: 600; margin: 6px 0; }
 footer { color: #6b7280; font-size: 12px; padding: 0 32px 24px 32px; }
@@ -148,27 +170,62 @@ def _figure(f: Figure) -> str:
             f"<figcaption>{_e(f.caption)}</figcaption></figure>")
 
 
-def _block(b: Block) -> str:
+def _script_json(value: Any) -> str:
+    """JSON that is safe inside a <script> element."""
+    return json.dumps(value, separators=(",", ":")).replace("</", "<\\/")
+
+
+def _interactive(f: Interactive, div_id: str) -> str:
+    config = {"displaylogo": False, "responsive": True}
+    return (f'<figure><div id="{div_id}" class="plot"></div><script>Plotly.newPlot("{div_id}", '
+            f'{_script_json(f.figure["data"])}, {_script_json(f.figure.get("layout", {}))}, '
+            f"{_script_json(config)});</script><figcaption>{_e(f.caption)}</figcaption></figure>")
+
+
+def _block(b: Block, div_id: str) -> str:
     if isinstance(b, Paragraph):
         return f"<p>{_e(b.text)}</p>"
     if isinstance(b, Table):
         return _table(b)
+    if isinstance(b, Interactive):
+        return _interactive(b, div_id)
     return _figure(b)
 
 
+def plotly_js() -> str:
+    """Return the plotly.js bundle shipped with the ``plotly`` package (about 4.8 MB, minified)."""
+    return (resources.files("plotly") / "package_data" / "plotly.min.js").read_text(encoding="utf-8")
+
+
 def render_html(report: Report, footer: str = "") -> str:
-    """Render the report as one self-contained HTML5 document (no script, no external resource)."""
+    """Render the report as one self-contained HTML5 document (no external resource; plotly.js inline when needed).
+
+    Interactive figures get the ids ``plot-1``, ``plot-2``, ... in document order.
+    """
     nav = "".join(f'<a href="#{s.anchor}">{_e(s.title)}</a>' for s in report.sections)
-    sections = "\n".join(
-        f'<section id="{s.anchor}"><h2>{_e(s.title)}</h2>{"".join(_block(b) for b in s.blocks)}</section>'
-        for s in report.sections)
+    n_plots = 0
+    parts = []
+    for s in report.sections:
+        blocks = []
+        for b in s.blocks:
+            n_plots += isinstance(b, Interactive)
+            blocks.append(_block(b, f"plot-{n_plots}"))
+        parts.append(f'<section id="{s.anchor}"><h2>{_e(s.title)}</h2>{"".join(blocks)}</section>')
+    sections = "\n".join(parts)
+    script_src = "script-src 'unsafe-inline'; " if n_plots else ""
+    lib = ""
+    if n_plots:
+        js = plotly_js()
+        if "</script" in js.casefold():  # would end the inline element early
+            raise ValueError("this plotly.js bundle cannot be inlined: it contains '</script'")
+        lib = f"<script>{js}</script>"
     return (
         "<!DOCTYPE html>\n"
         '<html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
-        "<meta http-equiv=\"Content-Security-Policy\" content=\"default-src 'none'; img-src data:; "
+        f"<meta http-equiv=\"Content-Security-Policy\" content=\"default-src 'none'; {script_src}img-src data:; "
         "style-src 'unsafe-inline'\">"
-        f"<title>{_e(report.title)}</title><style>{STYLE}</style></head>\n"
+        f"<title>{_e(report.title)}</title><style>{STYLE}</style>{lib}</head>\n"
         f"<body><header><h1>{_e(report.title)}</h1><p>{_e(report.subtitle)}</p></header>\n"
         f"<nav>{nav}</nav>\n<main>\n{sections}\n</main>\n"
         f"<footer>{_e(footer)}</footer></body></html>\n"

@@ -8,7 +8,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
 from reachplan.planner.pipeline import PlanConfig, Scene
-from reachplan.planner.report.figures import png_bytes
+from reachplan.planner.report.figures import label_edges, png_bytes
 from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
 
 
@@ -51,6 +51,12 @@ def workspace_figure(scene: Scene, config: PlanConfig, depth_mm: float | None = 
     ax.plot(t_local[:, 0], t_local[:, 1], "r+", ms=9, label="targets")
     ax.set(title=f"reachable workspace per hole ({label})", xlabel="template x (mm)", ylabel="template y (mm)")
     ax.set_aspect("equal")
+    m = scene.patient_from_template  # seen from the feet, like the template map and the axial slices
+    if m[0, 0] < 0:
+        ax.invert_xaxis()
+    if m[1, 1] > 0:
+        ax.invert_yaxis()
+    label_edges(ax, m[:3, 0], m[:3, 1])
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     return png_bytes(fig, dpi=110)

@@ -105,3 +105,47 @@ def test_models_used_names_each_rod_models_role() -> None:
     used = models_used(SimpleNamespace(candidates=cands))  # type: ignore[arg-type]
     assert used == {"planar_beam": f"screening with {KINEMATIC.name} (2 candidates)",
                     "two_tube_cosserat": f"reference re-solve with {TISSUE_BEAM.name} (1 candidates)"}
+
+
+def test_interactive_figures_embed_plotly_once_and_escape_their_data() -> None:
+    from reachplan.planner.report.html import Interactive
+
+    fig = {"data": [{"type": "scatter3d", "name": "</script><b>x", "x": [1], "y": [2], "z": [3]}], "layout": {}}
+    doc = render_html(Report("t", "s", (Section("A", "a", (Interactive(fig, "one"), Interactive(fig, "two"))),)))
+    assert doc.count("<script>") == 3  # plotly.js once, then one call per figure
+    assert 'Plotly.newPlot("plot-1"' in doc and 'Plotly.newPlot("plot-2"' in doc
+    assert "</script><b>" not in doc and "<\\/script><b>x" in doc  # data cannot end the script element
+    assert "script-src 'unsafe-inline'" in doc and "://" not in doc.split("<script>")[0]
+    assert "<script" not in render_html(_report())  # no interactive figure: no script at all
+    with pytest.raises(ValueError, match="data"):
+        Interactive({"layout": {}}, "no traces")
+
+
+def test_delivered_dvh_marks_each_aim_where_the_aims_put_it() -> None:
+    from reachplan.planner.dose.coverage import Dvh
+    from reachplan.planner.dose.optimize import Aims
+
+    aims = Aims()
+    dose = np.linspace(0.0, 30.0, 301)
+    dvhs = [("HR-CTV", Dvh(dose, 60.0 * np.exp(-dose / 10))), ("Rectum", Dvh(dose, 50.0 * np.exp(-dose / 2))),
+            ("Uterus", Dvh(dose, 70.0 * np.exp(-dose / 5)))]
+    ax = figures.dvh_aims_figure(dvhs, aims).axes[0]
+    marks = {ln.get_gid(): ln.get_xydata()[0] for ln in ax.lines if (ln.get_gid() or "").startswith(("aim", "limit"))}
+    assert np.allclose(marks["aim:D90"], (aims.prescription_gy, 0.9 * 60.0))
+    assert np.allclose(marks["limit:Rectum"], (aims.oar_limit_gy("Rectum"), 2.0))
+    assert "limit:Uterus" not in marks  # no limit, no mark
+    assert ax.get_yscale() == "log"
+
+
+def test_3d_cameras_follow_the_slices_convention() -> None:
+    """plotly's camera looks along -eye with ``up`` at the top and ``-eye × up`` to the right (checked by eye in
+    headless Chromium: from the front, the phantom's left-sided target is on the right)."""
+    from reachplan.planner.report.view3d import CAMERAS
+
+    expected = {"the patient's feet": ("L", "A"), "the front": ("L", "S"), "the patient's left": ("P", "S")}
+    for name, eye, up in CAMERAS:
+        key = next((k for k in expected if name.startswith(k)), None)
+        if key is None:
+            continue
+        right = np.cross(-np.asarray(eye), np.asarray(up))
+        assert (figures.direction_letter(right), figures.direction_letter(np.asarray(up))) == expected[key], name

@@ -1,0 +1,152 @@
+"""The interactive 3-D view of the report: organs, needles, dwell positions and the template, as a plotly figure.
+
+The figure is plain JSON-ready data (``{"data": [...], "layout": {...}}``) in plotly.js's schema: no Python
+plotly object is built, and :func:`reachplan.planner.report.html.render_html` embeds plotly.js once, so the
+report stays one file that works offline. One trace per organ and per needle (toggled from the legend), plus
+the target points, the template holes and the dwell positions of the delivered plan.
+
+Coordinates are mm, DICOM patient coordinates (LPS). The view opens as the operator sees the patient, from the
+feet along the needles (patient left on the right, anterior at the top: the radiological convention of the axial
+slices); buttons turn it to the other named views, and its title says which one is shown.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from reachplan.planner.pipeline import Scene
+from reachplan.planner.report.figures import (
+    STEERED_COLOUR,
+    STRAIGHT_COLOUR,
+    TARGET_COLOUR,
+    coarse_mesh,
+    organ_colour,
+)
+from reachplan.planner.steering.candidates import Candidate
+
+#: Named views: (name, camera eye direction, camera up direction), LPS. Looking along -eye with ``up`` at the
+#: top, plotly's right-handed camera puts ``-eye × up`` on the right: from the feet, +x (patient left) is on the
+#: right and -y (anterior) at the top; from the front, the patient's left on the right; from the left,
+#: anterior on the left (the conventions of the axial, coronal and sagittal slices).
+CAMERAS: tuple[tuple[str, tuple[float, float, float], tuple[float, float, float]], ...] = (
+    ("the patient's feet (operator's view)", (0.0, 0.0, -2.0), (0.0, -1.0, 0.0)),
+    ("the front (anterior)", (0.0, -2.0, 0.0), (0.0, 0.0, 1.0)),
+    ("the patient's left", (2.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    ("anterior-oblique, from the feet", (1.0, -1.4, -1.0), (0.0, 0.0, 1.0)),
+)
+
+#: Organs drawn but hidden until switched on from the legend.
+HIDDEN_ORGANS = ("Bone", "Obturator")
+
+
+@dataclass(frozen=True, eq=False)
+class Needle3d:
+    """A needle to draw: ``label`` (legend), ``path_mm`` (n, 3) float, mm, LPS, base to tip; ``steered``."""
+
+    label: str
+    path_mm: np.ndarray
+    steered: bool
+
+    @staticmethod
+    def of(c: Candidate, note: str = "") -> Needle3d:
+        """Return a candidate's needle, labelled by kind, hole and target."""
+        kind = "steered" if c.steered else "straight"
+        return Needle3d(f"{kind} {c.hole_id} → {c.target}{note}", c.path_mm, c.steered)
+
+
+def _r(a: np.ndarray, digits: int = 1) -> list[float]:
+    return [float(v) for v in np.round(np.asarray(a, dtype=float), digits)]
+
+
+def _camera(i: int) -> dict[str, Any]:
+    _, eye, up = CAMERAS[i]
+    return {"eye": dict(zip("xyz", eye, strict=True)), "up": dict(zip("xyz", up, strict=True)),
+            "center": {"x": 0, "y": 0, "z": 0}}
+
+
+def _title(i: int) -> str:
+    return f"viewed from {CAMERAS[i][0]} — drag to turn, click a legend entry to hide or show it"
+
+
+def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_mm: np.ndarray | None = None,
+                 dwell_times_s: np.ndarray | None = None, dwell_labels: Sequence[str] | None = None,
+                 pitch_mm: float = 4.0, meshes: Mapping[str, trimesh.Trimesh] | None = None) -> dict[str, Any]:
+    """Return the plotly figure (JSON-ready dict) of a plan in 3-D.
+
+    Parameters
+    ----------
+    scene : the plan's scene; every mesh in ``scene.meshes`` is one trace (Bone and Obturator start hidden)
+    needles : one trace each
+    dwell_positions_mm : (m, 3) float, mm, LPS, optional
+        Active dwell positions of the delivered plan (one trace, marker size by time).
+    dwell_times_s : (m,) float, s
+    dwell_labels : m strings naming each dwell's needle (hover text)
+    pitch_mm : the organs are re-meshed on this grid (:func:`reachplan.planner.report.figures.coarse_mesh`) to
+        keep the report small
+    meshes : pre-coarsened meshes by name (default: coarsened here)
+
+    Returns
+    -------
+    dict with ``data`` (traces; each has ``meta`` = ``organ``, ``needle``, ``targets``, ``template`` or
+    ``dwells``) and ``layout``
+    """
+    data: list[dict[str, Any]] = []
+    for name, mesh in scene.meshes.items():
+        light = meshes[name] if meshes is not None and name in meshes else coarse_mesh(mesh, pitch_mm)
+        v, f = light.vertices, np.asarray(light.faces)
+        data.append({
+            "type": "mesh3d", "name": name, "meta": "organ", "showlegend": True, "color": organ_colour(name),
+            "opacity": 0.45 if name.casefold().startswith(("target", "hr-ctv")) else 0.25,
+            "x": _r(v[:, 0]), "y": _r(v[:, 1]), "z": _r(v[:, 2]),
+            "i": f[:, 0].tolist(), "j": f[:, 1].tolist(), "k": f[:, 2].tolist(), "flatshading": True,
+            "hoverinfo": "name", "visible": "legendonly" if name in HIDDEN_ORGANS else True,
+        })
+    for n in needles:
+        p = np.asarray(n.path_mm, dtype=float)
+        data.append({
+            "type": "scatter3d", "mode": "lines", "name": n.label, "meta": "needle",
+            "x": _r(p[:, 0]), "y": _r(p[:, 1]), "z": _r(p[:, 2]), "hoverinfo": "name",
+            "line": {"color": STEERED_COLOUR if n.steered else STRAIGHT_COLOUR, "width": 6,
+                     "dash": "solid" if n.steered else "dash"},
+        })
+    pts = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)
+    data.append({"type": "scatter3d", "mode": "markers", "name": "target points", "meta": "targets",
+                 "x": _r(pts[:, 0]), "y": _r(pts[:, 1]), "z": _r(pts[:, 2]),
+                 "text": [t.name for t in scene.targets], "hoverinfo": "text",
+                 "marker": {"color": TARGET_COLOUR, "size": 5, "symbol": "cross"}})
+    m = scene.patient_from_template
+    xy = np.array([h.xy_mm for h in scene.template.holes], dtype=float)
+    holes = xy[:, :1] * m[:3, 0] + xy[:, 1:2] * m[:3, 1] + m[:3, 3]
+    data.append({"type": "scatter3d", "mode": "markers", "name": f"template {scene.template.name}",
+                 "meta": "template", "x": _r(holes[:, 0]), "y": _r(holes[:, 1]), "z": _r(holes[:, 2]),
+                 "text": [h.hole_id for h in scene.template.holes], "hoverinfo": "text",
+                 "marker": {"color": "#555555", "size": 2.5}})
+    if dwell_positions_mm is not None and len(dwell_positions_mm):
+        d = np.asarray(dwell_positions_mm, dtype=float).reshape(-1, 3)
+        t = np.zeros(len(d)) if dwell_times_s is None else np.asarray(dwell_times_s, dtype=float)
+        labels = list(dwell_labels) if dwell_labels is not None else [""] * len(d)
+        data.append({"type": "scatter3d", "mode": "markers", "name": "dwell positions (delivered plan)",
+                     "meta": "dwells", "x": _r(d[:, 0]), "y": _r(d[:, 1]), "z": _r(d[:, 2]),
+                     "text": [f"{lab}: {ti:.1f} s" for lab, ti in zip(labels, t, strict=True)], "hoverinfo": "text",
+                     "marker": {"color": "#111111", "size": _r(2 + 6 * t / max(float(t.max()), 1e-9))}})
+    axis = {"showbackground": False, "gridcolor": "#dddddd", "zeroline": False}
+    buttons = [{"label": f"from {name.split(' (')[0]}", "method": "relayout",
+                "args": [{"scene.camera": _camera(i), "title.text": _title(i)}]} for i, (name, _, _) in
+               enumerate(CAMERAS)]
+    layout = {
+        "title": {"text": _title(0), "font": {"size": 13}},
+        "height": 720, "margin": {"l": 0, "r": 0, "t": 40, "b": 0},
+        "legend": {"itemsizing": "constant", "font": {"size": 11}},
+        "scene": {"aspectmode": "data", "camera": _camera(0),
+                  "xaxis": {**axis, "title": {"text": "x: R → L (mm)"}},
+                  "yaxis": {**axis, "title": {"text": "y: A → P (mm)"}},
+                  "zaxis": {**axis, "title": {"text": "z: I → S (mm)"}}},
+        "updatemenus": [{"type": "buttons", "direction": "right", "x": 0.0, "y": 1.0, "xanchor": "left",
+                         "yanchor": "top", "pad": {"t": 4}, "buttons": buttons}],
+    }
+    return {"data": data, "layout": layout}

@@ -1,0 +1,130 @@
+"""What the terminal shows: the plan summary, ``--version``, ``--quiet`` on every command, and error lines that
+never share a line with a progress bar."""
+
+from __future__ import annotations
+
+import re
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from tqdm import tqdm
+
+from reachplan import ReachplanError, __version__
+from reachplan.planner.cli import COMMAND_MODULES, build_parser, main
+from reachplan.planner.pipeline import PlanConfig, PlanResult
+from reachplan.planner.report.build import format_summary
+from reachplan.planner.steering.candidates import Candidate
+from reachplan.planner.steering.insertion import KINEMATIC, STRAIGHT
+from reachplan.rod_model.design import preset
+
+
+def _cand(target: str, hole: str, steered: bool, tension_n: float = 0.0, worst_mm: float = 1.0) -> Candidate:
+    design = preset("15ga-30j-tip") if steered else None
+    path = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 50.0]])
+    return Candidate(target, hole, 10.0, 0.5, 5.0, "Bladder", 50.0, steered, tension_n,
+                     KINEMATIC.info if steered else STRAIGHT, False, True, "", path, design=design,
+                     worst_reach_mm=worst_mm, worst_clearance_mm=4.0, worst_case="roll +10 deg")
+
+
+def _result() -> tuple[PlanResult, float]:
+    limit = preset("15ga-30j-tip").max_tension_n
+    ranking = {  # name order, as the ranking keeps it
+        "T_a": (_cand("T_a", "Aa", False), _cand("T_a", "Bb", True, 0.8 * limit)),
+        "T_b": (_cand("T_b", "Cc", True, 0.9999 * limit, worst_mm=3.5),),
+    }
+    cands = tuple(c for cs in ranking.values() for c in cs)
+    return PlanResult(cands, ranking, PlanConfig()), limit
+
+
+def _comparison() -> SimpleNamespace:
+    from reachplan.planner.dose.optimize import Aims
+
+    aims = Aims()
+    rectum = dict((k.casefold(), v) for k, v in aims.oar_d2cc_eqd2_gy)["rectum"]
+    rows = (SimpleNamespace(arm="straight", n_needles=1, d90_eqd2_gy=aims.target_d90_eqd2_gy + 1, aim_met=False,
+                            oar_d2cc_eqd2_gy=(("Rectum", rectum + 5.0), ("Bladder", 10.0))),
+            SimpleNamespace(arm="steered", n_needles=2, d90_eqd2_gy=aims.target_d90_eqd2_gy + 3, aim_met=True,
+                            oar_d2cc_eqd2_gy=(("Rectum", rectum - 5.0), ("Bladder", 10.0))))
+    return SimpleNamespace(aims=aims, rows=lambda: rows)
+
+
+def test_summary_headers_carry_units_and_targets_keep_the_users_order() -> None:
+    result, limit = _result()
+    text = format_summary(result, targets=["T_b", "T_a"], comparison=_comparison(),  # type: ignore[arg-type]
+                          files=[("report", "out/report.html"), ("plan", "out/plan.json"),
+                                 ("device instructions", "out/export/x_device.json")])
+    lines = text.splitlines()
+    head = lines[0]
+    for column in ("from centre", "reach error", "clearance", "worst miss"):
+        assert re.search(rf"{column} \(mm\)", head), column
+    assert "peak tension (N)" in head and " r" not in head.split("target")[0]
+    rows = [ln for ln in lines if ln.startswith(("T_a", "T_b"))]
+    assert [r.split()[0] for r in rows] == ["T_b", "T_a"]  # the order given, not the name order
+    # T_b's steered needle: within 5 % of the stylet's limit and a worst-case miss over 2 mm, both flagged
+    t_b = rows[0]
+    assert "none feasible" in t_b  # no straight needle for T_b
+    steered_b = lines[lines.index(t_b) + 1]
+    assert "Cc" in steered_b and f"of {limit:g} !" in steered_b and "3.5 !" in steered_b
+    steered_a = lines[lines.index(rows[1]) + 1]
+    assert "Bb" in steered_a and "!" not in steered_a  # 80 % of the limit, 1 mm worst case: no flag
+    assert "straight*" in rows[1]  # the top-ranked needle of T_a is marked and the mark is explained
+    assert any(ln.startswith("* ranked first") for ln in lines)
+
+
+def test_summary_says_per_arm_whether_the_aims_are_met_and_where_the_files_are() -> None:
+    result, _ = _result()
+    text = format_summary(result, comparison=_comparison(),  # type: ignore[arg-type]
+                          files=[("report", "out/report.html"), ("device instructions", "out/export/x_device.json")])
+    straight = next(ln for ln in text.splitlines() if ln.strip().startswith("straight arm"))
+    steered = next(ln for ln in text.splitlines() if ln.strip().startswith("steered arm"))
+    assert "aims NOT met" in straight and "Rectum" in straight and "Bladder" not in straight
+    assert "aims met" in steered and "NOT" not in steered
+    assert "HR-CTV D90 >= 85 Gy" in text
+    assert re.search(r"^report\s+out/report.html$", text, re.M)
+    assert re.search(r"^device instructions\s+out/export/x_device.json$", text, re.M)
+    assert "not computed" in format_summary(result)  # ranked only: says there is no dose
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.strip() == f"reachplan {__version__}"
+
+
+def test_every_command_takes_quiet() -> None:
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    assert len(sub.choices) == len(COMMAND_MODULES)  # type: ignore[arg-type]
+    for name, p in sub.choices.items():  # type: ignore[union-attr]
+        assert any("--quiet" in a.option_strings for a in p._actions), name
+
+
+def test_quiet_silences_a_command_but_not_its_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["plugins"]) == 0
+    assert capsys.readouterr().out  # the plugin list
+    assert main(["plugins", "--quiet"]) == 0
+    assert capsys.readouterr() == ("", "")
+    assert main(["inspect", "/nonexistent/folder", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and "error" in captured.err
+
+
+def test_an_error_never_shares_a_line_with_a_progress_bar(monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    def failing(args: object) -> int:
+        bar = tqdm(total=10, desc="working", file=sys.stderr, leave=False, mininterval=0)
+        bar.update(3)  # the bar is on screen, and stays open when the error comes
+        raise ReachplanError("something is wrong; do this instead")
+
+    parser = build_parser()
+    args = parser.parse_args(["plugins"])
+    monkeypatch.setattr(args, "_run", failing)
+    monkeypatch.setattr("reachplan.planner.cli.build_parser", lambda: SimpleNamespace(parse_args=lambda _: args))
+    assert main([]) == 2
+    err = capsys.readouterr().err
+    assert "working" in err  # the bar was drawn
+    line = next(ln for ln in err.split("\n") if "something is wrong" in ln)
+    # what the terminal shows of that line: the text after the last carriage return, alone
+    assert line.split("\r")[-1] == "reachplan plugins: error: something is wrong; do this instead"
