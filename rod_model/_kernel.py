@@ -48,8 +48,9 @@ NON_FINITE = 3
 
 @_jit
 def local_tension(lam0: float, j: int, sec: np.ndarray, phi: float) -> float:
-    """Tension (N) of tendon ``j`` at wrap angle ``phi`` (rad) for the load-cell tension ``lam0`` (capstan law,
-    see :func:`closure`).
+    """Return the tension (N) of tendon ``j`` at wrap angle ``phi`` (rad) for the load-cell tension ``lam0``.
+
+    Capstan law, see :func:`closure`.
     """
     mu = sec[11]
     if mu == 0.0 or lam0 == 0.0:
@@ -149,10 +150,12 @@ def closure(y: np.ndarray, sec: np.ndarray, rdir: np.ndarray, lam: np.ndarray, c
 
 @_jit
 def foundation_force(y: np.ndarray, fext: np.ndarray) -> tuple[float, float, float]:
-    """Distributed force (N/m, world) on the rod at state ``y``: the uniform part of ``fext`` plus the elastic
-    foundation tied to its track: ``−k δ`` with ``δ`` the lateral offset (perpendicular to the rod's tangent) of
-    the centreline from the track point at the same arc length, capped at ``k·slip`` (beyond the slip offset
-    the tissue gives way: it cannot hold the rod harder). Node values are interpolated linearly in ``s``.
+    """Return the distributed force (N/m, world frame) on the rod at state ``y``.
+
+    The uniform part of ``fext`` plus the elastic foundation tied to its track: ``−k δ`` with ``δ`` the lateral
+    offset (perpendicular to the rod's tangent) of the centreline from the track point at the same arc length,
+    capped at ``k·slip`` (beyond the slip offset the tissue gives way: it cannot hold the rod harder). Node
+    values are interpolated linearly in ``s``.
     """
     m = (fext.shape[0] - 3) // 6
     if m == 0:

@@ -207,8 +207,12 @@ def calibrate(rows: tuple[CalibrationRow, ...] = CALIBRATION_ROWS, model: RodMod
 
 def every_published_row(result: CalibrationResult,
                         model: RodModel = TWO_TUBE_COSSERAT) -> list[tuple[CalibrationRow, float, bool]]:
-    """Each published row (calibration and validation) with the prediction (mm) of ``result``'s parameters and
-    whether the row was fitted: ``(row, predicted_mm, fitted)``.
+    """Return each published row (calibration and validation) with its prediction and whether it was fitted.
+
+    Returns
+    -------
+    list of (CalibrationRow, float, bool)
+        ``(row, predicted_mm, fitted)``: the prediction (mm) of ``result``'s parameters.
     """
     rows = CALIBRATION_ROWS + VALIDATION_ROWS
     pred = predict(result.calibration, rows, model, result.friction)

@@ -26,6 +26,7 @@ class NoModelWithinToleranceError(RodModelError):
 
 
 class TensionAboveLimitWarning(UserWarning):
-    """A tendon tension above the design's ``max_tension_n`` was solved (the API warns; ``reachplan rod``
-    refuses unless ``--allow-over-limit``).
+    """A tendon tension above the design's ``max_tension_n`` was solved.
+
+    The API warns; ``reachplan rod`` refuses unless ``--allow-over-limit``.
     """

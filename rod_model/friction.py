@@ -55,8 +55,9 @@ def solve_sweep(model: RodModel, design: RodDesign, tensions_n: Sequence[float],
 
 
 def loop_width_mm(tensions_n: Sequence[float], tip_deflection_mm: Sequence[float]) -> float:
-    """Largest difference in tip deflection (mm) between the unloading and the loading branch of a sweep
-    up then down, compared at the tensions both visit.
+    """Return the largest difference in tip deflection (mm) between the unloading and the loading branch.
+
+    The sweep goes up then down; the branches are compared at the tensions both visit.
     """
     t = np.asarray(tensions_n, dtype=float)
     d = np.asarray(tip_deflection_mm, dtype=float)

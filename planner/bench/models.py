@@ -2,7 +2,8 @@
 
 Run through ``reachplan bench models --out DIR`` (add ``--install`` to refresh the package's error table
 ``rod_model/model_errors.json`` and the figures ``docs/rod_models_pareto.png``, ``docs/rod_models_stability.png``
-in a source checkout). ``--quick``: three presets × four tensions, small batches, no uncompiled run.
+in a source checkout). ``--quick``: three presets × four tensions, small batches, no uncompiled run, two loop
+widths, the in-tissue chart at three moduli and two depths.
 
 Speed vs accuracy
     Grid: every preset of :data:`reachplan.rod_model.design.PRESET_NAMES` × tensions 0-15 N (1 N steps), free space.
@@ -10,6 +11,20 @@ Speed vs accuracy
     against 4 steps/mm is reported). For every model and resolution: median wall time of one ``solve`` and the
     largest / median tip error against the reference. Batched throughput of each registered configuration: 10,000
     tensions in one ``solve_batch`` (and the peak memory, by ``tracemalloc``).
+Friction
+    The two-tube model with capstan and joint friction (coefficients 0.1 / 0.1) against the same model at
+    8 steps/mm (its own numerical error, pulled from rest) on the same grid, and the width of the hysteresis
+    loop of a 0-10-0 N sweep per preset (``rod_models_friction.csv``; the widths in ``summary.json``).
+Honesty
+    The load cases a reviewer found wrong: a 2 N lateral tip force on 15ga-20j-base (used to converge 67 mm on
+    the wrong side), a dead axial load at 0.9 / 1.1 / 1.5 of the Euler load (straight and imperfect), 5000 N of
+    tension (used to blow up to 7e18 mm "converged"): what the solver returns now, with its reason
+    (``rod_models_honesty.csv``).
+In tissue
+    The in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`) of 15ga-20j-tip at its
+    maximum tension from the template, tip deflection against the tissue modulus (1 kPa - 10 MPa) and depth,
+    beside the kinematic model; the kinematic model's curvature factor fitted per modulus (least squares on
+    the lateral tip over the depths), ``rod_models_tissue.csv`` / ``.png``.
 Stability map
     Each solver (shooting without continuation, shooting with continuation, collocation) on tension ×
     placement × initial guess (zero, small, large), with an out-of-plane tip force so that the boundary-value
@@ -20,25 +35,33 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
 import sys
 import time
 import tracemalloc
+import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 from matplotlib.figure import Figure
+from scipy.optimize import minimize_scalar
 
 from reachplan.planner.bench.common import BenchError, settings, write_csv, write_json, write_png
+from reachplan.planner.steering.insertion import KinematicInsertion
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 from reachplan.rod_model.beam import PLANAR_BEAM, PlanarBeam
 from reachplan.rod_model.collocation import NS, CollocationCosserat
 from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
 from reachplan.rod_model.design import PRESET_NAMES, Loads, RodDesign, gravity_load, preset
+from reachplan.rod_model.errors import TensionAboveLimitWarning
+from reachplan.rod_model.friction import loop_width_mm, solve_sweep
 from reachplan.rod_model.kinematic import CONSTANT_CURVATURE, ConstantCurvature
 from reachplan.rod_model.protocol import RodModel
 from reachplan.rod_model.result import FailedSolve, RodPath
@@ -48,6 +71,11 @@ INSTALLS = {"model_errors.json": "rod_model/model_errors.json", "rod_models_pare
 ROW_COLUMNS = ("model", "resolution", "median_ms", "max_tip_error_mm", "median_tip_error_mm", "success_rate",
                "batched_solves_per_s", "batched_peak_mb")
 STABILITY_COLUMNS = ("solver", "placement", "tension_n", "guess", "success", "residual_n", "ms", "reason")
+FRICTION_COLUMNS = ROW_COLUMNS[:6]
+HONESTY_COLUMNS = ("case", "converged", "tip_x_mm", "tip_y_mm", "tip_z_mm", "ms", "reason")
+TISSUE_COLUMNS = ("modulus_pa", "depth_mm", "tissue_rod_tip_mm", "kinematic_tip_mm", "kinematic_factor_fitted",
+                  "insertion_ms", "status")
+FRICTION_MODEL = "two_tube_cosserat+friction"
 STEPS_PER_MM = (0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
 REFERENCE = TwoTubeCosserat(steps_per_mm=8.0, tol=1e-12)
 
@@ -71,7 +99,8 @@ class ModelSettings:
     """What the rod-model benchmark measures.
 
     The grid (presets × tensions in N, free space), the stability map's tensions (N) and placements, the batch
-    sizes of the throughput runs, and whether to time the uncompiled kernel (a child process without numba).
+    sizes of the throughput runs, whether to time the uncompiled kernel (a child process without numba), the
+    presets whose friction hysteresis loop is measured, and the in-tissue chart's moduli (Pa) and depths (mm).
     """
 
     presets: tuple[str, ...] = PRESET_NAMES
@@ -81,11 +110,16 @@ class ModelSettings:
     batch: int = 10_000
     planar_batch: int = 100_000
     interpreted: bool = True
+    friction_presets: tuple[str, ...] = PRESET_NAMES
+    tissue_moduli_pa: tuple[float, ...] = (1e3, 1e4, 1e5, 1.9e5, 1e6, 3e6, 1e7)
+    tissue_depths_mm: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 150.0)
 
 
 QUICK = ModelSettings(presets=("15ga-20j-tip", "15ga-20j-base", "13ga-20j-tip"), tensions_n=(0.0, 5.0, 10.0, 15.0),
                       stability_tensions_n=(7.5,),
-                      stability_placements=("tip",), batch=200, planar_batch=2_000, interpreted=False)
+                      stability_placements=("tip",), batch=200, planar_batch=2_000, interpreted=False,
+                      friction_presets=("15ga-20j-tip", "15ga-20j-base"), tissue_moduli_pa=(1e3, 1.9e5, 1e7),
+                      tissue_depths_mm=(20.0, 40.0))
 
 
 class _Solver(Protocol):
@@ -293,19 +327,196 @@ def stability(s: ModelSettings, log: Callable[[str], None]) -> list[StabilityCas
     return out
 
 
+def _with_friction(d: RodDesign, mu: float) -> RodDesign:
+    """Return ``d`` with tendon (capstan) and joint friction coefficients ``mu``."""
+    return replace(d, stylet=replace(d.stylet, tendon_friction_coefficient=mu, joint_friction_coefficient=mu))
+
+
+def friction(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[Row], dict[str, float]]:
+    """Time the friction model against itself at 8 steps/mm and measure its hysteresis loop per preset.
+
+    Returns
+    -------
+    rows : list of Row
+        One row: the default two-tube model with friction coefficients 0.1 / 0.1 on the grid (tip errors in
+        mm against the same model at 8 steps/mm, pulled from rest; cases whose reference failed are left out).
+    widths : dict of str to float
+        ``loop_width_mm_<preset>_mu0.1``: the loop width (mm, :func:`~reachplan.rod_model.friction.loop_width_mm`)
+        of a 0-10-0 N sweep, for each of ``s.friction_presets`` whose sweep converged.
+
+    Raises
+    ------
+    BenchError
+        No reference solve of the grid converged.
+    """
+    grid = [(_with_friction(preset(n), 0.1), t) for n in s.presets for t in s.tensions_n]
+    ref_model = TwoTubeCosserat(steps_per_mm=8.0, tol=1e-12)
+    refs = [ref_model.solve(d, d.loads(t)) for d, t in grid]
+    grid = [g for g, r in zip(grid, refs, strict=True) if isinstance(r, RodPath)]
+    if not grid:
+        raise BenchError("no reference solve with friction converged; the friction row needs one")
+    ref = np.array([_tip(r) for r in refs if isinstance(r, RodPath)])
+    TWO_TUBE_COSSERAT.solve(grid[0][0], grid[0][0].loads(1.0))  # warm-up
+    med, errs, rate = _time_model(TWO_TUBE_COSSERAT, grid, ref)
+    row = Row(FRICTION_MODEL, "mu 0.1/0.1 (default steps)", med, float(np.max(errs)), float(np.median(errs)), rate)
+    log(f"{row.model:26s} {row.resolution:26s} {med:8.3f} ms  max err {row.max_tip_error_mm:.2e} mm")
+    up_down = [0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 8.0, 6.0, 4.0, 2.0, 0.0]
+    widths: dict[str, float] = {}
+    for name in s.friction_presets:
+        res = solve_sweep(TWO_TUBE_COSSERAT, _with_friction(preset(name), 0.1), up_down)
+        paths = [r for r in res if isinstance(r, RodPath)]
+        if len(paths) == len(res):
+            widths[f"loop_width_mm_{name}_mu0.1"] = loop_width_mm(up_down, [r.tip_deflection_mm for r in paths])
+        else:
+            log(f"hysteresis sweep of {name} failed: {next(r for r in res if not isinstance(r, RodPath))}")
+    log("hysteresis loop width (mu 0.1/0.1, 0-10-0 N): " + ", ".join(f"{k}: {v:.2f} mm" for k, v in widths.items()))
+    return [row], widths
+
+
+@dataclass(frozen=True)
+class HonestyCase:
+    """One load case of the honesty table (tip position (3,) mm, rod frame; None when the solve failed)."""
+
+    case: str
+    converged: bool
+    tip_mm: tuple[float, float, float] | None
+    ms: float
+    reason: str
+
+
+def honesty(log: Callable[[str], None]) -> list[HonestyCase]:
+    """Run the reviewer's wrong-branch and blow-up cases through the checked two-tube solver.
+
+    The Euler load is that of the tube-plus-needle column clamped at the template, free at the tip:
+    ``P = π² EI / (4 L²)`` (Timoshenko & Gere, Theory of Elastic Stability, 2nd ed., 1961, §2.1).
+    """
+    base, tip = preset("15ga-20j-base"), preset("15ga-20j-tip")
+    sec = tip.sections()[0]
+    p_cr = math.pi**2 * (sec.ei1 + sec.ei2) / (4 * (tip.length_mm * 1e-3) ** 2)  # tube + needle column, N
+    lateral = (0.0, 2.0, 0.0)
+    cases: list[tuple[str, RodDesign, Loads, bool]] = [
+        ("15ga-20j-base, 2 N lateral tip force (+y)", base, Loads((0.0,) * 4, tip_force_n=lateral), True),
+        ("same, direct solve (no continuation)", base, Loads((0.0,) * 4, tip_force_n=lateral), False),
+        ("15ga-20j-base, 9.9 N + 2 N lateral (+y)", base, Loads((9.9, 0, 0, 0), tip_force_n=lateral), True),
+        ("same, direct solve (no continuation)", base, Loads((9.9, 0, 0, 0), tip_force_n=lateral), False),
+        ("15ga-20j-tip, axial 0.9 P_euler(tube)", tip, Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, -0.9 * p_cr)), True),
+        ("15ga-20j-tip, axial 1.1 P_euler(tube)", tip, Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, -1.1 * p_cr)), True),
+        ("15ga-20j-tip, 1.5 P_euler + 1 % lateral", tip,
+         Loads((0.0,) * 4, tip_force_n=(0.015 * p_cr, 0.0, -1.5 * p_cr)), True),
+        ("15ga-20j-tip, 5000 N tension", tip, tip.loads(5000.0), True),
+    ]
+    out = []
+    for label, d, loads, cont in cases:
+        r = TWO_TUBE_COSSERAT.solve(d, loads, continuation=cont)
+        if isinstance(r, RodPath):
+            x, y, z = (float(v) for v in r.tip_position_mm)
+            out.append(HonestyCase(label, True, (x, y, z), r.solve_ms, ""))
+        else:
+            out.append(HonestyCase(label, False, None, r.solve_ms, r.reason))
+        c = out[-1]
+        log(f"honesty: {label:44s} " + (f"tip {np.round(c.tip_mm, 2)} mm" if c.tip_mm else f"FAILED: {c.reason}"))
+    return out
+
+
+@dataclass(frozen=True)
+class TissuePoint:
+    """One point of the in-tissue chart (lateral tip deflections in mm; NaN past a failed insertion step)."""
+
+    modulus_pa: float
+    depth_mm: float
+    tissue_rod_mm: float
+    kinematic_mm: float
+    factor: float
+    ms: float
+    status: str
+
+
+def tissue(s: ModelSettings, log: Callable[[str], None]) -> list[TissuePoint]:
+    """Insert 15ga-20j-tip at its maximum tension with the in-tissue rod at each modulus, beside the kinematic model.
+
+    Returns
+    -------
+    list of TissuePoint
+        One per modulus and depth of ``s``: the in-tissue rod's lateral tip deflection (mm), the kinematic
+        model's at factor 1, the kinematic factor fitted per modulus (least squares over the depths that
+        converged; NaN with fewer than two), the insertion's wall time (ms) and ``ok`` or the failure reason.
+    """
+    design = preset("15ga-20j-tip")
+    schedule = TensionSchedule.constant(design.max_tension_n)
+    depths = np.array(s.tissue_depths_mm, dtype=float)
+    kin_step_mm = 1.0
+    rows_at = np.round(depths / kin_step_mm).astype(int)  # the kinematic path's rows at the chart's depths
+
+    def kinematic(factor: float) -> np.ndarray:
+        path = KinematicInsertion(tissue_factor=factor, step_mm=kin_step_mm).insert_array(
+            design, [schedule], float(depths[-1]))[0]
+        return np.hypot(path[:, 0], path[:, 1])[rows_at]
+
+    kin1 = kinematic(1.0)
+    out: list[TissuePoint] = []
+    for e in s.tissue_moduli_pa:
+        t0 = time.perf_counter()
+        final, steps = TissueRodInsertion(tissue_modulus_pa=e).insert_steps(design, schedule, float(depths[-1]))
+        ms = (time.perf_counter() - t0) * 1e3
+        tips = {round(d, 6): float(np.hypot(tip[0], tip[1])) for d, tip in steps}
+        got = np.array([tips.get(round(float(d), 6), np.nan) for d in depths])
+        ok = np.isfinite(got)
+        factor = math.nan
+        if ok.sum() >= 2:
+            def misfit(f: float, ok: np.ndarray = ok, got: np.ndarray = got) -> float:
+                return float(np.sum((kinematic(f)[ok] - got[ok]) ** 2))
+
+            factor = float(minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4}).x)
+        status = "ok" if isinstance(final, np.ndarray) else final.reason
+        for d, g, k in zip(depths, got, kin1, strict=True):
+            out.append(TissuePoint(e, float(d), float(g), float(k), factor, ms, "ok" if np.isfinite(g) else status))
+        tip_text = ", ".join(f"{d:.0f} mm {g:.2f}" for d, g in zip(depths, got, strict=True))
+        log(f"tissue_rod E = {e:9.3g} Pa: tip at {tip_text} mm; kinematic factor {factor:.3f}; {ms:.0f} ms"
+            + ("" if status == "ok" else f"; FAILED {status}"))
+    return out
+
+
+def tissue_figure(points: list[TissuePoint]) -> Figure:
+    """Lateral tip deflection against modulus per depth (left) and the fitted kinematic factor (right)."""
+    fig = Figure(figsize=(12, 5))
+    a1, a2 = fig.subplots(1, 2)
+    moduli = sorted({p.modulus_pa for p in points})
+    for d in sorted({p.depth_mm for p in points}):
+        pts = sorted((p for p in points if p.depth_mm == d), key=lambda p: p.modulus_pa)
+        line = a1.plot([p.modulus_pa for p in pts], [p.tissue_rod_mm for p in pts], "o-",
+                       label=f"tissue_rod {d:.0f} mm")
+        a1.axhline(pts[0].kinematic_mm, color=line[0].get_color(), ls=":", lw=1)
+    a1.set_xscale("log")
+    a1.set_xlabel("tissue Young's modulus (Pa, log)")
+    a1.set_ylabel("lateral tip deflection (mm)")
+    a1.set_title("15ga-20j-tip at its maximum tension: in-tissue Cosserat (dotted: kinematic, factor 1)",
+                 fontsize=9)
+    a1.grid(True, which="both", alpha=0.3)
+    a1.legend(fontsize=7)
+    fac = [next(p.factor for p in points if p.modulus_pa == e) for e in moduli]
+    a2.plot(moduli, fac, "s-")
+    a2.set_xscale("log")
+    a2.set_xlabel("tissue Young's modulus (Pa, log)")
+    a2.set_ylabel("kinematic curvature factor fitted to tissue_rod")
+    a2.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
 def pareto_figure(rows: list[Row]) -> Figure:
-    """Median time per solve against the worst tip error (log-log), with the Pareto front."""
+    """Median time per solve against the worst tip error (log-log), with the Pareto front of the frictionless rows."""
     floor = 1e-10
     fig = Figure(figsize=(9, 6))
     ax = fig.subplots()
     colors = {"constant_curvature": "tab:red", "planar_beam": "tab:orange", "cosserat_rod": "tab:blue",
-              "two_tube_cosserat": "tab:green", "two_tube_collocation": "tab:purple"}
+              "two_tube_cosserat": "tab:green", "two_tube_collocation": "tab:purple", FRICTION_MODEL: "tab:olive"}
     for name, c in colors.items():
         pts = [r for r in rows if r.model == name]
         if not pts:
             continue
+        label = f"{name} (vs itself at 8 steps/mm)" if name == FRICTION_MODEL else name
         ax.plot([r.median_ms for r in pts], [max(r.max_tip_error_mm, floor) for r in pts], "o-" if len(pts) > 1
-                else "o", color=c, label=name, ms=7)
+                else "o", color=c, label=label, ms=7)
         for r in pts:
             if "default" in r.resolution or len(pts) == 1:
                 ax.annotate(r.resolution, (r.median_ms, max(r.max_tip_error_mm, floor)), fontsize=7,
@@ -314,8 +525,8 @@ def pareto_figure(rows: list[Row]) -> Figure:
     ax.scatter([1e3 / bps for _, bps in batched],
                [max(r.max_tip_error_mm, floor) for r, _ in batched], marker="s", facecolors="none",
                edgecolors=[colors[r.model] for r, _ in batched], s=60, label="same model, batched (time per solve)")
-    front: list[Row] = []
-    for r in sorted(rows, key=lambda r: r.median_ms):
+    front: list[Row] = []  # the friction row has its own reference: not on the front
+    for r in sorted((r for r in rows if r.model != FRICTION_MODEL), key=lambda r: r.median_ms):
         if not front or r.max_tip_error_mm < front[-1].max_tip_error_mm:
             front.append(r)
     ax.step([r.median_ms for r in front], [max(r.max_tip_error_mm, floor) for r in front], where="post",
@@ -375,11 +586,15 @@ def error_table(rows: list[Row]) -> dict[str, object]:
     }
 
 
-def write_results(out: Path, rows: list[Row], cases: list[StabilityCase]) -> None:
+def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], friction_rows: list[Row],
+                  honest: list[HonestyCase], tissue_points: list[TissuePoint]) -> None:
     """Write the tables, the charts and the error table under ``out``.
 
     ``rod_models.csv`` (:data:`ROW_COLUMNS`), ``rod_models_stability.csv`` (:data:`STABILITY_COLUMNS`), their
-    charts ``rod_models_pareto.png`` and ``rod_models_stability.png``, and ``model_errors.json``.
+    charts ``rod_models_pareto.png`` (with the friction row) and ``rod_models_stability.png``,
+    ``rod_models_friction.csv`` (:data:`FRICTION_COLUMNS`), ``rod_models_honesty.csv`` (:data:`HONESTY_COLUMNS`),
+    ``rod_models_tissue.csv`` (:data:`TISSUE_COLUMNS`) and its chart ``rod_models_tissue.png``, and
+    ``model_errors.json`` (the frictionless rows only).
     """
     write_csv(out / "rod_models.csv", ROW_COLUMNS,
               [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
@@ -389,7 +604,17 @@ def write_results(out: Path, rows: list[Row], cases: list[StabilityCase]) -> Non
     write_csv(out / "rod_models_stability.csv", STABILITY_COLUMNS,
               [[c.solver, c.placement, c.tension_n, c.guess, c.success, f"{c.residual:.3g}", f"{c.ms:.2f}",
                 c.reason] for c in cases])
-    write_png(out / "rod_models_pareto.png", pareto_figure(rows))
+    write_csv(out / "rod_models_friction.csv", FRICTION_COLUMNS,
+              [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
+                f"{r.median_tip_error_mm:.4g}", r.success_rate] for r in friction_rows])
+    write_csv(out / "rod_models_honesty.csv", HONESTY_COLUMNS,
+              [[c.case, c.converged, *(f"{v:.3f}" for v in (c.tip_mm or (math.nan,) * 3)), f"{c.ms:.2f}",
+                c.reason] for c in honest])
+    write_csv(out / "rod_models_tissue.csv", TISSUE_COLUMNS,
+              [[f"{p.modulus_pa:g}", f"{p.depth_mm:g}", f"{p.tissue_rod_mm:.4f}", f"{p.kinematic_mm:.4f}",
+                f"{p.factor:.4f}", f"{p.ms:.0f}", p.status] for p in tissue_points])
+    write_png(out / "rod_models_tissue.png", tissue_figure(tissue_points))
+    write_png(out / "rod_models_pareto.png", pareto_figure(rows + friction_rows))
     write_png(out / "rod_models_stability.png", stability_figure(cases))
     write_json(out / "model_errors.json", error_table(rows))
 
@@ -403,10 +628,17 @@ def run_benchmark(out: Path, s: ModelSettings, log: Callable[[str], None] = prin
         The headline numbers, also written as ``summary.json``.
     """
     t0 = time.perf_counter()
-    rows, extra = speed_accuracy(s, log)
-    cases = stability(s, log)
-    write_results(out, rows, cases)
-    summary: dict[str, object] = {"rows": [r.__dict__ for r in rows], **extra,
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TensionAboveLimitWarning)  # the grid goes to 15 N, honesty to 5000 N
+        rows, extra = speed_accuracy(s, log)
+        friction_rows, widths = friction(s, log)
+        extra.update(widths)
+        honest = honesty(log)
+        tissue_points = tissue(s, log)
+        cases = stability(s, log)
+    write_results(out, rows, cases, friction_rows, honest, tissue_points)
+    summary: dict[str, object] = {"rows": [r.__dict__ for r in rows + friction_rows], **extra,
+                                  "honesty": [c.__dict__ for c in honest],
                                   "stability": {v: f"{sum(c.success for c in cases if c.solver == v)}/"
                                                    f"{sum(c.solver == v for c in cases)}"
                                                 for v in dict.fromkeys(c.solver for c in cases)},

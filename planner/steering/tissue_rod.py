@@ -1,5 +1,6 @@
-"""In-tissue insertion with the geometrically exact rod: the two-tube Cosserat model pushed in steps through an
-elastic foundation tied to the track its tip cut.
+"""In-tissue insertion with the geometrically exact rod.
+
+The two-tube Cosserat model pushed in steps through an elastic foundation tied to the track its tip cut.
 
 Model (template frame: entry at the origin, ``+z`` the insertion direction, roll 0 bends toward ``+x``; mm)
     At each insertion step the inserted length ``d`` of the stylet-in-needle (its distal ``d`` mm: the joint
@@ -22,10 +23,11 @@ What it shows (``reachplan bench models``, ``rod_models_tissue.csv``): the steer
 monotonic in the modulus. From zero (the free-space shape of the inserted length: nothing holds the track)
 it *rises* as the tissue starts to hold the needle on the track its tip cut, so that the tip's heading
 accumulates (tip following, as the kinematic model assumes); past a peak between about 0.2 and 1 MPa (the
-phantom's gel is 0.19 MPa) it falls, because the tissue also resists the bending that the tendon drives near the tip: only the tip region
-within about a Winkler length ``(4 EI / k)^(1/4)`` still turns with the tension, and that length shrinks as
-``k^(-1/4)``. Limits: single shooting over the whole inserted length; in the stiffest tissue (about 10 MPa)
-the solve fails past a few centimetres and says so (a FailedInsertion with the reason), it is not guessed.
+phantom's gel is 0.19 MPa) it falls, because the tissue also resists the bending that the tendon drives near
+the tip: only the tip region within about a Winkler length ``(4 EI / k)^(1/4)`` still turns with the tension,
+and that length shrinks as ``k^(-1/4)``. Limits: single shooting over the whole inserted length; in the
+stiffest tissue (about 10 MPa) the solve fails past a few centimetres and says so (a FailedInsertion with the
+reason), it is not guessed.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from reachplan.planner.steering.insertion import (
     TISSUE_POISSON,
     FailedInsertion,
     InsertionPath,
+    ModelInfo,
     winkler_modulus_pa,
 )
 from reachplan.planner.steering.schedule import TensionSchedule
@@ -88,14 +91,24 @@ class TissueRodInsertion:
 
     @property
     def name(self) -> str:
+        """``"tissue_rod"``."""
         return "tissue_rod"
+
+    @property
+    def info(self) -> ModelInfo:
+        """The model that produced a path: this model, its rod model and their settings."""
+        return ModelInfo.of(self.name, self, self.rod_model)
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
+        """Insert ``design`` to ``depth_mm`` once per schedule (positions mm, template frame).
+
+        A step whose rod solve fails gives a :class:`FailedInsertion` with the depth and the reason.
+        """
         out: list[InsertionPath | FailedInsertion] = []
         for sch in schedules:
             r = self.insert_one(design, sch, depth_mm)
-            out.append(r if isinstance(r, FailedInsertion) else InsertionPath(r, depth_mm, self.name))
+            out.append(r if isinstance(r, FailedInsertion) else InsertionPath(r, depth_mm, self.info))
         return out
 
     def _stiffness(self, design: RodDesign, modulus_pa: np.ndarray) -> np.ndarray:
@@ -108,10 +121,24 @@ class TissueRodInsertion:
 
     def insert_one(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
                    modulus_profile: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray | FailedInsertion:
-        """(n, 3) float, mm, template frame: the centreline of the inserted needle at ``depth_mm``, or the failure.
+        """Return the centreline of the needle inserted to ``depth_mm``, or the failure.
 
-        ``modulus_profile``: optional ``(depth_mm (p,), modulus_pa (p,))``, the medium's modulus along the track,
-        piecewise constant from each depth on (per organ); None = ``tissue_modulus_pa`` everywhere.
+        Parameters
+        ----------
+        design : RodDesign
+            The needle.
+        schedule : TensionSchedule
+            Tendon tension and roll against depth.
+        depth_mm : float
+            Insertion depth, mm, in ``(0, design.length_mm]``.
+        modulus_profile : tuple of ((p,) float ndarray, (p,) float ndarray), optional
+            ``(depth_mm, modulus_pa)``: the medium's modulus along the track, piecewise constant from each depth
+            on (per organ); None = ``tissue_modulus_pa`` everywhere.
+
+        Returns
+        -------
+        (n, 3) float ndarray or FailedInsertion
+            The inserted centreline, mm, template frame (row 0 at the template, last row the tip).
         """
         path, _ = self.insert_steps(design, schedule, depth_mm, modulus_profile)
         return path
@@ -119,8 +146,14 @@ class TissueRodInsertion:
     def insert_steps(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
                      modulus_profile: tuple[np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray | FailedInsertion, list[tuple[float, np.ndarray]]]:
-        """As :meth:`insert_one`, with the tip (3,) mm after every insertion step: ``[(depth_mm, tip_mm), ...]``
-        (up to the failure, if any).
+        """Insert as :meth:`insert_one`, also returning the tip after every insertion step.
+
+        Returns
+        -------
+        path : (n, 3) float ndarray or FailedInsertion
+            As :meth:`insert_one` (mm, template frame).
+        steps : list of (float, (3,) float ndarray)
+            ``[(depth_mm, tip_mm), ...]``: the tip (mm, template frame) after each step, up to the failure if any.
         """
         steps: list[tuple[float, np.ndarray]] = []
         if not (np.isfinite(depth_mm) and 0 < depth_mm <= design.length_mm):
@@ -159,7 +192,7 @@ class TissueRodInsertion:
             warm = None if path is None else path.base_unknowns
             result = self.rod_model.solve(design, loads, warm, inserted_mm=float(depth))
             if not result:
-                return FailedInsertion(self.name, f"at depth {depth:.1f} mm: {getattr(result, 'reason', '')}"), steps
+                return FailedInsertion(self.info, f"at depth {depth:.1f} mm: {getattr(result, 'reason', '')}"), steps
             path = result
             # the tissue gives way where the needle left its track by more than the slip offset
             pos = np.column_stack([np.interp(nodes[inside], result.s_mm, result.positions_mm[:, i])  # type: ignore[union-attr]

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import struct
 from collections.abc import Iterator
 from pathlib import Path
@@ -87,6 +88,29 @@ def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pyt
     for name in ("rod_models_pareto.png", "rod_models_stability.png"):
         _assert_real_png(out / name)
     assert (out / "model_errors.json").stat().st_size > 0
+    # friction: the default resolution converged against itself at 8 steps/mm; friction opens a loop
+    header, frows = _read_csv(out / "rod_models_friction.csv")
+    assert header == list(models.FRICTION_COLUMNS) and [r["model"] for r in frows] == [models.FRICTION_MODEL]
+    assert float(frows[0]["max_tip_error_mm"]) < 1e-3
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    widths = {k: v for k, v in summary.items() if k.startswith("loop_width_mm_")}
+    assert len(widths) == len(models.QUICK.friction_presets) and all(v > 0 for v in widths.values())
+    # honesty: a straight column below the Euler load stays straight; above it, and at 5000 N, the solver says
+    # it failed (with the reason) rather than returning a shape
+    header, honest = _read_csv(out / "rod_models_honesty.csv")
+    assert header == list(models.HONESTY_COLUMNS)
+    by_case = {r["case"]: r for r in honest}
+    below = by_case["15ga-20j-tip, axial 0.9 P_euler(tube)"]
+    assert below["converged"] == "True" and abs(float(below["tip_x_mm"])) + abs(float(below["tip_y_mm"])) < 1e-3
+    for case in ("15ga-20j-tip, axial 1.1 P_euler(tube)", "15ga-20j-tip, 5000 N tension"):
+        assert by_case[case]["converged"] == "False" and by_case[case]["reason"]
+    # in tissue: one row per modulus and depth; a missing tip always carries the failure's reason
+    header, points = _read_csv(out / "rod_models_tissue.csv")
+    assert header == list(models.TISSUE_COLUMNS)
+    assert len(points) == len(models.QUICK.tissue_moduli_pa) * len(models.QUICK.tissue_depths_mm)
+    for p in points:
+        assert np.isfinite(float(p["tissue_rod_tip_mm"])) == (p["status"] == "ok"), p
+    _assert_real_png(out / "rod_models_tissue.png")
 
 
 def test_dose_quick_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reachplan.planner.steering.insertion import FailedInsertion
+from reachplan.planner.steering.insertion import FailedInsertion, InsertionPath
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 from reachplan.rod_model.cosserat import TwoTubeCosserat
@@ -71,6 +71,17 @@ def test_unsolvable_insertion_is_a_failure_with_its_reason() -> None:
     assert isinstance(r, FailedInsertion)
     assert "at depth" in r.reason and ("converge" in r.reason or "unstable" in r.reason
                                        or "integration error" in r.reason)
+
+
+def test_paths_and_failures_name_the_model_and_its_settings() -> None:
+    model = TissueRodInsertion(tissue_modulus_pa=1e7, step_mm=4.0)
+    path, failed = model.insert(DESIGN, [PULL], 20.0)[0], model.insert(DESIGN, [PULL], 80.0)[0]
+    assert isinstance(path, InsertionPath) and isinstance(failed, FailedInsertion)
+    for info in (path.model, failed.model):
+        assert info == model.info and info.label == "tissue_rod+two_tube_cosserat"
+        settings = dict(info.settings)
+        assert settings["tissue_modulus_pa"] == 1e7 and settings["step_mm"] == 4.0
+        assert settings["rod_model.steps_per_mm"] == model.rod_model.steps_per_mm
 
 
 def test_insertion_step_refinement_converges() -> None:
