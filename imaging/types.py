@@ -114,11 +114,16 @@ class Volume:
         Identity of the series it was read from.
     patient_id, patient_name : str
         Carried over to exports.
+    study_date, study_time, study_id : str
+        Study Date (``YYYYMMDD``), Time and ID as written in the images; carried over to exports.
+    slice_uids : tuple of (str, str)
+        (SOP Class UID, SOP Instance UID) of the image holding each slice k, in slice order; empty when
+        not known. Exports reference the images through them.
 
     Raises
     ------
     ValueError
-        ``array.shape`` differs from ``grid.shape``.
+        ``array.shape`` differs from ``grid.shape``, or ``slice_uids`` is given but not one per slice.
     """
 
     array: np.ndarray
@@ -129,10 +134,16 @@ class Volume:
     study_instance_uid: str = ""
     patient_id: str = ""
     patient_name: str = ""
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
+    slice_uids: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         if tuple(self.array.shape) != self.grid.shape:
             raise ValueError(f"array shape {self.array.shape} does not match grid shape {self.grid.shape}")
+        if self.slice_uids and len(self.slice_uids) != self.grid.shape[0]:
+            raise ValueError(f"{len(self.slice_uids)} slice UIDs for {self.grid.shape[0]} slices")
 
 
 @dataclass(frozen=True, eq=False)

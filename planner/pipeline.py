@@ -525,39 +525,89 @@ def plan_delivery(
     label: str = "reachplan",
     volume: Volume | None = None,
     input_paths: Sequence[Path] = (),
+    named_points: Sequence[tuple[str, Sequence[float]]] = (),
 ) -> Delivery:
     """Choose needles, optimise their dwell times on the target (TG-43, EMBRACE II aims) and assemble the
-    export plan (RT Plan + RT Structure Set + device instructions).
+    export plan (RT Plan + RT Structure Set + RT Dose + device instructions).
+
+    The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
+    fractions as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where
+    the structures allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``,
+    (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
+    planned dose of all fractions on the target's and organs' region of the planning grid.
 
     Raises
     ------
     PlanInputError
-        No feasible needle, or no target structure to optimise on.
+        No feasible needle, no target structure to optimise on, or a bad named point.
     """
-    from reachplan.planner.dose.optimize import optimise_dwell_times
-    from reachplan.planner.dose.tg43 import Tg43Kernel
+    from reachplan.planner.dose.optimize import Aims, optimise_dwell_times
+    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, rate_matrix
+    from reachplan.planner.geometry.reference_points import place_reference_points
     from reachplan.plugins.exporters import ExportPlan, NeedleExport, SourceSpec
+    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
     needles = choose_needles(result)
     if not needles:
         raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
     source = get_source(source_name)
-    opt = optimise_dwell_times([c.path_mm for c in needles], planning, Tg43Kernel(source), air_kerma_u)
-    exports = []
+    kernel = Tg43Kernel(source)
+    aims = Aims()
+    opt = optimise_dwell_times([c.path_mm for c in needles], planning, kernel, air_kerma_u, aims)
+    exports, kept = [], []
     for ch, c in enumerate(needles, start=1):
         sel = opt.dwells.channels == ch
         keep = sel & (opt.dwells.times_s > 0)
         if not keep.any():  # an unused needle still gets one zero-time dwell at its first position
             keep = sel & (np.cumsum(sel) == 1)
+        kept.append(opt.dwells.select(keep))
         sched = None if c.schedule is None else np.column_stack(
             [c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg])
         exports.append(NeedleExport(c.hole_id, c.path_mm, opt.dwells.positions_mm[keep], opt.dwells.times_s[keep],
                                     c.design_name, sched))
+    placed, _ = place_reference_points(structures)
+    wanted = [(p.name, p.position_mm) for p in placed]
+    for name, xyz in named_points:
+        pos = np.asarray(xyz, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise PlanInputError(f"reference point {name!r}: give three finite coordinates in mm (LPS)")
+        wanted.append((name, pos))
+    gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
+    points = []
+    for name, pos in wanted:
+        rates = tuple(rate_matrix(pos[None], d.positions_mm, d.directions, kernel)[0] * gy_per_s for d in kept)
+        try:
+            points.append(ReferencePoint(name, pos, rates))
+        except ValueError as exc:
+            raise PlanInputError(str(exc)) from None
+    fractions = aims.fractionation.n_fractions
+    dose_grid = _dose_region(planning)
+    sub = opt.dwells.select(opt.dwells.times_s > 0)
+    dose = dose_on_grid(dose_grid, sub, kernel, air_kerma_u) * fractions if len(sub) else np.zeros(dose_grid.shape)
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
-                        input_paths=tuple(input_paths))
+                        input_paths=tuple(input_paths), fractions_planned=fractions,
+                        prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
+                        reference_points=tuple(points),
+                        application_setup_type=load_template(result.config.template).application_setup_type,
+                        dose=PlannedDose(dose, dose_grid))
     return Delivery(needles, opt, export, planning, source)
+
+
+def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
+    """The part of the planning grid around the target and the organs at risk (``margin`` voxels more), as a
+    grid of its own."""
+    mask = planning.target.mask.copy()
+    for o in planning.oars:
+        mask |= o.mask
+    idx = np.argwhere(mask)
+    lo = np.maximum(idx.min(axis=0) - margin, 0)
+    hi = np.minimum(idx.max(axis=0) + margin + 1, planning.grid.shape)
+    affine = planning.grid.patient_from_index.copy()
+    affine[:3, 3] = affine[:3, :3] @ np.array([lo[2], lo[1], lo[0]], dtype=float) + affine[:3, 3]
+    shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]), int(hi[2] - lo[2]))
+    return Grid(shape, affine)
 
 
 def rod_model_capabilities() -> dict[str, Capabilities]:

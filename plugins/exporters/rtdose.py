@@ -28,6 +28,7 @@ from reachplan.imaging.types import Grid
 
 RT_DOSE_STORAGE = "1.2.840.10008.5.1.4.1.1.481.2"
 RT_PLAN_STORAGE = "1.2.840.10008.5.1.4.1.1.481.5"
+RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
 MANUFACTURER = "reachplan"
 
 
@@ -43,6 +44,10 @@ class DoseContext:
         Carried over; an invalid study UID is replaced by a new one.
     referenced_plan_uid : str
         SOP Instance UID of the RT Plan the dose belongs to; empty: none referenced.
+    referenced_structure_set_uid : str
+        SOP Instance UID of the RT Structure Set of the plan; empty: none referenced.
+    study_date, study_time, study_id : str
+        Of the study (the images'); written as given.
     series_description : str
         Written as Series Description.
 
@@ -58,6 +63,10 @@ class DoseContext:
     patient_name: str = ""
     referenced_plan_uid: str = ""
     series_description: str = "reachplan TG-43 dose"
+    referenced_structure_set_uid: str = ""
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
 
     def __post_init__(self) -> None:
         if not self.frame_of_reference_uid:
@@ -132,8 +141,8 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
     ds.InstanceCreationDate = now.strftime("%Y%m%d")
     ds.InstanceCreationTime = now.strftime("%H%M%S")
-    ds.StudyDate = ""
-    ds.StudyTime = ""
+    ds.StudyDate = context.study_date
+    ds.StudyTime = context.study_time
     ds.ContentDate = now.strftime("%Y%m%d")
     ds.ContentTime = now.strftime("%H%M%S")
     ds.AccessionNumber = ""
@@ -150,7 +159,7 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
         context.study_instance_uid if _valid_uid(context.study_instance_uid) else generate_uid()
     )
     ds.SeriesInstanceUID = generate_uid()
-    ds.StudyID = ""
+    ds.StudyID = context.study_id
     ds.SeriesNumber = 1
     ds.InstanceNumber = 1
     ds.FrameOfReferenceUID = context.frame_of_reference_uid
@@ -187,6 +196,11 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
         ref.ReferencedSOPClassUID = RT_PLAN_STORAGE
         ref.ReferencedSOPInstanceUID = context.referenced_plan_uid
         ds.ReferencedRTPlanSequence = [ref]
+    if context.referenced_structure_set_uid:
+        ref = Dataset()
+        ref.ReferencedSOPClassUID = RT_STRUCTURE_SET_STORAGE
+        ref.ReferencedSOPInstanceUID = context.referenced_structure_set_uid
+        ds.ReferencedStructureSetSequence = [ref]
     return ds
 
 
