@@ -268,8 +268,13 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
             bar.update()
         bar.close()
         opt = delivery.optimisation
+        ex = delivery.export
         doc["delivery"] = {
             "needles": [c.hole_id for c in delivery.needles],
+            "prescription": {"target": ex.target_name, "dose_per_fraction_gy": ex.prescription_dose_gy,
+                             "fractions": ex.fractions_planned},
+            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}
+                                 for p in ex.reference_points],
             "optimisation": {"success": opt.success, "reason": opt.reason, "aim_met": opt.aim_met,
                              "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
             "files": files,

@@ -625,7 +625,8 @@ def _refuse_input_sop(path: Path, uids: set[str]) -> None:
 def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
     """Write ``RS_<stem>.dcm``, ``RP_<stem>.dcm`` and, with the plan's dose, ``RD_<stem>.dcm`` into ``out_dir``.
 
-    The RT Dose references the plan and the structure set.
+    The RT Dose references the plan (and through it the structure set: a Referenced Structure Set Sequence in an
+    RT Dose belongs to the RT DVH module, which would then need DVHs).
 
     Parameters
     ----------
@@ -675,7 +676,7 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
         context = DoseContext(
             frame_of_reference_uid=ident.frame_of_reference_uid, study_instance_uid=ident.study_instance_uid,
             patient_id=ident.patient_id, patient_name=ident.patient_name, referenced_plan_uid=rp_uid,
-            series_description="reachplan planned dose (TG-43)", referenced_structure_set_uid=rs_uid,
+            series_description="reachplan planned dose (TG-43)",
             study_date=ident.study_date, study_time=ident.study_time, study_id=ident.study_id)
         try:
             rd = rtdose_dataset(plan.dose.dose_gy, plan.dose.grid, context)

@@ -28,7 +28,6 @@ from reachplan.imaging.types import Grid
 
 RT_DOSE_STORAGE = "1.2.840.10008.5.1.4.1.1.481.2"
 RT_PLAN_STORAGE = "1.2.840.10008.5.1.4.1.1.481.5"
-RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
 MANUFACTURER = "reachplan"
 
 
@@ -44,8 +43,6 @@ class DoseContext:
         Carried over; an invalid study UID is replaced by a new one.
     referenced_plan_uid : str
         SOP Instance UID of the RT Plan the dose belongs to; empty: none referenced.
-    referenced_structure_set_uid : str
-        SOP Instance UID of the RT Structure Set of the plan; empty: none referenced.
     study_date, study_time, study_id : str
         Of the study (the images'); written as given.
     series_description : str
@@ -63,7 +60,6 @@ class DoseContext:
     patient_name: str = ""
     referenced_plan_uid: str = ""
     series_description: str = "reachplan TG-43 dose"
-    referenced_structure_set_uid: str = ""
     study_date: str = ""
     study_time: str = ""
     study_id: str = ""
@@ -196,11 +192,6 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
         ref.ReferencedSOPClassUID = RT_PLAN_STORAGE
         ref.ReferencedSOPInstanceUID = context.referenced_plan_uid
         ds.ReferencedRTPlanSequence = [ref]
-    if context.referenced_structure_set_uid:
-        ref = Dataset()
-        ref.ReferencedSOPClassUID = RT_STRUCTURE_SET_STORAGE
-        ref.ReferencedSOPInstanceUID = context.referenced_structure_set_uid
-        ds.ReferencedStructureSetSequence = [ref]
     return ds
 
 
