@@ -63,6 +63,8 @@ DETACHED_STUDY_MANAGEMENT = "1.2.840.10008.3.1.2.3.1"
 #: Implementation Class UID of reachplan's writer (derived from a fixed name, so stable across runs).
 IMPLEMENTATION_CLASS_UID = generate_uid(entropy_srcs=["reachplan DICOM RT exporter"])
 CHANNEL_COLOR = (255, 255, 0)
+#: Series Number of each exported object (RT Dose: rtdose.py writes its own).
+SERIES_NUMBERS = {"RTSTRUCT": 901, "RTPLAN": 902}
 _INTERPRETED_TYPE_CHARS = set("ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_ ")
 
 
@@ -186,7 +188,8 @@ def _common(ds: Dataset, ident: Identity, sop_class: str, sop_uid: str, modality
     ds.StudyInstanceUID = ident.study_instance_uid
     ds.SeriesInstanceUID = series_uid
     ds.StudyID = ident.study_id
-    ds.SeriesNumber = None
+    # a series number of its own per object (type 2; dciodvfy asks for one), clear of the image series' numbers
+    ds.SeriesNumber = SERIES_NUMBERS.get(modality)
     ds.InstanceNumber = 1
 
 

@@ -156,7 +156,7 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     )
     ds.SeriesInstanceUID = generate_uid()
     ds.StudyID = context.study_id
-    ds.SeriesNumber = 1
+    ds.SeriesNumber = 903  # after the RT Structure Set (901) and RT Plan (902) of an export
     ds.InstanceNumber = 1
     ds.FrameOfReferenceUID = context.frame_of_reference_uid
     ds.PositionReferenceIndicator = ""

@@ -297,7 +297,7 @@ def test_point_a_and_icru_points_follow_their_definitions() -> None:
         assert np.sign(p[0]) == side  # LPS: +x is the patient's left
     obturator = _circle_roi(1, "Obturator", (0.0, 0.0), 15.0, np.arange(-30.0, 60.1, 2.5))
     foley = _circle_roi(2, "Foley", (0.0, -40.0), 12.0, np.arange(85.0, 105.1, 2.5))
-    tandem_roi = Roi(3, "Tandem", (Contour(np.outer(np.linspace(100, 0, 5), [0, 0, 1.0]) + [0, 0, 60.0],
+    tandem_roi = Roi(3, "Tandem", (Contour(np.outer(np.linspace(160, 60, 5), [0, 0, 1.0]),
                                            "OPEN_NONPLANAR"),))
     points, notes = place_reference_points(StructureSet((obturator, foley, tandem_roi), "1.2.3"))
     got = {p.name: p.position_mm for p in points}
