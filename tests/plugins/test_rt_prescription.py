@@ -92,6 +92,8 @@ def independent_check(rp_path: Path, rs_path: Path, table: dict) -> list[tuple[s
         total, final = float(ch.ChannelTotalTime), float(ch.FinalCumulativeTimeWeight)
         for a, b in zip(cps[::2], cps[1::2], strict=True):
             pos = np.array(a.ControlPoint3DPosition, dtype=float)
+            if final <= 0:  # an unused channel (no time): nothing to add
+                break
             t = total * (float(b.CumulativeTimeWeight) - float(a.CumulativeTimeWeight)) / final
             if "ControlPointOrientation" in a:
                 axis = np.array(a.ControlPointOrientation, dtype=float)
