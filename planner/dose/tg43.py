@@ -178,8 +178,11 @@ class Tg43Kernel:
         s = np.sqrt(s, out=s)  # sin θ >= 0
         z = r * ac  # |z| along the axis
         y = r * s
-        inside = z < dtype(0.5) * L  # beside the source: keep clear of its axis; beyond its ends: the limit
-        np.maximum(y, np.where(inside, dtype(Y_SOURCE_CM), dtype(_EPS_Y_CM)), out=y)
+        near = y < dtype(Y_SOURCE_CM)
+        if near.any():  # beside the source: keep clear of its axis; beyond its ends: the on-axis limit
+            near &= z < dtype(0.5) * L
+            y[near] = dtype(Y_SOURCE_CM)
+        np.maximum(y, dtype(_EPS_Y_CM), out=y)
         rc = np.hypot(y, z, out=r)  # the distance, moved out of the source (θ for F stays the point's own)
         d = rc * rc
         d -= dtype(0.25) * L * L
@@ -189,7 +192,8 @@ class Tg43Kernel:
         np.divide(y, d, out=d)
         d *= L
         gfac = np.arctan(d, out=d)
-        gfac[neg] = dtype(math.pi) - gfac[neg]  # β > 90° inside the sphere of diameter L
+        if neg.any():
+            gfac[neg] = dtype(math.pi) - gfac[neg]  # β > 90° inside the sphere of diameter L
         gfac /= y  # β / y ; divided by L and G0 in the constant below
         ri = rc * dtype(1.0 / DR_CM)
         i0 = np.minimum(ri.astype(np.intp), nr - 2)
