@@ -55,7 +55,12 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.planner.dose.tg43 import Tg43Kernel, check_points, dose_on_grid, plan_dwells
     from reachplan.planner.errors import PlanInputError
     from reachplan.planner.pipeline import get_source
-    from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
+    from reachplan.plugins.exporters.rtdose import (
+        CEILING_TIMES_PRESCRIPTION,
+        DoseContext,
+        read_rtdose_grid,
+        write_rtdose,
+    )
 
     out = args.out.resolve()
     for given in (args.plan, args.structures, args.like):
@@ -102,7 +107,9 @@ def run(args: argparse.Namespace) -> int:
         patient_name=plan.patient_name,
         referenced_plan_uid=plan.sop_instance_uid,
     )
-    write_rtdose(args.out, dose, grid, context, bits=args.bits)
+    setup = max((d for _, d in plan.setup_doses_gy), default=0.0) * plan.n_fractions * plan.n_pulses
+    write_rtdose(args.out, dose, grid, context, bits=args.bits,
+                 ceiling_gy=CEILING_TIMES_PRESCRIPTION * setup if setup > 0 else None)
 
     checks = check_points(plan, dwells, kernel, sk_u) if args.points else ()
     if args.json:

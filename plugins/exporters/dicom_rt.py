@@ -53,7 +53,7 @@ from reachplan.plugins.exporters.base import (
     prepare_out_dir,
     project_on_path,
 )
-from reachplan.plugins.exporters.rtdose import DoseContext, rtdose_dataset
+from reachplan.plugins.exporters.rtdose import CEILING_TIMES_PRESCRIPTION, DoseContext, rtdose_dataset
 
 RT_PLAN_STORAGE = "1.2.840.10008.5.1.4.1.1.481.5"
 RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
@@ -682,7 +682,12 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
             series_description="reachplan planned dose (TG-43)",
             study_date=ident.study_date, study_time=ident.study_time, study_id=ident.study_id)
         try:
-            rd = rtdose_dataset(plan.dose.dose_gy, plan.dose.grid, context)
+            ceiling = None if plan.prescription_dose_gy is None else (
+                CEILING_TIMES_PRESCRIPTION * plan.prescription_dose_gy * plan.fractions_planned)
+            rd = rtdose_dataset(plan.dose.dose_gy, plan.dose.grid, context, ceiling_gy=ceiling)
+            if ceiling is not None and float(np.max(plan.dose.dose_gy)) > ceiling:
+                notes.append(f"RT Dose: {int(np.count_nonzero(plan.dose.dose_gy > ceiling))} voxel(s) next to dwells "
+                             f"above {ceiling:.4g} Gy ({CEILING_TIMES_PRESCRIPTION:g} x the prescription) stored at it")
         except ValueError as exc:
             raise ExportError(f"cannot write the planned dose as RT Dose: {exc}") from None
         buf = io.BytesIO()

@@ -82,7 +82,14 @@ def _valid_uid(uid: str) -> bool:
                                                 for p in uid.split("."))
 
 
-def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16) -> Dataset:
+#: With a prescription, RT Dose pixels hold doses up to this many times the (total) prescribed dose; voxels
+#: above (within a few mm of a dwell, most inside the needle lumen, where the TG-43 dose grows without bound)
+#: are stored at that ceiling, so that 16-bit pixels resolve the clinical range (10 x Rx / 65 535, 0.015 % of Rx).
+CEILING_TIMES_PRESCRIPTION = 10.0
+
+
+def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16,
+                   ceiling_gy: float | None = None) -> Dataset:
     """Build the RT Dose dataset.
 
     Parameters
@@ -95,6 +102,8 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
         Identity carried over.
     bits : {16, 32}
         Bits per pixel.
+    ceiling_gy : float, optional
+        Doses above it are stored as it (see :data:`CEILING_TIMES_PRESCRIPTION`); None: the maximum dose.
 
     Returns
     -------
@@ -180,6 +189,10 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.DoseSummationType = "PLAN"
     ds.TissueHeterogeneityCorrection = "WATER"
     ds.GridFrameOffsetVector = [_ds(along * k) for k in range(nk)]
+    if ceiling_gy is not None:
+        if not (np.isfinite(ceiling_gy) and ceiling_gy > 0):
+            raise ValueError(f"the dose ceiling must be a positive number of Gy, got {ceiling_gy}")
+        dose = np.minimum(dose, ceiling_gy)
     peak = float(dose.max())
     scaling = peak / top if peak > 0 else 1.0
     ds.DoseGridScaling = _ds(scaling * (1 + 1e-9))  # rounded up: the peak stays representable
@@ -204,7 +217,8 @@ def _is_ours(path: Path) -> bool:
 
 
 def write_rtdose(
-    path: str | os.PathLike[str], dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16
+    path: str | os.PathLike[str], dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16,
+    ceiling_gy: float | None = None,
 ) -> Path:
     """Write an RT Dose file atomically.
 
@@ -220,6 +234,8 @@ def write_rtdose(
         Identity carried over.
     bits : {16, 32}
         Bits per pixel (see the module docstring).
+    ceiling_gy : float, optional
+        See :func:`rtdose_dataset`.
 
     Returns
     -------
@@ -236,7 +252,7 @@ def write_rtdose(
     out = Path(path)
     if out.exists() and not _is_ours(out):
         raise OutputExistsError(f"{out} exists and is not an RT Dose written by reachplan; choose another --out")
-    ds = rtdose_dataset(dose_gy, grid, context, bits=bits)
+    ds = rtdose_dataset(dose_gy, grid, context, bits=bits, ceiling_gy=ceiling_gy)
     buf = io.BytesIO()
     ds.save_as(buf, enforce_file_format=True)
     atomic_write_bytes(out, buf.getvalue())

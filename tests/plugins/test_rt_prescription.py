@@ -322,3 +322,16 @@ def test_reference_points_are_checked(make_plan: PlanFactory) -> None:
     with pytest.raises(ValueError, match="treatment machine name"):
         Afterloader("a name that is far too long")
     assert ExportOptions().time_resolution_s == 0.1
+
+
+def test_rt_dose_keeps_the_clinical_range_resolved(make_plan: PlanFactory, tmp_path: Path) -> None:
+    """A voxel at a dwell (TG-43 grows without bound there) must not coarsen the 16-bit steps elsewhere."""
+    grid = Grid((2, 3, 4), np.diag([2.0, 2.0, 2.0, 1.0]))
+    dose = np.linspace(0.0, 40.0, 24).reshape(2, 3, 4)
+    dose[0, 0, 0] = 1.0e5  # at a dwell
+    plan = with_points(make_plan(), rx_gy=7.0, fractions=4, dose=PlannedDose(dose, grid))
+    files = export_plan(plan, tmp_path)
+    back, _ = read_rtdose_grid(files.path("rtdose"))
+    assert back[0, 0, 0] == pytest.approx(280.0, rel=1e-4)  # 10 x 28 Gy
+    assert np.allclose(back.ravel()[1:], dose.ravel()[1:], atol=280.0 / 65535)
+    assert any("stored at it" in n for n in files.notes)
