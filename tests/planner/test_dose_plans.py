@@ -147,6 +147,9 @@ def test_cli_points_json_and_like(reference_dir: Path, tmp_path: Path, capsys: p
     assert grid.spacing_mm == pytest.approx([4.0, 4.0, 4.0])
     dwells = plan_dwells(plan, channel_paths(plan, ss))
     expect = dose_on_grid(grid, dwells, Tg43Kernel(get_source("gammamed_plus_hdr")), 40700.0)
+    # voxels next to dwells are stored at 10 x the plan's setup dose (6.0016 Gy, 1 fraction)
+    assert expect.max() > 10 * plan.setup_doses_gy[0][1]
+    expect = np.minimum(expect, 10 * plan.setup_doses_gy[0][1])
     scaling = float(pydicom.dcmread(out).DoseGridScaling)
     assert np.max(np.abs(back - expect)) <= 0.5 * scaling * 1.001 + 1e-6 * expect.max()
     # --like reuses that grid exactly
