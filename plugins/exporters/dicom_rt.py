@@ -1,20 +1,27 @@
-"""DICOM RT export of a plan: an RT Plan (brachy, HDR, interstitial) and an RT Structure Set.
+"""DICOM RT export of a plan: an RT Plan (brachy, HDR, interstitial), an RT Structure Set and an RT Dose.
 
-Mirrors what Varian BrachyVision writes (reference/tps_examples/hdr, see ``oncoreach.md`` "Export
-conventions"):
+Mirrors what Varian BrachyVision and Oncentra/Vitesse write (reference/rtplan_conventions.md, with the DICOM
+types and the genuine exports it was read from):
 
 * RT Structure Set: the patient's ROIs as read (numbers, names, colours, contours kept) plus one ROI per
   needle of interpreted type ``BRACHY_CHANNEL`` holding one ``OPEN_NONPLANAR`` contour, the needle path
-  written tip first.
-* RT Plan: one Application Setup with one Channel per needle (Channel Sequence), each linked to its ROI by
-  Referenced ROI Number; Brachy Control Points in pairs per dwell (same position; the cumulative time weight
-  rises across the pair by the dwell time), ordered from the tip; Control Point Relative Position = arc
-  distance from the tip (the distal-most source position) along the path; cumulative time weights in
-  seconds, Final Cumulative Time Weight = Channel Total Time (as Eclipse writes); Channel Effective Length
-  (PS3.3 prefers it to the retired Channel Length); one Source from the plan's :class:`SourceSpec`.
-* Both files share one Study and Frame of Reference (the input's), carry the input patient identity, get
-  new SOP Instance and Series UIDs, and the plan references the structure set. Approval status is
-  ``UNAPPROVED``: this is a pre-plan.
+  written tip first. With the input CT the reference chain Frame of Reference → study → series → every slice,
+  and each planar contour references its slice (§8).
+* RT Plan: the prescription (Dose Reference Sequence: the target as SITE/TARGET with Target Prescription Dose,
+  each reference point as COORDINATES; Brachy Application Setup Dose = dose per fraction; Number of Fractions
+  Planned) (§2-3); one Application Setup of the template's type with one Channel per needle, linked to its ROI
+  by Referenced ROI Number; Brachy Control Points in pairs per dwell (same position; the cumulative time weight
+  rises across the pair by the dwell time), ordered from the tip, each with every dose reference's Cumulative
+  Dose Reference Coefficient (the channel's share of the setup dose so far: planned dose per fraction at a point
+  = Σ over channels of the last coefficient × setup dose, §4) and, on curved needles, Control Point Orientation
+  toward the tip (§7); Control Point Relative Position = arc distance from the tip; Channel Length, Channel
+  Effective Length and Source Applicator Length = the afterloader's length, Treatment Machine Name from
+  :class:`~reachplan.plugins.exporters.base.Afterloader` (§5-6); one Source from the plan's
+  :class:`SourceSpec`.
+* RT Dose (when the plan carries its dose): the planned dose of all fractions, referencing the plan (§9).
+* All files share one Study (the input CT's, with its date, time and ID) and Frame of Reference, carry the input
+  patient identity, get new SOP Instance and Series UIDs, and the plan references the structure set. Approval
+  status is ``UNAPPROVED``: this is a pre-plan.
 
 Written with Implicit VR Little Endian (as BrachyVision does: contour data can exceed the 64 kB value
 length of explicit-VR DS).
