@@ -5,9 +5,9 @@ The planner fills one :class:`~reachplan.plugins.exporters.base.ExportPlan` and 
 >>> from reachplan.plugins import registry                          # doctest: +SKIP
 >>> files = registry.get("exporters", "dicom_rt").export(plan, out_dir)  # doctest: +SKIP
 
-Built-ins: ``dicom_rt`` (:mod:`reachplan.plugins.exporters.dicom_rt`: RT Plan + RT Structure Set + RT Dose), ``device_json`` and
-``device_csv`` (:mod:`reachplan.plugins.exporters.device`: stylet instructions per needle). The types and the Protocol
-are in :mod:`reachplan.plugins.exporters.base`, re-exported here.
+Built-ins: ``dicom_rt`` (:mod:`reachplan.plugins.exporters.dicom_rt`: RT Plan + RT Structure Set + RT Dose),
+``device_json`` and ``device_csv`` (:mod:`reachplan.plugins.exporters.device`: stylet instructions per needle). The
+types and the Protocol are in :mod:`reachplan.plugins.exporters.base`, re-exported here.
 """
 
 from __future__ import annotations
