@@ -156,6 +156,9 @@ class Contour:
         The contour's points in order; a CLOSED_PLANAR contour closes from its last point back to its first.
     geometric_type : str
         ``"CLOSED_PLANAR"``, ``"OPEN_NONPLANAR"``, ``"OPEN_PLANAR"`` or ``"POINT"``.
+    image : (str, str)
+        (Referenced SOP Class UID, Instance UID) of the image slice the contour was drawn on, as read; ("", "")
+        when not known.
 
     Raises
     ------
@@ -165,6 +168,7 @@ class Contour:
 
     points_mm: FloatArray
     geometric_type: str = "CLOSED_PLANAR"
+    image: tuple[str, str] = ("", "")
 
     def __post_init__(self) -> None:
         p = np.asarray(self.points_mm, dtype=float)
@@ -223,6 +227,11 @@ class StructureSet:
         SeriesInstanceUID of the images the contours were drawn on, when the file names one.
     sop_instance_uid, study_instance_uid, patient_id, patient_name, label : str
         Identity of the file (``label`` is its Structure Set Label); empty when not given.
+    study_date, study_time, study_id : str
+        Study Date, Time and ID as written; empty when not given.
+    referenced_images : tuple of (str, str)
+        (SOP Class UID, SOP Instance UID) of the images of the referenced series, as listed in the file's
+        Contour Image Sequence; empty when not given.
 
     Attributes
     ----------
@@ -238,6 +247,10 @@ class StructureSet:
     patient_id: str = ""
     patient_name: str = ""
     label: str = ""
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
+    referenced_images: tuple[tuple[str, str], ...] = ()
     names: tuple[str, ...] = field(init=False)
 
     def __post_init__(self) -> None:

@@ -156,12 +156,13 @@ def plan_identity(plan: ExportPlan, uid_prefix: str | None = None) -> Identity:
                               "export with the structure set drawn on that volume")
     given = {what: a or b for what, (a, b) in pairs.items()}
     generated = tuple(what for what in ("Study Instance UID", "Frame of Reference UID") if not given[what])
-    same_study = v is not None and v.study_instance_uid == given["Study Instance UID"]
+    study = [x for x in (v, s) if x is not None and x.study_instance_uid == given["Study Instance UID"]
+             and x.study_date]  # the CT's study attributes, else the input structure set's
     now = plan.plan_datetime or datetime.now()
     return Identity(
-        study_date=(v.study_date if same_study and v else "") or _date(now),
-        study_time=(v.study_time if same_study and v else "") or _time(now),
-        study_id=(v.study_id if same_study and v else "") or "1",
+        study_date=study[0].study_date if study else _date(now),
+        study_time=study[0].study_time if study else _time(now),
+        study_id=(study[0].study_id if study else "") or "1",
         patient_id=given["Patient ID"],
         patient_name=(v.patient_name if v else "") or (s.patient_name if s else ""),
         study_instance_uid=given["Study Instance UID"] or new_uid(uid_prefix),
@@ -246,8 +247,11 @@ def _referenced_frame(plan: ExportPlan, ident: Identity) -> Dataset:
         return ref_for
     series = Dataset()
     series.SeriesInstanceUID = series_uid
+    ss = plan.structure_set
     if v is not None and v.slice_uids and v.series_instance_uid == series_uid:
         series.ContourImageSequence = Sequence([_image_ref(c, i) for c, i in v.slice_uids])
+    elif ss is not None and ss.referenced_images and ss.referenced_series_uid == series_uid:
+        series.ContourImageSequence = Sequence([_image_ref(c, i) for c, i in ss.referenced_images])
     else:  # the series is known but not its images: the chain stops here (type 1 sequence needs items)
         return ref_for
     study = Dataset()
@@ -333,6 +337,8 @@ def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetim
             ct.NumberOfContourPoints = len(c.points_mm)
             ct.ContourData = [_ds(x) for x in c.points_mm.ravel()]
             image = slice_of(c.points_mm) if c.geometric_type in ("CLOSED_PLANAR", "POINT") else None
+            if image is None and all(c.image):  # no CT given: the slice the input named
+                image = _image_ref(*c.image)
             if image is not None:
                 ct.ContourImageSequence = Sequence([image])
             seq.append(ct)

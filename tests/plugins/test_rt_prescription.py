@@ -27,6 +27,7 @@ from reachplan.plugins.exporters.base import (
     NeedleExport,
     PlannedDose,
     ReferencePoint,
+    SourceSpec,
 )
 from reachplan.plugins.exporters.dicom_rt import export_plan, planned_point_doses_gy
 from reachplan.plugins.exporters.rtdose import read_rtdose_grid
@@ -335,3 +336,35 @@ def test_rt_dose_keeps_the_clinical_range_resolved(make_plan: PlanFactory, tmp_p
     assert back[0, 0, 0] == pytest.approx(280.0, rel=1e-4)  # 10 x 28 Gy
     assert np.allclose(back.ravel()[1:], dose.ravel()[1:], atol=280.0 / 65535)
     assert any("stored at it" in n for n in files.notes)
+
+
+def test_structure_set_keeps_the_inputs_image_references_without_the_ct(tmp_path: Path) -> None:
+    """Planned from the structure set alone: the export keeps its study, series, images and per-contour slices."""
+    from reachplan.imaging.phantom import write_phantom
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.plugins.sources import gammamed_plus_hdr as data
+
+    from .conftest import curved_needle
+
+    rs_in = write_phantom(tmp_path / "phantom").rtstruct_path
+    ss = read_rtstruct(rs_in)
+    src = SourceSpec.from_source_data(data(), 40700.0, datetime(2026, 11, 1, 8, 0))
+    plan = ExportPlan("P", (curved_needle("A1", 0.0, 8.0),), src, structure_set=ss, input_paths=(rs_in,))
+    out = pydicom.dcmread(export_plan(plan, tmp_path / "x").path("rtstruct"))
+    original = pydicom.dcmread(rs_in)
+    chain = [ds.ReferencedFrameOfReferenceSequence[0].RTReferencedStudySequence[0] for ds in (out, original)]
+    assert chain[0].ReferencedSOPInstanceUID == chain[1].ReferencedSOPInstanceUID == original.StudyInstanceUID
+    series = [c.RTReferencedSeriesSequence[0] for c in chain]
+    assert series[0].SeriesInstanceUID == series[1].SeriesInstanceUID
+    assert [i.ReferencedSOPInstanceUID for i in series[0].ContourImageSequence] == \
+        [i.ReferencedSOPInstanceUID for i in series[1].ContourImageSequence]
+    assert (out.StudyDate, out.StudyTime, out.StudyID) == (original.StudyDate, original.StudyTime, original.StudyID)
+    by_roi = {int(rc.ReferencedROINumber): rc for rc in original.ROIContourSequence}
+    for rc in out.ROIContourSequence:
+        if int(rc.ReferencedROINumber) not in by_roi or "ContourSequence" not in rc:
+            continue
+        before = by_roi[int(rc.ReferencedROINumber)].ContourSequence
+        for a, b in zip(rc.ContourSequence, before, strict=True):
+            if "ContourImageSequence" in b:
+                assert a.ContourImageSequence[0].ReferencedSOPInstanceUID == \
+                    b.ContourImageSequence[0].ReferencedSOPInstanceUID
