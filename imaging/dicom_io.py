@@ -797,11 +797,17 @@ def load_series(
             if f.intercept:
                 out[k] += np.float32(f.intercept)
     ds0 = headers[0][0]
+    sop = {p: (str(ds.get("SOPClassUID", "")), str(ds.get("SOPInstanceUID", ""))) for ds, p in headers}
+    slice_uids = [("", "")] * len(order)
+    for (path, frame), k in slot.items():
+        slice_uids[k] = sop[path] if frame is None else ("", "")  # multi-frame: no per-slice instance
     return Volume(
         array=out, grid=grid, modality=chosen.modality, series_instance_uid=chosen.series_instance_uid,
         frame_of_reference_uid=chosen.frame_of_reference_uid,
         study_instance_uid=str(ds0.get("StudyInstanceUID", "")), patient_id=str(ds0.get("PatientID", "")),
-        patient_name=str(ds0.get("PatientName", "")),
+        patient_name=str(ds0.get("PatientName", "")), study_date=str(ds0.get("StudyDate", "") or ""),
+        study_time=str(ds0.get("StudyTime", "") or ""), study_id=str(ds0.get("StudyID", "") or ""),
+        slice_uids=tuple(slice_uids) if all(all(u) for u in slice_uids) else (),
     )
 
 

@@ -104,7 +104,13 @@ class ChannelInfo:
 
 @dataclass(frozen=True)
 class PlanInfo:
-    """A brachy RT Plan: file, treatment type, technique, source label and channels; ``note`` when unread."""
+    """A brachy RT Plan: file, treatment type, technique, source label and channels; ``note`` when unread.
+
+    ``machine`` the Treatment Machine Name, ``fractions`` the Number of Fractions Planned, ``prescription_gy`` the
+    Brachy Application Setup Dose (Gy per fraction) and ``target`` the TARGET dose reference's description
+    (None / "" when the plan has none), ``points`` each dose reference point with the plan's dose there over
+    all fractions (Gy, None when the plan carries no coefficients).
+    """
 
     path: str
     type: str  # HDR, PDR, ... (the plan's brachy treatment type)
@@ -112,6 +118,11 @@ class PlanInfo:
     source: str
     channels: tuple[ChannelInfo, ...]
     note: str = ""
+    machine: str = ""
+    fractions: int = 1
+    prescription_gy: float | None = None
+    target: str = ""
+    points: tuple[tuple[str, float | None], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -207,8 +218,14 @@ def _plan_info(path: Path) -> PlanInfo:
         roi = _first(c, "roi_number")
         channels.append(ChannelInfo(int(_first(c, "channel_number", "number")), int(c.n_dwells),
                                     float(_first(c, "total_time_s") or 0.0), None if roi is None else int(roi)))
+    refs = tuple(getattr(plan, "dose_references", ()))
+    setup_doses = [d for _, d in getattr(plan, "setup_doses_gy", ()) if d > 0]
     return PlanInfo(str(path), str(_first(plan, "plan_type", "treatment_type") or ""),
-                    str(_first(plan, "technique") or ""), _source_label(plan), tuple(channels))
+                    str(_first(plan, "technique") or ""), _source_label(plan), tuple(channels),
+                    machine=str(getattr(plan, "machine_name", "")), fractions=int(getattr(plan, "n_fractions", 1)),
+                    prescription_gy=setup_doses[0] if setup_doses else None,
+                    target=next((r.description for r in refs if r.reference_type == "TARGET"), ""),
+                    points=tuple((r.description, r.tps_dose_gy) for r in refs if r.position_mm is not None))
 
 
 def _structure_sets(

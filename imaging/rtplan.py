@@ -272,6 +272,8 @@ class RtPlan:
         From Oncentra's private catheter sequence; empty otherwise.
     machine_name, study_instance_uid, patient_id, patient_name : str
         As written; empty when missing.
+    plan_date, plan_time : str
+        RT Plan Date (``YYYYMMDD``) and Time as written; empty when missing.
     quirks : tuple of str
         Every rule the file breaks that was read anyway (also warned as :class:`PlanQuirkWarning`).
     """
@@ -296,6 +298,8 @@ class RtPlan:
     study_instance_uid: str = ""
     patient_id: str = ""
     patient_name: str = ""
+    plan_date: str = ""
+    plan_time: str = ""
     quirks: tuple[str, ...] = field(default=())
 
     @property
@@ -537,6 +541,8 @@ def _plan_from_dataset(ds: Dataset, path: str, found: list[str]) -> RtPlan:
         study_instance_uid=_str(ds, "StudyInstanceUID"),
         patient_id=_str(ds, "PatientID"),
         patient_name=_str(ds, "PatientName"),
+        plan_date=_str(ds, "RTPlanDate"),
+        plan_time=_str(ds, "RTPlanTime"),
     )
     refs = tuple(_dose_reference(d, plan) for d in ds.get("DoseReferenceSequence", []))
     return replace(plan, dose_references=refs)

@@ -107,17 +107,25 @@ def _warn_outside(path: Path, rois: list[Roi], volume: Volume) -> None:
                 stacklevel=4)
 
 
-def _referenced(ds: Any) -> tuple[str, str | None]:
-    """(Frame of Reference UID, referenced SeriesInstanceUID or None) of a structure set."""
+def _image_ref(item: Any) -> tuple[str, str]:
+    """Return the (SOP Class UID, SOP Instance UID) an image reference item names ("" when missing)."""
+    return (str(item.get("ReferencedSOPClassUID", "") or ""), str(item.get("ReferencedSOPInstanceUID", "") or ""))
+
+
+def _referenced(ds: Any) -> tuple[str, str | None, tuple[tuple[str, str], ...]]:
+    """Return a structure set's Frame of Reference UID, referenced series (or None) and that series' images."""
     for_uid = str(ds.get("FrameOfReferenceUID", "") or "")
     series: str | None = None
+    images: tuple[tuple[str, str], ...] = ()
     for ref in ds.get("ReferencedFrameOfReferenceSequence", []) or []:
         for_uid = for_uid or str(ref.get("FrameOfReferenceUID", "") or "")
         for study in ref.get("RTReferencedStudySequence", []) or []:
             for s in study.get("RTReferencedSeriesSequence", []) or []:
-                if s.get("SeriesInstanceUID"):
-                    series = series or str(s.SeriesInstanceUID)
-    return for_uid, series
+                if s.get("SeriesInstanceUID") and series is None:
+                    series = str(s.SeriesInstanceUID)
+                    images = tuple(r for r in (_image_ref(i) for i in s.get("ContourImageSequence", []) or [])
+                                   if all(r))
+    return for_uid, series, images
 
 
 def read_rtstruct(
@@ -195,7 +203,9 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
             pts = _contour_points(item, path, label)
             if gtype == "CLOSEDPLANAR_XOR":  # DICOM 2020+: XOR-combined closed planar contours
                 gtype = "CLOSED_PLANAR"
-            contours[number].append(Contour(pts, gtype))
+            refs = item.get("ContourImageSequence", []) or []
+            image = _image_ref(refs[0]) if len(refs) == 1 else ("", "")
+            contours[number].append(Contour(pts, gtype, image if all(image) else ("", "")))
         _warn_sparse(path, label, contours[number])
     rois = []
     for number, item in declared.items():
@@ -203,7 +213,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
         rois.append(Roi(number=number, name=name, contours=tuple(contours[number]),
                         normalized_name=table.normalize(name), interpreted_type=types.get(number, ""),
                         color=colors.get(number)))
-    for_uid, series_uid = _referenced(ds)
+    for_uid, series_uid, images = _referenced(ds)
     if volume is not None:
         check_reference(volume, for_uid, series_uid, f"RT Structure Set {path}")
         _warn_outside(path, rois, volume)
@@ -211,5 +221,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
         rois=tuple(rois), frame_of_reference_uid=for_uid, referenced_series_uid=series_uid,
         sop_instance_uid=str(ds.get("SOPInstanceUID", "")), study_instance_uid=str(ds.get("StudyInstanceUID", "")),
         patient_id=str(ds.get("PatientID", "")), patient_name=str(ds.get("PatientName", "")),
-        label=str(ds.get("StructureSetLabel", "")),
+        label=str(ds.get("StructureSetLabel", "")), study_date=str(ds.get("StudyDate", "") or ""),
+        study_time=str(ds.get("StudyTime", "") or ""), study_id=str(ds.get("StudyID", "") or ""),
+        referenced_images=images,
     )

@@ -114,11 +114,16 @@ class Volume:
         Identity of the series it was read from.
     patient_id, patient_name : str
         Carried over to exports.
+    study_date, study_time, study_id : str
+        Study Date (``YYYYMMDD``), Time and ID as written in the images; carried over to exports.
+    slice_uids : tuple of (str, str)
+        (SOP Class UID, SOP Instance UID) of the image holding each slice k, in slice order; empty when
+        not known. Exports reference the images through them.
 
     Raises
     ------
     ValueError
-        ``array.shape`` differs from ``grid.shape``.
+        ``array.shape`` differs from ``grid.shape``, or ``slice_uids`` is given but not one per slice.
     """
 
     array: np.ndarray
@@ -129,10 +134,16 @@ class Volume:
     study_instance_uid: str = ""
     patient_id: str = ""
     patient_name: str = ""
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
+    slice_uids: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         if tuple(self.array.shape) != self.grid.shape:
             raise ValueError(f"array shape {self.array.shape} does not match grid shape {self.grid.shape}")
+        if self.slice_uids and len(self.slice_uids) != self.grid.shape[0]:
+            raise ValueError(f"{len(self.slice_uids)} slice UIDs for {self.grid.shape[0]} slices")
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,6 +156,9 @@ class Contour:
         The contour's points in order; a CLOSED_PLANAR contour closes from its last point back to its first.
     geometric_type : str
         ``"CLOSED_PLANAR"``, ``"OPEN_NONPLANAR"``, ``"OPEN_PLANAR"`` or ``"POINT"``.
+    image : (str, str)
+        (Referenced SOP Class UID, Instance UID) of the image slice the contour was drawn on, as read; ("", "")
+        when not known.
 
     Raises
     ------
@@ -154,6 +168,7 @@ class Contour:
 
     points_mm: FloatArray
     geometric_type: str = "CLOSED_PLANAR"
+    image: tuple[str, str] = ("", "")
 
     def __post_init__(self) -> None:
         p = np.asarray(self.points_mm, dtype=float)
@@ -212,6 +227,11 @@ class StructureSet:
         SeriesInstanceUID of the images the contours were drawn on, when the file names one.
     sop_instance_uid, study_instance_uid, patient_id, patient_name, label : str
         Identity of the file (``label`` is its Structure Set Label); empty when not given.
+    study_date, study_time, study_id : str
+        Study Date, Time and ID as written; empty when not given.
+    referenced_images : tuple of (str, str)
+        (SOP Class UID, SOP Instance UID) of the images of the referenced series, as listed in the file's
+        Contour Image Sequence; empty when not given.
 
     Attributes
     ----------
@@ -227,6 +247,10 @@ class StructureSet:
     patient_id: str = ""
     patient_name: str = ""
     label: str = ""
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
+    referenced_images: tuple[tuple[str, str], ...] = ()
     names: tuple[str, ...] = field(init=False)
 
     def __post_init__(self) -> None:

@@ -7,6 +7,7 @@ arguments, calls these and writes files.
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -542,41 +543,98 @@ def plan_delivery(
     label: str = "reachplan",
     volume: Volume | None = None,
     input_paths: Sequence[Path] = (),
+    named_points: Sequence[tuple[str, Sequence[float]]] = (),
+    planned_dose: bool = True,
 ) -> Delivery:
     """Choose needles, optimise their dwell times on the target and assemble the export plan.
 
-    Dose by TG-43 against the EMBRACE II aims; the export plan holds RT Plan + RT Structure Set + device
-    instructions.
+    Dose by TG-43 against the EMBRACE II aims; the export plan holds RT Plan + RT Structure Set + RT Dose +
+    device instructions.
+
+    The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
+    fractions as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where
+    the structures allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``,
+    (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
+    planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
+    False: no RT Dose, for callers that only need the optimisation).
 
     Raises
     ------
     PlanInputError
-        No feasible needle, or no target structure to optimise on.
+        No feasible needle, no target structure to optimise on, or a bad named point.
     """
-    from reachplan.planner.dose.optimize import optimise_dwell_times
-    from reachplan.planner.dose.tg43 import Tg43Kernel
+    from reachplan.planner.dose.optimize import Aims, optimise_dwell_times
+    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, rate_matrix
+    from reachplan.planner.geometry.reference_points import place_reference_points
     from reachplan.plugins.exporters import ExportPlan, NeedleExport, SourceSpec
+    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
     needles = choose_needles(result)
     if not needles:
         raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
     source = get_source(source_name)
-    opt = optimise_dwell_times([c.path_mm for c in needles], planning, Tg43Kernel(source), air_kerma_u)
-    exports = []
+    kernel = Tg43Kernel(source)
+    aims = Aims()
+    opt = optimise_dwell_times([c.path_mm for c in needles], planning, kernel, air_kerma_u, aims)
+    exports, kept = [], []
     for ch, c in enumerate(needles, start=1):
         sel = opt.dwells.channels == ch
         keep = sel & (opt.dwells.times_s > 0)
         if not keep.any():  # an unused needle still gets one zero-time dwell at its first position
             keep = sel & (np.cumsum(sel) == 1)
+        kept.append(opt.dwells.select(keep))
         sched = None if c.schedule is None else np.column_stack(
             [c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg])
         exports.append(NeedleExport(c.hole_id, c.path_mm, opt.dwells.positions_mm[keep], opt.dwells.times_s[keep],
                                     c.design_name, sched))
+    placed, _ = place_reference_points(structures)
+    wanted = [(p.name, p.position_mm) for p in placed]
+    for name, xyz in named_points:
+        pos = np.asarray(xyz, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise PlanInputError(f"reference point {name!r}: give three finite coordinates in mm (LPS)")
+        wanted.append((name, pos))
+    gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
+    points = []
+    for name, pos in wanted:
+        rates = tuple(rate_matrix(pos[None], d.positions_mm, d.directions, kernel)[0] * gy_per_s for d in kept)
+        try:
+            points.append(ReferencePoint(name, pos, rates))
+        except ValueError as exc:
+            raise PlanInputError(str(exc)) from None
+    fractions = aims.fractionation.n_fractions
+    dose = None
+    if planned_dose:
+        dose_grid = _dose_region(planning)
+        sub = opt.dwells.select(opt.dwells.times_s > 0)
+        values = dose_on_grid(dose_grid, sub, kernel, air_kerma_u) if len(sub) else np.zeros(dose_grid.shape)
+        dose = PlannedDose(values * fractions, dose_grid)
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
-                        input_paths=tuple(input_paths))
+                        input_paths=tuple(input_paths), fractions_planned=fractions,
+                        prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
+                        reference_points=tuple(points),
+                        application_setup_type=load_template(result.config.template).application_setup_type,
+                        dose=dose)
     return Delivery(needles, opt, export, planning, source)
+
+
+def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
+    """Return the part of the planning grid around the target and the organs at risk, as a grid of its own.
+
+    ``margin``: voxels added on every side.
+    """
+    mask = planning.target.mask.copy()
+    for o in planning.oars:
+        mask |= o.mask
+    idx = np.argwhere(mask)
+    lo = np.maximum(idx.min(axis=0) - margin, 0)
+    hi = np.minimum(idx.max(axis=0) + margin + 1, planning.grid.shape)
+    affine = planning.grid.patient_from_index.copy()
+    affine[:3, 3] = affine[:3, :3] @ np.array([lo[2], lo[1], lo[0]], dtype=float) + affine[:3, 3]
+    shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]), int(hi[2] - lo[2]))
+    return Grid(shape, affine)
 
 
 def rod_model_capabilities() -> dict[str, Capabilities]:
@@ -628,6 +686,111 @@ def recognise_source(*labels: str) -> str | None:
         if any(alias in text for alias in get_source(name).aliases for text in norm):
             return name
     return None
+
+
+#: Half-lives (days) used to tell the isotope of an anonymised plan (NNDC NuDat 3): Ir-192 73.829 d, Co-60
+#: 5.2714 y, Cs-137 30.08 y, I-125 59.49 d, Pd-103 16.99 d, Yb-169 32.02 d, Se-75 119.78 d.
+ISOTOPE_HALF_LIVES_DAYS: tuple[tuple[str, float], ...] = (
+    ("Ir-192", 73.83), ("Co-60", 1925.28), ("Cs-137", 10987.0), ("I-125", 59.49), ("Pd-103", 16.99),
+    ("Yb-169", 32.02), ("Se-75", 119.78),
+)
+_ISOTOPE_RE = re.compile(r"\b(ir|co|cs|i|pd|yb|se)[\s-]?(192|60|137|125|103|169|75)\b", re.IGNORECASE)
+#: Active lengths agree when within this (mm): the DICOM values are written to 0.1 mm or better.
+ACTIVE_LENGTH_TOLERANCE_MM = 0.05
+
+
+@dataclass(frozen=True)
+class SourceChoice:
+    """The TG-43 data set chosen for a plan's source: its ``name`` and ``how`` it was chosen (one line)."""
+
+    name: str
+    how: str
+
+
+def plan_isotope(isotope_name: str, half_life_days: float | None) -> str | None:
+    """Return the isotope of a plan's source: from Source Isotope Name when it names one, else from the half-life.
+
+    Returns
+    -------
+    str or None
+        e.g. ``"Ir-192"``; None when neither tells (a half-life within 2 % of a known isotope's counts).
+    """
+    m = _ISOTOPE_RE.search(isotope_name or "")
+    if m:
+        symbol = m.group(1).capitalize() if len(m.group(1)) > 1 else m.group(1).upper()
+        return f"{symbol}-{m.group(2)}"
+    if half_life_days:
+        for iso, t in ISOTOPE_HALF_LIVES_DAYS:
+            if abs(half_life_days / t - 1.0) <= 0.02:
+                return iso
+    return None
+
+
+def identify_source(model_id: str, isotope_name: str, manufacturer: str, treatment_type: str,
+                    half_life_days: float | None, active_length_mm: float | None,
+                    machine_name: str = "") -> SourceChoice:
+    """Choose the registered TG-43 data set of a plan's source.
+
+    First by name: a data set whose alias occurs in the Source Model ID, Source Isotope Name, manufacturer or
+    Treatment Machine Name (:func:`recognise_source`), kept when its isotope, kind and active length agree
+    with the plan's. Otherwise (an anonymised plan) by inference: the registered data sets of the plan's
+    isotope (named, or told by the half-life), treatment type (HDR, PDR) and active length (within
+    :data:`ACTIVE_LENGTH_TOLERANCE_MM`), narrowed by the manufacturer when it names one; chosen when exactly one
+    remains.
+
+    Raises
+    ------
+    PlanInputError
+        The isotope has no registered TG-43 data (e.g. Cs-137), the named source contradicts the plan, or no
+        or several data sets match (the message lists them; pass ``--source``).
+    """
+    names = list(dict.fromkeys([*BUILTIN, *registry.names("sources")]))
+    data = {n: get_source(n) for n in names}
+    isotope = plan_isotope(isotope_name, half_life_days)
+    if isotope is not None and not any(d.isotope == isotope for d in data.values()):
+        raise PlanInputError(f"no TG-43 data is registered for {isotope} (registered: "
+                             f"{', '.join(sorted({d.isotope for d in data.values()}))}); this plan cannot be "
+                             "checked with reachplan")
+
+    def conflicts(d: SourceData) -> list[str]:
+        out = []
+        if isotope and d.isotope != isotope:
+            out.append(f"isotope {isotope} vs {d.isotope}")
+        if treatment_type in ("HDR", "PDR", "LDR") and d.kind != treatment_type:
+            out.append(f"treatment type {treatment_type} vs {d.kind}")
+        if active_length_mm and abs(active_length_mm - 10 * d.active_length_cm) > ACTIVE_LENGTH_TOLERANCE_MM:
+            out.append(f"active length {active_length_mm:g} mm vs {10 * d.active_length_cm:g} mm")
+        return out
+
+    named = recognise_source(model_id, isotope_name, manufacturer, machine_name)
+    if named is not None:
+        bad = conflicts(data[named])
+        if bad:
+            raise PlanInputError(f"the plan names the source {named}, but its {'; '.join(bad)}; pass --source NAME "
+                                 "for the data set that matches")
+        return SourceChoice(named, f"{named}: named in the plan")
+    fits = [n for n, d in data.items() if not conflicts(d)]
+    maker = normalise_label(manufacturer.split()[0]) if manufacturer.strip() else ""
+    by_maker = [n for n in fits if maker and len(maker) >= 3 and maker in normalise_label(data[n].title)]
+    if by_maker:
+        fits = by_maker
+    told = ", ".join(x for x in (isotope or "", treatment_type,
+                                 f"{active_length_mm:g} mm active" if active_length_mm else "",
+                                 f"manufacturer {manufacturer}" if by_maker else "") if x)
+    if len(fits) == 1:
+        return SourceChoice(fits[0], f"{fits[0]}: inferred from {told} (the only registered source that fits)")
+    if not fits:
+        raise PlanInputError(f"no registered TG-43 source fits the plan's source ({told}); pass --source NAME "
+                             "(see `reachplan plugins`)")
+    raise PlanInputError(f"the plan's source ({told}) fits {len(fits)} registered sources ({', '.join(fits)}); "
+                         "pass --source NAME")
+
+
+def decay_factor(half_life_days: float, elapsed_days: float) -> float:
+    """Fraction of the source strength left after ``elapsed_days`` (negative: before calibration), 2^(-t/T½)."""
+    if not (np.isfinite(half_life_days) and half_life_days > 0 and np.isfinite(elapsed_days)):
+        raise PlanInputError(f"cannot decay the source: half-life {half_life_days} d, elapsed {elapsed_days} d")
+    return float(2.0 ** (-elapsed_days / half_life_days))
 
 
 def rod_model_errors() -> tuple[ErrorRow, ...]:

@@ -51,3 +51,49 @@ def test_demo_is_deterministic(demo: Path, tmp_path: Path) -> None:
     a = json.loads((demo / "ranking.json").read_text())
     b = json.loads((tmp_path / "ranking.json").read_text())
     assert a == b
+
+
+def _delivery_file(demo: Path, prefix: str) -> Path:
+    files = [Path(f) for f in json.loads((demo / "plan.json").read_text())["delivery"]["files"]]
+    (found,) = [f for f in files if f.name.startswith(prefix) and f.suffix == ".dcm"]
+    return found
+
+
+def test_demo_exports_a_plan_with_prescription_points_and_its_dose(demo: Path, dciodvfy,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 17: RT Plan + RT Structure Set + RT Dose a TPS and an independent checker take as they are."""
+    from reachplan.imaging.meshing import roi_mask
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.dose.coverage import dose_to_fraction
+    from reachplan.plugins.exporters.rtdose import read_rtdose_grid
+
+    from .plugins.test_rt_prescription import _consensus, independent_check
+
+    rp, rs, rd = (_delivery_file(demo, p) for p in ("RP_", "RS_", "RD_"))
+    delivery = json.loads((demo / "plan.json").read_text())["delivery"]
+    fractions = delivery["prescription"]["fractions"]
+    assert fractions == 4 and delivery["reference_points"]
+    # the RT Dose holds the delivered plan's dose over all fractions: its HR-CTV D90 is the plan's
+    dose, grid = read_rtdose_grid(rd)
+    mask = roi_mask(read_rtstruct(rs).get("HR-CTV"), grid)
+    d90 = dose_to_fraction(dose[mask], 0.9) / fractions
+    assert d90 == pytest.approx(delivery["optimisation"]["hrctv_d90_gy"], rel=0.01)
+    # an independent TG-43 check of the stated point doses (points more than 5 mm from a dwell)
+    rows = [r for r in independent_check(rp, rs, _consensus("gammamed_plus_hdr")) if r[3] > 5.0]
+    assert rows
+    for name, stated, ours, _ in rows:
+        assert ours == pytest.approx(stated, rel=0.01), name
+    # round trip through reachplan's own readers
+    assert main(["inspect", str(rp)]) == 0
+    shown = capsys.readouterr().out
+    assert "machine GammaMed PlusHDR" in shown and "Gy per fraction to HR-CTV" in shown and "4 fraction(s)" in shown
+    assert f"{len(delivery['needles'])} channels" in shown and "dwells" in shown
+    assert main(["dose", "--plan", str(rp), "--structures", str(rs), "--points", "--spacing", "5",
+                 "--out", str(demo / "check_RD.dcm")]) == 0
+    printed = capsys.readouterr().out
+    for p in delivery["reference_points"]:
+        assert p["name"] in printed
+    for path in (rs, rp, rd):
+        lines = dciodvfy(path)
+        assert not [x for x in lines if x.startswith("Error")], (path.name, lines)
+        assert not [x for x in lines if "Study" in x and "empty" in x.lower()], (path.name, lines)

@@ -1,19 +1,28 @@
 """``reachplan dose``: recompute a brachy plan with TG-43 (secondary check) and write an RT Dose.
 
-The source data set is the one recognised from the plan (Source Isotope Name, treatment machine), else
-``--source``. S_K is the plan's Reference Air Kerma Rate as written (no decay), dwell times follow the
+The source data set is the one named in the plan (Source Model ID, Isotope Name, manufacturer, treatment
+machine) when its isotope, kind and active length agree; for an anonymised plan the only registered one of the
+plan's isotope (named or told by the half-life), treatment type and active length (see
+:func:`reachplan.planner.pipeline.identify_source`); else ``--source``. S_K is the plan's Reference Air Kerma
+Rate decayed from its reference date to the treatment date: ``--treatment-date``, else the RT Plan Date (whole
+days; Eclipse dates the strength to the plan day at midnight, rtplan_conventions.md §5). Dwell times follow the
 Eclipse conventions (see :mod:`reachplan.imaging.rtplan`), doses are totals over fractions and pulses.
 """
 
 from __future__ import annotations
 
 import argparse
-import warnings
+from datetime import datetime
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from reachplan.planner.cli.edges import ArgumentError, finite, finite_float, output_file, print_json, seen_warnings
+
+if TYPE_CHECKING:
+    from reachplan.imaging.rtplan import BrachySource, RtPlan
+    from reachplan.planner.pipeline import SourceChoice
 
 NAME = "dose"
 HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary check of TPS point doses)"
@@ -30,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--margin", type=finite_float, default=30.0, metavar="MM",
                         help="with --spacing: margin around the dwell positions, mm (default 30)")
     parser.add_argument("--source", help="TG-43 data set when the plan's source is not recognised")
+    parser.add_argument("--treatment-date", metavar="YYYYMMDD[HHMMSS]",
+                        help="date (and time) of treatment the source strength is decayed to (default: RT Plan Date)")
     parser.add_argument("--model", choices=("line", "point"), default="line",
                         help="TG-43 line-source (default) or 1D point-source formalism")
     parser.add_argument("--bits", type=int, choices=(16, 32), default=16,
@@ -47,8 +58,13 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.types import Grid
     from reachplan.planner.dose.tg43 import Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
     from reachplan.planner.errors import PlanInputError
-    from reachplan.planner.pipeline import get_source, recognise_source
-    from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
+    from reachplan.planner.pipeline import get_source
+    from reachplan.plugins.exporters.rtdose import (
+        CEILING_TIMES_PRESCRIPTION,
+        DoseContext,
+        read_rtdose_grid,
+        write_rtdose,
+    )
 
     # --- arguments and the output place, before any work ---
     output_file(args.out, (args.plan, args.structures, args.like))
@@ -66,23 +82,10 @@ def run(args: argparse.Namespace) -> int:
     src = plan.source(plan.channels[0].source_number)
     if src.air_kerma_rate_u <= 0:
         raise PlanInputError(f"{args.plan}: the source has no Reference Air Kerma Rate; cannot compute dose")
-    recognised = recognise_source(*src.labels(), plan.machine_name)
-    name = recognised or args.source
-    if name is None:
-        raise PlanInputError(
-            f"cannot recognise the source {src.isotope_name!r} of {args.plan.name}; pass --source NAME "
-            "(see `reachplan plugins`)"
-        )
-    if recognised and args.source and args.source != recognised:
-        warnings.warn(f"the plan's source is {recognised}; --source {args.source} ignored", stacklevel=1)
-    data = chosen if chosen is not None and name == args.source else get_source(name)
+    choice = _choose_source(plan, src, args.source)
+    data = chosen if chosen is not None and choice.name == args.source else get_source(choice.name)
     check_isotope(src, data, str(args.plan))
-    if src.active_length_mm and abs(src.active_length_mm - 10 * data.active_length_cm) > 0.01:
-        warnings.warn(
-            f"the plan's active length {src.active_length_mm} mm differs from {name}'s "
-            f"{10 * data.active_length_cm} mm",
-            stacklevel=1,
-        )
+    sk_u, decay = _decayed_strength(plan, src, args.treatment_date)
     kernel = Tg43Kernel(data, args.model)
     dwells = plan_dwells(plan, channel_paths(plan, structures))
     if not len(dwells):
@@ -103,11 +106,11 @@ def run(args: argparse.Namespace) -> int:
     for_uid = plan.frame_of_reference_uid or structures.frame_of_reference_uid
     if not for_uid:
         raise PlanInputError("neither the plan nor the structure set gives a Frame of Reference UID")
-    dose = dose_on_grid(grid, dwells, kernel, src.air_kerma_rate_u)
+    dose = dose_on_grid(grid, dwells, kernel, sk_u)
     if not np.all(np.isfinite(dose)):
         raise PlanInputError(f"{args.plan}: the dose is not finite on the grid (a dwell time or strength out of "
                              "range); check the plan's times and source")
-    checks = check_points(plan, dwells, kernel, src.air_kerma_rate_u) if args.points else ()
+    checks = check_points(plan, dwells, kernel, sk_u) if args.points else ()
     context = DoseContext(
         frame_of_reference_uid=for_uid,
         study_instance_uid=plan.study_instance_uid,
@@ -115,12 +118,17 @@ def run(args: argparse.Namespace) -> int:
         patient_name=plan.patient_name,
         referenced_plan_uid=plan.sop_instance_uid,
     )
-    write_rtdose(args.out, dose, grid, context, bits=args.bits)  # the only output, written last and atomically
+    setup = max((d for _, d in plan.setup_doses_gy), default=0.0) * plan.n_fractions * plan.n_pulses
+    # the only output, written last and atomically
+    write_rtdose(args.out, dose, grid, context, bits=args.bits,
+                 ceiling_gy=CEILING_TIMES_PRESCRIPTION * setup if setup > 0 else None)
 
     if args.json:
         doc: dict[str, object] = {
             "out": str(args.out),
-            "source": name,
+            "source": choice.name,
+            "source_choice": choice.how,
+            **decay,
             "model": args.model,
             "grid_shape": list(grid.shape),
             "spacing_mm": [float(x) for x in grid.spacing_mm],
@@ -141,11 +149,78 @@ def run(args: argparse.Namespace) -> int:
         doc["warnings"] = seen_warnings(args)
         print_json(doc, NAME)
         return 0
-    print(f"source {name} ({args.model}), S_K {src.air_kerma_rate_u} U, {len(dwells)} dwells, "
+    print(f"source {choice.how} ({args.model} model)")
+    print(f"S_K {decay['air_kerma_reference_u']:.6g} U on {decay['reference_date']}, {sk_u:.6g} U on "
+          f"{decay['treatment_date']} ({decay['elapsed_days']:.3f} d); {len(dwells)} dwells, "
           f"{plan.n_fractions} fraction(s) x {plan.n_pulses} pulse(s)")
     print(f"wrote {args.out}: grid {grid.shape} (k, j, i), max {float(dose.max()):.3f} Gy")
     for c in checks:
         tps = "-" if c.tps_gy is None else f"{c.tps_gy:.4f}"
         diff = "-" if c.diff_percent is None else f"{c.diff_percent:+.3f} %"
-        print(f"  {c.name:<20} ours {c.dose_gy:.4f} Gy  TPS {tps} Gy  {diff}")
+        print(f"  {c.name:<20} ours {c.dose_gy:.4f} Gy  planned {tps} Gy  {diff}")
     return 0
+
+
+def _choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> SourceChoice:
+    """Return the TG-43 data set: ``--source`` (checked against the plan's isotope) or identified from the plan."""
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.pipeline import SourceChoice, get_source, identify_source, plan_isotope
+
+    if given:
+        data = get_source(given)
+        isotope = plan_isotope(src.isotope_name, src.half_life_days)
+        if isotope is not None and isotope != data.isotope:
+            raise PlanInputError(f"--source {given} is {data.isotope} but the plan's source is {isotope}; "
+                                 "choose a data set of that isotope")
+        return SourceChoice(given, f"{given}: given with --source")
+    return identify_source(src.model_id, src.isotope_name, src.manufacturer, plan.treatment_type,
+                           src.half_life_days, src.active_length_mm, plan.machine_name)
+
+
+def _parse_date(text: str, what: str) -> datetime:
+    from reachplan.planner.errors import PlanInputError
+
+    digits = text.strip().split(".")[0]
+    fmt = {8: "%Y%m%d", 10: "%Y%m%d%H", 12: "%Y%m%d%H%M", 14: "%Y%m%d%H%M%S"}.get(len(digits))
+    if fmt is not None and digits.isdigit():
+        try:
+            return datetime.strptime(digits, fmt)
+        except ValueError:
+            pass
+    raise PlanInputError(f"{what} {text!r} is not a date YYYYMMDD[HHMMSS]")
+
+
+def _decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None) -> tuple[float, dict[str, Any]]:
+    """Return S_K (U) at the treatment date and what was used (reference and treatment dates, elapsed days, S_K)."""
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.pipeline import decay_factor
+
+    info: dict[str, Any] = {"air_kerma_reference_u": src.air_kerma_rate_u, "reference_date": src.reference_date,
+                            "treatment_date": "", "elapsed_days": 0.0}
+    if not src.reference_date:
+        info["treatment_date"] = "unknown (no Source Strength Reference Date: not decayed)"
+        info["air_kerma_treatment_u"] = src.air_kerma_rate_u
+        return src.air_kerma_rate_u, info
+    ref = _parse_date(src.reference_date + (src.reference_time or ""), "Source Strength Reference Date")
+    if treatment:
+        when = _parse_date(treatment, "--treatment-date")
+        elapsed = (when - ref).total_seconds() / 86400.0
+        info["treatment_date"] = treatment
+    elif plan.plan_date:
+        day = _parse_date(plan.plan_date, "RT Plan Date")
+        elapsed = float((day.date() - ref.date()).days)
+        info["treatment_date"] = f"{plan.plan_date} (RT Plan Date)"
+    else:
+        elapsed = 0.0
+        info["treatment_date"] = f"{src.reference_date} (no RT Plan Date: not decayed)"
+    if src.half_life_days is None or src.half_life_days <= 0:
+        if elapsed != 0.0:
+            raise PlanInputError("the plan's source has no half-life; cannot decay its strength to the treatment "
+                                 "date (pass --treatment-date equal to the reference date to use it as written)")
+        factor = 1.0
+    else:
+        factor = decay_factor(src.half_life_days, elapsed)
+    info["reference_date"] = f"{src.reference_date} {src.reference_time}".strip()
+    info["elapsed_days"] = elapsed
+    info["air_kerma_treatment_u"] = src.air_kerma_rate_u * factor
+    return src.air_kerma_rate_u * factor, info

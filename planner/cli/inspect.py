@@ -44,6 +44,12 @@ def run(args: argparse.Namespace) -> int:
                        f"{r.n_contours} contours {'/'.join(r.geometric_types)}")
     for p in result.plans:
         out.append(f"plan {p.type or '-'} {p.technique or '-'} source {p.source or '-'} ({p.path}) {p.note}")
+        rx = f"{p.prescription_gy:g} Gy per fraction" if p.prescription_gy is not None else "no prescription"
+        out.append(f"  machine {p.machine or '-'}; {rx}{' to ' + p.target if p.target else ''}; "
+                   f"{p.fractions} fraction(s); {len(p.channels)} channels, {sum(c.n_dwells for c in p.channels)} "
+                   "dwells")
+        for name, dose in p.points:
+            out.append(f"  point {name}: {'-' if dose is None else f'{dose:.3f} Gy'} (plan, all fractions)")
         for c in p.channels:
             out.append(f"  channel {c.channel_number:3d}: {c.n_dwells:3d} dwells, {c.total_time_s:8.1f} s, "
                        f"ROI {c.roi_number if c.roi_number is not None else '-'}")

@@ -61,6 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stylet presets to steer with (none: straight needles only)")
     parser.add_argument("--target-roi", default="HR-CTV", help="ROI the dwell times are optimised on")
     parser.add_argument("--source", default="gammamed_plus_hdr", help="TG-43 source plugin for the dose")
+    parser.add_argument("--reference-point", action="append", default=[], metavar="NAME=X,Y,Z",
+                        help="a dose reference point of the exported plan (mm, LPS), with its planned dose; "
+                             "repeatable (Point A and the ICRU bladder/rectum points are added when the "
+                             "structures allow)")
     parser.add_argument("--no-export", action="store_true", help="rank only; skip dose optimisation and export")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
@@ -95,6 +99,16 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
         else:
             names.append(spec)
     return names, points
+
+
+def _reference_points(specs: list[str]) -> list[tuple[str, tuple[float, float, float]]]:
+    out = []
+    for spec in specs:
+        name, sep, xyz = spec.partition("=")
+        if not sep or not name.strip() or len(name.strip()) > 64:
+            raise PlanInputError(f"reference point {spec!r}: give NAME=X,Y,Z (a name of 1-64 characters, mm LPS)")
+        out.append((name.strip(), _triple(xyz, f"reference point {name.strip()}")))
+    return out
 
 
 def read_pose_file(path: Path) -> np.ndarray:
@@ -214,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
     check_plan_arguments(args, inputs)
     quiet = args.quiet or args.json
     names, points = _targets(args.targets)
+    named_points = _reference_points(args.reference_point)
     config = PlanConfig(template=args.template, designs=tuple(args.design))
     table, overrides, config = _names(args, config)
     volume = read_series(args.ct) if args.ct else None
@@ -228,7 +243,8 @@ def run(args: argparse.Namespace) -> int:
     with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole plan succeeds
         doc = run_plan(structures, volume, names, points, config, stage, quiet,
                        export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs,
-                       pose=pose, allow_no_oars=args.allow_no_oars, standard_names=table.standard_names)
+                       pose=pose, allow_no_oars=args.allow_no_oars, standard_names=table.standard_names,
+                       named_points=named_points)
         # the scene's notes (organs not found, targets planned to points) and the named warnings met on the way
         # (readers, planning), also in plan.json
         notes = doc.get("warnings")
@@ -246,8 +262,11 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
              config: PlanConfig, out: Path, quiet: bool, *, export: bool = True, source: str = "gammamed_plus_hdr",
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
              extra: dict[str, object] | None = None, pose: TemplatePose | None = None, allow_no_oars: bool = False,
-             standard_names: Sequence[str] | None = None) -> dict[str, object]:
+             standard_names: Sequence[str] | None = None,
+             named_points: Sequence[tuple[str, tuple[float, float, float]]] = ()) -> dict[str, object]:
     """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan document.
+
+    ``named_points``: dose reference points (name, (x, y, z) mm LPS) the exported plan carries with their doses.
 
     ``pose``: the template pose (None: fitted to the Obturator ROI). The pose and how it was found, and the
     warnings about the input (organs at risk not found, targets planned to points), are printed and saved in
@@ -300,7 +319,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         bar = tqdm(total=4, desc="delivery", unit="step", disable=quiet, leave=False)
         bar.set_postfix_str("dwell times (TG-43, LP)")
         delivery = plan_delivery(result, structures, grid, source_name=source, target_roi=target_roi,
-                                 volume=volume, input_paths=inputs or [])
+                                 volume=volume, input_paths=inputs or [], named_points=named_points)
         bar.update()
         for name in ("dicom_rt", "device_json", "device_csv"):
             bar.set_postfix_str(f"export {name}")
@@ -310,8 +329,13 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
             bar.update()
         bar.close()
         opt = delivery.optimisation
+        ex = delivery.export
         doc["delivery"] = {
             "needles": [c.hole_id for c in delivery.needles],
+            "prescription": {"target": ex.target_name, "dose_per_fraction_gy": ex.prescription_dose_gy,
+                             "fractions": ex.fractions_planned},
+            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}
+                                 for p in ex.reference_points],
             "optimisation": {"success": opt.success, "reason": opt.reason, "aim_met": opt.aim_met,
                              "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
             "files": files,

@@ -16,10 +16,18 @@ Interpolation and extrapolation (TG-43U1 §IV and Appendix):
   held constant (dose there is below 10⁻⁴ of the 1 cm dose).
 * F: bilinear in (r, θ) inside the table; outside the r range the nearest column (TG-43U1 recommends
   F(r_max, θ) beyond r_max and F(r_min, θ) below r_min).
-* r → 0: a point closer to the source centre than ``r_min = max(first g_L radius, 0.6 L)`` is evaluated
-  at ``r_min`` in the same direction (the dose is finite and the geometry factor defined also on the
-  axis, where r_min² − L²/4 > 0). On the axis the line-source G_L tends continuously to
-  1 / (r² − L²/4); the code uses that limit without a branch.
+* Near the source (line model) the geometry factor is evaluated at the point's own distance, as in the
+  TG-43U1 formalism and the treatment planning systems that follow the consensus data (Perez-Calatayud et
+  al. 2012, HEBD report §II: G_L is analytic, only g_L and F are tabulated and extrapolated): there is no
+  cap on r; below the first tabulated radius g_L and F take their nearest values (TG-43U1 §IV.D,
+  above). Only points inside the source itself, closer to its axis than ``Y_SOURCE_CM`` (0.4 mm: less than
+  the radius of any needle lumen a 0.9 mm Ir-192 source fits in), are moved out to that distance from the
+  axis at the same position along it, so that the dose is finite; everywhere outside the needle lumen the
+  kernel is the formalism itself. On the axis beyond the source's ends the line-source G_L tends
+  continuously to 1 / (r² − L²/4). (Until issue 17 every point within r_min = max(first g_L radius, 0.6 L)
+  of the centre was evaluated at r_min, which capped the dose within about 2 mm of a dwell and set 0.8 % of
+  the voxels of a Vitesse HDR export apart from the TPS by more than 2 %.)
+* The 1D point-source option evaluates the dose at ``r_min = max(first g_L radius, 0.6 L)`` for closer points.
 
 g_L · F is tabulated once per source on a regular (Δr = 0.05 cm, Δθ = 1°) grid. Every consensus table
 node lies on that grid, so bilinear lookup in it reproduces bilinear interpolation of the published
@@ -53,6 +61,10 @@ DR_CM = 0.05  # radial step of the internal table
 DTHETA_DEG = 1.0  # polar step of the internal table
 R_TABLE_MAX_CM = 100.0
 _EPS_Y_CM = 1e-6
+#: Points closer than this to a source's axis, within its length, are inside the source: they are evaluated at
+#: this distance from the axis (cm). 0.04 cm < the 0.45 mm radius of a 0.9 mm source capsule (GammaMed Plus,
+#: rtplan_conventions.md §5), so every point outside the needle lumen is computed as it is.
+Y_SOURCE_CM = 0.04
 
 SourceModel = Literal["line", "point"]
 
@@ -91,6 +103,8 @@ class Tg43Kernel:
         Consensus data.
     model : {"line", "point"}
         2D line-source formalism (default) or the 1D point-source approximation.
+
+    ``r_min_cm`` is the distance below which the point model holds the dose at its value there.
     """
 
     source: SourceData
@@ -144,32 +158,48 @@ class Tg43Kernel:
     def _rate(self, r: np.ndarray, c: np.ndarray, dtype: type) -> np.ndarray:
         """Kernel on arrays (modified in place where possible); ``c`` already in [-1, 1]."""
         L = dtype(self.length_cm)
-        rc = np.maximum(r, dtype(self.r_min_cm), out=r)
-        ri = rc * dtype(1.0 / DR_CM)
-        nr = self._table.shape[0]
-        i0 = np.minimum(ri.astype(np.intp), nr - 2)
-        fr = np.minimum(ri - i0, dtype(1.0), out=ri)
+        one = dtype(1.0)
         table: np.ndarray = self._table32 if dtype is np.float32 else self._table
+        nr = self._table.shape[0]
         if self.model == "point":
-            v = table[i0] * (dtype(1.0) - fr)
+            rc = np.maximum(r, dtype(self.r_min_cm), out=r)
+            ri = rc * dtype(1.0 / DR_CM)
+            i0 = np.minimum(ri.astype(np.intp), nr - 2)
+            fr = np.minimum(ri - i0, one, out=ri)
+            v = table[i0] * (one - fr)
             v += table[i0 + 1] * fr
             return v * dtype(self.source.dose_rate_constant)
-        # geometry factor with the clamped distance, direction kept. Only arctan (no arctan2/arccos:
-        # those are 3-4x slower in numpy): β = atan(L y / (r² − L²/4)) as r² > L²/4 always (r >= r_min),
-        # and θ from the half-angle formula, well conditioned on both sides of the axis.
-        one = dtype(1.0)
+        # Line source at the point's own distance (no cap): only points beside the source and closer to
+        # its axis than Y_SOURCE_CM are moved out to it (see the module docstring). Only arctan (no
+        # arctan2/arccos: those are 3-4x slower in numpy): β from atan(L y / |r² − L²/4|), mirrored to
+        # π − β inside the sphere of diameter L, and θ from the half-angle formula, well conditioned on both
+        # sides of the axis.
         ac = np.abs(c)
         s = one - ac
         s *= one + ac
         s = np.sqrt(s, out=s)  # sin θ >= 0
-        y = rc * s
+        z = r * ac  # |z| along the axis
+        y = r * s
+        near = y < dtype(Y_SOURCE_CM)
+        if near.any():  # beside the source: keep clear of its axis; beyond its ends: the on-axis limit
+            near &= z < dtype(0.5) * L
+            y[near] = dtype(Y_SOURCE_CM)
         np.maximum(y, dtype(_EPS_Y_CM), out=y)
+        rc = np.hypot(y, z, out=r)  # the distance, moved out of the source (θ for F stays the point's own)
         d = rc * rc
         d -= dtype(0.25) * L * L
+        neg = d < 0
+        np.abs(d, out=d)
+        np.maximum(d, dtype(1e-12), out=d)
         np.divide(y, d, out=d)
         d *= L
         gfac = np.arctan(d, out=d)
+        if neg.any():
+            gfac[neg] = dtype(math.pi) - gfac[neg]  # β > 90° inside the sphere of diameter L
         gfac /= y  # β / y ; divided by L and G0 in the constant below
+        ri = rc * dtype(1.0 / DR_CM)
+        i0 = np.minimum(ri.astype(np.intp), nr - 2)
+        fr = np.minimum(ri - i0, one, out=ri)
         ac += one
         np.divide(s, ac, out=s)
         phi = np.arctan(s, out=s)  # α/2, α = angle to the nearer axis direction (tan α/2 = sin α/(1+cos α))
@@ -183,10 +213,10 @@ class Tg43Kernel:
         ft -= t0
         k = i0 * nt + t0
         flat = table.reshape(-1)
-        a = flat[k] * (dtype(1.0) - ft)
+        a = flat[k] * (one - ft)
         a += flat[k + 1] * ft
         k += nt
-        b = flat[k] * (dtype(1.0) - ft)
+        b = flat[k] * (one - ft)
         b += flat[k + 1] * ft
         b -= a
         b *= fr

@@ -189,7 +189,7 @@ def task_dose(result: PlanResult, structures: StructureSet) -> DoseOutcome:
     from reachplan.planner.pipeline import plan_delivery
 
     try:
-        opt = plan_delivery(result, structures, None).optimisation
+        opt = plan_delivery(result, structures, None, planned_dose=False).optimisation
     except ReachplanError as exc:
         return DoseOutcome(None, None, " ".join(str(exc).split()))
     if not opt.success:

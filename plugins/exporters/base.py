@@ -26,7 +26,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from reachplan._arrays import arc_length_mm, frozen_floats
-from reachplan.imaging.types import StructureSet, Volume
+from reachplan.imaging.types import Grid, StructureSet, Volume
 from reachplan.plugins.errors import ExportError
 from reachplan.plugins.sources import SourceData
 
@@ -249,6 +249,113 @@ class SourceSpec:
         return replace(spec, **extra) if extra else spec
 
 
+@dataclass(frozen=True)
+class Afterloader:
+    """The treatment machine as the RT Plan names it, and its length convention.
+
+    Parameters
+    ----------
+    name : str
+        Treatment Machine Name (<= 16 characters).
+    manufacturer, model_name : str
+        Manufacturer and Manufacturer's Model Name of the machine (<= 64 characters each).
+    channel_length_mm : float
+        Afterloader to the distal-most source position, mm: written as Channel Length, Channel Effective
+        Length and Source Applicator Length.
+
+    The default :data:`GAMMAMED_PLUS_HDR` is what Varian BrachyVision writes for the GammaMed Plus HDR
+    afterloader (reference/tps_examples/hdr, rtplan_conventions.md §5-6: "GammaMed PlusHDR", Varian Medical
+    Systems, GammaMedPlus_iX, Channel Length = Source Applicator Length = 1300 mm; Oncentra/Vitesse also
+    writes 1300 mm for both).
+
+    Raises
+    ------
+    ValueError
+        A name too long or empty, or a non-positive length.
+    """
+
+    name: str
+    manufacturer: str = ""
+    model_name: str = ""
+    channel_length_mm: float = 1300.0
+
+    def __post_init__(self) -> None:
+        _check_short_text(self.name, "treatment machine name", 16)
+        if len(self.manufacturer) > 64 or len(self.model_name) > 64:
+            raise ValueError("afterloader manufacturer and model name must be <= 64 characters")
+        if not (math.isfinite(self.channel_length_mm) and self.channel_length_mm > 0):
+            raise ValueError("afterloader channel_length_mm must be positive (mm)")
+
+
+#: BrachyVision's GammaMed Plus HDR (reference/tps_examples/hdr; see :class:`Afterloader`).
+GAMMAMED_PLUS_HDR = Afterloader("GammaMed PlusHDR", "Varian Medical Systems", "GammaMedPlus_iX", 1300.0)
+
+_REFERENCE_TYPES = ("ORGAN_AT_RISK", "TARGET")
+
+
+@dataclass(frozen=True, eq=False)
+class ReferencePoint:
+    """A dose reference point of the plan, with what each dwell gives it.
+
+    Parameters
+    ----------
+    name : str
+        Dose Reference Description, e.g. ``"Point A left"`` (1-64 characters).
+    position_mm : (3,) float, mm, LPS
+        Where the point is.
+    rate_gy_per_s : tuple of (m_i,) float, Gy s⁻¹
+        For each needle of the plan (in needle order) and each of its dwells (in the needle's dwell order),
+        the dose per fraction at the point per second of dwell (TG-43 with the plan's source strength).
+        The exporter multiplies it with the (rounded) dwell times: the planned dose and the cumulative dose
+        reference coefficients follow from the times as written.
+    reference_type : str
+        ``"ORGAN_AT_RISK"`` (bladder, rectum, Point A as Eclipse writes it) or ``"TARGET"``.
+
+    Raises
+    ------
+    ValueError
+        A bad name or type, a non-finite position, or negative or non-finite rates.
+    """
+
+    name: str
+    position_mm: np.ndarray
+    rate_gy_per_s: tuple[np.ndarray, ...]
+    reference_type: str = "ORGAN_AT_RISK"
+
+    def __post_init__(self) -> None:
+        _check_short_text(self.name, "reference point name", 64)
+        if self.reference_type not in _REFERENCE_TYPES:
+            raise ValueError(f"reference point {self.name}: type must be one of {', '.join(_REFERENCE_TYPES)}")
+        pos = frozen_floats(np.reshape(self.position_mm, (3,)), (), f"reference point {self.name}: position_mm")
+        rates = tuple(frozen_floats(np.reshape(r, (-1,)), (), f"reference point {self.name}: rates")
+                      for r in self.rate_gy_per_s)
+        if any(np.any(r < 0) for r in rates):
+            raise ValueError(f"reference point {self.name}: dose rates must be >= 0 Gy/s")
+        object.__setattr__(self, "position_mm", pos)
+        object.__setattr__(self, "rate_gy_per_s", rates)
+
+
+@dataclass(frozen=True, eq=False)
+class PlannedDose:
+    """The planned dose on a grid, written as the plan's RT Dose.
+
+    Parameters
+    ----------
+    dose_gy : (nk, nj, ni) float, Gy
+        Dose of the whole plan (all fractions) on ``grid`` (array order slice, row, column).
+    grid : Grid
+        Where, LPS mm.
+    """
+
+    dose_gy: np.ndarray
+    grid: Grid
+
+    def __post_init__(self) -> None:
+        dose = np.asarray(self.dose_gy, dtype=float)
+        if dose.shape != self.grid.shape or not np.all(np.isfinite(dose)) or np.any(dose < 0):
+            raise ValueError(f"planned dose must be finite, >= 0 Gy and of the grid's shape {self.grid.shape}")
+
+
 @dataclass(frozen=True, eq=False)
 class ExportPlan:
     """Everything an exporter needs, as plain data.
@@ -271,14 +378,23 @@ class ExportPlan:
     name : str
         RT Plan Name (<= 64 characters, optional).
     fractions_planned : int
-        Number of Fractions Planned, >= 1.
+        Number of Fractions Planned, >= 1 (4 for the EMBRACE II schedule the EQD2 figures assume).
     prescription_dose_gy : float or None
-        Dose per fraction at the prescription (Brachy Application Setup Dose), Gy, when known.
+        Dose per fraction prescribed to the target (Brachy Application Setup Dose), Gy, when known.
+    target_name : str
+        The prescription target (Dose Reference Description of the TARGET item), e.g. ``"HR-CTV"``.
+    reference_points : tuple of ReferencePoint
+        Dose reference points with what each dwell gives them (Point A, ICRU bladder and rectum points, points
+        the user names).
     application_setup_type : str
         DICOM Application Setup Type (defined terms; ``SYED_NEBLETT`` for a perineal interstitial template).
-    channel_effective_length_mm : float
-        Afterloader to the distal-most source position, mm (ASSUMED default 1300 mm: the GammaMed Plus
-        channel length in the BrachyVision example, reference/tps_examples/hdr). Must exceed every path.
+    afterloader : Afterloader
+        Treatment machine name and length convention (default :data:`GAMMAMED_PLUS_HDR`).
+    channel_effective_length_mm : float or None
+        Afterloader to the distal-most source position, mm; None: the afterloader's channel length. Must
+        exceed every path.
+    dose : PlannedDose or None
+        The planned dose on a grid, written as an RT Dose that references the plan; None: no RT Dose.
     input_paths : tuple of Path
         Files (or series folders) the plan was made from: never written, nor written into, by an export.
 
@@ -298,8 +414,12 @@ class ExportPlan:
     name: str = ""
     fractions_planned: int = 1
     prescription_dose_gy: float | None = None
+    target_name: str = "HR-CTV"
+    reference_points: tuple[ReferencePoint, ...] = ()
     application_setup_type: str = "SYED_NEBLETT"
-    channel_effective_length_mm: float = 1300.0
+    afterloader: Afterloader = GAMMAMED_PLUS_HDR
+    channel_effective_length_mm: float | None = None
+    dose: PlannedDose | None = None
     input_paths: tuple[Path, ...] = field(default=())
 
     def __post_init__(self) -> None:
@@ -318,10 +438,21 @@ class ExportPlan:
         if self.prescription_dose_gy is not None and not (
                 math.isfinite(self.prescription_dose_gy) and self.prescription_dose_gy > 0):
             raise ValueError("prescription_dose_gy must be positive when given")
+        if self.channel_effective_length_mm is None:
+            object.__setattr__(self, "channel_effective_length_mm", self.afterloader.channel_length_mm)
+        assert self.channel_effective_length_mm is not None
         longest = max(n.length_mm for n in self.needles)
         if not (math.isfinite(self.channel_effective_length_mm) and self.channel_effective_length_mm > longest):
             raise ValueError(f"channel_effective_length_mm ({self.channel_effective_length_mm}) must exceed the "
                              f"longest needle path ({longest:.1f} mm)")
+        object.__setattr__(self, "reference_points", tuple(self.reference_points))
+        names = [p.name for p in self.reference_points]
+        if len(set(names)) != len(names):
+            raise ValueError(f"reference point names must be unique, got {names}")
+        for p in self.reference_points:
+            if [len(r) for r in p.rate_gy_per_s] != [len(n.dwell_times_s) for n in self.needles]:
+                raise ValueError(f"reference point {p.name}: give one dose rate per dwell of every needle")
+        _check_short_text(self.target_name, "target name", 64)
         if self.source.treatment_type != "HDR":
             raise ValueError(f"only HDR plans are exported, the source is {self.source.treatment_type}")
 

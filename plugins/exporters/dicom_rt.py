@@ -1,20 +1,27 @@
-"""DICOM RT export of a plan: an RT Plan (brachy, HDR, interstitial) and an RT Structure Set.
+"""DICOM RT export of a plan: an RT Plan (brachy, HDR, interstitial), an RT Structure Set and an RT Dose.
 
-Mirrors what Varian BrachyVision writes (reference/tps_examples/hdr, see ``oncoreach.md`` "Export
-conventions"):
+Mirrors what Varian BrachyVision and Oncentra/Vitesse write (reference/rtplan_conventions.md, with the DICOM
+types and the genuine exports it was read from):
 
 * RT Structure Set: the patient's ROIs as read (numbers, names, colours, contours kept) plus one ROI per
   needle of interpreted type ``BRACHY_CHANNEL`` holding one ``OPEN_NONPLANAR`` contour, the needle path
-  written tip first.
-* RT Plan: one Application Setup with one Channel per needle (Channel Sequence), each linked to its ROI by
-  Referenced ROI Number; Brachy Control Points in pairs per dwell (same position; the cumulative time weight
-  rises across the pair by the dwell time), ordered from the tip; Control Point Relative Position = arc
-  distance from the tip (the distal-most source position) along the path; cumulative time weights in
-  seconds, Final Cumulative Time Weight = Channel Total Time (as Eclipse writes); Channel Effective Length
-  (PS3.3 prefers it to the retired Channel Length); one Source from the plan's :class:`SourceSpec`.
-* Both files share one Study and Frame of Reference (the input's), carry the input patient identity, get
-  new SOP Instance and Series UIDs, and the plan references the structure set. Approval status is
-  ``UNAPPROVED``: this is a pre-plan.
+  written tip first. With the input CT the reference chain Frame of Reference → study → series → every slice,
+  and each planar contour references its slice (§8).
+* RT Plan: the prescription (Dose Reference Sequence: the target as SITE/TARGET with Target Prescription Dose,
+  each reference point as COORDINATES; Brachy Application Setup Dose = dose per fraction; Number of Fractions
+  Planned) (§2-3); one Application Setup of the template's type with one Channel per needle, linked to its ROI
+  by Referenced ROI Number; Brachy Control Points in pairs per dwell (same position; the cumulative time weight
+  rises across the pair by the dwell time), ordered from the tip, each with every dose reference's Cumulative
+  Dose Reference Coefficient (the channel's share of the setup dose so far: planned dose per fraction at a point
+  = Σ over channels of the last coefficient × setup dose, §4) and, on curved needles, Control Point Orientation
+  toward the tip (§7); Control Point Relative Position = arc distance from the tip; Channel Length, Channel
+  Effective Length and Source Applicator Length = the afterloader's length, Treatment Machine Name from
+  :class:`~reachplan.plugins.exporters.base.Afterloader` (§5-6); one Source from the plan's
+  :class:`SourceSpec`.
+* RT Dose (when the plan carries its dose): the planned dose of all fractions, referencing the plan (§9).
+* All files share one Study (the input CT's, with its date, time and ID) and Frame of Reference, carry the input
+  patient identity, get new SOP Instance and Series UIDs, and the plan references the structure set. Approval
+  status is ``UNAPPROVED``: this is a pre-plan.
 
 Written with Implicit VR Little Endian (as BrachyVision does: contour data can exceed the 64 kB value
 length of explicit-VR DS).
@@ -23,6 +30,7 @@ length of explicit-VR DS).
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from decimal import Decimal
@@ -35,6 +43,7 @@ from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.sequence import Sequence
 from pydicom.uid import ImplicitVRLittleEndian, generate_uid
 
+from reachplan._arrays import arc_length_mm
 from reachplan.imaging.files import atomic_write_bytes
 from reachplan.imaging.types import Contour, Roi
 from reachplan.plugins.exporters.base import (
@@ -49,13 +58,20 @@ from reachplan.plugins.exporters.base import (
     check_targets,
     file_stem,
     prepare_out_dir,
+    project_on_path,
 )
+from reachplan.plugins.exporters.rtdose import CEILING_TIMES_PRESCRIPTION, DoseContext, rtdose_dataset
 
 RT_PLAN_STORAGE = "1.2.840.10008.5.1.4.1.1.481.5"
 RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
+#: Referenced SOP Class of the RT Referenced Study item (Detached Study Management, as Oncentra/Vitesse
+#: writes; rtplan_conventions.md §8).
+DETACHED_STUDY_MANAGEMENT = "1.2.840.10008.3.1.2.3.1"
 #: Implementation Class UID of reachplan's writer (derived from a fixed name, so stable across runs).
 IMPLEMENTATION_CLASS_UID = generate_uid(entropy_srcs=["reachplan DICOM RT exporter"])
 CHANNEL_COLOR = (255, 255, 0)
+#: Series Number of each exported object (RT Dose: rtdose.py writes its own).
+SERIES_NUMBERS = {"RTSTRUCT": 901, "RTPLAN": 902}
 _INTERPRETED_TYPE_CHARS = set("ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_ ")
 
 
@@ -102,7 +118,9 @@ class Identity:
     Parameters
     ----------
     patient_id, patient_name, study_instance_uid, frame_of_reference_uid : str
-        As written to both files.
+        As written to every file.
+    study_date, study_time, study_id : str
+        Study Date, Time and ID of the input images (a study of our own: the export's date and time, ID "1").
     generated : tuple of str
         What the input did not give and was generated (placeholders), e.g.
         ``("Study Instance UID", "Frame of Reference UID")``.
@@ -113,6 +131,9 @@ class Identity:
     study_instance_uid: str
     frame_of_reference_uid: str
     generated: tuple[str, ...] = ()
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
 
 
 def plan_identity(plan: ExportPlan, uid_prefix: str | None = None) -> Identity:
@@ -135,7 +156,13 @@ def plan_identity(plan: ExportPlan, uid_prefix: str | None = None) -> Identity:
                               "export with the structure set drawn on that volume")
     given = {what: a or b for what, (a, b) in pairs.items()}
     generated = tuple(what for what in ("Study Instance UID", "Frame of Reference UID") if not given[what])
+    study = [x for x in (v, s) if x is not None and x.study_instance_uid == given["Study Instance UID"]
+             and x.study_date]  # the CT's study attributes, else the input structure set's
+    now = plan.plan_datetime or datetime.now()
     return Identity(
+        study_date=study[0].study_date if study else _date(now),
+        study_time=study[0].study_time if study else _time(now),
+        study_id=(study[0].study_id if study else "") or "1",
         patient_id=given["Patient ID"],
         patient_name=(v.patient_name if v else "") or (s.patient_name if s else ""),
         study_instance_uid=given["Study Instance UID"] or new_uid(uid_prefix),
@@ -151,8 +178,9 @@ def _common(ds: Dataset, ident: Identity, sop_class: str, sop_uid: str, modality
     ds.InstanceCreationTime = _time(now)
     ds.SOPClassUID = sop_class
     ds.SOPInstanceUID = sop_uid
-    ds.StudyDate = ""
-    ds.StudyTime = ""
+    # the study of the images (dciodvfy warns about empty study attributes; every TPS export repeats the CT's)
+    ds.StudyDate = ident.study_date
+    ds.StudyTime = ident.study_time
     ds.AccessionNumber = ""
     ds.Modality = modality
     ds.Manufacturer = "reachplan"
@@ -167,8 +195,9 @@ def _common(ds: Dataset, ident: Identity, sop_class: str, sop_uid: str, modality
     ds.SoftwareVersions = _version()
     ds.StudyInstanceUID = ident.study_instance_uid
     ds.SeriesInstanceUID = series_uid
-    ds.StudyID = ""
-    ds.SeriesNumber = None
+    ds.StudyID = ident.study_id
+    # a series number of its own per object (type 2; dciodvfy asks for one), clear of the image series' numbers
+    ds.SeriesNumber = SERIES_NUMBERS.get(modality)
     ds.InstanceNumber = 1
 
 
@@ -196,6 +225,63 @@ def channel_roi_numbers(plan: ExportPlan) -> tuple[int, ...]:
     return tuple(range(first, first + len(plan.needles)))
 
 
+def _image_ref(class_uid: str, instance_uid: str) -> Dataset:
+    item = Dataset()
+    item.ReferencedSOPClassUID = class_uid
+    item.ReferencedSOPInstanceUID = instance_uid
+    return item
+
+
+def _referenced_frame(plan: ExportPlan, ident: Identity) -> Dataset:
+    """Build the Referenced Frame of Reference item.
+
+    With the input images, the study → series → contour images chain (one item per slice, as every TPS export
+    writes: rtplan_conventions.md §8).
+    """
+    ref_for = Dataset()
+    ref_for.FrameOfReferenceUID = ident.frame_of_reference_uid
+    v = plan.volume
+    series_uid = v.series_instance_uid if v is not None else (
+        plan.structure_set.referenced_series_uid if plan.structure_set is not None else None)
+    if not series_uid:
+        return ref_for
+    series = Dataset()
+    series.SeriesInstanceUID = series_uid
+    ss = plan.structure_set
+    if v is not None and v.slice_uids and v.series_instance_uid == series_uid:
+        series.ContourImageSequence = Sequence([_image_ref(c, i) for c, i in v.slice_uids])
+    elif ss is not None and ss.referenced_images and ss.referenced_series_uid == series_uid:
+        series.ContourImageSequence = Sequence([_image_ref(c, i) for c, i in ss.referenced_images])
+    else:  # the series is known but not its images: the chain stops here (type 1 sequence needs items)
+        return ref_for
+    study = Dataset()
+    study.ReferencedSOPClassUID = DETACHED_STUDY_MANAGEMENT
+    study.ReferencedSOPInstanceUID = ident.study_instance_uid
+    study.RTReferencedSeriesSequence = Sequence([series])
+    ref_for.RTReferencedStudySequence = Sequence([study])
+    return ref_for
+
+
+def _slice_finder(plan: ExportPlan) -> Callable[[np.ndarray], Dataset | None]:
+    """Map a planar contour (k, 3) mm to the Contour Image item of the input slice it lies on (None: none)."""
+    v = plan.volume
+    if v is None or not v.slice_uids:
+        return lambda _points: None
+    a = v.grid.patient_from_index
+    normal = np.cross(a[:3, 0], a[:3, 1])
+    normal /= np.linalg.norm(normal)
+    heights = np.array([float((a[:3, 3] + k * a[:3, 2]) @ normal) for k in range(v.grid.shape[0])])
+    step = float(abs(a[:3, 2] @ normal)) or 1.0
+    uids = v.slice_uids
+
+    def find(points: np.ndarray) -> Dataset | None:
+        h = float(np.mean(points @ normal))
+        k = int(np.argmin(np.abs(heights - h)))
+        return _image_ref(*uids[k]) if abs(heights[k] - h) <= 0.5 * step + 1e-3 else None
+
+    return find
+
+
 def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetime,
                    uid_prefix: str | None = None) -> Dataset:
     """Build the RT Structure Set dataset (no file meta): input ROIs plus one BRACHY_CHANNEL ROI per needle.
@@ -215,9 +301,8 @@ def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetim
     ds.StructureSetName = (plan.name or plan.label)[:64]
     ds.StructureSetDate = _date(now)
     ds.StructureSetTime = _time(now)
-    ref_for = Dataset()
-    ref_for.FrameOfReferenceUID = ident.frame_of_reference_uid
-    ds.ReferencedFrameOfReferenceSequence = Sequence([ref_for])
+    ds.ReferencedFrameOfReferenceSequence = Sequence([_referenced_frame(plan, ident)])
+    slice_of = _slice_finder(plan)
 
     rois: list[tuple[Roi, str]] = []  # (roi, generation algorithm)
     if plan.structure_set is not None:
@@ -251,6 +336,11 @@ def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetim
             ct.ContourGeometricType = c.geometric_type
             ct.NumberOfContourPoints = len(c.points_mm)
             ct.ContourData = [_ds(x) for x in c.points_mm.ravel()]
+            image = slice_of(c.points_mm) if c.geometric_type in ("CLOSED_PLANAR", "POINT") else None
+            if image is None and all(c.image):  # no CT given: the slice the input named
+                image = _image_ref(*c.image)
+            if image is not None:
+                ct.ContourImageSequence = Sequence([image])
             seq.append(ct)
         if seq:
             rc.ContourSequence = Sequence(seq)
@@ -288,8 +378,41 @@ def dwell_ticks(times_s: np.ndarray, resolution_s: float) -> np.ndarray:
     return np.rint(np.asarray(times_s, dtype=float) / resolution_s).astype(np.int64)
 
 
-def _channel(needle: NeedleExport, number: int, roi_number: int, plan: ExportPlan,
-             res: Decimal) -> tuple[Dataset, Decimal]:
+def _toward_tip(needle: NeedleExport) -> np.ndarray:
+    """Return the (m, 3) unit tangent of the path at each dwell, pointing toward the tip.
+
+    That is the source's long axis in the insertion direction (PS3.3 C.8.8.15.14).
+    """
+    path = needle.path_mm
+    arc, _ = project_on_path(path, needle.dwell_positions_mm)
+    s = arc_length_mm(path)
+    lo, hi = np.clip(arc - 0.5, 0.0, s[-1]), np.clip(arc + 0.5, 0.0, s[-1])
+    d = np.stack([np.interp(hi, s, path[:, c]) - np.interp(lo, s, path[:, c]) for c in range(3)], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def is_curved(needle: NeedleExport, tolerance_mm: float = 0.1) -> bool:
+    """Tell whether the needle path leaves the straight line from its entry to its tip by more than ``tolerance_mm``."""
+    p = needle.path_mm
+    chord = p[-1] - p[0]
+    u = chord / np.linalg.norm(chord)
+    off = (p - p[0]) - np.outer((p - p[0]) @ u, u)
+    return bool(np.linalg.norm(off, axis=1).max() > tolerance_mm)
+
+
+def _coef(x: float) -> str:
+    """Format a cumulative dose reference coefficient as DS (10 significant digits, <= 16 characters)."""
+    return f"{x:.10g}"
+
+
+def _channel(needle: NeedleExport, number: int, roi_number: int, plan: ExportPlan, res: Decimal,
+             refs: list[tuple[int, np.ndarray | None]], setup_dose_gy: float | None,
+             plan_total_s: Decimal) -> tuple[Dataset, Decimal]:
+    """Build one Channel Sequence item.
+
+    ``refs``: (dose reference number, per-dwell dose rate per fraction in Gy/s, or None for the SITE target,
+    whose coefficients share the setup dose by channel time).
+    """
     from_tip = needle.dwell_distance_from_tip_mm
     order = np.argsort(from_tip, kind="stable")  # tip first, as BrachyVision writes
     ticks = dwell_ticks(needle.dwell_times_s, float(res))[order]
@@ -298,13 +421,16 @@ def _channel(needle: NeedleExport, number: int, roi_number: int, plan: ExportPla
     gaps = np.diff(np.sort(np.round(from_tip, 1)))
     gaps = gaps[gaps > 0]
     step = float(gaps.min()) if len(gaps) else 5.0
+    length = float(plan.channel_effective_length_mm or plan.afterloader.channel_length_mm)
+    curved = is_curved(needle)
+    axis = _toward_tip(needle)
 
     ch = Dataset()
     ch.ChannelNumber = number
-    ch.ChannelEffectiveLength = _ds(plan.channel_effective_length_mm, 1)
-    # Channel Length (type 2) repeats it for readers that predate Channel Effective Length (BrachyVision writes
-    # its 1300 mm there); the channel's inner length and the applicator tip beyond the distal-most source
-    # position are not known to a pre-plan: present and empty (type 2C).
+    ch.ChannelEffectiveLength = _ds(length, 1)
+    # Channel Length (type 2) and Source Applicator Length (1C) repeat the afterloader's length, as BrachyVision
+    # and Oncentra/Vitesse write them (1300 mm, rtplan_conventions.md §6); the channel's inner length and the
+    # applicator tip beyond the distal-most source position are not known to a pre-plan: present and empty.
     ch.ChannelLength = ch.ChannelEffectiveLength
     ch.ChannelInnerLength = None
     ch.SourceApplicatorTipLength = None
@@ -312,16 +438,26 @@ def _channel(needle: NeedleExport, number: int, roi_number: int, plan: ExportPla
     ch.SourceMovementType = "STEPWISE"
     ch.SourceApplicatorNumber = number
     ch.SourceApplicatorID = needle.hole_id
-    ch.SourceApplicatorType = "FLEXIBLE"
+    # a plain needle is a straight rigid applicator (RIGID, as both TPSs write); a steered one bends by design
+    ch.SourceApplicatorType = "FLEXIBLE" if needle.design else "RIGID"
     ch.SourceApplicatorName = f"needle {needle.hole_id}" + (f" ({needle.design})" if needle.design else "")
     ch.SourceApplicatorName = ch.SourceApplicatorName[:64]
-    ch.SourceApplicatorLength = _ds(needle.length_mm, 2)
+    ch.SourceApplicatorLength = ch.ChannelEffectiveLength
     ch.SourceApplicatorStepSize = _ds(step, 1)
     ch.TransferTubeNumber = None
     ch.ReferencedROINumber = roi_number
     ch.ReferencedSourceNumber = 1
     ch.NumberOfControlPoints = 2 * len(order)
     ch.FinalCumulativeTimeWeight = _dsd(total)
+    times_s = ticks.astype(float) * float(res)
+    cum_dose: list[np.ndarray] = []
+    for _, per_second in refs:
+        if per_second is None:  # SITE target: the channel's share of the plan's time (bookkeeping, §4)
+            share = np.cumsum(times_s) / float(plan_total_s) if plan_total_s > 0 else np.zeros(len(order))
+            cum_dose.append(np.concatenate([[0.0], share]))
+        else:
+            assert setup_dose_gy is not None
+            cum_dose.append(np.concatenate([[0.0], np.cumsum(per_second[order] * times_s)]) / setup_dose_gy)
     cps = []
     for j, idx in enumerate(order):
         pos = [_ds(x) for x in needle.dwell_positions_mm[idx]]
@@ -331,10 +467,61 @@ def _channel(needle: NeedleExport, number: int, roi_number: int, plan: ExportPla
             cp.ControlPointIndex = 2 * j + half
             cp.ControlPointRelativePosition = rel
             cp.ControlPoint3DPosition = pos
+            if curved:  # as Oncentra/Vitesse writes on curved needles (rtplan_conventions.md §7)
+                cp.ControlPointOrientation = [float(x) for x in axis[idx]]
             cp.CumulativeTimeWeight = _dsd(Decimal(int(cum[j + half])) * res)
+            if refs and setup_dose_gy is not None:
+                items = []
+                for (ref_number, _), c in zip(refs, cum_dose, strict=True):
+                    item = Dataset()
+                    item.CumulativeDoseReferenceCoefficient = _coef(float(c[j + half]))
+                    item.ReferencedDoseReferenceNumber = ref_number
+                    items.append(item)
+                cp.BrachyReferencedDoseReferenceSequence = Sequence(items)
             cps.append(cp)
     ch.BrachyControlPointSequence = Sequence(cps)
     return ch, total
+
+
+def planned_point_doses_gy(plan: ExportPlan, time_resolution_s: float = 0.1) -> dict[str, float]:
+    """Dose per fraction (Gy) at each reference point of ``plan`` with the dwell times as the export writes them.
+
+    Returns
+    -------
+    dict name -> Gy
+        Σ over dwells of the point's dose rate × the dwell time rounded to ``time_resolution_s``.
+    """
+    out = {}
+    for p in plan.reference_points:
+        out[p.name] = float(sum(
+            float(rate @ (dwell_ticks(n.dwell_times_s, time_resolution_s) * time_resolution_s))
+            for rate, n in zip(p.rate_gy_per_s, plan.needles, strict=True)))
+    return out
+
+
+def _dose_references(plan: ExportPlan, uid_prefix: str | None) -> list[Dataset]:
+    """Build the Dose Reference Sequence: the prescription target (SITE, TARGET) and one COORDINATES item per point."""
+    items = []
+    target = Dataset()
+    target.DoseReferenceNumber = 1
+    target.DoseReferenceUID = new_uid(uid_prefix)
+    target.DoseReferenceStructureType = "SITE"
+    target.DoseReferenceDescription = plan.target_name
+    target.DoseReferenceType = "TARGET"
+    if plan.prescription_dose_gy is not None:
+        # the whole course: per-fraction prescription x fractions (the plan's total, as the coefficients give it)
+        target.TargetPrescriptionDose = _ds(plan.prescription_dose_gy * plan.fractions_planned, 4)
+    items.append(target)
+    for k, p in enumerate(plan.reference_points, start=2):
+        item = Dataset()
+        item.DoseReferenceNumber = k
+        item.DoseReferenceUID = new_uid(uid_prefix)
+        item.DoseReferenceStructureType = "COORDINATES"
+        item.DoseReferenceDescription = p.name
+        item.DoseReferencePointCoordinates = [_ds(x) for x in p.position_mm]
+        item.DoseReferenceType = p.reference_type
+        items.append(item)
+    return items
 
 
 def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: str, now: datetime,
@@ -342,7 +529,12 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     """Build the RT Plan dataset (no file meta): brachy, HDR, interstitial, one channel per needle.
 
     Dwell times are rounded to ``time_resolution_s`` s and written as cumulative time weights; control point
-    positions are the dwell positions in LPS mm.
+    positions are the dwell positions in LPS mm. With a prescription, the Dose Reference Sequence holds the
+    target (SITE, TARGET, Target Prescription Dose = per-fraction prescription × fractions) and every reference
+    point (COORDINATES); Brachy Application Setup Dose is the per-fraction prescription, and every control
+    point carries each reference's Cumulative Dose Reference Coefficient, so that a reader recovers the planned
+    dose per fraction at a point as Σ over channels of the last coefficient × the setup dose
+    (rtplan_conventions.md §4; PS3.3 C.8.8.14.7).
     """
     when = plan.plan_datetime or now
     res = Decimal(repr(time_resolution_s))
@@ -360,6 +552,9 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     ref_ss.ReferencedSOPClassUID = RT_STRUCTURE_SET_STORAGE
     ref_ss.ReferencedSOPInstanceUID = rtstruct_uid
     ds.ReferencedStructureSetSequence = Sequence([ref_ss])
+    setup_dose = None if plan.prescription_dose_gy is None else float(_ds(plan.prescription_dose_gy, 4))
+    dose_refs = _dose_references(plan, uid_prefix)
+    ds.DoseReferenceSequence = Sequence(dose_refs)
 
     fg = Dataset()
     fg.FractionGroupNumber = 1
@@ -368,15 +563,20 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     fg.NumberOfBrachyApplicationSetups = 1
     ref_setup = Dataset()
     ref_setup.ReferencedBrachyApplicationSetupNumber = 1
-    if plan.prescription_dose_gy is not None:
-        ref_setup.BrachyApplicationSetupDose = _ds(plan.prescription_dose_gy, 4)
+    if setup_dose is not None:
+        ref_setup.BrachyApplicationSetupDose = _ds(setup_dose, 4)
+        ref_setup.ReferencedDoseReferenceUID = dose_refs[0].DoseReferenceUID
     fg.ReferencedBrachyApplicationSetupSequence = Sequence([ref_setup])
     ds.FractionGroupSequence = Sequence([fg])
 
     ds.BrachyTreatmentTechnique = "INTERSTITIAL"
     ds.BrachyTreatmentType = plan.source.treatment_type
     machine = Dataset()
-    machine.TreatmentMachineName = ""
+    machine.TreatmentMachineName = plan.afterloader.name
+    if plan.afterloader.manufacturer:
+        machine.Manufacturer = plan.afterloader.manufacturer
+    if plan.afterloader.model_name:
+        machine.ManufacturerModelName = plan.afterloader.model_name
     ds.TreatmentMachineSequence = Sequence([machine])
 
     src = plan.source
@@ -403,9 +603,14 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     setup.ApplicationSetupType = plan.application_setup_type
     setup.ApplicationSetupNumber = 1
     setup.ApplicationSetupName = "interstitial template"
+    res_s = float(res)
+    plan_total = sum((Decimal(int(dwell_ticks(n.dwell_times_s, res_s).sum())) * res for n in plan.needles),
+                     Decimal(0))
     channels, total_s = [], Decimal(0)
     for k, (needle, roi_number) in enumerate(zip(plan.needles, channel_roi_numbers(plan), strict=True), start=1):
-        ch, t = _channel(needle, k, roi_number, plan, res)
+        refs: list[tuple[int, np.ndarray | None]] = [(1, None)]
+        refs += [(i, p.rate_gy_per_s[k - 1]) for i, p in enumerate(plan.reference_points, start=2)]
+        ch, t = _channel(needle, k, roi_number, plan, res, refs, setup_dose, plan_total)
         channels.append(ch)
         total_s += t
     # Total Reference Air Kerma (µGy at 1 m) = S_K (U = µGy m² h⁻¹) x total time (h), S_K as written (not decayed).
@@ -434,7 +639,10 @@ def _refuse_input_sop(path: Path, uids: set[str]) -> None:
 
 
 def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-    """Write ``RS_<stem>.dcm`` (RT Structure Set) and ``RP_<stem>.dcm`` (RT Plan) into ``out_dir``.
+    """Write ``RS_<stem>.dcm``, ``RP_<stem>.dcm`` and, with the plan's dose, ``RD_<stem>.dcm`` into ``out_dir``.
+
+    The RT Dose references the plan (and through it the structure set: a Referenced Structure Set Sequence in an
+    RT Dose belongs to the RT DVH module, which would then need DVHs).
 
     Parameters
     ----------
@@ -448,7 +656,7 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
     Returns
     -------
     ExportedFiles
-        Roles ``"rtstruct"`` and ``"rtplan"``; notes on placeholders and dwell-time rounding.
+        Roles ``"rtstruct"``, ``"rtplan"`` (and ``"rtdose"``); notes on placeholders and dwell-time rounding.
 
     Raises
     ------
@@ -459,9 +667,10 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
     uid_prefix = opts.uid_prefix
     out = prepare_out_dir(out_dir)
     stem = file_stem(plan, opts)
-    rs_path, rp_path = out / f"RS_{stem}.dcm", out / f"RP_{stem}.dcm"
-    check_targets((rs_path, rp_path), plan, opts)
-    for p in (rs_path, rp_path):
+    rs_path, rp_path, rd_path = out / f"RS_{stem}.dcm", out / f"RP_{stem}.dcm", out / f"RD_{stem}.dcm"
+    targets = (rs_path, rp_path) + ((rd_path,) if plan.dose is not None else ())
+    check_targets(targets, plan, opts)
+    for p in targets:
         _refuse_input_sop(p, _input_uids(plan))
 
     notes: list[str] = []
@@ -478,10 +687,32 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
     rs = build_rtstruct(plan, ident, rs_uid, now, uid_prefix)
     rp = build_rtplan(plan, ident, rp_uid, rs_uid, now, opts.time_resolution_s, uid_prefix)
     rs_bytes, rp_bytes = _file_bytes(rs), _file_bytes(rp)
+    rd_bytes = b""
+    if plan.dose is not None:
+        context = DoseContext(
+            frame_of_reference_uid=ident.frame_of_reference_uid, study_instance_uid=ident.study_instance_uid,
+            patient_id=ident.patient_id, patient_name=ident.patient_name, referenced_plan_uid=rp_uid,
+            series_description="reachplan planned dose (TG-43)",
+            study_date=ident.study_date, study_time=ident.study_time, study_id=ident.study_id)
+        try:
+            ceiling = None if plan.prescription_dose_gy is None else (
+                CEILING_TIMES_PRESCRIPTION * plan.prescription_dose_gy * plan.fractions_planned)
+            rd = rtdose_dataset(plan.dose.dose_gy, plan.dose.grid, context, ceiling_gy=ceiling)
+            if ceiling is not None and float(np.max(plan.dose.dose_gy)) > ceiling:
+                notes.append(f"RT Dose: {int(np.count_nonzero(plan.dose.dose_gy > ceiling))} voxel(s) next to dwells "
+                             f"above {ceiling:.4g} Gy ({CEILING_TIMES_PRESCRIPTION:g} x the prescription) stored at it")
+        except ValueError as exc:
+            raise ExportError(f"cannot write the planned dose as RT Dose: {exc}") from None
+        buf = io.BytesIO()
+        rd.save_as(buf, enforce_file_format=True)
+        rd_bytes = buf.getvalue()
     atomic_write_bytes(rs_path, rs_bytes)
     atomic_write_bytes(rp_path, rp_bytes)
-    return ExportedFiles("dicom_rt", (ExportedFile("rtstruct", rs_path), ExportedFile("rtplan", rp_path)),
-                         tuple(notes))
+    files = [ExportedFile("rtstruct", rs_path), ExportedFile("rtplan", rp_path)]
+    if rd_bytes:
+        atomic_write_bytes(rd_path, rd_bytes)
+        files.append(ExportedFile("rtdose", rd_path))
+    return ExportedFiles("dicom_rt", tuple(files), tuple(notes))
 
 
 EXPORTER: Exporter = FunctionExporter(

@@ -44,6 +44,8 @@ class DoseContext:
         Carried over; an invalid study UID is replaced by a new one.
     referenced_plan_uid : str
         SOP Instance UID of the RT Plan the dose belongs to; empty: none referenced.
+    study_date, study_time, study_id : str
+        Of the study (the images'); written as given.
     series_description : str
         Written as Series Description.
 
@@ -59,6 +61,9 @@ class DoseContext:
     patient_name: str = ""
     referenced_plan_uid: str = ""
     series_description: str = "reachplan TG-43 dose"
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
 
     def __post_init__(self) -> None:
         if not self.frame_of_reference_uid:
@@ -78,7 +83,14 @@ def _valid_uid(uid: str) -> bool:
                                                 for p in uid.split("."))
 
 
-def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16) -> Dataset:
+#: With a prescription, RT Dose pixels hold doses up to this many times the (total) prescribed dose; voxels
+#: above (within a few mm of a dwell, most inside the needle lumen, where the TG-43 dose grows without bound)
+#: are stored at that ceiling, so that 16-bit pixels resolve the clinical range (10 x Rx / 65 535, 0.015 % of Rx).
+CEILING_TIMES_PRESCRIPTION = 10.0
+
+
+def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16,
+                   ceiling_gy: float | None = None) -> Dataset:
     """Build the RT Dose dataset.
 
     Parameters
@@ -91,6 +103,8 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
         Identity carried over.
     bits : {16, 32}
         Bits per pixel.
+    ceiling_gy : float, optional
+        Doses above it are stored as it (see :data:`CEILING_TIMES_PRESCRIPTION`); None: the maximum dose.
 
     Returns
     -------
@@ -133,8 +147,8 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
     ds.InstanceCreationDate = now.strftime("%Y%m%d")
     ds.InstanceCreationTime = now.strftime("%H%M%S")
-    ds.StudyDate = ""
-    ds.StudyTime = ""
+    ds.StudyDate = context.study_date
+    ds.StudyTime = context.study_time
     ds.ContentDate = now.strftime("%Y%m%d")
     ds.ContentTime = now.strftime("%H%M%S")
     ds.AccessionNumber = ""
@@ -151,8 +165,8 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
         context.study_instance_uid if _valid_uid(context.study_instance_uid) else generate_uid()
     )
     ds.SeriesInstanceUID = generate_uid()
-    ds.StudyID = ""
-    ds.SeriesNumber = 1
+    ds.StudyID = context.study_id
+    ds.SeriesNumber = 903  # after the RT Structure Set (901) and RT Plan (902) of an export
     ds.InstanceNumber = 1
     ds.FrameOfReferenceUID = context.frame_of_reference_uid
     ds.PositionReferenceIndicator = ""
@@ -176,6 +190,10 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.DoseSummationType = "PLAN"
     ds.TissueHeterogeneityCorrection = "WATER"
     ds.GridFrameOffsetVector = [_ds(along * k) for k in range(nk)]
+    if ceiling_gy is not None:
+        if not (np.isfinite(ceiling_gy) and ceiling_gy > 0):
+            raise ValueError(f"the dose ceiling must be a positive number of Gy, got {ceiling_gy}")
+        dose = np.minimum(dose, ceiling_gy)
     peak = float(dose.max())
     scaling = peak / top if peak > 0 else 1.0
     ds.DoseGridScaling = _ds(scaling * (1 + 1e-9))  # rounded up: the peak stays representable
@@ -200,7 +218,8 @@ def _is_ours(path: Path) -> bool:
 
 
 def write_rtdose(
-    path: str | os.PathLike[str], dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16
+    path: str | os.PathLike[str], dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bits: int = 16,
+    ceiling_gy: float | None = None,
 ) -> Path:
     """Write an RT Dose file atomically.
 
@@ -216,6 +235,8 @@ def write_rtdose(
         Identity carried over.
     bits : {16, 32}
         Bits per pixel (see the module docstring).
+    ceiling_gy : float, optional
+        See :func:`rtdose_dataset`.
 
     Returns
     -------
@@ -232,7 +253,7 @@ def write_rtdose(
     out = Path(path)
     if out.exists() and not _is_ours(out):
         raise OutputExistsError(f"{out} exists and is not an RT Dose written by reachplan; choose another --out")
-    ds = rtdose_dataset(dose_gy, grid, context, bits=bits)
+    ds = rtdose_dataset(dose_gy, grid, context, bits=bits, ceiling_gy=ceiling_gy)
     buf = io.BytesIO()
     ds.save_as(buf, enforce_file_format=True)
     atomic_write_bytes(out, buf.getvalue())

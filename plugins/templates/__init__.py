@@ -72,6 +72,10 @@ class Template:
         At least one; ids unique.
     source : str
         Where the layout comes from (its citation).
+    application_setup_type : str
+        DICOM Application Setup Type (300A,0232) of an implant through this template (PS3.3 C.8.8.15 defined
+        terms): ``PERINEAL`` for transperineal needles (as Oncentra/Vitesse writes, rtplan_conventions.md §6),
+        ``SYED_NEBLETT`` for a Syed-Neblett template.
 
     Raises
     ------
@@ -82,6 +86,7 @@ class Template:
     name: str
     holes: tuple[Hole, ...]
     source: str = ""
+    application_setup_type: str = "PERINEAL"
 
     def __post_init__(self) -> None:
         ids = [h.hole_id for h in self.holes]
@@ -96,7 +101,7 @@ class Template:
         return tuple(h for h in self.holes if h.kind == "needle")
 
 
-def load_template_csv(path: Path, name: str | None = None) -> Template:
+def load_template_csv(path: Path, name: str | None = None, application_setup_type: str = "PERINEAL") -> Template:
     """Read a template layout: CSV with ``hole_id,x_mm,y_mm[,kind]``; lines starting with ``#`` are comments.
 
     The comment lines are kept as the template's ``source`` (its citation).
@@ -107,6 +112,8 @@ def load_template_csv(path: Path, name: str | None = None) -> Template:
         The CSV file (UTF-8); positions in mm in the template frame.
     name : str, optional
         Template name (default: the file's stem).
+    application_setup_type : str
+        See :class:`Template`.
 
     Raises
     ------
@@ -129,10 +136,10 @@ def load_template_csv(path: Path, name: str | None = None) -> Template:
         )
     except ValueError as exc:
         raise TemplateFileError(f"template {path}: {exc}") from None
-    return Template(name or Path(path).stem, holes, " ".join(comments))
+    return Template(name or Path(path).stem, holes, " ".join(comments), application_setup_type)
 
 
 def needlefinder_syed_63() -> Template:
     # The registry shows this docstring's first line as the plugin's description: a noun phrase on purpose.
     """The 63-hole Syed-Neblett-style layout of 3D Slicer's NeedleFinder module (see the CSV header)."""  # noqa: D401
-    return load_template_csv(_HERE / "needlefinder_syed_63.csv", "needlefinder_syed_63")
+    return load_template_csv(_HERE / "needlefinder_syed_63.csv", "needlefinder_syed_63", "SYED_NEBLETT")

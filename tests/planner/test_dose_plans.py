@@ -148,6 +148,9 @@ def test_cli_points_json_and_like(reference_dir: Path, tmp_path: Path, capsys: p
     assert grid.spacing_mm == pytest.approx([4.0, 4.0, 4.0])
     dwells = plan_dwells(plan, channel_paths(plan, ss))
     expect = dose_on_grid(grid, dwells, Tg43Kernel(get_source("gammamed_plus_hdr")), 40700.0)
+    # voxels next to dwells are stored at 10 x the plan's setup dose (6.0016 Gy, 1 fraction)
+    assert expect.max() > 10 * plan.setup_doses_gy[0][1]
+    expect = np.minimum(expect, 10 * plan.setup_doses_gy[0][1])
     scaling = float(pydicom.dcmread(out).DoseGridScaling)
     assert np.max(np.abs(back - expect)) <= 0.5 * scaling * 1.001 + 1e-6 * expect.max()
     # --like reuses that grid exactly
@@ -192,19 +195,28 @@ def test_cli_errors(reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureF
     assert not (tmp_path / "a.dcm").exists() and not (tmp_path / "c.dcm").exists()
 
 
-def test_cli_unrecognised_source_needs_option(
+def _anonymised(src: Path, dst: Path, **source_attrs: object) -> Path:
+    """Copy of a plan whose source and machine names say nothing (as pyTG43's anonymised inputs)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = pydicom.dcmread(src)
+        ds.SourceSequence[0].SourceIsotopeName = "isotope"
+        ds.TreatmentMachineSequence[0].TreatmentMachineName = "txmachine"
+        for k, v in source_attrs.items():
+            setattr(ds.SourceSequence[0], k, v)
+        ds.save_as(dst)
+    return dst
+
+
+def test_cli_unidentifiable_source_needs_option(
     reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     hdr = reference_dir / "tps_examples" / "hdr"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        ds = pydicom.dcmread(hdr / "RP.HDR.dcm")
-        ds.SourceSequence[0].SourceIsotopeName = "Ir-192 unknown model"
-        ds.TreatmentMachineSequence[0].TreatmentMachineName = "Afterloader"
-        ds.save_as(tmp_path / "RP.dcm")
-    rp, rs = tmp_path / "RP.dcm", hdr / "RS.HDR.dcm"
+    # HDR, 3.5 mm, Ir-192 by half-life, placeholder manufacturer: three registered sources fit
+    rp, rs = _anonymised(hdr / "RP.HDR.dcm", tmp_path / "RP.dcm", SourceManufacturer="manufacturer"), \
+        hdr / "RS.HDR.dcm"
     err = _run_error(["dose", "--plan", str(rp), "--structures", str(rs), "--out", str(tmp_path / "a.dcm")], capsys)
-    assert "--source" in err
+    assert "--source" in err and "flexisource_hdr" in err and "spec_m19_hdr" in err
     assert "no TG-43 source named" in _run_error(
         ["dose", "--plan", str(rp), "--structures", str(rs), "--source", "nope", "--out", str(tmp_path / "a.dcm")],
         capsys)
@@ -214,6 +226,63 @@ def test_cli_unrecognised_source_needs_option(
                      "--points", "--json", "--spacing", "10", "--out", str(tmp_path / "b.dcm")]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert all(abs(d["diff_percent"]) < 0.2 for d in doc["points"])
+    # an isotope without registered data is an error, whatever the names say (no Ir-192 data for Cs-137)
+    cs = _anonymised(hdr / "RP.HDR.dcm", tmp_path / "cs.dcm", SourceIsotopeName="Cs-137",
+                     SourceIsotopeHalfLife="10987")
+    assert "no TG-43 data is registered for Cs-137" in _run_error(
+        ["dose", "--plan", str(cs), "--structures", str(rs), "--out", str(tmp_path / "c.dcm")], capsys)
+    assert "Cs-137" in _run_error(["dose", "--plan", str(cs), "--structures", str(rs), "--source",
+                                   "gammamed_plus_hdr", "--out", str(tmp_path / "c.dcm")], capsys)
+    # a named source that contradicts the plan's active length
+    bad = _anonymised(hdr / "RP.HDR.dcm", tmp_path / "bad.dcm", SourceIsotopeName="GammaMed Plus HDR",
+                      ActiveSourceLength="5")
+    assert "active length" in _run_error(
+        ["dose", "--plan", str(bad), "--structures", str(rs), "--out", str(tmp_path / "d.dcm")], capsys)
+
+
+@pytest.mark.parametrize("kind", ["hdr", "pdr"])
+def test_cli_infers_the_source_of_anonymised_eclipse_plans(
+    kind: str, reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The shared Eclipse examples, anonymised: the source is inferred and the TPS point doses recomputed to 0.1 %."""
+    folder = reference_dir / "tps_examples" / kind
+    rp = _anonymised(folder / f"RP.{kind.upper()}.dcm", tmp_path / "RP.dcm")
+    rs = folder / f"RS.{kind.upper()}.dcm"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DicomQuirkWarning)
+        assert main(["dose", "--plan", str(rp), "--structures", str(rs), "--spacing", "10",
+                     "--out", str(tmp_path / "a.dcm")]) == 0
+        out = capsys.readouterr().out
+        assert f"gammamed_plus_{kind}: inferred from Ir-192, {kind.upper()}" in out
+        assert main(["dose", "--plan", str(rp), "--structures", str(rs), "--points", "--json", "--spacing", "10",
+                     "--out", str(tmp_path / "b.dcm")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert len(doc["points"]) == 2 and all(abs(d["diff_percent"]) < 0.1 for d in doc["points"])
+
+
+def test_cli_decays_the_strength_to_the_treatment_date(
+    reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    hdr = reference_dir / "tps_examples" / "hdr"
+    args = ["dose", "--plan", str(hdr / "RP.HDR.dcm"), "--structures", str(hdr / "RS.HDR.dcm"), "--spacing", "10",
+            "--points", "--json"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DicomQuirkWarning)
+        assert main([*args, "--out", str(tmp_path / "a.dcm")]) == 0
+        at_plan = json.loads(capsys.readouterr().out)
+        # one half-life (73.83 d, the plan's) after the reference date 2018-03-20 00:00: half the dose
+        assert main([*args, "--treatment-date", "20180601195512", "--out", str(tmp_path / "b.dcm")]) == 0
+        later = json.loads(capsys.readouterr().out)
+        assert main(["dose", "--plan", str(hdr / "RP.HDR.dcm"), "--structures", str(hdr / "RS.HDR.dcm"),
+                     "--spacing", "10", "--json", "--treatment-date", "20180601195512",
+                     "--out", str(tmp_path / "c.dcm")]) == 0
+        summary = json.loads(capsys.readouterr().out)
+    for a, b in zip(at_plan["points"], later["points"], strict=True):
+        assert b["dose_gy"] == pytest.approx(0.5 * a["dose_gy"], rel=1e-6)  # 73 d 19:55:12 = 73.83 d
+    assert summary["air_kerma_reference_u"] == 40700.0
+    assert summary["air_kerma_treatment_u"] == pytest.approx(40700.0 * 2 ** (-summary["elapsed_days"] / 73.83))
+    assert "not a date" in _run_error([*args, "--treatment-date", "2018-06-02", "--out", str(tmp_path / "d.dcm")],
+                                      capsys)
 
 
 def test_rtdose_absolute_frame_offsets(tmp_path: Path) -> None:

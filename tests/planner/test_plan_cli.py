@@ -39,3 +39,13 @@ def test_plan_input_errors_are_one_line_exit_2(rtstruct: Path, tmp_path: Path, t
     code = main(["plan", "--rtstruct", str(rtstruct), "--targets", *targets, "--out", str(tmp_path), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and message in err and "\n" not in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(("spec", "message"), [("PtX", "NAME=X,Y,Z"), ("=1,2,3", "NAME=X,Y,Z"),
+                                               ("PtX=1,2", "three finite numbers")])
+def test_bad_reference_point_is_one_line_exit_2(rtstruct: Path, tmp_path: Path, spec: str, message: str,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["plan", "--rtstruct", str(rtstruct), "--targets", "Target_80_030", "--reference-point", spec,
+                 "--out", str(tmp_path), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and message in err and err.count("\n") == 0
