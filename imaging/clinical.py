@@ -225,17 +225,16 @@ def _parametrium(p: ClinicalParams, centre: np.ndarray, side: float) -> Sweep:
     return Sweep(c, 13.0 * f, 14.0 * f, (0.0, 1.0, 0.0))
 
 
-def _bladder(p: ClinicalParams, posterior_y: float) -> Sweep:
-    """The bladder: an ellipsoid bent anteriorly under the uterus; its posterior wall at ``posterior_y``.
-
-    Semi-axes scale with the cube root of the volume (reference 38 x 24 x 25 mm, 95.5 cm³).
-    """
-    k = (p.bladder_volume_cc * 1000.0 / (4 / 3 * math.pi * 38 * 24 * 25)) ** (1 / 3)
-    lat, ap, half = 38 * k, 24 * k, 25 * k
-    start = np.array([0.0, posterior_y - ap + 6.0, 32.0])
+def _bladder(p: ClinicalParams, fill: float = 1.0) -> Sweep:
+    """The bladder holding ``fill`` x its nominal volume: an ellipsoid bent anteriorly under the uterus, its
+    base at z = 32 mm. Semi-axes scale with the cube root of the volume (reference 36 x 25 x 25 mm, 94 cm³;
+    ASSUMED shape)."""
+    k = (fill * p.bladder_volume_cc * 1000.0 / (4 / 3 * math.pi * 36 * 25 * 25)) ** (1 / 3)
+    lat, ap, half = 36 * k, 25 * k, 25 * k
+    start = np.array([0.0, -ap, 32.0])
     c = arc_curve(start, np.array([0.0, -0.35, 1.0]), np.array([0.0, -1.0, 0.0]), 2 * half, 45.0)
     s = np.arange(len(c)) * SAMPLE_MM
-    u = (s - half) / half
+    u = (s - s[-1] / 2) / (s[-1] / 2)
     f = np.sqrt(np.clip(1 - u * u, 0.0, 1.0))
     return Sweep(c, lat * f, ap * f, (1.0, 0.0, 0.0))
 
@@ -270,11 +269,19 @@ def _overlap(a: Sweep | Union, b: Sweep | Union, gap_mm: float = 0.0, step: floa
     return int(np.count_nonzero(b.field(pts[inside]) <= gap_mm))
 
 
+def _bowel(dx: float) -> tuple[Sweep, Sweep]:
+    """Two small-bowel loops above the uterus, on the right (ASSUMED course), shifted by ``dx`` mm along x."""
+    a = [(-48, -25, 150), (-38, -58, 154), (-12, -52, 170), (-36, -28, 180), (-50, -45, 190), (-25, -70, 194),
+         (-12, -76, 190)]
+    b = [(-45, 15, 165), (-25, 5, 184), (-5, -18, 197)]
+    return (tube([(x + dx, y, z) for x, y, z in a], 12.0), tube([(x + dx, y, z) for x, y, z in b], 12.0))
+
+
 def _hip(side: float) -> Sweep:
     """One hip bone: iliac wall (flattened), down the side wall, superior ramus to the symphysis, back along
     the inferior (ischiopubic) ramus to the ischial tuberosity. Radii ASSUMED."""
-    pts = [(75, 45, 198), (69, 25, 160), (64, 8, 115), (61, -10, 75), (50, -42, 52), (26, -62, 46),
-           (10, -68, 40), (9.5, -68, 27), (20, -60, 14), (42, -35, 8), (56, -5, 6), (62, 22, 8)]
+    pts = [(75, 45, 198), (69, 25, 160), (64, 8, 115), (61, -10, 75), (56, -48, 44), (30, -80, 36),
+           (10, -87, 32), (9.5, -87, 21), (22, -74, 12), (44, -40, 6), (56, -5, 6), (62, 22, 8)]
     c = resample_curve(np.array([(side * x, y, z) for x, y, z in pts], float))
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
     ends = _round_ends(s, s[-1], 6.0, 9.0)
@@ -302,29 +309,36 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
 
     # bladder: posterior wall at bladder_wall_y_mm (mid-sagittal), then moved down (2 mm steps) until 3 mm of
     # tissue separate it from the HR-CTV
-    bladder = _bladder(p, 0.0)
-    bladder = _shifted(bladder, (0.0, p.bladder_wall_y_mm - _back_y(bladder), 0.0))
-    for _ in range(20):
-        if _overlap(bladder, hrctv, gap_mm=3.0) == 0:
+    hips = (_hip(1.0), _hip(-1.0))
+    fill = 1.0
+    for _ in range(30):  # anchored at its posterior wall; emptied in 5 % steps until 3 mm of tissue separate
+        # it from the HR-CTV and 2 mm from the bones (a fuller bladder would lift the uterus: not modelled)
+        bladder = _bladder(p, fill)
+        bladder = _shifted(bladder, (0.0, p.bladder_wall_y_mm - _back_y(bladder), 0.0))
+        if _overlap(bladder, hrctv, gap_mm=3.0, step=2.0) == 0 and all(
+                _overlap(bladder, h, gap_mm=2.0, step=2.0) == 0 for h in hips):
             break
-        bladder = _shifted(bladder, (0.0, 0.0, -2.0))
+        fill *= 0.95
 
     rect_pts = [(0, 36, 4), (0, 37, 30), (0, 42, 65), (0, 50, 95), (3, 56, 112), (14, 56, 124)]
     rectum = tube(rect_pts, p.rectum_radius_mm, rounded=False)
     dx, dy, dz = p.sigmoid_shift_mm
-    loop = [(40, 44, 130), (54, 14, 120), (52, -18, 110), (40, -46, 104), (20, -72, 118), (0, -66, 140),
-            (25, -35, 152), (60, -20, 170)]
-    sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (72, -5, 205)],
+    loop = [(33, 44, 130), (35, 18, 124), (36, -16, 112), (36, -46, 104), (20, -72, 118), (0, -66, 140),
+            (25, -35, 152), (50, -24, 170)]
+    sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (56, -10, 205)],
                    p.sigmoid_radius_mm, rounded=False)
     for _ in range(20):  # keep the sigmoid off the HR-CTV and the bladder (3 mm of fat between)
-        if _overlap(sigmoid, hrctv, 3.0) == 0 and _overlap(sigmoid, bladder, 3.0) == 0:
+        if _overlap(sigmoid, hrctv, 3.0, step=2.0) == 0 and _overlap(sigmoid, bladder, 3.0, step=2.0) == 0:
             break
         dz += 2.0
-        sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (72, -5, 205)],
+        sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (56, -10, 205)],
                        p.sigmoid_radius_mm, rounded=False)
-    bowel = (tube([(-70, -20, 150), (-45, -55, 152), (-15, -50, 168), (-40, -20, 178), (-70, -35, 185),
-                   (-40, -62, 192), (0, -70, 188)], 12.0),
-             tube([(-60, 20, 160), (-30, 10, 182), (-5, -15, 196)], 12.0))
+    bowel_shift = 0.0
+    while True:  # small-bowel loops on the right, moved further right until 3 mm clear of the sigmoid
+        bowel = _bowel(bowel_shift)
+        if bowel_shift <= -12.0 or all(_overlap(b, sigmoid, 4.0, step=2.0) == 0 for b in bowel):
+            break
+        bowel_shift -= 2.0
     vagina = Sweep(np.column_stack([np.zeros(241), np.zeros(241), np.linspace(0.0, 60.0, 241)]),
                    np.full(241, 18.0), np.full(241, 18.0), (1.0, 0.0, 0.0))
     obturator = Sweep(np.column_stack([np.zeros(321), np.zeros(321), np.linspace(-20.0, 60.0, 321)]),
@@ -338,7 +352,6 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
     tandem = Sweep(tandem_line, r_t, r_t, (1.0, 0.0, 0.0))
     sacrum_c = resample_curve(np.array([(0, 74, 62), (0, 86, 110), (0, 92, 160), (0, 92, 205)], float))
     sacrum = Sweep(sacrum_c, np.full(len(sacrum_c), 42.0), np.full(len(sacrum_c), 11.0), (1.0, 0.0, 0.0))
-    hips = (_hip(1.0), _hip(-1.0))
     bones = (*hips, sacrum)
     body_z = np.linspace(0.0, 210.0, 841)
     body = Sweep(np.column_stack([np.zeros(841), np.full(841, 5.0), body_z]), np.full(841, 150.0),
