@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -190,7 +191,7 @@ def _round_ends(s: np.ndarray, length: float, start_mm: float, end_mm: float) ->
     return f
 
 
-def tube(points_mm: list[tuple[float, float, float]], radius_mm: float, rounded: bool = True) -> Sweep:
+def tube(points_mm: Sequence[tuple[float, float, float]], radius_mm: float, rounded: bool = True) -> Sweep:
     """A round tube along a smooth curve through ``points_mm``; hemispherical ends when ``rounded``."""
     c = resample_curve(np.array(points_mm, float))
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
@@ -210,7 +211,7 @@ def _uterus(p: ClinicalParams) -> tuple[Sweep, Sweep, np.ndarray]:
     lat = _profile(s, [(p.cervix_length_mm + 4.0, 15.0, p.uterus_width_mm / 2)]) * ends
     ap = _profile(s, [(p.cervix_length_mm + 4.0, 13.0, p.uterus_thickness_mm / 2)]) * ends
     uterus = Sweep(c, lat, ap, (1.0, 0.0, 0.0))
-    k = int(round(p.cervix_length_mm / SAMPLE_MM)) + 1
+    k = round(p.cervix_length_mm / SAMPLE_MM) + 1
     cervix = Sweep(c[:k], lat[:k], ap[:k], (1.0, 0.0, 0.0))
     return uterus, cervix, c
 
@@ -303,7 +304,7 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
     """
     p = params or sample_params(seed)
     uterus, cervix, axis = _uterus(p)
-    cervix_mid = axis[int(round(0.55 * p.cervix_length_mm / SAMPLE_MM))]
+    cervix_mid = axis[round(0.55 * p.cervix_length_mm / SAMPLE_MM)]
     sides = [1.0] if p.parametria == "L" else [-1.0] if p.parametria == "R" else [1.0, -1.0]
     hrctv = Union((uterus.grown(p.hrctv_margin_mm), *(_parametrium(p, cervix_mid, s) for s in sides)))
 

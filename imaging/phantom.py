@@ -563,8 +563,9 @@ def _paint(hu: np.ndarray, s: PhantomStructure, z: np.ndarray, xy: np.ndarray) -
     is_ = np.flatnonzero((xy >= lo[0]) & (xy <= hi[0]))
     if not (len(ks) and len(js) and len(is_)):
         return
-    if all(isinstance(sh, Sweep | Union) for sh in s.shapes):  # slice by slice, in each part's window
-        for sh in s.shapes:
+    parts = [sh for sh in s.shapes if isinstance(sh, Sweep | Union)]
+    if len(parts) == len(s.shapes):  # slice by slice, in each part's window
+        for sh in parts:
             for k in ks:
                 win = sh.slice_window(float(z[k]))
                 if win is None:

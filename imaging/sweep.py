@@ -55,7 +55,7 @@ def resample_curve(points_mm: np.ndarray, step_mm: float = SAMPLE_MM, smooth: bo
     else:
         dense = p
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
-    n = max(2, int(round(arc[-1] / step_mm)) + 1)
+    n = max(2, round(arc[-1] / step_mm) + 1)
     s = np.linspace(0.0, arc[-1], n)
     return np.column_stack([np.interp(s, arc, dense[:, i]) for i in range(3)])
 
@@ -68,7 +68,7 @@ def arc_curve(start_mm: np.ndarray, direction: np.ndarray, bend_toward: np.ndarr
     n0 = np.asarray(bend_toward, float)
     n0 = _unit(n0 - (n0 @ d0) * d0)
     total = straight_mm + length_mm
-    s = np.linspace(0.0, total, max(2, int(round(total / step_mm)) + 1))
+    s = np.linspace(0.0, total, max(2, round(total / step_mm) + 1))
     out = np.empty((len(s), 3))
     kappa = math.radians(angle_deg) / length_mm if length_mm > 0 else 0.0
     for i, si in enumerate(s):

@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     cohort = out / "cohort"
     if not (cohort / "cohort.json").exists():
-        make_cohort(cohort, args.cases, seed=1)
+        make_cohort(cohort, args.cases, seed=1, case="pilot")
     cases = discover_cases([cohort])[: args.cases]
     spec = StudySpec(cases, DESIGNS, TARGETS[: args.targets], PlanConfig())
     t = time.perf_counter()

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet or args.json
     t0 = time.perf_counter()
     bar = tqdm(total=2, desc="case: write, read back", unit="step", disable=quiet, leave=False)
-    files, spec, about = write_case(args, out / "phantom")
+    files, _spec, about = write_case(args, out / "phantom")
     bar.update()
     t_write = time.perf_counter() - t0
     t = time.perf_counter()
@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     targets = [n for n in structures.names if n.casefold().startswith("target")]
     # the clinical case's tandem is in the uterine canal: a needle must not cross it
     config = PlanConfig(oar_names=(*DEFAULT_OARS, "Tandem")) if args.case == "clinical" else PlanConfig()
-    label = "built-in phantom" if args.case == "pilot" else f"built-in clinical case (seed {args.seed}, {args.modality})"
+    label = ("built-in phantom" if args.case == "pilot"
+             else f"built-in clinical case (seed {args.seed}, {args.modality})")
     doc = run_plan(structures, volume, targets, [], config, out, quiet,
                    inputs=[files.ct_dir, files.rtstruct_path],
                    extra={"case": label, "case_about": about, "phantom_s": {"write": t_write, "read": t_read}})
