@@ -308,8 +308,6 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
     sides = [1.0] if p.parametria == "L" else [-1.0] if p.parametria == "R" else [1.0, -1.0]
     hrctv = Union((uterus.grown(p.hrctv_margin_mm), *(_parametrium(p, cervix_mid, s) for s in sides)))
 
-    # bladder: posterior wall at bladder_wall_y_mm (mid-sagittal), then moved down (2 mm steps) until 3 mm of
-    # tissue separate it from the HR-CTV
     hips = (_hip(1.0), _hip(-1.0))
     fill = 1.0
     for _ in range(30):  # anchored at its posterior wall; emptied in 5 % steps until 3 mm of tissue separate
@@ -397,11 +395,12 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
         paint("sigmoid gas", sigmoid.shrunk(3.0), "air"),
         *(paint(f"bowel fluid {i}", b.shrunk(3.0), "fluid") for i, b in enumerate(bowel)),
         *(paint(f"marrow {i}", b.shrunk(2.5), "cancellous bone") for i, b in enumerate(bones)),
+        paint("cervical tumour", cervix.shrunk(3.0), "tumour"),  # inside a rim of cervical stroma (T2: dark)
     )
     order = ("Body", "muscle", "pelvic fat", "obturator internus 0", "obturator internus 1", "psoas 0", "psoas 1",
              "Vagina", "Rectum", "rectal gas", "Colon_Sigmoid", "sigmoid gas", "Bowel_Small", "bowel fluid 0",
-             "bowel fluid 1", "Bladder", "urine", "Uterus", "Cervix", "CTV_HR", "Obturator", "Tandem",
-             "Bone_Pelvic", "marrow 0", "marrow 1", "marrow 2")
+             "bowel fluid 1", "Bladder", "urine", "CTV_HR", "Uterus", "Cervix", "cervical tumour", "Obturator",
+             "Tandem", "Bone_Pelvic", "marrow 0", "marrow 1", "marrow 2")
     spec = PhantomSpec(structures, slice_thickness_mm=2.5, z_range_mm=(-20.0, 210.0), matrix=320,
                        air_hu=0.0 if mr else hu["air"], fat_thickness_mm=0.0, case_id=case_id or f"clinical_{seed}",
                        tissues=tissues, paint_order=order, modality="MR" if mr else "CT",
