@@ -599,7 +599,8 @@ RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
 
 @dataclass(frozen=True)
 class PhantomFiles:
-    """Where :func:`write_phantom` put the phantom: the CT series folder and the RT Structure Set file."""
+    """Where :func:`write_phantom` put the phantom: the image series folder (CT or MR) and the RT Structure
+    Set file."""
 
     ct_dir: Path
     rtstruct_path: Path
@@ -815,7 +816,8 @@ def _atomic_write(ds: Any, path: Path) -> None:
 def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFiles:
     """Write the phantom as a DICOM CT series and an RT Structure Set.
 
-    Files: ``out_dir/CT/CT.0001.dcm ...`` and ``out_dir/RS.phantom.dcm``. The output is deterministic
+    Files: ``out_dir/CT/CT.0001.dcm ...`` (``out_dir/MR/MR.0001.dcm ...`` for an MR spec) and
+    ``out_dir/RS.phantom.dcm``. The output is deterministic
     (fixed UIDs derived from the phantom version). Existing phantom files are replaced (atomically,
     file by file); any other file in the way is left untouched and :class:`OutputExistsError` is raised
     before anything is written.
