@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -255,10 +256,11 @@ def trace_field(fn: object, window: np.ndarray, z0: float, step_mm: float = FIEL
 @dataclass(frozen=True, eq=False)
 class Union:
     """The union of (possibly overlapping) sweeps; its volume has no closed form and is integrated on a
-    fine lattice (:meth:`lattice_volume_mm3`)."""
+    lattice (:meth:`lattice_volume_mm3`; cell-centre counting on a 1 mm lattice: its error on a smooth organ is
+    far below the 3 % the round-trip test allows, and the test checks it against the mesh)."""
 
     parts: tuple[Sweep, ...]
-    lattice_mm: float = 0.5
+    lattice_mm: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.parts:
@@ -286,9 +288,9 @@ class Union:
         win = self.slice_window(z0)
         return [] if win is None else trace_field(self.field, win, z0)
 
-    @property
+    @cached_property
     def analytic_volume_mm3(self) -> float:
-        """The volume (mm³) integrated on a ``lattice_mm`` lattice (cell-centre count)."""
+        """The volume (mm³) integrated on a ``lattice_mm`` lattice (cell-centre count; computed once)."""
         return self.lattice_volume_mm3()
 
     def lattice_volume_mm3(self) -> float:
