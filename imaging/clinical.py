@@ -287,9 +287,7 @@ def _hip(side: float) -> Sweep:
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
     ends = _round_ends(s, s[-1], 6.0, 9.0)
     wide = np.clip((c[:, 2] - 60.0) / 60.0, 0.0, 1.0)  # the iliac wall widens upward
-    a = (7.0 + 0.0 * wide) * ends
-    b = (7.0 + 15.0 * wide) * ends
-    return Sweep(c, a, b, (1.0, 0.0, 1.0))
+    return Sweep(c, 7.0 * ends, (7.0 + 15.0 * wide) * ends, (1.0, 0.0, 1.0))
 
 
 def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality: str = "CT",
@@ -453,13 +451,6 @@ def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
     files = write_phantom(out_dir, case.spec)
     atomic_write_json(Path(out_dir) / "case.json", case.to_json())
     return files
-
-
-def case_summary(case: ClinicalCase) -> str:
-    """One line per target: name and position (mm, LPS)."""
-    return "\n".join(f"{n}: ({x:.1f}, {y:.1f}, {z:.1f}) mm" for n, (x, y, z) in case.targets)
-
-
 
 
 def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> StructureSet:
