@@ -7,7 +7,10 @@
 * :mod:`reachplan.imaging.meshing` : contours -> masks, volumes (cm³) and watertight meshes (``roi_mask``,
   ``roi_mesh``, ``structure_volume_cc``).
 * :mod:`reachplan.imaging.names` : ROI name synonyms.
-* :mod:`reachplan.imaging.phantom` : the built-in DICOM pelvic phantom (``write_phantom``, ``phantom_spec``).
+* :mod:`reachplan.imaging.phantom` : the pilot phantom and the DICOM writer of built-in cases (``write_phantom``,
+  ``phantom_spec``).
+* :mod:`reachplan.imaging.clinical` : the built-in clinical case (``clinical_case``, ``write_clinical``), built
+  from the smooth solids of :mod:`reachplan.imaging.sweep`.
 * :mod:`reachplan.imaging.inspect` : what a DICOM folder holds (``reachplan inspect``).
 * :mod:`reachplan.imaging.errors` : typed errors and warnings.
 

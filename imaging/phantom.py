@@ -50,6 +50,7 @@ import numpy as np
 
 from reachplan.imaging.errors import OutputExistsError
 from reachplan.imaging.files import atomic_write
+from reachplan.imaging.sweep import Sweep, Union
 
 #: target spacing (mm) between polygon vertices written for a cross-section
 VERTEX_SPACING_MM = 0.75
@@ -408,7 +409,7 @@ class TorusSection:
         return np.array([arc.min(axis=0) - self.minor_mm, arc.max(axis=0) + self.minor_mm])
 
 
-Shape = Cylinder | EllipticCylinder | Box | Ellipsoid | TorusSection
+Shape = Cylinder | EllipticCylinder | Box | Ellipsoid | TorusSection | Sweep | Union
 
 
 # --------------------------------------------------------------------------------------------------
@@ -506,6 +507,14 @@ class PhantomSpec:
     case_id : str
         Empty for the reference phantom; a variant's id (e.g. ``case_003``) gives it its own DICOM UIDs and
         Patient ID, so variants are distinct patients, studies and Frames of Reference.
+    tissues : tuple of PhantomStructure
+        Structures painted into the image but not written as ROIs (fat, muscle, urine, gas, marrow).
+    paint_order : tuple of str
+        Names of structures and tissues in paint order (later wins); empty: the pilot's order.
+    modality : str
+        ``"CT"`` (HU) or ``"MR"`` (the ``hu`` of each structure is then its signal, arbitrary units).
+    description : str
+        The DICOM StudyDescription.
 
     Raises
     ------
@@ -524,6 +533,10 @@ class PhantomSpec:
     fat_thickness_mm: float = 8.0
     patient_from_template: np.ndarray = field(default_factory=lambda: np.eye(4))
     case_id: str = ""
+    tissues: tuple[PhantomStructure, ...] = ()
+    paint_order: tuple[str, ...] = ()
+    modality: str = "CT"
+    description: str = "reachplan synthetic pelvis (gyn ISBT)"
 
     def __post_init__(self) -> None:
         if self.case_id and not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", self.case_id):
@@ -536,6 +549,11 @@ class PhantomSpec:
         n = (self.z_range_mm[1] - self.z_range_mm[0]) / self.slice_thickness_mm
         if n < 1 or abs(n - round(n)) > 1e-9:
             raise ValueError(f"z_range_mm {self.z_range_mm} must span a whole number of slices")
+        if self.modality not in ("CT", "MR"):
+            raise ValueError(f"modality must be 'CT' or 'MR', got {self.modality!r}")
+        known = {*names, *(t.name for t in self.tissues)}
+        if set(self.paint_order) - known:
+            raise ValueError(f"paint_order names unknown structures: {sorted(set(self.paint_order) - known)}")
         m = np.asarray(self.patient_from_template, dtype=float)
         if m.shape != (4, 4):
             raise ValueError("patient_from_template must be a 4x4 matrix")
@@ -557,7 +575,7 @@ class PhantomSpec:
 
     def get(self, name: str) -> PhantomStructure:
         """Return the structure called ``name`` (exact match); KeyError when there is none."""
-        for s in self.structures:
+        for s in (*self.structures, *self.tissues):
             if s.name == name:
                 return s
         raise KeyError(name)
@@ -649,6 +667,10 @@ def phantom_ct_hu(spec: PhantomSpec) -> np.ndarray:
     n, z = spec.matrix, spec.slice_z_mm
     xy = spec.first_pixel_xy_mm + np.arange(n) * spec.pixel_mm
     hu = np.full((len(z), n, n), spec.air_hu, dtype=np.float32)
+    if spec.paint_order:
+        for name in spec.paint_order:
+            _paint(hu, spec.get(name), z, xy)
+        return np.round(hu).astype(np.int16)
     order = [*_PAINT_ORDER, *(s.name for s in spec.targets), "Obturator", "Bone"]
     painted = {s.name for s in spec.structures if s.name in order}
     order += [s.name for s in spec.structures if s.name not in painted]
@@ -678,6 +700,21 @@ def _paint(hu: np.ndarray, s: PhantomStructure, z: np.ndarray, xy: np.ndarray) -
     is_ = np.flatnonzero((xy >= lo[0]) & (xy <= hi[0]))
     if not (len(ks) and len(js) and len(is_)):
         return
+    parts = [sh for sh in s.shapes if isinstance(sh, Sweep | Union)]
+    if len(parts) == len(s.shapes):  # slice by slice, in each part's window
+        for sh in parts:
+            for k in ks:
+                win = sh.slice_window(float(z[k]))
+                if win is None:
+                    continue
+                j = np.flatnonzero((xy >= win[0][1]) & (xy <= win[1][1]))
+                i = np.flatnonzero((xy >= win[0][0]) & (xy <= win[1][0]))
+                if not (len(j) and len(i)):
+                    continue
+                gy, gx = np.meshgrid(xy[j], xy[i], indexing="ij")
+                inside = sh.contains(np.stack([gx, gy, np.full_like(gx, z[k])], axis=-1))
+                hu[k, j[0]:j[-1] + 1, i[0]:i[-1] + 1][inside] = s.hu
+        return
     gz, gy, gx = np.meshgrid(z[ks], xy[js], xy[is_], indexing="ij")
     inside = s.contains(np.stack([gx, gy, gz], axis=-1))
     sub = hu[ks[0]:ks[-1] + 1, js[0]:js[-1] + 1, is_[0]:is_[-1] + 1]
@@ -693,12 +730,15 @@ PHANTOM_VERSION = "2"
 MANUFACTURER = "reachplan"
 MODEL_NAME = "reachplan pelvic phantom"
 CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
+MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"
 RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
 
 
 @dataclass(frozen=True)
 class PhantomFiles:
-    """Where :func:`write_phantom` put the phantom: the CT series folder and the RT Structure Set file."""
+    """Where :func:`write_phantom` put the phantom: the image series folder (CT or MR) and the RT Structure
+    Set file.
+    """
 
     ct_dir: Path
     rtstruct_path: Path
@@ -715,7 +755,8 @@ def _uid(*parts: str, case_id: str = "") -> str:
 
 
 def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: str,
-                  series_number: int, description: str, case_id: str = "") -> Any:
+                  series_number: int, description: str, case_id: str = "",
+                  study_description: str = "reachplan synthetic pelvis (gyn ISBT)") -> Any:
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, UID, ExplicitVRLittleEndian
 
@@ -736,7 +777,7 @@ def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: 
     ds.ManufacturerModelName = MODEL_NAME
     ds.SoftwareVersions = f"phantom {PHANTOM_VERSION}"
     ds.ReferringPhysicianName = ""
-    ds.StudyDescription = "reachplan synthetic pelvis (gyn ISBT)"
+    ds.StudyDescription = study_description
     ds.SeriesDescription = description
     ds.PatientName = "Phantom^Pelvis"
     ds.PatientID = f"REACHPLAN-PHANTOM-{case_id}" if case_id else "REACHPLAN-PHANTOM"
@@ -750,19 +791,36 @@ def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: 
 
 
 def _ct_datasets(spec: PhantomSpec) -> Iterator[tuple[str, Any]]:
-    hu = phantom_ct_hu(spec)
-    series_uid, for_uid = _uid("ct series", case_id=spec.case_id), _uid("frame of reference", case_id=spec.case_id)
+    """The image slices: a CT series (HU) or, for ``spec.modality == "MR"``, a T2-weighted-like MR series."""
+    values = phantom_ct_hu(spec)
+    mr = spec.modality == "MR"
+    tag = "mr" if mr else "ct"
+    series_uid = _uid(f"{tag} series", case_id=spec.case_id)
+    for_uid = _uid("frame of reference", case_id=spec.case_id)
     x0 = spec.first_pixel_xy_mm
+    sop = MR_IMAGE_STORAGE if mr else CT_IMAGE_STORAGE
     for k, z in enumerate(spec.slice_z_mm):
-        ds = _base_dataset(CT_IMAGE_STORAGE, _uid("ct", str(k), case_id=spec.case_id), "CT", series_uid, 1,
-                           "phantom CT", spec.case_id)
-        ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
+        ds = _base_dataset(sop, _uid(tag, str(k), case_id=spec.case_id), spec.modality, series_uid, 1,
+                           f"phantom {spec.modality}", spec.case_id, spec.description)
+        ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"] if not mr else ["DERIVED", "SECONDARY", "OTHER"]
         ds.InstanceNumber = k + 1
         ds.FrameOfReferenceUID = for_uid
         ds.PositionReferenceIndicator = ""
         ds.PatientPosition = "HFS"
         ds.BodyPartExamined = "PELVIS"
-        ds.KVP = ""
+        if mr:  # MR Image module (PS3.3 C.8.3.1): a T2-weighted turbo spin echo, described not simulated
+            ds.ScanningSequence = "SE"
+            ds.SequenceVariant = "SK"
+            ds.ScanOptions = ""
+            ds.MRAcquisitionType = "2D"
+            ds.RepetitionTime = 4000
+            ds.EchoTime = 100
+            ds.EchoTrainLength = 16
+            ds.MagneticFieldStrength = 1.5
+            ds.ImagedNucleus = "1H"
+            ds.SpacingBetweenSlices = spec.slice_thickness_mm
+        else:
+            ds.KVP = ""
         ds.AcquisitionNumber = 1
         ds.ImagePositionPatient = [f"{x0:.3f}", f"{x0:.3f}", f"{z:.3f}"]
         ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
@@ -775,14 +833,20 @@ def _ct_datasets(spec: PhantomSpec) -> Iterator[tuple[str, Any]]:
         ds.BitsAllocated = 16
         ds.BitsStored = 16
         ds.HighBit = 15
-        ds.PixelRepresentation = 1
-        ds.RescaleIntercept = 0
-        ds.RescaleSlope = 1
-        ds.RescaleType = "HU"
-        ds.WindowCenter = 40
-        ds.WindowWidth = 400
-        ds.PixelData = np.ascontiguousarray(hu[k]).tobytes()
-        yield f"CT.{k + 1:04d}.dcm", ds
+        ds.PixelRepresentation = 0 if mr else 1
+        if mr:
+            ds.WindowCenter = 700
+            ds.WindowWidth = 1600
+            pixels = np.clip(values[k], 0, None).astype(np.uint16)
+        else:
+            ds.RescaleIntercept = 0
+            ds.RescaleSlope = 1
+            ds.RescaleType = "HU"
+            ds.WindowCenter = 40
+            ds.WindowWidth = 400
+            pixels = values[k]
+        ds.PixelData = np.ascontiguousarray(pixels).tobytes()
+        yield f"{spec.modality}.{k + 1:04d}.dcm", ds
 
 
 def _rtstruct_dataset(spec: PhantomSpec, ct: list[Any]) -> Any:
@@ -803,7 +867,7 @@ def _rtstruct_dataset(spec: PhantomSpec, ct: list[Any]) -> Any:
 
     def image_ref(img: Any) -> Dataset:
         r = Dataset()
-        r.ReferencedSOPClassUID = CT_IMAGE_STORAGE
+        r.ReferencedSOPClassUID = img.SOPClassUID
         r.ReferencedSOPInstanceUID = img.SOPInstanceUID
         return r
 
@@ -885,7 +949,8 @@ def _atomic_write(ds: Any, path: Path) -> None:
 def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFiles:
     """Write the phantom as a DICOM CT series and an RT Structure Set.
 
-    Files: ``out_dir/CT/CT.0001.dcm ...`` and ``out_dir/RS.phantom.dcm``. The output is deterministic
+    Files: ``out_dir/CT/CT.0001.dcm ...`` (``out_dir/MR/MR.0001.dcm ...`` for an MR spec) and
+    ``out_dir/RS.phantom.dcm``. The output is deterministic
     (fixed UIDs derived from the phantom version). Existing phantom files are replaced (atomically,
     file by file); any other file in the way is left untouched and :class:`OutputExistsError` is raised
     before anything is written.
@@ -908,10 +973,10 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFile
     """
     spec = spec or phantom_spec()
     out_dir = Path(out_dir)
-    ct_dir, rs_path = out_dir / "CT", out_dir / "RS.phantom.dcm"
+    ct_dir, rs_path = out_dir / spec.modality, out_dir / "RS.phantom.dcm"
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputExistsError(f"{out_dir} is a file; give a folder for the phantom")
-    names = [f"CT.{k + 1:04d}.dcm" for k in range(spec.n_slices)]
+    names = [f"{spec.modality}.{k + 1:04d}.dcm" for k in range(spec.n_slices)]
     in_the_way = [p for p in [rs_path, *(ct_dir / n for n in names)] if p.exists() and not _is_phantom_file(p)]
     stale = []
     if ct_dir.is_dir():

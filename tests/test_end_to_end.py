@@ -1,4 +1,4 @@
-"""The main job end to end: ``reachplan demo`` on the built-in phantom, through DICOM on disk."""
+"""The main job end to end: ``reachplan demo`` on the built-in clinical case, through DICOM on disk."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_demo_writes_ranking_plan_figure_and_exports(demo: Path) -> None:
     ranking = json.loads((demo / "ranking.json").read_text())
-    assert len(ranking) >= 10
+    assert len(ranking) >= 4
     for cands in ranking.values():
         assert cands and all(set(c) >= FIELDS for c in cands)
     assert (demo / "overview.png").stat().st_size > 10_000
@@ -44,6 +44,31 @@ def test_demo_reaches_a_lateral_target_from_a_more_medial_hole_by_steering(demo:
     # lateral: the target lies at least 30 mm from the obturator axis
     tip = steered[0]["tip_position_mm"]
     assert (tip[0] ** 2 + tip[1] ** 2) ** 0.5 >= 30.0, target
+
+
+def test_demo_shows_straight_needles_blocked_where_a_steered_one_reaches(demo: Path) -> None:
+    plan = json.loads((demo / "plan.json").read_text())
+    assert plan["case_about"]["case"] == "clinical"
+    blocked = plan["blocked_straight"]
+    assert blocked, "no straight needle reaches a target and collides"
+    shown = 0
+    for row in blocked:
+        assert row["organ"] in {"Bladder", "Sigmoid", "Bowel"} and row["contact_depth_mm"] > 0
+        cands = plan["targets"][row["target"]]["candidates"]
+        straight = next(c for c in cands if not c["steered"] and c["hole_id"] == row["hole_id"])
+        assert straight["reaches"] and straight["collides"] and not straight["feasible"]
+        assert straight["closest_organ"] == row["organ"] and straight["contact_depth_mm"] == row["contact_depth_mm"]
+        assert f"collides with {row['organ']} at depth" in straight["reason"]
+        clean = [c for c in cands if c["steered"] and c["feasible"] and c["clearance_mm"] >= 2.0]
+        if clean:
+            best = min(clean, key=lambda c: c["hole_distance_mm"])
+            clean_straight = [c["hole_distance_mm"] for c in cands
+                              if not c["steered"] and c["feasible"] and c["clearance_mm"] >= 2.0]
+            assert best["hole_distance_mm"] <= min([row["hole_distance_mm"], *clean_straight])
+            assert best["reach_error_mm"] <= 2.0
+            assert row["steered_alternative"]["hole_id"] == best["hole_id"]
+            shown += 1
+    assert shown, "no blocked target is reached cleanly by a steered needle"
 
 
 def test_demo_is_deterministic(demo: Path, tmp_path: Path) -> None:

@@ -152,7 +152,7 @@ def measure(out: Path, s: StudySettings) -> tuple[list[StudyRun], dict[str, floa
     """
     cohort = out / "cohort"
     if not (cohort / "cohort.json").exists():
-        make_cohort(cohort, s.cases, seed=1)
+        make_cohort(cohort, s.cases, seed=1, case="pilot")
     cases = discover_cases([cohort])[: s.cases]
     if len(cases) < s.cases:
         raise BenchError(f"{cohort} holds {len(cases)} cases, fewer than the {s.cases} asked; delete it or use "

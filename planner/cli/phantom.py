@@ -1,32 +1,62 @@
-"""``reachplan phantom --out DIR``: write the built-in pelvic phantom as DICOM (CT series + RT Structure Set)."""
+"""``reachplan phantom --out DIR``: write a built-in case as DICOM (image series + RT Structure Set)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from reachplan.planner.cli.edges import output_folder, print_json
 
 NAME = "phantom"
-HELP = "write the built-in pelvic phantom (CT series + RT Structure Set) as DICOM"
+HELP = "write a built-in case (clinical by default, or the pilot phantom) as DICOM: image series + RT Structure Set"
+
+
+def add_case_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--case``, ``--seed`` and ``--modality`` (shared with ``demo``)."""
+    parser.add_argument("--case", choices=("clinical", "pilot"), default="clinical",
+                        help="clinical: a cervix-cancer pelvis where organs stand in the way (default); pilot: the "
+                             "OncoReach pilot phantom (SimuGel, target cylinders)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="clinical case: anatomical variation (0 = the reference case; deterministic)")
+    parser.add_argument("--modality", choices=("CT", "MR"), default="CT",
+                        help="clinical case: write a CT series or a T2-weighted-like MR series")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``--out`` and ``--json``."""
     parser.add_argument("--out", type=Path, required=True,
-                        help="output folder (CT in OUT/CT, structures in OUT/RS.phantom.dcm)")
+                        help="output folder (images in OUT/CT or OUT/MR, structures in OUT/RS.phantom.dcm)")
+    add_case_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the written paths and the analytic volumes as JSON")
 
 
-def run(args: argparse.Namespace) -> int:
-    """Write the built-in phantom as DICOM and print what was written; return 0."""
-    from reachplan.imaging.phantom import phantom_spec, write_phantom
+def write_case(args: argparse.Namespace, out: Path) -> tuple[Any, Any, dict[str, object]]:
+    """Write the case the arguments ask for to ``out``: (files, spec, description for JSON)."""
+    from reachplan.planner.errors import PlanInputError
 
+    if args.case == "pilot":
+        from reachplan.imaging.phantom import phantom_spec, write_phantom
+
+        if args.seed != 0 or args.modality != "CT":
+            raise PlanInputError("--seed and --modality apply to the clinical case; the pilot phantom is one CT")
+        spec = phantom_spec()
+        return write_phantom(out, spec), spec, {"case": "pilot"}
+    from reachplan.imaging.clinical import clinical_case, write_clinical
+
+    if args.seed < 0:
+        raise PlanInputError(f"--seed must be >= 0, got {args.seed}")
+    case = clinical_case(args.seed, modality=args.modality)
+    return write_clinical(out, case), case.spec, case.to_json()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Write the built-in case as DICOM and print what was written; return 0."""
     output_folder(args.out)
-    spec = phantom_spec()
-    files = write_phantom(args.out, spec)
+    files, spec, about = write_case(args, args.out)
     if args.json:
         doc = {
+            **about,
             "ct_dir": str(files.ct_dir),
             "rtstruct_path": str(files.rtstruct_path),
             "structures": [
@@ -38,6 +68,6 @@ def run(args: argparse.Namespace) -> int:
         }
         print_json(doc, NAME)
     else:
-        print(f"wrote {spec.n_slices} CT slices to {files.ct_dir} and {len(spec.structures)} ROIs to "
+        print(f"wrote {spec.n_slices} {spec.modality} slices to {files.ct_dir} and {len(spec.structures)} ROIs to "
               f"{files.rtstruct_path}")
     return 0

@@ -38,6 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--make-cohort", type=int, metavar="N",
                         help="instead of a study: write N deterministic phantom variants to --out")
     parser.add_argument("--seed", type=int, default=0, help="seed of --make-cohort")
+    parser.add_argument("--case", choices=("clinical", "pilot"), default="clinical",
+                        help="what --make-cohort varies: the clinical case (default) or the pilot phantom")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or table")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
 
@@ -51,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         if args.make_cohort < 1:
             raise StudyError(f"--make-cohort needs at least 1 case, got {args.make_cohort}")
         output_folder(args.out)
-        cases = make_cohort(args.out, args.make_cohort, args.seed)
+        cases = make_cohort(args.out, args.make_cohort, args.seed, args.case)
         if args.json:
             print_json({"cases": [str(c) for c in cases]}, NAME)
         elif not quiet:

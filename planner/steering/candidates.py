@@ -72,6 +72,9 @@ class Candidate:
         The stylet design (None for a plain straight needle); JSON ``design`` is its preset name.
     schedule : TensionSchedule or None
         Tension and roll along the insertion (None for a straight needle).
+    contact_depth_mm : float or None
+        Insertion depth (arc length from the template plane, mm, to 1 mm) where the needle first touches
+        ``closest_organ`` when it collides; None when it does not.
     worst_reach_mm, worst_clearance_mm, worst_case : float, float, str
         Robustness (see :mod:`reachplan.planner.steering.robustness`): worst reach error and smallest clearance under
         tension, roll and entry-angle errors, and which error gave them; NaN/"" when not assessed.
@@ -93,6 +96,7 @@ class Candidate:
     path_mm: np.ndarray = field(repr=False)
     design: RodDesign | None = field(default=None, repr=False)
     schedule: TensionSchedule | None = field(default=None, repr=False)
+    contact_depth_mm: float | None = None
     worst_reach_mm: float = float("nan")
     worst_clearance_mm: float = float("nan")
     worst_case: str = ""
@@ -125,6 +129,7 @@ class Candidate:
             "peak_tension_n": round(self.peak_tension_n, 3),
             "model": self.model.label,
             "collides": self.collides,
+            "contact_depth_mm": None if self.contact_depth_mm is None else round(self.contact_depth_mm, 1),
             "reaches": self.reaches,
             "feasible": self.feasible,
             "reason": self.reason,
@@ -203,6 +208,7 @@ def score_path(
         clearance_mm=clearance, closest_organ=organ, insertion_depth_mm=depth, steered=steered,
         peak_tension_n=peak_tension_n, model=model, collides=bool(hits), reaches=reaches,
         reason="; ".join(reasons), path_mm=path_mm, design=design, schedule=schedule,
+        contact_depth_mm=(hits[0].contact_s_mm or 0.0) if hits else None,
     )
 
 

@@ -1,6 +1,11 @@
-"""Deterministic cohorts of phantom variants for design studies, tests and benchmarks.
+"""Deterministic cohorts of case variants for design studies, tests and benchmarks.
 
-Variant ``i`` of seed ``s`` perturbs the built-in phantom (:func:`reachplan.imaging.phantom.phantom_spec`) with a random
+``case="clinical"`` (the default): variant ``i`` of seed ``s`` is the built-in clinical case of seed ``s + i``
+(:func:`reachplan.imaging.clinical.clinical_case`: uterine version and flexion, uterine size, bladder filling,
+sigmoid position and tumour extent varied within published ranges); its targets are the ``Target_*`` ROIs.
+
+``case="pilot"``: variant ``i`` of seed ``s`` perturbs the pilot phantom
+(:func:`reachplan.imaging.phantom.phantom_spec`) with a random
 generator seeded by ``(s, i)``: organs move in the axial plane and change size (bladder filling, rectum
 calibre, HR-CTV extent), the pelvic side walls move laterally, and the target pattern rotates about the
 obturator axis and scales radially. Variant 0 is the reference phantom itself. Every z bound stays where the
@@ -126,11 +131,12 @@ def perturbed_spec(p: Perturbation, base: PhantomSpec | None = None) -> PhantomS
     return dataclasses.replace(base, structures=tuple(out))
 
 
-def make_cohort(out_dir: Path, n: int, seed: int = 0) -> tuple[Path, ...]:
-    """Write ``n`` phantom variants as ``out_dir/case_000``, ``case_001``, ... (CT series + RT Structure Set).
+def make_cohort(out_dir: Path, n: int, seed: int = 0, case: str = "clinical") -> tuple[Path, ...]:
+    """Write ``n`` case variants as ``out_dir/case_000``, ``case_001``, ... (image series + RT Structure Set).
 
-    Deterministic in ``(seed, index)``; variant 0 is the reference phantom's geometry. Each variant carries its
-    own Patient ID and DICOM UIDs (``PhantomSpec.case_id`` = the folder name).
+    Deterministic in ``(seed, index)``. ``case="clinical"``: the clinical case of seed ``seed + index``;
+    ``case="pilot"``: the pilot phantom perturbed (variant 0 is its reference geometry). Each variant carries
+    its own Patient ID and DICOM UIDs (``PhantomSpec.case_id`` = the folder name).
 
     Returns
     -------
@@ -138,16 +144,24 @@ def make_cohort(out_dir: Path, n: int, seed: int = 0) -> tuple[Path, ...]:
     """
     if n < 1:
         raise ValueError(f"a cohort needs at least one case, got {n}")
+    if case not in ("clinical", "pilot"):
+        raise ValueError(f"case must be 'clinical' or 'pilot', got {case!r}")
+    from reachplan.imaging.clinical import clinical_case, write_clinical
     from reachplan.imaging.files import atomic_write_json
 
     out_dir = Path(out_dir)
     cases = []
     doc: list[dict[str, object]] = []
     for i in range(n):
-        p = perturbation(seed, i)
-        case = out_dir / f"case_{i:03d}"
-        write_phantom(case, dataclasses.replace(perturbed_spec(p), case_id=case.name))
-        cases.append(case)
-        doc.append({"case": case.name, **dataclasses.asdict(p)})
-    atomic_write_json(out_dir / "cohort.json", {"seed": seed, "cases": doc})
+        folder = out_dir / f"case_{i:03d}"
+        if case == "clinical":
+            c = clinical_case(seed + i, case_id=folder.name)
+            write_clinical(folder, c)
+            doc.append({"case": folder.name, "seed": seed + i, **dataclasses.asdict(c.params)})
+        else:
+            p = perturbation(seed, i)
+            write_phantom(folder, dataclasses.replace(perturbed_spec(p), case_id=folder.name))
+            doc.append({"case": folder.name, **dataclasses.asdict(p)})
+        cases.append(folder)
+    atomic_write_json(out_dir / "cohort.json", {"seed": seed, "kind": case, "cases": doc})
     return tuple(cases)

@@ -180,17 +180,17 @@ def test_written_dicom_passes_dciodvfy(written: PhantomFiles, dciodvfy: Callable
 
 
 def test_cli_phantom_writes_the_phantom(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["phantom", "--out", str(tmp_path / "p"), "--json"]) == 0
+    assert main(["phantom", "--out", str(tmp_path / "p"), "--case", "pilot", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["rtstruct_path"] == str(tmp_path / "p" / "RS.phantom.dcm")
     assert np.allclose(doc["patient_from_template"], np.eye(4))
     vols = {s["name"]: s["analytic_volume_cc"] for s in doc["structures"]}
     assert vols["Target_80_030"] == pytest.approx(np.pi * 25 * 5 / 1000)
     assert len(list((tmp_path / "p" / "CT").glob("*.dcm"))) == 84
-    assert main(["phantom", "--out", str(tmp_path / "p")]) == 0  # rewriting its own phantom is fine
+    assert main(["phantom", "--out", str(tmp_path / "p"), "--case", "pilot"]) == 0  # rewriting its own phantom is fine
     assert "84 CT slices" in capsys.readouterr().out
     (tmp_path / "q").write_text("a file")
-    assert main(["phantom", "--out", str(tmp_path / "q")]) == 2
+    assert main(["phantom", "--out", str(tmp_path / "q"), "--case", "pilot"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "error" in err[0]
 

@@ -58,7 +58,7 @@ def _result_rows(table: pa.Table) -> list[dict[str, object]]:
 @pytest.fixture(scope="module")
 def cohort(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("cohort")
-    make_cohort(out, 2, seed=7)
+    make_cohort(out, 2, seed=7, case="pilot")
     return out
 
 
@@ -275,3 +275,13 @@ def test_worker_killed_mid_study_loses_and_repeats_nothing(spec: StudySpec, refe
     res = done["result"]
     assert res.n_failed_tasks == 0
     assert _result_rows(res.table) == _result_rows(reference[1])  # every row exactly once, none failed
+
+
+def test_clinical_cohort_uses_the_clinical_case_of_each_seed(tmp_path: Path) -> None:
+    from reachplan.imaging.clinical import sample_params
+
+    (case,) = make_cohort(tmp_path / "c", 1, seed=5)
+    doc = json.loads((case / "case.json").read_text())
+    assert doc["seed"] == 5 and doc["params"] == json.loads(json.dumps(dataclasses.asdict(sample_params(5))))
+    assert json.loads((tmp_path / "c" / "cohort.json").read_text())["kind"] == "clinical"
+    assert (case / "RS.phantom.dcm").is_file() and len(list((case / "CT").glob("*.dcm"))) > 50

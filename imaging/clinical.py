@@ -1,0 +1,481 @@
+"""The built-in clinical case: a cervix-cancer pelvis where organs stand in the way of straight needles.
+
+Modelled on the reference case of the OncoReach paper (Fig. 1; ``oncoreach.md``, Clinical setting): an
+anteverted, anteflexed uterus tilted toward the bladder with a tandem in the uterine canal, an HR-CTV covering
+cervix and uterus with parametrial extension, the bladder anterior-inferior under the uterus, the rectum and
+rectosigmoid posterior, the sigmoid colon looping beside and over the uterus (down into the vesico-uterine
+pouch on the left), small-bowel loops above, the vagina around the obturator, the pelvic bones (iliac walls,
+pubic rami and symphysis, ischial tuberosities, sacrum), fat and muscle. Every solid is smooth
+(:mod:`reachplan.imaging.sweep`: tubes along curves, bent ellipsoids); no boxes.
+
+Frame (LPS mm, as the pilot phantom): +x patient left, +y posterior, +z superior along the vaginal axis; the
+perineal template plane is ``z = 0`` with its centre on the obturator axis (``patient_from_template`` is the
+identity, found again from the ``Obturator`` ROI by the planner).
+
+Published numbers (``gyn_anatomy.md``; anything marked ASSUMED is ours, a field of :class:`ClinicalParams`):
+
+* uterus 79 ± 11.5 mm long, 43 ± 7.7 wide, 35 ± 6.6 thick in multiparous women (Nayab et al. 2022); cervix
+  25-40 mm long on MRI (Eur J Obstet Gynecol Reprod Biol 2020); anteverted in 84.8 % (Appelbaum et al.,
+  Diagnostics 12:1428, 2022), anteflexed in 83.9 % (Gynecol Surg 2009); version and flexion angles: NOT FOUND,
+  ASSUMED 15-45 and 20-50 degrees (together roughly the right angle of the normal position).
+* bladder 138 ± 41 cm³ at CT-based brachytherapy (Jamema et al., J Med Phys 33:3, 2008), wall 2.8 mm
+  (Zafar et al. 2022); rectum 60 ± 28 cm³ (Jamema 2008), length 12-15 cm; colonic wall < 3 mm; sigmoid about
+  25 mm across when collapsed (secondary sources; ASSUMED radius 12 mm); small bowel ASSUMED radius 12 mm.
+* vagina 62.7 mm long, 26-33 mm wide (Barnhart et al., Hum Reprod 2006): obturator 30 mm across, 60 mm inside.
+* CT numbers (:data:`CT_RANGES`): fat -120..-90 and -100..-50, soft tissue +25..+60, muscle +40..+80, fluid
+  +5..+15, cancellous bone +300..+400, cortical bone 700-3000, air -1000 (Hounsfield-scale tables cited in
+  ``gyn_anatomy.md`` section 3). Plastic applicator: NOT FOUND, ASSUMED +150 HU.
+* MR (``modality="MR"``): T2-weighted-like signal, arbitrary units, ASSUMED relative values (GEC-ESTRO
+  recommends MR-based planning; the relative T2 intensities were NOT FOUND): urine and bowel fluid bright,
+  fat bright, tumour intermediate-high, myometrium intermediate, cervical stroma and muscle dark, cortical
+  bone, gas and the plastic applicator void.
+
+Targets: named points inside the HR-CTV (:attr:`ClinicalCase.targets`), each on the line of one hole of the
+built-in 63-hole template (hole coordinates from ``needlefinder_syed_63.csv``) so a straight needle can reach
+it and be compared with a steered one: ``corpus_ant`` (anterior uterine body, over the bladder),
+``corpus_L``/``corpus_R`` (lateral uterine body), ``param_L``/``param_R`` (parametrial extension).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from reachplan.imaging.phantom import PhantomFiles, PhantomSpec, PhantomStructure, write_phantom
+from reachplan.imaging.sweep import SAMPLE_MM, Sweep, Union, arc_curve, resample_curve
+from reachplan.imaging.types import Contour, Grid, Roi, StructureSet
+
+#: CT number ranges (HU) of each painted tissue class, with the source of the range (gyn_anatomy.md §3).
+CT_RANGES: dict[str, tuple[float, float, str]] = {
+    "air": (-1000.0, -1000.0, "Hounsfield scale definition"),
+    "fat": (-120.0, -50.0, "fat -120..-90 (Wikipedia HU table); -100..-50 (radclass.mudr.org)"),
+    "soft tissue": (25.0, 60.0, "soft tissue +25..+60 (uvm.edu CT tutorial)"),
+    "muscle": (40.0, 80.0, "muscle +40..+80 (Grainger & Allison via stethoprep)"),
+    "fluid": (5.0, 15.0, "fluid +5..+15 (thecommonvein.net)"),
+    "cancellous bone": (300.0, 400.0, "cancellous bone +300..+400 (Wikipedia HU table)"),
+    "cortical bone": (700.0, 3000.0, "cortical bone 700-3000 (radclass.mudr.org); ~+1000 (uvm.edu)"),
+    "plastic": (150.0, 150.0, "ASSUMED (NOT FOUND)"),
+}
+
+#: Painted CT number (HU) and T2-like MR signal (a.u., ASSUMED) per tissue class.
+TISSUES: dict[str, tuple[float, float]] = {
+    "air": (-1000.0, 0.0),
+    "fat": (-100.0, 700.0),
+    "muscle": (50.0, 150.0),
+    "soft tissue": (40.0, 350.0),  # organ walls, vagina
+    "myometrium": (45.0, 500.0),
+    "cervical stroma": (40.0, 200.0),
+    "tumour": (55.0, 650.0),
+    "fluid": (10.0, 1500.0),  # urine, bowel fluid
+    "cortical bone": (1000.0, 20.0),
+    "cancellous bone": (350.0, 600.0),
+    "plastic": (150.0, 0.0),
+}
+#: the CT range class of each tissue (for the HU test)
+TISSUE_CLASS = {"air": "air", "fat": "fat", "muscle": "muscle", "soft tissue": "soft tissue",
+                "myometrium": "soft tissue", "cervical stroma": "soft tissue", "tumour": "soft tissue",
+                "fluid": "fluid", "cortical bone": "cortical bone", "cancellous bone": "cancellous bone",
+                "plastic": "plastic"}
+
+#: Target lines (x, y) in LPS mm: holes Ce, Cg, Cc, Df, Da of the built-in template (identity pose).
+TARGET_COLUMNS: dict[str, tuple[float, float]] = {
+    "corpus_ant": (0.0, -30.0),
+    "corpus_L": (19.284, -22.981),
+    "corpus_R": (-19.284, -22.981),
+    "param_L": (40.0, 0.0),
+    "param_R": (-40.0, 0.0),
+}
+
+
+@dataclass(frozen=True)
+class ClinicalParams:
+    """The anatomy of one clinical case (mm, degrees, cm³); defaults are the reference case.
+
+    ``version_deg``: cervix axis tilted anteriorly from the vaginal axis; ``flexion_deg``: uterine body axis
+    from the cervix axis (both ASSUMED, see the module docstring). ``parametria``: ``"L"``, ``"R"`` or
+    ``"LR"`` (sides of parametrial extension); ``param_reach_mm``: its lateral reach from the cervix axis
+    (ASSUMED). ``sigmoid_shift_mm``: displacement of the sigmoid loop (x, y, z). ``bladder_wall_y_mm``: the
+    bladder's posterior wall in the mid-sagittal plane (its base rests on the anterior vaginal wall and the
+    cervix; ASSUMED, as the distances cervix-to-bladder-wall were NOT FOUND).
+    """
+
+    version_deg: float = 30.0
+    flexion_deg: float = 35.0
+    cervix_length_mm: float = 30.0
+    corpus_length_mm: float = 48.0
+    uterus_width_mm: float = 46.0
+    uterus_thickness_mm: float = 35.0
+    bladder_volume_cc: float = 138.0
+    rectum_radius_mm: float = 12.5
+    sigmoid_radius_mm: float = 12.0
+    sigmoid_shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    parametria: str = "L"
+    param_reach_mm: float = 45.0
+    hrctv_margin_mm: float = 2.0
+    bladder_wall_y_mm: float = -28.0
+
+    def __post_init__(self) -> None:
+        if self.parametria not in ("L", "R", "LR"):
+            raise ValueError(f"parametria must be 'L', 'R' or 'LR', got {self.parametria!r}")
+        if not 0.0 <= self.version_deg <= 80.0 or not 0.0 <= self.flexion_deg <= 80.0:
+            raise ValueError("version_deg and flexion_deg must be in 0..80 degrees (anteverted, anteflexed)")
+        for name in ("cervix_length_mm", "corpus_length_mm", "uterus_width_mm", "uterus_thickness_mm",
+                     "bladder_volume_cc", "rectum_radius_mm", "sigmoid_radius_mm", "param_reach_mm"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"ClinicalParams.{name} must be positive, got {v}")
+
+
+def sample_params(seed: int) -> ClinicalParams:
+    """Deterministic anatomical variation for ``seed`` (0 = the reference case), within published ranges:
+    uterine version and flexion, uterine size (Nayab 2022 ± 1 SD), bladder filling (Jamema 2008 ± 1 SD),
+    sigmoid position and tumour extent (sides and lateral reach of the parametrial extension).
+    """
+    if seed == 0:
+        return ClinicalParams()
+    rng = np.random.default_rng([1013, seed])
+    u = lambda lo, hi: round(float(rng.uniform(lo, hi)), 2)  # noqa: E731
+    return ClinicalParams(
+        version_deg=u(20.0, 40.0), flexion_deg=u(25.0, 45.0),
+        cervix_length_mm=u(27.0, 34.0), corpus_length_mm=u(42.0, 54.0),
+        uterus_width_mm=u(40.0, 50.0), uterus_thickness_mm=u(30.0, 40.0),
+        bladder_volume_cc=u(100.0, 180.0), bladder_wall_y_mm=u(-29.5, -26.5),
+        sigmoid_shift_mm=(u(-4.0, 4.0), u(-4.0, 4.0), u(-4.0, 4.0)),
+        parametria=str(rng.choice(["L", "R", "LR"])), param_reach_mm=u(42.0, 48.0),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class ClinicalCase:
+    """A clinical case: the phantom description (ROIs, painted tissues, CT geometry) and named target points.
+
+    ``targets``: ``(name, (x, y, z))`` in LPS mm, inside the HR-CTV.
+    """
+
+    params: ClinicalParams
+    seed: int
+    spec: PhantomSpec
+    targets: tuple[tuple[str, tuple[float, float, float]], ...]
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "case": "clinical", "seed": self.seed, "params": dataclasses.asdict(self.params),
+            "modality": self.spec.modality,
+            "targets": {n: [round(v, 3) for v in p] for n, p in self.targets},
+            "patient_from_template": np.asarray(self.spec.patient_from_template).tolist(),
+        }
+
+
+def _profile(s: np.ndarray, pieces: list[tuple[float, float, float]]) -> np.ndarray:
+    """Piecewise-smooth profile: ``pieces`` of (s, a_before, a_after) blended by smoothsteps 15 mm wide."""
+    out = np.full_like(s, pieces[0][1])
+    for s0, a0, a1 in pieces:
+        t = np.clip((s - (s0 - 7.5)) / 15.0, 0.0, 1.0)
+        out += (a1 - a0) * t * t * (3 - 2 * t)
+    return out
+
+
+def _round_ends(s: np.ndarray, length: float, start_mm: float, end_mm: float) -> np.ndarray:
+    """Factor (0..1) that rounds a profile over ``start_mm`` at s = 0 and ``end_mm`` at s = length."""
+    f = np.ones_like(s)
+    if start_mm > 0:
+        x = np.clip((start_mm - s) / start_mm, 0.0, 1.0)
+        f *= np.sqrt(np.clip(1 - x * x, 0.0, 1.0))
+    if end_mm > 0:
+        x = np.clip((s - (length - end_mm)) / end_mm, 0.0, 1.0)
+        f *= np.sqrt(np.clip(1 - x * x, 0.0, 1.0))
+    return f
+
+
+def tube(points_mm: Sequence[tuple[float, float, float]], radius_mm: float, rounded: bool = True) -> Sweep:
+    """A round tube along a smooth curve through ``points_mm``; hemispherical ends when ``rounded``."""
+    c = resample_curve(np.array(points_mm, float))
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
+    r = radius_mm * (_round_ends(s, s[-1], radius_mm, radius_mm) if rounded else np.ones_like(s))
+    return Sweep(c, r, r, (0.0, 0.0, 1.0) if abs(c[-1, 2] - c[0, 2]) < 0.5 * s[-1] else (1.0, 0.0, 0.0))
+
+
+def _uterus(p: ClinicalParams) -> tuple[Sweep, Sweep, np.ndarray]:
+    """(uterus, cervix, centreline) sweeps: cervix straight along the version angle, corpus arc by flexion."""
+    v = math.radians(p.version_deg)
+    d0 = np.array([0.0, -math.sin(v), math.cos(v)])
+    c = arc_curve(np.array([0.0, 0.0, 61.0]), d0, np.array([0.0, -1.0, 0.0]), p.corpus_length_mm,
+                  p.flexion_deg, straight_mm=p.cervix_length_mm)
+    s = np.arange(len(c)) * SAMPLE_MM
+    length = s[-1]
+    ends = _round_ends(s, length, 6.0, 0.45 * p.corpus_length_mm)
+    lat = _profile(s, [(p.cervix_length_mm + 4.0, 15.0, p.uterus_width_mm / 2)]) * ends
+    ap = _profile(s, [(p.cervix_length_mm + 4.0, 13.0, p.uterus_thickness_mm / 2)]) * ends
+    uterus = Sweep(c, lat, ap, (1.0, 0.0, 0.0))
+    k = round(p.cervix_length_mm / SAMPLE_MM) + 1
+    cervix = Sweep(c[:k], lat[:k], ap[:k], (1.0, 0.0, 0.0))
+    return uterus, cervix, c
+
+
+def _parametrium(p: ClinicalParams, centre: np.ndarray, side: float) -> Sweep:
+    """A lobe of parametrial extension from the cervix toward one pelvic side wall (ellipsoidal profile)."""
+    start = centre + np.array([0.0, 0.0, 0.0])
+    end = centre + np.array([side * p.param_reach_mm, 6.0, 8.0])
+    c = resample_curve(np.array([start, 0.5 * (start + end) + [0.0, 2.0, 2.0], end]))
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
+    f = _round_ends(s, s[-1], 0.0, 14.0)
+    return Sweep(c, 13.0 * f, 14.0 * f, (0.0, 1.0, 0.0))
+
+
+def _bladder(p: ClinicalParams, fill: float = 1.0) -> Sweep:
+    """The bladder holding ``fill`` x its nominal volume: an ellipsoid bent anteriorly under the uterus, its
+    base at z = 32 mm. Semi-axes scale with the cube root of the volume (reference 36 x 25 x 25 mm, 94 cm³;
+    ASSUMED shape).
+    """
+    k = (fill * p.bladder_volume_cc * 1000.0 / (4 / 3 * math.pi * 36 * 25 * 25)) ** (1 / 3)
+    lat, ap, half = 36 * k, 25 * k, 25 * k
+    start = np.array([0.0, -ap, 32.0])
+    c = arc_curve(start, np.array([0.0, -0.35, 1.0]), np.array([0.0, -1.0, 0.0]), 2 * half, 45.0)
+    s = np.arange(len(c)) * SAMPLE_MM
+    u = (s - s[-1] / 2) / (s[-1] / 2)
+    f = np.sqrt(np.clip(1 - u * u, 0.0, 1.0))
+    return Sweep(c, lat * f, ap * f, (1.0, 0.0, 0.0))
+
+
+def _shifted(sw: Sweep, by: tuple[float, float, float]) -> Sweep:
+    return Sweep(sw.samples_mm + np.asarray(by, float), sw.semi_a_mm, sw.semi_b_mm, sw.reference)
+
+
+def _midline_extent(shape: Sweep | Union, z0: float, z1: float) -> tuple[float, float]:
+    """(most anterior, most posterior) y (mm) of the solid in the mid-sagittal plane x = 0, z0 <= z < z1."""
+    y, z = np.meshgrid(np.arange(-120.0, 60.0, 0.5), np.arange(z0, z1, 1.0), indexing="ij")
+    inside = shape.contains(np.stack([np.zeros_like(y), y, z], axis=-1))
+    ys = y[inside]
+    return float(ys.min()), float(ys.max())
+
+
+def _back_y(shape: Sweep | Union) -> float:
+    """Posterior wall of the bladder (z 35-75 mm)."""
+    return _midline_extent(shape, 35.0, 75.0)[1]
+
+
+def _overlap(a: Sweep | Union, b: Sweep | Union, gap_mm: float = 0.0, step: float = 1.5) -> int:
+    lo = np.maximum(a.bounds()[0], b.bounds()[0] - gap_mm)
+    hi = np.minimum(a.bounds()[1], b.bounds()[1] + gap_mm)
+    if np.any(hi <= lo):
+        return 0
+    axes = [np.arange(x0, x1 + step, step) for x0, x1 in zip(lo, hi, strict=True)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = a.contains(pts)
+    if not inside.any():
+        return 0
+    return int(np.count_nonzero(b.field(pts[inside]) <= gap_mm))
+
+
+def _bowel(dx: float) -> tuple[Sweep, Sweep]:
+    """Two small-bowel loops above the uterus, on the right (ASSUMED course), shifted by ``dx`` mm along x."""
+    a = [(-48, -25, 150), (-38, -58, 154), (-12, -52, 170), (-36, -28, 180), (-50, -45, 190), (-25, -70, 194),
+         (-12, -76, 190)]
+    b = [(-45, 15, 165), (-25, 5, 184), (-5, -18, 197)]
+    return (tube([(x + dx, y, z) for x, y, z in a], 12.0), tube([(x + dx, y, z) for x, y, z in b], 12.0))
+
+
+def _hip(side: float) -> Sweep:
+    """One hip bone: iliac wall (flattened), down the side wall, superior ramus to the symphysis, back along
+    the inferior (ischiopubic) ramus to the ischial tuberosity. Radii ASSUMED.
+    """
+    pts = [(75, 45, 198), (69, 25, 160), (64, 8, 115), (61, -10, 75), (56, -48, 44), (30, -80, 36),
+           (10, -87, 32), (9.5, -87, 21), (22, -74, 12), (44, -40, 6), (56, -5, 6), (62, 22, 8)]
+    c = resample_curve(np.array([(side * x, y, z) for x, y, z in pts], float))
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
+    ends = _round_ends(s, s[-1], 6.0, 9.0)
+    wide = np.clip((c[:, 2] - 60.0) / 60.0, 0.0, 1.0)  # the iliac wall widens upward
+    return Sweep(c, 7.0 * ends, (7.0 + 15.0 * wide) * ends, (1.0, 0.0, 1.0))
+
+
+def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality: str = "CT",
+                  case_id: str = "") -> ClinicalCase:
+    """The clinical case of ``seed`` (or of explicit ``params``), deterministic.
+
+    Parameters
+    ----------
+    seed : 0 = the reference case; others vary the anatomy (:func:`sample_params`)
+    modality : ``"CT"`` or ``"MR"`` (T2-like contrast)
+    case_id : gives the written files their own Patient ID and UIDs (default ``clinical_<seed>``)
+    """
+    p = params or sample_params(seed)
+    uterus, cervix, axis = _uterus(p)
+    cervix_mid = axis[round(0.55 * p.cervix_length_mm / SAMPLE_MM)]
+    sides = [1.0] if p.parametria == "L" else [-1.0] if p.parametria == "R" else [1.0, -1.0]
+    hrctv = Union((uterus.grown(p.hrctv_margin_mm), *(_parametrium(p, cervix_mid, s) for s in sides)))
+
+    hips = (_hip(1.0), _hip(-1.0))
+    fill = 1.0
+    for _ in range(30):  # anchored at its posterior wall; emptied in 5 % steps until 3 mm of tissue separate
+        # it from the HR-CTV and 2 mm from the bones (a fuller bladder would lift the uterus: not modelled)
+        bladder = _bladder(p, fill)
+        bladder = _shifted(bladder, (0.0, p.bladder_wall_y_mm - _back_y(bladder), 0.0))
+        if _overlap(bladder, hrctv, gap_mm=3.0, step=2.0) == 0 and all(
+                _overlap(bladder, h, gap_mm=2.0, step=2.0) == 0 for h in hips):
+            break
+        fill *= 0.95
+
+    rect_pts = [(0, 36, 4), (0, 37, 30), (0, 42, 65), (0, 50, 95), (3, 56, 112), (14, 56, 124)]
+    rectum = tube(rect_pts, p.rectum_radius_mm, rounded=False)
+    dx, dy, dz = p.sigmoid_shift_mm
+    loop = [(33, 44, 130), (35, 18, 124), (36, -16, 112), (36, -46, 104), (20, -72, 118), (0, -66, 140),
+            (25, -35, 152), (50, -24, 170)]
+    sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (56, -10, 205)],
+                   p.sigmoid_radius_mm, rounded=False)
+    for _ in range(20):  # keep the sigmoid off the HR-CTV and the bladder (3 mm of fat between)
+        if _overlap(sigmoid, hrctv, 3.0, step=2.0) == 0 and _overlap(sigmoid, bladder, 3.0, step=2.0) == 0:
+            break
+        dz += 2.0
+        sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (56, -10, 205)],
+                       p.sigmoid_radius_mm, rounded=False)
+    bowel_shift = 0.0
+    while True:  # small-bowel loops on the right, moved further right until 3 mm clear of the sigmoid
+        bowel = _bowel(bowel_shift)
+        if bowel_shift <= -12.0 or all(_overlap(b, sigmoid, 4.0, step=2.0) == 0 for b in bowel):
+            break
+        bowel_shift -= 2.0
+    vagina = Sweep(np.column_stack([np.zeros(241), np.zeros(241), np.linspace(0.0, 60.0, 241)]),
+                   np.full(241, 18.0), np.full(241, 18.0), (1.0, 0.0, 0.0))
+    obturator = Sweep(np.column_stack([np.zeros(321), np.zeros(321), np.linspace(-20.0, 60.0, 321)]),
+                      np.full(321, 15.0), np.full(321, 15.0), (1.0, 0.0, 0.0))
+    # the tandem: straight through the obturator, then bent into the uterine canal, ending 12 mm short of
+    # the fundus; 6 mm across (ASSUMED)
+    canal = axis[: int((uterus.length_mm - 12.0) / SAMPLE_MM)]
+    tandem_line = resample_curve(np.vstack([[0.0, 0.0, -20.0], [0.0, 0.0, 40.0], canal[::24], canal[-1:]]))
+    r_t = np.full(len(tandem_line), 3.0) * _round_ends(np.arange(len(tandem_line)) * SAMPLE_MM,
+                                                       (len(tandem_line) - 1) * SAMPLE_MM, 0.0, 3.0)
+    tandem = Sweep(tandem_line, r_t, r_t, (1.0, 0.0, 0.0))
+    sacrum_c = resample_curve(np.array([(0, 74, 62), (0, 86, 110), (0, 92, 160), (0, 92, 205)], float))
+    sacrum = Sweep(sacrum_c, np.full(len(sacrum_c), 42.0), np.full(len(sacrum_c), 11.0), (1.0, 0.0, 0.0))
+    bones = (*hips, sacrum)
+    body_z = np.linspace(0.0, 210.0, 841)
+    body = Sweep(np.column_stack([np.zeros(841), np.full(841, 5.0), body_z]), np.full(841, 150.0),
+                 np.full(841, 108.0), (1.0, 0.0, 0.0))
+
+    hu = {k: v[0] for k, v in TISSUES.items()}
+    t2 = {k: v[1] for k, v in TISSUES.items()}
+    mr = modality.upper() == "MR"
+
+    def roi(name: str, kind: str, shape: Sweep | Union, tissue: str, color: tuple[int, int, int],
+            oar: bool = False, parts: tuple[Sweep | Union, ...] | None = None) -> PhantomStructure:
+        value = t2[tissue] if mr else hu[tissue]
+        return PhantomStructure(name, kind, parts or (shape,), hu=value, color=color, is_oar=oar)
+
+    def paint(name: str, shape: Sweep | Union, tissue: str) -> PhantomStructure:
+        return PhantomStructure(name, "", (shape,), hu=t2[tissue] if mr else hu[tissue], color=(0, 0, 0))
+
+    structures = (
+        roi("Body", "EXTERNAL", body, "fat", (200, 180, 140)),
+        roi("Bone_Pelvic", "AVOIDANCE", bones[0], "cortical bone", (240, 240, 220), True, parts=bones),
+        roi("Rectum", "ORGAN", rectum, "soft tissue", (150, 90, 40), True),
+        roi("Colon_Sigmoid", "ORGAN", sigmoid, "soft tissue", (200, 120, 60), True),
+        roi("Bowel_Small", "ORGAN", bowel[0], "soft tissue", (230, 180, 60), True, parts=bowel),
+        roi("Bladder", "ORGAN", bladder, "soft tissue", (250, 230, 50), True),
+        roi("Uterus", "ORGAN", uterus, "myometrium", (230, 130, 170)),
+        roi("Cervix", "ORGAN", cervix, "cervical stroma", (200, 90, 140)),
+        roi("Vagina", "ORGAN", vagina, "soft tissue", (210, 150, 150)),
+        roi("CTV_HR", "CTV", hrctv, "tumour", (255, 60, 60)),
+        roi("Obturator", "BRACHY_ACCESSORY", obturator, "plastic", (120, 120, 255)),
+        roi("Tandem", "BRACHY_ACCESSORY", tandem, "plastic", (90, 90, 255)),
+    )
+    tissues = (
+        paint("muscle", body.shrunk(15.0), "muscle"),
+        paint("pelvic fat", Sweep(body.samples_mm - [0.0, 5.0, 0.0], np.full(841, 100.0), np.full(841, 85.0),
+                                  (1.0, 0.0, 0.0)), "fat"),
+        *(paint(f"obturator internus {i}", tube([(s * 55, 5, 10), (s * 56, 0, 60), (s * 54, 5, 110)], 8.0),
+                "muscle") for i, s in enumerate((1.0, -1.0))),
+        *(paint(f"psoas {i}", tube([(s * 45, 55, 120), (s * 50, 50, 160), (s * 50, 45, 215)], 16.0), "muscle")
+          for i, s in enumerate((1.0, -1.0))),
+        paint("urine", bladder.shrunk(2.8), "fluid"),
+        paint("rectal gas", rectum.shrunk(3.0), "air"),
+        paint("sigmoid gas", sigmoid.shrunk(3.0), "air"),
+        *(paint(f"bowel fluid {i}", b.shrunk(3.0), "fluid") for i, b in enumerate(bowel)),
+        *(paint(f"marrow {i}", b.shrunk(2.5), "cancellous bone") for i, b in enumerate(bones)),
+        paint("cervical tumour", cervix.shrunk(3.0), "tumour"),  # inside a rim of cervical stroma (T2: dark)
+    )
+    order = ("Body", "muscle", "pelvic fat", "obturator internus 0", "obturator internus 1", "psoas 0", "psoas 1",
+             "Vagina", "Rectum", "rectal gas", "Colon_Sigmoid", "sigmoid gas", "Bowel_Small", "bowel fluid 0",
+             "bowel fluid 1", "Bladder", "urine", "CTV_HR", "Uterus", "Cervix", "cervical tumour", "Obturator",
+             "Tandem", "Bone_Pelvic", "marrow 0", "marrow 1", "marrow 2")
+    spec = PhantomSpec(structures, slice_thickness_mm=2.5, z_range_mm=(-20.0, 210.0), matrix=320,
+                       air_hu=0.0 if mr else hu["air"], fat_thickness_mm=0.0, case_id=case_id or f"clinical_{seed}",
+                       tissues=tissues, paint_order=order, modality="MR" if mr else "CT",
+                       description="reachplan clinical case (cervix ISBT)")
+    # corpus targets in the anterior-inferior part of the body (a fifth of the chord up: about 10 mm from the
+    # canal and its tandem); parametrial targets in the middle of the extension. Each is written as a small
+    # target ROI (``Target_<name>``: a cylinder 8 mm across and 5 mm tall centred on the point, its flat ends
+    # on slice boundaries, so the ROI's centroid is the point exactly).
+    points = []
+    for name, xy in TARGET_COLUMNS.items():
+        if name.startswith("param") and name[-1] not in p.parametria:
+            continue
+        x, y, z = _column_target(uterus, xy, 0.2) if name.startswith("corpus") else _column_target(hrctv, xy)
+        z = -20.0 + 2.5 * round((z + 20.0) / 2.5)  # on a slice boundary
+        points.append((name, (x, y, z)))
+    target_rois = tuple(roi(f"Target_{n}", "PTV", _target_cylinder(xyz), "tumour", (255, 0, 0)) for n, xyz in points)
+    spec = dataclasses.replace(spec, structures=(*spec.structures, *target_rois))
+    targets = tuple(points)
+    return ClinicalCase(p, seed, spec, targets)
+
+
+def _target_cylinder(xyz: tuple[float, float, float], radius_mm: float = 4.0) -> Sweep:
+    """A cylinder along z, ``radius_mm`` across, from 2.5 mm below to 2.5 mm above ``xyz``."""
+    n = 21
+    c = np.column_stack([np.full(n, xyz[0]), np.full(n, xyz[1]), np.linspace(xyz[2] - 2.5, xyz[2] + 2.5, n)])
+    return Sweep(c, np.full(n, radius_mm), np.full(n, radius_mm), (1.0, 0.0, 0.0))
+
+
+def _column_target(shape: Sweep | Union, xy: tuple[float, float], at: float = 0.5) -> tuple[float, float, float]:
+    """The point a fraction ``at`` up the highest chord of the line ``(x, y)`` (along z) through ``shape``
+    (the chord taken 2 mm inside the surface).
+    """
+    z = np.arange(0.0, 210.0, 0.25)
+    f = shape.field(np.column_stack([np.full(len(z), xy[0]), np.full(len(z), xy[1]), z]))
+    inside = f <= -2.0
+    if not inside.any():
+        inside = f <= 0.0
+    if not inside.any():
+        raise ValueError(f"the target line {xy} misses the structure; adjust TARGET_COLUMNS or the anatomy")
+    runs = np.flatnonzero(np.diff(np.r_[0, inside.astype(int), 0]))
+    starts, stops = runs[::2], runs[1::2]
+    k = len(starts) - 1
+    return (float(xy[0]), float(xy[1]), round(float(z[starts[k]] + at * (z[stops[k] - 1] - z[starts[k]])), 3))
+
+
+def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
+    """Write the case as an image series (CT or MR) + RT Structure Set, and ``case.json`` (parameters and
+    named target points) beside them.
+    """
+    from reachplan.imaging.files import atomic_write_json
+
+    files = write_phantom(out_dir, case.spec)
+    atomic_write_json(Path(out_dir) / "case.json", case.to_json())
+    return files
+
+
+def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> StructureSet:
+    """The ROIs of ``spec`` as an in-memory structure set (the contours :func:`write_phantom` would write,
+    names normalised by the default synonym table), without writing DICOM: for studies and tests.
+    """
+    from reachplan.imaging.names import DEFAULT_SYNONYMS
+
+    rois = []
+    for number, s in enumerate(spec.structures, start=1):
+        if names is not None and s.name not in names:
+            continue
+        contours = tuple(Contour(np.column_stack([poly, np.full(len(poly), z)]))
+                         for z in spec.slice_z_mm for poly in s.cross_section(float(z)))
+        rois.append(Roi(number, s.name, contours, DEFAULT_SYNONYMS.normalize(s.name), s.interpreted_type, s.color))
+    return StructureSet(tuple(rois), frame_of_reference_uid="in-memory")
+
+
+def image_grid(spec: PhantomSpec) -> Grid:
+    """The grid of the image series :func:`write_phantom` writes for ``spec``."""
+    m = np.diag([spec.pixel_mm, spec.pixel_mm, spec.slice_thickness_mm, 1.0])
+    m[:3, 3] = [spec.first_pixel_xy_mm, spec.first_pixel_xy_mm, float(spec.slice_z_mm[0])]
+    return Grid((spec.n_slices, spec.matrix, spec.matrix), m)

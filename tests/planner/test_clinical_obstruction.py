@@ -1,0 +1,50 @@
+"""The property the clinical case exists for, for seeds 0-9: a straight needle that reaches the anterior
+uterine body collides with an organ at risk (reported with organ and depth), and a steered needle reaches the
+same point 2 mm clear of every organ from a hole at least as medial as any straight needle that reaches it
+cleanly.
+
+To keep the run time reasonable the case is not written as DICOM: its contours are cut in memory (the ones
+the writer would write) below z = 140 mm (every needle here stays below 115 mm, so organ parts above are more
+than 25 mm from any path and cannot change a collision), and only the ``corpus_ant`` target is planned, at
+the screening stage (no reference re-solve, no robustness check).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
+from reachplan.planner.pipeline import DEFAULT_OARS, PlanConfig, build_scene, plan
+from reachplan.planner.steering.candidates import Target
+
+ROIS = ("Bladder", "Rectum", "Colon_Sigmoid", "Bowel_Small", "Bone_Pelvic", "Tandem", "Obturator")
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_straight_needles_collide_where_a_steered_one_reaches_cleanly(seed: int) -> None:
+    case = clinical_case(seed)
+    spec = dataclasses.replace(case.spec, z_range_mm=(-20.0, 140.0))
+    config = PlanConfig(oar_names=(*DEFAULT_OARS, "Tandem"), refine_top=0, robust_top=0)
+    point = dict(case.targets)["corpus_ant"]
+    scene = build_scene(structure_set(spec, ROIS), [], [Target("corpus_ant", point)], grid=image_grid(spec),
+                        config=config)
+    result = plan(scene, config)
+    cands = result.ranking["corpus_ant"]
+    straight = [c for c in cands if not c.steered and c.reaches]
+    blocked = [c for c in straight if c.collides]
+    assert blocked, f"seed {seed}: no straight needle that reaches the anterior uterine body collides"
+    for c in blocked:
+        assert c.closest_organ in {"Bladder", "Sigmoid", "Bowel"}, c.reason
+        assert c.contact_depth_mm is not None and 0 < c.contact_depth_mm < c.insertion_depth_mm
+        assert f"collides with {c.closest_organ} at depth" in c.reason
+        j = c.to_json()
+        assert j["reaches"] and j["collides"] and j["contact_depth_mm"] == round(c.contact_depth_mm, 1)
+    clean_straight = [c.hole_distance_mm for c in straight if c.feasible and c.clearance_mm >= 2.0]
+    steered = [c for c in cands if c.steered and c.feasible and c.clearance_mm >= 2.0]
+    assert steered, f"seed {seed}: no steered needle reaches the anterior uterine body 2 mm clear"
+    best = min(steered, key=lambda c: c.hole_distance_mm)
+    assert best.reach_error_mm <= config.reach_tolerance_mm
+    assert all(best.hole_distance_mm <= d for d in clean_straight)
+    assert best.hole_distance_mm < min(c.hole_distance_mm for c in blocked)  # from a more medial hole
