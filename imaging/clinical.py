@@ -193,7 +193,7 @@ def _round_ends(s: np.ndarray, length: float, start_mm: float, end_mm: float) ->
 
 
 def tube(points_mm: Sequence[tuple[float, float, float]], radius_mm: float, rounded: bool = True) -> Sweep:
-    """A round tube along a smooth curve through ``points_mm``; hemispherical ends when ``rounded``."""
+    """Return a round tube along a smooth curve through ``points_mm``; hemispherical ends when ``rounded``."""
     c = resample_curve(np.array(points_mm, float))
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
     r = radius_mm * (_round_ends(s, s[-1], radius_mm, radius_mm) if rounded else np.ones_like(s))
@@ -218,7 +218,7 @@ def _uterus(p: ClinicalParams) -> tuple[Sweep, Sweep, np.ndarray]:
 
 
 def _parametrium(p: ClinicalParams, centre: np.ndarray, side: float) -> Sweep:
-    """A lobe of parametrial extension from the cervix toward one pelvic side wall (ellipsoidal profile)."""
+    """Return a lobe of parametrial extension from the cervix toward one pelvic side wall (ellipsoidal profile)."""
     start = centre + np.array([0.0, 0.0, 0.0])
     end = centre + np.array([side * p.param_reach_mm, 6.0, 8.0])
     c = resample_curve(np.array([start, 0.5 * (start + end) + [0.0, 2.0, 2.0], end]))
@@ -228,7 +228,7 @@ def _parametrium(p: ClinicalParams, centre: np.ndarray, side: float) -> Sweep:
 
 
 def _bladder(p: ClinicalParams, fill: float = 1.0) -> Sweep:
-    """The bladder holding ``fill`` x its nominal volume: an ellipsoid bent anteriorly under the uterus, its
+    """Return the bladder holding ``fill`` x its nominal volume: an ellipsoid bent anteriorly under the uterus, its
     base at z = 32 mm. Semi-axes scale with the cube root of the volume (reference 36 x 25 x 25 mm, 94 cm³;
     ASSUMED shape).
     """
@@ -295,7 +295,7 @@ def _hip(side: float) -> Sweep:
 
 def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality: str = "CT",
                   case_id: str = "") -> ClinicalCase:
-    """The clinical case of ``seed`` (or of explicit ``params``), deterministic.
+    """Return the clinical case of ``seed`` (or of explicit ``params``), deterministic.
 
     Parameters
     ----------
@@ -424,14 +424,14 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
 
 
 def _target_cylinder(xyz: tuple[float, float, float], radius_mm: float = 4.0) -> Sweep:
-    """A cylinder along z, ``radius_mm`` across, from 2.5 mm below to 2.5 mm above ``xyz``."""
+    """Return a cylinder along z, ``radius_mm`` across, from 2.5 mm below to 2.5 mm above ``xyz``."""
     n = 21
     c = np.column_stack([np.full(n, xyz[0]), np.full(n, xyz[1]), np.linspace(xyz[2] - 2.5, xyz[2] + 2.5, n)])
     return Sweep(c, np.full(n, radius_mm), np.full(n, radius_mm), (1.0, 0.0, 0.0))
 
 
 def _column_target(shape: Sweep | Union, xy: tuple[float, float], at: float = 0.5) -> tuple[float, float, float]:
-    """The point a fraction ``at`` up the highest chord of the line ``(x, y)`` (along z) through ``shape``
+    """Return the point a fraction ``at`` up the highest chord of the line ``(x, y)`` (along z) through ``shape``
     (the chord taken 2 mm inside the surface).
     """
     z = np.arange(0.0, 210.0, 0.25)
@@ -459,7 +459,7 @@ def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
 
 
 def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> StructureSet:
-    """The ROIs of ``spec`` as an in-memory structure set (the contours :func:`write_phantom` would write,
+    """Return the ROIs of ``spec`` as an in-memory structure set (the contours :func:`write_phantom` would write,
     names normalised by the default synonym table), without writing DICOM: for studies and tests.
     """
     from reachplan.imaging.names import DEFAULT_SYNONYMS
@@ -475,7 +475,7 @@ def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> St
 
 
 def image_grid(spec: PhantomSpec) -> Grid:
-    """The grid of the image series :func:`write_phantom` writes for ``spec``."""
+    """Return the grid of the image series :func:`write_phantom` writes for ``spec``."""
     m = np.diag([spec.pixel_mm, spec.pixel_mm, spec.slice_thickness_mm, 1.0])
     m[:3, 3] = [spec.first_pixel_xy_mm, spec.first_pixel_xy_mm, float(spec.slice_z_mm[0])]
     return Grid((spec.n_slices, spec.matrix, spec.matrix), m)

@@ -791,7 +791,7 @@ def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: 
 
 
 def _ct_datasets(spec: PhantomSpec) -> Iterator[tuple[str, Any]]:
-    """The image slices: a CT series (HU) or, for ``spec.modality == "MR"``, a T2-weighted-like MR series."""
+    """Return the image slices: a CT series (HU) or, for ``spec.modality == "MR"``, a T2-weighted-like MR series."""
     values = phantom_ct_hu(spec)
     mr = spec.modality == "MR"
     tag = "mr" if mr else "ct"

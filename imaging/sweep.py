@@ -36,7 +36,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def resample_curve(points_mm: np.ndarray, step_mm: float = SAMPLE_MM, smooth: bool = True) -> np.ndarray:
-    """A smooth curve through ``points_mm`` ((k, 3) float, LPS mm), resampled every ``step_mm`` of arc length.
+    """Return a smooth curve through ``points_mm`` ((k, 3) float, LPS mm), resampled every ``step_mm`` of arc length.
 
     ``smooth``: a cubic spline through the points (parameterised by chord length, natural ends); otherwise
     the polyline itself. Returns (n, 3) float, mm.
@@ -63,7 +63,7 @@ def resample_curve(points_mm: np.ndarray, step_mm: float = SAMPLE_MM, smooth: bo
 
 def arc_curve(start_mm: np.ndarray, direction: np.ndarray, bend_toward: np.ndarray, length_mm: float,
               angle_deg: float, straight_mm: float = 0.0, step_mm: float = SAMPLE_MM) -> np.ndarray:
-    """A planar centreline: ``straight_mm`` along ``direction``, then a circular arc of ``length_mm`` turning
+    """Return a planar centreline: ``straight_mm`` along ``direction``, then a circular arc of ``length_mm`` turning
     by ``angle_deg`` toward ``bend_toward`` (made perpendicular to ``direction``). (n, 3) float, LPS mm.
     """
     d0 = _unit(np.asarray(direction, float))
@@ -142,18 +142,18 @@ class Sweep:
         return bool(np.all(np.abs(self._frames[:, 0, 2]) > 1 - 1e-9))
 
     def shrunk(self, by_mm: float) -> Sweep:
-        """The same sweep with both semi-axes reduced by ``by_mm`` (a wall's lumen), clipped at 0."""
+        """Return the same sweep with both semi-axes reduced by ``by_mm`` (a wall's lumen), clipped at 0."""
         return Sweep(self.samples_mm, np.maximum(self.semi_a_mm - by_mm, 0.0),
                      np.maximum(self.semi_b_mm - by_mm, 0.0), self.reference)
 
     def grown(self, by_mm: float) -> Sweep:
-        """The same centreline with both semi-axes increased by ``by_mm`` where they are positive."""
+        """Return the same centreline with both semi-axes increased by ``by_mm`` where they are positive."""
         a, b = self.semi_a_mm, self.semi_b_mm
         return Sweep(self.samples_mm, np.where(a > 0, a + by_mm, 0.0), np.where(b > 0, b + by_mm, 0.0),
                      self.reference)
 
     def field(self, p: np.ndarray) -> np.ndarray:
-        """A signed field (about mm near the surface): negative inside. ``p`` (..., 3) LPS mm -> (...)."""
+        """Return a signed field (about mm near the surface): negative inside. ``p`` (..., 3) LPS mm -> (...)."""
         q = np.asarray(p, dtype=float)
         flat = q.reshape(-1, 3)
         reach = float(max(self.semi_a_mm.max(), self.semi_b_mm.max())) + 2.0
@@ -214,7 +214,7 @@ class Sweep:
 
 
 def _axial_section(sw: Sweep, z0: float) -> list[np.ndarray]:
-    """The exact ellipse of a sweep straight along z at height ``z0`` (flat ends included)."""
+    """Return the exact ellipse of a sweep straight along z at height ``z0`` (flat ends included)."""
     s = z0 - sw.samples_mm[0, 2] if sw._frames[0, 0, 2] > 0 else sw.samples_mm[0, 2] - z0
     if not 0.0 <= s < sw.length_mm:
         return []

@@ -46,7 +46,7 @@ def blocked_straight(doc: dict[str, object]) -> list[dict[str, object]]:
 
 
 def format_blocked(rows: list[dict[str, object]]) -> str:
-    """The terminal table of :func:`blocked_straight`."""
+    """Return the terminal table of :func:`blocked_straight`."""
     if not rows:
         return "no straight needle that reaches a target collides with an organ"
     head = f"{'target':<18} {'straight hole':<16} {'collides with':<24}   steered instead (clean, >= 2 mm)"
