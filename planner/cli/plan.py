@@ -7,11 +7,12 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from reachplan.imaging.types import StructureSet, Volume
-from reachplan.planner.errors import PlanInputError
-from reachplan.planner.pipeline import PlanConfig
-from reachplan.planner.steering.candidates import Target
+if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of every command stays light
+    from reachplan.imaging.types import StructureSet, Volume
+    from reachplan.planner.pipeline import PlanConfig
+    from reachplan.planner.steering.candidates import Target
 
 NAME = "plan"
 HELP = "rank template holes, stylet designs and tension schedules for targets; write plan.json, figures, exports"
@@ -34,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.steering.candidates import Target
+
     names: list[str] = []
     points: list[Target] = []
     for spec in specs:
@@ -52,6 +56,7 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
 def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.pipeline import PlanConfig
 
     quiet = args.quiet or args.json
     volume = read_series(args.ct) if args.ct else None

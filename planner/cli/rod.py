@@ -6,9 +6,6 @@ import argparse
 import json
 
 from reachplan import ReachplanError
-from reachplan.plugins import registry
-from reachplan.rod_model.design import PRESET_NAMES, preset
-from reachplan.rod_model.select import Scene, select_model
 
 NAME = "rod"
 HELP = "Solve the stylet-in-needle shape for a preset design and tendon tension(s)."
@@ -19,7 +16,9 @@ class RodArgumentError(ReachplanError):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", required=True, help=f"design preset, e.g. {', '.join(PRESET_NAMES)}")
+    parser.add_argument("--preset", required=True,
+                        help="design preset {13|15}ga-{joints}j-{tip|mid|base|asym}, e.g. 15ga-30j-tip "
+                             "(an unknown name lists the usual ones)")
     parser.add_argument("--tension", type=float, help="tension of tendon 0, N")
     parser.add_argument("--tensions", help="comma-separated tensions for a sweep, N (one object per tension)")
     parser.add_argument("--model", default="two_tube_cosserat",
@@ -46,6 +45,11 @@ def _tensions(args: argparse.Namespace) -> tuple[list[float], bool]:
 
 
 def run(args: argparse.Namespace) -> int:
+    # imported here, not at the top: ``reachplan --help`` and the other commands must not pay for them
+    from reachplan.plugins import registry
+    from reachplan.rod_model.design import preset
+    from reachplan.rod_model.select import Scene, select_model
+
     values, sweep = _tensions(args)
     design = preset(args.preset)
     if args.model == "auto":

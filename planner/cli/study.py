@@ -8,8 +8,6 @@ import json
 import sys
 from pathlib import Path
 
-from reachplan.planner.errors import StudyError
-
 NAME = "study"
 HELP = ("plan every case x stylet design x target of a cohort on a local process pool or a Dask cluster; "
         "resumable; writes study.parquet, summary.csv and summary.png (or --make-cohort N phantom cases)")
@@ -43,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from reachplan.planner.errors import StudyError
+
     quiet = args.quiet or args.json
     if args.make_cohort is not None:
         from reachplan.planner.study.cohort import make_cohort
