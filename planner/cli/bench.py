@@ -20,6 +20,9 @@ HELP = "Run a benchmark (models: rod models speed vs accuracy and stability) and
 TARGETS: tuple[tuple[str, str, str], ...] = (
     ("models", "models", "rod models: time per solve vs tip error (Pareto chart), batched speed, stability"),
     ("planning", "planning", "whole phantom plan (paths/s, FCL queries/s, re-rank) and insertion models' chart"),
+    ("startup", "startup", "start-up of reachplan --help and one reachplan rod solve against python -c pass"),
+    ("firstrun", "firstrun", "first-run penalty: compiled kernels with a fresh numba cache against a warm one"),
+    ("dosekernel", "dosekernel", "TG-43 grid dose: voxel-dwell pairs/s by method and threads, accuracy"),
 )
 
 def _load(module: str) -> ModuleType:

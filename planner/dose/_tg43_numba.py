@@ -90,12 +90,13 @@ def grid_dose(origin, step_i, step_j, step_k, shape, pos, dirs, w, table, inv_dr
     """Σ_j w_j · rate(voxel, dwell j) on every voxel of a grid; threads over the k·j rows.
 
     ``origin`` (3,) and ``step_*`` (3,) cm, the voxel centre of (i, j, k) is origin + i·step_i + j·step_j +
-    k·step_k; ``shape`` (nk, nj, ni); ``out`` (nk·nj·ni,) float32 written in place (C order).
+    k·step_k; ``shape`` (nk, nj, ni); ``pos`` and ``dirs`` (3, n) float32, one row per coordinate (contiguous
+    loads instead of gathers in the vectorised dwell loop); ``out`` (nk·nj·ni,) float32 written in place (C order).
     """
     nk, nj, ni = shape[0], shape[1], shape[2]
     nt = table.shape[1]
     ql2 = 0.25 * length * length
-    nd = pos.shape[0]
+    nd = pos.shape[1]
     for row in prange(nk * nj):
         k = row // nj
         j = row - k * nj
@@ -108,17 +109,17 @@ def grid_dose(origin, step_i, step_j, step_k, shape, pos, dirs, w, table, inv_dr
             pz = bz + i * step_i[2]
             acc = _ZERO
             for d in range(nd):
-                acc += w[d] * _pair(px, py, pz, pos[d, 0], pos[d, 1], pos[d, 2], dirs[d, 0], dirs[d, 1],
-                                    dirs[d, 2], table, nt, inv_dr, r_min, length, ql2, eps_y, point_model)
+                acc += w[d] * _pair(px, py, pz, pos[0, d], pos[1, d], pos[2, d], dirs[0, d], dirs[1, d],
+                                    dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, point_model)
             out[row * ni + i] = acc
 
 
 @njit(cache=True, fastmath=True, parallel=True)
 def pair_matrix(pts, pos, dirs, table, inv_dr, r_min, length, eps_y, point_model, out):  # type: ignore[no-untyped-def]
-    """rate(point m, dwell n) into ``out`` (m, n); ``pts`` (m, 3), ``pos``/``dirs`` (n, 3), cm."""
+    """rate(point m, dwell n) into ``out`` (m, n); ``pts`` (m, 3), ``pos``/``dirs`` (3, n), cm."""
     nt = table.shape[1]
     ql2 = 0.25 * length * length
     for m in prange(pts.shape[0]):
-        for d in range(pos.shape[0]):
-            out[m, d] = _pair(pts[m, 0], pts[m, 1], pts[m, 2], pos[d, 0], pos[d, 1], pos[d, 2], dirs[d, 0],
-                              dirs[d, 1], dirs[d, 2], table, nt, inv_dr, r_min, length, ql2, eps_y, point_model)
+        for d in range(pos.shape[1]):
+            out[m, d] = _pair(pts[m, 0], pts[m, 1], pts[m, 2], pos[0, d], pos[1, d], pos[2, d], dirs[0, d],
+                              dirs[1, d], dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, point_model)

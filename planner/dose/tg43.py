@@ -144,9 +144,9 @@ class Tg43Kernel:
         from reachplan.planner.dose import _tg43_numba as nb
 
         p = np.ascontiguousarray(np.asarray(points_mm, dtype=float).reshape(-1, 3) * 0.1, dtype=np.float32)
-        s = np.ascontiguousarray(np.asarray(positions_mm, dtype=float).reshape(-1, 3) * 0.1, dtype=np.float32)
-        u = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3), dtype=np.float32)
-        out = np.empty((len(p), len(s)))
+        s = np.ascontiguousarray((np.asarray(positions_mm, dtype=float).reshape(-1, 3) * 0.1).T, dtype=np.float32)
+        u = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3).T, dtype=np.float32)
+        out = np.empty((len(p), s.shape[1]))
         if out.size:
             nb.pair_matrix(p, s, u, self._table32_2d, *self._scalars(), out)
             out *= self._rate_factor()
@@ -485,8 +485,8 @@ def dose_on_grid(
 
         f32 = np.float32
         cm = a[:3] * 0.1
-        pos = np.ascontiguousarray(active.positions_mm * 0.1, dtype=f32)
-        dirs = np.ascontiguousarray(active.directions, dtype=f32)
+        pos = np.ascontiguousarray((active.positions_mm * 0.1).T, dtype=f32)
+        dirs = np.ascontiguousarray(active.directions.T, dtype=f32)
         w *= f32(kernel._rate_factor())
         before = numba.get_num_threads()
         numba.set_num_threads(max(1, min(n_workers, int(numba.config.NUMBA_NUM_THREADS))))  # type: ignore[attr-defined]
