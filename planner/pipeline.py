@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from reachplan.imaging.types import Grid, Roi, StructureSet, Volume
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.geometry.collision import Organ, make_organ
+from reachplan.planner.geometry.collision import Organ, make_organ, with_distance_field
 from reachplan.planner.geometry.template import check_rigid, hole_frames, pose_from_obturator
 from reachplan.planner.ranking import RankWeights, pareto_front, rank
 from reachplan.planner.steering.candidates import Candidate, Target, mark_failed, score_path, straight_candidates
@@ -43,6 +43,9 @@ if TYPE_CHECKING:
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
+#: clearances up to the ranking's clearance cap + this (mm) are FCL's; beyond, the distance field's estimate
+#: (within its error bound) is reported. Re-ranking with a cap above the plan's cap + band uses those estimates.
+SCREEN_BAND_MM = 1.0
 
 #: 15-gauge plastic ISBT needle, outer diameter 1.83 mm (reference: oncoreach.md, ASSUMED dimensions).
 NEEDLE_RADIUS_15GA_MM = 1.83 / 2
@@ -237,7 +240,10 @@ def build_scene(
         if "Obturator" not in structures.names:
             raise PlanInputError("no Obturator ROI to place the template on; give patient_from_template")
         patient_from_template = pose_from_obturator(structures.get("Obturator"), config.obturator_depth_mm)
-    organs = tuple(make_organ(structures.get(n).normalized_name, meshes[structures.get(n).normalized_name])
+    # distance-field screen: FCL confirms every clearance up to the ranking's cap + SCREEN_BAND_MM (issue 19)
+    confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
+    organs = tuple(with_distance_field(make_organ(structures.get(n).normalized_name,
+                                                  meshes[structures.get(n).normalized_name]), confirm)
                    for n in oars)
     return Scene(organs, tuple(targets), load_template(config.template), check_rigid(patient_from_template),
                  meshes)

@@ -22,6 +22,7 @@ TARGETS: tuple[tuple[str, str, str], ...] = (
     ("planning", "planning", "whole phantom plan (paths/s, FCL queries/s, re-rank) and insertion models' chart"),
     ("startup", "startup", "start-up of reachplan --help and one reachplan rod solve against python -c pass"),
     ("firstrun", "firstrun", "first-run penalty: compiled kernels with a fresh numba cache against a warm one"),
+    ("distance", "distance", "organ distance fields: screen vs FCL alone (rates, largest difference, ranking)"),
     ("dosekernel", "dosekernel", "TG-43 grid dose: voxel-dwell pairs/s by method and threads, accuracy"),
 )
 

@@ -11,6 +11,7 @@ Clearance is the smallest surface-to-surface distance (mm) between the needle (c
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import fcl
@@ -18,6 +19,7 @@ import numpy as np
 import trimesh
 
 from reachplan.planner.errors import PlanInputError
+from reachplan.planner.geometry.distance_field import DistanceField
 
 
 @dataclass(frozen=True, eq=False)
@@ -29,6 +31,7 @@ class Organ:
     fcl_object: fcl.CollisionObject
     bounds_mm: np.ndarray  # (2, 3) float, mm, LPS: axis-aligned box (min, max)
     components: tuple[trimesh.Trimesh, ...] = ()  # connected parts, for cheap containment tests
+    field: DistanceField | None = None  # screen: FCL only for paths that may come within its confirm band
 
     def contains(self, point_mm: np.ndarray) -> bool:
         """Whether a point ((3,) float, mm, LPS) lies inside the organ (ray parity, only in the connected
@@ -154,13 +157,33 @@ def _box_gap_mm(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.n
     return float(np.linalg.norm(gap))
 
 
+def with_distance_field(organ: Organ, confirm_within_mm: float, pitch_mm: float = 1.0) -> Organ:
+    """The organ with a :class:`DistanceField` screen; exact (FCL) clearances below ``confirm_within_mm``."""
+    f = DistanceField.from_mesh(organ.mesh, pitch_mm=pitch_mm, confirm_within_mm=confirm_within_mm)
+    return dataclasses.replace(organ, field=f)
+
+
+def screened_clearance(path_mm: np.ndarray, radius_mm: float, organ: Organ) -> Clearance | None:
+    """The distance-field estimate when it proves the path stays beyond ``organ.field.confirm_within_mm``
+    (and its first point is outside the organ); None when the exact query must decide."""
+    f = organ.field
+    if f is None:
+        return None
+    est, lower = f.path_clearance(path_mm, radius_mm)
+    if lower <= f.confirm_within_mm or organ.contains(path_mm[0]):
+        return None
+    return Clearance(organ.name, est, False, None)
+
+
 def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...]) -> tuple[Clearance, ...]:
     """Clearance of one needle path against the organs that can matter.
 
     Broad phase first: organs are measured in order of the gap between their bounding box and the
     path's (inflated by ``radius_mm``); an organ whose gap exceeds the smallest clearance found so far is
-    skipped, as it can neither touch the needle nor be the nearest organ. The minimum clearance, the
-    nearest organ and every collision are therefore exact; skipped organs are absent from the result.
+    skipped, as it can neither touch the needle nor be the nearest organ. An organ with a distance field is
+    measured by it when the field proves the clearance larger than its confirm band (an estimate within the
+    field's ``error_mm``); otherwise, and for organs without a field, exactly with FCL. Every collision and
+    every clearance within the band are therefore exact; skipped organs are absent from the result.
     """
     p = np.asarray(path_mm, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
@@ -172,7 +195,7 @@ def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...])
     for gap, organ in sorted(zip(gaps, organs, strict=True), key=lambda g: g[0]):
         if gap > best:
             break
-        c = path_clearance(p, radius_mm, organ)
+        c = screened_clearance(p, radius_mm, organ) or path_clearance(p, radius_mm, organ)
         out.append(c)
         best = min(best, c.clearance_mm)
     return tuple(out)
