@@ -74,6 +74,21 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def kernels_not_cached() -> bool:
+    """Whether the rod kernel (the largest to compile) has no machine code in numba's cache yet.
+
+    Reads numba's cache index path (an internal of numba; any surprise there reads as "cached": the message
+    this feeds is only a courtesy)."""
+    import os
+
+    try:
+        from reachplan.rod_model import _kernel
+
+        return not os.path.exists(_kernel.shoot._cache._cache_file._index_path)
+    except Exception:  # numba internals may change: no message then
+        return False
+
+
 def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], points: list[Target],
              config: PlanConfig, out: Path, quiet: bool, *, export: bool = True, source: str = "gammamed_plus_hdr",
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
@@ -89,6 +104,9 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     from reachplan.plugins.exporters import ExportOptions
 
     timings: dict[str, float] = {}
+    if not quiet and kernels_not_cached():
+        print("reachplan: compiling the numba kernels once (first run after an install: about 10 s of CPU, "
+              "longer on a busy machine); later runs load them from the cache", file=sys.stderr)
     t = time.perf_counter()
     grid = volume.grid if volume is not None else None
     scene = build_scene(structures, names, points, grid=grid, config=config, quiet=quiet)
