@@ -84,7 +84,7 @@ def kernels_not_cached() -> bool:
     try:
         from reachplan.rod_model import _kernel
 
-        return not os.path.exists(_kernel.shoot._cache._cache_file._index_path)
+        return not os.path.exists(_kernel.shoot._cache._cache_file._index_path)  # type: ignore[attr-defined]
     except Exception:  # numba internals may change: no message then
         return False
 
