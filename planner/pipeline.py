@@ -43,9 +43,6 @@ if TYPE_CHECKING:
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
-#: clearances up to the ranking's clearance cap + this (mm) are FCL's; beyond, the distance field's estimate
-#: (within its error bound) is reported. Re-ranking with a cap above the plan's cap + band uses those estimates.
-SCREEN_BAND_MM = 1.0
 
 #: 15-gauge plastic ISBT needle, outer diameter 1.83 mm (reference: oncoreach.md, ASSUMED dimensions).
 NEEDLE_RADIUS_15GA_MM = 1.83 / 2
@@ -240,10 +237,9 @@ def build_scene(
         if "Obturator" not in structures.names:
             raise PlanInputError("no Obturator ROI to place the template on; give patient_from_template")
         patient_from_template = pose_from_obturator(structures.get("Obturator"), config.obturator_depth_mm)
-    # distance-field screen: FCL confirms every clearance up to the ranking's cap + SCREEN_BAND_MM (issue 19)
-    confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
+    # distance-field screen (issue 19): FCL only for the organs that can be the nearest or touched
     organs = tuple(with_distance_field(make_organ(structures.get(n).normalized_name,
-                                                  meshes[structures.get(n).normalized_name]), confirm)
+                                                  meshes[structures.get(n).normalized_name]))
                    for n in oars)
     return Scene(organs, tuple(targets), load_template(config.template), check_rigid(patient_from_template),
                  meshes)

@@ -157,22 +157,12 @@ def _box_gap_mm(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.n
     return float(np.linalg.norm(gap))
 
 
-def with_distance_field(organ: Organ, confirm_within_mm: float, pitch_mm: float = 1.0) -> Organ:
-    """The organ with a :class:`DistanceField` screen; exact (FCL) clearances below ``confirm_within_mm``."""
-    f = DistanceField.from_mesh(organ.mesh, pitch_mm=pitch_mm, confirm_within_mm=confirm_within_mm)
+def with_distance_field(organ: Organ, confirm_within_mm: float = np.inf, pitch_mm: float = 1.0,
+                        reach_mm: float | None = None) -> Organ:
+    """The organ with a :class:`DistanceField` screen (see :func:`check_path`); with a finite
+    ``confirm_within_mm`` clearances proven beyond it are the field's estimates instead of FCL's."""
+    f = DistanceField.from_mesh(organ.mesh, pitch_mm=pitch_mm, reach_mm=reach_mm, confirm_within_mm=confirm_within_mm)
     return dataclasses.replace(organ, field=f)
-
-
-def screened_clearance(path_mm: np.ndarray, radius_mm: float, organ: Organ) -> Clearance | None:
-    """The distance-field estimate when it proves the path stays beyond ``organ.field.confirm_within_mm``
-    (and its first point is outside the organ); None when the exact query must decide."""
-    f = organ.field
-    if f is None:
-        return None
-    est, lower = f.path_clearance(path_mm, radius_mm)
-    if lower <= f.confirm_within_mm or organ.contains(path_mm[0]):
-        return None
-    return Clearance(organ.name, est, False, None)
 
 
 def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...]) -> tuple[Clearance, ...]:
@@ -180,22 +170,34 @@ def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...])
 
     Broad phase first: organs are measured in order of the gap between their bounding box and the
     path's (inflated by ``radius_mm``); an organ whose gap exceeds the smallest clearance found so far is
-    skipped, as it can neither touch the needle nor be the nearest organ. An organ with a distance field is
-    measured by it when the field proves the clearance larger than its confirm band (an estimate within the
-    field's ``error_mm``); otherwise, and for organs without a field, exactly with FCL. Every collision and
-    every clearance within the band are therefore exact; skipped organs are absent from the result.
+    skipped, as it can neither touch the needle nor be the nearest organ. Organs with distance fields are
+    screened first: one whose lower bound exceeds another's upper bound is skipped for the same reason, and one
+    whose lower bound exceeds its field's ``confirm_within_mm`` (infinite unless set) gets the field's estimate.
+    The rest is measured exactly with FCL, so the minimum clearance, the nearest organ and every collision are
+    exact (with an infinite band); skipped organs are absent from the result.
     """
     p = np.asarray(path_mm, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
         raise PlanInputError("a needle path must be a finite (n, 3) array of points in mm")
     lo, hi = p.min(axis=0) - radius_mm, p.max(axis=0) + radius_mm
     gaps = [_box_gap_mm(lo, hi, *o.bounds_mm) for o in organs]
+    bounds = [o.field.path_clearance(p, radius_mm) if o.field is not None else None for o in organs]
+    best_upper = min((b[2] for b in bounds if b is not None), default=np.inf)
     out: list[Clearance] = []
     best = np.inf
-    for gap, organ in sorted(zip(gaps, organs, strict=True), key=lambda g: g[0]):
+    for gap, organ, b in sorted(zip(gaps, organs, bounds, strict=True), key=lambda g: g[0]):
         if gap > best:
             break
-        c = screened_clearance(p, radius_mm, organ) or path_clearance(p, radius_mm, organ)
+        if b is not None and organ.field is not None and (b[1] > best_upper or b[1] > organ.field.confirm_within_mm):
+            # the field proves the needle clear of this organ's surface; only a path wholly inside is left
+            if organ.contains(p[0]):
+                c = Clearance(organ.name, 0.0, True, 0.0)
+            elif b[1] > best_upper:
+                continue  # neither touched nor the nearest: absent, like the organs the box gap skips
+            else:
+                c = Clearance(organ.name, b[0], False, None)  # beyond the confirm band: the estimate
+        else:
+            c = path_clearance(p, radius_mm, organ)
         out.append(c)
         best = min(best, c.clearance_mm)
     return tuple(out)

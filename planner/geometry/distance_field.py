@@ -12,12 +12,14 @@ Error bound (why the screen never changes a decision). Let D be the distance to 
 * D is 1-Lipschitz, so trilinear interpolation departs from it by at most Σ wᵢ|x − cᵢ| <= (√3/2)·p;
 * between two samples s apart, D is at most s/2 below the smaller of the two.
 
-So ``estimate − error_mm − s/2 <= clearance`` with ``error_mm = √3·p + δ``. :func:`reachplan.planner.geometry.
-collision.check_path` asks FCL for the exact clearance only when that lower bound is within ``confirm_within_mm``
-of contact (the scene sets it above the ranking's clearance cap, so every score and every decision is FCL's);
-further away the estimate is reported. Signs are not needed: a path that enters the organ crosses its surface
-(D reaches 0 on it and FCL confirms), and a path wholly inside is found by the containment test of its first
-point that the exact check also makes.
+So ``estimate − error_mm − s/2 <= clearance <= estimate + error_mm`` with ``error_mm = √3·p + δ``.
+:func:`reachplan.planner.geometry.collision.check_path` uses the bounds two ways: an organ whose lower bound
+exceeds another organ's upper bound can be neither touched nor the nearest, and is not queried at all (the
+result stays exact); and, when ``confirm_within_mm`` is finite, an organ whose lower bound exceeds it is reported
+with the estimate instead of FCL's value (faster, but clearances beyond the band and the Pareto flags that use
+them become approximate; the planner keeps it infinite). Signs are not needed: a path that enters the organ
+crosses its surface (D reaches 0 on it and FCL confirms), and a path wholly inside is found by the containment
+test of its first point that the exact check also makes.
 
 Sampling is a numba kernel (cached): tens of millions of samples per second on one core.
 """
@@ -85,6 +87,11 @@ def _path_min(values, origin, inv_p, path, step, reach):  # type: ignore[no-unty
     return best, count
 
 
+#: reach of a field used only to find the organs that cannot be the nearest (mm): farther than that, the box-gap
+#: broad phase of :func:`reachplan.planner.geometry.collision.check_path` already separates organs
+DEFAULT_REACH_MM = 20.0
+
+
 @dataclass(frozen=True, eq=False)
 class DistanceField:
     """Approximate unsigned distance (mm) to an organ's surface, with a guaranteed error bound.
@@ -113,9 +120,10 @@ class DistanceField:
 
     @staticmethod
     def from_mesh(mesh: trimesh.Trimesh, *, pitch_mm: float = 1.0, reach_mm: float | None = None,
-                  confirm_within_mm: float = 6.0) -> DistanceField:
+                  confirm_within_mm: float = math.inf) -> DistanceField:
         """Field of a mesh (LPS mm) on a grid over its bounding box grown by ``reach_mm``; by default just far
-        enough to prove clearances beyond ``confirm_within_mm`` (confirm band + error bound + 2 pitches)."""
+        enough to prove clearances beyond a finite ``confirm_within_mm`` (band + error bound + 2 pitches), else
+        ``DEFAULT_REACH_MM``."""
         from scipy import ndimage
 
         verts = np.asarray(mesh.vertices, dtype=float)
@@ -124,7 +132,8 @@ class DistanceField:
         longest_edge = float(np.max(mesh.edges_unique_length)) if len(mesh.edges_unique) else 0.0
         error = math.sqrt(3.0) * pitch_mm + longest_edge
         if reach_mm is None:
-            reach_mm = confirm_within_mm + error + 2.0 * pitch_mm
+            reach_mm = (confirm_within_mm + error + 2.0 * pitch_mm if math.isfinite(confirm_within_mm)
+                        else DEFAULT_REACH_MM)
         if not (pitch_mm > 0 and reach_mm > 0):
             raise PlanInputError(f"distance field pitch and reach must be > 0 mm, got {pitch_mm}, {reach_mm}")
         lo = verts.min(axis=0) - reach_mm
@@ -145,14 +154,16 @@ class DistanceField:
         _sample(self.values_mm, self.origin_mm, 1.0 / self.pitch_mm, p, self.reach_mm, out)
         return out
 
-    def path_clearance(self, path_mm: np.ndarray, radius_mm: float) -> tuple[float, float]:
-        """(estimate, lower bound) of the clearance (mm) of a needle of ``radius_mm`` along ``path_mm`` ((n, 3)
-        float, mm, LPS). Both are ``reach_mm − radius_mm`` (and less by the error) when out of reach."""
+    def path_clearance(self, path_mm: np.ndarray, radius_mm: float) -> tuple[float, float, float]:
+        """(estimate, lower bound, upper bound) of the clearance (mm) of a needle of ``radius_mm`` along
+        ``path_mm`` ((n, 3) float, mm, LPS). Out of reach the estimate is ``reach_mm − radius_mm`` and the upper
+        bound infinite."""
         step = self.pitch_mm
         best, _ = _path_min(self.values_mm, self.origin_mm, 1.0 / self.pitch_mm,
                             np.ascontiguousarray(path_mm, dtype=float), step, self.reach_mm)
         est = float(best) - radius_mm
-        return max(est, 0.0), est - self.error_mm - 0.5 * step
+        upper = est + self.error_mm if best < self.reach_mm else math.inf
+        return max(est, 0.0), est - self.error_mm - 0.5 * step, upper
 
 
 def _warm_up() -> None:
