@@ -43,6 +43,10 @@ if TYPE_CHECKING:
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
+#: clearances up to the ranking's clearance cap + this (mm) are FCL's; beyond, the organ distance field's
+#: estimate (within its error bound, about 4 mm) is reported, and the Pareto flags use it. Scores and the
+#: ranking are unchanged (the score caps clearance); re-ranking with a larger cap uses the estimates.
+SCREEN_BAND_MM = 1.0
 
 #: 15-gauge plastic ISBT needle, outer diameter 1.83 mm (reference: oncoreach.md, ASSUMED dimensions).
 NEEDLE_RADIUS_15GA_MM = 1.83 / 2
@@ -237,9 +241,10 @@ def build_scene(
         if "Obturator" not in structures.names:
             raise PlanInputError("no Obturator ROI to place the template on; give patient_from_template")
         patient_from_template = pose_from_obturator(structures.get("Obturator"), config.obturator_depth_mm)
-    # distance-field screen (issue 19): FCL only for the organs that can be the nearest or touched
+    # distance-field screen (issue 19): FCL confirms clearances up to the ranking's cap + SCREEN_BAND_MM
+    confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
     organs = tuple(with_distance_field(make_organ(structures.get(n).normalized_name,
-                                                  meshes[structures.get(n).normalized_name]))
+                                                  meshes[structures.get(n).normalized_name]), confirm)
                    for n in oars)
     return Scene(organs, tuple(targets), load_template(config.template), check_rigid(patient_from_template),
                  meshes)

@@ -46,14 +46,16 @@ def run(args: argparse.Namespace) -> int:
         structures = read_rtstruct(files.rtstruct_path, volume)
     scene = build_scene(structures, grid=volume.grid)
     bare = dataclasses.replace(scene, organs=tuple(dataclasses.replace(o, field=None) for o in scene.organs))
+    cfg = PlanConfig(refine_top=0, robust_top=0)
+    band = cfg.weights.clearance_cap_mm + 1.0
     t0 = time.perf_counter()
     for o in bare.organs:
-        with_distance_field(o)
+        with_distance_field(o, band)
     build_s = time.perf_counter() - t0
-    cfg = PlanConfig(refine_top=0, robust_top=0)
-    # the banded variant: clearances proven beyond the ranking's cap + 1 mm are the field's estimates
-    band = cfg.weights.clearance_cap_mm + 1.0
-    banded = dataclasses.replace(scene, organs=tuple(with_distance_field(o, band) for o in bare.organs))
+    # the planner's scene is banded (the field's estimate beyond the ranking's cap + 1 mm); the exact variant
+    # asks FCL for every organ that can be the nearest
+    banded = scene
+    scene = dataclasses.replace(scene, organs=tuple(with_distance_field(o) for o in bare.organs))
     plan(dataclasses.replace(scene, targets=scene.targets[:1]), cfg)  # warm caches and kernels
     t_screen: list[float] = []
     t_fcl: list[float] = []

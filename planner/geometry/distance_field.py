@@ -17,9 +17,9 @@ So ``estimate − error_mm − s/2 <= clearance <= estimate + error_mm`` with ``
 exceeds another organ's upper bound can be neither touched nor the nearest, and is not queried at all (the
 result stays exact); and, when ``confirm_within_mm`` is finite, an organ whose lower bound exceeds it is reported
 with the estimate instead of FCL's value (faster, but clearances beyond the band and the Pareto flags that use
-them become approximate; the planner keeps it infinite). Signs are not needed: a path that enters the organ
-crosses its surface (D reaches 0 on it and FCL confirms), and a path wholly inside is found by the containment
-test of its first point that the exact check also makes.
+them become approximate; the planner sets it to the ranking's clearance cap + 1 mm). Signs are not needed: a
+path that enters the organ crosses its surface (D reaches 0 on it and FCL confirms), and a path wholly inside
+is found by the containment test of its first point that the exact check also makes.
 
 Sampling is a numba kernel (cached): tens of millions of samples per second on one core.
 """
@@ -87,8 +87,7 @@ def _path_min(values, origin, inv_p, path, step, reach):  # type: ignore[no-unty
     return best, count
 
 
-#: reach of a field used only to find the organs that cannot be the nearest (mm): farther than that, the box-gap
-#: broad phase of :func:`reachplan.planner.geometry.collision.check_path` already separates organs
+#: default reach of a field (mm): estimates saturate there (reported clearances up to about this minus the radius)
 DEFAULT_REACH_MM = 20.0
 
 
@@ -121,9 +120,9 @@ class DistanceField:
     @staticmethod
     def from_mesh(mesh: trimesh.Trimesh, *, pitch_mm: float = 1.0, reach_mm: float | None = None,
                   confirm_within_mm: float = math.inf) -> DistanceField:
-        """Field of a mesh (LPS mm) on a grid over its bounding box grown by ``reach_mm``; by default just far
-        enough to prove clearances beyond a finite ``confirm_within_mm`` (band + error bound + 2 pitches), else
-        ``DEFAULT_REACH_MM``."""
+        """Field of a mesh (LPS mm) on a grid over its bounding box grown by ``reach_mm``; by default
+        ``DEFAULT_REACH_MM``, or farther if needed to prove clearances beyond a finite ``confirm_within_mm``
+        (band + error bound + 2 pitches)."""
         from scipy import ndimage
 
         verts = np.asarray(mesh.vertices, dtype=float)
@@ -132,8 +131,8 @@ class DistanceField:
         longest_edge = float(np.max(mesh.edges_unique_length)) if len(mesh.edges_unique) else 0.0
         error = math.sqrt(3.0) * pitch_mm + longest_edge
         if reach_mm is None:
-            reach_mm = (confirm_within_mm + error + 2.0 * pitch_mm if math.isfinite(confirm_within_mm)
-                        else DEFAULT_REACH_MM)
+            reach_mm = max(DEFAULT_REACH_MM, confirm_within_mm + error + 2.0 * pitch_mm if math.isfinite(
+                confirm_within_mm) else 0.0)
         if not (pitch_mm > 0 and reach_mm > 0):
             raise PlanInputError(f"distance field pitch and reach must be > 0 mm, got {pitch_mm}, {reach_mm}")
         lo = verts.min(axis=0) - reach_mm
