@@ -15,14 +15,19 @@ This module holds only the version and :class:`ReachplanError`, the base of ever
 
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
-
 __all__ = ["ReachplanError", "__version__"]
 
-try:
-    __version__ = version("reachplan")
-except PackageNotFoundError:  # pragma: no cover - running from an uninstalled tree
-    __version__ = "0+unknown"
+
+def __getattr__(name: str) -> str:
+    """``__version__`` on first use: importlib.metadata costs about 80 ms of every command's start-up."""
+    if name != "__version__":
+        raise AttributeError(f"module 'reachplan' has no attribute {name!r}")
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("reachplan")
+    except PackageNotFoundError:  # pragma: no cover - running from an uninstalled tree
+        return "0+unknown"
 
 
 class ReachplanError(Exception):

@@ -132,9 +132,11 @@ class ClinicalParams:
 
 
 def sample_params(seed: int) -> ClinicalParams:
-    """Deterministic anatomical variation for ``seed`` (0 = the reference case), within published ranges:
-    uterine version and flexion, uterine size (Nayab 2022 ± 1 SD), bladder filling (Jamema 2008 ± 1 SD),
-    sigmoid position and tumour extent (sides and lateral reach of the parametrial extension).
+    """Deterministic anatomical variation for ``seed`` (0 = the reference case).
+
+    Within published ranges: uterine version and flexion, uterine size (Nayab 2022 ± 1
+    SD), bladder filling (Jamema 2008 ± 1 SD), sigmoid position and tumour extent (sides and lateral reach of the
+    parametrial extension).
     """
     if seed == 0:
         return ClinicalParams()
@@ -163,6 +165,7 @@ class ClinicalCase:
     targets: tuple[tuple[str, tuple[float, float, float]], ...]
 
     def to_json(self) -> dict[str, object]:
+        """Return the case as JSON-ready values (seed, parameters, named target points in mm LPS)."""
         return {
             "case": "clinical", "seed": self.seed, "params": dataclasses.asdict(self.params),
             "modality": self.spec.modality,
@@ -228,9 +231,10 @@ def _parametrium(p: ClinicalParams, centre: np.ndarray, side: float) -> Sweep:
 
 
 def _bladder(p: ClinicalParams, fill: float = 1.0) -> Sweep:
-    """Return the bladder holding ``fill`` x its nominal volume: an ellipsoid bent anteriorly under the uterus, its
-    base at z = 32 mm. Semi-axes scale with the cube root of the volume (reference 36 x 25 x 25 mm, 94 cm³;
-    ASSUMED shape).
+    """Return the bladder holding ``fill`` x its nominal volume.
+
+    An ellipsoid bent anteriorly under the uterus, its base at z = 32 mm. Semi-axes scale with the cube root of the
+    volume (reference 36 x 25 x 25 mm, 94 cm³; ASSUMED shape).
     """
     k = (fill * p.bladder_volume_cc * 1000.0 / (4 / 3 * math.pi * 36 * 25 * 25)) ** (1 / 3)
     lat, ap, half = 36 * k, 25 * k, 25 * k
@@ -281,8 +285,10 @@ def _bowel(dx: float) -> tuple[Sweep, Sweep]:
 
 
 def _hip(side: float) -> Sweep:
-    """One hip bone: iliac wall (flattened), down the side wall, superior ramus to the symphysis, back along
-    the inferior (ischiopubic) ramus to the ischial tuberosity. Radii ASSUMED.
+    """One hip bone.
+
+    Iliac wall (flattened), down the side wall, superior ramus to the symphysis, back along the inferior
+    (ischiopubic) ramus to the ischial tuberosity. Radii ASSUMED.
     """
     pts = [(75, 45, 198), (69, 25, 160), (64, 8, 115), (61, -10, 75), (56, -48, 44), (30, -80, 36),
            (10, -87, 32), (9.5, -87, 21), (22, -74, 12), (44, -40, 6), (56, -5, 6), (62, 22, 8)]
@@ -431,8 +437,9 @@ def _target_cylinder(xyz: tuple[float, float, float], radius_mm: float = 4.0) ->
 
 
 def _column_target(shape: Sweep | Union, xy: tuple[float, float], at: float = 0.5) -> tuple[float, float, float]:
-    """Return the point a fraction ``at`` up the highest chord of the line ``(x, y)`` (along z) through ``shape``
-    (the chord taken 2 mm inside the surface).
+    """Return the point a fraction ``at`` up the highest chord of the line ``(x, y)`` (along z) through ``shape``.
+
+    The chord is taken 2 mm inside the surface.
     """
     z = np.arange(0.0, 210.0, 0.25)
     f = shape.field(np.column_stack([np.full(len(z), xy[0]), np.full(len(z), xy[1]), z]))
@@ -448,8 +455,9 @@ def _column_target(shape: Sweep | Union, xy: tuple[float, float], at: float = 0.
 
 
 def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
-    """Write the case as an image series (CT or MR) + RT Structure Set, and ``case.json`` (parameters and
-    named target points) beside them.
+    """Write the case as an image series (CT or MR) + RT Structure Set.
+
+    Also and ``case.json`` (parameters and named target points) beside them.
     """
     from reachplan.imaging.files import atomic_write_json
 
@@ -459,8 +467,9 @@ def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
 
 
 def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> StructureSet:
-    """Return the ROIs of ``spec`` as an in-memory structure set (the contours :func:`write_phantom` would write,
-    names normalised by the default synonym table), without writing DICOM: for studies and tests.
+    """Return the ROIs of ``spec`` as an in-memory structure set, without writing DICOM (for studies and tests).
+
+    The contours are those :func:`write_phantom` would write, names normalised by the default synonym table.
     """
     from reachplan.imaging.names import DEFAULT_SYNONYMS
 

@@ -736,8 +736,9 @@ RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
 
 @dataclass(frozen=True)
 class PhantomFiles:
-    """Where :func:`write_phantom` put the phantom: the image series folder (CT or MR) and the RT Structure
-    Set file.
+    """Where :func:`write_phantom` put the phantom.
+
+    The image series folder (CT or MR) and the RT Structure Set file.
     """
 
     ct_dir: Path

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from reachplan._arrays import arc_length_mm
 from reachplan.imaging.types import Grid, Roi, StructureSet, Volume
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.geometry.collision import Organ, make_organ
+from reachplan.planner.geometry.collision import Organ, make_organ, with_distance_field
 from reachplan.planner.geometry.organs import check_unique, has_closed, roi_points, select_oars
 from reachplan.planner.geometry.template import TemplatePose, hole_frames, pose_from_obturator
 from reachplan.planner.ranking import RankWeights, pareto_front, rank
@@ -46,6 +46,10 @@ if TYPE_CHECKING:
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
+#: clearances up to the ranking's clearance cap + this (mm) are FCL's; beyond, the organ distance field's
+#: estimate (within its error bound, about 4 mm) is reported, and the Pareto flags use it. Scores and the
+#: ranking are unchanged (the score caps clearance); re-ranking with a larger cap uses the estimates.
+SCREEN_BAND_MM = 1.0
 
 #: 15-gauge plastic ISBT needle, outer diameter 1.83 mm (reference: oncoreach.md, ASSUMED dimensions).
 NEEDLE_RADIUS_15GA_MM = 1.83 / 2
@@ -278,7 +282,9 @@ def build_scene(
         pose = patient_from_template
     else:
         pose = TemplatePose(np.asarray(patient_from_template, dtype=float), "given")
-    organs = tuple(make_organ(n, meshes[n]) for n in oars)
+    # distance-field screen (issue 19): FCL confirms clearances up to the ranking's cap + SCREEN_BAND_MM
+    confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
+    organs = tuple(with_distance_field(make_organ(n, meshes[n]), confirm) for n in oars)
     return Scene(organs, tuple(targets), load_template(config.template), pose.patient_from_template,
                  meshes, pose=pose, notes=tuple(notes))
 

@@ -62,6 +62,10 @@ TARGETS: tuple[Target, ...] = (
             Option("--est-designs", int, "designs of the estimated study (7)"),
             Option("--est-targets", int, "targets per patient of the estimated study (10)"),
             Option("--est-workers", int, "workers of the estimated study (32)"))),
+    Target("startup", "startup", "start-up of reachplan --help and one reachplan rod solve against python -c pass"),
+    Target("firstrun", "firstrun", "first-run penalty: compiled kernels with a fresh numba cache against a warm one"),
+    Target("distance", "distance", "organ distance fields: screen vs FCL alone (rates, largest difference, ranking)"),
+    Target("dosekernel", "dosekernel", "TG-43 grid dose: voxel-dwell pairs/s by method and threads, accuracy"),
 )
 
 

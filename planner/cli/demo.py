@@ -25,8 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def blocked_straight(doc: dict[str, object]) -> list[dict[str, object]]:
-    """Straight candidates that reach their target but collide, each with the organ and depth of first contact
-    and the target's most medial clean steered alternative (``None`` when there is none).
+    """List the straight candidates that reach their target but collide.
+
+    Each with the organ and depth of first contact and the target's most medial clean steered alternative
+    (``None`` when there is none).
     """
     out: list[dict[str, object]] = []
     targets = doc["targets"]

@@ -84,6 +84,9 @@ def _triple(spec: str, what: str) -> tuple[float, float, float]:
 
 
 def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.steering.candidates import Target
+
     names: list[str] = []
     points: list[Target] = []
     for spec in specs:
@@ -223,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.pipeline import PlanConfig
 
     inputs = [p for p in (args.ct, args.rtstruct) if p is not None]
     check_plan_arguments(args, inputs)
@@ -258,6 +262,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def kernels_not_cached() -> bool:
+    """Whether the rod kernel (the largest to compile) has no machine code in numba's cache yet.
+
+    Reads numba's cache index path (an internal of numba; any surprise there reads as "cached": the message
+    this feeds is only a courtesy).
+    """
+    import os
+
+    try:
+        from reachplan.rod_model import _kernel
+
+        return not os.path.exists(_kernel.shoot._cache._cache_file._index_path)  # type: ignore[attr-defined]
+    except Exception:  # numba internals may change: no message then
+        return False
+
+
 def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], points: list[Target],
              config: PlanConfig, out: Path, quiet: bool, *, export: bool = True, source: str = "gammamed_plus_hdr",
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
@@ -289,6 +309,9 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
             raise PlanInputError(f"the dose target ROI {roi.name!r} has no closed contours; name another with "
                                  "--target-roi or plan with --no-export")
     timings: dict[str, float] = {}
+    if not quiet and kernels_not_cached():
+        print("reachplan: compiling the numba kernels once (first run after an install: about 10 s of CPU, "
+              "longer on a busy machine); later runs load them from the cache", file=sys.stderr)
     t = time.perf_counter()
     grid = volume.grid if volume is not None else None
     scene = build_scene(structures, names, points, grid=grid, patient_from_template=pose, config=config,

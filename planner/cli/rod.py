@@ -9,11 +9,7 @@ from typing import Any
 
 from reachplan import ReachplanError
 from reachplan.planner.cli.edges import finite, print_json
-from reachplan.plugins import registry
-from reachplan.rod_model.design import PRESET_NAMES, preset
 from reachplan.rod_model.errors import TensionAboveLimitWarning
-from reachplan.rod_model.friction import loop_width_mm, solve_sweep
-from reachplan.rod_model.select import Scene, select_model
 
 NAME = "rod"
 HELP = "Solve the stylet-in-needle shape for a preset design and tendon tension(s)."
@@ -25,7 +21,9 @@ class RodArgumentError(ReachplanError):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the preset, tension, model, roll and ``--json`` options."""
-    parser.add_argument("--preset", required=True, help=f"design preset, e.g. {', '.join(PRESET_NAMES)}")
+    parser.add_argument("--preset", required=True,
+                        help="design preset {13|15}ga-{joints}j-{tip|mid|base|asym}, e.g. 15ga-30j-tip "
+                             "(an unknown name lists the usual ones)")
     parser.add_argument("--tension", type=float, help="tension of tendon 0, N")
     parser.add_argument("--tensions", help="comma-separated tensions for a quasi-static sweep in that order, N (one "
                         "object per tension); up then down (0,2,...,10,...,0) shows the friction hysteresis loop")
@@ -69,6 +67,12 @@ def _check(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Solve the preset at each tension and print the shapes; return 0, or 1 when a solve did not converge."""
+    # imported here, not at the top: ``reachplan --help`` and the other commands must not pay for them
+    from reachplan.plugins import registry
+    from reachplan.rod_model.design import preset
+    from reachplan.rod_model.friction import loop_width_mm, solve_sweep
+    from reachplan.rod_model.select import Scene, select_model
+
     values, sweep = _tensions(args)
     _check(args)
     design = preset(args.preset)

@@ -7,7 +7,6 @@ import dataclasses
 from pathlib import Path
 
 from reachplan.planner.cli.edges import output_folder, print_json
-from reachplan.planner.errors import StudyError
 
 NAME = "study"
 HELP = ("plan every case x stylet design x target of a cohort on a local process pool or a Dask cluster; "
@@ -46,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Write a phantom cohort (``--make-cohort``) or run the study and print its summary; return 0."""
+    from reachplan.planner.errors import StudyError
+
     quiet = args.quiet or args.json
     if args.make_cohort is not None:
         from reachplan.planner.study.cohort import make_cohort

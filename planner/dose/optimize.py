@@ -45,7 +45,7 @@ from reachplan.planner.dose.coverage import (
     structure_metrics,
     voxel_volume_cc,
 )
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dwells_along_path, grid_points_mm, rate_matrix
+from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dwells_along_path, grid_points_mm
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,12 +236,10 @@ def _build(
     to_gy_per_s = sk / 360000.0
 
     def rates(idx: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(idx), len(dwells)))
-        step = max(1, (1 << 18) // max(len(dwells), 1))  # bounded temporaries (~30 MB)
-        for s0 in range(0, len(idx) if len(dwells) else 0, step):
-            pts = grid_points_mm(structures.grid, idx[s0 : s0 + step])
-            out[s0 : s0 + step] = rate_matrix(pts, dwells.positions_mm, dwells.directions, kernel)
-        return out * to_gy_per_s
+        # the compiled float32 kernel (within 1e-4 of the float64 table; threads over voxels)
+        out = kernel.compiled_rates(grid_points_mm(structures.grid, idx), dwells.positions_mm, dwells.directions)
+        out *= to_gy_per_s
+        return out
 
     t_idx = np.flatnonzero(structures.target.mask.ravel())
     a_t = rates(t_idx)

@@ -112,6 +112,7 @@ class Tg43Kernel:
     r_min_cm: float = field(init=False)
     _table: np.ndarray = field(init=False, repr=False)  # (nr, nθ) g_L·F (line) or (nr,) 1D rate factor
     _table32: np.ndarray = field(init=False, repr=False)  # the same in float32
+    _table32_2d: np.ndarray = field(init=False, repr=False)
     _g0: float = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -134,6 +135,42 @@ class Tg43Kernel:
         table32 = table.astype(np.float32)
         table32.setflags(write=False)
         object.__setattr__(self, "_table32", table32)
+        # the same, 2-D for the compiled kernel ((nr, 1) for the point model), C-contiguous
+        object.__setattr__(self, "_table32_2d", np.ascontiguousarray(table32.reshape(len(r), -1)))
+
+    def _rate_factor(self) -> float:
+        """Constant that turns the compiled kernel's output into cGy h⁻¹ U⁻¹."""
+        if self.model == "point":
+            return float(self.source.dose_rate_constant)
+        return float(self.source.dose_rate_constant / (self.length_cm * self._g0))
+
+    def compiled_rates(self, points_mm: np.ndarray, positions_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Rate matrix from the compiled float32 kernel (one thread).
+
+        Parameters
+        ----------
+        points_mm : (m, 3) float, mm, LPS
+        positions_mm : (n, 3) float, mm, LPS
+        directions : (n, 3) float, unit vectors toward the needle tip
+
+        Returns
+        -------
+        (m, n) float64, cGy h⁻¹ U⁻¹; within 1e-4 of :meth:`rate_per_u` (polynomial arctangent, float32).
+        """
+        from reachplan.planner.dose import _tg43_numba as nb
+
+        p = np.ascontiguousarray(np.asarray(points_mm, dtype=float).reshape(-1, 3) * 0.1, dtype=np.float32)
+        s = np.ascontiguousarray((np.asarray(positions_mm, dtype=float).reshape(-1, 3) * 0.1).T, dtype=np.float32)
+        u = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3).T, dtype=np.float32)
+        out = np.empty((len(p), s.shape[1]))
+        if out.size:
+            nb.pair_matrix(p, s, u, self._table32_2d, *self._scalars(), out)
+            out *= self._rate_factor()
+        return out
+
+    def _scalars(self) -> tuple[np.float32, np.float32, np.float32, np.float32, bool]:
+        f = np.float32
+        return f(1.0 / DR_CM), f(self.r_min_cm), f(self.length_cm), f(_EPS_Y_CM), self.model == "point"
 
     @property
     def length_cm(self) -> float:
@@ -443,8 +480,9 @@ def dose_on_grid(
     *,
     chunk_pairs: int = 1 << 16,
     workers: int | None = None,
+    method: Literal["compiled", "numpy"] = "compiled",
 ) -> np.ndarray:
-    """Dose (Gy) on every voxel centre of ``grid``, float32, computed in float32 by chunks.
+    """Dose (Gy) on every voxel centre of ``grid``, float32, computed in float32.
 
     Parameters
     ----------
@@ -454,9 +492,12 @@ def dose_on_grid(
     kernel : Tg43Kernel
     air_kerma_strength_u : float, U
     chunk_pairs : int
-        Voxel-dwell pairs per chunk: memory is about ``chunk_pairs × 40`` bytes per worker.
+        ``method="numpy"`` only: voxel-dwell pairs per chunk (memory about ``chunk_pairs × 40`` bytes per worker).
     workers : int, optional
-        Threads (numpy releases the GIL); default ``min(2, os.cpu_count())``.
+        Threads; default ``min(2, os.cpu_count())``.
+    method : {"compiled", "numpy"}
+        The compiled kernel (numba, one pair at a time, no temporaries; the default) or the chunked numpy
+        evaluation of :meth:`Tg43Kernel.rate_per_u` (kept as the benchmark's reference).
 
     Returns
     -------
@@ -469,11 +510,33 @@ def dose_on_grid(
     if len(active) == 0:
         return out.reshape(grid.shape)
     w = (active.times_s * (air_kerma_strength_u / 360000.0)).astype(np.float32)
+    n_workers = workers if workers is not None else min(2, os.cpu_count() or 1)
+    a = grid.patient_from_index
+    if method == "compiled":
+        import numba
+
+        from reachplan.planner.dose import _tg43_numba as nb
+
+        f32 = np.float32
+        cm = a[:3] * 0.1
+        pos = np.ascontiguousarray((active.positions_mm * 0.1).T, dtype=f32)
+        dirs = np.ascontiguousarray(active.directions.T, dtype=f32)
+        w *= f32(kernel._rate_factor())
+        before = numba.get_num_threads()
+        numba.set_num_threads(max(1, min(n_workers, int(numba.config.NUMBA_NUM_THREADS))))  # type: ignore[attr-defined]
+        try:
+            nb.grid_dose(cm[:, 3].astype(f32), cm[:, 0].astype(f32), cm[:, 1].astype(f32), cm[:, 2].astype(f32),
+                         np.asarray(grid.shape, dtype=np.int64), pos, dirs, w, kernel._table32_2d,
+                         *kernel._scalars(), out)
+        finally:
+            numba.set_num_threads(before)
+        return out.reshape(grid.shape)
+    if method != "numpy":
+        raise ValueError(f"method must be 'compiled' or 'numpy', got {method!r}")
     pos = active.positions_mm.astype(np.float32)
     dirs = active.directions.astype(np.float32)
     m = max(1, chunk_pairs // len(active))
     _, nj, ni = grid.shape
-    a = grid.patient_from_index
     ii = np.arange(ni, dtype=np.float64)
     jj = np.arange(nj, dtype=np.float64)
 
@@ -487,7 +550,6 @@ def dose_on_grid(
         )
         out[start:stop] = rate_matrix(pts, pos, dirs, kernel, np.float32) @ w
 
-    n_workers = workers if workers is not None else min(2, os.cpu_count() or 1)
     starts = range(0, n_vox, m)
     if n_workers <= 1:
         for s0 in starts:

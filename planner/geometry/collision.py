@@ -11,6 +11,7 @@ Clearance is the smallest surface-to-surface distance (mm) between the needle (c
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import fcl
@@ -19,6 +20,7 @@ import trimesh
 
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.errors import PlanInputError
+from reachplan.planner.geometry.distance_field import DistanceField
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,6 +32,7 @@ class Organ:
     fcl_object: fcl.CollisionObject
     bounds_mm: np.ndarray  # (2, 3) float, mm, LPS: axis-aligned box (min, max)
     components: tuple[trimesh.Trimesh, ...] = ()  # connected parts, for cheap containment tests
+    field: DistanceField | None = None  # screen: FCL only for paths that may come within its confirm band
 
     def contains(self, point_mm: np.ndarray) -> bool:
         """Tell whether a point ((3,) float, mm, LPS) lies inside the organ.
@@ -159,25 +162,50 @@ def _box_gap_mm(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.n
     return float(np.linalg.norm(gap))
 
 
+def with_distance_field(organ: Organ, confirm_within_mm: float = np.inf, pitch_mm: float = 1.0,
+                        reach_mm: float | None = None) -> Organ:
+    """Return the organ with a :class:`DistanceField` screen (see :func:`check_path`).
+
+    With a finite ``confirm_within_mm`` clearances proven beyond it are the field's
+    estimates instead of FCL's.
+    """
+    f = DistanceField.from_mesh(organ.mesh, pitch_mm=pitch_mm, reach_mm=reach_mm, confirm_within_mm=confirm_within_mm)
+    return dataclasses.replace(organ, field=f)
+
+
 def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...]) -> tuple[Clearance, ...]:
     """Clearance of one needle path against the organs that can matter.
 
     Broad phase first: organs are measured in order of the gap between their bounding box and the
     path's (inflated by ``radius_mm``); an organ whose gap exceeds the smallest clearance found so far is
-    skipped, as it can neither touch the needle nor be the nearest organ. The minimum clearance, the
-    nearest organ and every collision are therefore exact; skipped organs are absent from the result.
+    skipped, as it can neither touch the needle nor be the nearest organ. Organs with distance fields are
+    screened first: one whose lower bound exceeds another's upper bound is skipped for the same reason, and one
+    whose lower bound exceeds its field's ``confirm_within_mm`` (infinite unless set) gets the field's estimate.
+    The rest is measured exactly with FCL, so the minimum clearance, the nearest organ and every collision are
+    exact (with an infinite band); skipped organs are absent from the result.
     """
     p = np.asarray(path_mm, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
         raise PlanInputError("a needle path must be a finite (n, 3) array of points in mm")
     lo, hi = p.min(axis=0) - radius_mm, p.max(axis=0) + radius_mm
     gaps = [_box_gap_mm(lo, hi, *o.bounds_mm) for o in organs]
+    bounds = [o.field.path_clearance(p, radius_mm) if o.field is not None else None for o in organs]
+    best_upper = min((b[2] for b in bounds if b is not None), default=np.inf)
     out: list[Clearance] = []
     best = np.inf
-    for gap, organ in sorted(zip(gaps, organs, strict=True), key=lambda g: g[0]):
+    for gap, organ, b in sorted(zip(gaps, organs, bounds, strict=True), key=lambda g: g[0]):
         if gap > best:
             break
-        c = path_clearance(p, radius_mm, organ)
+        if b is not None and organ.field is not None and (b[1] > best_upper or b[1] > organ.field.confirm_within_mm):
+            # the field proves the needle clear of this organ's surface; only a path wholly inside is left
+            if organ.contains(p[0]):
+                c = Clearance(organ.name, 0.0, True, 0.0)
+            elif b[1] > best_upper:
+                continue  # neither touched nor the nearest: absent, like the organs the box gap skips
+            else:
+                c = Clearance(organ.name, b[0], False, None)  # beyond the confirm band: the estimate
+        else:
+            c = path_clearance(p, radius_mm, organ)
         out.append(c)
         best = min(best, c.clearance_mm)
     return tuple(out)

@@ -1,0 +1,160 @@
+"""Organ distance benchmark: the distance-field screen against FCL alone on the built-in phantom.
+
+Run: ``reachplan bench distance --out DIR [--quick]``. Builds the phantom scene once (organs with their
+distance fields), then, in turns, ``--repeat`` times (3; 1 with ``--quick``), plans the whole phantom three
+ways: with the screen (exact: FCL only for the organs that can be the nearest), with the banded screen (the
+field's estimate beyond the ranking's clearance cap + 1 mm) and with FCL alone (fields removed). Also the raw
+rates: field samples per second (random points in the organs' reach, one call) and field and FCL
+path-clearance queries per second (clear candidate paths against every organ), and on those pairs the largest
+difference between the field's estimate and FCL's clearance, beside the field's error bound.
+Writes ``distance.csv`` and ``distance.png``; goal (issue 19): >= 10 M samples/s, same ranking.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from reachplan.planner.bench._util import load_avg, write_csv
+
+GOAL_SAMPLES_PER_S = 10e6
+
+
+def _ranking_key(result: object) -> dict[str, list[tuple[str, str, bool]]]:
+    return {t: [(c.hole_id, c.reason, c.steered) for c in cs] for t, cs in result.ranking.items()}  # type: ignore[attr-defined]
+
+
+#: results this target owns in a source checkout (``reachplan bench distance --install``)
+INSTALLS = {"distance.csv": "docs/speed/distance.csv", "distance.png": "docs/speed/distance.png"}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
+    from reachplan.imaging.dicom_io import read_series
+    from reachplan.imaging.phantom import write_phantom
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.geometry.collision import path_clearance, with_distance_field
+    from reachplan.planner.pipeline import PlanConfig, build_scene, plan
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    repeat = 1 if args.quick else 3
+    with tempfile.TemporaryDirectory() as tmp:
+        files = write_phantom(Path(tmp) / "phantom")
+        volume = read_series(files.ct_dir)
+        structures = read_rtstruct(files.rtstruct_path, volume)
+    scene = build_scene(structures, grid=volume.grid)
+    bare = dataclasses.replace(scene, organs=tuple(dataclasses.replace(o, field=None) for o in scene.organs))
+    cfg = PlanConfig(refine_top=0, robust_top=0)
+    band = cfg.weights.clearance_cap_mm + 1.0
+    t0 = time.perf_counter()
+    for o in bare.organs:
+        with_distance_field(o, band)
+    build_s = time.perf_counter() - t0
+    # the planner's scene is banded (the field's estimate beyond the ranking's cap + 1 mm); the exact variant
+    # asks FCL for every organ that can be the nearest
+    banded = scene
+    scene = dataclasses.replace(scene, organs=tuple(with_distance_field(o) for o in bare.organs))
+    plan(dataclasses.replace(scene, targets=scene.targets[:1]), cfg)  # warm caches and kernels
+    t_screen: list[float] = []
+    t_fcl: list[float] = []
+    t_band: list[float] = []
+    res_screen = res_fcl = res_band = None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        res_band = plan(banded, cfg)
+        t_band.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        res_screen = plan(scene, cfg)
+        t_screen.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        res_fcl = plan(bare, cfg)
+        t_fcl.append(time.perf_counter() - t0)
+    same = _ranking_key(res_screen) == _ranking_key(res_fcl)
+    identical = res_screen.to_json() == res_fcl.to_json()  # type: ignore[union-attr]
+    same_banded = _ranking_key(res_band) == _ranking_key(res_fcl)
+
+    # raw rates and the largest difference, on the candidate paths that were collision-checked
+    clear = [c.path_mm for c in res_fcl.candidates if np.isfinite(c.clearance_mm) and not c.collides]  # type: ignore[union-attr]
+    paths = clear[:: max(1, len(clear) // (60 if args.quick else 400))]
+    radius = 1.0
+    rng = np.random.default_rng(0)
+    f0 = scene.organs[0].field
+    assert f0 is not None
+    pts = f0.origin_mm + rng.uniform(0, 1, (2_000_000, 3)) * (np.array(f0.values_mm.shape) - 1) * f0.pitch_mm
+    f0.sample(pts[:10])
+    t0, c0 = time.perf_counter(), time.process_time()
+    f0.sample(pts)
+    samples_per_s = len(pts) / (time.perf_counter() - t0)
+    samples_per_cpu_s = len(pts) / max(time.process_time() - c0, 1e-9)
+    worst = 0.0
+    worst_bound = 0.0
+    n_pairs = 0
+    n_diff = 0
+    t_fcl_q = 0.0
+    t_field_q = 0.0
+    for p in paths:
+        for organ in scene.organs:
+            f = organ.field
+            assert f is not None
+            t0 = time.perf_counter()
+            est, _, _ = f.path_clearance(p, radius)
+            t_field_q += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            exact = path_clearance(p, radius, organ).clearance_mm
+            t_fcl_q += time.perf_counter() - t0
+            n_pairs += 1
+            if exact > 0 and est < f.reach_mm - radius - 1e-6:  # clear of the organ, within the field's reach
+                n_diff += 1
+                if abs(est - exact) > worst:
+                    worst, worst_bound = abs(est - exact), f.error_mm + 0.5 * f.pitch_mm
+    row = {
+        "plan_fcl_only_s": round(statistics.median(t_fcl), 3),
+        "plan_banded_screen_s": round(statistics.median(t_band), 3),
+        "ratio_fcl_to_banded": round(statistics.median(t_fcl) / statistics.median(t_band), 2),
+        "same_ranking_banded": same_banded,
+        "plan_exact_screen_s": round(statistics.median(t_screen), 3),
+        "same_plan_json_exact": identical,
+        "same_ranking_exact": same,
+        "field_samples_per_s": round(samples_per_s),
+        "field_samples_per_cpu_s": round(samples_per_cpu_s),
+        "field_path_queries_per_s": round(n_pairs / t_field_q),
+        "fcl_path_queries_per_s": round(n_pairs / t_fcl_q),
+        "max_abs_diff_mm": round(worst, 3),
+        "error_bound_mm": round(worst_bound, 3),
+        "field_build_s": round(build_s, 3),
+        "pairs_timed": n_pairs,
+        "pairs_compared": n_diff,
+        "repeats": repeat,
+        "load_avg_1min": round(load_avg(), 2),
+    }
+    write_csv(out / "distance.csv", [row])
+    for k, v in row.items():
+        print(f"{k:<26} {v}")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(8, 3.4))
+    a1.bar(["field\nsamples/s", "field\npath queries/s", "FCL\npath queries/s"],
+           [samples_per_s, row["field_path_queries_per_s"], row["fcl_path_queries_per_s"]])  # type: ignore[list-item]
+    a1.axhline(GOAL_SAMPLES_PER_S, color="red", ls=":", label="10 M samples/s goal")
+    a1.set_yscale("log")
+    a1.legend(fontsize=8)
+    a2.bar(["screen\n(exact)", "screen\n(banded)", "FCL only"],
+           [row["plan_exact_screen_s"], row["plan_banded_screen_s"], row["plan_fcl_only_s"]])  # type: ignore[list-item]
+    a2.set_ylabel("phantom plan, s (median)")
+    a2.set_title(f"same ranking: {same_banded}; max |diff| {worst:.2f} mm", fontsize=9)
+    fig.suptitle(f"organ distance (load {load_avg():.1f})", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out / "distance.png", dpi=110)
+    plt.close(fig)
+    return 0

@@ -1,0 +1,79 @@
+"""Organ distance fields: error bound against closed forms, and the screen leaves the phantom ranking unchanged."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from reachplan.planner.geometry.collision import check_path, make_organ, path_clearance, with_distance_field
+from reachplan.planner.geometry.distance_field import DistanceField
+
+
+def test_field_within_its_error_bound_of_a_sphere() -> None:
+    radius = 20.0
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=radius)
+    f = DistanceField.from_mesh(mesh, pitch_mm=1.0, confirm_within_mm=6.0)
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=(50_000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = rng.uniform(radius, radius + f.reach_mm - 1.0, len(u))
+    got = f.sample(u * r[:, None])
+    exact = r - radius  # the icosphere's facets lie within 0.05 mm of the sphere at this subdivision
+    assert np.max(np.abs(got - exact)) <= f.error_mm + 0.05
+    assert f.sample(np.array([[0.0, 0.0, radius + f.reach_mm + 5.0]]))[0] == pytest.approx(f.reach_mm)
+
+
+def test_path_lower_bound_never_above_fcl() -> None:
+    mesh = trimesh.creation.box((30.0, 20.0, 40.0))
+    organ = with_distance_field(make_organ("Box", mesh), confirm_within_mm=3.0)
+    assert organ.field is not None
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        a, b = rng.uniform(-45, 45, (2, 3))
+        path = np.linspace(a, b, 7)
+        est, lower, upper = organ.field.path_clearance(path, 1.0)
+        exact = path_clearance(path, 1.0, organ)
+        assert lower <= exact.clearance_mm + 1e-9
+        assert exact.collides or exact.clearance_mm <= upper + 1e-9
+        if exact.clearance_mm + 1.0 < organ.field.reach_mm - organ.field.error_mm and not exact.collides:
+            assert abs(est - exact.clearance_mm) <= organ.field.error_mm + 0.5 * organ.field.pitch_mm
+        got = check_path(path, 1.0, (organ,))[0]  # screened or exact: never a missed collision
+        assert got.collides == exact.collides
+        if got.clearance_mm <= organ.field.confirm_within_mm:
+            assert got.clearance_mm == exact.clearance_mm
+
+
+def test_phantom_plan_same_with_and_without_screen(tmp_path: Path) -> None:
+    from reachplan.imaging.phantom import write_phantom
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.pipeline import PlanConfig, build_scene, plan
+
+    files = write_phantom(tmp_path / "phantom")
+    structures = read_rtstruct(files.rtstruct_path, None)
+    cfg = PlanConfig(refine_top=0, robust_top=0)
+    scene = build_scene(structures, config=cfg)
+    assert all(o.field is not None for o in scene.organs)
+    bare = dataclasses.replace(scene, organs=tuple(dataclasses.replace(o, field=None) for o in scene.organs))
+    exact = plan(bare, cfg)
+    # an infinite band (FCL only for the organs that can be the nearest) leaves every number of the plan as FCL
+    # alone gives it (ranking, clearances, Pareto flags)
+    exact_screen = dataclasses.replace(scene, organs=tuple(with_distance_field(o) for o in bare.organs))
+    assert plan(exact_screen, cfg).to_json() == exact.to_json()
+    # the planner's banded screen (estimates beyond the clearance cap + 1 mm) keeps the ranking and every
+    # clearance within the cap
+    cap = cfg.weights.clearance_cap_mm
+    banded = plan(scene, cfg)
+    assert banded.ranking.keys() == exact.ranking.keys()
+    for target, ranked in exact.ranking.items():
+        other = banded.ranking[target]
+        assert [(c.hole_id, c.steered, c.reason) for c in other] == [(c.hole_id, c.steered, c.reason) for c in ranked]
+        for a, b in zip(ranked, other, strict=True):
+            if math.isfinite(a.clearance_mm) and a.clearance_mm <= cap:
+                assert b.clearance_mm == a.clearance_mm
+            else:
+                assert not (math.isfinite(b.clearance_mm) and b.clearance_mm <= cap)
