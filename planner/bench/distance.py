@@ -145,12 +145,12 @@ def run(args: argparse.Namespace) -> int:
 
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(8, 3.4))
     a1.bar(["field\nsamples/s", "field\npath queries/s", "FCL\npath queries/s"],
-           [samples_per_s, row["field_path_queries_per_s"], row["fcl_path_queries_per_s"]])  # type: ignore[list-item]
+           [samples_per_s, row["field_path_queries_per_s"], row["fcl_path_queries_per_s"]])
     a1.axhline(GOAL_SAMPLES_PER_S, color="red", ls=":", label="10 M samples/s goal")
     a1.set_yscale("log")
     a1.legend(fontsize=8)
     a2.bar(["screen\n(exact)", "screen\n(banded)", "FCL only"],
-           [row["plan_exact_screen_s"], row["plan_banded_screen_s"], row["plan_fcl_only_s"]])  # type: ignore[list-item]
+           [row["plan_exact_screen_s"], row["plan_banded_screen_s"], row["plan_fcl_only_s"]])
     a2.set_ylabel("phantom plan, s (median)")
     a2.set_title(f"same ranking: {same_banded}; max |diff| {worst:.2f} mm", fontsize=9)
     fig.suptitle(f"organ distance (load {load_avg():.1f})", fontsize=10)

@@ -16,6 +16,7 @@ import argparse
 import statistics
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid, grid
 from reachplan.plugins.sources import BUILTIN
 
 LIMIT_MPAIRS = 100.0
-METHODS = ("compiled", "numpy")
+METHODS: tuple[Literal["compiled", "numpy"], ...] = ("compiled", "numpy")
 
 
 #: results this target owns in a source checkout (``reachplan bench dosekernel --install``)
@@ -67,14 +68,14 @@ def run(args: argparse.Namespace) -> int:
                 times.setdefault((method, workers), []).append((time.perf_counter() - t0, time.process_time() - c0))
     pairs = n_vox * n_dw
     rows: list[dict[str, object]] = []
-    for (method, workers), ts in times.items():
+    for (name, workers), ts in times.items():
         wall = statistics.median(t for t, _ in ts)
         cpu = statistics.median(c for _, c in ts)
-        rows.append({"method": method, "threads": workers, "voxels": n_vox, "dwells": n_dw,
+        rows.append({"method": name, "threads": workers, "voxels": n_vox, "dwells": n_dw,
                      "median_wall_s": round(wall, 4), "median_cpu_s": round(cpu, 4),
                      "mpairs_per_wall_s": round(pairs / wall / 1e6, 1),
                      "mpairs_per_cpu_s": round(pairs / cpu / 1e6, 1),
-                     "max_rel_diff_beyond_2mm": f"{errors[method]:.2e}", "repeats": repeat,
+                     "max_rel_diff_beyond_2mm": f"{errors[name]:.2e}", "repeats": repeat,
                      "load_avg_1min": round(load_avg(), 2)})
     write_csv(out / "dosekernel.csv", rows)
     for r in rows:

@@ -74,7 +74,7 @@ def _png(summary: list[dict[str, object]], path: Path) -> None:
     ax.barh([i - 0.2 for i in y], [float(s["median_cpu_s"]) for s in summary], 0.4, label="CPU (median)")  # type: ignore[arg-type]
     for i, s in zip(y, summary, strict=True):
         if s["limit_s"] != "":
-            ax.plot([s["limit_s"]] * 2, [i - 0.45, i + 0.45], color="red", lw=2)
+            ax.plot([float(str(s["limit_s"]))] * 2, [i - 0.45, i + 0.45], color="red", lw=2)
     ax.set_yticks(list(y), [str(s["command"]) for s in summary])
     ax.set_xlabel("seconds (red: limit on a quiet machine)")
     ax.set_title(f"start-up, load {load_avg():.1f} on {__import__('os').cpu_count()} cores")
