@@ -39,7 +39,8 @@ from reachplan.rod_model.errors import RodModelError
 from reachplan.rod_model.protocol import Capabilities, RodModel
 
 if TYPE_CHECKING:
-    from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures
+    from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantSettings
+    from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures, Structure
     from reachplan.plugins.exporters import ExportPlan
     from reachplan.rod_model.select import ErrorRow
 
@@ -620,3 +621,54 @@ def rod_model_errors() -> tuple[ErrorRow, ...]:
         return error_table()
     except RodModelError:
         return ()
+
+
+@dataclass(frozen=True, eq=False)
+class ImplantComparison:
+    """The two implant arms on the same anatomy and template: straight needles only, and straight + steered
+    (see :mod:`reachplan.planner.dose.implant`); ``candidates`` every candidate channel of the steered arm
+    (the straight arm's are its straight ones and the intracavitary channels)."""
+
+    straight: ImplantArm
+    steered: ImplantArm
+    candidates: tuple[Channel, ...]
+
+    @property
+    def arms(self) -> tuple[ImplantArm, ImplantArm]:
+        return self.straight, self.steered
+
+
+def plan_implants(
+    scene: Scene,
+    planning: PlanningStructures,
+    config: PlanConfig,
+    source: SourceData,
+    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
+    settings: ImplantSettings | None = None,
+    intracavitary: Sequence[Channel] = (),
+    gtv: Structure | None = None,
+    models: PlanModels | None = None,
+) -> ImplantComparison:
+    """Candidate needles for the target volume and both implant arms (Pareto curve and chosen plan each).
+
+    ``intracavitary``: applicator channels (tandem, ring, ovoids) available to both arms
+    (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
+    of ``config`` with the screening model of ``models``.
+    """
+    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_implant
+    from reachplan.planner.dose.tg43 import Tg43Kernel
+
+    settings = settings or ImplantSettings()
+    models = models or PlanModels.for_config(config)
+    holes = scene.template.needle_holes
+    banks = [shape_bank(d, config.family, min(config.max_depth_mm, d.length_mm), models.screening)
+             for d in config.rod_designs]
+    cands = needle_candidates([h.hole_id for h in holes], np.array([h.xy_mm for h in holes]),
+                              np.array([h.distance_mm for h in holes]), scene.patient_from_template, planning,
+                              scene.organs, config.needle_radius_mm, settings, banks, config.max_depth_mm)
+    kernel = Tg43Kernel(source)
+    straight = plan_implant("straight", [*[c for c in cands if not c.steered], *intracavitary], planning, kernel,
+                            air_kerma_u, settings=settings, gtv=gtv)
+    steered = plan_implant("steered", [*cands, *intracavitary], planning, kernel, air_kerma_u, settings=settings,
+                           gtv=gtv)
+    return ImplantComparison(straight, steered, (*cands, *intracavitary))
