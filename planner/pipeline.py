@@ -39,9 +39,9 @@ from reachplan.rod_model.errors import RodModelError
 from reachplan.rod_model.protocol import Capabilities, RodModel
 
 if TYPE_CHECKING:
-    from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantSettings
+    from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantPlan, ImplantSettings
     from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures, Structure
-    from reachplan.plugins.exporters import ExportPlan
+    from reachplan.plugins.exporters import ExportPlan, NeedleExport
     from reachplan.rod_model.select import ErrorRow
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
@@ -507,13 +507,18 @@ DEFAULT_AIR_KERMA_U = 40_700.0
 @dataclass(frozen=True, eq=False)
 class Delivery:
     """Chosen needles with optimised dwell times, ready for the exporters; ``source`` the TG-43 data set the
-    dwell times were optimised with."""
+    dwell times were optimised with. ``needles`` and ``export.needles`` hold only the needles that carry dwell
+    time (a needle the optimum leaves empty is not part of the implant and gets no instructions).
+    ``implant``: the two implant arms (:func:`plan_implants`) when asked for, and ``implant_exports`` the
+    export of each arm's chosen implant (loaded needles only), by arm name."""
 
     needles: tuple[Candidate, ...]
     optimisation: OptimisationResult
     export: ExportPlan
     planning: PlanningStructures
     source: SourceData
+    implant: ImplantComparison | None = None
+    implant_exports: dict[str, ExportPlan] = field(default_factory=dict)
 
 
 def plan_delivery(
@@ -526,9 +531,14 @@ def plan_delivery(
     label: str = "reachplan",
     volume: Volume | None = None,
     input_paths: Sequence[Path] = (),
+    scene: Scene | None = None,
+    implant_settings: ImplantSettings | None = None,
 ) -> Delivery:
     """Choose needles, optimise their dwell times on the target (TG-43, EMBRACE II aims) and assemble the
     export plan (RT Plan + RT Structure Set + device instructions).
+
+    With ``scene`` the implant is also planned for the whole target volume, straight only and straight +
+    steered (:func:`plan_implants` with ``implant_settings``), and each arm's chosen implant exported.
 
     Raises
     ------
@@ -546,19 +556,45 @@ def plan_delivery(
     source = get_source(source_name)
     opt = optimise_dwell_times([c.path_mm for c in needles], planning, Tg43Kernel(source), air_kerma_u)
     exports = []
+    loaded = []
     for ch, c in enumerate(needles, start=1):
-        sel = opt.dwells.channels == ch
-        keep = sel & (opt.dwells.times_s > 0)
-        if not keep.any():  # an unused needle still gets one zero-time dwell at its first position
-            keep = sel & (np.cumsum(sel) == 1)
-        sched = None if c.schedule is None else np.column_stack(
-            [c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg])
+        keep = (opt.dwells.channels == ch) & (opt.dwells.times_s > 0)
+        if not keep.any():  # a needle the optimum leaves empty is not part of the implant: no instructions
+            continue
+        loaded.append(c)
         exports.append(NeedleExport(c.hole_id, c.path_mm, opt.dwells.positions_mm[keep], opt.dwells.times_s[keep],
-                                    c.design_name, sched))
+                                    c.design_name, _schedule_rows(c.schedule)))
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
                         input_paths=tuple(input_paths))
-    return Delivery(needles, opt, export, planning, source)
+    implant = None
+    implant_exports: dict[str, ExportPlan] = {}
+    if scene is not None:
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings)
+        for arm in implant.arms:
+            if arm.plan is not None and arm.plan.channels:
+                implant_exports[arm.name] = ExportPlan(
+                    f"{label[:16 - len(arm.name) - 1]}_{arm.name}", implant_needles(arm.plan), spec,
+                    structure_set=structures, volume=volume, input_paths=tuple(input_paths))
+    return Delivery(tuple(loaded), opt, export, planning, source, implant, implant_exports)
+
+
+def _schedule_rows(schedule: TensionSchedule | None) -> np.ndarray | None:
+    """(k, 3) rows (depth mm, tension N, roll deg) of a schedule, or None."""
+    return None if schedule is None else np.column_stack([schedule.depth_mm, schedule.tension_n, schedule.roll_deg])
+
+
+def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
+    """The loaded channels of an implant as exporter needles (channels in the plan's order; every one carries
+    time: an empty channel is not in ``plan.channels``)."""
+    from reachplan.plugins.exporters import NeedleExport
+
+    out = []
+    for ch, c in enumerate(plan.channels, start=1):
+        keep = plan.dwells.channels == ch
+        out.append(NeedleExport(c.name, c.path_mm, plan.dwells.positions_mm[keep], plan.dwells.times_s[keep],
+                                c.design, _schedule_rows(c.schedule)))
+    return tuple(out)
 
 
 def rod_model_capabilities() -> dict[str, Capabilities]:
@@ -636,6 +672,14 @@ class ImplantComparison:
     @property
     def arms(self) -> tuple[ImplantArm, ImplantArm]:
         return self.straight, self.steered
+
+    def to_json(self) -> dict[str, object]:
+        """plan.json's ``implant``: ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`) and the count of
+        candidate channels by kind."""
+        kinds: dict[str, int] = {}
+        for c in self.candidates:
+            kinds[c.kind] = kinds.get(c.kind, 0) + 1
+        return {"straight": self.straight.to_json(), "steered": self.steered.to_json(), "candidates": kinds}
 
 
 def plan_implants(

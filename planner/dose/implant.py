@@ -43,8 +43,8 @@ patients: HR-CTV D90 > 85, D98 > 75, GTV D98 > 90 Gy), as :class:`reachplan.plan
 
 from __future__ import annotations
 
-import itertools
 import dataclasses
+import itertools
 import math
 import time
 from collections.abc import Sequence
@@ -369,7 +369,7 @@ def _steered(bank: ShapeBank, hole_ids: Sequence[str], xy: np.ndarray, hole_dist
             if len(rows) == 0:
                 continue
             last = inside.shape[1] - 1 - np.argmax(inside[rows, ::-1], axis=1)
-            tip_idx = np.minimum(last + int(math.ceil(settings.tip_offset_mm / (bank.step_mm * every))),
+            tip_idx = np.minimum(last + math.ceil(settings.tip_offset_mm / (bank.step_mm * every)),
                                  inside.shape[1] - 1)
             clear = np.minimum.accumulate(oar.at(pts[rows], kji[rows]), axis=1)[np.arange(len(rows)), tip_idx]
             ok = clear >= oar_min
@@ -493,6 +493,50 @@ class ImplantArm:
     plan: ImplantPlan | None
     seconds: float
     reason: str = ""
+
+    def to_json(self) -> dict[str, object]:
+        """The arm for plan.json (EQD2 totals in Gy; dwell positions mm LPS; times s per fraction)."""
+        doc: dict[str, object] = {
+            "candidates": self.n_candidates, "seconds": round(self.seconds, 3), "reason": self.reason,
+            "pareto": [{"n_needles": p.n_needles, "hrctv_d90_eqd2_gy": round(p.hrctv_d90_eqd2_gy, 3),
+                        "aims_met": p.aims_met} for p in self.pareto],
+        }
+        pl = self.plan
+        if pl is None:
+            return {**doc, "needles": [], "aims_met": False}
+        needles = []
+        for ch, c in enumerate(pl.channels, start=1):
+            keep = pl.dwells.channels == ch
+            needles.append({
+                "hole_id": c.name, "kind": c.kind, "design": c.design,
+                "schedule": None if c.schedule is None else [
+                    [round(float(d), 3), round(float(t), 3), round(float(r), 3)] for d, t, r in
+                    zip(c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg, strict=True)],
+                "hole_distance_mm": round(c.hole_distance_mm, 3), "tissue_length_mm": round(c.tissue_length_mm, 3),
+                "clearance_mm": round(c.clearance_mm, 3) if np.isfinite(c.clearance_mm) else None,
+                "dwell_positions_mm": np.round(pl.dwells.positions_mm[keep], 3).tolist(),
+                "dwell_times_s": np.round(pl.dwells.times_s[keep], 3).tolist(),
+            })
+        return {
+            **doc,
+            "n_needles": pl.n_needles,
+            "needles": needles,
+            "aims_met": pl.aims_met,
+            "hrctv_d90_eqd2_gy": round(pl.target.d90_eqd2_gy, 3),
+            "hrctv_d98_eqd2_gy": round(pl.target.d98_eqd2_gy, 3),
+            "hrctv_v100_percent": round(pl.target.v100_pct, 3),
+            "hrctv_v150_percent": round(pl.target.v150_pct, 3),
+            "hrctv_v200_percent": round(pl.v200_pct, 3),
+            "gtv_d98_eqd2_gy": None if pl.gtv is None else round(pl.gtv.d98_eqd2_gy, 3),
+            "oar_d2cc_eqd2_gy": {o.name: round(o.d2cc_eqd2_gy, 3) for o in pl.oars},
+            "max_dwell_share": round(pl.max_dwell_share, 5),
+            "needle_time_share": round(pl.needle_time_share, 5),
+            "loaded_dwells": {c.name: n for c, n in zip(pl.channels, pl.loaded_dwells, strict=True)},
+            "total_time_s": round(pl.total_time_s, 3),
+            "scale": round(pl.scale, 6),
+            "selection_gap": None if pl.mip_gap is None else round(pl.mip_gap, 4),
+            "selection": pl.mip_status,
+        }
 
 
 @dataclass(frozen=True, eq=False)
@@ -634,6 +678,7 @@ class _Selection:
         self.at, self.p, self.p_t, self.cost, self.cap, self.big_m = at, p, p_t, cost, cap, big_m
         self.ao = [(np.asarray((member.T @ a.T).T), limit) for a, limit in a_o if len(a)]
         self.block_ch = np.array(block_ch)
+        self.hole_of = [chans[c].name for c in self.needles]
         self.sizes = sizes
         self.settings = settings
         self.all_ch = [c for c in range(len(chans)) if not chans[c].is_needle]
@@ -704,7 +749,8 @@ class _Selection:
         most, among the ``greedy_candidates`` needles that could fill most of the current underdose alone
         (each within its organ caps)."""
         deficit = np.maximum(self.p - dose, 0.0)
-        free = [i for i in range(self.n_y) if i not in set(previous)]
+        holes = {self.hole_of[i] for i in previous}  # one needle per template hole
+        free = [i for i in range(self.n_y) if i not in set(previous) and self.hole_of[i] not in holes]
         if not free:
             return list(previous), float("inf"), dose
         score = []
@@ -929,6 +975,8 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_t: np.ndarray, fin_g: np.ndar
            p_g: float, aims: Aims, settings: ImplantSettings, vox_cc: float, n_hot: int, gap: float | None,
            status: str) -> ImplantPlan | None:
     """Dwell times on the chosen channels (LP, organ release, empty-needle rule) and the plan's metrics."""
+    t = np.zeros(0)
+    cols = loaded_ch = np.zeros(0, dtype=int)
     for _ in range(3):
         cols = np.flatnonzero(np.isin(prob.channel_of, chosen))
         pos, dirs = prob.positions[cols], prob.directions[cols]
@@ -944,24 +992,25 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_t: np.ndarray, fin_g: np.ndar
         released: list[np.ndarray] = [np.zeros(0, dtype=int) for _ in a_o]
         best: np.ndarray | None = None
         for it in range(2):
-            t = _dwell_lp(prob, cols, a_t, a_g, p_t, p_g, a_o, settings, released)
-            if t is None:
+            lp = _dwell_lp(prob, cols, a_t, a_g, p_t, p_g, a_o, settings, released)
+            if lp is None:
                 break
-            best = t
+            best = lp
             if it == 0:
-                released = [np.argsort(-(a @ t), kind="stable")[:n_hot] if len(a) else np.zeros(0, int)
+                released = [np.argsort(-(a @ lp), kind="stable")[:n_hot] if len(a) else np.zeros(0, int)
                             for a, _ in a_o]
         if best is None:
             return None
         t = np.where(best >= settings.min_dwell_time_s, best, 0.0)
         totals = np.bincount(prob.channel_of[cols], weights=t, minlength=len(prob.channels))
-        loaded_ch = np.array([c for c in chosen if totals[c] > 1e-3 * max(t.sum(), 1e-12)
-                              and np.count_nonzero(t[prob.channel_of[cols] == c]) >= 1], dtype=int)
-        if len(loaded_ch) == len(chosen):
-            break
+        loaded_ch = np.array([c for c in chosen if totals[c] > 1e-3 * max(t.sum(), 1e-12)], dtype=int)
         if len(loaded_ch) == 0:
             return None
+        t = np.where(np.isin(prob.channel_of[cols], loaded_ch), t, 0.0)
+        if len(loaded_ch) == len(chosen):
+            break
         chosen = loaded_ch  # a needle the optimum leaves empty is not part of the implant: re-solve without it
+    chosen = loaded_ch
     target, v200, gtv, oars, dvhs, scale = _metrics(prob, cols, t, aims, vox_cc)
     keep = t > 0
     new_index = {int(c): i + 1 for i, c in enumerate(chosen)}
