@@ -553,6 +553,8 @@ class _Problem:
     kernel: Tg43Kernel
     oar_names: tuple[str, ...]
     eval_radius_mm: float
+    target_fine: tuple[np.ndarray, np.ndarray]  # points and weights of the final metrics (_supersampled)
+    gtv_fine: tuple[np.ndarray, np.ndarray] | None
 
 
 def _rates(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, prob: _Problem) -> np.ndarray:
@@ -564,6 +566,52 @@ def _rates(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, prob: _Problem
     for s0 in range(0, len(points), step):
         out[s0:s0 + step] = rate_matrix(points[s0:s0 + step], pos, dirs, prob.kernel)
     return out * prob.gy_per_s
+
+
+def _dose(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, times: np.ndarray, prob: _Problem) -> np.ndarray:
+    """(m,) dose, Gy per fraction, at ``points`` from dwells with ``times`` (s), by chunks of points."""
+    out = np.zeros(len(points))
+    if len(pos) == 0:
+        return out
+    step = max(1, (1 << 20) // len(pos))
+    for s0 in range(0, len(points), step):
+        out[s0:s0 + step] = rate_matrix(points[s0:s0 + step], pos, dirs, prob.kernel) @ times
+    return out * prob.gy_per_s
+
+
+#: sub-voxels per axis at which the final metrics of the target (and GTV) are computed
+SUPERSAMPLE = 3
+
+
+def _supersampled(grid: Grid, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points (mm, LPS) and weights at which a structure's final metrics are computed: the n × n × n sub-voxel
+    centres of each voxel, n = :data:`SUPERSAMPLE`. The dose falls steeply across a target's edge, where D90
+    and D98 are decided: voxel centres alone are 1-3 % off on a 2 mm grid; n = 3 is within 0.2 % of n = 6 on
+    the planted cases of the tests."""
+    n = SUPERSAMPLE
+    k, j, i = np.nonzero(mask)
+    ijk = np.column_stack([i, j, k]).astype(float)
+    axis = (np.arange(n) + 0.5) / n - 0.5
+    off = np.array([[a, b, c] for a in axis for b in axis for c in axis])
+    subs = grid.to_patient((ijk[:, None, :] + off[None]).reshape(-1, 3))
+    return subs, np.ones(len(subs), dtype=int)
+
+
+def _clip_share(t: np.ndarray, share: float) -> np.ndarray:
+    """``min(t, c)`` with the largest ``c`` such that no time exceeds ``share`` of the clipped total (exact:
+    with the m largest clipped, ``c = share · R_m / (1 - share · m)``, R_m the sum of the others)."""
+    order = np.sort(t)[::-1]
+    if order[0] <= share * order.sum():
+        return t
+    rest = order.sum()
+    for m in range(1, len(order) + 1):
+        rest -= order[m - 1]
+        if share * m >= 1:
+            break
+        c = share * rest / (1 - share * m)
+        if m == len(order) or order[m] <= c:
+            return np.minimum(t, c * (1 - 1e-12))
+    return t
 
 
 def _stride(n: int, k: int) -> np.ndarray:
@@ -812,24 +860,27 @@ def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vo
     dose_oar = []
     scale = 1.0
     for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
-        dist = cKDTree(pos).query(pts, distance_upper_bound=prob.eval_radius_mm)[0] if len(pos) else np.zeros(0)
-        near = pts[dist < np.inf] if len(pos) else pts[:0]
-        d = _rates(near, pos, dirs, prob) @ t if len(near) else np.zeros(0)
+        # the organ's voxels within the evaluation radius of a loaded dwell, and at least its nearest 4 × 2 cm³
+        dist = cKDTree(pos).query(pts)[0] if len(pos) else np.zeros(len(pts))
+        n_min = min(len(pts), 4 * math.ceil(2.0 / vox_cc))
+        near = pts[(dist <= prob.eval_radius_mm) | (np.argsort(np.argsort(dist, kind="stable")) < n_min)]
+        d = _dose(near, pos, dirs, t, prob)
         dose_oar.append(d)
         if limit is not None and len(d):
             d2 = dose_to_volume(d, vox_cc, 2.0)
             if d2 > limit:
                 scale = min(scale, limit / d2 * (1 - 1e-9))
     t = t * scale
-    dt = _rates(prob.target_pts, pos, dirs, prob) @ t
-    target = structure_metrics("HR-CTV", dt, vox_cc, rx, aims.alpha_beta_target_gy, aims.fractionation)
+    sub_cc = vox_cc / SUPERSAMPLE ** 3  # target and GTV on sub-voxels
+    dt = np.repeat(_dose(prob.target_fine[0], pos, dirs, t, prob), prob.target_fine[1])
+    target = structure_metrics("HR-CTV", dt, sub_cc, rx, aims.alpha_beta_target_gy, aims.fractionation)
     v200 = 100.0 * float(np.count_nonzero(dt >= 2.0 * rx)) / len(dt)
-    dvhs = [("HR-CTV", cumulative_dvh(dt, vox_cc))]
+    dvhs = [("HR-CTV", cumulative_dvh(dt, sub_cc))]
     gtv = None
-    if prob.gtv_pts is not None and len(prob.gtv_pts):
-        dg = _rates(prob.gtv_pts, pos, dirs, prob) @ t
-        gtv = structure_metrics("GTV", dg, vox_cc, rx, aims.alpha_beta_target_gy, aims.fractionation)
-        dvhs.append(("GTV", cumulative_dvh(dg, vox_cc)))
+    if prob.gtv_fine is not None and len(prob.gtv_fine[0]):
+        dg = np.repeat(_dose(prob.gtv_fine[0], pos, dirs, t, prob), prob.gtv_fine[1])
+        gtv = structure_metrics("GTV", dg, sub_cc, rx, aims.alpha_beta_target_gy, aims.fractionation)
+        dvhs.append(("GTV", cumulative_dvh(dg, sub_cc)))
     oars = []
     for name, d in zip(prob.oar_names, dose_oar, strict=True):
         d = d * scale if len(d) else np.zeros(1)
@@ -895,7 +946,8 @@ def plan_implant(
         None if gtv is None else grid_points_mm(grid, np.flatnonzero(gtv.mask.ravel())),
         tuple(grid_points_mm(grid, np.flatnonzero(o.mask.ravel())) for o in planning.oars),
         oar_limits, air_kerma_strength_u / 360000.0, kernel, tuple(o.name for o in planning.oars),
-        settings.oar_eval_radius_mm)
+        settings.oar_eval_radius_mm, _supersampled(grid, planning.target.mask),
+        None if gtv is None else _supersampled(grid, gtv.mask))
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
         1.0 + settings.coverage_margin)
@@ -1007,6 +1059,7 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_t: np.ndarray, fin_g: np.ndar
         if len(loaded_ch) == 0:
             return None
         t = np.where(np.isin(prob.channel_of[cols], loaded_ch), t, 0.0)
+        t = _clip_share(t, settings.max_dwell_share)  # the dropped short dwells raised the others' shares
         if len(loaded_ch) == len(chosen):
             break
         chosen = loaded_ch  # a needle the optimum leaves empty is not part of the implant: re-solve without it
@@ -1020,12 +1073,11 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_t: np.ndarray, fin_g: np.ndar
                        _aims_met(target, gtv, oars, aims), gtv, scale, gap, status, dvhs)
 
 
-def recomputed_d90_eqd2_gy(plan: ImplantPlan, grid: Grid, target_mask: np.ndarray, kernel: Tg43Kernel,
-                           air_kerma_strength_u: float, aims: Aims | None = None) -> float:
-    """HR-CTV D90 (EQD2, Gy) of a plan recomputed independently with :func:`dose_on_grid` on another (finer)
-    ``grid`` whose ``target_mask`` ((nk, nj, ni) bool) holds the target."""
+def recompute_target(plan: ImplantPlan, grid: Grid, target_mask: np.ndarray, kernel: Tg43Kernel,
+                     air_kerma_strength_u: float, aims: Aims | None = None) -> StructureMetrics:
+    """HR-CTV metrics of a plan recomputed independently with :func:`dose_on_grid` on another (finer) ``grid``
+    whose ``target_mask`` ((nk, nj, ni) bool) holds the target (physical per fraction and EQD2 totals)."""
     aims = aims or Aims()
     dose = dose_on_grid(grid, plan.dwells, kernel, air_kerma_strength_u)[np.asarray(target_mask, bool)]
-    m = structure_metrics("HR-CTV", dose.astype(float), voxel_volume_cc(grid), aims.prescription_gy,
-                          aims.alpha_beta_target_gy, aims.fractionation)
-    return m.d90_eqd2_gy
+    return structure_metrics("HR-CTV", dose.astype(float), voxel_volume_cc(grid), aims.prescription_gy,
+                             aims.alpha_beta_target_gy, aims.fractionation)
