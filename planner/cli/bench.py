@@ -18,7 +18,7 @@ from types import ModuleType
 from reachplan.planner.bench.common import check_install, install
 
 NAME = "bench"
-HELP = "Run a benchmark (rod models, planning, dose, imaging, study) and write CSV + PNG."
+HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant) and write CSV + PNG."
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,8 @@ TARGETS: tuple[Target, ...] = (
             Option("--est-designs", int, "designs of the estimated study (7)"),
             Option("--est-targets", int, "targets per patient of the estimated study (10)"),
             Option("--est-workers", int, "workers of the estimated study (32)"))),
+    Target("implant", "implant", "implant planning: both arms with their Pareto curves on the phantom (time, D90)",
+           (Option("--repeat", int, "timed runs, the fastest is reported (3; quick 1)"),)),
 )
 
 

@@ -40,7 +40,7 @@ class Case:
 
 
 def _grid(h: float, lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[Grid, np.ndarray]:
-    n = [int(round((b - a) / h)) for a, b in zip(lo, hi, strict=True)]
+    n = [round((b - a) / h) for a, b in zip(lo, hi, strict=True)]
     aff = np.diag([h, h, h, 1.0])
     aff[:3, 3] = [a + h / 2 for a in lo]
     grid = Grid((n[2], n[1], n[0]), aff)
