@@ -570,13 +570,43 @@ def plan_delivery(
     implant = None
     implant_exports: dict[str, ExportPlan] = {}
     if scene is not None:
-        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings)
+        tandem = tandem_channels(structures, planning, scene.patient_from_template, implant_settings)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
+                                intracavitary=tandem)
         for arm in implant.arms:
             if arm.plan is not None and arm.plan.channels:
                 implant_exports[arm.name] = ExportPlan(
                     f"{label[:16 - len(arm.name) - 1]}_{arm.name}", implant_needles(arm.plan), spec,
                     structure_set=structures, volume=volume, input_paths=tuple(input_paths))
     return Delivery(tuple(loaded), opt, export, planning, source, implant, implant_exports)
+
+
+def tandem_channels(structures: StructureSet, planning: PlanningStructures, patient_from_template: np.ndarray,
+                    settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
+    """Intracavitary channels from tandem ROIs (a name containing ``tandem`` or ``intrauterine``): the straight
+    line through the ROI's points along their principal axis, from the end nearer the template (ASSUMED straight:
+    a curved tandem is approximated by its chord). Ring and ovoid channels are not modelled yet. Channels with
+    fewer than ``settings.min_dwells`` dwells in the target region are left out."""
+    from reachplan.imaging.names import name_key
+    from reachplan.planner.dose.implant import intracavitary_channel
+
+    axis = np.asarray(patient_from_template, float)[:3, 2]
+    out = []
+    for roi in structures.rois:
+        key = name_key(roi.name)
+        if "tandem" not in key and "intrauterine" not in key:
+            continue
+        pts = np.concatenate([c.points_mm for c in roi.contours]) if roi.contours else np.zeros((0, 3))
+        if len(pts) < 2:
+            continue
+        centre = pts.mean(axis=0)
+        u = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+        u = u if u @ axis >= 0 else -u
+        s = (pts - centre) @ u
+        channel = intracavitary_channel(roi.name, centre + np.outer([s.min(), s.max()], u), planning, settings)
+        if channel is not None:
+            out.append(channel)
+    return tuple(out)
 
 
 def _schedule_rows(schedule: TensionSchedule | None) -> np.ndarray | None:

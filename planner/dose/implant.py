@@ -978,10 +978,13 @@ def plan_implant(
     selection = _Selection(prob, sel_t, sel_g, p_t, p_g, sel_o, settings, cost)
     previous: list[int] = []
     value, dose = selection.loading([])
-    for k in range(1, min(settings.max_needles, len(needles)) + 1):
-        picked, value, dose = selection.step(previous, dose)
-        if len(picked) <= len(previous):
-            break
+    for k in range(0 if selection.all_ch else 1, min(settings.max_needles, len(needles)) + 1):
+        if k == 0:  # the intracavitary channels alone
+            picked: list[int] = []
+        else:
+            picked, value, dose = selection.step(previous, dose)
+            if len(picked) <= len(previous):
+                break
         previous = picked
         status = f"greedy selection objective {value:.4g}"
         chosen = np.array(sorted([selection.needles[i] for i in picked] + selection.all_ch), dtype=int)

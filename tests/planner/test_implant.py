@@ -239,3 +239,21 @@ def test_organ_limit_holds(open_case: tuple, kernel: Tg43Kernel) -> None:
     dose = dose_on_grid(grid, arm.plan.dwells, kernel, SK)[case.planning.oars[0].mask]
     d2 = dose_to_volume(dose.astype(float), voxel_volume_cc(grid), 2.0)
     assert aims.fractionation.total_eqd2(d2, aims.alpha_beta_oar_gy) <= 62.0 * (1 + 1e-4)
+
+
+def test_tandem_is_a_channel_not_a_needle(open_case: tuple, kernel: Tg43Kernel) -> None:
+    """A tandem through the target's centre is used by both arms and never counted as a needle; with it the
+    implant needs no more needles than without."""
+    from reachplan.planner.dose.implant import intracavitary_channel
+
+    case, cands, straight, _ = open_case
+    tandem = intracavitary_channel("Tandem", np.array([[5.0, 0.0, 0.0], [5.0, 0.0, 75.0]]), case.planning, SETTINGS)
+    assert tandem is not None and not tandem.is_needle
+    assert np.all(np.linalg.norm(tandem.dwell_positions_mm - [5.0, 0.0, 60.0], axis=1) <= 9.0 + 2.5 + 1.0)
+    arm = plan_implant("straight", [*[c for c in cands if not c.steered], tandem], case.planning, kernel, SK, LOOSE,
+                       SETTINGS)
+    assert arm.plan is not None and arm.plan.aims_met
+    assert arm.plan.n_needles == sum(c.is_needle for c in arm.plan.channels)
+    assert any(not c.is_needle for c in arm.plan.channels)
+    assert straight.plan is not None and arm.plan.n_needles <= straight.plan.n_needles
+    assert arm.plan.needle_time_share < 1.0
