@@ -257,3 +257,32 @@ def test_tandem_is_a_channel_not_a_needle(open_case: tuple, kernel: Tg43Kernel) 
     assert any(not c.is_needle for c in arm.plan.channels)
     assert straight.plan is not None and arm.plan.n_needles <= straight.plan.n_needles
     assert arm.plan.needle_time_share < 1.0
+
+
+def test_cohort_summary_of_paired_arms() -> None:
+    """Needles saved and D90 gained: the mean of the paired differences, inside its bootstrap interval, which
+    narrows as the cohort grows (differences drawn around known means)."""
+    from reachplan.planner.errors import StudyError
+    from reachplan.planner.study.implant import summarise_implants
+
+    rng = np.random.default_rng(3)
+
+    def cohort(n: int) -> list[dict[str, object]]:
+        out: list[dict[str, object]] = []
+        for _ in range(n):
+            k = int(rng.integers(4, 9))
+            d90 = float(rng.normal(88.0, 2.0))
+            out.append({"straight": {"n_needles": k, "hrctv_d90_eqd2_gy": d90, "aims_met": d90 >= 85},
+                        "steered": {"n_needles": k - int(rng.integers(1, 4)), "hrctv_d90_eqd2_gy": d90 + 1.5,
+                                    "aims_met": True}})
+        return out
+
+    small, large = summarise_implants(cohort(10)), summarise_implants(cohort(200))
+    for s in (small, large):
+        assert s.needles_saved.low <= s.needles_saved.mean <= s.needles_saved.high
+        assert s.d90_gained_gy.mean == pytest.approx(1.5)
+    assert large.needles_saved.low < 2.0 < large.needles_saved.high  # true mean: 2 needles saved
+    assert (large.needles_saved.high - large.needles_saved.low) < (small.needles_saved.high - small.needles_saved.low)
+    assert large.aims_met_steered == 200
+    with pytest.raises(StudyError):
+        summarise_implants([{"straight": {"n_needles": 3}, "steered": {}}])
