@@ -9,32 +9,39 @@ passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are alwa
 as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel inside the HR-CTV grown
 by ``dwell_margin_mm``.
 
-Choice of needles and dwell times (:func:`plan_implant`), for each needle budget K = 1, 2, ...:
+Choice of needles and dwell times (:func:`plan_implant`), for each needle budget K = 1, 2, ... (K = 0 too when
+an intracavitary channel is given):
 
-1. **Needle selection: a mixed-integer programme solved with HiGHS** (``scipy.optimize.milp``) on a restricted
-   model: each channel's dwells are grouped in at most ``segments_per_channel`` consecutive blocks of equal
-   dwell time ``τ_s`` (a piecewise-constant, modulation-restricted loading); binary ``y_n`` per needle with
-   ``τ_s <= M_s y_n``; ``Σ y_n <= K``; target points ``A τ + u >= P`` (``u`` underdose); organ points
-   ``A τ <= L`` (per-point, which implies D2cm³ <= L); neighbouring blocks within ``neighbour_ratio``; no
-   block's dwell time above ``max_dwell_share`` of the total. Objective: mean underdose (in units of the
-   prescription) + a small weight on mean target dose (shorter plans) + ``invasiveness_weight`` × each used
-   needle's normalised hole distance and tissue length (the "least invasive" tie-break among sets of K).
-   ``M_s = P / min_i A_is``: a block time above it overdoses every sampled target point on its own, so it is
-   not in an optimal loading. HiGHS's relative MIP gap and dual bound are reported for every K (the time
-   limit ``mip_time_limit_s`` may leave a gap; it is reported, never hidden).
+1. **Needle selection: a greedy heuristic with a bound**, on a restricted model: each channel's dwells grouped in
+   at most ``segments_per_channel`` consecutive blocks of equal dwell time ``τ_s`` (a piecewise-constant,
+   modulation-restricted loading); target points ``A τ + u >= P`` (``u`` underdose, ``P`` the per-fraction
+   dose that brings D90 to its aim, plus ``coverage_margin``); organ points ``A τ <= L`` (per point, which implies
+   D2cm³ <= L); neighbouring blocks within ``neighbour_ratio``; no block's dwell over ``max_dwell_share`` of the
+   total. Objective: mean underdose (in units of the prescription) + a small weight on the mean target dose
+   (shorter plans) + ``invasiveness_weight`` × each used needle's normalised hole distance and tissue length (the
+   "least invasive" tie-break). Budget K's set is budget K-1's plus the needle whose exact block loading (an LP)
+   lowers the objective most, among the ``greedy_candidates`` needles that could fill most of the current
+   underdose within their organ caps; one needle per template hole. **Bound:** the mixed-integer model of the
+   same selection (binary ``y_n`` per needle, ``τ_s <= M_s y_n``, ``Σ y_n <= K``, HiGHS through
+   ``scipy.optimize.milp``) has an LP relaxation whose optimum bounds every K-needle selection from below; it is
+   solved for the chosen budget and the relative gap reported (``ImplantPlan.mip_gap``; with
+   ``mip_time_limit_s`` > 0 HiGHS's branch and bound also runs and its dual bound tightens it). The big-M
+   relaxation is weak: the gap is an honest but loose bound, typically 0.5-0.95 of an objective that is itself
+   small when the aims are met.
 2. **Dwell times on the chosen needles: a linear programme** over every dwell (no blocks) with the same
    target and organ rows, neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time
    deviation constraint / HIPO's dwell-time gradient restriction, Mosleh-Shirazi et al., J Contemp Brachytherapy
    11(3), 2019) and no dwell above ``max_dwell_share`` of the total; the hottest 2 cm³ of each organ are then
-   released from the point constraints and the LP solved again (D2cm³ is not linear). The plan is checked on
-   every organ voxel near the implant and all times are scaled down when a D2cm³ still exceeds its limit.
-   A needle left with (almost) no time is not part of the implant: it is dropped and the rest re-solved.
+   released from the point constraints and the LP solved again (D2cm³ is not linear). Dwells under
+   ``min_dwell_time_s`` are dropped; the plan is checked on every organ voxel near the implant and all times are
+   scaled down when a D2cm³ still exceeds its limit. A needle left with (almost) no time is not part of the
+   implant: it is dropped and the rest re-solved.
 
 The needle count against HR-CTV D90 with the organ limits held is the arm's Pareto curve; the plan chosen is
 the one with the fewest needles that meets every aim (HR-CTV D90 and D98, GTV D98 when a GTV is given, organ
-D2cm³), else the one with the highest D90. How far from optimal: the MIP gap of step 1 bounds the selection
-on the restricted model; step 2 can only improve the dose on the chosen needles (the blocked loading is one of
-its feasible points).
+D2cm³), else the one with the highest D90. The curve stops ``extra_after_aims`` budgets after the first that
+meets the aims, when no needle can be added, or after three budgets without a D90 gain of 0.1 Gy. The final
+metrics of the target are computed on 3 × 3 × 3 sub-voxels (:data:`SUPERSAMPLE`).
 
 Aims (EQD2, α/β 10 tumour / 3 organs, 45 Gy / 25 fractions external beam + 4 fractions): EMBRACE II
 (Pötter et al., Clin Transl Radiat Oncol 9:48, 2018) and the ESGO/ESTRO achievability table (90 % of
@@ -100,13 +107,16 @@ class ImplantSettings:
     max_needles : largest needle budget on the Pareto curve.
     extra_after_aims : Pareto points computed beyond the first budget that meets every aim.
     coverage_margin : the LP aims target points at (1 + this) × the D90 prescription.
-    mip_time_limit_s, mip_rel_gap : HiGHS limits of each needle-selection MIP.
+    mip_time_limit_s, mip_rel_gap : HiGHS limits of the optional branch and bound run for the bound (0: the LP
+        relaxation only).
     selection_target_points, selection_oar_points : points of the restricted selection model (target; per
         organ, those nearest to the candidate dwells).
     final_target_points, final_oar_points : the same for the dwell-time LP on the chosen needles.
     segments_per_channel : dwell blocks per channel in the selection model.
     invasiveness_weight : weight of the needles' invasiveness in the selection objective (a tie-break).
     time_weight : weight of the mean target dose (shorter plans) in both objectives.
+    greedy_candidates : needles whose exact loading is tried at each greedy step.
+    bound : compute the LP-relaxation bound (and gap) of the chosen budget.
     min_dwell_time_s : dwell times below this are set to zero (afterloaders do not deliver shorter dwells).
     oar_eval_radius_mm : organ voxels within this distance of a loaded dwell are evaluated for D2cm³.
     """
@@ -429,8 +439,9 @@ class ImplantPlan:
     """One implant: its loaded channels, dwell times (per fraction) and metrics (EQD2 totals in the metrics).
 
     ``dwells.channels`` are 1-based indices into ``channels``. ``scale`` < 1 tells that the LP times were
-    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is HiGHS's relative gap of the
-    needle-selection MIP (None when no MIP was needed).
+    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap of the greedy
+    selection to the LP-relaxation bound of the selection MIP (None when not computed); ``mip_status`` says
+    both numbers.
     """
 
     channels: tuple[Channel, ...]
@@ -480,7 +491,6 @@ class ParetoPoint:
     n_needles: int
     hrctv_d90_eqd2_gy: float
     aims_met: bool
-    mip_gap: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -998,7 +1008,7 @@ def plan_implant(
             continue
         plans.append(plan)
         selection_values.append(value)
-        pareto.append(ParetoPoint(plan.n_needles, plan.target.d90_eqd2_gy, plan.aims_met, gap))
+        pareto.append(ParetoPoint(plan.n_needles, plan.target.d90_eqd2_gy, plan.aims_met))
         if plan.aims_met and met_at is None:
             met_at = k
         if met_at is not None and k >= met_at + settings.extra_after_aims:
