@@ -63,6 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target-roi", default="HR-CTV", help="ROI the dwell times are optimised on")
     parser.add_argument("--source", default="gammamed_plus_hdr", help="TG-43 source plugin for the dose")
     parser.add_argument("--no-export", action="store_true", help="rank only; skip dose optimisation and export")
+    parser.add_argument("--no-implant", action="store_true",
+                        help="skip implant planning (the needle set and dwell times for the whole target, straight "
+                             "against steered)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
@@ -197,7 +200,8 @@ def run(args: argparse.Namespace) -> int:
     doc = run_plan(structures, volume, names, points, config, args.out, quiet,
                    export=not args.no_export, source=args.source, target_roi=args.target_roi,
                    inputs=[p for p in (args.ct, args.rtstruct) if p is not None], pose=pose,
-                   allow_no_oars=args.allow_no_oars, standard_names=table.standard_names)
+                   allow_no_oars=args.allow_no_oars, standard_names=table.standard_names,
+                   implant=not args.no_implant)
     if args.json:
         json.dump(doc, sys.stdout, indent=2)
         print()
