@@ -576,7 +576,7 @@ def plan_delivery(
         for arm in implant.arms:
             if arm.plan is not None and arm.plan.channels:
                 implant_exports[arm.name] = ExportPlan(
-                    f"{label[:16 - len(arm.name) - 1]}_{arm.name}", implant_needles(arm.plan), spec,
+                    f"implant_{arm.name}"[:16], implant_needles(arm.plan), spec,
                     structure_set=structures, volume=volume, input_paths=tuple(input_paths))
     return Delivery(tuple(loaded), opt, export, planning, source, implant, implant_exports)
 
