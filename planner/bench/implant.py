@@ -112,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
             ax.plot([arm.plan.n_needles], [arm.plan.target.d90_eqd2_gy], "*", ms=14, color=f"C{i}")
     ax.axhline(85.0, color="grey", lw=0.8, ls="--", label="D90 aim 85 Gy")
     ax.set_xlabel("needles")
+    ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_ylabel("HR-CTV D90 (Gy EQD2), organ limits held")
     ax.set_title("Pareto curve per arm (star: chosen)")
     ax.legend(fontsize=8)
