@@ -40,8 +40,9 @@ from reachplan.rod_model.errors import RodModelError
 from reachplan.rod_model.protocol import Capabilities, RodModel
 
 if TYPE_CHECKING:
-    from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures
-    from reachplan.plugins.exporters import ExportPlan
+    from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantPlan, ImplantSettings
+    from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures, Structure
+    from reachplan.plugins.exporters import ExportPlan, NeedleExport
     from reachplan.rod_model.select import ErrorRow
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
@@ -529,7 +530,10 @@ DEFAULT_AIR_KERMA_U = 40_700.0
 class Delivery:
     """Chosen needles with optimised dwell times, ready for the exporters.
 
-    ``source``: the TG-43 data set the dwell times were optimised with.
+    ``source``: the TG-43 data set the dwell times were optimised with. ``needles`` and ``export.needles`` hold
+    only the needles that carry dwell time (a needle the optimum leaves empty is not part of the implant and gets
+    no instructions). ``implant``: the two implant arms (:func:`plan_implants`) when asked for, and
+    ``implant_exports`` the export of each arm's chosen implant (loaded needles only), by arm name.
     """
 
     needles: tuple[Candidate, ...]
@@ -537,6 +541,8 @@ class Delivery:
     export: ExportPlan
     planning: PlanningStructures
     source: SourceData
+    implant: ImplantComparison | None = None
+    implant_exports: dict[str, ExportPlan] = field(default_factory=dict)
 
 
 def plan_delivery(
@@ -551,6 +557,8 @@ def plan_delivery(
     input_paths: Sequence[Path] = (),
     named_points: Sequence[tuple[str, Sequence[float]]] = (),
     planned_dose: bool = True,
+    scene: Scene | None = None,
+    implant_settings: ImplantSettings | None = None,
 ) -> Delivery:
     """Choose needles, optimise their dwell times on the target and assemble the export plan.
 
@@ -563,6 +571,9 @@ def plan_delivery(
     (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
     planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
     False: no RT Dose, for callers that only need the optimisation).
+
+    With ``scene`` the implant is also planned for the whole target volume, straight only and straight +
+    steered (:func:`plan_implants` with ``implant_settings``), and each arm's chosen implant exported.
 
     Raises
     ------
@@ -583,17 +594,15 @@ def plan_delivery(
     kernel = Tg43Kernel(source)
     aims = Aims()
     opt = optimise_dwell_times([c.path_mm for c in needles], planning, kernel, air_kerma_u, aims)
-    exports, kept = [], []
+    exports, kept, loaded = [], [], []
     for ch, c in enumerate(needles, start=1):
-        sel = opt.dwells.channels == ch
-        keep = sel & (opt.dwells.times_s > 0)
-        if not keep.any():  # an unused needle still gets one zero-time dwell at its first position
-            keep = sel & (np.cumsum(sel) == 1)
+        keep = (opt.dwells.channels == ch) & (opt.dwells.times_s > 0)
+        if not keep.any():  # a needle the optimum leaves empty is not part of the implant: no instructions
+            continue
+        loaded.append(c)
         kept.append(opt.dwells.select(keep))
-        sched = None if c.schedule is None else np.column_stack(
-            [c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg])
         exports.append(NeedleExport(c.hole_id, c.path_mm, opt.dwells.positions_mm[keep], opt.dwells.times_s[keep],
-                                    c.design_name, sched))
+                                    c.design_name, _schedule_rows(c.schedule)))
     placed, _ = place_reference_points(structures)
     wanted = [(p.name, p.position_mm) for p in placed]
     for name, xyz in named_points:
@@ -623,7 +632,69 @@ def plan_delivery(
                         reference_points=tuple(points),
                         application_setup_type=load_template(result.config.template).application_setup_type,
                         dose=dose)
-    return Delivery(needles, opt, export, planning, source)
+    implant = None
+    implant_exports: dict[str, ExportPlan] = {}
+    if scene is not None:
+        tandem = tandem_channels(structures, planning, scene.patient_from_template, implant_settings)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
+                                intracavitary=tandem)
+        for arm in implant.arms:
+            if arm.plan is not None and arm.plan.channels:
+                implant_exports[arm.name] = ExportPlan(
+                    f"implant_{arm.name}"[:16], implant_needles(arm.plan), spec,
+                    structure_set=structures, volume=volume, input_paths=tuple(input_paths),
+                    fractions_planned=fractions, prescription_dose_gy=aims.prescription_gy,
+                    target_name=target_roi[:64],
+                    application_setup_type=load_template(result.config.template).application_setup_type)
+    return Delivery(tuple(loaded), opt, export, planning, source, implant, implant_exports)
+
+
+def tandem_channels(structures: StructureSet, planning: PlanningStructures, patient_from_template: np.ndarray,
+                    settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
+    """Intracavitary channels from tandem ROIs (a name containing ``tandem`` or ``intrauterine``): the straight
+    line through the ROI's points along their principal axis, from the end nearer the template (ASSUMED straight:
+    a curved tandem is approximated by its chord). Ring and ovoid channels are not modelled yet. Channels with
+    fewer than ``settings.min_dwells`` dwells in the target region are left out.
+    """
+    from reachplan.imaging.names import name_key
+    from reachplan.planner.dose.implant import intracavitary_channel
+
+    axis = np.asarray(patient_from_template, float)[:3, 2]
+    out = []
+    for roi in structures.rois:
+        key = name_key(roi.name)
+        if "tandem" not in key and "intrauterine" not in key:
+            continue
+        pts = np.concatenate([c.points_mm for c in roi.contours]) if roi.contours else np.zeros((0, 3))
+        if len(pts) < 2:
+            continue
+        centre = pts.mean(axis=0)
+        u = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+        u = u if u @ axis >= 0 else -u
+        s = (pts - centre) @ u
+        channel = intracavitary_channel(roi.name, centre + np.outer([s.min(), s.max()], u), planning, settings)
+        if channel is not None:
+            out.append(channel)
+    return tuple(out)
+
+
+def _schedule_rows(schedule: TensionSchedule | None) -> np.ndarray | None:
+    """(k, 3) rows (depth mm, tension N, roll deg) of a schedule, or None."""
+    return None if schedule is None else np.column_stack([schedule.depth_mm, schedule.tension_n, schedule.roll_deg])
+
+
+def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
+    """The loaded channels of an implant as exporter needles (channels in the plan's order; every one carries
+    time: an empty channel is not in ``plan.channels``).
+    """
+    from reachplan.plugins.exporters import NeedleExport
+
+    out = []
+    for ch, c in enumerate(plan.channels, start=1):
+        keep = plan.dwells.channels == ch
+        out.append(NeedleExport(c.name, c.path_mm, plan.dwells.positions_mm[keep], plan.dwells.times_s[keep],
+                                c.design, _schedule_rows(c.schedule)))
+    return tuple(out)
 
 
 def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
@@ -810,3 +881,64 @@ def rod_model_errors() -> tuple[ErrorRow, ...]:
         return error_table()
     except RodModelError:
         return ()
+
+
+@dataclass(frozen=True, eq=False)
+class ImplantComparison:
+    """The two implant arms on the same anatomy and template: straight needles only, and straight + steered
+    (see :mod:`reachplan.planner.dose.implant`); ``candidates`` every candidate channel of the steered arm
+    (the straight arm's are its straight ones and the intracavitary channels).
+    """
+
+    straight: ImplantArm
+    steered: ImplantArm
+    candidates: tuple[Channel, ...]
+
+    @property
+    def arms(self) -> tuple[ImplantArm, ImplantArm]:
+        return self.straight, self.steered
+
+    def to_json(self) -> dict[str, object]:
+        """plan.json's ``implant``: ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`) and the count of
+        candidate channels by kind.
+        """
+        kinds: dict[str, int] = {}
+        for c in self.candidates:
+            kinds[c.kind] = kinds.get(c.kind, 0) + 1
+        return {"straight": self.straight.to_json(), "steered": self.steered.to_json(), "candidates": kinds}
+
+
+def plan_implants(
+    scene: Scene,
+    planning: PlanningStructures,
+    config: PlanConfig,
+    source: SourceData,
+    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
+    settings: ImplantSettings | None = None,
+    intracavitary: Sequence[Channel] = (),
+    gtv: Structure | None = None,
+    models: PlanModels | None = None,
+) -> ImplantComparison:
+    """Candidate needles for the target volume and both implant arms (Pareto curve and chosen plan each).
+
+    ``intracavitary``: applicator channels (tandem, ring, ovoids) available to both arms
+    (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
+    of ``config`` with the screening model of ``models``.
+    """
+    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_implant
+    from reachplan.planner.dose.tg43 import Tg43Kernel
+
+    settings = settings or ImplantSettings()
+    models = models or PlanModels.for_config(config)
+    holes = scene.template.needle_holes
+    banks = [shape_bank(d, config.family, min(config.max_depth_mm, d.length_mm), models.screening)
+             for d in config.rod_designs]
+    cands = needle_candidates([h.hole_id for h in holes], np.array([h.xy_mm for h in holes]),
+                              np.array([h.distance_mm for h in holes]), scene.patient_from_template, planning,
+                              scene.organs, config.needle_radius_mm, settings, banks, config.max_depth_mm)
+    kernel = Tg43Kernel(source)
+    straight = plan_implant("straight", [*[c for c in cands if not c.steered], *intracavitary], planning, kernel,
+                            air_kerma_u, settings=settings, gtv=gtv)
+    steered = plan_implant("steered", [*cands, *intracavitary], planning, kernel, air_kerma_u, settings=settings,
+                           gtv=gtv)
+    return ImplantComparison(straight, steered, (*cands, *intracavitary))

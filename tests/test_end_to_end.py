@@ -122,3 +122,32 @@ def test_demo_exports_a_plan_with_prescription_points_and_its_dose(demo: Path, d
         lines = dciodvfy(path)
         assert not [x for x in lines if x.startswith("Error")], (path.name, lines)
         assert not [x for x in lines if "Study" in x and "empty" in x.lower()], (path.name, lines)
+
+
+def test_demo_plans_the_implant_straight_against_steered(demo: Path) -> None:
+    """Both implant arms in plan.json: the keys tools read, every needle with time on at least three dwells, no
+    dwell over the configured share, and device files for exactly the loaded needles of each arm."""
+    from reachplan.planner.dose.implant import ImplantSettings
+
+    plan = json.loads((demo / "plan.json").read_text())
+    keys = {"needles", "aims_met", "hrctv_d90_eqd2_gy", "hrctv_d98_eqd2_gy", "hrctv_v100_percent",
+            "hrctv_v150_percent", "hrctv_v200_percent", "oar_d2cc_eqd2_gy", "max_dwell_share", "loaded_dwells",
+            "pareto"}
+    share = ImplantSettings().max_dwell_share
+    for name in ("straight", "steered"):
+        arm = plan["implant"][name]
+        assert set(arm) >= keys
+        assert arm["needles"], f"{name}: no implant"
+        assert arm["max_dwell_share"] <= share + 1e-6
+        for n in arm["needles"]:
+            assert {"hole_id", "design", "schedule", "dwell_positions_mm", "dwell_times_s"} <= set(n)
+            assert sum(t > 0 for t in n["dwell_times_s"]) >= 3
+            assert max(n["dwell_times_s"]) <= share * sum(sum(m["dwell_times_s"]) for m in arm["needles"]) + 1e-3
+        assert all({"n_needles", "hrctv_d90_eqd2_gy", "aims_met"} <= set(p) for p in arm["pareto"])
+        assert any(p["n_needles"] == arm["n_needles"] for p in arm["pareto"])
+        device = json.loads(next((demo / "export" / f"implant_{name}").glob("*.json")).read_text())
+        text = json.dumps(device)
+        assert all(n["hole_id"] in text for n in arm["needles"])
+    steered_kinds = {n["kind"] for n in plan["implant"]["steered"]["needles"]}
+    assert steered_kinds <= {"straight", "steered", "intracavitary"}
+    assert {n["kind"] for n in plan["implant"]["straight"]["needles"]} <= {"straight", "intracavitary"}

@@ -18,7 +18,7 @@ from types import ModuleType
 from reachplan.planner.bench.common import check_install, install
 
 NAME = "bench"
-HELP = "Run a benchmark (rod models, planning, dose, imaging, study) and write CSV + PNG."
+HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant) and write CSV + PNG."
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,8 @@ TARGETS: tuple[Target, ...] = (
     Target("firstrun", "firstrun", "first-run penalty: compiled kernels with a fresh numba cache against a warm one"),
     Target("distance", "distance", "organ distance fields: screen vs FCL alone (rates, largest difference, ranking)"),
     Target("dosekernel", "dosekernel", "TG-43 grid dose: voxel-dwell pairs/s by method and threads, accuracy"),
+    Target("implant", "implant", "implant planning: both arms with their Pareto curves on the phantom (time, D90)",
+           (Option("--repeat", int, "timed runs, the fastest is reported (3; quick 1)"),)),
 )
 
 

@@ -22,8 +22,12 @@ from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.candidates import Target
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from reachplan.imaging.names import SynonymTable
+    from reachplan.planner.dose.implant import ImplantArm, ImplantPlan
     from reachplan.planner.geometry.template import TemplatePose
+    from reachplan.planner.pipeline import ImplantComparison
 
 NAME = "plan"
 HELP = "rank template holes, stylet designs and tension schedules for targets; write plan.json, figures, exports"
@@ -66,6 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "repeatable (Point A and the ICRU bladder/rectum points are added when the "
                              "structures allow)")
     parser.add_argument("--no-export", action="store_true", help="rank only; skip dose optimisation and export")
+    parser.add_argument("--no-implant", action="store_true",
+                        help="skip implant planning (the needle set and dwell times for the whole target, straight "
+                             "against steered)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
@@ -248,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
         doc = run_plan(structures, volume, names, points, config, stage, quiet,
                        export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs,
                        pose=pose, allow_no_oars=args.allow_no_oars, standard_names=table.standard_names,
-                       named_points=named_points)
+                       named_points=named_points, implant=not args.no_implant)
         # the scene's notes (organs not found, targets planned to points) and the named warnings met on the way
         # (readers, planning), also in plan.json
         notes = doc.get("warnings")
@@ -283,14 +290,16 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
              target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
              extra: dict[str, object] | None = None, pose: TemplatePose | None = None, allow_no_oars: bool = False,
              standard_names: Sequence[str] | None = None,
-             named_points: Sequence[tuple[str, tuple[float, float, float]]] = ()) -> dict[str, object]:
+             named_points: Sequence[tuple[str, tuple[float, float, float]]] = (),
+             implant: bool = True) -> dict[str, object]:
     """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan document.
 
     ``named_points``: dose reference points (name, (x, y, z) mm LPS) the exported plan carries with their doses.
 
     ``pose``: the template pose (None: fitted to the Obturator ROI). The pose and how it was found, and the
     warnings about the input (organs at risk not found, targets planned to points), are printed and saved in
-    plan.json (``template_pose``, ``warnings``).
+    plan.json (``template_pose``, ``warnings``). ``implant``: also plan the implant for the whole target
+    volume, straight only and straight + steered (plan.json ``implant``, printed side by side).
     """
     from tqdm import tqdm
 
@@ -342,7 +351,8 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         bar = tqdm(total=4, desc="delivery", unit="step", disable=quiet, leave=False)
         bar.set_postfix_str("dwell times (TG-43, LP)")
         delivery = plan_delivery(result, structures, grid, source_name=source, target_roi=target_roi,
-                                 volume=volume, input_paths=inputs or [], named_points=named_points)
+                                 volume=volume, input_paths=inputs or [], named_points=named_points,
+                                 scene=scene if implant else None)
         bar.update()
         for name in ("dicom_rt", "device_json", "device_csv"):
             bar.set_postfix_str(f"export {name}")
@@ -350,6 +360,11 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
             written = exporter.export(delivery.export, out / "export", ExportOptions(overwrite=True))
             files += [str(f.path) for f in written.files]
             bar.update()
+        for arm_name, arm_export in delivery.implant_exports.items():  # loaded needles only
+            for name in ("device_json", "device_csv"):
+                written = registry.get("exporters", name).export(arm_export, out / "export" / f"implant_{arm_name}",
+                                                                 ExportOptions(overwrite=True))
+                files += [str(f.path) for f in written.files]
         bar.close()
         opt = delivery.optimisation
         ex = delivery.export
@@ -363,6 +378,8 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
                              "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
             "files": files,
         }
+        if delivery.implant is not None:
+            doc["implant"] = delivery.implant.to_json()
         timings["delivery_s"] = time.perf_counter() - t
     from reachplan.planner.pipeline import rod_model_errors
 
@@ -382,4 +399,44 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         written += [("device instructions", f) for f in device]
         print(format_summary(result, targets=[t.name for t in scene.targets], delivery=delivery,
                              comparison=rendered.comparison, files=written))
+        if delivery is not None and delivery.implant is not None:
+            print("\n" + format_implant(delivery.implant))
     return doc
+
+
+def format_implant(comparison: ImplantComparison) -> str:
+    """The two implant arms side by side (EQD2 totals, Gy): needles, aims, HR-CTV D90/D98/V100/V150/V200, organ
+    D2cm³, the needles' share of the dwell weight, the largest single dwell's share and loaded dwells per needle.
+    """
+    arms = comparison.arms
+    rows: list[tuple[str, ...]] = [("implant", *(a.name for a in arms))]
+
+    def cell(a: ImplantArm, f: Callable[[ImplantPlan], str]) -> str:
+        return "-" if a.plan is None else f(a.plan)
+
+    rows.append(("needles (candidates)", *(f"{cell(a, lambda p: str(p.n_needles))} ({a.n_candidates})"
+                                           for a in arms)))
+    rows.append(("aims met", *(cell(a, lambda p: "yes" if p.aims_met else "no") for a in arms)))
+    for label, get in (("HR-CTV D90 Gy", lambda p: f"{p.target.d90_eqd2_gy:.1f}"),
+                       ("HR-CTV D98 Gy", lambda p: f"{p.target.d98_eqd2_gy:.1f}"),
+                       ("V100 %", lambda p: f"{p.target.v100_pct:.1f}"),
+                       ("V150 %", lambda p: f"{p.target.v150_pct:.1f}"),
+                       ("V200 %", lambda p: f"{p.v200_pct:.1f}")):
+        rows.append((label, *(cell(a, get) for a in arms)))
+    organs = list(dict.fromkeys(o.name for a in arms if a.plan for o in a.plan.oars))
+    for organ in organs:
+        def d2cc(p: ImplantPlan, organ: str = organ) -> str:
+            return next((f"{o.d2cc_eqd2_gy:.1f}" for o in p.oars if o.name == organ), "-")
+
+        rows.append((f"{organ} D2cc Gy", *(cell(a, d2cc) for a in arms)))
+    rows.append(("needle dwell weight %", *(cell(a, lambda p: f"{100 * p.needle_time_share:.0f}") for a in arms)))
+    rows.append(("largest dwell share %", *(cell(a, lambda p: f"{100 * p.max_dwell_share:.1f}") for a in arms)))
+    rows.append(("loaded dwells/needle", *(cell(a, lambda p: " ".join(
+        str(n) for c, n in zip(p.channels, p.loaded_dwells, strict=True) if c.is_needle)) for a in arms)))
+    rows.append(("Pareto (needles:D90)", *(" ".join(f"{q.n_needles}:{q.hrctv_d90_eqd2_gy:.0f}" for q in a.pareto)
+                                           or "-" for a in arms)))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
+             for r in rows]
+    notes = [f"{a.name}: {a.reason}" for a in arms if a.reason]
+    return "\n".join([*lines, *notes])

@@ -107,6 +107,9 @@ class Aims:
 
     target_d90_eqd2_gy: float = 85.0
     target_d98_eqd2_gy: float = 75.0
+    #: GTV_res D98 > 90 Gy EQD2 (ESGO/ESTRO quality indicators 2023, reached in 90 % of patients); used by implant
+    #: planning when a GTV is given.
+    gtv_d98_eqd2_gy: float = 90.0
     oar_d2cc_eqd2_gy: tuple[tuple[str, float], ...] = EMBRACE_II_OAR_D2CC
     alpha_beta_target_gy: float = 10.0
     alpha_beta_oar_gy: float = 3.0
