@@ -651,10 +651,11 @@ def plan_delivery(
 
 def tandem_channels(structures: StructureSet, planning: PlanningStructures, patient_from_template: np.ndarray,
                     settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
-    """Intracavitary channels from tandem ROIs (a name containing ``tandem`` or ``intrauterine``): the straight
-    line through the ROI's points along their principal axis, from the end nearer the template (ASSUMED straight:
-    a curved tandem is approximated by its chord). Ring and ovoid channels are not modelled yet. Channels with
-    fewer than ``settings.min_dwells`` dwells in the target region are left out.
+    """Intracavitary channels from tandem ROIs (a name containing ``tandem`` or ``intrauterine``).
+
+    The straight line through the ROI's points along their principal axis, from the end nearer the template (ASSUMED
+    straight: a curved tandem is approximated by its chord). Ring and ovoid channels are not modelled yet. Channels
+    with fewer than ``settings.min_dwells`` dwells in the target region are left out.
     """
     from reachplan.imaging.names import name_key
     from reachplan.planner.dose.implant import intracavitary_channel
@@ -684,8 +685,9 @@ def _schedule_rows(schedule: TensionSchedule | None) -> np.ndarray | None:
 
 
 def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
-    """The loaded channels of an implant as exporter needles (channels in the plan's order; every one carries
-    time: an empty channel is not in ``plan.channels``).
+    """Return the loaded channels of an implant as exporter needles, in the plan's order.
+
+    Every one carries time: an empty channel is not in ``plan.channels``.
     """
     from reachplan.plugins.exporters import NeedleExport
 
@@ -885,9 +887,10 @@ def rod_model_errors() -> tuple[ErrorRow, ...]:
 
 @dataclass(frozen=True, eq=False)
 class ImplantComparison:
-    """The two implant arms on the same anatomy and template: straight needles only, and straight + steered
-    (see :mod:`reachplan.planner.dose.implant`); ``candidates`` every candidate channel of the steered arm
-    (the straight arm's are its straight ones and the intracavitary channels).
+    """The two implant arms on the same anatomy and template.
+
+    Straight needles only, and straight + steered (see :mod:`reachplan.planner.dose.implant`); ``candidates`` every
+    candidate channel of the steered arm (the straight arm's are its straight ones and the intracavitary channels).
     """
 
     straight: ImplantArm
@@ -896,11 +899,13 @@ class ImplantComparison:
 
     @property
     def arms(self) -> tuple[ImplantArm, ImplantArm]:
+        """Return the straight and the steered arm."""
         return self.straight, self.steered
 
     def to_json(self) -> dict[str, object]:
-        """plan.json's ``implant``: ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`) and the count of
-        candidate channels by kind.
+        """Return plan.json's ``implant``.
+
+        ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`) and the count of candidate channels by kind.
         """
         kinds: dict[str, int] = {}
         for c in self.candidates:

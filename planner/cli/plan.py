@@ -405,8 +405,10 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
 
 
 def format_implant(comparison: ImplantComparison) -> str:
-    """The two implant arms side by side (EQD2 totals, Gy): needles, aims, HR-CTV D90/D98/V100/V150/V200, organ
-    D2cm³, the needles' share of the dwell weight, the largest single dwell's share and loaded dwells per needle.
+    """Return the two implant arms side by side (EQD2 totals, Gy).
+
+    Needles, aims, HR-CTV D90/D98/V100/V150/V200, organ D2cm³, the needles' share of the dwell weight, the largest
+    single dwell's share and loaded dwells per needle.
     """
     arms = comparison.arms
     rows: list[tuple[str, ...]] = [("implant", *(a.name for a in arms))]

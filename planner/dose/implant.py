@@ -188,10 +188,12 @@ class Channel:
 
     @property
     def is_needle(self) -> bool:
+        """True for a template needle (not an intracavitary channel)."""
         return self.kind in NEEDLE_KINDS
 
     @property
     def steered(self) -> bool:
+        """True for a steered needle."""
         return self.kind == "steered"
 
     @property
@@ -229,8 +231,9 @@ class _Field:
 
 
 def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.ndarray | None = None) -> _Field:
-    """Distance (mm) from each voxel centre to the nearest voxel of ``mask`` (0 inside), on the crop holding
-    ``box_mask`` (default ``mask``) padded by ``pad_mm``.
+    """Return the distance (mm) from each voxel centre to the nearest voxel of ``mask`` (0 inside).
+
+    On the crop holding ``box_mask`` (default ``mask``) padded by ``pad_mm``.
     """
     spacing = grid.spacing_mm[::-1]  # (k, j, i)
     box = mask if box_mask is None else box_mask
@@ -246,8 +249,10 @@ def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.nd
 
 
 def _dwell_arclengths(inside: np.ndarray, s_mm: np.ndarray, settings: ImplantSettings) -> tuple[float, np.ndarray]:
-    """Tip depth (arc length, mm) and dwell arc lengths (deepest first) of a path sampled at ``s_mm`` with
-    region membership ``inside``; (nan, empty) when the path never enters the region.
+    """Return the tip depth and the dwell arc lengths (mm, deepest first) of a path in a region.
+
+    The path is sampled at ``s_mm`` with region membership ``inside``; (nan, empty) when it never enters the
+    region.
     """
     hit = np.flatnonzero(inside)
     if len(hit) == 0:
@@ -353,9 +358,10 @@ def needle_candidates(
 def _steered(bank: ShapeBank, hole_ids: Sequence[str], xy: np.ndarray, hole_distance_mm: np.ndarray,
              m: np.ndarray, region: _Field, in_region: float, oar: _Field, oar_min: float,
              settings: ImplantSettings, confirm: object, straight_channels: list[Channel]) -> list[Channel]:
-    """Steered candidates of one design: per hole, the schedules × rolls that pass through the target region
-    and clear the organs on the distance map, up to ``steered_per_hole`` of them, spread apart; each
-    confirmed with FCL.
+    """Steered candidates of one design.
+
+    Per hole, the schedules × rolls that pass through the target region and clear the organs on the distance map, up
+    to ``steered_per_hole`` of them, spread apart; each confirmed with FCL.
     """
     assert callable(confirm)
     shapes = bank.shapes_mm  # (S, n, 3), template frame, roll 0, hole at the origin
@@ -420,8 +426,10 @@ def _steered(bank: ShapeBank, hole_ids: Sequence[str], xy: np.ndarray, hole_dist
 
 def intracavitary_channel(name: str, path_mm: np.ndarray, planning: PlanningStructures,
                           settings: ImplantSettings | None = None) -> Channel | None:
-    """An applicator channel (tandem, ring, ovoid; (k, 3) mm LPS, base to tip) with dwells where it lies in the
-    target grown by the dwell margin; None when it has fewer than ``min_dwells`` there.
+    """Return an applicator channel with dwells where it lies in the target grown by the dwell margin.
+
+    ``path_mm``: tandem, ring or ovoid, (k, 3) mm LPS, base to tip. None when it has fewer than ``min_dwells``
+    there.
     """
     settings = settings or ImplantSettings()
     p = np.asarray(path_mm, dtype=float)
@@ -462,10 +470,12 @@ class ImplantPlan:
 
     @property
     def n_needles(self) -> int:
+        """Number of template needles (intracavitary channels not counted)."""
         return sum(c.is_needle for c in self.channels)
 
     @property
     def total_time_s(self) -> float:
+        """Total dwell time (s per fraction)."""
         return float(self.dwells.times_s.sum())
 
     @property
@@ -509,7 +519,7 @@ class ImplantArm:
     reason: str = ""
 
     def to_json(self) -> dict[str, object]:
-        """The arm for plan.json (EQD2 totals in Gy; dwell positions mm LPS; times s per fraction)."""
+        """Return the arm for plan.json (EQD2 totals in Gy; dwell positions mm LPS; times s per fraction)."""
         doc: dict[str, object] = {
             "candidates": self.n_candidates, "seconds": round(self.seconds, 3), "reason": self.reason,
             "pareto": [{"n_needles": p.n_needles, "hrctv_d90_eqd2_gy": round(p.hrctv_d90_eqd2_gy, 3),
@@ -598,10 +608,11 @@ SUPERSAMPLE = 3
 
 
 def _supersampled(grid: Grid, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Points (mm, LPS) and weights at which a structure's final metrics are computed: the n × n × n sub-voxel
-    centres of each voxel, n = :data:`SUPERSAMPLE`. The dose falls steeply across a target's edge, where D90
-    and D98 are decided: voxel centres alone are 1-3 % off on a 2 mm grid; n = 3 is within 0.2 % of n = 6 on
-    the planted cases of the tests.
+    """Points (mm, LPS) and weights at which a structure's final metrics are computed.
+
+    The n × n × n sub-voxel centres of each voxel, n = :data:`SUPERSAMPLE`. The dose falls steeply across a target's
+    edge, where D90 and D98 are decided: voxel centres alone are 1-3 % off on a 2 mm grid; n = 3 is within 0.2 % of
+    n = 6 on the planted cases of the tests.
     """
     n = SUPERSAMPLE
     k, j, i = np.nonzero(mask)
@@ -613,8 +624,9 @@ def _supersampled(grid: Grid, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def _clip_share(t: np.ndarray, share: float) -> np.ndarray:
-    """``min(t, c)`` with the largest ``c`` such that no time exceeds ``share`` of the clipped total (exact:
-    with the m largest clipped, ``c = share · R_m / (1 - share · m)``, R_m the sum of the others).
+    """Clip times to ``min(t, c)`` with the largest ``c`` such that no time exceeds ``share`` of the total.
+
+    Exact: with the m largest clipped, ``c = share · R_m / (1 - share · m)``, R_m the sum of the others.
     """
     order = np.sort(t)[::-1]
     if order[0] <= share * order.sum():
@@ -635,7 +647,7 @@ def _stride(n: int, k: int) -> np.ndarray:
 
 
 def _near(points: np.ndarray, dwell_pos: np.ndarray, k: int) -> np.ndarray:
-    """Indices of the ``k`` points nearest to any dwell."""
+    """Return the indices of the ``k`` points nearest to any dwell."""
     if len(points) == 0 or len(dwell_pos) == 0:
         return np.zeros(0, dtype=int)
     d, _ = cKDTree(dwell_pos).query(points)
@@ -763,8 +775,10 @@ class _Selection:
                          integrality=integrality, bounds=sopt.Bounds(lo, hi), options=options)
 
     def loading(self, chosen: Sequence[int]) -> tuple[float, np.ndarray]:
-        """Objective of the best block loading on the needles ``chosen`` (indices into ``needles``) and the
-        intracavitary channels, and its dose at the target points (Gy); (inf, zeros) when infeasible.
+        """Return the objective of the best block loading on ``chosen``, and its dose at the target points (Gy).
+
+        ``chosen``: indices into ``needles`` (the intracavitary channels are always loaded); (inf, zeros) when
+        infeasible.
 
         A small LP over the chosen channels' blocks only (the rows of the selection model restricted to them).
         """
@@ -796,8 +810,10 @@ class _Selection:
         return float(res.fun) + invasive, at @ res.x[:nb]
 
     def bound(self, k_budget: int) -> float:
-        """A lower bound on the selection objective with ``k_budget`` needles: the LP relaxation of the MIP
-        (``0 <= y <= 1``), tightened by HiGHS's dual bound when ``mip_time_limit_s`` > 0.
+        """Return a lower bound on the selection objective with ``k_budget`` needles.
+
+        The LP relaxation of the MIP (``0 <= y <= 1``), tightened by HiGHS's dual bound when ``mip_time_limit_s`` >
+        0.
         """
         zeros, ones = np.zeros(self.n_y), np.ones(self.n_y)
         res = self._run(float(k_budget), zeros, ones, integral=False)
@@ -810,9 +826,11 @@ class _Selection:
         return value
 
     def step(self, previous: Sequence[int], dose: np.ndarray) -> tuple[list[int], float, np.ndarray]:
-        """Greedy step: the previous needles plus the one whose exact block loading lowers the objective
-        most, among the ``greedy_candidates`` needles that could fill most of the current underdose alone
-        (each within its organ caps).
+        """Greedy step.
+
+        The previous needles plus the one whose exact block loading lowers the objective most, among the
+        ``greedy_candidates`` needles that could fill most of the current underdose alone (each within its organ
+        caps).
         """
         deficit = np.maximum(self.p - dose, 0.0)
         holes = {self.hole_of[i] for i in previous}  # one needle per template hole
@@ -870,8 +888,10 @@ def _dwell_lp(prob: _Problem, cols: np.ndarray, a_t: np.ndarray, a_g: np.ndarray
 def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vox_cc: float,
              ) -> tuple[StructureMetrics, float, StructureMetrics | None, tuple[StructureMetrics, ...],
                         tuple[tuple[str, Dvh], ...], float]:
-    """Target, V200, GTV and organ metrics of a loading on every voxel (organs: voxels within
-    ``oar_eval_radius`` of a loaded dwell), and the factor <= 1 that keeps every D2cm³ within its limit.
+    """Compute target, V200, GTV and organ metrics of a loading on every voxel.
+
+    Organs: voxels within ``oar_eval_radius`` of a loaded dwell. Also returns the factor <= 1 that keeps every
+    D2cm³ within its limit.
     """
     loaded = times > 0
     pos, dirs, t = prob.positions[cols][loaded], prob.directions[cols][loaded], times[loaded]
@@ -930,7 +950,7 @@ def plan_implant(
     settings: ImplantSettings | None = None,
     gtv: Structure | None = None,
 ) -> ImplantArm:
-    """The Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
+    """Return the Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
 
     Parameters
     ----------
@@ -1097,8 +1117,9 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_t: np.ndarray, fin_g: np.ndar
 
 def recompute_target(plan: ImplantPlan, grid: Grid, target_mask: np.ndarray, kernel: Tg43Kernel,
                      air_kerma_strength_u: float, aims: Aims | None = None) -> StructureMetrics:
-    """HR-CTV metrics of a plan recomputed independently with :func:`dose_on_grid` on another (finer) ``grid``
-    whose ``target_mask`` ((nk, nj, ni) bool) holds the target (physical per fraction and EQD2 totals).
+    """Recompute a plan's HR-CTV metrics independently with :func:`dose_on_grid` on another (finer) ``grid``.
+
+    ``target_mask`` ((nk, nj, ni) bool) holds the target; physical per fraction and EQD2 totals.
     """
     aims = aims or Aims()
     dose = dose_on_grid(grid, plan.dwells, kernel, air_kerma_strength_u)[np.asarray(target_mask, bool)]

@@ -28,7 +28,9 @@ class PairedStat:
 
 @dataclass(frozen=True)
 class ImplantCohortSummary:
-    """``needles_saved``: straight-arm needles minus steered-arm needles of each case's chosen implant;
+    """Needles saved and D90 gained by steering over a cohort.
+
+    ``needles_saved``: straight-arm needles minus steered-arm needles of each case's chosen implant;
     ``d90_gained_gy``: steered minus straight HR-CTV D90 (EQD2, Gy); ``aims_met_*``: cases whose chosen implant
     meets every aim, per arm.
     """
@@ -51,8 +53,9 @@ def _bootstrap(values: np.ndarray, level: float, resamples: int, seed: int) -> P
 
 def summarise_implants(cases: Sequence[Mapping[str, object]], level: float = 0.95, resamples: int = 10_000,
                        seed: int = 0) -> ImplantCohortSummary:
-    """Summarise a cohort from each case's plan.json ``implant`` section (``straight`` and ``steered`` with
-    ``n_needles``, ``hrctv_d90_eqd2_gy`` and ``aims_met``).
+    """Summarise a cohort from each case's plan.json ``implant`` section.
+
+    Each section has ``straight`` and ``steered`` with ``n_needles``, ``hrctv_d90_eqd2_gy`` and ``aims_met``.
 
     Raises
     ------
