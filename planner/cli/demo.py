@@ -97,7 +97,8 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     bar.close()
     t_read = time.perf_counter() - t
     if not quiet:
-        print(f"{args.case} case written to {files.ct_dir.parent} ({t_write:.1f} s), read back: "
+        print(f"{args.case} case written to {args.out / files.ct_dir.parent.relative_to(out)} ({t_write:.1f} s), "
+              "read back: "
               f"{volume.modality} {volume.grid.shape}, {len(structures.rois)} ROIs ({t_read:.1f} s)", file=sys.stderr)
     targets = [n for n in structures.names if n.casefold().startswith("target")]
     # the clinical case's tandem is in the uterine canal: a needle must not cross it
@@ -106,7 +107,8 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     doc = run_plan(structures, volume, targets, [], config, out, quiet,
                    inputs=[files.ct_dir, files.rtstruct_path],
-                   extra={"case": label, "case_about": about, "phantom_s": {"write": t_write, "read": t_read}})
+                   extra={"case": label, "case_about": about, "phantom_s": {"write": t_write, "read": t_read}},
+                   shown_out=args.out)
     blocked = blocked_straight(doc)
     doc["blocked_straight"] = blocked
     atomic_write_json(out / "plan.json", doc)

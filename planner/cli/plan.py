@@ -255,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
         doc = run_plan(structures, volume, names, points, config, stage, quiet,
                        export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs,
                        pose=pose, allow_no_oars=args.allow_no_oars, standard_names=table.standard_names,
-                       named_points=named_points, implant=not args.no_implant)
+                       named_points=named_points, implant=not args.no_implant, shown_out=args.out)
         # the scene's notes (organs not found, targets planned to points) and the named warnings met on the way
         # (readers, planning), also in plan.json
         notes = doc.get("warnings")
@@ -264,8 +264,6 @@ def run(args: argparse.Namespace) -> int:
         doc = relocate(stage, args.out, doc)
     if args.json:
         print_json(doc, NAME)
-    elif not quiet:
-        print(f"\nwrote {args.out / 'plan.json'}, {args.out / 'overview.png'} and {args.out / 'report.html'}")
     return 0
 
 
@@ -291,8 +289,10 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
              extra: dict[str, object] | None = None, pose: TemplatePose | None = None, allow_no_oars: bool = False,
              standard_names: Sequence[str] | None = None,
              named_points: Sequence[tuple[str, tuple[float, float, float]]] = (),
-             implant: bool = True) -> dict[str, object]:
+             implant: bool = True, shown_out: Path | None = None) -> dict[str, object]:
     """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan document.
+
+    ``shown_out``: where the files will be once the staging folder ``out`` is moved into place (the paths printed).
 
     ``named_points``: dose reference points (name, (x, y, z) mm LPS) the exported plan carries with their doses.
 
@@ -394,9 +394,10 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     doc["timings"] = timings
     atomic_write_json(out / "plan.json", doc)
     if not quiet:
-        written = [("report", str(out / "report.html")), ("plan", str(out / "plan.json"))]
+        final = out if shown_out is None else shown_out
+        written = [("report", str(final / "report.html")), ("plan", str(final / "plan.json"))]
         device = [f for f in files if "device" in Path(f).name and f.endswith(".json")] if export else []
-        written += [("device instructions", f) for f in device]
+        written += [("device instructions", str(final / Path(f).relative_to(out))) for f in device]
         print(format_summary(result, targets=[t.name for t in scene.targets], delivery=delivery,
                              comparison=rendered.comparison, files=written))
         if delivery is not None and delivery.implant is not None:
