@@ -23,7 +23,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from reachplan import ReachplanError, __version__
+from reachplan import ReachplanError
 
 COMMAND_MODULES: tuple[str, ...] = (
     "reachplan.planner.cli.demo",
@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="reachplan",
         description="Pre-plan steered needle paths for interstitial gynecologic brachytherapy.",
     )
-    parser.add_argument("--version", action="version", version=f"reachplan {__version__}")
+    parser.add_argument("--version", action=_VersionAction, nargs=0, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         module = importlib.import_module(name)
@@ -63,6 +63,17 @@ def _one_line(exc: BaseException, limit: int) -> str:
     """Return the message on one line, without an embedded traceback (pydicom nests them in its messages)."""
     text = " ".join(str(exc).split("Traceback (most recent call last)")[0].split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the installed version, read only when asked (importlib.metadata costs start-up)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        from reachplan import __version__
+
+        print(f"reachplan {__version__}")
+        parser.exit()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

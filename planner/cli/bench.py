@@ -15,8 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
-from reachplan.planner.bench.common import check_install, install
-
 NAME = "bench"
 HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant) and write CSV + PNG."
 
@@ -97,6 +95,8 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.planner.cli.edges import output_folder
 
     output_folder(args.out)  # not a file, writable: checked before the benchmark runs
+    from reachplan.planner.bench.common import check_install, install
+
     checkout = check_install(args.repo, args.quick) if args.install else None  # before the long run
     module = _load(args._bench_module)
     status = int(module.run(args))

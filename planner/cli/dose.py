@@ -82,7 +82,10 @@ def run(args: argparse.Namespace) -> int:
     src = plan.source(plan.channels[0].source_number)
     if src.air_kerma_rate_u <= 0:
         raise PlanInputError(f"{args.plan}: the source has no Reference Air Kerma Rate; cannot compute dose")
-    choice = _choose_source(plan, src, args.source)
+    try:
+        choice = _choose_source(plan, src, args.source)
+    except PlanInputError as exc:
+        raise PlanInputError(f"{args.plan}: {exc}") from None
     data = chosen if chosen is not None and choice.name == args.source else get_source(choice.name)
     check_isotope(src, data, str(args.plan))
     sk_u, decay = _decayed_strength(plan, src, args.treatment_date)

@@ -12,14 +12,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
-from reachplan.imaging.files import atomic_write_json
-from reachplan.imaging.types import StructureSet, Volume
 from reachplan.planner.cli.edges import json_safe, output_folder, print_json, relocate, seen_warnings, staged_folder
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.pipeline import PlanConfig
-from reachplan.planner.steering.candidates import Target
+
+if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of every command stays light
+    import numpy as np
+
+    from reachplan.imaging.types import StructureSet, Volume
+    from reachplan.planner.pipeline import PlanConfig
+    from reachplan.planner.steering.candidates import Target
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -127,6 +128,7 @@ def read_pose_file(path: Path) -> np.ndarray:
     The file holds JSON (a 4x4 list, or an object holding 'patient_from_template' at any depth) or text (4 rows
     of 4 numbers separated by spaces or commas). Rigidity is checked by the caller.
     """
+    import numpy as np
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -231,6 +233,7 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
 def run(args: argparse.Namespace) -> int:
     """Plan a case from the command line; returns the exit code."""
     from reachplan.imaging.dicom_io import read_series
+    from reachplan.imaging.files import atomic_write_json
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.pipeline import PlanConfig
@@ -301,6 +304,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     plan.json (``template_pose``, ``warnings``). ``implant``: also plan the implant for the whole target
     volume, straight only and straight + steered (plan.json ``implant``, printed side by side).
     """
+    import numpy as np
     from tqdm import tqdm
 
     from reachplan.imaging.files import atomic_write_bytes, atomic_write_json

@@ -48,18 +48,18 @@ def _atan_over_x(x):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _pair(px, py, pz, sx, sy, sz, ux, uy, uz, table, nt, inv_dr, r_min, length, quarter_l2, eps_y, point_model):  # type: ignore[no-untyped-def]
+def _pair(px, py, pz, sx, sy, sz, ux, uy, uz, table, nt, inv_dr, r_min, length, quarter_l2, eps_y, y_source, point_model):  # type: ignore[no-untyped-def]  # noqa: E501
     """Rate per U before the constant factor, one pair (positions in cm)."""
     dx = px - sx
     dy = py - sy
     dz = pz - sz
     r2 = dx * dx + dy * dy + dz * dz
     r = math.sqrt(r2)
-    rc = max(r, r_min)
-    ri = rc * inv_dr
-    i0 = min(int(ri), table.shape[0] - 2)
-    fr = min(ri - i0, _ONE)
     if point_model:  # a compile-time constant: each model gets its own specialisation
+        rc = max(r, r_min)
+        ri = rc * inv_dr
+        i0 = min(int(ri), table.shape[0] - 2)
+        fr = min(ri - i0, _ONE)
         return table[i0, 0] * (_ONE - fr) + table[i0 + 1, 0] * fr
     z = dx * ux + dy * uy + dz * uz
     # distance from the axis as |d × u| (r² − z² cancels in float32 near the axis, where F is steep)
@@ -68,25 +68,37 @@ def _pair(px, py, pz, sx, sy, sz, ux, uy, uz, table, nt, inv_dr, r_min, length, 
     cz = dx * uy - dy * ux
     rho = math.sqrt(cx * cx + cy * cy + cz * cz)
     az = abs(z)
-    # θ from the half-angle α/2 = atan(ρ / (|z| + r)), α the angle to the nearer axis direction
+    # θ from the half-angle α/2 = atan(ρ / (|z| + r)), α the angle to the nearer axis direction (the point's own)
     half = _atan_pos(rho / (az + r + _TINY))
     tdeg = half * _DEG2  # α in degrees
     th = tdeg if z >= _ZERO else _D180 - tdeg
+    # the line source at the point's own distance (no cap, as tg43.Tg43Kernel): only points beside the source
+    # and closer to its axis than y_source are moved out to it, at the same position along the axis
+    y = rho
+    if y < y_source and az < _F(0.5) * length:
+        y = y_source
+    y = max(y, eps_y)
+    rc = math.sqrt(y * y + az * az)
+    ri = rc * inv_dr
+    i0 = min(int(ri), table.shape[0] - 2)
+    fr = min(ri - i0, _ONE)
     t0 = min(int(th), nt - 2)
     ft = th - t0
     a = table[i0, t0] * (_ONE - ft) + table[i0, t0 + 1] * ft
     b = table[i0 + 1, t0] * (_ONE - ft) + table[i0 + 1, t0 + 1] * ft
     gf = a + (b - a) * fr
-    # geometry factor with the clamped distance, direction kept: β / y = L/(r² − L²/4) · atan(x)/x,
-    # x = L y / (r² − L²/4); atan(x)/x is even and smooth, so no division by y (finite on the axis)
-    y = max(rho * (rc / max(r, _TINY)), eps_y)
-    inv_den = length / (rc * rc - quarter_l2)
-    x = y * inv_den
-    return gf * inv_den * _atan_over_x(x)
+    # geometry factor β / y: outside the sphere of diameter L, β = atan(x), x = L y / (r² − L²/4), written as
+    # L/(r² − L²/4) · atan(x)/x (finite on the axis); inside it (r² < L²/4, beside the source) β = π − atan(x)
+    den = rc * rc - quarter_l2
+    if den > _ZERO:
+        inv_den = length / den
+        return gf * inv_den * _atan_over_x(y * inv_den)
+    x = length * y / max(-den, _F(1e-12))
+    return gf * (_F(math.pi) - _atan_pos(x)) / y
 
 
 @njit(cache=True, fastmath=True, parallel=True)
-def grid_dose(origin, step_i, step_j, step_k, shape, pos, dirs, w, table, inv_dr, r_min, length, eps_y, point_model, out):  # type: ignore[no-untyped-def]  # noqa: E501
+def grid_dose(origin, step_i, step_j, step_k, shape, pos, dirs, w, table, inv_dr, r_min, length, eps_y, y_source, point_model, out):  # type: ignore[no-untyped-def]  # noqa: E501
     """Σ_j w_j · rate(voxel, dwell j) on every voxel of a grid; threads over the k·j rows.
 
     ``origin`` (3,) and ``step_*`` (3,) cm, the voxel centre of (i, j, k) is origin + i·step_i + j·step_j +
@@ -110,16 +122,18 @@ def grid_dose(origin, step_i, step_j, step_k, shape, pos, dirs, w, table, inv_dr
             acc = _ZERO
             for d in range(nd):
                 acc += w[d] * _pair(px, py, pz, pos[0, d], pos[1, d], pos[2, d], dirs[0, d], dirs[1, d],
-                                    dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, point_model)
+                                    dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, y_source,
+                                    point_model)
             out[row * ni + i] = acc
 
 
 @njit(cache=True, fastmath=True)  # one thread: the optimisation matrices are small (ms); compiles faster
-def pair_matrix(pts, pos, dirs, table, inv_dr, r_min, length, eps_y, point_model, out):  # type: ignore[no-untyped-def]
+def pair_matrix(pts, pos, dirs, table, inv_dr, r_min, length, eps_y, y_source, point_model, out):  # type: ignore[no-untyped-def]
     """rate(point m, dwell n) into ``out`` (m, n); ``pts`` (m, 3), ``pos``/``dirs`` (3, n), cm."""
     nt = table.shape[1]
     ql2 = 0.25 * length * length
     for m in range(pts.shape[0]):
         for d in range(pos.shape[1]):
             out[m, d] = _pair(pts[m, 0], pts[m, 1], pts[m, 2], pos[0, d], pos[1, d], pos[2, d], dirs[0, d],
-                              dirs[1, d], dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, point_model)
+                              dirs[1, d], dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, y_source,
+                                    point_model)

@@ -168,9 +168,10 @@ class Tg43Kernel:
             out *= self._rate_factor()
         return out
 
-    def _scalars(self) -> tuple[np.float32, np.float32, np.float32, np.float32, bool]:
+    def _scalars(self) -> tuple[np.float32, np.float32, np.float32, np.float32, np.float32, bool]:
         f = np.float32
-        return f(1.0 / DR_CM), f(self.r_min_cm), f(self.length_cm), f(_EPS_Y_CM), self.model == "point"
+        return (f(1.0 / DR_CM), f(self.r_min_cm), f(self.length_cm), f(_EPS_Y_CM), f(Y_SOURCE_CM),
+                self.model == "point")
 
     @property
     def length_cm(self) -> float:

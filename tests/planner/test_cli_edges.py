@@ -74,7 +74,7 @@ PLAN_FAMILIES: list[tuple[str, Callable[[Any], None], str]] = [
     ("NaN dose reference point", lambda ds: setattr(ds.DoseReferenceSequence[0], "DoseReferencePointCoordinates",
                                                     ["nan", "0", "0"]), "DoseReferencePointCoordinates"),
     ("isotope against the data", lambda ds: setattr(ds.SourceSequence[0], "SourceIsotopeName", "Co-60"),
-     "are for Ir-192"),
+     "no TG-43 data is registered for Co-60"),
     ("negative air kerma rate", lambda ds: setattr(ds.SourceSequence[0], "ReferenceAirKermaRate", "-40700"),
      "ReferenceAirKermaRate is -40700"),
 ]
