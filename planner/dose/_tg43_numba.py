@@ -127,12 +127,12 @@ def grid_dose(origin, step_i, step_j, step_k, shape, pos, dirs, w, table, inv_dr
             out[row * ni + i] = acc
 
 
-@njit(cache=True, fastmath=True)  # one thread: the optimisation matrices are small (ms); compiles faster
+@njit(cache=True, fastmath=True, parallel=True)  # threads over points: implant metrics evaluate ~10⁹ pairs
 def pair_matrix(pts, pos, dirs, table, inv_dr, r_min, length, eps_y, y_source, point_model, out):  # type: ignore[no-untyped-def]
     """rate(point m, dwell n) into ``out`` (m, n); ``pts`` (m, 3), ``pos``/``dirs`` (3, n), cm."""
     nt = table.shape[1]
     ql2 = 0.25 * length * length
-    for m in range(pts.shape[0]):
+    for m in prange(pts.shape[0]):
         for d in range(pos.shape[1]):
             out[m, d] = _pair(pts[m, 0], pts[m, 1], pts[m, 2], pos[0, d], pos[1, d], pos[2, d], dirs[0, d],
                               dirs[1, d], dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, y_source,

@@ -79,7 +79,6 @@ from reachplan.planner.dose.tg43 import (
     dose_on_grid,
     dwell_directions,
     grid_points_mm,
-    rate_matrix,
 )
 from reachplan.planner.geometry.collision import Organ, check_path
 from reachplan.planner.steering.schedule import TensionSchedule
@@ -588,7 +587,7 @@ def _rates(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, prob: _Problem
     out = np.empty((len(points), len(pos)))
     step = max(1, (1 << 20) // len(pos))
     for s0 in range(0, len(points), step):
-        out[s0:s0 + step] = rate_matrix(points[s0:s0 + step], pos, dirs, prob.kernel)
+        out[s0:s0 + step] = prob.kernel.compiled_rates(points[s0:s0 + step], pos, dirs)
     return out * prob.gy_per_s
 
 
@@ -599,7 +598,7 @@ def _dose(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, times: np.ndarr
         return out
     step = max(1, (1 << 20) // len(pos))
     for s0 in range(0, len(points), step):
-        out[s0:s0 + step] = rate_matrix(points[s0:s0 + step], pos, dirs, prob.kernel) @ times
+        out[s0:s0 + step] = prob.kernel.compiled_rates(points[s0:s0 + step], pos, dirs) @ times
     return out * prob.gy_per_s
 
 

@@ -145,7 +145,7 @@ class Tg43Kernel:
         return float(self.source.dose_rate_constant / (self.length_cm * self._g0))
 
     def compiled_rates(self, points_mm: np.ndarray, positions_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Rate matrix from the compiled float32 kernel (one thread).
+        """Rate matrix from the compiled float32 kernel (threads over the points).
 
         Parameters
         ----------
