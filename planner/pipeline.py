@@ -930,7 +930,7 @@ def plan_implants(
     (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
     of ``config`` with the screening model of ``models``.
     """
-    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_implant
+    from reachplan.planner.dose.implant import ImplantSettings, dominate, needle_candidates, plan_implant
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
     settings = settings or ImplantSettings()
@@ -946,4 +946,5 @@ def plan_implants(
                             air_kerma_u, settings=settings, gtv=gtv)
     steered = plan_implant("steered", [*cands, *intracavitary], planning, kernel, air_kerma_u, settings=settings,
                            gtv=gtv)
+    steered = dominate(steered, straight)  # its candidates include the straight ones: never worse than that arm
     return ImplantComparison(straight, steered, (*cands, *intracavitary))

@@ -939,6 +939,41 @@ def _aims_met(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequ
     return bool(ok)
 
 
+def _better(a: ImplantPlan, b: ImplantPlan) -> bool:
+    """Return True when plan ``a`` ranks before ``b`` by the arms' rule.
+
+    A plan meeting every aim beats one that does not; between two that do, fewer needles (then the higher
+    HR-CTV D90) wins; between two that do not, the higher D90 (then fewer needles) wins.
+    """
+    if a.aims_met != b.aims_met:
+        return a.aims_met
+    if a.aims_met:
+        return (a.n_needles, -a.target.d90_eqd2_gy) < (b.n_needles, -b.target.d90_eqd2_gy)
+    return (a.target.d90_eqd2_gy, -a.n_needles) > (b.target.d90_eqd2_gy, -b.n_needles)
+
+
+def dominate(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
+    """Make ``arm`` at least as good as an arm whose candidate channels are a subset of its own.
+
+    The straight + steered arm holds every straight candidate, so every straight implant is also one of its
+    implants: a heuristic search over the larger set that ends worse than the smaller arm's answer is replaced
+    by that answer (an incumbent, as in branch and bound). At each needle count of the Pareto curve the better
+    point is kept (aims met first, then the higher HR-CTV D90).
+    """
+    best: dict[int, ParetoPoint] = {}
+    for pt in (*arm.pareto, *subset.pareto):
+        old = best.get(pt.n_needles)
+        if old is None or (pt.aims_met, pt.hrctv_d90_eqd2_gy) > (old.aims_met, old.hrctv_d90_eqd2_gy):
+            best[pt.n_needles] = pt
+    pareto = tuple(best[n] for n in sorted(best))
+    plan, reason = arm.plan, arm.reason
+    if subset.plan is not None and (plan is None or _better(subset.plan, plan)):
+        plan = subset.plan
+        reason = (f"the {subset.name} arm's implant (its needles are candidates of this arm too) ranks before this "
+                  f"arm's search result and is kept" + (f"; {subset.reason}" if subset.reason else ""))
+    return dataclasses.replace(arm, pareto=pareto, plan=plan, reason=reason)
+
+
 def plan_implant(
     name: str,
     channels: Sequence[Channel],

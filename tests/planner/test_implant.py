@@ -286,3 +286,25 @@ def test_cohort_summary_of_paired_arms() -> None:
     assert large.aims_met_steered == 200
     with pytest.raises(StudyError):
         summarise_implants([{"straight": {"n_needles": 3}, "steered": {}}])
+
+
+def test_the_larger_arm_is_never_worse_than_its_subset(open_case: tuple) -> None:
+    """The straight + steered arm holds every straight candidate: :func:`dominate` keeps the better answer."""
+    import dataclasses
+
+    from reachplan.planner.dose.implant import _better, dominate
+
+    _, _, straight, steered = open_case
+    assert straight.plan is not None
+    merged = dominate(steered, straight)
+    assert merged.plan is not None and not _better(straight.plan, merged.plan)
+    for pt in merged.pareto:  # at every needle count, no worse than either arm
+        for other in (*straight.pareto, *steered.pareto):
+            if other.n_needles == pt.n_needles:
+                assert (pt.aims_met, pt.hrctv_d90_eqd2_gy) >= (other.aims_met, other.hrctv_d90_eqd2_gy)
+    # a search that found nothing better (here: nothing at all) gets the straight arm's implant, and says so
+    empty = dataclasses.replace(steered, plan=None, pareto=(), reason="no needle budget gave a plan")
+    rescued = dominate(empty, straight)
+    assert rescued.plan is straight.plan
+    assert {q.n_needles for q in rescued.pareto} == {q.n_needles for q in straight.pareto}
+    assert "straight arm's implant" in rescued.reason
