@@ -31,7 +31,7 @@ from reachplan.imaging.errors import (
     SeriesError,
     UnsupportedDataError,
 )
-from reachplan.imaging.types import Grid, Volume
+from reachplan.imaging.types import Grid, PatientStudy, Volume
 
 MEDIA_STORAGE_DIRECTORY = "1.2.840.10008.1.3.10"  # DICOMDIR
 
@@ -796,7 +796,6 @@ def load_series(
             np.multiply(arr[f.frame or 0], np.float32(f.slope), out=out[k], casting="unsafe")
             if f.intercept:
                 out[k] += np.float32(f.intercept)
-    ds0 = headers[0][0]
     sop = {p: (str(ds.get("SOPClassUID", "")), str(ds.get("SOPInstanceUID", ""))) for ds, p in headers}
     slice_uids = [("", "")] * len(order)
     for (path, frame), k in slot.items():
@@ -804,9 +803,7 @@ def load_series(
     return Volume(
         array=out, grid=grid, modality=chosen.modality, series_instance_uid=chosen.series_instance_uid,
         frame_of_reference_uid=chosen.frame_of_reference_uid,
-        study_instance_uid=str(ds0.get("StudyInstanceUID", "")), patient_id=str(ds0.get("PatientID", "")),
-        patient_name=str(ds0.get("PatientName", "")), study_date=str(ds0.get("StudyDate", "") or ""),
-        study_time=str(ds0.get("StudyTime", "") or ""), study_id=str(ds0.get("StudyID", "") or ""),
+        patient_study=PatientStudy.read(headers[0][0]),
         slice_uids=tuple(slice_uids) if all(all(u) for u in slice_uids) else (),
     )
 

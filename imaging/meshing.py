@@ -194,17 +194,15 @@ def roi_coverage(roi: Roi, grid: Grid, supersample: int = 4) -> np.ndarray:
 
     Parameters
     ----------
-    roi : Roi
-        Its CLOSED_PLANAR contours are used (LPS mm).
-    grid : Grid
-        The voxel grid.
+    roi, grid : Roi, Grid
+        As for :func:`roi_mask`.
     supersample : int
         Sub-rows per pixel (exact along rows); at least 1.
 
     Returns
     -------
     coverage : (nk, nj, ni) float32
-        ``grid.shape``, indexed ``[k, j, i]``.
+        Voxel fractions on ``grid``, indexed ``[k, j, i]``.
 
     Raises
     ------
@@ -479,12 +477,8 @@ def structure_volume_cc(roi: Roi, grid: Grid | None = None, pixel_mm: float | No
 
     Parameters
     ----------
-    roi : Roi
-        Its CLOSED_PLANAR contours are used (LPS mm).
-    grid : Grid, optional
-        The image grid the contours were drawn on.
-    pixel_mm : float, optional
-        In-plane pixel size, mm (see :func:`fit_grid`).
+    roi, grid, pixel_mm : Roi, Grid or None, float or None
+        As for :func:`fit_grid`.
 
     Returns
     -------

@@ -50,7 +50,7 @@ from reachplan.imaging.errors import (
     InvalidValueError,
     NoDicomError,
 )
-from reachplan.imaging.types import StructureSet
+from reachplan.imaging.types import PatientStudy, StructureSet
 
 RT_PLAN_SOP_CLASSES = {
     "1.2.840.10008.5.1.4.1.1.481.5": "RT Plan",
@@ -270,8 +270,10 @@ class RtPlan:
         (application setup number, Brachy Application Setup Dose in Gy) of the first fraction group.
     catheter_paths : tuple of CatheterPath
         From Oncentra's private catheter sequence; empty otherwise.
-    machine_name, study_instance_uid, patient_id, patient_name : str
-        As written; empty when missing.
+    machine_name : str
+        Treatment Machine Name as written; empty when missing.
+    patient_study : PatientStudy
+        Patient and study as written.
     plan_date, plan_time : str
         RT Plan Date (``YYYYMMDD``) and Time as written; empty when missing.
     quirks : tuple of str
@@ -295,9 +297,7 @@ class RtPlan:
     setup_doses_gy: tuple[tuple[int, float], ...] = ()
     catheter_paths: tuple[CatheterPath, ...] = ()
     machine_name: str = ""
-    study_instance_uid: str = ""
-    patient_id: str = ""
-    patient_name: str = ""
+    patient_study: PatientStudy = field(default_factory=PatientStudy)
     plan_date: str = ""
     plan_time: str = ""
     quirks: tuple[str, ...] = field(default=())
@@ -538,9 +538,7 @@ def _plan_from_dataset(ds: Dataset, path: str, found: list[str]) -> RtPlan:
         setup_doses_gy=setup_doses,
         catheter_paths=catheters,
         machine_name=machine,
-        study_instance_uid=_str(ds, "StudyInstanceUID"),
-        patient_id=_str(ds, "PatientID"),
-        patient_name=_str(ds, "PatientName"),
+        patient_study=PatientStudy.read(ds),
         plan_date=_str(ds, "RTPlanDate"),
         plan_time=_str(ds, "RTPlanTime"),
     )

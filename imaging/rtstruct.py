@@ -24,7 +24,7 @@ from reachplan.imaging.errors import (
     StructureError,
 )
 from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
-from reachplan.imaging.types import Contour, Roi, StructureSet, Volume
+from reachplan.imaging.types import Contour, PatientStudy, Roi, StructureSet, Volume
 
 RT_STRUCTURE_SET_STORAGE = "1.2.840.10008.5.1.4.1.1.481.3"
 GEOMETRIC_TYPES = frozenset({"CLOSED_PLANAR", "OPEN_PLANAR", "OPEN_NONPLANAR", "POINT", "CLOSEDPLANAR_XOR"})
@@ -219,9 +219,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
         _warn_outside(path, rois, volume)
     return StructureSet(
         rois=tuple(rois), frame_of_reference_uid=for_uid, referenced_series_uid=series_uid,
-        sop_instance_uid=str(ds.get("SOPInstanceUID", "")), study_instance_uid=str(ds.get("StudyInstanceUID", "")),
-        patient_id=str(ds.get("PatientID", "")), patient_name=str(ds.get("PatientName", "")),
-        label=str(ds.get("StructureSetLabel", "")), study_date=str(ds.get("StudyDate", "") or ""),
-        study_time=str(ds.get("StudyTime", "") or ""), study_id=str(ds.get("StudyID", "") or ""),
+        sop_instance_uid=str(ds.get("SOPInstanceUID", "")), label=str(ds.get("StructureSetLabel", "")),
+        patient_study=PatientStudy.read(ds),
         referenced_images=images,
     )

@@ -12,6 +12,7 @@ Conventions
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +26,45 @@ def _check_affine(m: np.ndarray, name: str) -> None:
         raise ValueError(f"{name} must be a finite 4x4 homogeneous matrix with last row (0, 0, 0, 1)")
     if abs(np.linalg.det(m[:3, :3])) < 1e-12:
         raise ValueError(f"{name} is singular: voxel spacing must be non-zero along every axis")
+
+
+@dataclass(frozen=True)
+class PatientStudy:
+    """Who and which study a series belongs to: the DICOM Patient and General Study modules (PS3.3 C.7.1.1, C.7.2.1).
+
+    Every series of one study (images, structure set, plan, dose) carries the same values; exports copy them.
+    Empty strings where a file does not give them.
+
+    Parameters
+    ----------
+    patient_id, patient_name : str
+        Patient ID (0010,0020) and Patient's Name (0010,0010).
+    study_instance_uid : str
+        Study Instance UID (0020,000D).
+    study_date, study_time, study_id : str
+        Study Date (``YYYYMMDD``), Study Time and Study ID (0008,0020), (0008,0030), (0020,0010).
+    """
+
+    patient_id: str = ""
+    patient_name: str = ""
+    study_instance_uid: str = ""
+    study_date: str = ""
+    study_time: str = ""
+    study_id: str = ""
+
+    @classmethod
+    def read(cls, ds: Any) -> PatientStudy:
+        """Read the values from a pydicom ``Dataset`` (missing or empty attributes give ``""``)."""
+        def text(keyword: str) -> str:
+            return str(ds.get(keyword, "") or "")
+        return cls(text("PatientID"), text("PatientName"), text("StudyInstanceUID"), text("StudyDate"),
+                   text("StudyTime"), text("StudyID"))
+
+    def write(self, ds: Any) -> None:
+        """Set the six attributes on a pydicom ``Dataset`` (the Study Instance UID as given, even empty)."""
+        ds.PatientID, ds.PatientName = self.patient_id, self.patient_name
+        ds.StudyInstanceUID, ds.StudyID = self.study_instance_uid, self.study_id
+        ds.StudyDate, ds.StudyTime = self.study_date, self.study_time
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,12 +150,10 @@ class Volume:
         Shape and ``patient_from_index`` of ``array``.
     modality : str
         ``"CT"``, ``"MR"``, ...
-    series_instance_uid, study_instance_uid, frame_of_reference_uid : str
+    series_instance_uid, frame_of_reference_uid : str
         Identity of the series it was read from.
-    patient_id, patient_name : str
-        Carried over to exports.
-    study_date, study_time, study_id : str
-        Study Date (``YYYYMMDD``), Time and ID as written in the images; carried over to exports.
+    patient_study : PatientStudy
+        Patient and study as written in the images; carried over to exports.
     slice_uids : tuple of (str, str)
         (SOP Class UID, SOP Instance UID) of the image holding each slice k, in slice order; empty when
         not known. Exports reference the images through them.
@@ -131,12 +169,7 @@ class Volume:
     modality: str
     series_instance_uid: str
     frame_of_reference_uid: str
-    study_instance_uid: str = ""
-    patient_id: str = ""
-    patient_name: str = ""
-    study_date: str = ""
-    study_time: str = ""
-    study_id: str = ""
+    patient_study: PatientStudy = field(default_factory=PatientStudy)
     slice_uids: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
@@ -225,10 +258,10 @@ class StructureSet:
         Frame of Reference of every contour.
     referenced_series_uid : str or None
         SeriesInstanceUID of the images the contours were drawn on, when the file names one.
-    sop_instance_uid, study_instance_uid, patient_id, patient_name, label : str
-        Identity of the file (``label`` is its Structure Set Label); empty when not given.
-    study_date, study_time, study_id : str
-        Study Date, Time and ID as written; empty when not given.
+    sop_instance_uid, label : str
+        SOP Instance UID and Structure Set Label of the file; empty when not given.
+    patient_study : PatientStudy
+        Patient and study as written in the file.
     referenced_images : tuple of (str, str)
         (SOP Class UID, SOP Instance UID) of the images of the referenced series, as listed in the file's
         Contour Image Sequence; empty when not given.
@@ -243,13 +276,8 @@ class StructureSet:
     frame_of_reference_uid: str
     referenced_series_uid: str | None = None
     sop_instance_uid: str = ""
-    study_instance_uid: str = ""
-    patient_id: str = ""
-    patient_name: str = ""
     label: str = ""
-    study_date: str = ""
-    study_time: str = ""
-    study_id: str = ""
+    patient_study: PatientStudy = field(default_factory=PatientStudy)
     referenced_images: tuple[tuple[str, str], ...] = ()
     names: tuple[str, ...] = field(init=False)
 

@@ -116,9 +116,7 @@ def run(args: argparse.Namespace) -> int:
     checks = check_points(plan, dwells, kernel, sk_u) if args.points else ()
     context = DoseContext(
         frame_of_reference_uid=for_uid,
-        study_instance_uid=plan.study_instance_uid,
-        patient_id=plan.patient_id,
-        patient_name=plan.patient_name,
+        patient_study=plan.patient_study,
         referenced_plan_uid=plan.sop_instance_uid,
     )
     setup = max((d for _, d in plan.setup_doses_gy), default=0.0) * plan.n_fractions * plan.n_pulses

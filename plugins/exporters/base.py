@@ -624,8 +624,8 @@ def file_stem(plan: ExportPlan, options: ExportOptions) -> str:
     """Build the safe file-name stem of ``plan`` (patient name only with ``include_patient_name``)."""
     stem = safe_name(options.stem or plan.label)
     if options.include_patient_name:
-        who = (plan.volume.patient_name if plan.volume is not None else "") or (
-            plan.structure_set.patient_name if plan.structure_set is not None else "")
+        who = (plan.volume.patient_study.patient_name if plan.volume is not None else "") or (
+            plan.structure_set.patient_study.patient_name if plan.structure_set is not None else "")
         if who:
             stem = f"{safe_name(who, fallback='patient')}_{stem}"
     return stem

@@ -26,19 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from reachplan.imaging.files import atomic_write_bytes
-from reachplan.plugins.exporters.base import (
-    ExportedFile,
-    ExportedFiles,
-    Exporter,
-    ExportOptions,
-    ExportPlan,
-    FunctionExporter,
-    NeedleExport,
-    check_targets,
-    file_stem,
-    prepare_out_dir,
-    safe_name,
-)
+from reachplan.plugins.exporters import base
+from reachplan.plugins.exporters.base import ExportedFile, ExportedFiles, ExportOptions, ExportPlan, NeedleExport
 
 FORMAT = "reachplan-device/1"
 COLUMNS = ("hole_id", "stylet_preset", "depth_mm", "tension_n", "roll_deg")
@@ -110,25 +99,9 @@ def device_document(plan: ExportPlan, step_mm: float) -> dict[str, object]:
     }
 
 
-def export_device_json(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-    """Write ``<stem>_device.json`` (all needles) into ``out_dir``.
-
-    Raises
-    ------
-    ExportError
-        The output folder cannot be used, or the file may not be written (see
-        :func:`~reachplan.plugins.exporters.base.check_targets`).
-    """
-    opts = options or ExportOptions()
-    path = prepare_out_dir(out_dir) / f"{file_stem(plan, opts)}_device.json"
-    check_targets((path,), plan, opts)
-    text = json.dumps(device_document(plan, opts.step_mm), indent=2, allow_nan=False) + "\n"
-    atomic_write_bytes(path, text.encode("utf-8"))
-    return ExportedFiles("device_json", (ExportedFile("device_json", path),), _notes(plan))
-
-
-def export_device_csv(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-    """Write one ``<stem>_needle_<hole>.csv`` per needle into ``out_dir``.
+def _paths(plan: ExportPlan, out_dir: Path, options: ExportOptions | None,
+           suffixes: list[str]) -> tuple[ExportOptions, list[Path]]:
+    """Resolve the options and the file paths ``<stem><suffix>`` in ``out_dir``, checked for writing.
 
     Raises
     ------
@@ -137,10 +110,24 @@ def export_device_csv(plan: ExportPlan, out_dir: Path, options: ExportOptions | 
         :func:`~reachplan.plugins.exporters.base.check_targets`).
     """
     opts = options or ExportOptions()
-    out, stem = prepare_out_dir(out_dir), file_stem(plan, opts)
-    paths = [out / f"{stem}_needle_{safe_name(n.hole_id, fallback=f'channel{k}')}.csv"
-             for k, n in enumerate(plan.needles, start=1)]
-    check_targets(paths, plan, opts)
+    out, stem = base.prepare_out_dir(out_dir), base.file_stem(plan, opts)
+    paths = [out / f"{stem}{suffix}" for suffix in suffixes]
+    base.check_targets(paths, plan, opts)
+    return opts, paths
+
+
+def export_device_json(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
+    """Write ``<stem>_device.json`` (all needles) into ``out_dir``; errors as in :func:`_paths`."""
+    opts, (path,) = _paths(plan, out_dir, options, ["_device.json"])
+    text = json.dumps(device_document(plan, opts.step_mm), indent=2, allow_nan=False) + "\n"
+    atomic_write_bytes(path, text.encode("utf-8"))
+    return ExportedFiles("device_json", (ExportedFile("device_json", path),), _notes(plan))
+
+
+def export_device_csv(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
+    """Write one ``<stem>_needle_<hole>.csv`` per needle into ``out_dir``; errors as in :func:`_paths`."""
+    opts, paths = _paths(plan, out_dir, options, [
+        f"_needle_{base.safe_name(n.hole_id, fallback=f'channel{k}')}.csv" for k, n in enumerate(plan.needles, 1)])
     for n, path in zip(plan.needles, paths, strict=True):
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -151,9 +138,9 @@ def export_device_csv(plan: ExportPlan, out_dir: Path, options: ExportOptions | 
     return ExportedFiles("device_csv", tuple(ExportedFile("device_csv", p) for p in paths), _notes(plan))
 
 
-JSON_EXPORTER: Exporter = FunctionExporter(
+JSON_EXPORTER: base.Exporter = base.FunctionExporter(
     "device_json", "stylet device instructions, one JSON file: per needle hole, preset and schedule rows",
     export_device_json)
-CSV_EXPORTER: Exporter = FunctionExporter(
+CSV_EXPORTER: base.Exporter = base.FunctionExporter(
     "device_csv", "stylet device instructions, one CSV per needle: hole, preset, depth, tension, roll",
     export_device_csv)

@@ -45,21 +45,9 @@ from pydicom.uid import ImplicitVRLittleEndian, generate_uid
 
 from reachplan._arrays import arc_length_mm
 from reachplan.imaging.files import atomic_write_bytes
-from reachplan.imaging.types import Contour, Roi
-from reachplan.plugins.exporters.base import (
-    ExportedFile,
-    ExportedFiles,
-    Exporter,
-    ExportError,
-    ExportOptions,
-    ExportPlan,
-    FunctionExporter,
-    NeedleExport,
-    check_targets,
-    file_stem,
-    prepare_out_dir,
-    project_on_path,
-)
+from reachplan.imaging.types import Contour, PatientStudy, Roi
+from reachplan.plugins.exporters import base
+from reachplan.plugins.exporters.base import ExportError, ExportOptions, ExportPlan, NeedleExport, project_on_path
 from reachplan.plugins.exporters.rtdose import CEILING_TIMES_PRESCRIPTION, DoseContext, rtdose_dataset
 
 RT_PLAN_STORAGE = "1.2.840.10008.5.1.4.1.1.481.5"
@@ -113,27 +101,23 @@ def _time(t: datetime) -> str:
 
 @dataclass(frozen=True)
 class Identity:
-    """Patient, study and Frame of Reference identity shared by both files.
+    """Patient, study and Frame of Reference identity shared by every file of an export.
 
     Parameters
     ----------
-    patient_id, patient_name, study_instance_uid, frame_of_reference_uid : str
+    patient_study : PatientStudy
+        As written to every file: the input images' study (else the structure set's); a study of our own has the
+        export's date and time and ID "1".
+    frame_of_reference_uid : str
         As written to every file.
-    study_date, study_time, study_id : str
-        Study Date, Time and ID of the input images (a study of our own: the export's date and time, ID "1").
     generated : tuple of str
         What the input did not give and was generated (placeholders), e.g.
         ``("Study Instance UID", "Frame of Reference UID")``.
     """
 
-    patient_id: str
-    patient_name: str
-    study_instance_uid: str
+    patient_study: PatientStudy
     frame_of_reference_uid: str
     generated: tuple[str, ...] = ()
-    study_date: str = ""
-    study_time: str = ""
-    study_id: str = ""
 
 
 def plan_identity(plan: ExportPlan, uid_prefix: str | None = None) -> Identity:
@@ -145,10 +129,12 @@ def plan_identity(plan: ExportPlan, uid_prefix: str | None = None) -> Identity:
         When the volume and the structure set belong to different Frames of Reference, studies or patients.
     """
     v, s = plan.volume, plan.structure_set
+    vs = v.patient_study if v else PatientStudy()
+    ss = s.patient_study if s else PatientStudy()
     pairs = {
         "Frame of Reference UID": (v.frame_of_reference_uid if v else "", s.frame_of_reference_uid if s else ""),
-        "Study Instance UID": (v.study_instance_uid if v else "", s.study_instance_uid if s else ""),
-        "Patient ID": (v.patient_id if v else "", s.patient_id if s else ""),
+        "Study Instance UID": (vs.study_instance_uid, ss.study_instance_uid),
+        "Patient ID": (vs.patient_id, ss.patient_id),
     }
     for what, (a, b) in pairs.items():
         if a and b and a != b:
@@ -156,16 +142,17 @@ def plan_identity(plan: ExportPlan, uid_prefix: str | None = None) -> Identity:
                               "export with the structure set drawn on that volume")
     given = {what: a or b for what, (a, b) in pairs.items()}
     generated = tuple(what for what in ("Study Instance UID", "Frame of Reference UID") if not given[what])
-    study = [x for x in (v, s) if x is not None and x.study_instance_uid == given["Study Instance UID"]
+    study = [x for x in (vs, ss) if x.study_instance_uid == given["Study Instance UID"]
              and x.study_date]  # the CT's study attributes, else the input structure set's
     now = plan.plan_datetime or datetime.now()
     return Identity(
-        study_date=study[0].study_date if study else _date(now),
-        study_time=study[0].study_time if study else _time(now),
-        study_id=(study[0].study_id if study else "") or "1",
-        patient_id=given["Patient ID"],
-        patient_name=(v.patient_name if v else "") or (s.patient_name if s else ""),
-        study_instance_uid=given["Study Instance UID"] or new_uid(uid_prefix),
+        patient_study=PatientStudy(
+            patient_id=given["Patient ID"],
+            patient_name=vs.patient_name or ss.patient_name,
+            study_instance_uid=given["Study Instance UID"] or new_uid(uid_prefix),
+            study_date=study[0].study_date if study else _date(now),
+            study_time=study[0].study_time if study else _time(now),
+            study_id=(study[0].study_id if study else "") or "1"),
         frame_of_reference_uid=given["Frame of Reference UID"] or new_uid(uid_prefix),
         generated=generated + (() if given["Patient ID"] else ("Patient ID (left empty)",)),
     )
@@ -179,8 +166,7 @@ def _common(ds: Dataset, ident: Identity, sop_class: str, sop_uid: str, modality
     ds.SOPClassUID = sop_class
     ds.SOPInstanceUID = sop_uid
     # the study of the images (dciodvfy warns about empty study attributes; every TPS export repeats the CT's)
-    ds.StudyDate = ident.study_date
-    ds.StudyTime = ident.study_time
+    ident.patient_study.write(ds)
     ds.AccessionNumber = ""
     ds.Modality = modality
     ds.Manufacturer = "reachplan"
@@ -188,14 +174,10 @@ def _common(ds: Dataset, ident: Identity, sop_class: str, sop_uid: str, modality
     ds.SeriesDescription = "reachplan pre-plan"
     ds.OperatorsName = ""
     ds.ManufacturerModelName = "reachplan"
-    ds.PatientName = ident.patient_name
-    ds.PatientID = ident.patient_id
     ds.PatientBirthDate = ""
     ds.PatientSex = ""
     ds.SoftwareVersions = _version()
-    ds.StudyInstanceUID = ident.study_instance_uid
     ds.SeriesInstanceUID = series_uid
-    ds.StudyID = ident.study_id
     # a series number of its own per object (type 2; dciodvfy asks for one), clear of the image series' numbers
     ds.SeriesNumber = SERIES_NUMBERS.get(modality)
     ds.InstanceNumber = 1
@@ -256,7 +238,7 @@ def _referenced_frame(plan: ExportPlan, ident: Identity) -> Dataset:
         return ref_for
     study = Dataset()
     study.ReferencedSOPClassUID = DETACHED_STUDY_MANAGEMENT
-    study.ReferencedSOPInstanceUID = ident.study_instance_uid
+    study.ReferencedSOPInstanceUID = ident.patient_study.study_instance_uid
     study.RTReferencedSeriesSequence = Sequence([series])
     ref_for.RTReferencedStudySequence = Sequence([study])
     return ref_for
@@ -638,7 +620,7 @@ def _refuse_input_sop(path: Path, uids: set[str]) -> None:
         raise ExportError(f"refusing to write {path}: it holds the input structure set ({uid})")
 
 
-def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
+def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> base.ExportedFiles:
     """Write ``RS_<stem>.dcm``, ``RP_<stem>.dcm`` and, with the plan's dose, ``RD_<stem>.dcm`` into ``out_dir``.
 
     The RT Dose references the plan (and through it the structure set: a Referenced Structure Set Sequence in an
@@ -655,7 +637,7 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
 
     Returns
     -------
-    ExportedFiles
+    base.ExportedFiles
         Roles ``"rtstruct"``, ``"rtplan"`` (and ``"rtdose"``); notes on placeholders and dwell-time rounding.
 
     Raises
@@ -665,11 +647,11 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
     """
     opts = options or ExportOptions()
     uid_prefix = opts.uid_prefix
-    out = prepare_out_dir(out_dir)
-    stem = file_stem(plan, opts)
+    out = base.prepare_out_dir(out_dir)
+    stem = base.file_stem(plan, opts)
     rs_path, rp_path, rd_path = out / f"RS_{stem}.dcm", out / f"RP_{stem}.dcm", out / f"RD_{stem}.dcm"
     targets = (rs_path, rp_path) + ((rd_path,) if plan.dose is not None else ())
-    check_targets(targets, plan, opts)
+    base.check_targets(targets, plan, opts)
     for p in targets:
         _refuse_input_sop(p, _input_uids(plan))
 
@@ -690,10 +672,9 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
     rd_bytes = b""
     if plan.dose is not None:
         context = DoseContext(
-            frame_of_reference_uid=ident.frame_of_reference_uid, study_instance_uid=ident.study_instance_uid,
-            patient_id=ident.patient_id, patient_name=ident.patient_name, referenced_plan_uid=rp_uid,
-            series_description="reachplan planned dose (TG-43)",
-            study_date=ident.study_date, study_time=ident.study_time, study_id=ident.study_id)
+            frame_of_reference_uid=ident.frame_of_reference_uid, patient_study=ident.patient_study,
+            referenced_plan_uid=rp_uid,
+            series_description="reachplan planned dose (TG-43)")
         try:
             ceiling = None if plan.prescription_dose_gy is None else (
                 CEILING_TIMES_PRESCRIPTION * plan.prescription_dose_gy * plan.fractions_planned)
@@ -708,14 +689,14 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
         rd_bytes = buf.getvalue()
     atomic_write_bytes(rs_path, rs_bytes)
     atomic_write_bytes(rp_path, rp_bytes)
-    files = [ExportedFile("rtstruct", rs_path), ExportedFile("rtplan", rp_path)]
+    files = [base.ExportedFile("rtstruct", rs_path), base.ExportedFile("rtplan", rp_path)]
     if rd_bytes:
         atomic_write_bytes(rd_path, rd_bytes)
-        files.append(ExportedFile("rtdose", rd_path))
-    return ExportedFiles("dicom_rt", tuple(files), tuple(notes))
+        files.append(base.ExportedFile("rtdose", rd_path))
+    return base.ExportedFiles("dicom_rt", tuple(files), tuple(notes))
 
 
-EXPORTER: Exporter = FunctionExporter(
+EXPORTER: base.Exporter = base.FunctionExporter(
     "dicom_rt", "DICOM RT Plan (brachy HDR) + RT Structure Set with BRACHY_CHANNEL ROIs", export_plan)
 
 __all__ = ["EXPORTER", "build_rtplan", "build_rtstruct", "export_plan", "plan_identity"]

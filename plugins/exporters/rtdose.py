@@ -14,7 +14,7 @@ from __future__ import annotations
 import datetime as _dt
 import io
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,7 @@ from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
 from reachplan.imaging.errors import OutputExistsError
 from reachplan.imaging.files import atomic_write_bytes
-from reachplan.imaging.types import Grid
+from reachplan.imaging.types import Grid, PatientStudy
 
 RT_DOSE_STORAGE = "1.2.840.10008.5.1.4.1.1.481.2"
 RT_PLAN_STORAGE = "1.2.840.10008.5.1.4.1.1.481.5"
@@ -40,12 +40,10 @@ class DoseContext:
     ----------
     frame_of_reference_uid : str
         Of the plan or images; required.
-    study_instance_uid, patient_id, patient_name : str
-        Carried over; an invalid study UID is replaced by a new one.
+    patient_study : PatientStudy
+        Of the plan or images; written as given, except an invalid Study Instance UID, replaced by a new one.
     referenced_plan_uid : str
         SOP Instance UID of the RT Plan the dose belongs to; empty: none referenced.
-    study_date, study_time, study_id : str
-        Of the study (the images'); written as given.
     series_description : str
         Written as Series Description.
 
@@ -56,14 +54,9 @@ class DoseContext:
     """
 
     frame_of_reference_uid: str
-    study_instance_uid: str = ""
-    patient_id: str = ""
-    patient_name: str = ""
+    patient_study: PatientStudy = field(default_factory=PatientStudy)
     referenced_plan_uid: str = ""
     series_description: str = "reachplan TG-43 dose"
-    study_date: str = ""
-    study_time: str = ""
-    study_id: str = ""
 
     def __post_init__(self) -> None:
         if not self.frame_of_reference_uid:
@@ -147,8 +140,6 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
     ds.InstanceCreationDate = now.strftime("%Y%m%d")
     ds.InstanceCreationTime = now.strftime("%H%M%S")
-    ds.StudyDate = context.study_date
-    ds.StudyTime = context.study_time
     ds.ContentDate = now.strftime("%Y%m%d")
     ds.ContentTime = now.strftime("%H%M%S")
     ds.AccessionNumber = ""
@@ -157,15 +148,12 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.ReferringPhysicianName = ""
     ds.SeriesDescription = context.series_description
     ds.OperatorsName = ""
-    ds.PatientName = context.patient_name
-    ds.PatientID = context.patient_id
+    context.patient_study.write(ds)
+    if not _valid_uid(ds.StudyInstanceUID):
+        ds.StudyInstanceUID = generate_uid()
     ds.PatientBirthDate = ""
     ds.PatientSex = ""
-    ds.StudyInstanceUID = (
-        context.study_instance_uid if _valid_uid(context.study_instance_uid) else generate_uid()
-    )
     ds.SeriesInstanceUID = generate_uid()
-    ds.StudyID = context.study_id
     ds.SeriesNumber = 903  # after the RT Structure Set (901) and RT Plan (902) of an export
     ds.InstanceNumber = 1
     ds.FrameOfReferenceUID = context.frame_of_reference_uid

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pydicom.uid import generate_uid
 
-from reachplan.imaging.types import Contour, Grid, Roi, StructureSet, Volume
+from reachplan.imaging.types import Contour, Grid, PatientStudy, Roi, StructureSet, Volume
 from reachplan.plugins.exporters.base import ExportPlan, NeedleExport, SourceSpec
 from reachplan.plugins.sources import gammamed_plus_hdr
 
@@ -43,11 +43,11 @@ def make_plan() -> PlanFactory:
 
     def factory(identity: bool = True, **overrides: object) -> ExportPlan:
         for_uid, study = generate_uid(), generate_uid()
+        who = PatientStudy("P-0042", "Doe^Jane", study) if identity else PatientStudy()
         ss = StructureSet(organ_rois(), for_uid if identity else "", sop_instance_uid=generate_uid(),
-                          study_instance_uid=study if identity else "", patient_id="P-0042" if identity else "",
-                          patient_name="Doe^Jane" if identity else "")
+                          patient_study=who)
         vol = Volume(np.zeros((2, 2, 2), np.float32), Grid((2, 2, 2), np.eye(4)), "CT", generate_uid(), for_uid,
-                     study, "P-0042", "Doe^Jane") if identity else None
+                     who) if identity else None
         src = SourceSpec.from_source_data(gammamed_plus_hdr(), 40700.0, datetime(2026, 11, 1, 8, 0),
                                           manufacturer="Varian Medical Systems", active_diameter_mm=0.6)
         kw: dict[str, object] = {

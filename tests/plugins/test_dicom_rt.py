@@ -6,7 +6,7 @@ import itertools
 import os
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from decimal import Decimal
 from pathlib import Path
 
@@ -143,7 +143,7 @@ def test_plan_and_structure_set_metadata(make_plan: Callable[..., ExportPlan], t
     assert plan.volume is not None and plan.structure_set is not None
     for ds in (rp, rs):
         assert ds.PatientID == "P-0042" and str(ds.PatientName) == "Doe^Jane"
-        assert ds.StudyInstanceUID == plan.volume.study_instance_uid
+        assert ds.StudyInstanceUID == plan.volume.patient_study.study_instance_uid
         assert ds.FrameOfReferenceUID == plan.volume.frame_of_reference_uid
         assert UID(ds.SOPInstanceUID).is_valid and UID(ds.SeriesInstanceUID).is_valid
         assert ds.file_meta.MediaStorageSOPInstanceUID == ds.SOPInstanceUID
@@ -336,17 +336,15 @@ def test_round_trip_through_reachplan_readers(make_plan: Callable[..., ExportPla
 
 def test_non_ascii_patient_name(make_plan: Callable[..., ExportPlan], tmp_path: Path,
                                 dciodvfy: Callable[[Path], list[str]]) -> None:
-    from reachplan.imaging.types import Volume
 
     plan = make_plan()
     v = plan.volume
     assert v is not None
-    vol = Volume(v.array, v.grid, v.modality, v.series_instance_uid, v.frame_of_reference_uid,
-                 v.study_instance_uid, v.patient_id, "Müller^Zoë")
+    zoe = replace(v.patient_study, patient_name="Müller^Zoë")
+    vol = replace(v, patient_study=zoe)
     ss = plan.structure_set
     assert ss is not None
-    ss2 = type(ss)(ss.rois, ss.frame_of_reference_uid, sop_instance_uid=ss.sop_instance_uid,
-                   study_instance_uid=ss.study_instance_uid, patient_id=ss.patient_id, patient_name="Müller^Zoë")
+    ss2 = type(ss)(ss.rois, ss.frame_of_reference_uid, sop_instance_uid=ss.sop_instance_uid, patient_study=zoe)
     out = export_plan(make_plan(volume=vol, structure_set=ss2), tmp_path, ExportOptions(include_patient_name=True))
     assert str(pydicom.dcmread(out.path("rtplan")).PatientName) == "Müller^Zoë"
     assert out.path("rtplan").name == "RP_Muller_Zoe_PrePlan1.dcm"
@@ -412,8 +410,8 @@ def test_real_eclipse_structure_set_carried_over(reference_dir: Path, tmp_path: 
     _dciodvfy_clean(dciodvfy, out.path("rtstruct"), "RTStructureSet")
     _dciodvfy_clean(dciodvfy, out.path("rtplan"), "RTPlan")
     back = read_rtstruct(out.path("rtstruct"))
-    assert (back.frame_of_reference_uid, back.study_instance_uid, back.patient_id) == (
-        ss.frame_of_reference_uid, ss.study_instance_uid, ss.patient_id)
+    assert (back.frame_of_reference_uid, back.patient_study.study_instance_uid, back.patient_study.patient_id) == (
+        ss.frame_of_reference_uid, ss.patient_study.study_instance_uid, ss.patient_study.patient_id)
     assert [r.name for r in back.rois] == [r.name for r in ss.rois] + ["Needle A1"]
     body_in, body_out = ss.get("BODY"), back.get("BODY")
     assert sum(len(k.points_mm) for k in body_out.contours) == sum(len(k.points_mm) for k in body_in.contours)

@@ -18,7 +18,7 @@ import pydicom
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
-from reachplan.imaging.types import Contour, Grid, Roi, StructureSet, Volume
+from reachplan.imaging.types import Contour, Grid, PatientStudy, Roi, StructureSet, Volume
 from reachplan.planner.dose.tg43 import Tg43Kernel, dwell_directions, rate_matrix
 from reachplan.plugins.exporters.base import (
     Afterloader,
@@ -235,15 +235,16 @@ def _ct_volume(for_uid: str, study: str) -> Volume:
     affine[:3, 3] = [-10.0, -10.0, -2.5]
     grid = Grid((5, 60, 60), affine)
     uids = tuple(("1.2.840.10008.5.1.4.1.1.2", pydicom.uid.generate_uid()) for _ in range(5))
-    return Volume(np.zeros(grid.shape, np.float32), grid, "CT", pydicom.uid.generate_uid(), for_uid, study,
-                  "P-0042", "Doe^Jane", study_date="20261120", study_time="101500", study_id="S77", slice_uids=uids)
+    who = PatientStudy("P-0042", "Doe^Jane", study, study_date="20261120", study_time="101500", study_id="S77")
+    return Volume(np.zeros(grid.shape, np.float32), grid, "CT", pydicom.uid.generate_uid(), for_uid, who,
+                  slice_uids=uids)
 
 
 def test_structure_set_references_the_images_and_study_attributes_are_the_cts(
         make_plan: PlanFactory, tmp_path: Path, dciodvfy) -> None:
     base = make_plan()
     assert base.structure_set is not None
-    vol = _ct_volume(base.structure_set.frame_of_reference_uid, base.structure_set.study_instance_uid)
+    vol = _ct_volume(base.structure_set.frame_of_reference_uid, base.structure_set.patient_study.study_instance_uid)
     dose_grid = Grid((3, 4, 5), np.diag([2.0, 2.0, 2.0, 1.0]))
     dose = np.arange(60, dtype=float).reshape(3, 4, 5) / 10.0
     plan = with_points(dataclasses.replace(base, volume=vol), dose=PlannedDose(dose, dose_grid))
@@ -251,9 +252,10 @@ def test_structure_set_references_the_images_and_study_attributes_are_the_cts(
     rs, rp, rd = (pydicom.dcmread(files.path(r)) for r in ("rtstruct", "rtplan", "rtdose"))
     for ds in (rs, rp, rd):
         assert (ds.StudyDate, ds.StudyTime, ds.StudyID) == ("20261120", "101500", "S77")
-        assert ds.StudyInstanceUID == vol.study_instance_uid and ds.FrameOfReferenceUID == vol.frame_of_reference_uid
+        assert ds.StudyInstanceUID == vol.patient_study.study_instance_uid
+        assert ds.FrameOfReferenceUID == vol.frame_of_reference_uid
     study = rs.ReferencedFrameOfReferenceSequence[0].RTReferencedStudySequence[0]
-    assert study.ReferencedSOPInstanceUID == vol.study_instance_uid
+    assert study.ReferencedSOPInstanceUID == vol.patient_study.study_instance_uid
     series = study.RTReferencedSeriesSequence[0]
     assert series.SeriesInstanceUID == vol.series_instance_uid
     assert [i.ReferencedSOPInstanceUID for i in series.ContourImageSequence] == [u for _, u in vol.slice_uids]
