@@ -419,12 +419,12 @@ Shape = Cylinder | EllipticCylinder | Box | Ellipsoid | TorusSection | Sweep | U
 
 @dataclass(frozen=True)
 class PhantomStructure:
-    """One ROI of the phantom: a union of disjoint solids.
+    """One ROI of the phantom, made of disjoint solids (their union).
 
     Parameters
     ----------
     name : str
-        ROI name written to the file.
+        ROI name, as written to the file.
     interpreted_type : str
         RT ROI Interpreted Type written to the file.
     shapes : tuple of Cylinder, EllipticCylinder, Box, Ellipsoid or TorusSection

@@ -751,13 +751,9 @@ def _dose_reference(d: Dataset, plan: RtPlan) -> DoseReference:
     if terms:
         tps = float(sum(terms)) * plan.n_fractions * plan.n_pulses
     return DoseReference(
-        number=number,
-        description=_str(d, "DoseReferenceDescription"),
-        structure_type=_str(d, "DoseReferenceStructureType"),
-        reference_type=_str(d, "DoseReferenceType"),
-        position_mm=position,
-        tps_dose_gy=tps,
-    )
+        number=number, description=_str(d, "DoseReferenceDescription"),
+        structure_type=_str(d, "DoseReferenceStructureType"), reference_type=_str(d, "DoseReferenceType"),
+        position_mm=position, tps_dose_gy=tps)
 
 
 def _oncentra_catheters(ds: Dataset, path: str, found: list[str]) -> tuple[CatheterPath, ...]:

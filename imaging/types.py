@@ -45,8 +45,10 @@ class PatientStudy:
         Study Date (``YYYYMMDD``), Study Time and Study ID (0008,0020), (0008,0030), (0020,0010).
     """
 
+    # Patient module
     patient_id: str = ""
     patient_name: str = ""
+    # General Study module
     study_instance_uid: str = ""
     study_date: str = ""
     study_time: str = ""

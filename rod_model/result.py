@@ -120,7 +120,7 @@ class FailedSolve:
     Parameters
     ----------
     model : str
-        Name of the model that failed.
+        The rod model that did not converge (its name).
     reason : str
         One line: what failed (e.g. ``"shooting residual 3.1e-02 N after 30 iterations"``).
     residual : float

@@ -21,7 +21,17 @@ HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant) an
 
 @dataclass(frozen=True)
 class Option:
-    """A target's own option (default ``None``: the target's full or quick setting)."""
+    """A target's own option (default ``None``: the target's full or quick setting).
+
+    Parameters
+    ----------
+    flag : str
+        Long option, e.g. ``"--voxels"``.
+    type : type
+        Converts the argument (``int``, ``float``, ``Path``).
+    help : str
+        One line, with the full and quick defaults in parentheses.
+    """
 
     flag: str
     type: type

@@ -171,18 +171,18 @@ class SourceSpec:
         Date and time of the source strength calibration.
     isotope : str
         e.g. ``"Ir-192"``.
+    half_life_days : float or None
+        None: taken from :data:`HALF_LIFE_DAYS` for ``isotope``.
     title : str
         Human-readable model (written as Source Description; TG-43 readers recognise the model from it).
-    treatment_type : str
-        ``"HDR"`` (``"PDR"`` and ``"LDR"`` are not exported).
     manufacturer, model_id : str
         Source Manufacturer (<= 64 characters) and Source Model ID (<= 16); "" when unknown.
+    treatment_type : str
+        ``"HDR"`` (``"PDR"`` and ``"LDR"`` are not exported).
     source_type : str
         ``"LINE"``, ``"POINT"``, ``"CYLINDER"`` or ``"SPHERE"``.
     active_length_mm, active_diameter_mm : float or None
         Active dimensions, mm; None when unknown.
-    half_life_days : float or None
-        None: taken from :data:`HALF_LIFE_DAYS` for ``isotope``.
 
     Raises
     ------
@@ -195,14 +195,14 @@ class SourceSpec:
     air_kerma_rate_u: float
     reference_datetime: datetime
     isotope: str = "Ir-192"
+    half_life_days: float | None = None
     title: str = ""
-    treatment_type: str = "HDR"
     manufacturer: str = ""
     model_id: str = ""
+    treatment_type: str = "HDR"
     source_type: str = "LINE"
     active_length_mm: float | None = None
     active_diameter_mm: float | None = None
-    half_life_days: float | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.air_kerma_rate_u) and self.air_kerma_rate_u > 0):
@@ -452,19 +452,19 @@ class ExportPlan:
         for p in self.reference_points:
             if [len(r) for r in p.rate_gy_per_s] != [len(n.dwell_times_s) for n in self.needles]:
                 raise ValueError(f"reference point {p.name}: give one dose rate per dwell of every needle")
-        _check_short_text(self.target_name, "target name", 64)
         if self.source.treatment_type != "HDR":
             raise ValueError(f"only HDR plans are exported, the source is {self.source.treatment_type}")
+        _check_short_text(self.target_name, "target name", 64)
 
 
 @dataclass(frozen=True)
 class ExportOptions:
-    """How to write (not what).
+    """How an exporter writes its files (what it writes comes from the plan).
 
     Parameters
     ----------
     overwrite : bool
-        Replace existing output files (never an input file of the plan).
+        Replace output files that exist already (an input file of the plan: never).
     stem : str
         File-name stem; "" uses the plan label. Made safe (``[A-Za-z0-9._-]``).
     include_patient_name : bool
@@ -516,7 +516,7 @@ class ExportedFiles:
     Parameters
     ----------
     exporter : str
-        Plugin name of the exporter.
+        The exporter's plugin name (its entry point).
     files : tuple of ExportedFile
         In the order written.
     notes : tuple of str

@@ -30,7 +30,7 @@ class Hole:
     Parameters
     ----------
     hole_id : str
-        Label as printed on the template.
+        Hole label as printed on the template face.
     xy_mm : (2,) float, mm, template frame
         Hole centre in the template plane.
     kind : str

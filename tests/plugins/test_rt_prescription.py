@@ -20,15 +20,8 @@ from scipy.interpolate import RegularGridInterpolator
 
 from reachplan.imaging.types import Contour, Grid, PatientStudy, Roi, StructureSet, Volume
 from reachplan.planner.dose.tg43 import Tg43Kernel, dwell_directions, rate_matrix
-from reachplan.plugins.exporters.base import (
-    Afterloader,
-    ExportOptions,
-    ExportPlan,
-    NeedleExport,
-    PlannedDose,
-    ReferencePoint,
-    SourceSpec,
-)
+from reachplan.plugins.exporters import base as exporters_base
+from reachplan.plugins.exporters.base import Afterloader, ExportPlan, PlannedDose, ReferencePoint
 from reachplan.plugins.exporters.dicom_rt import export_plan, planned_point_doses_gy
 from reachplan.plugins.exporters.rtdose import read_rtdose_grid
 from reachplan.plugins.sources import gammamed_plus_hdr
@@ -198,7 +191,7 @@ def test_reachplan_reader_and_dose_command_list_every_point(make_plan: PlanFacto
 
 
 def test_machine_lengths_orientation_and_applicator_types(make_plan: PlanFactory, tmp_path: Path) -> None:
-    straight = NeedleExport("D4", np.array([[30.0, -20.0, -100.0], [30.0, -20.0, 20.0]]),
+    straight = exporters_base.NeedleExport("D4", np.array([[30.0, -20.0, -100.0], [30.0, -20.0, 20.0]]),
                             np.array([[30.0, -20.0, 15.0], [30.0, -20.0, 10.0]]), np.array([4.0, 5.0]))
     base = make_plan()
     plan = dataclasses.replace(base, needles=(*base.needles, straight), application_setup_type="PERINEAL",
@@ -324,7 +317,7 @@ def test_reference_points_are_checked(make_plan: PlanFactory) -> None:
         ReferencePoint("x", np.array([0.0, np.nan, 0.0]), ())
     with pytest.raises(ValueError, match="treatment machine name"):
         Afterloader("a name that is far too long")
-    assert ExportOptions().time_resolution_s == 0.1
+    assert exporters_base.ExportOptions().time_resolution_s == 0.1
 
 
 def test_rt_dose_keeps_the_clinical_range_resolved(make_plan: PlanFactory, tmp_path: Path) -> None:
@@ -350,7 +343,7 @@ def test_structure_set_keeps_the_inputs_image_references_without_the_ct(tmp_path
 
     rs_in = write_phantom(tmp_path / "phantom").rtstruct_path
     ss = read_rtstruct(rs_in)
-    src = SourceSpec.from_source_data(data(), 40700.0, datetime(2026, 11, 1, 8, 0))
+    src = exporters_base.SourceSpec.from_source_data(data(), 40700.0, datetime(2026, 11, 1, 8, 0))
     plan = ExportPlan("P", (curved_needle("A1", 0.0, 8.0),), src, structure_set=ss, input_paths=(rs_in,))
     out = pydicom.dcmread(export_plan(plan, tmp_path / "x").path("rtstruct"))
     original = pydicom.dcmread(rs_in)
