@@ -742,7 +742,7 @@ def load_series(
     Parameters
     ----------
     found : FolderScan
-        What :func:`scan` found.
+        The folder's headers, as :func:`scan` read them.
     chosen : SeriesSummary
         The series to read (from :func:`select_series` or :meth:`FolderScan.series`).
     tolerance : SeriesTolerance, optional

@@ -53,35 +53,20 @@ def _zero_argument_factory(obj: Any, kind: str) -> Any:
     return obj()
 
 
-def check_template_factory(obj: Any) -> None:
-    """Check that ``obj()`` returns a :class:`reachplan.plugins.templates.Template` (the templates check).
+def _factory_check(kind: str, module: str, class_name: str) -> Callable[[Any], None]:
+    def check(obj: Any) -> None:
+        made_class = getattr(importlib.import_module(module), class_name)
+        made = _zero_argument_factory(obj, kind)
+        if not isinstance(made, made_class):
+            raise TypeError(f"a {kind} plugin must return {module}.{class_name}, got {type(made).__name__}")
 
-    Raises
-    ------
-    TypeError
-        ``obj`` is not a zero-argument callable, or returns something else.
-    """
-    from reachplan.plugins.templates import Template
-
-    made = _zero_argument_factory(obj, "templates")
-    if not isinstance(made, Template):
-        raise TypeError("a templates plugin must return reachplan.plugins.templates.Template, "
-                        f"got {type(made).__name__}")
+    check.__doc__ = (f"Check that ``obj()`` returns a :class:`{module}.{class_name}` (the {kind} check).\n\n"
+                     "Raises ``TypeError`` when ``obj`` is not a zero-argument callable, or returns something else.")
+    return check
 
 
-def check_source_factory(obj: Any) -> None:
-    """Check that ``obj()`` returns a :class:`reachplan.plugins.sources.SourceData` (the sources check).
-
-    Raises
-    ------
-    TypeError
-        ``obj`` is not a zero-argument callable, or returns something else.
-    """
-    from reachplan.plugins.sources import SourceData
-
-    made = _zero_argument_factory(obj, "sources")
-    if not isinstance(made, SourceData):
-        raise TypeError(f"a sources plugin must return plugins.sources.SourceData, got {type(made).__name__}")
+check_template_factory = _factory_check("templates", "reachplan.plugins.templates", "Template")
+check_source_factory = _factory_check("sources", "reachplan.plugins.sources", "SourceData")
 
 
 #: The default check of each kind, as ``"module:function"`` (imported when the group is first loaded).
