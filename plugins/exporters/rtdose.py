@@ -14,7 +14,7 @@ from __future__ import annotations
 import datetime as _dt
 import io
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -148,9 +148,10 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.ReferringPhysicianName = ""
     ds.SeriesDescription = context.series_description
     ds.OperatorsName = ""
-    context.patient_study.write(ds)
-    if not _valid_uid(ds.StudyInstanceUID):
-        ds.StudyInstanceUID = generate_uid()
+    study = context.patient_study
+    if not _valid_uid(study.study_instance_uid):
+        study = replace(study, study_instance_uid=generate_uid())
+    study.write(ds)
     ds.PatientBirthDate = ""
     ds.PatientSex = ""
     ds.SeriesInstanceUID = generate_uid()
