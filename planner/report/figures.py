@@ -24,6 +24,7 @@ import numpy as np
 import trimesh
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import MaxNLocator
 
 from reachplan.imaging.types import Volume
 from reachplan.planner.pipeline import Scene
@@ -73,10 +74,21 @@ _UNIT = np.eye(3)
 
 
 def png_bytes(fig: Figure, dpi: int = 100) -> bytes:
-    """Render a figure to PNG bytes."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
-    return buf.getvalue()
+    """Render a figure to PNG bytes at the size it is shown: an 8-bit palette image.
+
+    256 colours (fast octree quantisation) keep the line art and the grey image underneath, at about a third of the
+    size of matplotlib's RGBA PNG.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from PIL import Image
+
+    fig.set_dpi(dpi)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()  # drawn once, straight to pixels: no intermediate RGBA PNG to encode and decode
+    rgba = Image.frombuffer("RGBA", canvas.get_width_height(), canvas.buffer_rgba(), "raw", "RGBA", 0, 1)
+    out = io.BytesIO()
+    rgba.convert("RGB").quantize(256, method=Image.Quantize.FASTOCTREE).save(out, format="PNG")
+    return out.getvalue()
 
 
 def organ_colour(name: str) -> str:
@@ -87,16 +99,30 @@ def organ_colour(name: str) -> str:
 
 
 def _section(mesh: trimesh.Trimesh, axis: int, value_mm: float) -> list[np.ndarray]:
-    """Return the closed loops (each (n, 3) float, mm, LPS) where the plane ``x[axis] = value_mm`` cuts ``mesh``."""
-    lo, hi = mesh.bounds[:, axis]
-    if not lo < value_mm < hi:
+    """Return where the plane ``x[axis] = value_mm`` cuts ``mesh``, as drawable outlines.
+
+    One (3 n, 3) float array (mm, LPS) of the n cut segments, each two points followed by a NaN row (so one
+    ``plot`` call draws them all), in a list; an empty list when the plane misses the mesh. Computed directly from
+    the faces the plane crosses (a vertex on the plane counts as above it), without chaining the segments into
+    loops.
+    """
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    above = v[:, axis] >= value_mm
+    side = above[f]
+    crossed = side.any(axis=1) & ~side.all(axis=1)
+    if not crossed.any():
         return []
-    origin = np.zeros(3)
-    origin[axis] = value_mm
-    normal = np.zeros(3)
-    normal[axis] = 1.0
-    sec = mesh.section(plane_origin=origin, plane_normal=normal)
-    return [] if sec is None else [np.asarray(d) for d in sec.discrete]
+    tri, side = v[f[crossed]], side[crossed]
+    d = tri[:, :, axis] - value_mm
+    pts, cuts = [], []
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        cut = side[:, i] != side[:, j]
+        t = np.where(cut, d[:, i] / np.where(cut, d[:, i] - d[:, j], 1.0), 0.0)
+        pts.append(tri[:, i] + t[:, None] * (tri[:, j] - tri[:, i]))
+        cuts.append(cut)
+    seg = np.stack(pts, axis=1)[np.stack(cuts, axis=1)].reshape(-1, 2, 3)  # two crossed edges per face
+    out = np.concatenate([seg, np.full((len(seg), 1, 3), np.nan)], axis=1)
+    return [out.reshape(-1, 3)]
 
 
 def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float) -> None:
@@ -124,7 +150,7 @@ def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float) -> N
 
 def _box(points: Sequence[np.ndarray], margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
     p = np.concatenate([np.atleast_2d(q) for q in points])
-    return p.min(axis=0) - margin_mm, p.max(axis=0) + margin_mm
+    return np.nanmin(p, axis=0) - margin_mm, np.nanmax(p, axis=0) + margin_mm
 
 
 @dataclass(frozen=True, eq=False)
@@ -287,15 +313,20 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
     return png_bytes(fig, dpi=110)
 
 
-def coarse_mesh(mesh: trimesh.Trimesh, pitch_mm: float = 4.0) -> trimesh.Trimesh:
-    """Return a light version of a closed mesh for 3-D drawing.
+#: Faces of an organ in the 3-D view: quadric decimation keeps the organs' shapes (bladder, rectum, pelvic bone)
+#: recognisable at this size and the report small.
+VIEW_FACES = 1500
 
-    Voxelised at ``pitch_mm``, filled and re-meshed by marching cubes (mm, LPS; a few thousand faces for an organ).
+
+def light_mesh(mesh: trimesh.Trimesh, max_faces: int = VIEW_FACES) -> trimesh.Trimesh:
+    """Return a mesh with at most about ``max_faces`` faces for 3-D drawing (mm, LPS).
+
+    Quadric decimation (trimesh with the ``fast-simplification`` package); a mesh already within the budget is
+    returned as it is.
     """
-    vox = mesh.voxelized(pitch=pitch_mm).fill()
-    out = vox.marching_cubes
-    out.apply_transform(vox.transform)
-    return out
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    return mesh.simplify_quadric_decimation(face_count=max_faces)
 
 
 def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> Figure:
@@ -383,6 +414,47 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
     return png_bytes(fig, dpi=90)
 
 
+#: Line style of each implant arm in the shared figures (steered solid, straight dashed, as the needles).
+ARM_STYLES = {"straight": "--", "steered": "-"}
+
+
+def _dvh_curves(ax: Any, dvhs: Sequence[tuple[str, Any]], aims: Any, target: str, style: str = "-",
+                arm: str = "", marks: bool = True) -> None:
+    """Draw cumulative DVHs (log volume) on ``ax``; with ``marks`` the D90 aim and the organ limits.
+
+    Curves carry the gid ``dvh:NAME`` (``dvh:ARM:NAME`` when ``arm`` is given); the target's is drawn thicker.
+    """
+    for name, dvh in dvhs:
+        colour = organ_colour(name)
+        v = np.maximum(np.asarray(dvh.volume_cc, dtype=float), 1e-3)
+        ax.plot(dvh.dose_gy, v, style, color=colour, lw=2.2 if name == target else 1.4,
+                label=f"{name} ({arm})" if arm else name, gid=f"dvh:{arm}:{name}" if arm else f"dvh:{name}")
+        if not marks:
+            continue
+        if name == target:
+            ax.plot([aims.prescription_gy], [0.9 * v[0]], "D", color=colour, mec="k", ms=8, gid="aim:D90",
+                    label=f"{name} D90 aim ({aims.target_d90_eqd2_gy:g} Gy EQD2)")
+        elif (limit := aims.oar_limit_gy(name)) is not None:
+            ax.plot([limit], [2.0], "X", color=colour, mec="k", ms=9, gid=f"limit:{name}",
+                    label=f"{name} D2cm³ limit")
+
+
+def _dvh_frame(fig: Figure, ax: Any, aims: Any, title: str, ncol: int = 3) -> Figure:
+    ax.axvline(aims.prescription_gy, color="grey", lw=0.8, ls=":")
+    ax.set_yscale("log")
+    ax.set_xlim(0, 3 * aims.prescription_gy)
+    ax.set_ylim(0.1, None)
+    ax.set_xlabel("dose per fraction (Gy)")
+    ax.set_ylabel("volume receiving at least the dose (cm³, log)")
+    ax.set_title(f"cumulative DVH, {title}\n◆ the target's curve must pass right of its aim, "
+                 "✕ an organ's curve left of its limit", fontsize=9)
+    ax.grid(True, which="both", alpha=0.25)
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, ncol=ncol, loc="lower center", frameon=False)
+    fig.tight_layout(rect=(0, 0.05 + 0.035 * ((len(labels) + ncol - 1) // ncol), 1, 1))
+    return fig
+
+
 def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "HR-CTV",
                     title: str = "delivered plan") -> Figure:
     """Cumulative DVHs of one plan (volume in cm³, log scale, against Gy per fraction) with the aims marked.
@@ -397,28 +469,68 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
     """
     fig = Figure(figsize=(7.5, 5.6))
     ax = fig.add_subplot()
-    for name, dvh in dvhs:
-        colour = organ_colour(name)
-        v = np.maximum(np.asarray(dvh.volume_cc, dtype=float), 1e-3)
-        ax.plot(dvh.dose_gy, v, color=colour, lw=1.6, label=name, gid=f"dvh:{name}")
-        if name == target:
-            ax.plot([aims.prescription_gy], [0.9 * v[0]], "D", color=colour, mec="k", ms=8, gid="aim:D90",
-                    label=f"{name} D90 aim ({aims.target_d90_eqd2_gy:g} Gy EQD2)")
-        elif (limit := aims.oar_limit_gy(name)) is not None:
-            ax.plot([limit], [2.0], "X", color=colour, mec="k", ms=9, gid=f"limit:{name}",
-                    label=f"{name} D2cm³ limit")
-    ax.axvline(aims.prescription_gy, color="grey", lw=0.8, ls=":")
-    ax.set_yscale("log")
-    ax.set_xlim(0, 3 * aims.prescription_gy)
-    ax.set_ylim(0.1, None)
-    ax.set_xlabel("dose per fraction (Gy)")
-    ax.set_ylabel("volume receiving at least the dose (cm³, log)")
-    ax.set_title(f"cumulative DVH, {title}\n◆ the target's curve must pass right of its aim, "
-                 "✕ an organ's curve left of its limit", fontsize=9)
-    ax.grid(True, which="both", alpha=0.25)
-    handles, labels = ax.get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=7, ncol=3, loc="lower center", frameon=False)
-    fig.tight_layout(rect=(0, 0.05 + 0.035 * ((len(labels) + 2) // 3), 1, 1))
+    _dvh_curves(ax, dvhs, aims, target)
+    return _dvh_frame(fig, ax, aims, title)
+
+
+def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -> Figure:
+    """Both implant arms' cumulative DVHs on one axes, the arms told apart by line style (:data:`ARM_STYLES`).
+
+    Parameters
+    ----------
+    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
+        Each arm with a chosen plan contributes its ``plan.dvhs`` (Gy per fraction, cm³); curves carry the gid
+        ``dvh:ARM:NAME``.
+    aims : :class:`reachplan.planner.dose.optimize.Aims`
+        Marked as in :func:`dvh_aims_figure` (once: the marks do not depend on the arm).
+    target : the target's structure name (drawn thicker, its D90 aim marked)
+    """
+    fig = Figure(figsize=(8.0, 6.0))
+    ax = fig.add_subplot()
+    with_plan = [a for a in arms if a.plan is not None and a.plan.dvhs]
+    for i, a in enumerate(with_plan):
+        _dvh_curves(ax, a.plan.dvhs, aims, target, ARM_STYLES.get(a.name, ":"), a.name, marks=i == 0)
+    return _dvh_frame(fig, ax, aims, "implant arms (" + ", ".join(
+        f"{a.name}: {'solid' if ARM_STYLES.get(a.name) == '-' else 'dashed'}" for a in with_plan) + ")", ncol=4)
+
+
+def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
+    """Draw the implant arms' Pareto curves on one axes: needles against HR-CTV D90 (EQD2, Gy), organ limits held.
+
+    Parameters
+    ----------
+    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
+        Each arm's ``pareto`` points are one curve (gid ``pareto:ARM``), the points that meet every aim filled
+        (gid ``met:ARM``) and the others hollow (``unmet:ARM``); the chosen plan (``plan.n_needles``,
+        ``plan.target.d90_eqd2_gy``) is circled (gid ``chosen:ARM``).
+    aim_gy : float
+        The HR-CTV D90 aim (EQD2, Gy; EMBRACE II: 85 Gy), a horizontal line (gid ``aim:D90``).
+    """
+    fig = Figure(figsize=(7.5, 4.6))
+    ax = fig.add_subplot()
+    colours = {"straight": STRAIGHT_COLOUR, "steered": STEERED_COLOUR}
+    for i, a in enumerate(arms):
+        colour = colours.get(a.name, f"C{i}")
+        ms = 10 if i == 0 else 6  # the first arm's markers are larger: coinciding points stay visible
+        n = np.array([p.n_needles for p in a.pareto], dtype=float)
+        d90 = np.array([p.hrctv_d90_eqd2_gy for p in a.pareto], dtype=float)
+        met = np.array([p.aims_met for p in a.pareto], dtype=bool)
+        ax.plot(n, d90, ARM_STYLES.get(a.name, ":"), color=colour, lw=1.6, label=f"{a.name}", gid=f"pareto:{a.name}")
+        ax.plot(n[met], d90[met], "o", color=colour, mec="k", ms=ms, ls="", gid=f"met:{a.name}",
+                label=f"{a.name}: all aims met")
+        ax.plot(n[~met], d90[~met], "o", mfc="none", mec=colour, mew=1.6, ms=ms, ls="", gid=f"unmet:{a.name}",
+                label=f"{a.name}: an aim not met")
+        if a.plan is not None:
+            ax.plot([a.plan.n_needles], [a.plan.target.d90_eqd2_gy], "o", mfc="none", mec="k", mew=1.5,
+                    ms=ms + 10, ls="", gid=f"chosen:{a.name}", label=f"{a.name}: chosen implant")
+    ax.axhline(aim_gy, color="#d62728", lw=1.0, ls=":", gid="aim:D90", label=f"D90 aim {aim_gy:g} Gy EQD2")
+    ax.set_xlabel("template needles loaded")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_ylabel("HR-CTV D90 (Gy EQD2), organ limits held")
+    ax.set_title("Implant: needles against HR-CTV D90, straight against steered", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    fig.tight_layout()
     return fig
 
 
