@@ -82,16 +82,19 @@ Block = Paragraph | Table | Figure | Interactive
 
 @dataclass(frozen=True, eq=False)
 class Section:
-    """A titled part of the report; ``anchor`` is its HTML id (letters, digits, ``-``)."""
+    """A titled part of the report; ``anchor`` is its HTML id (letters, digits, ``-``).
+
+    Rendered as ``<section id="ANCHOR">`` with the title as its heading and the blocks in order.
+    """
 
     title: str
     anchor: str
     blocks: tuple[Block, ...]
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "blocks", tuple(self.blocks))
         if not self.anchor or not all(ch.isalnum() or ch == "-" for ch in self.anchor):
             raise ValueError(f"section {self.title!r}: anchor must be letters, digits and '-', got {self.anchor!r}")
+        object.__setattr__(self, "blocks", tuple(self.blocks))
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,10 +106,10 @@ class Report:
     sections: tuple[Section, ...]
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "sections", tuple(self.sections))
         anchors = [s.anchor for s in self.sections]
         if len(set(anchors)) != len(anchors):
             raise ValueError("report sections need unique anchors")
+        object.__setattr__(self, "sections", tuple(self.sections))
 
     @property
     def figures(self) -> tuple[Figure, ...]:
