@@ -212,7 +212,8 @@ def test_report_sizes_by_part_and_the_summary_on_a_tiny_report(tmp_path: Path) -
     assert parts["plotly_js"] > 1e6 and parts["view_3d"] > 500 * 3 * 4  # the bundle; 1500 numbers
     assert abs(parts["images"] - len('src="data:image/png;base64,"') - 4 * ((len(png) + 2) // 3)) <= 0
     rows = [{"run": i, "report_s": s, "report_cpu_s": s / 2, "comparison_s": 1.0,
-             **{f"bytes_{k}": v for k, v in parts.items()}, "load_avg_1min": 1.0} for i, s in enumerate((4.0, 2.0, 3.0))]
+             **{f"bytes_{k}": v for k, v in parts.items()}, "load_avg_1min": 1.0}
+            for i, s in enumerate((4.0, 2.0, 3.0))]
     summary = report_bench.summarise(rows)
     assert summary["median_report_s"] == 3.0 and summary["within_limit_wall"] is True
     assert summary["bytes_total"] == parts["total"]
