@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from reachplan.planner.bench._util import load_avg, write_csv
 from reachplan.planner.bench.common import settings, write_png
@@ -137,6 +138,7 @@ def _figure(rows: list[dict[str, object]], summary: dict[str, object]) -> Figure
     ax.plot(runs, [float(str(r["report_cpu_s"])) for r in rows], "s--", label="CPU")
     ax.axhline(LIMIT_S, color="red", lw=1, label=f"limit {LIMIT_S:g} s")
     ax.set_xlabel("run")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("seconds")
     ax.set_ylim(0, None)
     ax.set_title(f"report of the demo: median {summary['median_report_s']} s (load {summary['load_avg_1min']})",
