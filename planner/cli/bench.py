@@ -16,7 +16,7 @@ from pathlib import Path
 from types import ModuleType
 
 NAME = "bench"
-HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant) and write CSV + PNG."
+HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant, report) and write CSV + PNG."
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,8 @@ TARGETS: tuple[Target, ...] = (
     Target("dosekernel", "dosekernel", "TG-43 grid dose: voxel-dwell pairs/s by method and threads, accuracy"),
     Target("implant", "implant", "implant planning: both arms with their Pareto curves on the phantom (time, D90)",
            (Option("--repeat", int, "timed runs, the fastest is reported (3; quick 1)"),)),
+    Target("report", "report", "report.html of the demo: seconds to build it from the plan in memory, bytes by part",
+           (Option("--repeat", int, "timed renderings, the median is reported (5; quick 1)"),)),
 )
 
 

@@ -23,12 +23,8 @@ if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of 
     from reachplan.planner.steering.candidates import Target
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
     from reachplan.imaging.names import SynonymTable
-    from reachplan.planner.dose.implant import ImplantArm, ImplantPlan
     from reachplan.planner.geometry.template import TemplatePose
-    from reachplan.planner.pipeline import ImplantComparison
 
 NAME = "plan"
 HELP = "rank template holes, stylet designs and tension schedules for targets; write plan.json, figures, exports"
@@ -311,7 +307,13 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     from reachplan.planner.geometry.organs import has_closed
     from reachplan.planner.pipeline import build_scene, plan, plan_delivery
     from reachplan.planner.report import figures
-    from reachplan.planner.report.build import format_summary, report_html, top_candidates
+    from reachplan.planner.report.build import (
+        format_implant,
+        format_summary,
+        report_html,
+        straight_vs_steered,
+        top_candidates,
+    )
     from reachplan.planner.report.workspace import workspace_figure
     from reachplan.plugins import registry
     from reachplan.plugins.exporters import ExportOptions
@@ -349,6 +351,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
     atomic_write_bytes(out / "overview.png", overview_png)
     atomic_write_bytes(out / "workspace.png", workspace_png)
     delivery = None
+    comparison, comparison_note = straight_vs_steered(result, structures, None)  # no dose: the note says so
     files: list[str] = []
     if export:
         t = time.perf_counter()
@@ -384,15 +387,17 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         }
         if delivery.implant is not None:
             doc["implant"] = delivery.implant.to_json()
+        comparison, comparison_note = straight_vs_steered(result, structures, delivery, grid, target_roi,
+                                                          quiet=quiet)
         timings["delivery_s"] = time.perf_counter() - t
     from reachplan.planner.pipeline import rod_model_errors
 
     t = time.perf_counter()
     case = str((extra or {}).get("case") or (inputs[-1].name if inputs else "case"))
-    rendered = report_html(scene, result, structures, volume=volume, delivery=delivery, case=case,
-                           timings=timings, source_name=source, target_roi=target_roi, quiet=quiet,
-                           overview_png=overview_png, workspace_png=workspace_png, model_errors=rod_model_errors())
-    atomic_write_bytes(out / "report.html", rendered.html.encode("utf-8"))
+    html = report_html(scene, result, volume=volume, delivery=delivery, comparison=comparison,
+                       comparison_note=comparison_note, case=case, timings=timings, source_name=source, quiet=quiet,
+                       overview_png=overview_png, workspace_png=workspace_png, model_errors=rod_model_errors())
+    atomic_write_bytes(out / "report.html", html.encode("utf-8"))
     doc["report"] = str(out / "report.html")
     timings["report_s"] = time.perf_counter() - t
     doc["timings"] = timings
@@ -403,47 +408,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         device = [f for f in files if "device" in Path(f).name and f.endswith(".json")] if export else []
         written += [("device instructions", str(final / Path(f).relative_to(out))) for f in device]
         print(format_summary(result, targets=[t.name for t in scene.targets], delivery=delivery,
-                             comparison=rendered.comparison, files=written))
+                             comparison=comparison, files=written))
         if delivery is not None and delivery.implant is not None:
             print("\n" + format_implant(delivery.implant))
     return doc
-
-
-def format_implant(comparison: ImplantComparison) -> str:
-    """Return the two implant arms side by side (EQD2 totals, Gy).
-
-    Needles, aims, HR-CTV D90/D98/V100/V150/V200, organ D2cm³, the needles' share of the dwell weight, the largest
-    single dwell's share and loaded dwells per needle.
-    """
-    arms = comparison.arms
-    rows: list[tuple[str, ...]] = [("implant", *(a.name for a in arms))]
-
-    def cell(a: ImplantArm, f: Callable[[ImplantPlan], str]) -> str:
-        return "-" if a.plan is None else f(a.plan)
-
-    rows.append(("needles (candidates)", *(f"{cell(a, lambda p: str(p.n_needles))} ({a.n_candidates})"
-                                           for a in arms)))
-    rows.append(("aims met", *(cell(a, lambda p: "yes" if p.aims_met else "no") for a in arms)))
-    for label, get in (("HR-CTV D90 Gy", lambda p: f"{p.target.d90_eqd2_gy:.1f}"),
-                       ("HR-CTV D98 Gy", lambda p: f"{p.target.d98_eqd2_gy:.1f}"),
-                       ("V100 %", lambda p: f"{p.target.v100_pct:.1f}"),
-                       ("V150 %", lambda p: f"{p.target.v150_pct:.1f}"),
-                       ("V200 %", lambda p: f"{p.v200_pct:.1f}")):
-        rows.append((label, *(cell(a, get) for a in arms)))
-    organs = list(dict.fromkeys(o.name for a in arms if a.plan for o in a.plan.oars))
-    for organ in organs:
-        def d2cc(p: ImplantPlan, organ: str = organ) -> str:
-            return next((f"{o.d2cc_eqd2_gy:.1f}" for o in p.oars if o.name == organ), "-")
-
-        rows.append((f"{organ} D2cc Gy", *(cell(a, d2cc) for a in arms)))
-    rows.append(("needle dwell weight %", *(cell(a, lambda p: f"{100 * p.needle_time_share:.0f}") for a in arms)))
-    rows.append(("largest dwell share %", *(cell(a, lambda p: f"{100 * p.max_dwell_share:.1f}") for a in arms)))
-    rows.append(("loaded dwells/needle", *(cell(a, lambda p: " ".join(
-        str(n) for c, n in zip(p.channels, p.loaded_dwells, strict=True) if c.is_needle)) for a in arms)))
-    rows.append(("Pareto (needles:D90)", *(" ".join(f"{q.n_needles}:{q.hrctv_d90_eqd2_gy:.0f}" for q in a.pareto)
-                                           or "-" for a in arms)))
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
-             for r in rows]
-    notes = [f"{a.name}: {a.reason}" for a in arms if a.reason]
-    return "\n".join([*lines, *notes])

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -35,6 +35,10 @@ from reachplan.planner.report.view3d import Needle3d, scene_figure
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.plugins.sources import SourceData
 from reachplan.rod_model.select import ErrorRow
+
+if TYPE_CHECKING:
+    from reachplan.planner.dose.implant import ImplantArm, ImplantPlan
+    from reachplan.planner.pipeline import ImplantComparison
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
@@ -160,6 +164,85 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
     return "\n".join(lines)
 
 
+def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
+    """Return the implant arms side by side as rows of text cells, the first row naming the arms.
+
+    Needles (candidates), aims, HR-CTV D90/D98/V100/V150/V200 (EQD2 totals, Gy), organ D2cm³, the needles' share of
+    the dwell weight, the largest single dwell's share, loaded dwells per needle and the Pareto curve
+    (needles:D90). The terminal (:func:`format_implant`) and the report print the same rows.
+    """
+    arms = comparison.arms
+    rows: list[tuple[str, ...]] = [("implant", *(a.name for a in arms))]
+
+    def cell(a: ImplantArm, f: Callable[[ImplantPlan], str]) -> str:
+        return "-" if a.plan is None else f(a.plan)
+
+    rows.append(("needles (candidates)", *(f"{cell(a, lambda p: str(p.n_needles))} ({a.n_candidates})"
+                                           for a in arms)))
+    rows.append(("aims met", *(cell(a, lambda p: "yes" if p.aims_met else "no") for a in arms)))
+    for label, get in (("HR-CTV D90 Gy", lambda p: f"{p.target.d90_eqd2_gy:.1f}"),
+                       ("HR-CTV D98 Gy", lambda p: f"{p.target.d98_eqd2_gy:.1f}"),
+                       ("V100 %", lambda p: f"{p.target.v100_pct:.1f}"),
+                       ("V150 %", lambda p: f"{p.target.v150_pct:.1f}"),
+                       ("V200 %", lambda p: f"{p.v200_pct:.1f}")):
+        rows.append((label, *(cell(a, get) for a in arms)))
+    organs = list(dict.fromkeys(o.name for a in arms if a.plan for o in a.plan.oars))
+    for organ in organs:
+        def d2cc(p: ImplantPlan, organ: str = organ) -> str:
+            return next((f"{o.d2cc_eqd2_gy:.1f}" for o in p.oars if o.name == organ), "-")
+
+        rows.append((f"{organ} D2cc Gy", *(cell(a, d2cc) for a in arms)))
+    rows.append(("needle dwell weight %", *(cell(a, lambda p: f"{100 * p.needle_time_share:.0f}") for a in arms)))
+    rows.append(("largest dwell share %", *(cell(a, lambda p: f"{100 * p.max_dwell_share:.1f}") for a in arms)))
+    rows.append(("loaded dwells/needle", *(cell(a, lambda p: " ".join(
+        str(n) for c, n in zip(p.channels, p.loaded_dwells, strict=True) if c.is_needle)) for a in arms)))
+    rows.append(("Pareto (needles:D90)", *(" ".join(f"{q.n_needles}:{q.hrctv_d90_eqd2_gy:.0f}" for q in a.pareto)
+                                           or "-" for a in arms)))
+    return rows
+
+
+def format_implant(comparison: ImplantComparison) -> str:
+    """Return the two implant arms side by side (:func:`implant_rows`) for the terminal, then each arm's note."""
+    rows = implant_rows(comparison)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
+             for r in rows]
+    notes = [f"{a.name}: {a.reason}" for a in comparison.arms if a.reason]
+    return "\n".join([*lines, *notes])
+
+
+def _implant_section(implant: ImplantComparison | None) -> Section | None:
+    """Return the implant section: Pareto curves, both arms' DVHs and the side-by-side table (None without)."""
+    if implant is None:
+        return None
+    from reachplan.planner.dose.optimize import Aims
+
+    aims = Aims()
+    rows = implant_rows(implant)
+    blocks: list[Block] = [
+        Paragraph("The implant for the whole HR-CTV, planned twice on the same anatomy and template: with straight "
+                  "needles only, and with straight and steered needles (the intracavitary channels are available "
+                  "to both). For each number of template needles the Pareto curve gives the best HR-CTV D90 "
+                  "(EQD2) with every organ's D2cm³ held within its EMBRACE II limit; the chosen implant of each "
+                  f"arm is circled. Aims (EMBRACE II, EQD2): HR-CTV D90 ≥ {aims.target_d90_eqd2_gy:g} Gy; D2cm³ "
+                  + ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy) + "."),
+        Table(rows[0], tuple(rows[1:]), "Implant arms side by side (EQD2 totals, Gy)",
+              numeric=tuple(range(1, len(rows[0])))),
+        Figure(figures.png_bytes(figures.pareto_figure(implant.arms, aims.target_d90_eqd2_gy), dpi=90),
+               "Pareto curves: template needles against HR-CTV D90 (EQD2) with the organ limits held; filled: every "
+               "aim met, hollow: an aim not met; circled: the chosen implant; dotted red: the 85 Gy aim. Straight: "
+               "dashed orange, steered: solid cyan."),
+    ]
+    if any(a.plan is not None and a.plan.dvhs for a in implant.arms):
+        blocks.append(Figure(
+            figures.png_bytes(figures.implant_dvh_figure(implant.arms, aims), dpi=90),
+            "Both arms' cumulative DVHs per fraction (straight dashed, steered solid; HR-CTV thicker) with the "
+            "EMBRACE II aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. Organ curves cover "
+            "the voxels near the loaded dwells, where D2cm³ is decided."))
+    blocks += [Paragraph(f"{a.name}: {a.reason}") for a in implant.arms if a.reason]
+    return Section("Implant: straight against steered", "implant", tuple(blocks))
+
+
 #: Faster LP settings for the straight-versus-steered comparison in the report (the delivered plan keeps the
 #: full :class:`~reachplan.planner.dose.optimize.OptimizerSettings`); about 5 s for 4 + 12 needles on the demo phantom.
 COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500, relax_iterations=1)
@@ -178,20 +261,20 @@ class ReportOptions:
     """What the report computes and draws.
 
     ``max_slice_targets``: targets that get slice overlays (in ranking order); ``comparison``: run the
-    straight-versus-steered dose comparison; ``comparison_settings``: its LP settings; ``mesh_pitch_mm``:
-    voxel size of the light meshes in the 3-D view.
+    straight-versus-steered dose comparison; ``comparison_settings``: its LP settings; ``mesh_faces``:
+    faces per organ in the 3-D view (quadric decimation).
     """
 
     max_slice_targets: int = 12
     comparison: bool = True
     comparison_settings: OptimizerSettings = COMPARISON_SETTINGS
-    mesh_pitch_mm: float = 4.0
+    mesh_faces: int = figures.VIEW_FACES
 
     def __post_init__(self) -> None:
         if self.max_slice_targets < 0:
             raise ValueError("max_slice_targets must be >= 0")
-        if not (np.isfinite(self.mesh_pitch_mm) and self.mesh_pitch_mm > 0):
-            raise ValueError("mesh_pitch_mm must be a positive number of mm")
+        if self.mesh_faces < 4:
+            raise ValueError("mesh_faces must be at least 4 (a tetrahedron)")
 
 
 def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | None,
@@ -457,18 +540,18 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
 
 
 def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate],
-                     delivery: Delivery | None, pitch_mm: float) -> dict[str, Any]:
+                     delivery: Delivery | None, max_faces: int) -> dict[str, Any]:
     """Return the 3-D view's plotly figure: both arms' needles and the delivered plan's active dwells."""
     needles = [Needle3d.of(c) for c in (*straight, *steered)]
     if delivery is None or not delivery.optimisation.success:
-        return scene_figure(scene, needles, pitch_mm=pitch_mm)
+        return scene_figure(scene, needles, max_faces=max_faces)
     dwells = delivery.optimisation.dwells
     on = dwells.times_s > 0
     holes = [c.hole_id for c in delivery.needles]
     labels = [f"channel {ch} ({holes[ch - 1]})" if 0 < ch <= len(holes) else f"channel {ch}"
               for ch in dwells.channels[on]]
     return scene_figure(scene, needles, dwell_positions_mm=dwells.positions_mm[on], dwell_times_s=dwells.times_s[on],
-                        dwell_labels=labels, pitch_mm=pitch_mm)
+                        dwell_labels=labels, max_faces=max_faces)
 
 
 def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered: Sequence[Candidate],
@@ -553,7 +636,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                              for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
             slices.append(Figure(figures.slice_views(scene, t, s, st, volume, dose=dose), f"{t}: {desc}"))
             bar.update()
-        view = interactive_view(scene, straight, steered, delivery, options.mesh_pitch_mm)
+        view = interactive_view(scene, straight, steered, delivery, options.mesh_faces)
         bar.update()
         dvh = figures.dvh_png(comparison) if comparison is not None else None
         bar.update()
@@ -568,7 +651,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                 f"{n_reach[True]}" + ("" if delivery is None else
                                       f"; delivered plan HR-CTV D90 {delivery.optimisation.target.d90_eqd2_gy:.1f} Gy "
                                       f"EQD2 ({'aim met' if delivery.optimisation.aim_met else 'aim not met'})"))
-    sections = [
+    sections: list[Section | None] = [
         case_sec,
         _ranking_section(result, order),
         Section("Slices through the targets", "slices", tuple(slices)),
@@ -577,12 +660,13 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                       "needle and the delivered plan's dwell positions, in an interactive view: drag to turn, scroll "
                       "to zoom, click a legend entry to hide or show it (bone and obturator start hidden); the "
                       "buttons turn it to the named views and the title says from where it is seen. It opens "
-                      f"{figures.RADIOLOGICAL.removeprefix('seen ')}. Organs are re-meshed on a "
-                      f"{options.mesh_pitch_mm:g} mm grid for drawing only."),
+                      f"{figures.RADIOLOGICAL.removeprefix('seen ')}. Organs are decimated to about "
+                      f"{options.mesh_faces} faces each for drawing only."),
             Interactive(view, "3-D view of organs, needles, dwell positions and template (mm, LPS)"),
         )),
         _needles_section(result, straight, steered, order),
         _dose_section(delivery, comparison, dvh, source_name, comparison_note, options.comparison_settings),
+        _implant_section(delivery.implant if delivery is not None else None),
         _device_section(delivery),
         _models_section(result, chart, rows, used),
     ]
@@ -591,34 +675,43 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                                      tuple((k.removesuffix("_s"), f"{v:.1f}")
                                                            for k, v in timings.items()),
                                                      "Wall time per stage", numeric=(1,)),)))
-    return Report(f"reachplan report: {case}", subtitle, tuple(sections))
+    return Report(f"reachplan report: {case}", subtitle, tuple(s for s in sections if s is not None))
 
 
-@dataclass(frozen=True, eq=False)
-class RenderedReport:
-    """A rendered report and the comparison it shows.
+def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: Delivery | None,
+                        grid: Grid | None = None, target_roi: str = "HR-CTV", options: ReportOptions | None = None,
+                        quiet: bool = True) -> tuple[Comparison | None, str]:
+    """Run the straight-versus-steered dose comparison the report shows (:func:`compare_chosen`).
 
-    ``html``: the report as one HTML document; ``comparison``: the straight-versus-steered dose comparison it
-    shows (None when not computed).
+    A dose computation, run with the delivery (the report only draws). Returns the comparison, or None with the
+    sentence the report prints instead: no delivery (ranked only), comparison turned off, or no feasible needle.
     """
+    options = options or ReportOptions()
+    if delivery is None:
+        return None, "No dose: the plan was ranked only (--no-export)."
+    if not options.comparison:
+        return None, ""
+    bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
+    comparison = compare_chosen(result, structures, grid, delivery.source, target_roi,
+                                delivery.export.source.air_kerma_rate_u, options.comparison_settings,
+                                planning=delivery.planning)
+    bar.update()
+    bar.close()
+    return comparison, "" if comparison is not None else "No feasible needle of either kind: nothing to compare."
 
-    html: str
-    comparison: Comparison | None
 
-
-def report_html(scene: Scene, result: PlanResult, structures: StructureSet, *, volume: Volume | None = None,
-                delivery: Delivery | None = None, case: str = "case", timings: Mapping[str, float] | None = None,
-                source_name: str = "gammamed_plus_hdr", target_roi: str = "HR-CTV",
+def report_html(scene: Scene, result: PlanResult, *, volume: Volume | None = None, delivery: Delivery | None = None,
+                comparison: Comparison | None = None, comparison_note: str = "", case: str = "case",
+                timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
                 options: ReportOptions | None = None, quiet: bool = True, overview_png: bytes | None = None,
-                workspace_png: bytes | None = None, model_errors: Sequence[ErrorRow] = ()) -> RenderedReport:
-    """Compare straight and steered needles, build the report and render it as one self-contained HTML document.
+                workspace_png: bytes | None = None, model_errors: Sequence[ErrorRow] = ()) -> str:
+    """Build the report and render it as one self-contained HTML document, returned as text for the caller to write.
 
-    The comparison runs when a delivery was made; the document is returned as text for the caller to write, with
-    the comparison (for the terminal summary).
-
-    ``overview_png``, ``workspace_png``: the overview (:func:`reachplan.planner.report.figures.overview`) and
-    workspace (:func:`reachplan.planner.report.workspace.workspace_figure`) figures, embedded in the case
-    section when given. ``model_errors``: see :func:`build_report`.
+    Nothing is solved here: ``comparison`` (and ``comparison_note``) come from :func:`straight_vs_steered`, the
+    implant arms from ``delivery``. ``overview_png``, ``workspace_png``: the overview
+    (:func:`reachplan.planner.report.figures.overview`) and workspace
+    (:func:`reachplan.planner.report.workspace.workspace_figure`) figures, embedded in the case section when given.
+    ``model_errors``: see :func:`build_report`.
     """
     from importlib.metadata import PackageNotFoundError, version
 
@@ -626,24 +719,11 @@ def report_html(scene: Scene, result: PlanResult, structures: StructureSet, *, v
         release = version("reachplan")
     except PackageNotFoundError:
         release = "(not installed)"
-    options = options or ReportOptions()
-    comparison, note = None, ""
-    if delivery is None:
-        note = "No dose: the plan was ranked only (--no-export)."
-    elif options.comparison:
-        bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
-        comparison = compare_chosen(result, structures, volume.grid if volume is not None else None,
-                                    delivery.source, target_roi, delivery.export.source.air_kerma_rate_u,
-                                    options.comparison_settings, planning=delivery.planning)
-        bar.update()
-        bar.close()
-        if comparison is None:
-            note = "No feasible needle of either kind: nothing to compare."
     extra = tuple(Figure(png, caption) for png, caption in ((overview_png, OVERVIEW_CAPTION),
                                                              (workspace_png, WORKSPACE_CAPTION)) if png is not None)
     report = build_report(scene, result, volume=volume, delivery=delivery, comparison=comparison, case=case,
-                          timings=timings, source_name=source_name, comparison_note=note, options=options,
+                          timings=timings, source_name=source_name, comparison_note=comparison_note, options=options,
                           quiet=quiet, case_figures=extra, model_errors=model_errors)
     footer = (f"reachplan {release}, {datetime.now().replace(microsecond=0).isoformat()}. A pre-plan for "
               "research use; not a treatment plan.")
-    return RenderedReport(render_html(report, footer), comparison)
+    return render_html(report, footer)

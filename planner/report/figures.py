@@ -24,6 +24,7 @@ import numpy as np
 import trimesh
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter
 
 from reachplan.imaging.types import Volume
 from reachplan.planner.pipeline import Scene
@@ -70,13 +71,41 @@ def label_edges(ax: Any, right: np.ndarray, up: np.ndarray) -> None:
 
 
 _UNIT = np.eye(3)
+#: Axes titles at a fixed height (just above the axes): matplotlib's automatic placement measures every tick label
+#: of the axes on each draw, a sixth of a slice figure's drawing time; no figure here has tick labels on top.
+TITLE_Y = 1.0
 
 
 def png_bytes(fig: Figure, dpi: int = 100) -> bytes:
-    """Render a figure to PNG bytes."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
-    return buf.getvalue()
+    """Render a figure to PNG bytes at the size it is shown: an 8-bit palette image.
+
+    256 colours (fast octree quantisation) keep the line art and the grey image underneath, at about a third of the
+    size of matplotlib's RGBA PNG.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from PIL import Image
+
+    plain_log_labels(fig)
+    fig.set_dpi(dpi)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()  # drawn once, straight to pixels: no intermediate RGBA PNG to encode and decode
+    rgba = Image.frombuffer("RGBA", canvas.get_width_height(), canvas.buffer_rgba(), "raw", "RGBA", 0, 1)
+    out = io.BytesIO()
+    rgba.convert("RGB").quantize(256, method=Image.Quantize.FASTOCTREE).save(out, format="PNG")
+    return out.getvalue()
+
+
+def plain_log_labels(fig: Figure) -> None:
+    """Label the log axes of ``fig`` in plain numbers (0.1, 1, 10) rather than mathtext powers of ten.
+
+    Matplotlib parses every ``$10^{n}$`` tick label with its mathtext parser, about a tenth of the report's
+    drawing time; plain labels read as well.
+    """
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() == "log":
+                axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+                axis.set_minor_formatter(NullFormatter())
 
 
 def organ_colour(name: str) -> str:
@@ -87,16 +116,30 @@ def organ_colour(name: str) -> str:
 
 
 def _section(mesh: trimesh.Trimesh, axis: int, value_mm: float) -> list[np.ndarray]:
-    """Return the closed loops (each (n, 3) float, mm, LPS) where the plane ``x[axis] = value_mm`` cuts ``mesh``."""
-    lo, hi = mesh.bounds[:, axis]
-    if not lo < value_mm < hi:
+    """Return where the plane ``x[axis] = value_mm`` cuts ``mesh``, as drawable outlines.
+
+    One (3 n, 3) float array (mm, LPS) of the n cut segments, each two points followed by a NaN row (so one
+    ``plot`` call draws them all), in a list; an empty list when the plane misses the mesh. Computed directly from
+    the faces the plane crosses (a vertex on the plane counts as above it), without chaining the segments into
+    loops.
+    """
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    above = v[:, axis] >= value_mm
+    side = above[f]
+    crossed = side.any(axis=1) & ~side.all(axis=1)
+    if not crossed.any():
         return []
-    origin = np.zeros(3)
-    origin[axis] = value_mm
-    normal = np.zeros(3)
-    normal[axis] = 1.0
-    sec = mesh.section(plane_origin=origin, plane_normal=normal)
-    return [] if sec is None else [np.asarray(d) for d in sec.discrete]
+    tri, side = v[f[crossed]], side[crossed]
+    d = tri[:, :, axis] - value_mm
+    pts, cuts = [], []
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        cut = side[:, i] != side[:, j]
+        t = np.where(cut, d[:, i] / np.where(cut, d[:, i] - d[:, j], 1.0), 0.0)
+        pts.append(tri[:, i] + t[:, None] * (tri[:, j] - tri[:, i]))
+        cuts.append(cut)
+    seg = np.stack(pts, axis=1)[np.stack(cuts, axis=1)].reshape(-1, 2, 3)  # two crossed edges per face
+    out = np.concatenate([seg, np.full((len(seg), 1, 3), np.nan)], axis=1)
+    return [out.reshape(-1, 3)]
 
 
 def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float) -> None:
@@ -124,7 +167,7 @@ def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float) -> N
 
 def _box(points: Sequence[np.ndarray], margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
     p = np.concatenate([np.atleast_2d(q) for q in points])
-    return p.min(axis=0) - margin_mm, p.max(axis=0) + margin_mm
+    return np.nanmin(p, axis=0) - margin_mm, np.nanmax(p, axis=0) + margin_mm
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,7 +265,7 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
         ax.set_ylim((hi[v], lo[v]) if view == "axial" else (lo[v], hi[v]))  # axial: anterior (-y) at the top
         ax.set_aspect("equal")
         seen = {"axial": "from the feet", "sagittal": "from the patient's left", "coronal": "from the front"}[view]
-        ax.set_title(f"{view} ({seen}), {'xyz'[normal]} = {point[normal]:.0f} mm", fontsize=10)
+        ax.set_title(f"{view} ({seen}), {'xyz'[normal]} = {point[normal]:.0f} mm", fontsize=10, y=TITLE_Y)
         ax.set_xlabel(AXIS_LABELS[u], fontsize=8)
         ax.set_ylabel(AXIS_LABELS[v], fontsize=8)
         ax.tick_params(labelsize=7)
@@ -287,15 +330,20 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
     return png_bytes(fig, dpi=110)
 
 
-def coarse_mesh(mesh: trimesh.Trimesh, pitch_mm: float = 4.0) -> trimesh.Trimesh:
-    """Return a light version of a closed mesh for 3-D drawing.
+#: Faces of an organ in the 3-D view: quadric decimation keeps the organs' shapes (bladder, rectum, pelvic bone)
+#: recognisable at this size and the report small.
+VIEW_FACES = 1500
 
-    Voxelised at ``pitch_mm``, filled and re-meshed by marching cubes (mm, LPS; a few thousand faces for an organ).
+
+def light_mesh(mesh: trimesh.Trimesh, max_faces: int = VIEW_FACES) -> trimesh.Trimesh:
+    """Return a mesh with at most about ``max_faces`` faces for 3-D drawing (mm, LPS).
+
+    Quadric decimation (trimesh with the ``fast-simplification`` package, aggressiveness 9 of 10: a fifth faster than
+    its default 7 and alike at this size); a mesh already within the budget is returned as it is.
     """
-    vox = mesh.voxelized(pitch=pitch_mm).fill()
-    out = vox.marching_cubes
-    out.apply_transform(vox.transform)
-    return out
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    return mesh.simplify_quadric_decimation(face_count=max_faces, aggression=9)
 
 
 def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> Figure:
@@ -334,11 +382,11 @@ def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Se
     if m[1, 1] > 0:  # template +y posterior: flip so that anterior is at the top
         ax.invert_yaxis()
     label_edges(ax, m[:3, 0], m[:3, 1])
-    ax.set(xlabel="template x (mm)", ylabel="template y (mm)",
-           title=f"template {scene.template.name}, seen from the patient's feet (operator's view)")
-    ax.title.set_fontsize(10)
+    ax.set(xlabel="template x (mm)", ylabel="template y (mm)")
+    ax.set_title(f"template {scene.template.name}, seen from the patient's feet (operator's view)", fontsize=10,
+                 y=TITLE_Y)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.79, top=0.93, bottom=0.1)  # fixed margins: no tight-layout pass
     return fig
 
 
@@ -376,11 +424,58 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
     ax.set_yscale("log")
     ax.set_xlabel("median time per solve (ms, log)")
     ax.set_ylabel(f"max tip error vs converged two-tube reference (mm; floor {floor:g})")
-    ax.set_title("Rod models: speed vs accuracy (ringed: used in this plan)", fontsize=11)
+    ax.set_title("Rod models: speed vs accuracy (ringed: used in this plan)", fontsize=11, y=TITLE_Y)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="upper right")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.1, right=0.97, top=0.93, bottom=0.1)  # fixed margins: no tight-layout pass
     return png_bytes(fig, dpi=90)
+
+
+#: Line style of each implant arm in the shared figures (steered solid, straight dashed, as the needles).
+ARM_STYLES = {"straight": "--", "steered": "-"}
+
+
+def _dvh_curves(ax: Any, dvhs: Sequence[tuple[str, Any]], aims: Any, target: str, style: str = "-",
+                arm: str = "", marks: bool = True) -> None:
+    """Draw cumulative DVHs (log volume) on ``ax``; with ``marks`` the D90 aim and the organ limits.
+
+    Curves carry the gid ``dvh:NAME`` (``dvh:ARM:NAME``, and no legend label, when ``arm`` is given); the
+    target's is drawn thicker.
+    """
+    for name, dvh in dvhs:
+        colour = organ_colour(name)
+        v = np.maximum(np.asarray(dvh.volume_cc, dtype=float), 1e-3)
+        ax.plot(dvh.dose_gy, v, style, color=colour, lw=2.2 if name == target else 1.4,
+                label="_nolegend_" if arm else name, gid=f"dvh:{arm}:{name}" if arm else f"dvh:{name}")
+        if not marks:
+            continue
+        if name == target:
+            ax.plot([aims.prescription_gy], [0.9 * v[0]], "D", color=colour, mec="k", ms=8, gid="aim:D90",
+                    label=f"{name} D90 aim ({aims.target_d90_eqd2_gy:g} Gy EQD2)")
+        elif (limit := aims.oar_limit_gy(name)) is not None:
+            ax.plot([limit], [2.0], "X", color=colour, mec="k", ms=9, gid=f"limit:{name}",
+                    label=f"{name} D2cm³ limit")
+
+
+def _dvh_frame(fig: Figure, ax: Any, aims: Any, title: str, ncol: int = 3, extra: Sequence[Line2D] = ()) -> Figure:
+    """Axes, title and the legend below (``extra`` handles first) of a DVH figure, at fixed margins."""
+    ax.axvline(aims.prescription_gy, color="grey", lw=0.8, ls=":")
+    ax.set_yscale("log")
+    ax.set_xlim(0, 3 * aims.prescription_gy)
+    ax.set_ylim(0.1, None)
+    ax.set_xlabel("dose per fraction (Gy)")
+    ax.set_ylabel("volume receiving at least the dose (cm³, log)")
+    ax.set_title(f"cumulative DVH, {title}\n◆ the target's curve must pass right of its aim, "
+                 "✕ an organ's curve left of its limit", fontsize=9, y=TITLE_Y)
+    ax.grid(True, which="both", alpha=0.25)
+    handles, labels = ax.get_legend_handles_labels()
+    handles, labels = [*extra, *handles], [*(h.get_label() for h in extra), *labels]
+    fig.legend(handles, labels, fontsize=7, ncol=ncol, loc="lower center", frameon=False)
+    rows = (len(labels) + ncol - 1) // ncol
+    height_in = fig.get_size_inches()[1]
+    fig.subplots_adjust(left=0.1, right=0.97, top=1 - 0.55 / height_in,
+                        bottom=(0.62 + 0.16 * rows) / height_in)  # fixed margins: no tight-layout pass
+    return fig
 
 
 def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "HR-CTV",
@@ -397,28 +492,76 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
     """
     fig = Figure(figsize=(7.5, 5.6))
     ax = fig.add_subplot()
-    for name, dvh in dvhs:
-        colour = organ_colour(name)
-        v = np.maximum(np.asarray(dvh.volume_cc, dtype=float), 1e-3)
-        ax.plot(dvh.dose_gy, v, color=colour, lw=1.6, label=name, gid=f"dvh:{name}")
-        if name == target:
-            ax.plot([aims.prescription_gy], [0.9 * v[0]], "D", color=colour, mec="k", ms=8, gid="aim:D90",
-                    label=f"{name} D90 aim ({aims.target_d90_eqd2_gy:g} Gy EQD2)")
-        elif (limit := aims.oar_limit_gy(name)) is not None:
-            ax.plot([limit], [2.0], "X", color=colour, mec="k", ms=9, gid=f"limit:{name}",
-                    label=f"{name} D2cm³ limit")
-    ax.axvline(aims.prescription_gy, color="grey", lw=0.8, ls=":")
-    ax.set_yscale("log")
-    ax.set_xlim(0, 3 * aims.prescription_gy)
-    ax.set_ylim(0.1, None)
-    ax.set_xlabel("dose per fraction (Gy)")
-    ax.set_ylabel("volume receiving at least the dose (cm³, log)")
-    ax.set_title(f"cumulative DVH, {title}\n◆ the target's curve must pass right of its aim, "
-                 "✕ an organ's curve left of its limit", fontsize=9)
-    ax.grid(True, which="both", alpha=0.25)
-    handles, labels = ax.get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=7, ncol=3, loc="lower center", frameon=False)
-    fig.tight_layout(rect=(0, 0.05 + 0.035 * ((len(labels) + 2) // 3), 1, 1))
+    _dvh_curves(ax, dvhs, aims, target)
+    return _dvh_frame(fig, ax, aims, title)
+
+
+def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -> Figure:
+    """Both implant arms' cumulative DVHs on one axes, the arms told apart by line style (:data:`ARM_STYLES`).
+
+    Parameters
+    ----------
+    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
+        Each arm with a chosen plan contributes its ``plan.dvhs`` (Gy per fraction, cm³); curves carry the gid
+        ``dvh:ARM:NAME``.
+    aims : :class:`reachplan.planner.dose.optimize.Aims`
+        Marked as in :func:`dvh_aims_figure` (once: the marks do not depend on the arm).
+    target : the target's structure name (drawn thicker, its D90 aim marked)
+    """
+    fig = Figure(figsize=(8.0, 5.6))
+    ax = fig.add_subplot()
+    with_plan = [a for a in arms if a.plan is not None and a.plan.dvhs]
+    for i, a in enumerate(with_plan):
+        _dvh_curves(ax, a.plan.dvhs, aims, target, ARM_STYLES.get(a.name, ":"), a.name, marks=i == 0)
+    names = list(dict.fromkeys(n for a in with_plan for n, _ in a.plan.dvhs))
+    extra = [Line2D([], [], color="k", ls=ARM_STYLES.get(a.name, ":"), label=f"{a.name} arm") for a in with_plan]
+    extra += [Line2D([], [], color=organ_colour(n), lw=2.2 if n == target else 1.4, label=n) for n in names]
+    return _dvh_frame(fig, ax, aims, "implant arms (" + ", ".join(
+        f"{a.name}: {'solid' if ARM_STYLES.get(a.name) == '-' else 'dashed'}" for a in with_plan) + ")", ncol=4,
+        extra=extra)
+
+
+def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
+    """Draw the implant arms' Pareto curves on one axes: needles against HR-CTV D90 (EQD2, Gy), organ limits held.
+
+    Parameters
+    ----------
+    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
+        Each arm's ``pareto`` points are one curve (gid ``pareto:ARM``), the points that meet every aim filled
+        (gid ``met:ARM``) and the others hollow (``unmet:ARM``); the chosen plan (``plan.n_needles``,
+        ``plan.target.d90_eqd2_gy``) is circled (gid ``chosen:ARM``).
+    aim_gy : float
+        The HR-CTV D90 aim (EQD2, Gy; EMBRACE II: 85 Gy), a horizontal line (gid ``aim:D90``).
+    """
+    fig = Figure(figsize=(7.5, 4.6))
+    ax = fig.add_subplot()
+    colours = {"straight": STRAIGHT_COLOUR, "steered": STEERED_COLOUR}
+    for i, a in enumerate(arms):
+        colour = colours.get(a.name, f"C{i}")
+        ms = 10 if i == 0 else 6  # the first arm's markers are larger: coinciding points stay visible
+        n = np.array([p.n_needles for p in a.pareto], dtype=float)
+        d90 = np.array([p.hrctv_d90_eqd2_gy for p in a.pareto], dtype=float)
+        met = np.array([p.aims_met for p in a.pareto], dtype=bool)
+        ax.plot(n, d90, ARM_STYLES.get(a.name, ":"), color=colour, lw=1.6, label=f"{a.name} arm",
+                gid=f"pareto:{a.name}")
+        ax.plot(n[met], d90[met], "o", color=colour, mec="k", ms=ms, ls="", gid=f"met:{a.name}", label="_nolegend_")
+        ax.plot(n[~met], d90[~met], "o", mfc="none", mec=colour, mew=1.6, ms=ms, ls="", gid=f"unmet:{a.name}",
+                label="_nolegend_")
+        if a.plan is not None:
+            ax.plot([a.plan.n_needles], [a.plan.target.d90_eqd2_gy], "o", mfc="none", mec="k", mew=1.5,
+                    ms=ms + 10, ls="", gid=f"chosen:{a.name}", label="_nolegend_")
+    ax.axhline(aim_gy, color="#d62728", lw=1.0, ls=":", gid="aim:D90", label=f"D90 aim {aim_gy:g} Gy EQD2")
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [Line2D([], [], marker="o", ls="", color="#888888", mec="k", label="every aim met"),
+                Line2D([], [], marker="o", ls="", mfc="none", mec="#888888", mew=1.6, label="an aim not met"),
+                Line2D([], [], marker="o", ls="", mfc="none", mec="k", ms=14, label="chosen implant")]
+    ax.set_xlabel("template needles loaded")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_ylabel("HR-CTV D90 (Gy EQD2), organ limits held")
+    ax.set_title("Implant: needles against HR-CTV D90, straight against steered", fontsize=10, y=TITLE_Y)
+    ax.grid(True, alpha=0.3)
+    ax.legend(handles=handles, fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    fig.subplots_adjust(left=0.1, right=0.72, top=0.92, bottom=0.12)  # fixed margins: no tight-layout pass
     return fig
 
 

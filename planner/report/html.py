@@ -3,8 +3,10 @@
 Nothing here knows about plans: :mod:`reachplan.planner.report.build` turns a plan into a :class:`Report`, and
 :func:`render_html` turns any :class:`Report` into one HTML document. Images are embedded as base64 PNG
 data URIs and the style sheet is inline, so the file opens offline, from anywhere, in any browser. The only
-script is plotly.js, embedded once (from the installed ``plotly`` package) when the report holds an
-:class:`Interactive` figure; the page's Content-Security-Policy lets it load nothing from outside.
+script is plotly.js, embedded once when the report holds an :class:`Interactive` figure: the official gl3d
+partial bundle (``plotly-gl3d.min.js`` beside this module, plotly.js 4.1.1, MIT licence in
+``plotly-LICENSE.txt``; 1.75 MB against the full bundle's 4.8 MB), which has the 3-D traces the report draws. The
+page's Content-Security-Policy lets it load nothing from outside.
 """
 
 from __future__ import annotations
@@ -80,16 +82,19 @@ Block = Paragraph | Table | Figure | Interactive
 
 @dataclass(frozen=True, eq=False)
 class Section:
-    """A titled part of the report; ``anchor`` is its HTML id (letters, digits, ``-``)."""
+    """A titled part of the report; ``anchor`` is its HTML id (letters, digits, ``-``).
+
+    Rendered as ``<section id="ANCHOR">`` with the title as its heading and the blocks in order.
+    """
 
     title: str
     anchor: str
     blocks: tuple[Block, ...]
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "blocks", tuple(self.blocks))
         if not self.anchor or not all(ch.isalnum() or ch == "-" for ch in self.anchor):
             raise ValueError(f"section {self.title!r}: anchor must be letters, digits and '-', got {self.anchor!r}")
+        object.__setattr__(self, "blocks", tuple(self.blocks))
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,10 +106,10 @@ class Report:
     sections: tuple[Section, ...]
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "sections", tuple(self.sections))
         anchors = [s.anchor for s in self.sections]
         if len(set(anchors)) != len(anchors):
             raise ValueError("report sections need unique anchors")
+        object.__setattr__(self, "sections", tuple(self.sections))
 
     @property
     def figures(self) -> tuple[Figure, ...]:
@@ -192,9 +197,13 @@ def _block(b: Block, div_id: str) -> str:
     return _figure(b)
 
 
+#: The plotly.js bundle embedded in the report (the trace types it has: mesh3d, scatter3d, scatter, surface, ...).
+PLOTLY_BUNDLE = "plotly-gl3d.min.js"
+
+
 def plotly_js() -> str:
-    """Return the plotly.js bundle shipped with the ``plotly`` package (about 4.8 MB, minified)."""
-    return (resources.files("plotly") / "package_data" / "plotly.min.js").read_text(encoding="utf-8")
+    """Return the plotly.js gl3d partial bundle packaged beside this module (1.75 MB, minified)."""
+    return (resources.files("reachplan.planner.report") / PLOTLY_BUNDLE).read_text(encoding="utf-8")
 
 
 def render_html(report: Report, footer: str = "") -> str:

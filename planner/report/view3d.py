@@ -24,7 +24,8 @@ from reachplan.planner.report.figures import (
     STEERED_COLOUR,
     STRAIGHT_COLOUR,
     TARGET_COLOUR,
-    coarse_mesh,
+    VIEW_FACES,
+    light_mesh,
     organ_colour,
 )
 from reachplan.planner.steering.candidates import Candidate
@@ -75,7 +76,7 @@ def _title(i: int) -> str:
 
 def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_mm: np.ndarray | None = None,
                  dwell_times_s: np.ndarray | None = None, dwell_labels: Sequence[str] | None = None,
-                 pitch_mm: float = 4.0, meshes: Mapping[str, trimesh.Trimesh] | None = None) -> dict[str, Any]:
+                 max_faces: int = VIEW_FACES, meshes: Mapping[str, trimesh.Trimesh] | None = None) -> dict[str, Any]:
     """Return the plotly figure (JSON-ready dict) of a plan in 3-D.
 
     Parameters
@@ -86,9 +87,9 @@ def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_m
         Active dwell positions of the delivered plan (one trace, marker size by time).
     dwell_times_s : (m,) float, s
     dwell_labels : m strings naming each dwell's needle (hover text)
-    pitch_mm : the organs are re-meshed on this grid (:func:`reachplan.planner.report.figures.coarse_mesh`) to
-        keep the report small
-    meshes : pre-coarsened meshes by name (default: coarsened here)
+    max_faces : each organ is decimated to about this many faces
+        (:func:`reachplan.planner.report.figures.light_mesh`) to keep the report small
+    meshes : pre-decimated meshes by name (default: decimated here)
 
     Returns
     -------
@@ -97,7 +98,7 @@ def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_m
     """
     data: list[dict[str, Any]] = []
     for name, mesh in scene.meshes.items():
-        light = meshes[name] if meshes is not None and name in meshes else coarse_mesh(mesh, pitch_mm)
+        light = meshes[name] if meshes is not None and name in meshes else light_mesh(mesh, max_faces)
         v, f = light.vertices, np.asarray(light.faces)
         data.append({
             "type": "mesh3d", "name": name, "meta": "organ", "showlegend": True, "color": organ_colour(name),

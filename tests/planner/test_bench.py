@@ -57,7 +57,7 @@ def _assert_real_png(path: Path) -> None:
 
 def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.CaptureFixture[str]) -> None:
     assert [t.name for t in bench.TARGETS] == ["models", "planning", "dose", "imaging", "study", "startup", "firstrun",
-                                              "distance", "dosekernel", "implant"]
+                                              "distance", "dosekernel", "implant", "report"]
     for target in bench.TARGETS:
         module = bench._load(target.module)
         assert callable(module.run)
@@ -194,3 +194,28 @@ def test_install_copies_the_owned_files_into_the_checkout(tmp_path: Path, capsys
     assert int(rows[0]["chunk_pairs"]) == side**3 * 10  # the options replaced the full-size defaults
     assert install(out, source_checkout(repo), {}) == []
     assert np.isfinite([float(r["seconds"]) for r in rows]).all()
+
+
+def test_report_sizes_by_part_and_the_summary_on_a_tiny_report(tmp_path: Path) -> None:
+    # the whole report benchmark runs the demo's pipeline first (minutes); its measuring parts on a tiny report
+    from reachplan.planner.bench import report as report_bench
+    from reachplan.planner.report import figures
+    from reachplan.planner.report.html import Figure, Interactive, Report, Section, render_html
+
+    fig = {"data": [{"type": "scatter3d", "x": [1.0] * 500, "y": [2.0] * 500, "z": [3.0] * 500}], "layout": {}}
+    canvas = figures.Figure(figsize=(2, 1))
+    canvas.add_subplot().plot([0, 1], [1, 0])
+    png = figures.png_bytes(canvas, dpi=50)
+    html = render_html(Report("t", "s", (Section("A", "a", (Figure(png, "line"), Interactive(fig, "view"))),)))
+    parts = report_bench.html_parts(html)
+    assert parts["total"] == len(html.encode("utf-8")) == sum(v for k, v in parts.items() if k != "total")
+    assert parts["plotly_js"] > 1e6 and parts["view_3d"] > 500 * 3 * 4  # the bundle; 1500 numbers
+    assert abs(parts["images"] - len('src="data:image/png;base64,"') - 4 * ((len(png) + 2) // 3)) <= 0
+    rows = [{"run": i, "report_s": s, "report_cpu_s": s / 2, "comparison_s": 1.0,
+             **{f"bytes_{k}": v for k, v in parts.items()}, "load_avg_1min": 1.0}
+            for i, s in enumerate((4.0, 2.0, 3.0))]
+    summary = report_bench.summarise(rows)
+    assert summary["median_report_s"] == 3.0 and summary["within_limit_wall"] is True
+    assert summary["bytes_total"] == parts["total"]
+    write_png(tmp_path / "report_benchmark.png", report_bench._figure(rows, summary))
+    _assert_real_png(tmp_path / "report_benchmark.png")

@@ -84,11 +84,12 @@ def test_plan_writes_a_self_contained_report(planned: tuple[Path, dict[str, obje
         assert tag != "script" or "src" not in attrs  # scripts are inline (plotly.js and the 3-D view)
     assert "script-src 'unsafe-inline'" in html and "connect-src" not in html and "default-src 'none'" in html
     ids = {a.get("id") for t, a in parser.tags if t == "section"}
-    assert ids >= {"case", "ranking", "slices", "views-3d", "needles", "dose", "device", "models"}
-    assert len(report.read_bytes()) < 10e6
+    assert ids >= {"case", "ranking", "slices", "views-3d", "needles", "dose", "implant", "device", "models"}
+    assert len(report.read_bytes()) < 3.5e6  # plotly.js's gl3d bundle, palette PNGs, decimated organs
     images = _images(html)
-    # template map, overview, workspace, one slice figure per target, both DVHs, speed-accuracy chart
-    assert len(images) == 3 + len(TARGETS) + 3
+    # template map, overview, workspace, one slice figure per target, both DVHs, the implant arms' Pareto curves and
+    # DVHs, speed-accuracy chart
+    assert len(images) == 3 + len(TARGETS) + 2 + 2 + 1
     for img in images:
         rgb = img[..., :3].reshape(-1, 3)
         assert rgb.std(axis=0).max() > 0.05, "blank figure"
@@ -115,6 +116,16 @@ def test_report_content_matches_the_plan(planned: tuple[Path, dict[str, object],
     for arm in ("straight", "steered"):  # both arms of the dose comparison
         assert f"<td>{arm}</td>" in html
     assert "planar_beam" in html and "two_tube_cosserat" in html  # the models behind the numbers
+    implant = doc["implant"]
+    assert isinstance(implant, dict)
+    section = html[html.index('<section id="implant">'):]
+    section = section[:section.index("</section>")]
+    for arm in ("straight", "steered"):  # the terminal's side-by-side rows, from plan.json's numbers
+        pareto = " ".join(f"{p['n_needles']}:{p['hrctv_d90_eqd2_gy']:.0f}" for p in implant[arm]["pareto"])
+        assert f'<td class="num">{pareto}</td>' in section
+        if implant[arm]["needles"]:
+            assert f'<td class="num">{implant[arm]["hrctv_d90_eqd2_gy"]:.1f}</td>' in section
+    assert section.count("<img ") == 2  # the Pareto curves and both arms' DVHs
 
 
 def _chromium() -> str:

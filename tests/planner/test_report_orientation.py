@@ -40,7 +40,7 @@ def _organ_centre_px(ax: object, name: str) -> np.ndarray:
     lines = [ln for ln in ax.lines if ln.get_gid() == f"organ:{name}"]  # type: ignore[attr-defined]
     assert lines, f"no {name} outline in the {ax.get_gid()} view"  # type: ignore[attr-defined]
     pts = np.concatenate([ln.get_xydata() for ln in lines])
-    return _display(ax, pts).mean(axis=0)
+    return np.nanmean(_display(ax, pts), axis=0)  # outlines are segments separated by NaN rows
 
 
 def test_template_map_and_axial_slice_put_the_bladder_side_at_the_top(scene: Scene) -> None:
