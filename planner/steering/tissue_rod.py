@@ -49,6 +49,7 @@ from reachplan.planner.steering.insertion import (
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.rod_model.cosserat import TwoTubeCosserat
 from reachplan.rod_model.design import Foundation, Loads, RodDesign
+from reachplan.rod_model.result import RodPath
 
 
 @dataclass(frozen=True)
@@ -83,6 +84,8 @@ class TissueRodInsertion:
     slip_mm: float = 1.0
     cut_force_n: float = 0.0
     poisson: float = TISSUE_POISSON
+    arc_cut: bool = True
+    window_winkler: float = 6.0
 
     def __post_init__(self) -> None:
         if not (self.tissue_modulus_pa >= 0 and self.step_mm > 0 and self.node_mm > 0 and self.slip_mm > 0
@@ -160,7 +163,9 @@ class TissueRodInsertion:
             raise PlanInputError(f"insertion depth must be in (0, {design.length_mm:.0f}] mm, got {depth_mm}")
         if schedule.peak_tension_n > design.max_tension_n + 1e-9:
             raise PlanInputError(f"the schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
-        nodes = np.linspace(0.0, depth_mm, max(2, round(depth_mm / self.node_mm)) + 1)
+        n_steps = max(1, int(np.ceil(depth_mm / self.step_mm - 1e-9)))
+        ends = np.linspace(0.0, depth_mm, n_steps + 1)[1:]
+        nodes = np.union1d(np.linspace(0.0, depth_mm, max(2, round(depth_mm / self.node_mm)) + 1), ends)
         if modulus_profile is None:
             moduli = np.full(len(nodes), float(self.tissue_modulus_pa))
         else:
@@ -169,45 +174,85 @@ class TissueRodInsertion:
                 raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
             moduli = values[np.clip(np.searchsorted(at, nodes, side="right") - 1, 0, len(at) - 1)]
         stiffness = self._stiffness(design, moduli)
+        tube_ei = next(s.ei1 + s.ei2 for s in design.sections() if s.kind == "tube") * 1e6  # N mm²
+        distal_mm = design.length_mm - next(s.start_m for s in design.sections() if s.kind == "joints") * 1e3
         track = np.zeros((len(nodes), 3))
-        n_steps = max(1, int(np.ceil(depth_mm / self.step_mm - 1e-9)))
         tip = np.zeros(3)
         tangent = np.array([0.0, 0.0, 1.0])
+        turn = np.zeros(3)  # rate of turning of the tip's tangent per mm of insertion (last step), 1/mm
         cut_to = 0.0
-        path = None
-        for depth in np.linspace(0.0, depth_mm, n_steps + 1)[1:]:
+        shape: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (s, positions, frames) of the last step
+        warm: np.ndarray | None = None
+        for depth in ends:
             new = (nodes > cut_to + 1e-9) & (nodes <= depth + 1e-9)
-            track[new] = tip + np.outer(nodes[new] - cut_to, tangent)  # new tissue, cut along the tip's tangent
+            ahead = nodes[new] - cut_to
+            # new tissue is cut along the path the tip follows: its tangent, turning as it did in the last step
+            track[new] = tip + np.outer(ahead, tangent) + 0.5 * np.outer(ahead**2, turn)
             cut_to = depth
             inside = nodes <= depth + 1e-9
-            s_in = nodes[inside]
+            held = stiffness[inside] > 0
+            window = depth
+            if self.window_winkler > 0 and np.any(held):
+                k_min = float(np.min(stiffness[inside][held]))
+                window = min(depth, distal_mm + self.window_winkler * (4 * tube_ei / k_min) ** 0.25)
+            base = depth - window
+            if shape is None or base <= 1e-9:
+                base, origin, rot = 0.0, np.zeros(3), np.eye(3)
+            else:
+                origin, rot = _pose_at(*shape, base)
+            s_in = nodes[inside & (nodes >= base - 1e-9)]
             if s_in[-1] < depth - 1e-9:
                 s_in = np.r_[s_in, depth]
+            if s_in[0] > base + 1e-9:
+                s_in = np.r_[base, s_in]
             k_in = np.interp(s_in, nodes, stiffness)
             tr_in = np.column_stack([np.interp(s_in, nodes, track[:, i]) for i in range(3)])
-            found = Foundation(s_in, k_in, tr_in, np.full(len(s_in), self.slip_mm))
+            found = Foundation(s_in - base, k_in, (tr_in - origin) @ rot, np.full(len(s_in), self.slip_mm))
             tension, roll = schedule.at(np.array([depth]))
             loads = Loads((float(tension[0]),) + (0.0,) * (design.n_tendons - 1), roll_deg=float(roll[0]),
-                          tip_force_n=tuple(-self.cut_force_n * tangent), foundation=found)
-            warm = None if path is None else path.base_unknowns
-            result = self.rod_model.solve(design, loads, warm, inserted_mm=float(depth))
-            if not result:
+                          tip_force_n=tuple(-self.cut_force_n * (rot.T @ tangent)), foundation=found)
+            result = self.rod_model.solve(design, loads, warm, inserted_mm=float(window))
+            if not isinstance(result, RodPath):
                 return FailedInsertion(self.info, f"at depth {depth:.1f} mm: {getattr(result, 'reason', '')}"), steps
-            path = result
+            warm = result.base_unknowns
+            s_new = result.s_mm + base
+            pos_new = result.positions_mm @ rot.T + origin
+            frames_new = np.einsum("ij,njk->nik", rot, result.frames)
+            if shape is not None and base > 0:  # the proximal part, held on its track, is kept
+                keep = shape[0] < base - 1e-9
+                s_new = np.r_[shape[0][keep], s_new]
+                pos_new = np.vstack([shape[1][keep], pos_new])
+                frames_new = np.concatenate([shape[2][keep], frames_new])
+            shape = (s_new, pos_new, frames_new)
             # the tissue gives way where the needle left its track by more than the slip offset
-            pos = np.column_stack([np.interp(nodes[inside], result.s_mm, result.positions_mm[:, i])  # type: ignore[union-attr]
-                                   for i in range(3)])
+            pos = np.column_stack([np.interp(nodes[inside], s_new, pos_new[:, i]) for i in range(3)])
             off = pos - track[inside]
             dist = np.linalg.norm(off, axis=1)
             far = dist > self.slip_mm
             if np.any(far):
                 idx = np.nonzero(inside)[0][far]
                 track[idx] += off[far] * (1.0 - self.slip_mm / dist[far])[:, None]
-            tip = result.positions_mm[-1]  # type: ignore[union-attr]
-            tangent = result.frames[-1][:, 2]  # type: ignore[union-attr]
+            h = depth - (steps[-1][0] if steps else 0.0)
+            new_tangent = frames_new[-1][:, 2]
+            turn = new_tangent - tangent
+            turn = (turn - np.dot(turn, new_tangent) * new_tangent) / h if self.arc_cut else np.zeros(3)
+            tip, tangent = pos_new[-1], new_tangent
             steps.append((float(depth), tip.copy()))
-        assert path is not None
-        return np.asarray(path.positions_mm), steps  # type: ignore[union-attr]
+        assert shape is not None
+        return shape[1], steps
+
+
+def _pose_at(s_mm: np.ndarray, positions_mm: np.ndarray, frames: np.ndarray,
+             at_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Position (3,) mm and orthonormal frame (3, 3) of a solved centreline at arc length ``at_mm``.
+
+    Linear between samples; the frame is re-orthonormalised (nearest rotation, by SVD).
+    """
+    i = int(np.clip(np.searchsorted(s_mm, at_mm) - 1, 0, len(s_mm) - 2))
+    w = (at_mm - s_mm[i]) / (s_mm[i + 1] - s_mm[i])
+    p = (1 - w) * positions_mm[i] + w * positions_mm[i + 1]
+    u, _, vt = np.linalg.svd((1 - w) * frames[i] + w * frames[i + 1])
+    return p, u @ vt
 
 
 TISSUE_ROD = TissueRodInsertion()
