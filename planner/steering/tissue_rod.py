@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -43,7 +44,7 @@ from reachplan.planner.steering.insertion import (
     TISSUE_POISSON,
     FailedInsertion,
     InsertionPath,
-    ModelInfo,
+    NamedInsertion,
     winkler_modulus_pa,
 )
 from reachplan.planner.steering.schedule import TensionSchedule
@@ -53,7 +54,7 @@ from reachplan.rod_model.result import RodPath
 
 
 @dataclass(frozen=True)
-class TissueRodInsertion:
+class TissueRodInsertion(NamedInsertion):
     """Quasi-static insertion of the Cosserat rod in an elastic, slipping medium (see the module docstring).
 
     Parameters
@@ -77,6 +78,7 @@ class TissueRodInsertion:
         Poisson's ratio of the medium.
     """
 
+    label: ClassVar[str] = "tissue_rod"
     tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
     rod_model: TwoTubeCosserat = field(default_factory=lambda: TwoTubeCosserat(steps_per_mm=2.0))
     step_mm: float = 2.0
@@ -91,16 +93,6 @@ class TissueRodInsertion:
         if not (self.tissue_modulus_pa >= 0 and self.step_mm > 0 and self.node_mm > 0 and self.slip_mm > 0
                 and self.cut_force_n >= 0):
             raise PlanInputError("tissue_rod: modulus and cut force must be >= 0, steps and slip > 0")
-
-    @property
-    def name(self) -> str:
-        """``"tissue_rod"``."""
-        return "tissue_rod"
-
-    @property
-    def info(self) -> ModelInfo:
-        """The model that produced a path: this model, its rod model and their settings."""
-        return ModelInfo.of(self.name, self, self.rod_model)
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
