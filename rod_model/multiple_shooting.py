@@ -14,6 +14,7 @@ single shooting (:func:`reachplan.rod_model._kernel.integrate_from`).
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -80,7 +81,7 @@ def _split(sec: np.ndarray, steps_per_mm: float, legs: int) -> list[tuple[np.nda
     """Cut the section table into ``legs`` equal lengths: (table, RK4 steps per row) per leg."""
     cuts = np.linspace(sec[0, 0], sec[-1, 1], legs + 1)
     out = []
-    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+    for a, b in itertools.pairwise(cuts):
         rows = sec[(sec[:, 1] > a + 1e-12) & (sec[:, 0] < b - 1e-12)].copy()
         rows[0, 0], rows[-1, 1] = a, b
         n = np.array([max(2, math.ceil((e - s) * 1e3 * steps_per_mm)) for s, e in rows[:, :2]], dtype=np.int64)
@@ -98,7 +99,7 @@ def _rotation(w: np.ndarray) -> np.ndarray:
 
 
 def _frame_along(t: np.ndarray) -> np.ndarray:
-    """The rotation taking ``e3`` to the unit vector ``t`` by the shortest arc (directors as columns)."""
+    """Return the rotation taking ``e3`` to the unit vector ``t`` by the shortest arc (directors as columns)."""
     e3 = np.array([0.0, 0.0, 1.0])
     axis = np.cross(e3, t)
     s = float(np.linalg.norm(axis))

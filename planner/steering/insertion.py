@@ -6,7 +6,9 @@ direction, roll 0 bends toward template ``+x``), millimetres:
 ``kinematic``
     Tip following. The tip advances along its tangent, which turns toward the bending direction (set by the
     roll) at the free-space curvature of the stylet's distal (joint) section under the current tension,
-    from a rod model, times a tissue factor. Cheap and vectorised over many schedules at once.
+    from a rod model, times the curvature factor of the tissue's modulus (:func:`curvature_factor`, fitted to
+    the in-tissue Cosserat insertion of :mod:`reachplan.planner.steering.tissue_rod`). Cheap and vectorised
+    over many schedules at once.
 ``tissue_beam``
     Reference quasi-static model. The stylet-in-needle rod (piecewise bending stiffness and the tendon's
     preferred curvature per section, both from the rod model's free-space solve at the current tension) is
@@ -204,7 +206,7 @@ class NamedInsertion:
     @property
     def info(self) -> ModelInfo:
         """The model that produced a path: this model, its rod model and their settings."""
-        return ModelInfo.of(self.label, self, cast(RodModel, getattr(self, "rod_model")))
+        return ModelInfo.of(self.label, self, cast(RodModel, self.rod_model))
 
 
 @dataclass(frozen=True, eq=False)
@@ -544,30 +546,6 @@ def _solve_foundation_beam(ei_nmm2: np.ndarray, k_n_per_mm2: np.ndarray | float,
     out = np.zeros((n, 2))
     out[1:] = solveh_banded(ab, rhs, lower=False, check_finite=False)
     return out
-
-
-def fit_tissue_factor(design: RodDesign, schedules: Sequence[TensionSchedule], depth_mm: float,
-                      reference: TissueBeamInsertion | None = None) -> tuple[float, np.ndarray]:
-    """Fit the kinematic model's tissue factor to the ``tissue_beam`` reference.
-
-    Returns
-    -------
-    factor : float
-        The factor minimising the RMS tip distance between the two models over ``schedules``.
-    tip_error_mm : (S,) float
-        Remaining tip distance per schedule at that factor, mm.
-    """
-    from scipy.optimize import minimize_scalar
-
-    ref = reference or TissueBeamInsertion()
-    ref_tips = np.array([ref.insert_one(design, sch, depth_mm)[-1] for sch in schedules])
-
-    def tips(f: float) -> np.ndarray:
-        return KinematicInsertion(tissue_factor=f).insert_array(design, schedules, depth_mm)[:, -1]
-
-    res = minimize_scalar(lambda f: float(np.mean(np.sum((tips(f) - ref_tips) ** 2, axis=1))),
-                          bounds=(0.05, 3.0), method="bounded", options={"xatol": 1e-4})
-    return float(res.x), np.linalg.norm(tips(float(res.x)) - ref_tips, axis=1)
 
 
 def _check_depth(design: RodDesign, depth_mm: float) -> None:

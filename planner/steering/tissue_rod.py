@@ -7,27 +7,48 @@ Model (template frame: entry at the origin, ``+z`` the insertion direction, roll
     section first) is solved as a Cosserat rod clamped at the template (:meth:`TwoTubeCosserat.solve` with
     ``inserted_mm``), tendon tension and roll from the schedule at that depth, held by a Winkler foundation:
     a force per length ``−k δ`` toward the tissue's rest position at the same arc length, ``δ`` the lateral
-    offset (:class:`reachplan.rod_model.design.Foundation`). The tissue ahead of the tip is cut along the tip's
-    tangent (tip following: the needle slides along its own track, the virtual-spring models of Glozman &
-    Shoham, IEEE T-RO 23(3), 2007, and Misra, Reed et al., IJRR 29(13), 2010). Nonlinear: the holding force
-    per length saturates at ``k · slip_mm``; where the needle moves further from its track, the track is moved
-    with it (the tissue gives way: plastic slip, kept for the later steps). The modulus may vary along the
-    track (per organ); ``k`` follows Vesic's formula (:func:`reachplan.planner.steering.insertion.winkler_modulus_pa`).
+    offset (:class:`reachplan.rod_model.design.Foundation`). The tissue ahead of the tip is cut along the path
+    the tip takes: its tangent, turning at the rate it turned in the last step (a second-order extrapolation;
+    cutting straight chords was first order and, in stiff tissue, made the joints look resisted). The needle
+    slides along its own track (the virtual-spring models of Glozman & Shoham, IEEE T-RO 23(3), 2007, and
+    Misra, Reed et al., IJRR 29(13), 2010). Nonlinear: the holding force per length saturates at
+    ``k · slip_mm``; where the needle moves further from its track, the track is moved with it (the tissue
+    gives way: plastic slip, kept for the later steps). The modulus may vary along the track (per organ);
+    ``k`` follows Vesic's formula (:func:`reachplan.planner.steering.insertion.winkler_modulus_pa`).
+Solver
+    Each step is a boundary-value problem of the two-tube rod. In stiff tissue single shooting breaks down
+    (the foundation's solutions grow as ``exp(∫β ds)``, ``β = (k / 4 EI)^(1/4)``): the rod model switches to
+    multiple shooting (:mod:`reachplan.rod_model.multiple_shooting`). Deep in stiff tissue only the distal
+    ``window_winkler`` Winkler lengths of the shaft (plus the joint section) are re-solved, clamped where the
+    previous step left the needle: a disturbance decays as ``exp(−s/λ)`` along a held shaft (at 3 MPa, 1.5 and 3
+    Winkler lengths give the same tip to 0.01 mm).
 Tip force
     An axial cutting force ``cut_force_n`` against the tip's previous tangent (a dead load updated each step;
     cutting plus friction forces of the order of 1 N, Okamura, Simone & O'Leary, IEEE TBME 51(10), 2004).
     ASSUMED default 0: no value is published for the phantom's gel, and with it the zero-modulus limit is the
     free-space shape. A symmetric tip has no lateral cutting force.
 
-What it shows (``reachplan bench models``, ``rod_models_tissue.csv``): the steered tip deflection is not
-monotonic in the modulus. From zero (the free-space shape of the inserted length: nothing holds the track)
-it *rises* as the tissue starts to hold the needle on the track its tip cut, so that the tip's heading
-accumulates (tip following, as the kinematic model assumes); past a peak between about 0.2 and 1 MPa (the
-phantom's gel is 0.19 MPa) it falls, because the tissue also resists the bending that the tendon drives near
-the tip: only the tip region within about a Winkler length ``(4 EI / k)^(1/4)`` still turns with the tension,
-and that length shrinks as ``k^(-1/4)``. Limits: single shooting over the whole inserted length; in the
-stiffest tissue (about 10 MPa) the solve fails past a few centimetres and says so (a FailedInsertion with the
-reason), it is not guessed.
+The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; tip deflection at a fixed depth)
+    Two mechanisms, both physical, so the tip deflection is *not* monotonic in the modulus:
+
+    1. *Holding* (rises with the modulus). At zero modulus the needle has the free-space shape of its inserted
+       length (test); a steered needle turns only as far as the tissue holds its shaft on the curved track its
+       tip cut. The shaft (stylet tube in needle, EI ≈ 7 mN·m²) is held once its Winkler length
+       ``(4 EI / k)^(1/4)`` is short against the depth: about 115 mm at 1 kPa, 60 mm at 10 kPa, 33 mm at
+       0.1 MPa. 15ga-20j-tip pulled at 10 N from the template, tip at 120 mm: 4.98 mm at 0, 5.8 mm at 1 kPa,
+       11.4 mm at 10 kPa, 26.3 mm at 0.1 MPa, 29.6 mm at 0.19 MPa. Bevel-tip needles show the same
+       (curvature rises with tissue stiffness, Misra et al. 2010).
+    2. *Resisting* (falls with the modulus). A tendon pulled while the joints are embedded bends them only
+       within about their own Winkler length of the tip, which shrinks as ``k^(-1/4)``; with the tendon pulled
+       before the joints enter, nothing resists them (the tip cuts its own curved track: at 30 mm the tip is
+       the free-space one at every modulus, test). 15ga-30j-tip, 20 mm ramp at 40 mm to 10 N, tip at 140 mm:
+       26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa, falling toward pure tip
+       following at the free-space curvature (18.6 mm).
+
+    The peak lies between 10 kPa and 1 MPa depending on the schedule. The monotonic quantity the planner needs
+    is the kinematic model's curvature factor over the tip-following range (>= 0.1 MPa), where the holding
+    is complete and only the resisting mechanism acts: :func:`~reachplan.planner.steering.insertion.curvature_factor`,
+    decreasing from 1.33 at 0.1 MPa to 1 in rigid tissue.
 """
 
 from __future__ import annotations
@@ -65,9 +86,8 @@ class TissueRodInsertion(NamedInsertion):
         The rod model solving each step (its ``inserted_mm`` and foundation support); 2 RK4 steps per mm by
         default: the default 0.5 fails its own step-doubling check in tissue of 0.19 MPa and stiffer.
     step_mm : float
-        Insertion step, mm. The track is cut in straight chords along the tip's tangent, so the result
-        converges at first order in the step: at 0.19 MPa, 120 mm deep, 5 / 2.5 / 1.25 mm steps give 28.87 /
-        30.60 / 31.20 mm of tip deflection (Richardson estimate 31.5 mm); the default 2 mm is within about 1 mm.
+        Insertion step, mm (every step end is a node of the track). At 0.19 MPa, 15ga-20j-tip pulled from the
+        template, tip at 60 mm: 4 / 2 / 1 mm steps give 7.32 / 7.30 / 7.28 mm.
     node_mm : float
         Spacing of the foundation's nodes along the track, mm.
     slip_mm : float
@@ -76,6 +96,12 @@ class TissueRodInsertion(NamedInsertion):
         Axial cutting force at the tip, N (ASSUMED 0).
     poisson : float
         Poisson's ratio of the medium.
+    arc_cut : bool
+        Cut new tissue along the tip's turning path (default) instead of a straight chord along its tangent.
+    window_winkler : float
+        Re-solve only the joint section plus this many of the shaft's Winkler lengths behind it (the softest
+        tissue inside sets the length), clamped where the last step left the needle; 0: always the whole
+        inserted length.
     """
 
     label: ClassVar[str] = "tissue_rod"
