@@ -86,6 +86,8 @@ FRICTION_PARAMETERS = ("tendon_friction_coefficient", "joint_friction_coefficien
 class CalibrationResult:
     """Fitted parameters and the row-by-row fit.
 
+    What :func:`calibrate` returns; :func:`every_published_row` adds the rows kept aside.
+
     Parameters
     ----------
     calibration : Calibration

@@ -242,10 +242,8 @@ class _ShootingModel:
 
         Parameters
         ----------
-        design : RodDesign
-            The stylet in its needle.
-        loads : Loads
-            One tension per tendon (N), roll, and external loads in the needle's base frame.
+        design, loads : RodDesign, Loads
+            As in :meth:`reachplan.rod_model.protocol.RodModel.solve`.
         initial_guess : (8,) float or None
             Base unknowns ``N(0)`` (N, world), ``M(0)`` (N·m, world), ``n2z(0)`` (N), ``m2z(0)`` (N·m);
             default :func:`linear_guess` (exact in free space).
@@ -361,7 +359,7 @@ class _ShootingModel:
                                "raise steps_per_mm", ms.residual_n, elapsed, loads.tensions_n, loads.roll_deg)
         if any(any(v) for v in (loads.tip_force_n, loads.tip_moment_nm)):
             nsteps = _steps(sec, self.steps_per_mm)
-            at_mm = conjugate_point(ms.x, sec, nsteps, *args[2:5], self.coupled)
+            at_mm = conjugate_point(ms.x, sec, nsteps, args[2], args[3], args[4], self.coupled)
             if at_mm is not None:
                 return FailedSolve(self.name, f"unstable equilibrium: conjugate point at s = {at_mm:.1f} mm "
                                    "(multiple shooting)", ms.residual_n, elapsed, loads.tensions_n, loads.roll_deg)

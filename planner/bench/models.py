@@ -45,7 +45,7 @@ import sys
 import time
 import tracemalloc
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -522,7 +522,7 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
 
 def tissue_figure(points: list[TissuePoint]) -> Figure:
     """Tip deflection against modulus per schedule at the deepest depth (left); the curvature factor (right)."""
-    fig = Figure(figsize=(12, 5))
+    fig = Figure(figsize=(12, 5), layout="tight")
     a1, a2 = fig.subplots(1, 2)
     moduli = sorted({p.modulus_pa for p in points})
     deepest = max(p.depth_mm for p in points)
@@ -530,23 +530,18 @@ def tissue_figure(points: list[TissuePoint]) -> Figure:
         pts = sorted((p for p in points if p.schedule == label and p.depth_mm == deepest), key=lambda p: p.modulus_pa)
         a1.plot([p.modulus_pa for p in pts], [p.tissue_rod_mm for p in pts], "o-", ms=4, label=label)
     a1.axvline(TIP_FOLLOWING_MIN_PA, color="k", ls=":", lw=1)
-    a1.set_xscale("log")
-    a1.set_xlabel("tissue Young's modulus (Pa, log)")
     a1.set_ylabel(f"lateral tip deflection at {deepest:.0f} mm (mm)")
     a1.set_title("15ga-30j-tip, in-tissue Cosserat rod: holding (rises) then resisting (falls)", fontsize=9)
-    a1.grid(True, which="both", alpha=0.3)
-    a1.legend(fontsize=7)
     fac = [next(p.factor for p in points if p.modulus_pa == e) for e in moduli]
     a2.plot(moduli, fac, "s", label="fitted to the rod (all schedules, depths)")
     grid = np.geomspace(TIP_FOLLOWING_MIN_PA, max([*moduli, 1e7]), 100)
     a2.plot(grid, [curvature_factor(float(e)) for e in grid], "-", label="curvature_factor(E)")
     a2.axvspan(min(moduli), TIP_FOLLOWING_MIN_PA, color="0.9", label="below the tip-following range")
-    a2.set_xscale("log")
-    a2.set_xlabel("tissue Young's modulus (Pa, log)")
     a2.set_ylabel("kinematic curvature factor")
-    a2.grid(True, which="both", alpha=0.3)
-    a2.legend(fontsize=7)
-    fig.tight_layout()
+    for ax in (a1, a2):
+        ax.set(xscale="log", xlabel="tissue Young's modulus (Pa, log)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
     return fig
 
 
@@ -639,7 +634,7 @@ def error_table(rows: list[Row]) -> dict[str, object]:
 
 
 def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], friction_rows: list[Row],
-                  honest: list[HonestyCase], tissue_points: list[TissuePoint], tissue_rows: list[Row] = ()) -> None:
+                  honest: list[HonestyCase], tissue_points: list[TissuePoint], tissue_rows: Sequence[Row] = ()) -> None:
     """Write the tables, the charts and the error table under ``out``.
 
     ``rod_models.csv`` (:data:`ROW_COLUMNS`), ``rod_models_stability.csv`` (:data:`STABILITY_COLUMNS`), their

@@ -53,23 +53,24 @@ TISSUE_POISSON = 0.49
 #: cut (the tube's Winkler length (4 EI / k)^(1/4) exceeds ~35 mm) and one curvature factor cannot describe the
 #: in-tissue rod (its fit error rises from 1.4 mm RMS at 0.1 MPa to 3.8 mm at 10 kPa; ``reachplan bench models``).
 TIP_FOLLOWING_MIN_PA = 1e5
-#: Fitted constants of :func:`curvature_factor` (amplitude, modulus scale in Pa, exponent).
-CURVATURE_FACTOR_FIT = (0.8713, 3.906e4, 0.4887)
+#: Fitted constants of :func:`curvature_factor`: amplitude at 1 MPa and exponent.
+CURVATURE_FACTOR_FIT = (0.1500, 0.3545)
 
 
 def curvature_factor(modulus_pa: float) -> float:
     """Return the kinematic model's curvature factor for tissue of Young's modulus ``modulus_pa`` (Pa).
 
-    ``c(E) = 1 + a / (1 + (E / E0)^p)`` with :data:`CURVATURE_FACTOR_FIT`, least squares on the factors fitted to
-    the in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`, ``reachplan bench models``,
-    ``rod_models_tissue.csv``): 15ga-30j-tip, ramps of 20 mm from 0 / 20 / 40 / 60 mm onset to 60 / 100 % of the
-    maximum tension, tips at 60-150 mm, moduli 0.1 / 0.19 / 1 / 3 / 10 MPa. It decreases monotonically to 1:
-    in stiff tissue the joint section bends only where it cuts new track, so the path takes the joint
-    section's free-space curvature (tip following, Webster et al., IJRR 25(5-6), 2006); in softer tissue a
-    tendon pulled while the joints are embedded also bends them within about a Winkler length of the tip,
-    ``(4 EI / k)^(1/4)`` (Hetényi, *Beams on Elastic Foundation*, 1946), which grows as the modulus falls, and
-    that extra turn is kept because the tissue holds the track (Glozman & Shoham, IEEE T-RO 23(3), 2007).
-    Checked against the rod at 0.5 MPa, not used in the fit (1.185 from the rod, 1.195 from ``c``).
+    ``c(E) = 1 + a (E / 1 MPa)^(−p)``, ``a = 0.150``, ``p = 0.354`` (:data:`CURVATURE_FACTOR_FIT`): least squares
+    on the factors fitted to the in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`;
+    ``reachplan bench models``, ``rod_models_tissue.csv``) of 15ga-30j-tip under ramps of 20 mm from 0 / 20 /
+    40 / 60 mm onset to 60 / 100 % of the maximum tension, tips at 60-150 mm: 1.334 / 1.283 / 1.137 / 1.101 /
+    1.075 at 0.1 / 0.19 / 1 / 3 / 10 MPa (residuals within 0.013). Held out: 0.5 MPa, 1.185 from the rod,
+    1.192 from ``c`` (test). It decreases monotonically to 1. In rigid tissue the joint section bends only as
+    it cuts new track, so the path takes the joint section's free-space curvature (tip following; Webster et
+    al., IJRR 25(5-6), 2006). In softer tissue a tendon pulled while the joints are embedded also bends them
+    within about a Winkler length of the tip, ``(4 EI / k)^(1/4)`` (Hetényi, *Beams on Elastic Foundation*,
+    1946), and the held track keeps that extra turn (Glozman & Shoham, IEEE T-RO 23(3), 2007). That length
+    scales as ``E^(−13/48) ≈ E^(−0.27)`` with Vesic's ``k``: the fitted exponent 0.35 is of that order.
 
     Raises
     ------
@@ -80,8 +81,8 @@ def curvature_factor(modulus_pa: float) -> float:
         raise PlanInputError(f"tissue modulus {modulus_pa:g} Pa is below the tip-following range (>= "
                              f"{TIP_FOLLOWING_MIN_PA:g} Pa): the tissue does not hold the needle on its track; "
                              "give a tissue_factor or use the tissue_rod insertion model")
-    a, e0, p = CURVATURE_FACTOR_FIT
-    return 1.0 + a / (1.0 + (modulus_pa / e0) ** p)
+    a, p = CURVATURE_FACTOR_FIT
+    return 1.0 + a * (modulus_pa / 1e6) ** -p
 
 
 #: One model setting: (name with its unit, value).
@@ -197,6 +198,7 @@ class NamedInsertion:
     """Base of the built-in insertion models: the registered name (class constant ``label``) and :attr:`info`."""
 
     label: ClassVar[str] = ""
+    rod_model: RodModel  # a field of every subclass
 
     @property
     def name(self) -> str:
@@ -206,7 +208,7 @@ class NamedInsertion:
     @property
     def info(self) -> ModelInfo:
         """The model that produced a path: this model, its rod model and their settings."""
-        return ModelInfo.of(self.label, self, cast(RodModel, self.rod_model))
+        return ModelInfo.of(self.label, self, self.rod_model)
 
 
 @dataclass(frozen=True, eq=False)

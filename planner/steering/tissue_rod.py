@@ -48,7 +48,7 @@ The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; t
     The peak lies between 10 kPa and 1 MPa depending on the schedule. The monotonic quantity the planner needs
     is the kinematic model's curvature factor over the tip-following range (>= 0.1 MPa), where the holding
     is complete and only the resisting mechanism acts: :func:`~reachplan.planner.steering.insertion.curvature_factor`,
-    decreasing from 1.33 at 0.1 MPa to 1 in rigid tissue.
+    decreasing from 1.34 at 0.1 MPa (1.27 in the gel) to 1 in rigid tissue.
 """
 
 from __future__ import annotations
