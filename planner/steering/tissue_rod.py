@@ -41,7 +41,7 @@ The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; t
     2. *Resisting* (falls with the modulus). A tendon pulled while the joints are embedded bends them only
        within about their own Winkler length of the tip, which shrinks as ``k^(-1/4)``; with the tendon pulled
        before the joints enter, nothing resists them (the tip cuts its own curved track: at 30 mm the tip is
-       the free-space one at every modulus, test). 15ga-30j-tip, 20 mm ramp at 40 mm to 10 N, tip at 140 mm:
+       the free-space one at every modulus, test). 15ga-30j-tip, 5 mm ramp at 40 mm to 10 N, tip at 140 mm:
        26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa, falling toward pure tip
        following at the free-space curvature (18.6 mm).
 
