@@ -68,9 +68,9 @@ from reachplan.rod_model.kinematic import CONSTANT_CURVATURE, ConstantCurvature
 from reachplan.rod_model.protocol import RodModel
 from reachplan.rod_model.result import FailedSolve, RodPath
 
-INSTALLS = {"model_errors.json": "rod_model/model_errors.json", "rod_models_pareto.png": "docs/rod_models_pareto.png",
-            "rod_models_stability.png": "docs/rod_models_stability.png", "rod_models.csv": "docs/rod_models.csv",
-            "rod_models_tissue.csv": "docs/rod_models_tissue.csv", "rod_models_tissue.png": "docs/rod_models_tissue.png"}
+INSTALLS = {"model_errors.json": "rod_model/model_errors.json",
+            **{name: f"docs/{name}" for name in ("rod_models_pareto.png", "rod_models_stability.png", "rod_models.csv",
+                                                 "rod_models_tissue.csv", "rod_models_tissue.png")}}
 ROW_COLUMNS = ("model", "resolution", "median_ms", "max_tip_error_mm", "median_tip_error_mm", "success_rate",
                "batched_solves_per_s", "batched_peak_mb")
 STABILITY_COLUMNS = ("solver", "placement", "tension_n", "guess", "success", "residual_n", "ms", "reason")
