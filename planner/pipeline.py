@@ -27,7 +27,13 @@ from reachplan.planner.geometry.organs import check_unique, has_closed, roi_poin
 from reachplan.planner.geometry.template import TemplatePose, hole_frames, pose_from_obturator
 from reachplan.planner.ranking import RankWeights, pareto_front, rank
 from reachplan.planner.steering.candidates import Candidate, Target, mark_failed, score_path, straight_candidates
-from reachplan.planner.steering.insertion import KINEMATIC, TISSUE_BEAM, KinematicInsertion, TissueBeamInsertion
+from reachplan.planner.steering.insertion import (
+    KINEMATIC,
+    SIMUGEL_MODULUS_PA,
+    TISSUE_BEAM,
+    KinematicInsertion,
+    TissueBeamInsertion,
+)
 from reachplan.planner.steering.robustness import Perturbations, assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ScheduleFamily, match_targets, place, refine_with, shape_bank
@@ -71,8 +77,11 @@ class PlanConfig:
     curvatures); the others keep the screening model's numbers, and every candidate names its model.
     ``robust_top``: feasible straight and steered candidates per target assessed under ``perturbations``
     (tension, roll and entry-angle errors); the ranking prefers robust ones among them.
-    ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa) for the reference insertion
-    model, e.g. ``(("Uterus", 0.5e6),)``; tissue outside the named organs keeps the gel's 0.19 MPa.
+    ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa), e.g. ``(("Uterus", 0.5e6),)``;
+    tissue outside the named organs keeps the gel's 0.19 MPa (the reference's only modulus). The organ holding
+    a target sets the screening and robustness models' curvature factor
+    (:func:`~reachplan.planner.steering.insertion.curvature_factor`); the reference model takes the modulus
+    along the path.
     ``screen_tolerance_mm``: the screening uses the cheapest rod model (by batched throughput) whose
     measured free-space tip error (the rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
     """
@@ -311,11 +320,29 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
                                        config.needle_radius_mm, config.reach_tolerance_mm, config.max_depth_mm)
         cands += straight
         clear = {c.hole_id for c in straight if c.feasible}  # a steered needle from these holes adds nothing
+        # the tissue the target lies in (where the needle bends) sets the screening model's curvature factor
+        screening = dataclasses.replace(models.screening, tissue_modulus_pa=target_modulus_pa(scene, target, config))
         for design in designs:
-            steered = steered_candidates(scene, target, design, config, skip=clear, model=models.screening)
+            steered = steered_candidates(scene, target, design, config, skip=clear, model=screening)
             cands += refine_shortlist(scene, target, design, steered, config, models.reference)
     cands = assess_shortlist(scene, cands, config, models.robustness)
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
+
+
+def target_modulus_pa(scene: Scene, target: Target, config: PlanConfig) -> float:
+    """Return the Young's modulus (Pa) of the tissue a target lies in.
+
+    The first organ of ``config.tissue_moduli_pa`` whose mesh contains the target, else the phantom's gel
+    (SimuGel #3, 0.19 MPa, reference ``oncoreach.md``: the only tissue modulus the reference gives).
+
+    Raises
+    ------
+    PlanInputError
+        When a named organ has no mesh in the scene, or a modulus is not positive.
+    """
+    point = np.asarray(target.position_mm, dtype=float)[None, :]
+    profile = modulus_profile(scene, point, config.tissue_moduli_pa, SIMUGEL_MODULUS_PA)
+    return SIMUGEL_MODULUS_PA if profile is None else float(profile[1][0])
 
 
 def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, float], ...],
@@ -359,6 +386,7 @@ def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig,
     targets = {t.name: t for t in scene.targets}
     chosen: dict[int, Candidate] = {}
     for name, ranked in rank(cands, config.weights).items():
+        model = dataclasses.replace(model, tissue_modulus_pa=target_modulus_pa(scene, targets[name], config))
         for steered in (False, True):
             for c in [c for c in ranked if c.feasible and c.steered == steered][: config.robust_top]:
                 radius = c.design.needle.outer_diameter_mm / 2 if c.design else config.needle_radius_mm

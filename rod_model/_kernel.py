@@ -242,6 +242,13 @@ def integrate(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarr
     y[19] = x[6]
     y[20] = x[7]
     y[22] = sec[0, 0]
+    return integrate_from(y, sec, nsteps, rdir, lam, fext, coupled, traj, record)
+
+
+@_jit
+def integrate_from(y: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, lam: np.ndarray,
+                   fext: np.ndarray, coupled: bool, traj: np.ndarray, record: bool) -> np.ndarray:
+    """RK4 over ``sec`` from the full state ``y`` (23,), updated in place and returned (a multiple-shooting leg)."""
     k1 = np.empty(NSTATE)
     k2 = np.empty(NSTATE)
     k3 = np.empty(NSTATE)
@@ -359,8 +366,9 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
     n = 6 if coupled else NX
     length = sec[sec.shape[0] - 1, 1]
     nsteps_j = np.empty_like(nsteps)
+    coarsen = 1 if fext.shape[0] > 3 else 4  # an elastic foundation: its Jacobian needs the full grid
     for i in range(nsteps.shape[0]):
-        nsteps_j[i] = max(2, (nsteps[i] + 3) // 4)
+        nsteps_j[i] = max(2, (nsteps[i] + coarsen - 1) // coarsen)
     r = np.empty(NX)
     rt = np.empty(NX)
     jac = np.zeros((NX, NX))

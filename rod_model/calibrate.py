@@ -51,11 +51,12 @@ from reachplan.rod_model.protocol import RodModel
 
 @dataclass(frozen=True)
 class CalibrationRow:
-    """One measurement: a preset, the tension on tendon 0 (N) and the measured tip deflection (mm)."""
+    """One measurement: a preset, the tension on tendon 0 (N), the measured tip deflection (mm), where it is from."""
 
     preset: str
     tension_n: float
     tip_deflection_mm: float
+    source: str = "reference/oncoreach.md, table 'Measured free-space tip deflection (calibration subset)'"
 
 
 #: The calibration subset of the reference (see the module docstring for the citation).
@@ -64,12 +65,18 @@ CALIBRATION_ROWS: tuple[CalibrationRow, ...] = (
     CalibrationRow("13ga-20j-tip", 14.0, 6.49),
     CalibrationRow("15ga-20j-base", 9.9, 29.40),
 )
-#: Published rows kept aside for validation, never fitted (Kheradmand, Yamamoto et al., free space, 15 ga at
-#: 9.9 N, as quoted by the project's issue 15: 15ga-30j-tip 11.05 mm, the pilot-study design; the joint-count
-#: trend 15 -> 20 joints +0.98 mm gives 15ga-15j-tip 9.87 - 0.98 = 8.89 mm).
+#: Rows kept aside for validation, never fitted. Checked against ``reference/oncoreach.md``: neither row is
+#: there (its measured table holds the three calibration rows only; for the joint counts it gives the model's
+#: errors, 1.74 / 2.2 / 2.33 mm for 15 / 20 / 30 joints, not the measured deflections). Both come from the text
+#: of issue 15 (an independent review of the paper): "15ga-30j-tip ... 11.05 mm measured at 9.9 N" and the
+#: joint-count trend "15 → 20 → 30 joints: +0.98 mm, +1.18 mm", consistent with each other through the
+#: reference's 15ga-20j-tip row (9.87 + 1.18 = 11.05 mm); 15ga-15j-tip is derived, 9.87 − 0.98 = 8.89 mm.
+#: Their values are unchanged; they stay unverified against the paper until its table is in the reference.
 VALIDATION_ROWS: tuple[CalibrationRow, ...] = (
-    CalibrationRow("15ga-15j-tip", 9.9, 8.89),
-    CalibrationRow("15ga-30j-tip", 9.9, 11.05),
+    CalibrationRow("15ga-15j-tip", 9.9, 8.89, "issue 15 text: 15ga-20j-tip 9.87 mm minus the stated +0.98 mm "
+                   "from 15 to 20 joints (not in oncoreach.md)"),
+    CalibrationRow("15ga-30j-tip", 9.9, 11.05, "issue 15 text: '15ga-30j-tip ... 11.05 mm measured at 9.9 N' "
+                   "(not in oncoreach.md)"),
 )
 #: Friction parameters :func:`calibrate` can fit besides the two stiffness/arm parameters.
 FRICTION_PARAMETERS = ("tendon_friction_coefficient", "joint_friction_coefficient")
@@ -78,6 +85,8 @@ FRICTION_PARAMETERS = ("tendon_friction_coefficient", "joint_friction_coefficien
 @dataclass(frozen=True)
 class CalibrationResult:
     """Fitted parameters and the row-by-row fit.
+
+    What :func:`calibrate` returns; :func:`every_published_row` adds the rows kept aside.
 
     Parameters
     ----------

@@ -91,6 +91,8 @@ def _block_rhs(y: np.ndarray, sec: np.ndarray, r: np.ndarray, lam: np.ndarray, f
 class CollocationCosserat:
     """The Cosserat BVP by collocation (``scipy.integrate.solve_bvp``).
 
+    An independent cross-check of the shooting models (another discretisation and solver), slow.
+
     Parameters
     ----------
     coupled : bool
@@ -120,10 +122,8 @@ class CollocationCosserat:
 
         Parameters
         ----------
-        design : RodDesign
-            The stylet in its needle.
-        loads : Loads
-            One tension per tendon (N), roll, and external loads in the needle's base frame.
+        design, loads : RodDesign, Loads
+            As in :meth:`reachplan.rod_model.protocol.RodModel.solve`.
         initial_guess : (21 k, n_mesh) float, optional
             States of the k section blocks on a common mesh in ``τ ∈ [0, 1]`` (mm, N, N·mm); for the stability
             map only (default: the straight, unloaded rod).

@@ -46,7 +46,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from reachplan.rod_model import _kernel
+from reachplan.rod_model import _kernel, multiple_shooting
 from reachplan.rod_model.design import Loads, RodDesign, TensionHistory
 from reachplan.rod_model.protocol import Capabilities, check_loads
 from reachplan.rod_model.result import FailedSolve, RodBatch, RodPath, turn_per_length
@@ -242,10 +242,8 @@ class _ShootingModel:
 
         Parameters
         ----------
-        design : RodDesign
-            The stylet in its needle.
-        loads : Loads
-            One tension per tendon (N), roll, and external loads in the needle's base frame.
+        design, loads : RodDesign, Loads
+            As in :meth:`reachplan.rod_model.protocol.RodModel.solve`.
         initial_guess : (8,) float or None
             Base unknowns ``N(0)`` (N, world), ``M(0)`` (N·m, world), ``n2z(0)`` (N), ``m2z(0)`` (N·m);
             default :func:`linear_guess` (exact in free space).
@@ -294,11 +292,15 @@ class _ShootingModel:
         # a caller's initial guess (a warm start) is tried first, then continuation from zero
         first = EXTERNAL_FIRST_RAMP if loads.has_external and continuation and initial_guess is None else 1
         unstable = ""
+        if loads.foundation is not None and multiple_shooting.growth(sec, fext) > multiple_shooting.SINGLE_GROWTH:
+            return self._solve_multiple(design, loads, x0, sec, args, t0)
         while True:
             x = x0.copy()
             status, res, iters, ramp = _kernel.shoot(x, *args, self.coupled, self.tol, self.max_iter,
                                                      cap if continuation else 1, traj, first, predictor)
             ms = (time.perf_counter() - t0) * 1e3
+            if status != _kernel.OK and loads.foundation is not None:
+                return self._solve_multiple(design, loads, x0, sec, args, t0)
             if status != _kernel.OK:
                 why = {_kernel.SINGULAR: "singular shooting Jacobian", _kernel.NON_FINITE: "non-finite state"}
                 reason = (f"{why.get(status, 'shooting did not converge')}: tip residual {res:.2e} N after {iters} "
@@ -331,6 +333,40 @@ class _ShootingModel:
         frames = traj[:, 3:12].reshape(-1, 3, 3)
         return RodPath(self.name, s, traj[:, 0:3] * 1e3, frames, float(res), ms, int(iters), loads.tensions_n,
                        loads.roll_deg, None if self.coupled else traj[:, 18], x.copy())
+
+    def _solve_multiple(self, design: RodDesign, loads: Loads, x0: np.ndarray, sec: np.ndarray,
+                        args: tuple[np.ndarray, ...], t0: float) -> RodPath | FailedSolve:
+        """Solve on an elastic foundation by multiple shooting (:mod:`reachplan.rod_model.multiple_shooting`).
+
+        The checks are those of single shooting: the residual, each leg's step-doubling error and the frames'
+        orthonormality. The equilibrium is stable without a conjugate-point test when the foundation is the
+        only external load: its second variation is the free rod's under tendon loads (never degenerate) plus
+        the foundation's, which is non-negative; with a tip force as well the conjugate-point test runs.
+        """
+        ms = multiple_shooting.solve(x0, sec, self.steps_per_mm, args[2], args[3], args[4], args[5], args[6],
+                                     self.coupled, self.tol)
+        elapsed = (time.perf_counter() - t0) * 1e3
+        if ms.status != _kernel.OK:
+            return FailedSolve(self.name, f"multiple shooting ({ms.legs} legs) did not converge: residual "
+                               f"{ms.residual_n:.2e} N after {ms.iterations} Newton iterations", ms.residual_n,
+                               elapsed, loads.tensions_n, loads.roll_deg)
+        r = ms.traj[:, 3:12].reshape(-1, 3, 3)
+        frame_err = float(np.max(np.abs(np.einsum("nki,nkj->nij", r, r) - np.eye(3))))
+        if not (ms.step_error_mm <= self.max_step_error_mm and frame_err <= self.max_frame_error):
+            return FailedSolve(self.name, f"integration error (multiple shooting): a leg's end moves "
+                               f"{ms.step_error_mm:.2e} mm when the RK4 step is halved (limit "
+                               f"{self.max_step_error_mm:g} mm), frames off orthonormal by {frame_err:.1e}; "
+                               "raise steps_per_mm", ms.residual_n, elapsed, loads.tensions_n, loads.roll_deg)
+        if any(any(v) for v in (loads.tip_force_n, loads.tip_moment_nm)):
+            nsteps = _steps(sec, self.steps_per_mm)
+            at_mm = conjugate_point(ms.x, sec, nsteps, args[2], args[3], args[4], self.coupled)
+            if at_mm is not None:
+                return FailedSolve(self.name, f"unstable equilibrium: conjugate point at s = {at_mm:.1f} mm "
+                                   "(multiple shooting)", ms.residual_n, elapsed, loads.tensions_n, loads.roll_deg)
+        frames = ms.traj[:, 3:12].reshape(-1, 3, 3)
+        return RodPath(self.name, (ms.s_m - sec[0, 0]) * 1e3, ms.traj[:, 0:3] * 1e3, frames, ms.residual_n,
+                       (time.perf_counter() - t0) * 1e3, ms.iterations, loads.tensions_n, loads.roll_deg,
+                       None if self.coupled else ms.traj[:, 18], ms.x.copy())
 
     def solve_batch(self, design: RodDesign, tensions_n: np.ndarray, roll_deg: float = 0.0) -> RodBatch:
         """Solve free-space pulls of tendon 0 with each of ``tensions_n`` (b,), N (compiled loop).

@@ -36,6 +36,12 @@ _GAUGE_STIFFNESS_FACTOR: dict[int, float] = {15: 1.0, 13: 4.47}
 _MAX_TENSION_N: dict[int, float] = {15: 10.0, 13: 14.0}
 
 
+def _check_gauge(part: str, gauge: int) -> None:
+    """Raise ``ValueError`` unless ``gauge`` is a built one (13 or 15)."""
+    if gauge not in (13, 15):
+        raise ValueError(f"{part} gauge must be 13 or 15, got {gauge}")
+
+
 @dataclass(frozen=True)
 class Calibration:
     """The two global, physical parameters fitted by :func:`reachplan.rod_model.calibrate.calibrate`.
@@ -73,6 +79,8 @@ class Calibration:
 class NeedleSpec:
     """The plastic interstitial needle (tube 2 of the two-tube model).
 
+    Lengths in mm, moduli in Pa, as in the reference.
+
     Parameters
     ----------
     gauge : int
@@ -99,8 +107,7 @@ class NeedleSpec:
     density_kg_m3: float = 1410.0
 
     def __post_init__(self) -> None:
-        if self.gauge not in (13, 15):
-            raise ValueError(f"needle gauge must be 13 or 15, got {self.gauge}")
+        _check_gauge("needle", self.gauge)
         if not (0.0 < self.inner_diameter_mm < self.outer_diameter_mm):
             raise ValueError("needle diameters must satisfy 0 < inner_diameter_mm < outer_diameter_mm")
         if self.young_modulus_pa <= 0 or self.shear_modulus_pa <= 0 or self.density_kg_m3 <= 0:
@@ -203,8 +210,7 @@ class StyletDesign:
     ball_diameter_mm: float = 0.8
 
     def __post_init__(self) -> None:
-        if self.gauge not in (13, 15):
-            raise ValueError(f"stylet gauge must be 13 or 15, got {self.gauge}")
+        _check_gauge("stylet", self.gauge)
         if not (0.0 <= self.tendon_friction_coefficient <= 2.0 and 0.0 <= self.joint_friction_coefficient <= 2.0):
             raise ValueError("friction coefficients must be in [0, 2]")
         if not (0.0 < self.ball_diameter_mm < self.disk_diameter_mm):
@@ -350,6 +356,8 @@ class Section:
 @dataclass(frozen=True)
 class RodDesign:
     """A stylet in a needle: what every rod model solves.
+
+    Frozen and hashable: the planner caches curvature tables and shape banks per design.
 
     Parameters
     ----------

@@ -117,6 +117,8 @@ class RodPath:
 class FailedSolve:
     """A solve that did not converge: falsy, with the reason (never a plausible wrong shape).
 
+    Returned, never raised: a batch or an insertion goes on and reports which solve failed.
+
     Parameters
     ----------
     model : str

@@ -70,6 +70,8 @@ class Scene:
 class ErrorRow:
     """One row of the benchmark's error table.
 
+    Read from the package data ``model_errors.json`` that ``reachplan bench models --install`` writes.
+
     Parameters
     ----------
     model : str

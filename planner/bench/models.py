@@ -21,10 +21,12 @@ Honesty
     tension (used to blow up to 7e18 mm "converged"): what the solver returns now, with its reason
     (``rod_models_honesty.csv``).
 In tissue
-    The in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`) of 15ga-20j-tip at its
-    maximum tension from the template, tip deflection against the tissue modulus (1 kPa - 10 MPa) and depth,
-    beside the kinematic model; the kinematic model's curvature factor fitted per modulus (least squares on
-    the lateral tip over the depths), ``rod_models_tissue.csv`` / ``.png``.
+    The in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`) of 15ga-30j-tip under the
+    planner's ramps (20 mm from 0 / 20 / 40 / 60 mm onset to 60 / 100 % of the maximum tension), tip deflection
+    against the tissue modulus (1 kPa - 10 MPa) and depth; the kinematic model's curvature factor fitted per
+    modulus beside :func:`~reachplan.planner.steering.insertion.curvature_factor`
+    (``rod_models_tissue.csv`` / ``.png``); the kinematic model with that function and the rod itself enter the
+    speed/accuracy chart (time per insertion; tip error against the rod, and the rod's 2 mm step against 1 mm).
 Stability map
     Each solver (shooting without continuation, shooting with continuation, collocation) on tension ×
     placement × initial guess (zero, small, large), with an out-of-plane tip force so that the boundary-value
@@ -43,7 +45,7 @@ import sys
 import time
 import tracemalloc
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -53,7 +55,7 @@ from matplotlib.figure import Figure
 from scipy.optimize import minimize_scalar
 
 from reachplan.planner.bench.common import BenchError, settings, write_csv, write_json, write_png
-from reachplan.planner.steering.insertion import KinematicInsertion
+from reachplan.planner.steering.insertion import TIP_FOLLOWING_MIN_PA, KinematicInsertion, curvature_factor
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 from reachplan.rod_model.beam import PLANAR_BEAM, PlanarBeam
@@ -66,15 +68,16 @@ from reachplan.rod_model.kinematic import CONSTANT_CURVATURE, ConstantCurvature
 from reachplan.rod_model.protocol import RodModel
 from reachplan.rod_model.result import FailedSolve, RodPath
 
-INSTALLS = {"model_errors.json": "rod_model/model_errors.json", "rod_models_pareto.png": "docs/rod_models_pareto.png",
-            "rod_models_stability.png": "docs/rod_models_stability.png"}
+INSTALLS = {"model_errors.json": "rod_model/model_errors.json",
+            **{name: f"docs/{name}" for name in ("rod_models_pareto.png", "rod_models_stability.png", "rod_models.csv",
+                                                 "rod_models_tissue.csv", "rod_models_tissue.png")}}
 ROW_COLUMNS = ("model", "resolution", "median_ms", "max_tip_error_mm", "median_tip_error_mm", "success_rate",
                "batched_solves_per_s", "batched_peak_mb")
 STABILITY_COLUMNS = ("solver", "placement", "tension_n", "guess", "success", "residual_n", "ms", "reason")
 FRICTION_COLUMNS = ROW_COLUMNS[:6]
 HONESTY_COLUMNS = ("case", "converged", "tip_x_mm", "tip_y_mm", "tip_z_mm", "ms", "reason")
-TISSUE_COLUMNS = ("modulus_pa", "depth_mm", "tissue_rod_tip_mm", "kinematic_tip_mm", "kinematic_factor_fitted",
-                  "insertion_ms", "status")
+TISSUE_COLUMNS = ("modulus_pa", "schedule", "depth_mm", "tissue_rod_tip_mm", "kinematic_tip_mm",
+                  "kinematic_factor_fitted", "curvature_factor", "insertion_ms", "status")
 FRICTION_MODEL = "two_tube_cosserat+friction"
 STEPS_PER_MM = (0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
 REFERENCE = TwoTubeCosserat(steps_per_mm=8.0, tol=1e-12)
@@ -111,15 +114,16 @@ class ModelSettings:
     planar_batch: int = 100_000
     interpreted: bool = True
     friction_presets: tuple[str, ...] = PRESET_NAMES
-    tissue_moduli_pa: tuple[float, ...] = (1e3, 1e4, 1e5, 1.9e5, 1e6, 3e6, 1e7)
-    tissue_depths_mm: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 150.0)
+    tissue_moduli_pa: tuple[float, ...] = (1e3, 1e4, 3e4, 1e5, 1.9e5, 5e5, 1e6, 3e6, 1e7)
+    tissue_depths_mm: tuple[float, ...] = (60.0, 90.0, 120.0, 150.0)
+    tissue_onsets_mm: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0)
 
 
 QUICK = ModelSettings(presets=("15ga-20j-tip", "15ga-20j-base", "13ga-20j-tip"), tensions_n=(0.0, 5.0, 10.0, 15.0),
                       stability_tensions_n=(7.5,),
                       stability_placements=("tip",), batch=200, planar_batch=2_000, interpreted=False,
-                      friction_presets=("15ga-20j-tip", "15ga-20j-base"), tissue_moduli_pa=(1e3, 1.9e5, 1e7),
-                      tissue_depths_mm=(20.0, 40.0))
+                      friction_presets=("15ga-20j-tip", "15ga-20j-base"), tissue_moduli_pa=(1e3, 1.9e5, 1e6),
+                      tissue_depths_mm=(40.0, 60.0), tissue_onsets_mm=(0.0,))
 
 
 class _Solver(Protocol):
@@ -420,86 +424,125 @@ def honesty(log: Callable[[str], None]) -> list[HonestyCase]:
 
 @dataclass(frozen=True)
 class TissuePoint:
-    """One point of the in-tissue chart (lateral tip deflections in mm; NaN past a failed insertion step)."""
+    """One point of the in-tissue chart: a modulus, a schedule, a depth (tips in mm, NaN past a failed step).
+
+    ``factor`` is the kinematic curvature factor fitted to the rod at this modulus (over every schedule and
+    depth), ``function`` the fitted function's value (NaN below the tip-following range), ``kinematic_mm`` the
+    kinematic model's tip with it; ``ms`` the insertion's wall time.
+    """
 
     modulus_pa: float
+    schedule: str
     depth_mm: float
     tissue_rod_mm: float
     kinematic_mm: float
     factor: float
+    function: float
     ms: float
     status: str
 
 
-def tissue(s: ModelSettings, log: Callable[[str], None]) -> list[TissuePoint]:
-    """Insert 15ga-20j-tip at its maximum tension with the in-tissue rod at each modulus, beside the kinematic model.
+def _lateral(p: np.ndarray) -> np.ndarray:
+    return np.hypot(p[..., 0], p[..., 1])
+
+
+def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoint], list[Row]]:
+    """Insert the planner's design with the in-tissue rod at each modulus and schedule, beside the kinematic model.
+
+    15ga-30j-tip; ramps of 20 mm from the onsets of ``s`` to 60 / 100 % of the maximum tension (the planner's
+    schedule family); moduli and depths of ``s``.
 
     Returns
     -------
-    list of TissuePoint
-        One per modulus and depth of ``s``: the in-tissue rod's lateral tip deflection (mm), the kinematic
-        model's at factor 1, the kinematic factor fitted per modulus (least squares over the depths that
-        converged; NaN with fewer than two), the insertion's wall time (ms) and ``ok`` or the failure reason.
+    points : list of TissuePoint
+        One per modulus, schedule and depth.
+    rows : list of Row
+        For the speed/accuracy chart: the kinematic model with :func:`curvature_factor` (time per insertion,
+        tip error against the rod over the tip-following range) and the rod itself (time per insertion; tip
+        error of its 2 mm insertion step against 1 mm, one schedule per modulus).
     """
-    design = preset("15ga-20j-tip")
-    schedule = TensionSchedule.constant(design.max_tension_n)
+    design = preset("15ga-30j-tip")
+    schedules = [(f"ramp {o:g} mm, {f:.0%}", TensionSchedule.ramp(o, 20.0, f * design.max_tension_n))
+                 for o in s.tissue_onsets_mm for f in (0.6, 1.0)]
     depths = np.array(s.tissue_depths_mm, dtype=float)
-    kin_step_mm = 1.0
-    rows_at = np.round(depths / kin_step_mm).astype(int)  # the kinematic path's rows at the chart's depths
+    rows_at = np.round(depths).astype(int)  # rows of a kinematic path at 1 mm steps
 
     def kinematic(factor: float) -> np.ndarray:
-        path = KinematicInsertion(tissue_factor=factor, step_mm=kin_step_mm).insert_array(
-            design, [schedule], float(depths[-1]))[0]
-        return np.hypot(path[:, 0], path[:, 1])[rows_at]
+        paths = KinematicInsertion(tissue_factor=factor).insert_array(design, [sc for _, sc in schedules],
+                                                                      float(depths[-1]))
+        return paths[:, rows_at]  # (S, D, 3)
 
-    kin1 = kinematic(1.0)
     out: list[TissuePoint] = []
+    kin_err: list[float] = []
+    rod_ms: list[float] = []
+    step_err: list[float] = []
+    t_kin = time.perf_counter()
+    kinematic(1.0)
+    kin_ms = (time.perf_counter() - t_kin) * 1e3 / len(schedules)
     for e in s.tissue_moduli_pa:
-        t0 = time.perf_counter()
-        final, steps = TissueRodInsertion(tissue_modulus_pa=e).insert_steps(design, schedule, float(depths[-1]))
-        ms = (time.perf_counter() - t0) * 1e3
-        tips = {round(d, 6): float(np.hypot(tip[0], tip[1])) for d, tip in steps}
-        got = np.array([tips.get(round(float(d), 6), np.nan) for d in depths])
-        ok = np.isfinite(got)
+        tips = np.full((len(schedules), len(depths), 3), np.nan)
+        status, ms = [], []
+        for i, (_, sch) in enumerate(schedules):
+            t0 = time.perf_counter()
+            final, steps = TissueRodInsertion(tissue_modulus_pa=e).insert_steps(design, sch, float(depths[-1]))
+            ms.append((time.perf_counter() - t0) * 1e3)
+            got = {round(d, 6): tip for d, tip in steps}
+            for j, d in enumerate(depths):
+                tips[i, j] = got.get(round(float(d), 6), np.full(3, np.nan))
+            status.append("ok" if isinstance(final, np.ndarray) else final.reason)
+        rod_ms += ms
+        ok = np.all(np.isfinite(tips), axis=-1)
         factor = math.nan
         if ok.sum() >= 2:
-            def misfit(f: float, ok: np.ndarray = ok, got: np.ndarray = got) -> float:
-                return float(np.sum((kinematic(f)[ok] - got[ok]) ** 2))
+            def misfit(f: float, ok: np.ndarray = ok, tips: np.ndarray = tips) -> float:
+                return float(np.sum(np.sum((kinematic(f) - tips) ** 2, axis=-1)[ok]))
 
             factor = float(minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4}).x)
-        status = "ok" if isinstance(final, np.ndarray) else final.reason
-        for d, g, k in zip(depths, got, kin1, strict=True):
-            out.append(TissuePoint(e, float(d), float(g), float(k), factor, ms, "ok" if np.isfinite(g) else status))
-        tip_text = ", ".join(f"{d:.0f} mm {g:.2f}" for d, g in zip(depths, got, strict=True))
-        log(f"tissue_rod E = {e:9.3g} Pa: tip at {tip_text} mm; kinematic factor {factor:.3f}; {ms:.0f} ms"
-            + ("" if status == "ok" else f"; FAILED {status}"))
-    return out
+        fn = curvature_factor(e) if e >= TIP_FOLLOWING_MIN_PA else math.nan
+        kin = kinematic(fn) if math.isfinite(fn) else np.full_like(tips, np.nan)
+        if math.isfinite(fn):
+            kin_err += list(np.linalg.norm(kin - tips, axis=-1)[ok])
+            fine = TissueRodInsertion(tissue_modulus_pa=e, step_mm=1.0).insert_one(design, schedules[0][1],
+                                                                                  float(depths[-1]))
+            if isinstance(fine, np.ndarray) and ok[0, -1]:
+                step_err.append(float(np.linalg.norm(fine[-1] - tips[0, -1])))
+        for i, (label, _) in enumerate(schedules):
+            for j, d in enumerate(depths):
+                out.append(TissuePoint(e, label, float(d), float(_lateral(tips[i, j])), float(_lateral(kin[i, j])),
+                                       factor, fn, ms[i], "ok" if ok[i, j] else status[i]))
+        deep = ", ".join(f"{_lateral(t):.1f}" for t in tips[:, -1])
+        log(f"tissue_rod E = {e:9.3g} Pa: tips at {depths[-1]:.0f} mm {deep} mm; factor fitted {factor:.3f}, "
+            f"function {fn:.3f}; {statistics.median(ms):.0f} ms per insertion")
+    rows = [Row(f"kinematic+{PLANAR_BEAM.name} in tissue", "curvature_factor(E) vs tissue_rod", kin_ms,
+                max(kin_err, default=math.nan), statistics.median(kin_err) if kin_err else math.nan, 1.0),
+            Row("tissue_rod+two_tube_cosserat", "step 2 mm vs 1 mm", statistics.median(rod_ms),
+                max(step_err, default=math.nan), statistics.median(step_err) if step_err else math.nan,
+                float(np.mean([p.status == "ok" for p in out])))]
+    return out, rows
 
 
 def tissue_figure(points: list[TissuePoint]) -> Figure:
-    """Lateral tip deflection against modulus per depth (left) and the fitted kinematic factor (right)."""
-    fig = Figure(figsize=(12, 5))
+    """Tip deflection against modulus per schedule at the deepest depth (left); the curvature factor (right)."""
+    fig = Figure(figsize=(12, 5), layout="tight")
     a1, a2 = fig.subplots(1, 2)
     moduli = sorted({p.modulus_pa for p in points})
-    for d in sorted({p.depth_mm for p in points}):
-        pts = sorted((p for p in points if p.depth_mm == d), key=lambda p: p.modulus_pa)
-        line = a1.plot([p.modulus_pa for p in pts], [p.tissue_rod_mm for p in pts], "o-",
-                       label=f"tissue_rod {d:.0f} mm")
-        a1.axhline(pts[0].kinematic_mm, color=line[0].get_color(), ls=":", lw=1)
-    a1.set_xscale("log")
-    a1.set_xlabel("tissue Young's modulus (Pa, log)")
-    a1.set_ylabel("lateral tip deflection (mm)")
-    a1.set_title("15ga-20j-tip at its maximum tension: in-tissue Cosserat (dotted: kinematic, factor 1)",
-                 fontsize=9)
-    a1.grid(True, which="both", alpha=0.3)
-    a1.legend(fontsize=7)
+    deepest = max(p.depth_mm for p in points)
+    for label in dict.fromkeys(p.schedule for p in points):
+        pts = sorted((p for p in points if p.schedule == label and p.depth_mm == deepest), key=lambda p: p.modulus_pa)
+        a1.plot([p.modulus_pa for p in pts], [p.tissue_rod_mm for p in pts], "o-", ms=4, label=label)
+    a1.axvline(TIP_FOLLOWING_MIN_PA, color="k", ls=":", lw=1)
+    a1.set_ylabel(f"lateral tip deflection at {deepest:.0f} mm (mm)")
+    a1.set_title("15ga-30j-tip, in-tissue Cosserat rod: holding (rises) then resisting (falls)", fontsize=9)
     fac = [next(p.factor for p in points if p.modulus_pa == e) for e in moduli]
-    a2.plot(moduli, fac, "s-")
-    a2.set_xscale("log")
-    a2.set_xlabel("tissue Young's modulus (Pa, log)")
-    a2.set_ylabel("kinematic curvature factor fitted to tissue_rod")
-    a2.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
+    a2.plot(moduli, fac, "s", label="fitted to the rod (all schedules, depths)")
+    grid = np.geomspace(TIP_FOLLOWING_MIN_PA, max([*moduli, 1e7]), 100)
+    a2.plot(grid, [curvature_factor(float(e)) for e in grid], "-", label="curvature_factor(E)")
+    a2.axvspan(min(moduli), TIP_FOLLOWING_MIN_PA, color="0.9", label="below the tip-following range")
+    a2.set_ylabel("kinematic curvature factor")
+    for ax in (a1, a2):
+        ax.set(xscale="log", xlabel="tissue Young's modulus (Pa, log)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
     return fig
 
 
@@ -510,11 +553,16 @@ def pareto_figure(rows: list[Row]) -> Figure:
     ax = fig.subplots()
     colors = {"constant_curvature": "tab:red", "planar_beam": "tab:orange", "cosserat_rod": "tab:blue",
               "two_tube_cosserat": "tab:green", "two_tube_collocation": "tab:purple", FRICTION_MODEL: "tab:olive"}
+    own = {FRICTION_MODEL: "vs itself at 8 steps/mm"}  # rows with their own reference: not on the front
+    for r in rows:
+        if r.model not in colors:  # in-tissue rows
+            colors[r.model] = "tab:brown" if r.model.startswith("tissue_rod") else "tab:pink"
+            own[r.model] = r.resolution
     for name, c in colors.items():
         pts = [r for r in rows if r.model == name]
         if not pts:
             continue
-        label = f"{name} (vs itself at 8 steps/mm)" if name == FRICTION_MODEL else name
+        label = f"{name} ({own[name]})" if name in own else name
         ax.plot([r.median_ms for r in pts], [max(r.max_tip_error_mm, floor) for r in pts], "o-" if len(pts) > 1
                 else "o", color=c, label=label, ms=7)
         for r in pts:
@@ -525,8 +573,8 @@ def pareto_figure(rows: list[Row]) -> Figure:
     ax.scatter([1e3 / bps for _, bps in batched],
                [max(r.max_tip_error_mm, floor) for r, _ in batched], marker="s", facecolors="none",
                edgecolors=[colors[r.model] for r, _ in batched], s=60, label="same model, batched (time per solve)")
-    front: list[Row] = []  # the friction row has its own reference: not on the front
-    for r in sorted((r for r in rows if r.model != FRICTION_MODEL), key=lambda r: r.median_ms):
+    front: list[Row] = []
+    for r in sorted((r for r in rows if r.model not in own), key=lambda r: r.median_ms):
         if not front or r.max_tip_error_mm < front[-1].max_tip_error_mm:
             front.append(r)
     ax.step([r.median_ms for r in front], [max(r.max_tip_error_mm, floor) for r in front], where="post",
@@ -537,7 +585,7 @@ def pareto_figure(rows: list[Row]) -> Figure:
     ax.set_yscale("log")
     ax.set_xlabel("median time per solve (ms, log)")
     ax.set_ylabel(f"max tip error vs converged two-tube reference (mm, log; floor {floor:g})")
-    ax.set_title("Rod models: speed vs accuracy (presets × tensions 0-15 N, free space)")
+    ax.set_title("Rod models: speed vs accuracy (free space: presets × tensions 0-15 N; in tissue: per insertion)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -587,7 +635,7 @@ def error_table(rows: list[Row]) -> dict[str, object]:
 
 
 def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], friction_rows: list[Row],
-                  honest: list[HonestyCase], tissue_points: list[TissuePoint]) -> None:
+                  honest: list[HonestyCase], tissue_points: list[TissuePoint], tissue_rows: Sequence[Row] = ()) -> None:
     """Write the tables, the charts and the error table under ``out``.
 
     ``rod_models.csv`` (:data:`ROW_COLUMNS`), ``rod_models_stability.csv`` (:data:`STABILITY_COLUMNS`), their
@@ -600,7 +648,7 @@ def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], fricti
               [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
                 f"{r.median_tip_error_mm:.4g}", r.success_rate,
                 "" if r.batched_solves_per_s is None else f"{r.batched_solves_per_s:.0f}",
-                "" if r.batched_peak_mb is None else f"{r.batched_peak_mb:.1f}"] for r in rows])
+                "" if r.batched_peak_mb is None else f"{r.batched_peak_mb:.1f}"] for r in [*rows, *tissue_rows]])
     write_csv(out / "rod_models_stability.csv", STABILITY_COLUMNS,
               [[c.solver, c.placement, c.tension_n, c.guess, c.success, f"{c.residual:.3g}", f"{c.ms:.2f}",
                 c.reason] for c in cases])
@@ -611,10 +659,11 @@ def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], fricti
               [[c.case, c.converged, *(f"{v:.3f}" for v in (c.tip_mm or (math.nan,) * 3)), f"{c.ms:.2f}",
                 c.reason] for c in honest])
     write_csv(out / "rod_models_tissue.csv", TISSUE_COLUMNS,
-              [[f"{p.modulus_pa:g}", f"{p.depth_mm:g}", f"{p.tissue_rod_mm:.4f}", f"{p.kinematic_mm:.4f}",
-                f"{p.factor:.4f}", f"{p.ms:.0f}", p.status] for p in tissue_points])
+              [[f"{p.modulus_pa:g}", p.schedule, f"{p.depth_mm:g}", f"{p.tissue_rod_mm:.4f}",
+                f"{p.kinematic_mm:.4f}", f"{p.factor:.4f}", f"{p.function:.4f}", f"{p.ms:.0f}", p.status]
+               for p in tissue_points])
     write_png(out / "rod_models_tissue.png", tissue_figure(tissue_points))
-    write_png(out / "rod_models_pareto.png", pareto_figure(rows + friction_rows))
+    write_png(out / "rod_models_pareto.png", pareto_figure([*rows, *friction_rows, *tissue_rows]))
     write_png(out / "rod_models_stability.png", stability_figure(cases))
     write_json(out / "model_errors.json", error_table(rows))
 
@@ -634,10 +683,10 @@ def run_benchmark(out: Path, s: ModelSettings, log: Callable[[str], None] = prin
         friction_rows, widths = friction(s, log)
         extra.update(widths)
         honest = honesty(log)
-        tissue_points = tissue(s, log)
+        tissue_points, tissue_rows = tissue(s, log)
         cases = stability(s, log)
-    write_results(out, rows, cases, friction_rows, honest, tissue_points)
-    summary: dict[str, object] = {"rows": [r.__dict__ for r in rows + friction_rows], **extra,
+    write_results(out, rows, cases, friction_rows, honest, tissue_points, tissue_rows)
+    summary: dict[str, object] = {"rows": [r.__dict__ for r in rows + friction_rows + tissue_rows], **extra,
                                   "honesty": [c.__dict__ for c in honest],
                                   "stability": {v: f"{sum(c.success for c in cases if c.solver == v)}/"
                                                    f"{sum(c.solver == v for c in cases)}"

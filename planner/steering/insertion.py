@@ -6,7 +6,9 @@ direction, roll 0 bends toward template ``+x``), millimetres:
 ``kinematic``
     Tip following. The tip advances along its tangent, which turns toward the bending direction (set by the
     roll) at the free-space curvature of the stylet's distal (joint) section under the current tension,
-    from a rod model, times a tissue factor. Cheap and vectorised over many schedules at once.
+    from a rod model, times the curvature factor of the tissue's modulus (:func:`curvature_factor`, fitted to
+    the in-tissue Cosserat insertion of :mod:`reachplan.planner.steering.tissue_rod`). Cheap and vectorised
+    over many schedules at once.
 ``tissue_beam``
     Reference quasi-static model. The stylet-in-needle rod (piecewise bending stiffness and the tendon's
     preferred curvature per section, both from the rod model's free-space solve at the current tension) is
@@ -30,7 +32,7 @@ import dataclasses
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, Protocol, cast, runtime_checkable
+from typing import Any, ClassVar, Protocol, cast, runtime_checkable
 
 import numpy as np
 
@@ -45,6 +47,42 @@ from reachplan.rod_model.protocol import RodModel
 SIMUGEL_MODULUS_PA = 0.19e6
 #: Poisson's ratio of a water-rich gel, ASSUMED nearly incompressible.
 TISSUE_POISSON = 0.49
+
+
+#: Lower end of the tip-following range, Pa: below it the tissue does not hold the shaft on the track its tip
+#: cut (the tube's Winkler length (4 EI / k)^(1/4) exceeds ~35 mm) and one curvature factor cannot describe the
+#: in-tissue rod (its fit error rises from 1.4 mm RMS at 0.1 MPa to 3.8 mm at 10 kPa; ``reachplan bench models``).
+TIP_FOLLOWING_MIN_PA = 1e5
+#: Fitted constants of :func:`curvature_factor`: amplitude at 1 MPa and exponent.
+CURVATURE_FACTOR_FIT = (0.1500, 0.3545)
+
+
+def curvature_factor(modulus_pa: float) -> float:
+    """Return the kinematic model's curvature factor for tissue of Young's modulus ``modulus_pa`` (Pa).
+
+    ``c(E) = 1 + a (E / 1 MPa)^(−p)``, ``a = 0.150``, ``p = 0.354`` (:data:`CURVATURE_FACTOR_FIT`): least squares
+    on the factors fitted to the in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`;
+    ``reachplan bench models``, ``rod_models_tissue.csv``) of 15ga-30j-tip under ramps of 20 mm from 0 / 20 /
+    40 / 60 mm onset to 60 / 100 % of the maximum tension, tips at 60-150 mm: 1.334 / 1.283 / 1.137 / 1.101 /
+    1.075 at 0.1 / 0.19 / 1 / 3 / 10 MPa (residuals within 0.013). Held out: 0.5 MPa, 1.185 from the rod,
+    1.192 from ``c`` (test). It decreases monotonically to 1. In rigid tissue the joint section bends only as
+    it cuts new track, so the path takes the joint section's free-space curvature (tip following; Webster et
+    al., IJRR 25(5-6), 2006). In softer tissue a tendon pulled while the joints are embedded also bends them
+    within about a Winkler length of the tip, ``(4 EI / k)^(1/4)`` (Hetényi, *Beams on Elastic Foundation*,
+    1946), and the held track keeps that extra turn (Glozman & Shoham, IEEE T-RO 23(3), 2007). That length
+    scales as ``E^(−13/48) ≈ E^(−0.27)`` with Vesic's ``k``: the fitted exponent 0.35 is of that order.
+
+    Raises
+    ------
+    PlanInputError
+        ``modulus_pa`` below :data:`TIP_FOLLOWING_MIN_PA` or not finite: use the in-tissue rod model there.
+    """
+    if not (np.isfinite(modulus_pa) and modulus_pa >= TIP_FOLLOWING_MIN_PA):
+        raise PlanInputError(f"tissue modulus {modulus_pa:g} Pa is below the tip-following range (>= "
+                             f"{TIP_FOLLOWING_MIN_PA:g} Pa): the tissue does not hold the needle on its track; "
+                             "give a tissue_factor or use the tissue_rod insertion model")
+    a, p = CURVATURE_FACTOR_FIT
+    return 1.0 + a * (modulus_pa / 1e6) ** -p
 
 
 #: One model setting: (name with its unit, value).
@@ -156,6 +194,23 @@ def check_insertion_model(obj: object) -> None:
         raise TypeError(f"{obj!r} does not implement InsertionModel (.name, .insert(design, schedules, depth_mm))")
 
 
+class NamedInsertion:
+    """Base of the built-in insertion models: the registered name (class constant ``label``) and :attr:`info`."""
+
+    label: ClassVar[str] = ""
+    rod_model: RodModel  # a field of every subclass
+
+    @property
+    def name(self) -> str:
+        """The name the model registers under (``InsertionPath.model.insertion``)."""
+        return self.label
+
+    @property
+    def info(self) -> ModelInfo:
+        """The model that produced a path: this model, its rod model and their settings."""
+        return ModelInfo.of(self.label, self, self.rod_model)
+
+
 @dataclass(frozen=True, eq=False)
 class CurvatureTable:
     """Free-space section curvatures of a design against tendon tension, from one rod model.
@@ -211,38 +266,46 @@ def _rotate(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class KinematicInsertion:
+class KinematicInsertion(NamedInsertion):
     """Tip-following insertion (see the module docstring), vectorised over schedules.
 
     Parameters
     ----------
-    tissue_factor : float
-        Path curvature over the joint section's free-space curvature. Default 1.0: fitted to the
-        ``tissue_beam`` reference in the phantom's gel (:func:`fit_tissue_factor`, 12 ramps from 0 to 60 mm
-        onset, 50-100 % of the maximum tension, 150 mm deep) it is 0.993 for 15ga-20j-tip and 15ga-30j-tip
-        and 1.023 for 13ga-20j-tip, with tip departures of median 0.4 mm and at most 1.0 mm. Physically:
-        the gel's Winkler length (4 EI / k)^(1/4) ≈ 25 mm is shorter than the joint section, so the
-        distal section keeps its free-space curvature and the needle follows it. Softer tissue lowers it.
+    tissue_modulus_pa : float
+        Young's modulus of the tissue the needle steers in (default the phantom's SimuGel, 0.19 MPa); it sets
+        the curvature factor by :func:`curvature_factor` (the per-organ modulus in a plan).
+    tissue_factor : float or None
+        Path curvature over the joint section's free-space curvature; None (default): ``curvature_factor(
+        tissue_modulus_pa)``, fitted to the in-tissue Cosserat insertion. A number overrides it.
     rod_model : RodModel
         Rod model that gives the curvature table (default :data:`~reachplan.rod_model.beam.PLANAR_BEAM`,
         exact to 0.1 % of the two-tube model for free-space curvature; see the rod-model benchmark).
     step_mm : float
         Integration step along the insertion.
+
+    Raises
+    ------
+    PlanInputError
+        A modulus below :data:`TIP_FOLLOWING_MIN_PA` without an explicit ``tissue_factor`` (the tissue does not
+        hold the needle on its track there: tip following does not describe it), or a negative factor.
     """
 
-    tissue_factor: float = 1.0
+    label: ClassVar[str] = "kinematic"
+    tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
+    tissue_factor: float | None = None
     rod_model: RodModel = PLANAR_BEAM
     step_mm: float = 1.0
 
-    @property
-    def name(self) -> str:
-        """``"kinematic"``."""
-        return "kinematic"
+    def __post_init__(self) -> None:
+        if self.tissue_factor is None:
+            curvature_factor(self.tissue_modulus_pa)  # raises outside the tip-following range
+        elif not (np.isfinite(self.tissue_factor) and self.tissue_factor >= 0):
+            raise PlanInputError(f"tissue_factor must be a finite number >= 0, got {self.tissue_factor}")
 
     @property
-    def info(self) -> ModelInfo:
-        """The model that produced a path: this model, its rod model and their settings."""
-        return ModelInfo.of(self.name, self, self.rod_model)
+    def factor(self) -> float:
+        """The curvature factor in use: ``tissue_factor``, or the fitted one at ``tissue_modulus_pa``."""
+        return curvature_factor(self.tissue_modulus_pa) if self.tissue_factor is None else self.tissue_factor
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
@@ -263,7 +326,7 @@ class KinematicInsertion:
             tension[i], roll[i] = sch.at(depths)
         if np.any(tension > design.max_tension_n + 1e-9):
             raise PlanInputError(f"a schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
-        kappa = self.tissue_factor * table.joint(tension)  # (S, n+1), 1/mm
+        kappa = self.factor * table.joint(tension)  # (S, n+1), 1/mm
         phi = np.radians(roll)
         if np.all(np.ptp(phi, axis=1) == 0.0):
             return _planar_paths(kappa, phi[:, 0], h)
@@ -316,7 +379,7 @@ def winkler_modulus_pa(design: RodDesign, tissue_modulus_pa: float = SIMUGEL_MOD
 
 
 @dataclass(frozen=True)
-class TissueBeamInsertion:
+class TissueBeamInsertion(NamedInsertion):
     """Reference quasi-static insertion in an elastic medium (see the module docstring).
 
     Parameters
@@ -332,21 +395,12 @@ class TissueBeamInsertion:
         Insertion step (new tissue is cut and attached once per step).
     """
 
+    label: ClassVar[str] = "tissue_beam"
     tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
     rod_model: RodModel = TWO_TUBE_COSSERAT
     grid_mm: float = 0.25
     step_mm: float = 0.25
     poisson: float = TISSUE_POISSON
-
-    @property
-    def name(self) -> str:
-        """``"tissue_beam"``."""
-        return "tissue_beam"
-
-    @property
-    def info(self) -> ModelInfo:
-        """The model that produced a path: this model, its rod model and their settings."""
-        return ModelInfo.of(self.name, self, self.rod_model)
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
@@ -494,30 +548,6 @@ def _solve_foundation_beam(ei_nmm2: np.ndarray, k_n_per_mm2: np.ndarray | float,
     out = np.zeros((n, 2))
     out[1:] = solveh_banded(ab, rhs, lower=False, check_finite=False)
     return out
-
-
-def fit_tissue_factor(design: RodDesign, schedules: Sequence[TensionSchedule], depth_mm: float,
-                      reference: TissueBeamInsertion | None = None) -> tuple[float, np.ndarray]:
-    """Fit the kinematic model's tissue factor to the ``tissue_beam`` reference.
-
-    Returns
-    -------
-    factor : float
-        The factor minimising the RMS tip distance between the two models over ``schedules``.
-    tip_error_mm : (S,) float
-        Remaining tip distance per schedule at that factor, mm.
-    """
-    from scipy.optimize import minimize_scalar
-
-    ref = reference or TissueBeamInsertion()
-    ref_tips = np.array([ref.insert_one(design, sch, depth_mm)[-1] for sch in schedules])
-
-    def tips(f: float) -> np.ndarray:
-        return KinematicInsertion(tissue_factor=f).insert_array(design, schedules, depth_mm)[:, -1]
-
-    res = minimize_scalar(lambda f: float(np.mean(np.sum((tips(f) - ref_tips) ** 2, axis=1))),
-                          bounds=(0.05, 3.0), method="bounded", options={"xatol": 1e-4})
-    return float(res.x), np.linalg.norm(tips(float(res.x)) - ref_tips, axis=1)
 
 
 def _check_depth(design: RodDesign, depth_mm: float) -> None:

@@ -7,33 +7,55 @@ Model (template frame: entry at the origin, ``+z`` the insertion direction, roll
     section first) is solved as a Cosserat rod clamped at the template (:meth:`TwoTubeCosserat.solve` with
     ``inserted_mm``), tendon tension and roll from the schedule at that depth, held by a Winkler foundation:
     a force per length ``−k δ`` toward the tissue's rest position at the same arc length, ``δ`` the lateral
-    offset (:class:`reachplan.rod_model.design.Foundation`). The tissue ahead of the tip is cut along the tip's
-    tangent (tip following: the needle slides along its own track, the virtual-spring models of Glozman &
-    Shoham, IEEE T-RO 23(3), 2007, and Misra, Reed et al., IJRR 29(13), 2010). Nonlinear: the holding force
-    per length saturates at ``k · slip_mm``; where the needle moves further from its track, the track is moved
-    with it (the tissue gives way: plastic slip, kept for the later steps). The modulus may vary along the
-    track (per organ); ``k`` follows Vesic's formula (:func:`reachplan.planner.steering.insertion.winkler_modulus_pa`).
+    offset (:class:`reachplan.rod_model.design.Foundation`). The tissue ahead of the tip is cut along the path
+    the tip takes: its tangent, turning at the rate it turned in the last step (a second-order extrapolation;
+    cutting straight chords was first order and, in stiff tissue, made the joints look resisted). The needle
+    slides along its own track (the virtual-spring models of Glozman & Shoham, IEEE T-RO 23(3), 2007, and
+    Misra, Reed et al., IJRR 29(13), 2010). Nonlinear: the holding force per length saturates at
+    ``k · slip_mm``; where the needle moves further from its track, the track is moved with it (the tissue
+    gives way: plastic slip, kept for the later steps). The modulus may vary along the track (per organ);
+    ``k`` follows Vesic's formula (:func:`reachplan.planner.steering.insertion.winkler_modulus_pa`).
+Solver
+    Each step is a boundary-value problem of the two-tube rod. In stiff tissue single shooting breaks down
+    (the foundation's solutions grow as ``exp(∫β ds)``, ``β = (k / 4 EI)^(1/4)``): the rod model switches to
+    multiple shooting (:mod:`reachplan.rod_model.multiple_shooting`). Deep in stiff tissue only the distal
+    ``window_winkler`` Winkler lengths of the shaft (plus the joint section) are re-solved, clamped where the
+    previous step left the needle: a disturbance decays as ``exp(−s/λ)`` along a held shaft (at 3 MPa, 1.5 and 3
+    Winkler lengths give the same tip to 0.01 mm).
 Tip force
     An axial cutting force ``cut_force_n`` against the tip's previous tangent (a dead load updated each step;
     cutting plus friction forces of the order of 1 N, Okamura, Simone & O'Leary, IEEE TBME 51(10), 2004).
     ASSUMED default 0: no value is published for the phantom's gel, and with it the zero-modulus limit is the
     free-space shape. A symmetric tip has no lateral cutting force.
 
-What it shows (``reachplan bench models``, ``rod_models_tissue.csv``): the steered tip deflection is not
-monotonic in the modulus. From zero (the free-space shape of the inserted length: nothing holds the track)
-it *rises* as the tissue starts to hold the needle on the track its tip cut, so that the tip's heading
-accumulates (tip following, as the kinematic model assumes); past a peak between about 0.2 and 1 MPa (the
-phantom's gel is 0.19 MPa) it falls, because the tissue also resists the bending that the tendon drives near
-the tip: only the tip region within about a Winkler length ``(4 EI / k)^(1/4)`` still turns with the tension,
-and that length shrinks as ``k^(-1/4)``. Limits: single shooting over the whole inserted length; in the
-stiffest tissue (about 10 MPa) the solve fails past a few centimetres and says so (a FailedInsertion with the
-reason), it is not guessed.
+The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; tip deflection at a fixed depth)
+    Two mechanisms, both physical, so the tip deflection is *not* monotonic in the modulus:
+
+    1. *Holding* (rises with the modulus). At zero modulus the needle has the free-space shape of its inserted
+       length (test); a steered needle turns only as far as the tissue holds its shaft on the curved track its
+       tip cut. The shaft (stylet tube in needle, EI ≈ 7 mN·m²) is held once its Winkler length
+       ``(4 EI / k)^(1/4)`` is short against the depth: about 115 mm at 1 kPa, 60 mm at 10 kPa, 33 mm at
+       0.1 MPa. 15ga-20j-tip pulled at 10 N from the template, tip at 120 mm: 4.98 mm at 0, 5.8 mm at 1 kPa,
+       11.4 mm at 10 kPa, 26.3 mm at 0.1 MPa, 29.6 mm at 0.19 MPa. Bevel-tip needles show the same
+       (curvature rises with tissue stiffness, Misra et al. 2010).
+    2. *Resisting* (falls with the modulus). A tendon pulled while the joints are embedded bends them only
+       within about their own Winkler length of the tip, which shrinks as ``k^(-1/4)``; with the tendon pulled
+       before the joints enter, nothing resists them (the tip cuts its own curved track: at 30 mm the tip is
+       the free-space one at every modulus, test). 15ga-30j-tip, 5 mm ramp at 40 mm to 10 N, tip at 140 mm:
+       26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa, falling toward pure tip
+       following at the free-space curvature (18.6 mm).
+
+    The peak lies between 10 kPa and 1 MPa depending on the schedule. The monotonic quantity the planner needs
+    is the kinematic model's curvature factor over the tip-following range (>= 0.1 MPa), where the holding
+    is complete and only the resisting mechanism acts: :func:`~reachplan.planner.steering.insertion.curvature_factor`,
+    decreasing from 1.34 at 0.1 MPa (1.27 in the gel) to 1 in rigid tissue.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -43,16 +65,17 @@ from reachplan.planner.steering.insertion import (
     TISSUE_POISSON,
     FailedInsertion,
     InsertionPath,
-    ModelInfo,
+    NamedInsertion,
     winkler_modulus_pa,
 )
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.rod_model.cosserat import TwoTubeCosserat
 from reachplan.rod_model.design import Foundation, Loads, RodDesign
+from reachplan.rod_model.result import RodPath
 
 
 @dataclass(frozen=True)
-class TissueRodInsertion:
+class TissueRodInsertion(NamedInsertion):
     """Quasi-static insertion of the Cosserat rod in an elastic, slipping medium (see the module docstring).
 
     Parameters
@@ -63,9 +86,8 @@ class TissueRodInsertion:
         The rod model solving each step (its ``inserted_mm`` and foundation support); 2 RK4 steps per mm by
         default: the default 0.5 fails its own step-doubling check in tissue of 0.19 MPa and stiffer.
     step_mm : float
-        Insertion step, mm. The track is cut in straight chords along the tip's tangent, so the result
-        converges at first order in the step: at 0.19 MPa, 120 mm deep, 5 / 2.5 / 1.25 mm steps give 28.87 /
-        30.60 / 31.20 mm of tip deflection (Richardson estimate 31.5 mm); the default 2 mm is within about 1 mm.
+        Insertion step, mm (every step end is a node of the track). At 0.19 MPa, 15ga-20j-tip pulled from the
+        template, tip at 60 mm: 4 / 2 / 1 mm steps give 7.32 / 7.30 / 7.28 mm.
     node_mm : float
         Spacing of the foundation's nodes along the track, mm.
     slip_mm : float
@@ -74,8 +96,15 @@ class TissueRodInsertion:
         Axial cutting force at the tip, N (ASSUMED 0).
     poisson : float
         Poisson's ratio of the medium.
+    arc_cut : bool
+        Cut new tissue along the tip's turning path (default) instead of a straight chord along its tangent.
+    window_winkler : float
+        Re-solve only the joint section plus this many of the shaft's Winkler lengths behind it (the softest
+        tissue inside sets the length), clamped where the last step left the needle; 0: always the whole
+        inserted length.
     """
 
+    label: ClassVar[str] = "tissue_rod"
     tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
     rod_model: TwoTubeCosserat = field(default_factory=lambda: TwoTubeCosserat(steps_per_mm=2.0))
     step_mm: float = 2.0
@@ -83,21 +112,13 @@ class TissueRodInsertion:
     slip_mm: float = 1.0
     cut_force_n: float = 0.0
     poisson: float = TISSUE_POISSON
+    arc_cut: bool = True
+    window_winkler: float = 6.0
 
     def __post_init__(self) -> None:
         if not (self.tissue_modulus_pa >= 0 and self.step_mm > 0 and self.node_mm > 0 and self.slip_mm > 0
                 and self.cut_force_n >= 0):
             raise PlanInputError("tissue_rod: modulus and cut force must be >= 0, steps and slip > 0")
-
-    @property
-    def name(self) -> str:
-        """``"tissue_rod"``."""
-        return "tissue_rod"
-
-    @property
-    def info(self) -> ModelInfo:
-        """The model that produced a path: this model, its rod model and their settings."""
-        return ModelInfo.of(self.name, self, self.rod_model)
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
@@ -160,7 +181,9 @@ class TissueRodInsertion:
             raise PlanInputError(f"insertion depth must be in (0, {design.length_mm:.0f}] mm, got {depth_mm}")
         if schedule.peak_tension_n > design.max_tension_n + 1e-9:
             raise PlanInputError(f"the schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
-        nodes = np.linspace(0.0, depth_mm, max(2, round(depth_mm / self.node_mm)) + 1)
+        n_steps = max(1, int(np.ceil(depth_mm / self.step_mm - 1e-9)))
+        ends = np.linspace(0.0, depth_mm, n_steps + 1)[1:]
+        nodes = np.union1d(np.linspace(0.0, depth_mm, max(2, round(depth_mm / self.node_mm)) + 1), ends)
         if modulus_profile is None:
             moduli = np.full(len(nodes), float(self.tissue_modulus_pa))
         else:
@@ -169,45 +192,85 @@ class TissueRodInsertion:
                 raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
             moduli = values[np.clip(np.searchsorted(at, nodes, side="right") - 1, 0, len(at) - 1)]
         stiffness = self._stiffness(design, moduli)
+        tube_ei = next(s.ei1 + s.ei2 for s in design.sections() if s.kind == "tube") * 1e6  # N mm²
+        distal_mm = design.length_mm - next(s.start_m for s in design.sections() if s.kind == "joints") * 1e3
         track = np.zeros((len(nodes), 3))
-        n_steps = max(1, int(np.ceil(depth_mm / self.step_mm - 1e-9)))
         tip = np.zeros(3)
         tangent = np.array([0.0, 0.0, 1.0])
+        turn = np.zeros(3)  # rate of turning of the tip's tangent per mm of insertion (last step), 1/mm
         cut_to = 0.0
-        path = None
-        for depth in np.linspace(0.0, depth_mm, n_steps + 1)[1:]:
+        shape: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (s, positions, frames) of the last step
+        warm: np.ndarray | None = None
+        for depth in ends:
             new = (nodes > cut_to + 1e-9) & (nodes <= depth + 1e-9)
-            track[new] = tip + np.outer(nodes[new] - cut_to, tangent)  # new tissue, cut along the tip's tangent
+            ahead = nodes[new] - cut_to
+            # new tissue is cut along the path the tip follows: its tangent, turning as it did in the last step
+            track[new] = tip + np.outer(ahead, tangent) + 0.5 * np.outer(ahead**2, turn)
             cut_to = depth
             inside = nodes <= depth + 1e-9
-            s_in = nodes[inside]
+            held = stiffness[inside] > 0
+            window = depth
+            if self.window_winkler > 0 and np.any(held):
+                k_min = float(np.min(stiffness[inside][held]))
+                window = min(depth, distal_mm + self.window_winkler * (4 * tube_ei / k_min) ** 0.25)
+            base = depth - window
+            if shape is None or base <= 1e-9:
+                base, origin, rot = 0.0, np.zeros(3), np.eye(3)
+            else:
+                origin, rot = _pose_at(*shape, base)
+            s_in = nodes[inside & (nodes >= base - 1e-9)]
             if s_in[-1] < depth - 1e-9:
                 s_in = np.r_[s_in, depth]
+            if s_in[0] > base + 1e-9:
+                s_in = np.r_[base, s_in]
             k_in = np.interp(s_in, nodes, stiffness)
             tr_in = np.column_stack([np.interp(s_in, nodes, track[:, i]) for i in range(3)])
-            found = Foundation(s_in, k_in, tr_in, np.full(len(s_in), self.slip_mm))
+            found = Foundation(s_in - base, k_in, (tr_in - origin) @ rot, np.full(len(s_in), self.slip_mm))
             tension, roll = schedule.at(np.array([depth]))
             loads = Loads((float(tension[0]),) + (0.0,) * (design.n_tendons - 1), roll_deg=float(roll[0]),
-                          tip_force_n=tuple(-self.cut_force_n * tangent), foundation=found)
-            warm = None if path is None else path.base_unknowns
-            result = self.rod_model.solve(design, loads, warm, inserted_mm=float(depth))
-            if not result:
+                          tip_force_n=tuple(-self.cut_force_n * (rot.T @ tangent)), foundation=found)
+            result = self.rod_model.solve(design, loads, warm, inserted_mm=float(window))
+            if not isinstance(result, RodPath):
                 return FailedInsertion(self.info, f"at depth {depth:.1f} mm: {getattr(result, 'reason', '')}"), steps
-            path = result
+            warm = result.base_unknowns
+            s_new = result.s_mm + base
+            pos_new = result.positions_mm @ rot.T + origin
+            frames_new = np.einsum("ij,njk->nik", rot, result.frames)
+            if shape is not None and base > 0:  # the proximal part, held on its track, is kept
+                keep = shape[0] < base - 1e-9
+                s_new = np.r_[shape[0][keep], s_new]
+                pos_new = np.vstack([shape[1][keep], pos_new])
+                frames_new = np.concatenate([shape[2][keep], frames_new])
+            shape = (s_new, pos_new, frames_new)
             # the tissue gives way where the needle left its track by more than the slip offset
-            pos = np.column_stack([np.interp(nodes[inside], result.s_mm, result.positions_mm[:, i])  # type: ignore[union-attr]
-                                   for i in range(3)])
+            pos = np.column_stack([np.interp(nodes[inside], s_new, pos_new[:, i]) for i in range(3)])
             off = pos - track[inside]
             dist = np.linalg.norm(off, axis=1)
             far = dist > self.slip_mm
             if np.any(far):
                 idx = np.nonzero(inside)[0][far]
                 track[idx] += off[far] * (1.0 - self.slip_mm / dist[far])[:, None]
-            tip = result.positions_mm[-1]  # type: ignore[union-attr]
-            tangent = result.frames[-1][:, 2]  # type: ignore[union-attr]
+            h = depth - (steps[-1][0] if steps else 0.0)
+            new_tangent = frames_new[-1][:, 2]
+            turn = new_tangent - tangent
+            turn = (turn - np.dot(turn, new_tangent) * new_tangent) / h if self.arc_cut else np.zeros(3)
+            tip, tangent = pos_new[-1], new_tangent
             steps.append((float(depth), tip.copy()))
-        assert path is not None
-        return np.asarray(path.positions_mm), steps  # type: ignore[union-attr]
+        assert shape is not None
+        return shape[1], steps
+
+
+def _pose_at(s_mm: np.ndarray, positions_mm: np.ndarray, frames: np.ndarray,
+             at_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Position (3,) mm and orthonormal frame (3, 3) of a solved centreline at arc length ``at_mm``.
+
+    Linear between samples; the frame is re-orthonormalised (nearest rotation, by SVD).
+    """
+    i = int(np.clip(np.searchsorted(s_mm, at_mm) - 1, 0, len(s_mm) - 2))
+    w = (at_mm - s_mm[i]) / (s_mm[i + 1] - s_mm[i])
+    p = (1 - w) * positions_mm[i] + w * positions_mm[i + 1]
+    u, _, vt = np.linalg.svd((1 - w) * frames[i] + w * frames[i + 1])
+    return p, u @ vt
 
 
 TISSUE_ROD = TissueRodInsertion()

@@ -105,12 +105,16 @@ def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pyt
     assert below["converged"] == "True" and abs(float(below["tip_x_mm"])) + abs(float(below["tip_y_mm"])) < 1e-3
     for case in ("15ga-20j-tip, axial 1.1 P_euler(tube)", "15ga-20j-tip, 5000 N tension"):
         assert by_case[case]["converged"] == "False" and by_case[case]["reason"]
-    # in tissue: one row per modulus and depth; a missing tip always carries the failure's reason
+    # in tissue: one row per modulus, schedule (two plateaus per onset) and depth; a missing tip always carries
+    # the failure's reason; the in-tissue models are on the speed/accuracy chart
     header, points = _read_csv(out / "rod_models_tissue.csv")
     assert header == list(models.TISSUE_COLUMNS)
-    assert len(points) == len(models.QUICK.tissue_moduli_pa) * len(models.QUICK.tissue_depths_mm)
+    q = models.QUICK
+    assert len(points) == len(q.tissue_moduli_pa) * 2 * len(q.tissue_onsets_mm) * len(q.tissue_depths_mm)
     for p in points:
         assert np.isfinite(float(p["tissue_rod_tip_mm"])) == (p["status"] == "ok"), p
+    in_tissue = [r for r in rows if "tissue" in r["model"]]
+    assert len(in_tissue) == 2 and all(float(r["median_ms"]) > 0 for r in in_tissue)
     _assert_real_png(out / "rod_models_tissue.png")
 
 

@@ -7,10 +7,11 @@ import pytest
 
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.steering.insertion import (
+    TIP_FOLLOWING_MIN_PA,
     KinematicInsertion,
     TissueBeamInsertion,
+    curvature_factor,
     curvature_table,
-    fit_tissue_factor,
 )
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.rod_model.beam import PLANAR_BEAM
@@ -76,12 +77,36 @@ def test_stiffer_tissue_holds_the_needle_closer_to_its_track(design) -> None:  #
     assert gel.insert_one(design, sch, 150.0)[-1, 0] > soft.insert_one(design, sch, 150.0)[-1, 0]
 
 
-def test_default_tissue_factor_matches_its_fit(design) -> None:  # type: ignore[no-untyped-def]
-    schedules = [TensionSchedule.ramp(o, 20.0, t) for o, t in ((0.0, 10.0), (40.0, 10.0), (20.0, 5.0))]
-    ref = TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=0.5)
-    factor, err = fit_tissue_factor(design, schedules, 150.0, ref)
-    assert factor == pytest.approx(KinematicInsertion().tissue_factor, abs=0.05)
-    assert np.all(err < 2.0)
+def test_curvature_factor_is_monotone_and_tends_to_tip_following() -> None:
+    moduli = np.geomspace(TIP_FOLLOWING_MIN_PA, 1e12, 40)
+    c = np.array([curvature_factor(float(e)) for e in moduli])
+    assert np.all(np.diff(c) < 0) and c[-1] == pytest.approx(1.0, abs=0.01) and c[0] < 1.5
+    with pytest.raises(PlanInputError, match="tip-following range"):
+        KinematicInsertion(tissue_modulus_pa=1e4)
+    assert KinematicInsertion(tissue_modulus_pa=1e4, tissue_factor=0.8).factor == 0.8
+
+
+def test_curvature_factor_matches_the_in_tissue_rod_where_it_was_not_fitted() -> None:
+    # 0.5 MPa is not among the fitted moduli: the factor fitted to the rod there against the function
+    from scipy.optimize import minimize_scalar
+
+    from reachplan.planner.steering.tissue_rod import TissueRodInsertion
+
+    design = preset("15ga-30j-tip")
+    schedules = [TensionSchedule.ramp(o, 20.0, design.max_tension_n) for o in (0.0, 20.0, 40.0, 60.0)]
+    rod = TissueRodInsertion(tissue_modulus_pa=5e5)
+    tips = []
+    for sch in schedules:
+        path = rod.insert_one(design, sch, 150.0)
+        assert isinstance(path, np.ndarray)
+        tips.append(path[-1])
+
+    def misfit(f: float) -> float:
+        kin = KinematicInsertion(tissue_factor=f).insert_array(design, schedules, 150.0)[:, -1]
+        return float(np.sum((kin - np.array(tips)) ** 2))
+
+    fitted = minimize_scalar(misfit, bounds=(0.5, 2.0), method="bounded").x
+    assert fitted == pytest.approx(curvature_factor(5e5), abs=0.05)
 
 
 def test_bad_inputs_are_typed_errors(design) -> None:  # type: ignore[no-untyped-def]
