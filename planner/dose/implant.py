@@ -818,8 +818,8 @@ class _Model:
         """Solve with at most ``budget`` needles (None: no budget), binaries when ``integral``.
 
         ``kappa`` (per organ): each organ's mean-tail-dose row may reach ``kappa`` × its limit (the calibration of
-        that row to D2cm³, see :func:`_calibrate`). ``only``: the needles (indices into ``needles``) allowed, the
-        others held empty. ``cutoff``: an incumbent's objective, added as the row ``c·x <= cutoff`` (branch and
+        that row to D2cm³, see :func:`_calibrate`). ``only``: the needles (indices into ``needles``) used (``y`` = 1),
+        the others held empty. ``cutoff``: an incumbent's objective, added as the row ``c·x <= cutoff`` (branch and
         bound then only looks for better selections; infeasible means none is better).
         """
         ub = self.ub.copy()
@@ -833,6 +833,7 @@ class _Model:
         if only is not None:
             hi[self.i_y:self.i_u] = 0.0
             hi[self.i_y + np.asarray(only, dtype=int)] = 1.0
+            lo[self.i_y + np.asarray(only, dtype=int)] = 1.0
         integrality = np.zeros(self.n)
         options: dict[str, object] = {"disp": False}
         if integral and self.n_y:
@@ -846,15 +847,13 @@ class _Model:
         return sopt.milp(self.c, constraints=cons, integrality=integrality, bounds=sopt.Bounds(lo, hi),
                          options=options)
 
-    def rounded(self, budget: int, kappa: np.ndarray, keep: Sequence[int] = ()) -> tuple[sopt.OptimizeResult | None,
-                                                                                     float | None]:
-        """Return a feasible selection of at most ``budget`` needles by rounding the LP relaxation, and its bound.
+    def rounded(self, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
+                keep: Sequence[int] = ()) -> sopt.OptimizeResult | None:
+        """Return a feasible selection of at most ``budget`` needles by rounding the LP relaxation ``relaxed``.
 
         The needles ``keep`` (an incumbent's), then those with the largest relaxed ``y``, one per hole; their best
-        loading. None when that fails. The LP relaxation's optimum bounds every selection of ``budget`` needles
-        from below (None when it failed).
+        loading (an LP). None when that fails.
         """
-        relaxed = self.solve(budget, kappa=kappa)
         picked = list(dict.fromkeys(int(i) for i in keep))
         holes = {self.hole_of[i] for i in picked}
         if relaxed.x is not None:
@@ -865,8 +864,8 @@ class _Model:
                 if self.hole_of[int(i)] not in holes:
                     picked.append(int(i))
                     holes.add(self.hole_of[int(i)])
-        res = self.solve(budget, integral=True, kappa=kappa, only=picked)
-        return (res if res.x is not None else None), (float(relaxed.fun) if relaxed.x is not None else None)
+        res = self.solve(budget, kappa=kappa, only=picked[:budget])
+        return res if res.x is not None else None
 
     def dwell_times(self, x: np.ndarray) -> np.ndarray:
         """(D,) dwell times (s) of a solution ``x``."""
@@ -1106,14 +1105,12 @@ def plan_implant(
                    [channels[i].name for i in needles], cost, settings, p_t)
     kappa = np.ones(len(organs))
     # the arm's bound: every candidate loaded, no budget (an LP); its solution calibrates the organ rows
-    free = None
-    for _ in range(2):
-        free = model.solve(None, kappa=kappa)
-        if free.x is None:
-            break
+    free = model.solve(None, kappa=kappa)
+    if free.x is not None:
         kappa = _calibrate(kappa, _d2cc(prob, positions, directions, model.dwell_times(free.x), vox_cc),
                            model.tail_means(free.x), limits)
-    bound = float(free.fun) if free is not None and free.x is not None else float("nan")
+        free = model.solve(None, kappa=kappa)
+    bound = float(free.fun) if free.x is not None else float("nan")
 
     index = {id(channels[c]): i for i, c in enumerate(needles)}
     given = {b.budget: [index[id(c)] for c in b.selected if id(c) in index] for b in (subset.budgets if subset
@@ -1125,15 +1122,16 @@ def plan_implant(
         x, value, lower, status = None, float("inf"), None, "no feasible selection"
         for _ in range(2):  # lazy organ rows: the exact D2cm³ on every voxel near the implant
             # incumbents: the LP relaxation rounded with the last budget's needles kept; the subset arm's selection
-            inc, relaxed = model.rounded(k, kappa, keep)
+            relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
+            inc = model.rounded(k, kappa, relaxed, keep)
             if k in given:
-                other = model.rounded(k, kappa, given[k])[0]
+                other = model.rounded(k, kappa, relaxed, given[k])
                 if other is not None and (inc is None or float(other.fun) < float(inc.fun)):
                     inc = other
             res = model.solve(k, integral=True, time_limit_s=settings.mip_time_limit_s, kappa=kappa,
                               cutoff=None if inc is None else float(inc.fun) + 1e-9 * max(1.0, abs(float(inc.fun))))
             dual = getattr(res, "mip_dual_bound", None)
-            lower = float(dual) if dual is not None and np.isfinite(dual) else relaxed
+            lower = max([float(v) for v in (dual, relaxed.fun) if v is not None and np.isfinite(v)], default=None)
             if res.x is not None and (inc is None or float(res.fun) <= float(inc.fun)):
                 x, value, status = res.x, float(res.fun), f"HiGHS: {res.message}"
             elif inc is not None:
@@ -1242,15 +1240,15 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.nd
                        np.zeros(0), settings, p_t)
         kap = kappa.copy()
         x = None
-        for _ in range(3):
+        for _ in range(4):  # until the organ rows are calibrated to D2cm³ within 1 %
             res = model.solve(kappa=kap)
             if res.x is None:
                 break
             x = res.x
-            d2 = _d2cc(prob, pos, dirs, model.dwell_times(x), vox_cc)
-            if np.all(np.abs(d2 - limits) <= 0.005 * limits) or np.all(d2 <= limits * 0.995):
+            new = _calibrate(kap, _d2cc(prob, pos, dirs, model.dwell_times(x), vox_cc), model.tail_means(x), limits)
+            if np.all(np.abs(new / kap - 1) < 0.01):
                 break
-            kap = _calibrate(kap, d2, model.tail_means(x), limits)
+            kap = new
         if x is None:
             return None
         t = model.dwell_times(x)
