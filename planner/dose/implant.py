@@ -1188,10 +1188,11 @@ def plan_implant(
         plans += list(subset.plans)
     pareto_plans = _pareto(plans)
     pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
-    record = {"model": "needle selection: HiGHS MIP (scipy.optimize.milp) on sampled target points and organ "
-                       "mean-tail-dose rows, dwells in blocks; dwell times: LP on every dwell of the selection",
-              "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
-              "budgets": [b.to_json() for b in budgets]}
+    record: dict[str, object] = {
+        "model": "needle selection: HiGHS MIP (scipy.optimize.milp) on sampled target points and organ mean-tail-dose "
+                 "rows, dwells in blocks; dwell times: LP on every dwell of the selection",
+        "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
+        "budgets": [b.to_json() for b in budgets]}
     if not pareto_plans:
         return ImplantArm(name, len(needles), (), None, time.perf_counter() - t0,
                           "no needle budget gave a plan (every MIP or LP failed)", tuple(budgets), record)
