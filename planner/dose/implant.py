@@ -129,18 +129,18 @@ class ImplantSettings:
     max_needles: int = 16
     extra_after_aims: int = 1
     coverage_margin: float = 0.03
-    mip_time_limit_s: float = 1.0
+    mip_time_limit_s: float = 1.0  # the selection MIP, per budget
     mip_rel_gap: float = 0.02
+    segments_per_channel: int = 2
     selection_target_points: int = 200
     final_target_points: int = 800
     selection_oar_pitch_mm: float = 3.0
     final_oar_pitch_mm: float = 2.0
     oar_sample_cc: float = 4.0
-    segments_per_channel: int = 2
-    invasiveness_weight: float = 1e-3
-    time_weight: float = 1e-3
     min_dwell_time_s: float = 0.1
     oar_eval_radius_mm: float = 40.0
+    invasiveness_weight: float = 1e-3  # tie-breaks in the objective
+    time_weight: float = 1e-3
 
     def __post_init__(self) -> None:
         if not (self.dwell_step_mm > 0 and self.dwell_margin_mm >= 0 and self.tip_offset_mm >= 0
@@ -1021,17 +1021,9 @@ def _calibrate(kappa: np.ndarray, d2: np.ndarray, tails: np.ndarray, limits: np.
     return out
 
 
-def plan_implant(
-    name: str,
-    channels: Sequence[Channel],
-    planning: PlanningStructures,
-    kernel: Tg43Kernel,
-    air_kerma_strength_u: float,
-    aims: Aims | None = None,
-    settings: ImplantSettings | None = None,
-    gtv: Structure | None = None,
-    subset: ImplantArm | None = None,
-) -> ImplantArm:
+def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
+                 air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
+                 gtv: Structure | None = None, subset: ImplantArm | None = None) -> ImplantArm:
     """Return the Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
 
     Parameters
