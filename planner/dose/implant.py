@@ -10,38 +10,48 @@ as needles. Dwell positions are every ``dwell_step_mm`` along the part of each c
 by ``dwell_margin_mm``.
 
 Choice of needles and dwell times (:func:`plan_implant`), for each needle budget K = 1, 2, ... (K = 0 too when
-an intracavitary channel is given):
+an intracavitary channel is given), meaning "at most K needles":
 
-1. **Needle selection: a greedy heuristic with a bound**, on a restricted model: each channel's dwells grouped in
-   at most ``segments_per_channel`` consecutive blocks of equal dwell time ``τ_s`` (a piecewise-constant,
-   modulation-restricted loading); target points ``A τ + u >= P`` (``u`` underdose, ``P`` the per-fraction
-   dose that brings D90 to its aim, plus ``coverage_margin``); organ points ``A τ <= L`` (per point, which implies
-   D2cm³ <= L); neighbouring blocks within ``neighbour_ratio``; no block's dwell over ``max_dwell_share`` of the
-   total. Objective: mean underdose (in units of the prescription) + a small weight on the mean target dose
-   (shorter plans) + ``invasiveness_weight`` × each used needle's normalised hole distance and tissue length (the
-   "least invasive" tie-break). Budget K's set is budget K-1's plus the needle whose exact block loading (an LP)
-   lowers the objective most, among the ``greedy_candidates`` needles that could fill most of the current
-   underdose within their organ caps; one needle per template hole. **Bound:** the mixed-integer model of the
-   same selection (binary ``y_n`` per needle, ``τ_s <= M_s y_n``, ``Σ y_n <= K``, HiGHS through
-   ``scipy.optimize.milp``) has an LP relaxation whose optimum bounds every K-needle selection from below; it is
-   solved for the chosen budget and the relative gap reported (``ImplantPlan.mip_gap``; with
-   ``mip_time_limit_s`` > 0 HiGHS's branch and bound also runs and its dual bound tightens it). The big-M
-   relaxation is weak: the gap is an honest but loose bound, typically 0.5-0.95 of an objective that is itself
-   small when the aims are met.
-2. **Dwell times on the chosen needles: a linear programme** over every dwell (no blocks) with the same
-   target and organ rows, neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time
-   deviation constraint / HIPO's dwell-time gradient restriction, Mosleh-Shirazi et al., J Contemp Brachytherapy
-   11(3), 2019) and no dwell above ``max_dwell_share`` of the total; the hottest 2 cm³ of each organ are then
-   released from the point constraints and the LP solved again (D2cm³ is not linear). Dwells under
-   ``min_dwell_time_s`` are dropped; the plan is checked on every organ voxel near the implant and all times are
-   scaled down when a D2cm³ still exceeds its limit. A needle left with (almost) no time is not part of the
-   implant: it is dropped and the rest re-solved.
+**The model** (:class:`_Model`), linear in the dwell times ``t``: target points ``A t + u >= P`` (``u``
+underdose, ``P`` the per-fraction dose that brings D90 to its aim, plus ``coverage_margin``; GTV points at the
+GTV D98 aim); for each organ a **mean-tail-dose row**: the mean dose over its hottest 2 cm³ within ``κ`` × its
+D2cm³ limit, written linearly as ``ζ + Σ w_i s_i / 2 cm³ <= κ L``, ``s_i >= (A t)_i - ζ``, ``s, ζ >= 0``
+(Rockafellar & Uryasev, J Risk 2(3):21, 2000; as mean-tail-dose in radiotherapy planning, Romeijn et al.,
+Oper Res 54(2):201, 2006). The mean over the hottest 2 cm³ is at least D2cm³, so with ``κ`` = 1 the row implies
+D2cm³ <= L; ``κ`` is then calibrated to the exact D2cm³ on every organ voxel near the loaded dwells
+(:func:`_calibrate`), which puts D2cm³ on the limit instead of below it. Organ points: the organ's voxels on a
+lattice of ``*_oar_pitch_mm``, each weighted by the volume it stands for, nearest to the dwells until they hold
+``oar_sample_cc``. Neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time deviation
+constraint / HIPO's dwell-time gradient restriction, Mosleh-Shirazi et al., J Contemp Brachytherapy 11(3),
+2019): a channel is loaded on all its dwells or on none. No dwell over ``max_dwell_share`` of the total.
+Objective: mean underdose (in units of the prescription) + ``time_weight`` × mean target dose (shorter plans) +
+``invasiveness_weight`` × each used needle's normalised hole distance and tissue length ("least invasive").
 
-The needle count against HR-CTV D90 with the organ limits held is the arm's Pareto curve; the plan chosen is
-the one with the fewest needles that meets every aim (HR-CTV D90 and D98, GTV D98 when a GTV is given, organ
-D2cm³), else the one with the highest D90. The curve stops ``extra_after_aims`` budgets after the first that
-meets the aims, when no needle can be added, or after three budgets without a D90 gain of 0.1 Gy. The final
-metrics of the target are computed on 3 × 3 × 3 sub-voxels (:data:`SUPERSAMPLE`).
+1. **Needle selection: a mixed-integer programme** (HiGHS through ``scipy.optimize.milp``): each channel's dwells
+   in ``segments_per_channel`` blocks of equal time, sampled target points; binary ``y_n`` per needle with each
+   block's time ``<= M y_n`` (``M``: the time at which the block alone brings every target point to ``P``, or fills
+   an organ's row), one needle per template hole, ``Σ y_n <= K``. Incumbents: the LP relaxation rounded (the
+   previous budget's needles kept, so the objective never rises with K) and, for the straight + steered arm, the
+   straight arm's selection at K (``subset``); branch and bound then runs for ``mip_time_limit_s`` with the
+   incumbent's objective as a cutoff. The bound reported per budget is HiGHS's dual bound or the LP
+   relaxation's, whichever is higher, and the relative gap to the selection kept (:class:`BudgetResult`; plan.json
+   ``selection``). The big-M relaxation is weak: gaps of 0.5-0.99 are typical on the clinical case, an honest
+   statement that the selection is not proven optimal. Exact D2cm³ of the selection's loading is checked on every
+   organ voxel near it and the organ rows tightened and the MIP solved again when it is more than 2 % over (lazy).
+   The LP with every candidate loaded bounds every budget (``selection.all_candidates_objective``).
+2. **Dwell times on the chosen channels: a linear programme** over every dwell (no blocks), its organ rows
+   calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under ``min_dwell_time_s`` are dropped;
+   a needle left with fewer than ``min_dwells`` loaded dwells is not part of the implant: it is dropped and the
+   rest re-solved. The plan is checked on every organ voxel near the implant and all times scaled down when a
+   D2cm³ still exceeds its limit.
+
+Each new selection's plan is a point of the arm's Pareto curve of needle count against HR-CTV D90 with the organ
+limits held; a plan no better than one with fewer needles is dominated and left out, so the curve rises and has
+one point per count. The plan chosen is the one with the fewest needles that meets every aim (HR-CTV D90 and D98,
+GTV D98 when a GTV is given, organ D2cm³), else the one with the highest D90. The budgets stop
+``extra_after_aims`` after the first that meets the aims, after two budgets without a new selection, or when the
+selection reaches the all-candidates bound. The final metrics of the target are computed on sub-voxels of at
+most :data:`SUBVOXEL_MM`.
 
 Aims (EQD2, α/β 10 tumour / 3 organs, 45 Gy / 25 fractions external beam + 4 fractions): EMBRACE II
 (Pötter et al., Clin Transl Radiat Oncol 9:48, 2018) and the ESGO/ESTRO achievability table (90 % of
