@@ -18,7 +18,7 @@ GTV D98 aim); for each organ a **mean-tail-dose row**: the mean dose over its ho
 D2cm³ limit, written linearly as ``ζ + Σ w_i s_i / 2 cm³ <= κ L``, ``s_i >= (A t)_i - ζ``, ``s, ζ >= 0``
 (Rockafellar & Uryasev, J Risk 2(3):21, 2000; as mean-tail-dose in radiotherapy planning, Romeijn et al.,
 Oper Res 54(2):201, 2006). The mean over the hottest 2 cm³ is at least D2cm³, so with ``κ`` = 1 the row implies
-D2cm³ <= L; ``κ`` is then calibrated to the exact D2cm³ on every organ voxel near the loaded dwells
+D2cm³ <= L; ``κ`` is then calibrated to the exact D2cm³ on the organ's 20 cm³ nearest the loaded dwells
 (:func:`_calibrate`), which puts D2cm³ on the limit instead of below it. Organ points: the organ's voxels on a
 lattice of ``*_oar_pitch_mm``, each weighted by the volume it stands for, nearest to the dwells until they hold
 ``oar_sample_cc``. Neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time deviation
@@ -36,8 +36,8 @@ Objective: mean underdose (in units of the prescription) + ``time_weight`` × me
    incumbent's objective as a cutoff. The bound reported per budget is HiGHS's dual bound or the LP
    relaxation's, whichever is higher, and the relative gap to the selection kept (:class:`BudgetResult`; plan.json
    ``selection``). The big-M relaxation is weak: gaps of 0.5-0.99 are typical on the clinical case, an honest
-   statement that the selection is not proven optimal. Exact D2cm³ of the selection's loading is checked on every
-   organ voxel near it and the organ rows tightened and the MIP solved again when it is more than 2 % over (lazy).
+   statement that the selection is not proven optimal. Exact D2cm³ of the selection's loading is checked on the
+   organ's 20 cm³ nearest to it, and the organ rows tightened and the MIP solved again when it is over by 2 %.
    The LP with every candidate loaded bounds every budget (``selection.all_candidates_objective``).
 2. **Dwell times on the chosen channels: a linear programme** over every dwell (no blocks), its organ rows
    calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under ``min_dwell_time_s`` are dropped;
@@ -995,7 +995,7 @@ def _organ_rows(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, pitch_mm: flo
 
 
 def _d2cc(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, vox_cc: float) -> np.ndarray:
-    """Exact D2cm³ (Gy per fraction) of every organ with a limit, on its voxels near the loaded dwells."""
+    """Return the D2cm³ (Gy per fraction) of every organ with a limit, on its 20 cm³ nearest the loaded dwells."""
     on = t > 0
     out = []
     for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
@@ -1004,15 +1004,15 @@ def _d2cc(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, vox_
         if not on.any() or len(pts) == 0:
             out.append(0.0)
             continue
-        out.append(dose_to_volume(_dose(_near_organ(pts, pos[on], prob.eval_radius_mm, vox_cc), pos[on], dirs[on],
-                                        t[on], prob), vox_cc, 2.0))
+        near = _near_organ(pts, pos[on], 0.0, vox_cc, 10)  # the nearest 20 cm³ hold the hottest 2 cm³
+        out.append(dose_to_volume(_dose(near, pos[on], dirs[on], t[on], prob), vox_cc, 2.0))
     return np.array(out)
 
 
-def _near_organ(pts: np.ndarray, pos: np.ndarray, radius_mm: float, vox_cc: float) -> np.ndarray:
-    """Return an organ's voxels within ``radius_mm`` of a dwell, and at least its nearest 4 × 2 cm³."""
+def _near_organ(pts: np.ndarray, pos: np.ndarray, radius_mm: float, vox_cc: float, times_2cc: int = 4) -> np.ndarray:
+    """Return an organ's voxels within ``radius_mm`` of a dwell, and at least its nearest ``times_2cc`` × 2 cm³."""
     dist = cKDTree(pos).query(pts)[0] if len(pos) else np.zeros(len(pts))
-    n_min = min(len(pts), 4 * math.ceil(2.0 / vox_cc))
+    n_min = min(len(pts), times_2cc * math.ceil(2.0 / vox_cc))
     out: np.ndarray = pts[(dist <= radius_mm) | (np.argsort(np.argsort(dist, kind="stable")) < n_min)]
     return out
 
@@ -1122,7 +1122,7 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         """Select at most ``k`` needles: return (solution, objective, proven lower bound, how it ended)."""
         nonlocal kappa
         x, value, lower, status = None, float("inf"), None, "no feasible selection"
-        for _ in range(2):  # lazy organ rows: the exact D2cm³ on every voxel near the implant
+        for _ in range(2):  # lazy organ rows: the exact D2cm³ near the implant
             # incumbents: the LP relaxation rounded with the last budget's needles kept; the subset arm's selection
             relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
             inc = model.rounded(k, kappa, relaxed, keep)
