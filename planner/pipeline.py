@@ -505,9 +505,24 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
     return current
 
 
+#: words naming an applicator part (name keys): an obstacle for needles, not an organ at risk for dose
+APPLICATOR_WORDS = ("tandem", "intrauterine", "ovoid", "obturator", "applicator", "cylinder")
+
+
+def is_applicator(name: str) -> bool:
+    """Return True when ``name`` is an applicator part (:data:`APPLICATOR_WORDS`), not tissue."""
+    from reachplan.imaging.names import name_key
+
+    key = name_key(name)
+    return any(w in key for w in APPLICATOR_WORDS)
+
+
 def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str,
                         oar_names: Sequence[str]) -> PlanningStructures:
-    """Return the target and organs at risk (bone excluded) as masks for dose.
+    """Return the target and organs at risk (bone and applicator parts excluded) as masks for dose.
+
+    An applicator part (:data:`APPLICATOR_WORDS` in its name: the tandem, ovoids, obturator) may be an obstacle to
+    needles (an organ of the scene) but receives no dose limit and is no organ at risk for dose.
 
     On ``grid`` (the CT's), or without a CT on a 2 mm grid on the contours' own slices that holds the target and
     every organ.
@@ -523,7 +538,8 @@ def planning_structures(structures: StructureSet, grid: Grid | None, target_roi:
     if target_roi not in structures.names:
         raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
     roi = structures.get(target_roi)
-    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone"]
+    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone"
+                and not is_applicator(n)]
     if grid is None:
         union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
                                                   if c.geometric_type == "CLOSED_PLANAR"))
@@ -958,7 +974,7 @@ def plan_implants(
     (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
     of ``config`` with the screening model of ``models``.
     """
-    from reachplan.planner.dose.implant import ImplantSettings, dominate, needle_candidates, plan_implant
+    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_implant
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
     settings = settings or ImplantSettings()
@@ -973,6 +989,5 @@ def plan_implants(
     straight = plan_implant("straight", [*[c for c in cands if not c.steered], *intracavitary], planning, kernel,
                             air_kerma_u, settings=settings, gtv=gtv)
     steered = plan_implant("steered", [*cands, *intracavitary], planning, kernel, air_kerma_u, settings=settings,
-                           gtv=gtv)
-    steered = dominate(steered, straight)  # its candidates include the straight ones: never worse than that arm
+                           gtv=gtv, subset=straight)  # its candidates include the straight ones: never worse
     return ImplantComparison(straight, steered, (*cands, *intracavitary))

@@ -145,6 +145,12 @@ def test_demo_plans_the_implant_straight_against_steered(demo: Path) -> None:
             assert max(n["dwell_times_s"]) <= share * sum(sum(m["dwell_times_s"]) for m in arm["needles"]) + 1e-3
         assert all({"n_needles", "hrctv_d90_eqd2_gy", "aims_met"} <= set(p) for p in arm["pareto"])
         assert any(p["n_needles"] == arm["n_needles"] for p in arm["pareto"])
+        # "at most n needles": one point per count, D90 rising with it; the MIP's proven gap per budget
+        counts = [p["n_needles"] for p in arm["pareto"]]
+        d90 = [p["hrctv_d90_eqd2_gy"] for p in arm["pareto"]]
+        assert counts == sorted(set(counts)) and d90 == sorted(set(d90)), arm["pareto"]
+        assert arm["selection"]["budgets"] and all("mip_gap" in b for b in arm["selection"]["budgets"])
+        assert not [o for o in arm["oar_d2cc_eqd2_gy"] if "tandem" in o.casefold()]  # an applicator, not an organ
         device = json.loads(next((demo / "export" / f"implant_{name}").glob("*.json")).read_text())
         text = json.dumps(device)
         assert all(n["hole_id"] in text for n in arm["needles"])

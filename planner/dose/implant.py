@@ -10,38 +10,48 @@ as needles. Dwell positions are every ``dwell_step_mm`` along the part of each c
 by ``dwell_margin_mm``.
 
 Choice of needles and dwell times (:func:`plan_implant`), for each needle budget K = 1, 2, ... (K = 0 too when
-an intracavitary channel is given):
+an intracavitary channel is given), meaning "at most K needles":
 
-1. **Needle selection: a greedy heuristic with a bound**, on a restricted model: each channel's dwells grouped in
-   at most ``segments_per_channel`` consecutive blocks of equal dwell time ``τ_s`` (a piecewise-constant,
-   modulation-restricted loading); target points ``A τ + u >= P`` (``u`` underdose, ``P`` the per-fraction
-   dose that brings D90 to its aim, plus ``coverage_margin``); organ points ``A τ <= L`` (per point, which implies
-   D2cm³ <= L); neighbouring blocks within ``neighbour_ratio``; no block's dwell over ``max_dwell_share`` of the
-   total. Objective: mean underdose (in units of the prescription) + a small weight on the mean target dose
-   (shorter plans) + ``invasiveness_weight`` × each used needle's normalised hole distance and tissue length (the
-   "least invasive" tie-break). Budget K's set is budget K-1's plus the needle whose exact block loading (an LP)
-   lowers the objective most, among the ``greedy_candidates`` needles that could fill most of the current
-   underdose within their organ caps; one needle per template hole. **Bound:** the mixed-integer model of the
-   same selection (binary ``y_n`` per needle, ``τ_s <= M_s y_n``, ``Σ y_n <= K``, HiGHS through
-   ``scipy.optimize.milp``) has an LP relaxation whose optimum bounds every K-needle selection from below; it is
-   solved for the chosen budget and the relative gap reported (``ImplantPlan.mip_gap``; with
-   ``mip_time_limit_s`` > 0 HiGHS's branch and bound also runs and its dual bound tightens it). The big-M
-   relaxation is weak: the gap is an honest but loose bound, typically 0.5-0.95 of an objective that is itself
-   small when the aims are met.
-2. **Dwell times on the chosen needles: a linear programme** over every dwell (no blocks) with the same
-   target and organ rows, neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time
-   deviation constraint / HIPO's dwell-time gradient restriction, Mosleh-Shirazi et al., J Contemp Brachytherapy
-   11(3), 2019) and no dwell above ``max_dwell_share`` of the total; the hottest 2 cm³ of each organ are then
-   released from the point constraints and the LP solved again (D2cm³ is not linear). Dwells under
-   ``min_dwell_time_s`` are dropped; the plan is checked on every organ voxel near the implant and all times are
-   scaled down when a D2cm³ still exceeds its limit. A needle left with (almost) no time is not part of the
-   implant: it is dropped and the rest re-solved.
+**The model** (:class:`_Model`), linear in the dwell times ``t``: target points ``A t + u >= P`` (``u``
+underdose, ``P`` the per-fraction dose that brings D90 to its aim, plus ``coverage_margin``; GTV points at the
+GTV D98 aim); for each organ a **mean-tail-dose row**: the mean dose over its hottest 2 cm³ within ``κ`` × its
+D2cm³ limit, written linearly as ``ζ + Σ w_i s_i / 2 cm³ <= κ L``, ``s_i >= (A t)_i - ζ``, ``s, ζ >= 0``
+(Rockafellar & Uryasev, J Risk 2(3):21, 2000; as mean-tail-dose in radiotherapy planning, Romeijn et al.,
+Oper Res 54(2):201, 2006). The mean over the hottest 2 cm³ is at least D2cm³, so with ``κ`` = 1 the row implies
+D2cm³ <= L; ``κ`` is then calibrated to the exact D2cm³ on the organ's 20 cm³ nearest the loaded dwells
+(:func:`_calibrate`), which puts D2cm³ on the limit instead of below it. Organ points: the organ's voxels on a
+lattice of ``*_oar_pitch_mm``, each weighted by the volume it stands for, nearest to the dwells until they hold
+``oar_sample_cc``. Neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time deviation
+constraint / HIPO's dwell-time gradient restriction, Mosleh-Shirazi et al., J Contemp Brachytherapy 11(3),
+2019): a channel is loaded on all its dwells or on none. No dwell over ``max_dwell_share`` of the total.
+Objective: mean underdose (in units of the prescription) + ``time_weight`` × mean target dose (shorter plans) +
+``invasiveness_weight`` × each used needle's normalised hole distance and tissue length ("least invasive").
 
-The needle count against HR-CTV D90 with the organ limits held is the arm's Pareto curve; the plan chosen is
-the one with the fewest needles that meets every aim (HR-CTV D90 and D98, GTV D98 when a GTV is given, organ
-D2cm³), else the one with the highest D90. The curve stops ``extra_after_aims`` budgets after the first that
-meets the aims, when no needle can be added, or after three budgets without a D90 gain of 0.1 Gy. The final
-metrics of the target are computed on 3 × 3 × 3 sub-voxels (:data:`SUPERSAMPLE`).
+1. **Needle selection: a mixed-integer programme** (HiGHS through ``scipy.optimize.milp``): each channel's dwells
+   in ``segments_per_channel`` blocks of equal time, sampled target points; binary ``y_n`` per needle with each
+   block's time ``<= M y_n`` (``M``: the time at which the block alone brings every target point to ``P``, or fills
+   an organ's row), one needle per template hole, ``Σ y_n <= K``. Incumbents: the LP relaxation rounded (the
+   previous budget's needles kept, so the objective never rises with K) and, for the straight + steered arm, the
+   straight arm's selection at K (``subset``); branch and bound then runs for ``mip_time_limit_s`` with the
+   incumbent's objective as a cutoff. The bound reported per budget is HiGHS's dual bound or the LP
+   relaxation's, whichever is higher, and the relative gap to the selection kept (:class:`BudgetResult`; plan.json
+   ``selection``). The big-M relaxation is weak: gaps of 0.5-0.99 are typical on the clinical case, an honest
+   statement that the selection is not proven optimal. Exact D2cm³ of the selection's loading is checked on the
+   organ's 20 cm³ nearest to it, and the organ rows tightened and the MIP solved again when it is over by 2 %.
+   The LP with every candidate loaded bounds every budget (``selection.all_candidates_objective``).
+2. **Dwell times on the chosen channels: a linear programme** over every dwell (no blocks), its organ rows
+   calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under ``min_dwell_time_s`` are dropped;
+   a needle left with fewer than ``min_dwells`` loaded dwells is not part of the implant: it is dropped and the
+   rest re-solved. The plan is checked on every organ voxel near the implant and all times scaled down when a
+   D2cm³ still exceeds its limit.
+
+Each new selection's plan is a point of the arm's Pareto curve of needle count against HR-CTV D90 with the organ
+limits held; a plan no better than one with fewer needles is dominated and left out, so the curve rises and has
+one point per count. The plan chosen is the one with the fewest needles that meets every aim (HR-CTV D90 and D98,
+GTV D98 when a GTV is given, organ D2cm³), else the one with the highest D90. The budgets stop
+``extra_after_aims`` after the first that meets the aims, after two budgets without a new selection, or when the
+selection reaches the all-candidates bound. The final metrics of the target are computed on sub-voxels of at
+most :data:`SUBVOXEL_MM`.
 
 Aims (EQD2, α/β 10 tumour / 3 organs, 45 Gy / 25 fractions external beam + 4 fractions): EMBRACE II
 (Pötter et al., Clin Transl Radiat Oncol 9:48, 2018) and the ESGO/ESTRO achievability table (90 % of
@@ -50,7 +60,6 @@ patients: HR-CTV D90 > 85, D98 > 75, GTV D98 > 90 Gy), as :class:`reachplan.plan
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 import time
@@ -106,16 +115,14 @@ class ImplantSettings:
     max_needles : largest needle budget on the Pareto curve.
     extra_after_aims : Pareto points computed beyond the first budget that meets every aim.
     coverage_margin : the LP aims target points at (1 + this) × the D90 prescription.
-    mip_time_limit_s, mip_rel_gap : HiGHS limits of the optional branch and bound run for the bound (0: the LP
-        relaxation only).
-    selection_target_points, selection_oar_points : points of the restricted selection model (target; per
-        organ, those nearest to the candidate dwells).
-    final_target_points, final_oar_points : the same for the dwell-time LP on the chosen needles.
+    mip_time_limit_s, mip_rel_gap : HiGHS limits of the selection MIP at each needle budget (time 0: none).
+    selection_target_points, final_target_points : target points of the selection model and of the dwell-time
+        LP on the chosen needles.
+    selection_oar_pitch_mm, final_oar_pitch_mm : lattice pitch of the organs' representative points in each.
+    oar_sample_cc : organ volume nearest to the dwells that the representative points cover.
     segments_per_channel : dwell blocks per channel in the selection model.
     invasiveness_weight : weight of the needles' invasiveness in the selection objective (a tie-break).
     time_weight : weight of the mean target dose (shorter plans) in both objectives.
-    greedy_candidates : needles whose exact loading is tried at each greedy step.
-    bound : compute the LP-relaxation bound (and gap) of the chosen budget.
     min_dwell_time_s : dwell times below this are set to zero (afterloaders do not deliver shorter dwells).
     oar_eval_radius_mm : organ voxels within this distance of a loaded dwell are evaluated for D2cm³.
     """
@@ -132,19 +139,18 @@ class ImplantSettings:
     max_needles: int = 16
     extra_after_aims: int = 1
     coverage_margin: float = 0.03
-    mip_time_limit_s: float = 0.0
+    mip_time_limit_s: float = 1.0  # the selection MIP, per budget
     mip_rel_gap: float = 0.02
-    selection_target_points: int = 300
-    selection_oar_points: int = 100
-    final_target_points: int = 2000
-    final_oar_points: int = 600
     segments_per_channel: int = 2
-    invasiveness_weight: float = 1e-3
-    time_weight: float = 1e-3
+    selection_target_points: int = 200
+    final_target_points: int = 800
+    selection_oar_pitch_mm: float = 3.0
+    final_oar_pitch_mm: float = 2.0
+    oar_sample_cc: float = 4.0
     min_dwell_time_s: float = 0.1
-    greedy_candidates: int = 6
-    bound: bool = True
     oar_eval_radius_mm: float = 40.0
+    invasiveness_weight: float = 1e-3  # tie-breaks in the objective
+    time_weight: float = 1e-3
 
     def __post_init__(self) -> None:
         if not (self.dwell_step_mm > 0 and self.dwell_margin_mm >= 0 and self.tip_offset_mm >= 0
@@ -153,9 +159,11 @@ class ImplantSettings:
         if self.neighbour_ratio < 1 or not 0 < self.max_dwell_share <= 1:
             raise ValueError("neighbour_ratio must be >= 1 and max_dwell_share in (0, 1]")
         if min(self.min_dwells, self.max_needles, self.rolls, self.segments_per_channel,
-               self.selection_target_points, self.selection_oar_points, self.final_target_points,
-               self.final_oar_points) < 1 or self.steered_per_hole < 0 or self.extra_after_aims < 0:
+               self.selection_target_points, self.final_target_points) < 1 or self.steered_per_hole < 0 \
+                or self.extra_after_aims < 0:
             raise ValueError("implant settings: counts must be >= 1 (steered_per_hole, extra_after_aims >= 0)")
+        if not (self.selection_oar_pitch_mm > 0 and self.final_oar_pitch_mm > 0 and self.oar_sample_cc >= 2.0):
+            raise ValueError("implant settings: organ pitches must be > 0 mm and oar_sample_cc >= 2 cm³")
 
 
 @dataclass(frozen=True, eq=False)
@@ -450,9 +458,9 @@ class ImplantPlan:
     """One implant: its loaded channels, dwell times (per fraction) and metrics (EQD2 totals in the metrics).
 
     ``dwells.channels`` are 1-based indices into ``channels``. ``scale`` < 1 tells that the LP times were
-    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap of the greedy
-    selection to the LP-relaxation bound of the selection MIP (None when not computed); ``mip_status`` says
-    both numbers.
+    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap HiGHS proved for the
+    selection MIP of the budget that gave this plan (None when it proved none); ``mip_status`` says which budget
+    and how the MIP ended.
     """
 
     channels: tuple[Channel, ...]
@@ -508,7 +516,11 @@ class ParetoPoint:
 
 @dataclass(frozen=True, eq=False)
 class ImplantArm:
-    """One arm (e.g. straight only, straight + steered): its candidates, Pareto curve and chosen plan."""
+    """One arm (e.g. straight only, straight + steered): its candidates, Pareto curve and chosen plan.
+
+    ``budgets``: the selection MIP at each needle budget tried; ``selection``: how the selection was made and the
+    bound of every candidate loaded (plan.json ``selection``); ``plans``: the implant of each Pareto point.
+    """
 
     name: str
     n_candidates: int
@@ -516,6 +528,9 @@ class ImplantArm:
     plan: ImplantPlan | None
     seconds: float
     reason: str = ""
+    budgets: tuple[BudgetResult, ...] = ()
+    selection: dict[str, object] = field(default_factory=dict)
+    plans: tuple[ImplantPlan, ...] = ()
 
     def to_json(self) -> dict[str, object]:
         """Return the arm for plan.json (EQD2 totals in Gy; dwell positions mm LPS; times s per fraction)."""
@@ -526,7 +541,7 @@ class ImplantArm:
         }
         pl = self.plan
         if pl is None:
-            return {**doc, "needles": [], "aims_met": False}
+            return {**doc, "needles": [], "aims_met": False, "selection": self.selection}
         needles = []
         for ch, c in enumerate(pl.channels, start=1):
             keep = pl.dwells.channels == ch
@@ -558,7 +573,7 @@ class ImplantArm:
             "total_time_s": round(pl.total_time_s, 3),
             "scale": round(pl.scale, 6),
             "selection_gap": None if pl.mip_gap is None else round(pl.mip_gap, 4),
-            "selection": pl.mip_status,
+            "selection": {**self.selection, "chosen": pl.mip_status},
         }
 
 
@@ -602,22 +617,22 @@ def _dose(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, times: np.ndarr
     return out * prob.gy_per_s
 
 
-#: sub-voxels per axis at which the final metrics of the target (and GTV) are computed
-SUPERSAMPLE = 3
+#: largest sub-voxel size (mm) at which the final metrics of the target (and GTV) are computed
+SUBVOXEL_MM = 1.0
 
 
 def _supersampled(grid: Grid, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points (mm, LPS) and weights at which a structure's final metrics are computed.
 
-    The n × n × n sub-voxel centres of each voxel, n = :data:`SUPERSAMPLE`. The dose falls steeply across a target's
-    edge, where D90 and D98 are decided: voxel centres alone are 1-3 % off on a 2 mm grid; n = 3 is within 0.2 % of
-    n = 6 on the planted cases of the tests.
+    Each voxel split along each axis into ``ceil(spacing / SUBVOXEL_MM)`` sub-voxels (:data:`SUBVOXEL_MM`). The dose
+    falls steeply across a target's edge, where D90 and D98 are decided: voxel centres alone are 1-3 % off on a 2 mm
+    grid; the tests check the result against a grid six times finer than 2 mm.
     """
-    n = SUPERSAMPLE
+    n_axis = [max(1, math.ceil(float(h) / SUBVOXEL_MM - 1e-9)) for h in grid.spacing_mm]  # (i, j, k)
     k, j, i = np.nonzero(mask)
     ijk = np.column_stack([i, j, k]).astype(float)
-    axis = (np.arange(n) + 0.5) / n - 0.5
-    off = np.array([[a, b, c] for a in axis for b in axis for c in axis])
+    ax = [(np.arange(n) + 0.5) / n - 0.5 for n in n_axis]
+    off = np.array([[a, b, c] for a in ax[0] for b in ax[1] for c in ax[2]])
     subs = grid.to_patient((ijk[:, None, :] + off[None]).reshape(-1, 3))
     return subs, np.ones(len(subs), dtype=int)
 
@@ -653,6 +668,227 @@ def _near(points: np.ndarray, dwell_pos: np.ndarray, k: int) -> np.ndarray:
     return np.sort(np.argsort(d, kind="stable")[:k])
 
 
+def _tail_mean(rates: np.ndarray, weight_cc: np.ndarray, volume_cc: float) -> np.ndarray:
+    """Mean of each column over its hottest ``volume_cc`` (rows weighted by the volume each stands for).
+
+    ``rates``: (p, k); returns (k,). A column whose rows hold less than ``volume_cc`` is averaged over
+    ``volume_cc`` all the same (the mean-tail-dose row's value with its threshold at 0).
+    """
+    if rates.size == 0:
+        return np.zeros(rates.shape[1] if rates.ndim == 2 else 0)
+    order = np.argsort(-rates, axis=0, kind="stable")
+    r = np.take_along_axis(rates, order, axis=0)
+    w = weight_cc[order]
+    before = np.cumsum(w, axis=0) - w
+    part = np.clip(volume_cc - before, 0.0, w)
+    out: np.ndarray = (part * r).sum(axis=0) / volume_cc
+    return out
+
+
+def _organ_sample(points: np.ndarray, vox_cc: float, near_mm: np.ndarray, pitch_mm: float,
+                  volume_cc: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return an organ's representative points for its D2cm³ row, and the volume (cm³) each stands for.
+
+    The organ's voxel centres (``points``, (n, 3) mm LPS) binned on a lattice of ``pitch_mm``, one point per bin
+    weighted by its voxels; of those, the ones nearest to the dwells ``near_mm`` ((d, 3) mm) until they hold
+    ``volume_cc``.
+    """
+    if len(points) == 0 or len(near_mm) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    _, first, counts = np.unique(np.floor(points / pitch_mm).astype(np.int64), axis=0, return_index=True,
+                                 return_counts=True)
+    reps, w = points[first], counts * vox_cc
+    order = np.argsort(cKDTree(near_mm).query(reps)[0], kind="stable")
+    n = min(len(order), int(np.searchsorted(np.cumsum(w[order]), volume_cc)) + 1)
+    keep = np.sort(order[:n])
+    return reps[keep], w[keep]
+
+
+@dataclass(frozen=True, eq=False)
+class _OrganRows:
+    """One organ's D2cm³ row: rates (Gy s⁻¹, (p, D)) of its representative points, their volumes (cm³), limit."""
+
+    rates: np.ndarray
+    weight_cc: np.ndarray
+    limit_gy: float
+
+
+class _Model:
+    """The linear model of a loading (module docstring, "the model"), as an LP or, with needle binaries, a MIP.
+
+    Variables ``[t (units), y (needles), u (target points), T, ζ (organs), s (organ points)]``. A unit is a run
+    of consecutive dwells of one channel with a common time (a block in the selection model, one dwell in the
+    final one); ``t`` is its time per dwell (s).
+
+    Parameters
+    ----------
+    units : dwell columns (of ``a_t`` and the organ rates) of each unit, consecutive along each channel.
+    unit_ch : (U,) channel of each unit.
+    a_t : (m, D) Gy s⁻¹ per fraction at the target (and GTV) points; ``p``: (m,) the dose each should reach.
+    organs : the D2cm³ rows.
+    needles : channels with a binary (none: an LP over every unit).
+    hole_of : template hole of each needle in ``needles`` (a hole takes one needle).
+    cost : (len(needles),) invasiveness of each.
+    """
+
+    def __init__(self, units: Sequence[np.ndarray], unit_ch: np.ndarray, a_t: np.ndarray, p: np.ndarray,
+                 organs: Sequence[_OrganRows], needles: Sequence[int], hole_of: Sequence[str], cost: np.ndarray,
+                 settings: ImplantSettings, p_t: float) -> None:
+        n_u, n_y, m = len(units), len(needles), len(a_t)
+        sizes = np.array([len(u) for u in units], dtype=float)
+        member = sparse.csr_matrix((np.ones(int(sizes.sum())), (np.concatenate(units),
+                                                                np.repeat(np.arange(n_u), sizes.astype(int)))),
+                                   shape=(a_t.shape[1], n_u))
+        at = np.asarray((member.T @ a_t.T).T)
+        ao = [np.asarray((member.T @ o.rates.T).T) for o in organs]
+        n_p = sum(len(o.weight_cc) for o in organs)
+        n_o = len(organs)
+        i_y, i_u, i_T, i_z, i_s = n_u, n_u + n_y, n_u + n_y + m, n_u + n_y + m + 1, n_u + n_y + m + 1 + n_o
+        n = i_s + n_p
+        c = np.zeros(n)
+        c[:n_u] = settings.time_weight * sizes * at.mean(axis=0) / (p_t * max(sizes.sum(), 1.0))
+        c[i_y:i_u] = settings.invasiveness_weight * cost
+        c[i_u:i_T] = 1.0 / (m * p_t)
+        blocks: list[sparse.spmatrix] = []
+        lb: list[np.ndarray] = []
+        ub: list[np.ndarray] = []
+
+        def add(rows: sparse.spmatrix, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
+            blocks.append(sparse.csr_matrix(rows))
+            lb.append(np.broadcast_to(lo, rows.shape[0]).astype(float))
+            ub.append(np.broadcast_to(hi, rows.shape[0]).astype(float))
+
+        def cols(parts: Sequence[tuple[int, sparse.spmatrix]], n_rows: int) -> sparse.spmatrix:
+            """Return a row block holding each ``(first column, matrix)`` part, zeros elsewhere."""
+            mats = []
+            at_col = 0
+            for start, mat in parts:
+                if start > at_col:
+                    mats.append(sparse.csr_matrix((n_rows, start - at_col)))
+                mats.append(sparse.csr_matrix(mat))
+                at_col = start + mat.shape[1]
+            if at_col < n:
+                mats.append(sparse.csr_matrix((n_rows, n - at_col)))
+            return sparse.hstack(mats, format="csr")
+
+        add(cols([(0, at), (i_u, sparse.identity(m))], m), p, np.inf)  # target: A t + u >= p
+        # the total time T = Σ sizes·t, and no dwell over the share: t - share·T <= 0
+        add(cols([(0, sizes[None, :]), (i_T, -np.ones((1, 1)))], 1), 0.0, 0.0)
+        share = settings.max_dwell_share * (1 - 1e-3)
+        add(cols([(0, sparse.identity(n_u)), (i_T, -share * np.ones((n_u, 1)))], n_u), -np.inf, 0.0)
+        groups = [np.flatnonzero(unit_ch == ch) for ch in np.unique(unit_ch)]
+        for rowset in _neighbour_rows(groups, n_u, settings.neighbour_ratio):
+            add(cols([(0, rowset)], rowset.shape[0]), -np.inf, 0.0)
+        # each organ's mean dose over its hottest 2 cm³ within its limit (a mean-tail-dose row; it implies D2cm³
+        # <= limit): ζ + Σ w_i s_i / 2 cm³ <= limit, s_i >= (A t)_i - ζ, s >= 0, ζ >= 0
+        start = 0
+        limit_rows = []
+        for k, (o, a) in enumerate(zip(organs, ao, strict=True)):
+            q = len(o.weight_cc)
+            add(cols([(0, a), (i_z + k, -np.ones((q, 1))), (i_s + start, -sparse.identity(q))], q), -np.inf, 0.0)
+            limit_rows.append(sum(len(x) for x in lb))
+            add(cols([(i_z + k, np.ones((1, 1))), (i_s + start, o.weight_cc[None, :] / 2.0)], 1), -np.inf,
+                o.limit_gy)
+            start += q
+        # big-M: a unit's time is at most what brings every target point to its dose alone (more only adds
+        # time; scaling the whole loading down keeps every row) and at most what alone fills an organ's limit
+        big_m = p.max() / np.maximum(at.min(axis=0), 1e-30)
+        for o, a in zip(organs, ao, strict=True):
+            big_m = np.minimum(big_m, o.limit_gy / np.maximum(_tail_mean(a, o.weight_cc, 2.0), 1e-30))
+        self.big_m = big_m
+        if n_y:
+            y_of = {ch: i for i, ch in enumerate(needles)}
+            r_i, c_i, v = [], [], []
+            r = 0
+            for u_i, ch in enumerate(unit_ch):
+                if int(ch) in y_of:
+                    r_i += [r, r]
+                    c_i += [u_i, i_y + y_of[int(ch)]]
+                    v += [1.0, -float(big_m[u_i])]
+                    r += 1
+            add(sparse.csr_matrix((v, (r_i, c_i)), shape=(r, n)), -np.inf, 0.0)
+            holes = sorted(set(hole_of))
+            h_of = {h: i for i, h in enumerate(holes)}
+            per_hole = sparse.csr_matrix((np.ones(n_y), ([h_of[h] for h in hole_of], np.arange(n_y))),
+                                         shape=(len(holes), n_y))
+            add(cols([(i_y, per_hole)], len(holes)), -np.inf, 1.0)
+            add(cols([(i_y, np.ones((1, n_y)))], 1), -np.inf, np.inf)  # the budget row (last)
+        self.a = sparse.vstack(blocks, format="csr")
+        self.lb, self.ub = np.concatenate(lb), np.concatenate(ub)
+        self.limit_rows = np.array(limit_rows, dtype=int)
+        self.limits = np.array([o.limit_gy for o in organs])
+        self.c, self.n, self.n_u, self.n_y, self.i_y, self.i_u = c, n, n_u, n_y, i_y, i_u
+        self.member, self.at, self.ao, self.organs, self.p = member, at, ao, organs, p
+        self.needles, self.hole_of = list(needles), list(hole_of)
+        self.settings = settings
+
+    def solve(self, budget: int | None = None, integral: bool = False, time_limit_s: float = 0.0,
+              kappa: np.ndarray | None = None, only: Sequence[int] | None = None,
+              cutoff: float | None = None) -> sopt.OptimizeResult:
+        """Solve with at most ``budget`` needles (None: no budget), binaries when ``integral``.
+
+        ``kappa`` (per organ): each organ's mean-tail-dose row may reach ``kappa`` × its limit (the calibration of
+        that row to D2cm³, see :func:`_calibrate`). ``only``: the needles (indices into ``needles``) used (``y`` = 1),
+        the others held empty. ``cutoff``: an incumbent's objective, added as the row ``c·x <= cutoff`` (branch and
+        bound then only looks for better selections; infeasible means none is better).
+        """
+        ub = self.ub.copy()
+        if kappa is not None and len(self.limit_rows):
+            ub[self.limit_rows] = self.limits * kappa
+        if self.n_y and budget is not None:
+            ub[-1] = float(budget)
+        lo = np.zeros(self.n)
+        hi = np.full(self.n, np.inf)
+        hi[self.i_y:self.i_u] = 1.0
+        if only is not None:
+            hi[self.i_y:self.i_u] = 0.0
+            hi[self.i_y + np.asarray(only, dtype=int)] = 1.0
+            lo[self.i_y + np.asarray(only, dtype=int)] = 1.0
+        integrality = np.zeros(self.n)
+        options: dict[str, object] = {"disp": False}
+        if integral and self.n_y:
+            integrality[self.i_y:self.i_u] = 1
+            options["mip_rel_gap"] = self.settings.mip_rel_gap
+            if time_limit_s > 0:
+                options["time_limit"] = time_limit_s
+        cons = [sopt.LinearConstraint(self.a, self.lb, ub)]
+        if cutoff is not None:
+            cons.append(sopt.LinearConstraint(self.c[None, :], -np.inf, cutoff))
+        return sopt.milp(self.c, constraints=cons, integrality=integrality, bounds=sopt.Bounds(lo, hi),
+                         options=options)
+
+    def rounded(self, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
+                keep: Sequence[int] = ()) -> sopt.OptimizeResult | None:
+        """Return a feasible selection of at most ``budget`` needles by rounding the LP relaxation ``relaxed``.
+
+        The needles ``keep`` (an incumbent's), then those with the largest relaxed ``y``, one per hole; their best
+        loading (an LP). None when that fails.
+        """
+        picked = list(dict.fromkeys(int(i) for i in keep))
+        holes = {self.hole_of[i] for i in picked}
+        if relaxed.x is not None:
+            y = relaxed.x[self.i_y:self.i_u]
+            for i in np.argsort(-y, kind="stable"):
+                if len(picked) >= budget or y[i] <= 1e-6:
+                    break
+                if self.hole_of[int(i)] not in holes:
+                    picked.append(int(i))
+                    holes.add(self.hole_of[int(i)])
+        res = self.solve(budget, kappa=kappa, only=picked[:budget])
+        return res if res.x is not None else None
+
+    def dwell_times(self, x: np.ndarray) -> np.ndarray:
+        """(D,) dwell times (s) of a solution ``x``."""
+        out: np.ndarray = self.member @ np.maximum(x[:self.n_u], 0.0)
+        return out
+
+    def tail_means(self, x: np.ndarray) -> np.ndarray:
+        """Each organ's mean dose (Gy) over its hottest 2 cm³ of representative points, for solution ``x``."""
+        t = np.maximum(x[:self.n_u], 0.0)
+        return np.array([float(_tail_mean((a @ t)[:, None], o.weight_cc, 2.0)[0])
+                         for a, o in zip(self.ao, self.organs, strict=True)])
+
+
 def _neighbour_rows(groups: Sequence[np.ndarray], n_cols: int, ratio: float) -> list[sparse.csr_matrix]:
     """Rows ``x_a - r x_b <= 0`` and ``x_b - r x_a <= 0`` for consecutive columns a, b of each group."""
     rows, cols, vals = [], [], []
@@ -666,222 +902,6 @@ def _neighbour_rows(groups: Sequence[np.ndarray], n_cols: int, ratio: float) -> 
     if r == 0:
         return []
     return [sparse.csr_matrix((vals, (rows, cols)), shape=(r, n_cols))]
-
-
-def _share_rows(weights: np.ndarray, n_cols: int, share: float) -> sparse.csr_matrix:
-    """Rows ``x_a - share Σ_b w_b x_b <= 0`` for the first ``len(weights)`` columns."""
-    n = len(weights)
-    dense = np.eye(n) - share * np.outer(np.ones(n), weights)
-    return sparse.hstack([sparse.csr_matrix(dense), sparse.csr_matrix((n, n_cols - n))], format="csr")
-
-
-class _Selection:
-    """The restricted needle-selection model (module docstring, step 1), built once per arm.
-
-    Variables ``x = [τ (blocks), y (needles), u (target points)]``; ``solve`` changes only the bounds of ``y``
-    and the budget row, so every programme of the arm shares one constraint matrix.
-    """
-
-    def __init__(self, prob: _Problem, a_t: np.ndarray, a_g: np.ndarray | None, p_t: float, p_g: float,
-                 a_o: Sequence[tuple[np.ndarray, float]], settings: ImplantSettings, cost: np.ndarray) -> None:
-        chans = prob.channels
-        blocks: list[np.ndarray] = []
-        block_ch: list[int] = []
-        for c in range(len(chans)):
-            idx = np.flatnonzero(prob.channel_of == c)
-            for part in np.array_split(idx, min(settings.segments_per_channel, len(idx))):
-                blocks.append(part)
-                block_ch.append(c)
-        n_b = len(blocks)
-        sizes = np.array([len(b) for b in blocks], dtype=float)
-        member = sparse.csr_matrix((np.ones(int(sizes.sum())), (np.concatenate(blocks),
-                                                                np.repeat(np.arange(n_b), sizes.astype(int)))),
-                                   shape=(len(prob.channel_of), n_b))
-        self.needles = [c for c in range(len(chans)) if chans[c].is_needle]
-        y_of = {c: i for i, c in enumerate(self.needles)}
-        n_y = len(self.needles)
-        tgt = [np.asarray((member.T @ a_t.T).T)]
-        rx = [np.full(len(a_t), p_t)]
-        if a_g is not None and len(a_g):
-            tgt.append(np.asarray((member.T @ a_g.T).T))
-            rx.append(np.full(len(a_g), p_g))
-        at = np.vstack(tgt)
-        p = np.concatenate(rx)
-        m = len(at)
-        n = n_b + n_y + m
-        self.c = np.concatenate([settings.time_weight * at.mean(axis=0) / p_t,
-                                 settings.invasiveness_weight * cost[self.needles], np.full(m, 1.0 / (m * p_t))])
-        cons = [sparse.hstack([sparse.csr_matrix(at), sparse.csr_matrix((m, n_y)), sparse.identity(m)])]
-        lb, ub = [p], [np.full(m, np.inf)]
-        cap = np.full(n_b, np.inf)  # a block time no organ point allows beyond (a valid bound)
-        for a, limit in a_o:
-            if len(a):
-                ao = np.asarray((member.T @ a.T).T)
-                cons.append(sparse.hstack([sparse.csr_matrix(ao), sparse.csr_matrix((len(ao), n_y + m))]))
-                lb.append(np.full(len(ao), -np.inf))
-                ub.append(np.full(len(ao), limit))
-                cap = np.minimum(cap, limit / np.maximum(ao.max(axis=0), 1e-30))
-        # big-M: a block time that alone brings every sampled target point to the prescription, or that an
-        # organ point forbids, is not in an optimal loading
-        big_m = np.minimum(p.max() / np.maximum(at.min(axis=0), 1e-30), cap)
-        rows, cols, vals = [], [], []
-        r = 0
-        for b, ch in enumerate(block_ch):
-            if ch in y_of:
-                rows += [r, r]
-                cols += [b, n_b + y_of[ch]]
-                vals += [1.0, -float(big_m[b])]
-                r += 1
-        cons.append(sparse.csr_matrix((vals, (rows, cols)), shape=(r, n)))
-        lb.append(np.full(r, -np.inf))
-        ub.append(np.zeros(r))
-        groups = [np.flatnonzero(np.array(block_ch) == ch) for ch in range(len(chans))]
-        for rowset in _neighbour_rows(groups, n, settings.neighbour_ratio):
-            cons.append(rowset)
-            lb.append(np.full(rowset.shape[0], -np.inf))
-            ub.append(np.zeros(rowset.shape[0]))
-        cons.append(_share_rows(sizes, n, settings.max_dwell_share * (1 - 1e-3)))
-        lb.append(np.full(n_b, -np.inf))
-        ub.append(np.zeros(n_b))
-        budget = np.zeros(n)
-        budget[n_b:n_b + n_y] = 1.0
-        cons.append(sparse.csr_matrix(budget))
-        self.a = sparse.vstack(cons, format="csr")
-        self.lb = np.concatenate([*lb, [-np.inf]])
-        self.ub = np.concatenate([*ub, [np.inf]])
-        self.n_b, self.n_y, self.n = n_b, n_y, n
-        self.at, self.p, self.p_t, self.cost, self.cap, self.big_m = at, p, p_t, cost, cap, big_m
-        self.ao = [(np.asarray((member.T @ a.T).T), limit) for a, limit in a_o if len(a)]
-        self.block_ch = np.array(block_ch)
-        self.hole_of = [chans[c].name for c in self.needles]
-        self.sizes = sizes
-        self.settings = settings
-        self.all_ch = [c for c in range(len(chans)) if not chans[c].is_needle]
-
-    def _run(self, budget: float, y_lo: np.ndarray, y_hi: np.ndarray, integral: bool) -> sopt.OptimizeResult:
-        ub_rows = self.ub.copy()
-        ub_rows[-1] = budget
-        lo = np.zeros(self.n)
-        hi = np.full(self.n, np.inf)
-        lo[self.n_b:self.n_b + self.n_y] = y_lo
-        hi[self.n_b:self.n_b + self.n_y] = y_hi
-        integrality = np.zeros(self.n)
-        options: dict[str, object] = {"disp": False}
-        if integral:
-            integrality[self.n_b:self.n_b + self.n_y] = 1
-            options.update(time_limit=self.settings.mip_time_limit_s, mip_rel_gap=self.settings.mip_rel_gap)
-        return sopt.milp(self.c, constraints=sopt.LinearConstraint(self.a, self.lb, ub_rows),
-                         integrality=integrality, bounds=sopt.Bounds(lo, hi), options=options)
-
-    def loading(self, chosen: Sequence[int]) -> tuple[float, np.ndarray]:
-        """Return the objective of the best block loading on ``chosen``, and its dose at the target points (Gy).
-
-        ``chosen``: indices into ``needles`` (the intracavitary channels are always loaded); (inf, zeros) when
-        infeasible.
-
-        A small LP over the chosen channels' blocks only (the rows of the selection model restricted to them).
-        """
-        chans = {self.needles[i] for i in chosen} | set(self.all_ch)
-        cols = np.flatnonzero(np.isin(self.block_ch, list(chans)))
-        m = len(self.at)
-        if len(cols) == 0:
-            return float(np.sum(self.p) / (m * self.p_t)), np.zeros(m)
-        at = self.at[:, cols]
-        nb = len(cols)
-        n = nb + m
-        c = np.concatenate([self.settings.time_weight * at.mean(axis=0) / self.p_t, np.full(m, 1.0 / (m * self.p_t))])
-        a_ub = [sparse.hstack([sparse.csr_matrix(-at), -sparse.identity(m)])]
-        b_ub = [-self.p]
-        for ao, limit in self.ao:
-            a_ub.append(sparse.hstack([sparse.csr_matrix(ao[:, cols]), sparse.csr_matrix((len(ao), m))]))
-            b_ub.append(np.full(len(ao), limit))
-        groups = [np.flatnonzero(self.block_ch[cols] == ch) for ch in sorted(chans)]
-        for rowset in _neighbour_rows(groups, n, self.settings.neighbour_ratio):
-            a_ub.append(rowset)
-            b_ub.append(np.zeros(rowset.shape[0]))
-        a_ub.append(_share_rows(self.sizes[cols], n, self.settings.max_dwell_share * (1 - 1e-3)))
-        b_ub.append(np.zeros(nb))
-        res = sopt.linprog(c, A_ub=sparse.vstack(a_ub, format="csr"), b_ub=np.concatenate(b_ub), bounds=(0, None),
-                           method="highs")
-        if res.status != 0 or res.x is None:
-            return float("inf"), np.zeros(m)
-        invasive = self.settings.invasiveness_weight * float(sum(self.cost[self.needles[i]] for i in chosen))
-        return float(res.fun) + invasive, at @ res.x[:nb]
-
-    def bound(self, k_budget: int) -> float:
-        """Return a lower bound on the selection objective with ``k_budget`` needles.
-
-        The LP relaxation of the MIP (``0 <= y <= 1``), tightened by HiGHS's dual bound when ``mip_time_limit_s`` >
-        0.
-        """
-        zeros, ones = np.zeros(self.n_y), np.ones(self.n_y)
-        res = self._run(float(k_budget), zeros, ones, integral=False)
-        value = float(res.fun) if res.x is not None else float("nan")
-        if self.settings.mip_time_limit_s > 0:
-            mip = self._run(float(k_budget), zeros, ones, integral=True)
-            dual = getattr(mip, "mip_dual_bound", None)
-            if dual is not None and np.isfinite(dual):
-                value = max(value, float(dual))
-        return value
-
-    def step(self, previous: Sequence[int], dose: np.ndarray) -> tuple[list[int], float, np.ndarray]:
-        """Greedy step.
-
-        The previous needles plus the one whose exact block loading lowers the objective most, among the
-        ``greedy_candidates`` needles that could fill most of the current underdose alone (each within its organ
-        caps).
-        """
-        deficit = np.maximum(self.p - dose, 0.0)
-        holes = {self.hole_of[i] for i in previous}  # one needle per template hole
-        free = [i for i in range(self.n_y) if i not in set(previous) and self.hole_of[i] not in holes]
-        if not free:
-            return list(previous), float("inf"), dose
-        score = []
-        for i in free:
-            blocks = np.flatnonzero(self.block_ch == self.needles[i])
-            fill = self.at[:, blocks] * np.minimum(self.cap[blocks], self.big_m[blocks])
-            score.append(float(np.minimum(fill.sum(axis=1), deficit).sum())
-                         - self.settings.invasiveness_weight * self.cost[self.needles[i]])
-        order = [free[j] for j in np.argsort(-np.array(score), kind="stable")[: self.settings.greedy_candidates]]
-        best: tuple[list[int], float, np.ndarray] = (list(previous), float("inf"), dose)
-        for i in order:
-            chosen = sorted([*previous, i])
-            value, d = self.loading(chosen)
-            if value < best[1] - 1e-12:
-                best = (chosen, value, d)
-        return best
-
-
-def _dwell_lp(prob: _Problem, cols: np.ndarray, a_t: np.ndarray, a_g: np.ndarray | None, p_t: float, p_g: float,
-              a_o: Sequence[tuple[np.ndarray, float]], settings: ImplantSettings, released: Sequence[np.ndarray],
-              ) -> np.ndarray | None:
-    """Dwell times (s) on the dwells ``cols`` (module docstring, step 2); None when the LP does not solve."""
-    at = a_t
-    p = np.full(len(at), p_t)
-    if a_g is not None and len(a_g):
-        at = np.vstack([at, a_g])
-        p = np.concatenate([p, np.full(len(a_g), p_g)])
-    m, d = at.shape
-    n = d + m
-    obj = np.concatenate([settings.time_weight * at.mean(axis=0) / p_t, np.full(m, 1.0 / (m * p_t))])
-    a_ub = [sparse.hstack([sparse.csr_matrix(-at), -sparse.identity(m)])]
-    b_ub = [-p]
-    for (a, limit), free in zip(a_o, released, strict=True):
-        keep = np.setdiff1d(np.arange(len(a)), free)
-        if len(keep):
-            a_ub.append(sparse.hstack([sparse.csr_matrix(a[keep]), sparse.csr_matrix((len(keep), m))]))
-            b_ub.append(np.full(len(keep), limit))
-    groups = [np.flatnonzero(prob.channel_of[cols] == c) for c in np.unique(prob.channel_of[cols])]
-    for rowset in _neighbour_rows(groups, n, settings.neighbour_ratio):
-        a_ub.append(rowset)
-        b_ub.append(np.zeros(rowset.shape[0]))
-    a_ub.append(_share_rows(np.ones(d), n, settings.max_dwell_share * (1 - 1e-3)))
-    b_ub.append(np.zeros(d))
-    res = sopt.linprog(obj, A_ub=sparse.vstack(a_ub, format="csr"), b_ub=np.concatenate(b_ub), bounds=(0, None),
-                       method="highs")
-    if res.status != 0 or res.x is None:
-        return None
-    return np.maximum(res.x[:d], 0.0)
 
 
 def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vox_cc: float,
@@ -898,18 +918,14 @@ def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vo
     dose_oar = []
     scale = 1.0
     for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
-        # the organ's voxels within the evaluation radius of a loaded dwell, and at least its nearest 4 × 2 cm³
-        dist = cKDTree(pos).query(pts)[0] if len(pos) else np.zeros(len(pts))
-        n_min = min(len(pts), 4 * math.ceil(2.0 / vox_cc))
-        near = pts[(dist <= prob.eval_radius_mm) | (np.argsort(np.argsort(dist, kind="stable")) < n_min)]
-        d = _dose(near, pos, dirs, t, prob)
+        d = _dose(_near_organ(pts, pos, prob.eval_radius_mm, vox_cc), pos, dirs, t, prob)
         dose_oar.append(d)
         if limit is not None and len(d):
             d2 = dose_to_volume(d, vox_cc, 2.0)
             if d2 > limit:
                 scale = min(scale, limit / d2 * (1 - 1e-9))
     t = t * scale
-    sub_cc = vox_cc / SUPERSAMPLE ** 3  # target and GTV on sub-voxels
+    sub_cc = vox_cc * len(prob.target_pts) / max(len(prob.target_fine[0]), 1)  # target and GTV on sub-voxels
     dt = np.repeat(_dose(prob.target_fine[0], pos, dirs, t, prob), prob.target_fine[1])
     target = structure_metrics("HR-CTV", dt, sub_cc, rx, aims.alpha_beta_target_gy, aims.fractionation)
     v200 = 100.0 * float(np.count_nonzero(dt >= 2.0 * rx)) / len(dt)
@@ -939,51 +955,85 @@ def _aims_met(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequ
     return bool(ok)
 
 
-def _better(a: ImplantPlan, b: ImplantPlan) -> bool:
-    """Return True when plan ``a`` ranks before ``b`` by the arms' rule.
+@dataclass(frozen=True)
+class BudgetResult:
+    """The selection MIP at one needle budget ("at most ``budget`` needles").
 
-    A plan meeting every aim beats one that does not; between two that do, fewer needles (then the higher
-    HR-CTV D90) wins; between two that do not, the higher D90 (then fewer needles) wins.
+    ``objective``: the model's value at the selection kept (the incumbent of a smaller budget when HiGHS ended
+    worse); ``dual_bound`` and ``mip_gap``: what HiGHS proves (None when it proved nothing); ``n_needles``: the
+    needles selected; ``new``: False when the selection equals a smaller budget's (no new Pareto point).
     """
-    if a.aims_met != b.aims_met:
-        return a.aims_met
-    if a.aims_met:
-        return (a.n_needles, -a.target.d90_eqd2_gy) < (b.n_needles, -b.target.d90_eqd2_gy)
-    return (a.target.d90_eqd2_gy, -a.n_needles) > (b.target.d90_eqd2_gy, -b.n_needles)
+
+    budget: int
+    n_needles: int
+    objective: float
+    dual_bound: float | None
+    mip_gap: float | None
+    status: str
+    seconds: float
+    new: bool = True
+    selected: tuple[Channel, ...] = field(default=(), repr=False, compare=False)
+
+    def to_json(self) -> dict[str, object]:
+        """Return the record for plan.json ``selection.budgets``."""
+        return {"budget": self.budget, "n_needles": self.n_needles, "objective": round(self.objective, 6),
+                "dual_bound": None if self.dual_bound is None else round(self.dual_bound, 6),
+                "mip_gap": None if self.mip_gap is None else round(self.mip_gap, 5), "status": self.status,
+                "seconds": round(self.seconds, 3), "new_selection": self.new}
 
 
-def dominate(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
-    """Make ``arm`` at least as good as an arm whose candidate channels are a subset of its own.
+def _organ_rows(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, pitch_mm: float, volume_cc: float,
+                vox_cc: float) -> list[_OrganRows]:
+    """Return the D2cm³ rows of every organ with a limit, for the dwells ``pos``/``dirs`` (module docstring)."""
+    out = []
+    for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
+        if limit is None:
+            continue
+        reps, w = _organ_sample(pts, vox_cc, pos, pitch_mm, volume_cc)
+        out.append(_OrganRows(_rates(reps, pos, dirs, prob), w, float(limit)))
+    return out
 
-    The straight + steered arm holds every straight candidate, so every straight implant is also one of its
-    implants: a heuristic search over the larger set that ends worse than the smaller arm's answer is replaced
-    by that answer (an incumbent, as in branch and bound). At each needle count of the Pareto curve the better
-    point is kept (aims met first, then the higher HR-CTV D90).
+
+def _d2cc(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, vox_cc: float) -> np.ndarray:
+    """Return the D2cm³ (Gy per fraction) of every organ with a limit, on its 20 cm³ nearest the loaded dwells."""
+    on = t > 0
+    out = []
+    for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
+        if limit is None:
+            continue
+        if not on.any() or len(pts) == 0:
+            out.append(0.0)
+            continue
+        near = _near_organ(pts, pos[on], 0.0, vox_cc, 10)  # the nearest 20 cm³ hold the hottest 2 cm³
+        out.append(dose_to_volume(_dose(near, pos[on], dirs[on], t[on], prob), vox_cc, 2.0))
+    return np.array(out)
+
+
+def _near_organ(pts: np.ndarray, pos: np.ndarray, radius_mm: float, vox_cc: float, times_2cc: int = 4) -> np.ndarray:
+    """Return an organ's voxels within ``radius_mm`` of a dwell, and at least its nearest ``times_2cc`` × 2 cm³."""
+    dist = cKDTree(pos).query(pts)[0] if len(pos) else np.zeros(len(pts))
+    n_min = min(len(pts), times_2cc * math.ceil(2.0 / vox_cc))
+    out: np.ndarray = pts[(dist <= radius_mm) | (np.argsort(np.argsort(dist, kind="stable")) < n_min)]
+    return out
+
+
+def _calibrate(kappa: np.ndarray, d2: np.ndarray, tails: np.ndarray, limits: np.ndarray) -> np.ndarray:
+    """Calibrate each organ's mean-tail-dose row to its D2cm³.
+
+    An organ whose row binds (or whose exact D2cm³ is over its limit) gets ``kappa × limit / D2cm³``: the mean
+    over the hottest 2 cm³ exceeds D2cm³ by a factor that changes little between nearby loadings, so the next
+    solution's D2cm³ lands on the limit (within 1 % in two rounds on the clinical case).
     """
-    best: dict[int, ParetoPoint] = {}
-    for pt in (*arm.pareto, *subset.pareto):
-        old = best.get(pt.n_needles)
-        if old is None or (pt.aims_met, pt.hrctv_d90_eqd2_gy) > (old.aims_met, old.hrctv_d90_eqd2_gy):
-            best[pt.n_needles] = pt
-    pareto = tuple(best[n] for n in sorted(best))
-    plan, reason = arm.plan, arm.reason
-    if subset.plan is not None and (plan is None or _better(subset.plan, plan)):
-        plan = subset.plan
-        reason = (f"the {subset.name} arm's implant (its needles are candidates of this arm too) ranks before this "
-                  f"arm's search result and is kept" + (f"; {subset.reason}" if subset.reason else ""))
-    return dataclasses.replace(arm, pareto=pareto, plan=plan, reason=reason)
+    out = kappa.copy()
+    binds = (tails >= 0.98 * limits * kappa) | (d2 > limits * (1 + 1e-3))
+    ok = binds & (d2 > 0)
+    out[ok] = np.clip(kappa[ok] * limits[ok] / d2[ok] * (1 - 2e-3), 0.25, 4.0)
+    return out
 
 
-def plan_implant(
-    name: str,
-    channels: Sequence[Channel],
-    planning: PlanningStructures,
-    kernel: Tg43Kernel,
-    air_kerma_strength_u: float,
-    aims: Aims | None = None,
-    settings: ImplantSettings | None = None,
-    gtv: Structure | None = None,
-) -> ImplantArm:
+def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
+                 air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
+                 gtv: Structure | None = None, subset: ImplantArm | None = None) -> ImplantArm:
     """Return the Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
 
     Parameters
@@ -995,6 +1045,9 @@ def plan_implant(
     kernel, air_kerma_strength_u : TG-43 kernel and source strength (U).
     aims : EMBRACE II by default.
     gtv : the GTV mask on the planning grid, when there is one (its D98 is then an aim).
+    subset : an arm planned on a subset of ``channels`` (the straight arm for the straight + steered one): its
+        selection at each budget is an incumbent of this arm's MIP there, and its plans are implants of this arm
+        too, so this arm is never worse.
 
     Returns
     -------
@@ -1005,141 +1058,214 @@ def plan_implant(
     aims = aims or Aims()
     settings = settings or ImplantSettings()
     channels = tuple(c for c in channels if len(c.dwell_positions_mm) >= 1)
-    if not any(c.is_needle for c in channels) and not channels:
+    needles = [i for i, c in enumerate(channels) if c.is_needle]
+    if not channels:
         return ImplantArm(name, 0, (), None, time.perf_counter() - t0, "no candidate channel")
     grid = planning.grid
     vox_cc = voxel_volume_cc(grid)
     positions = np.concatenate([c.dwell_positions_mm for c in channels])
     directions = np.concatenate([c.dwell_directions for c in channels])
     channel_of = np.repeat(np.arange(len(channels)), [len(c.dwell_positions_mm) for c in channels])
-    oar_limits = tuple(aims.oar_limit_gy(o.name) for o in planning.oars)
     prob = _Problem(
         channels, positions, directions, channel_of,
         grid_points_mm(grid, np.flatnonzero(planning.target.mask.ravel())),
         None if gtv is None else grid_points_mm(grid, np.flatnonzero(gtv.mask.ravel())),
         tuple(grid_points_mm(grid, np.flatnonzero(o.mask.ravel())) for o in planning.oars),
-        oar_limits, air_kerma_strength_u / 360000.0, kernel, tuple(o.name for o in planning.oars),
-        settings.oar_eval_radius_mm, _supersampled(grid, planning.target.mask),
+        tuple(aims.oar_limit_gy(o.name) for o in planning.oars), air_kerma_strength_u / 360000.0, kernel,
+        tuple(o.name for o in planning.oars), settings.oar_eval_radius_mm, _supersampled(grid, planning.target.mask),
         None if gtv is None else _supersampled(grid, gtv.mask))
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
         1.0 + settings.coverage_margin)
-    # the restricted selection model: sampled target points, organ points nearest the candidate dwells
-    sel_t = _rates(prob.target_pts[_stride(len(prob.target_pts), settings.selection_target_points)],
-                   positions, directions, prob)
-    sel_g = None if prob.gtv_pts is None else _rates(
-        prob.gtv_pts[_stride(len(prob.gtv_pts), settings.selection_target_points // 4)], positions, directions, prob)
-    sel_o = [(_rates(pts[_near(pts, positions, settings.selection_oar_points)], positions, directions, prob), lim)
-             for pts, lim in zip(prob.oar_pts, oar_limits, strict=True) if lim is not None]
-    fin_t = prob.target_pts[_stride(len(prob.target_pts), settings.final_target_points)]
-    fin_g = None if prob.gtv_pts is None else prob.gtv_pts[_stride(len(prob.gtv_pts),
-                                                                    settings.final_target_points // 4)]
-    needles = [c for c in channels if c.is_needle]
-    cost = np.zeros(len(channels))
+
+    def target_rows(n_pts: int) -> tuple[np.ndarray, np.ndarray]:
+        pts = [prob.target_pts[_stride(len(prob.target_pts), n_pts)]]
+        p = [np.full(len(pts[0]), p_t)]
+        if prob.gtv_pts is not None and len(prob.gtv_pts):
+            pts.append(prob.gtv_pts[_stride(len(prob.gtv_pts), max(1, n_pts // 4))])
+            p.append(np.full(len(pts[1]), p_g))
+        return np.concatenate(pts), np.concatenate(p)
+
+    sel_pts, sel_p = target_rows(settings.selection_target_points)
+    fin_pts, fin_p = target_rows(settings.final_target_points)
+    cost = np.zeros(len(needles))
     if needles:
-        dmax = max(max(c.hole_distance_mm for c in needles), 1e-9)
-        lmax = max(max(c.tissue_length_mm for c in needles), 1e-9)
-        cost = np.array([0.5 * c.hole_distance_mm / dmax + 0.5 * c.tissue_length_mm / lmax for c in channels])
-    n_hot = max(1, math.ceil(2.0 / vox_cc - 1e-9) - 1)
-    pareto: list[ParetoPoint] = []
-    plans: list[ImplantPlan] = []
-    met_at: int | None = None
-    best_d90 = -np.inf
-    stall = 0
-    seen: dict[tuple[int, ...], ImplantPlan] = {}
-    selection_values: list[float] = []
-    selection = _Selection(prob, sel_t, sel_g, p_t, p_g, sel_o, settings, cost)
-    previous: list[int] = []
-    value, dose = selection.loading([])
-    for k in range(0 if selection.all_ch else 1, min(settings.max_needles, len(needles)) + 1):
-        if k == 0:  # the intracavitary channels alone
-            picked: list[int] = []
-        else:
-            picked, value, dose = selection.step(previous, dose)
-            if len(picked) <= len(previous):
+        dmax = max(max(channels[i].hole_distance_mm for i in needles), 1e-9)
+        lmax = max(max(channels[i].tissue_length_mm for i in needles), 1e-9)
+        cost = np.array([0.5 * channels[i].hole_distance_mm / dmax + 0.5 * channels[i].tissue_length_mm / lmax
+                         for i in needles])
+    units, unit_ch = [], []
+    for c in range(len(channels)):
+        for part in np.array_split(np.flatnonzero(channel_of == c), min(settings.segments_per_channel,
+                                                                        int(np.sum(channel_of == c)))):
+            units.append(part)
+            unit_ch.append(c)
+    organs = _organ_rows(prob, positions, directions, settings.selection_oar_pitch_mm, settings.oar_sample_cc,
+                         vox_cc)
+    limits = np.array([o.limit_gy for o in organs])
+    model = _Model(units, np.array(unit_ch), _rates(sel_pts, positions, directions, prob), sel_p, organs, needles,
+                   [channels[i].name for i in needles], cost, settings, p_t)
+    kappa = np.ones(len(organs))
+    # the arm's bound: every candidate loaded, no budget (an LP); its solution calibrates the organ rows
+    free = model.solve(None, kappa=kappa)
+    if free.x is not None:
+        kappa = _calibrate(kappa, _d2cc(prob, positions, directions, model.dwell_times(free.x), vox_cc),
+                           model.tail_means(free.x), limits)
+        free = model.solve(None, kappa=kappa)
+    bound = float(free.fun) if free.x is not None else float("nan")
+
+    index = {id(channels[c]): i for i, c in enumerate(needles)}
+    given = {b.budget: [index[id(c)] for c in b.selected if id(c) in index] for b in (subset.budgets if subset
+                                                                                   else ())}
+
+    def select(k: int, keep: Sequence[int]) -> tuple[np.ndarray | None, float, float | None, str]:
+        """Select at most ``k`` needles: return (solution, objective, proven lower bound, how it ended)."""
+        nonlocal kappa
+        x, value, lower, status = None, float("inf"), None, "no feasible selection"
+        for _ in range(2):  # lazy organ rows: the exact D2cm³ near the implant
+            # incumbents: the LP relaxation rounded with the last budget's needles kept; the subset arm's selection
+            relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
+            inc = model.rounded(k, kappa, relaxed, keep)
+            if k in given:
+                other = model.rounded(k, kappa, relaxed, given[k])
+                if other is not None and (inc is None or float(other.fun) < float(inc.fun)):
+                    inc = other
+            res = model.solve(k, integral=True, time_limit_s=settings.mip_time_limit_s, kappa=kappa,
+                              cutoff=None if inc is None else float(inc.fun) + 1e-9 * max(1.0, abs(float(inc.fun))))
+            dual = getattr(res, "mip_dual_bound", None)
+            lower = max([float(v) for v in (dual, relaxed.fun) if v is not None and np.isfinite(v)], default=None)
+            if res.x is not None and (inc is None or float(res.fun) <= float(inc.fun)):
+                x, value, status = res.x, float(res.fun), f"HiGHS: {res.message}"
+            elif inc is not None:
+                x, value = inc.x, float(inc.fun)
+                if res.status == 2:  # nothing better than the incumbent exists
+                    lower, status = value, "HiGHS proved the rounded LP relaxation optimal"
+                else:
+                    status = f"rounded LP relaxation (HiGHS: {res.message})"
+            if x is None:
                 break
-        previous = picked
-        status = f"greedy selection objective {value:.4g}"
-        chosen = np.array(sorted([selection.needles[i] for i in picked] + selection.all_ch), dtype=int)
-        gap = None
-        plan = seen.get(tuple(chosen))
-        if plan is None:
-            plan = _final(prob, chosen, fin_t, fin_g, p_t, p_g, aims, settings, vox_cc, n_hot, gap, status)
-            if plan is not None:
-                seen[tuple(chosen)] = plan
-        if plan is None:
+            d2 = _d2cc(prob, positions, directions, model.dwell_times(x), vox_cc)
+            if not np.any(d2 > limits * (1 + 0.02)):
+                break  # within 2 %: the dwell-time LP calibrates its own rows
+            kappa = _calibrate(kappa, d2, model.tail_means(x), limits)
+        return x, value, lower, status
+
+    intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
+    budgets: list[BudgetResult] = []
+    plans: list[ImplantPlan] = []
+    seen: dict[tuple[int, ...], ImplantPlan | None] = {}
+    keep: list[int] = []  # the last budget's needles (indices into ``needles``): a start for the next
+    met_at: int | None = None
+    stall = 0
+    for k in range(0 if intracavitary else 1, min(settings.max_needles, len(needles)) + 1):
+        t_k = time.perf_counter()
+        x, value, lower, status = select(k, keep)
+        if x is None:
+            budgets.append(BudgetResult(k, 0, value, None, None, status, time.perf_counter() - t_k, False))
             continue
-        plans.append(plan)
-        selection_values.append(value)
-        pareto.append(ParetoPoint(plan.n_needles, plan.target.d90_eqd2_gy, plan.aims_met))
-        if plan.aims_met and met_at is None:
-            met_at = k
-        if met_at is not None and k >= met_at + settings.extra_after_aims:
-            break
-        if plan.target.d90_eqd2_gy > best_d90 + 0.1:
-            best_d90, stall = plan.target.d90_eqd2_gy, 0
+        times = model.dwell_times(x)
+        ch_time = np.bincount(channel_of, weights=times, minlength=len(channels))
+        keep = [i for i in range(len(needles)) if x[model.i_y + i] > 0.5 and ch_time[needles[i]] > 0]
+        picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
+        gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
+        new = bool(picked) and picked not in seen
+        budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
+                                    tuple(channels[c] for c in picked)))
+        if new:
+            seen[picked] = _final(prob, np.array(picked, dtype=int), fin_pts, fin_p, aims, settings, vox_cc,
+                                  kappa.copy(), f"budget {k}: selection objective {value:.6g}, {status}", gap)
+            stall = 0
+            plan = seen[picked]
+            if plan is not None:
+                plans.append(plan)
+                if plan.aims_met and met_at is None:
+                    met_at = k
         else:
             stall += 1
-            if stall >= 3:
-                break
-    if not plans:
+        if met_at is not None and k >= met_at + settings.extra_after_aims:
+            break
+        if stall >= 2 or value <= bound + 1e-9 * max(1.0, abs(bound)):
+            break  # nothing new twice, or the selection reaches the bound of every candidate loaded
+    if subset is not None:  # its implants are implants of this arm too
+        plans += list(subset.plans)
+    pareto_plans = _pareto(plans)
+    pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
+    record: dict[str, object] = {
+        "model": "needle selection: HiGHS MIP (scipy.optimize.milp) on sampled target points and organ mean-tail-dose "
+                 "rows, dwells in blocks; dwell times: LP on every dwell of the selection",
+        "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
+        "budgets": [b.to_json() for b in budgets]}
+    if not pareto_plans:
         return ImplantArm(name, len(needles), (), None, time.perf_counter() - t0,
-                          "no needle budget gave a plan (every MIP or LP failed)")
-    meeting = [p for p in plans if p.aims_met]
-    chosen_plan = (min(meeting, key=lambda p: (p.n_needles, -p.target.d90_eqd2_gy)) if meeting
-                   else max(plans, key=lambda p: (p.target.d90_eqd2_gy, -p.n_needles)))
-    if settings.bound:  # how far the greedy selection may be from the optimum of the selection model
-        k_chosen = sum(c.is_needle for c in chosen_plan.channels)
-        lower = selection.bound(k_chosen)
-        value = selection_values[plans.index(chosen_plan)]
-        gap = (value - lower) / value if value > 0 and np.isfinite(lower) else 0.0
-        chosen_plan = dataclasses.replace(chosen_plan, mip_gap=gap, mip_status=(
-            f"greedy {value:.4g} against LP-relaxation bound {lower:.4g} (relative gap {gap:.3f})"))
+                          "no needle budget gave a plan (every MIP or LP failed)", tuple(budgets), record)
+    meeting = [p for p in pareto_plans if p.aims_met]
+    chosen = (min(meeting, key=lambda p: (p.n_needles, -p.target.d90_eqd2_gy)) if meeting
+              else max(pareto_plans, key=lambda p: (p.target.d90_eqd2_gy, -p.n_needles)))
     reason = "" if meeting else "no needle budget meets every aim; the plan with the highest D90 is kept"
-    return ImplantArm(name, len(needles), tuple(pareto), chosen_plan, time.perf_counter() - t0, reason)
+    return ImplantArm(name, len(needles), pareto, chosen, time.perf_counter() - t0, reason, tuple(budgets), record,
+                      tuple(pareto_plans))
 
 
-def _final(prob: _Problem, chosen: np.ndarray, fin_t: np.ndarray, fin_g: np.ndarray | None, p_t: float,
-           p_g: float, aims: Aims, settings: ImplantSettings, vox_cc: float, n_hot: int, gap: float | None,
-           status: str) -> ImplantPlan | None:
-    """Dwell times on the chosen channels (LP, organ release, empty-needle rule) and the plan's metrics."""
+def _pareto(plans: Sequence[ImplantPlan]) -> list[ImplantPlan]:
+    """Keep the plans no plan with fewer (or as many) needles beats: one per needle count, D90 rising with it.
+
+    A budget means "at most n needles": a plan with more needles and no higher D90 (and no aims newly met) than
+    one with fewer is dominated and left out.
+    """
+    best: dict[int, ImplantPlan] = {}
+    for p in plans:
+        old = best.get(p.n_needles)
+        if old is None or (p.aims_met, p.target.d90_eqd2_gy) > (old.aims_met, old.target.d90_eqd2_gy):
+            best[p.n_needles] = p
+    out: list[ImplantPlan] = []
+    for n in sorted(best):
+        p = best[n]
+        if not out or p.target.d90_eqd2_gy > out[-1].target.d90_eqd2_gy + 1e-9 or (
+                p.aims_met and not any(q.aims_met for q in out)):
+            out.append(p)
+    return out
+
+
+def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims,
+           settings: ImplantSettings, vox_cc: float, kappa: np.ndarray, status: str, gap: float | None,
+           ) -> ImplantPlan | None:
+    """Dwell times on the chosen channels (an LP on every dwell; the empty-needle rule) and the plan's metrics."""
+    p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     t = np.zeros(0)
-    cols = loaded_ch = np.zeros(0, dtype=int)
+    cols = np.zeros(0, dtype=int)
     for _ in range(3):
         cols = np.flatnonzero(np.isin(prob.channel_of, chosen))
         pos, dirs = prob.positions[cols], prob.directions[cols]
-        a_t = _rates(fin_t, pos, dirs, prob)
-        a_g = None if fin_g is None else _rates(fin_g, pos, dirs, prob)
-        a_o = []
-        for pts, lim in zip(prob.oar_pts, prob.oar_limits, strict=True):
-            if lim is None:
-                continue
-            r = _rates(pts[_near(pts, pos, settings.final_oar_points * 3)], pos, dirs, prob)
-            hot = np.sort(np.argsort(-r.sum(axis=1), kind="stable")[: settings.final_oar_points])
-            a_o.append((r[hot], lim))
-        released: list[np.ndarray] = [np.zeros(0, dtype=int) for _ in a_o]
-        best: np.ndarray | None = None
-        for it in range(2):
-            lp = _dwell_lp(prob, cols, a_t, a_g, p_t, p_g, a_o, settings, released)
-            if lp is None:
+        a_t = _rates(fin_pts, pos, dirs, prob)
+        organs = _organ_rows(prob, pos, dirs, settings.final_oar_pitch_mm, settings.oar_sample_cc, vox_cc)
+        limits = np.array([o.limit_gy for o in organs])
+        model = _Model([np.array([j]) for j in range(len(cols))], prob.channel_of[cols], a_t, fin_p, organs, [], [],
+                       np.zeros(0), settings, p_t)
+        kap = kappa.copy()
+        x = None
+        for _ in range(4):  # until the organ rows are calibrated to D2cm³ within 1 %
+            res = model.solve(kappa=kap)
+            if res.x is None:
                 break
-            best = lp
-            if it == 0:
-                released = [np.argsort(-(a @ lp), kind="stable")[:n_hot] if len(a) else np.zeros(0, int)
-                            for a, _ in a_o]
-        if best is None:
+            x = res.x
+            new = _calibrate(kap, _d2cc(prob, pos, dirs, model.dwell_times(x), vox_cc), model.tail_means(x), limits)
+            if np.all(np.abs(new / kap - 1) < 0.01):
+                break
+            kap = new
+        if x is None:
             return None
-        t = np.where(best >= settings.min_dwell_time_s, best, 0.0)
-        totals = np.bincount(prob.channel_of[cols], weights=t, minlength=len(prob.channels))
-        loaded_ch = np.array([c for c in chosen if totals[c] > 1e-3 * max(t.sum(), 1e-12)], dtype=int)
+        t = model.dwell_times(x)
+        t = np.where(t >= settings.min_dwell_time_s, t, 0.0)
+        n_loaded = np.bincount(prob.channel_of[cols], weights=(t > 0).astype(float), minlength=len(prob.channels))
+        need = np.array([settings.min_dwells if prob.channels[c].is_needle else 1 for c in range(len(prob.channels))])
+        loaded_ch = np.array([c for c in chosen if n_loaded[c] >= need[c]], dtype=int)
         if len(loaded_ch) == 0:
             return None
         t = np.where(np.isin(prob.channel_of[cols], loaded_ch), t, 0.0)
         t = _clip_share(t, settings.max_dwell_share)  # the dropped short dwells raised the others' shares
         if len(loaded_ch) == len(chosen):
             break
-        chosen = loaded_ch  # a needle the optimum leaves empty is not part of the implant: re-solve without it
-    chosen = loaded_ch
+        chosen = loaded_ch  # a needle the optimum leaves (almost) empty is not part of the implant: re-solve
     target, v200, gtv, oars, dvhs, scale = _metrics(prob, cols, t, aims, vox_cc)
     keep = t > 0
     new_index = {int(c): i + 1 for i, c in enumerate(chosen)}

@@ -137,16 +137,13 @@ class Aims:
 
 @dataclass(frozen=True)
 class OptimizerSettings:
-    """Dwell placement and problem size.
+    """Dwell placement and problem size (lengths in mm).
 
     Parameters
     ----------
-    dwell_step_mm : float
-        Distance between candidate dwells along a needle.
-    tip_offset_mm : float
-        Distance of the first dwell from the needle tip.
-    active_length_mm : float
-        Length along each needle (from the first dwell) where dwells may be placed.
+    dwell_step_mm, tip_offset_mm, active_length_mm : float
+        Distance between candidate dwells along a needle; of the first dwell from the needle tip; length along
+        each needle (from the first dwell) where dwells may be placed.
     max_target_points, max_oar_points : int
         Target voxels used in the LP (an even stride through them) and candidate voxels per organ (those
         with the highest dose for equal dwell times, i.e. nearest to the needles).
@@ -490,14 +487,9 @@ class Comparison:
         return fig
 
 
-def compare_arms(
-    arms: Sequence[tuple[str, Sequence[np.ndarray]]],
-    structures: PlanningStructures,
-    kernel: Tg43Kernel,
-    air_kerma_strength_u: float,
-    aims: Aims | None = None,
-    settings: OptimizerSettings | None = None,
-) -> Comparison:
+def compare_arms(arms: Sequence[tuple[str, Sequence[np.ndarray]]], structures: PlanningStructures,
+                 kernel: Tg43Kernel, air_kerma_strength_u: float, *, aims: Aims | None = None,
+                 settings: OptimizerSettings | None = None) -> Comparison:
     """Optimise each arm's needles the same way and count the needles each needs to reach the aim.
 
     Parameters
