@@ -35,7 +35,7 @@ from reachplan.imaging.files import atomic_write_json
 from reachplan.planner.errors import StudyError
 from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.study import store
-from reachplan.planner.study.summary import DesignSummary, summarise, summary_figure, write_summary_csv
+from reachplan.planner.study.summary import DesignSummary, summarise, summary_figure, write_dataclass_csv
 from reachplan.planner.study.tasks import STRAIGHT, Case, StudyRow, StudyTask, discover_cases, failed_rows, run_task
 
 if TYPE_CHECKING:
@@ -137,7 +137,7 @@ def check_manifest(out: Path, want: dict[str, Any]) -> None:
         atomic_write_json(path, want)
 
 
-def _serial(todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
+def serial_results(todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
             fail: Callable[[T, str], R]) -> Iterator[tuple[T, R]]:
     """Run ``task_fn(task, config)`` per task in this process; a task that raises gives ``fail(task, reason)``."""
     for task in todo:
@@ -148,7 +148,7 @@ def _serial(todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
         yield task, rows
 
 
-def _dask(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
+def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
           fail: Callable[[T, str], R]) -> Iterator[tuple[T, R]]:
     """Run ``task_fn(task, config)`` per task on the Dask ``client``, yielding results as they finish.
 
@@ -211,11 +211,11 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
         if not todo:
             results: Iterator[tuple[StudyTask, Sequence[StudyRow]]] = iter(())
         elif client is None and scheduler is None and workers == 0:
-            results = _serial(todo, spec.config, task_fn, failed_rows)
+            results = serial_results(todo, spec.config, task_fn, failed_rows)
         else:
             if client is None:
                 client = stack.enter_context(dask_client(scheduler, workers, len(todo)))
-            results = _dask(client, todo, spec.config, task_fn, failed_rows)
+            results = dask_results(client, todo, spec.config, task_fn, failed_rows)
         bar = stack.enter_context(tqdm(total=len(todo), desc="study tasks", unit="task", disable=quiet or not todo))
         kill_after = _kill_after_parts()
         for n_written, (task, rows) in enumerate(results, start=1):
@@ -225,7 +225,7 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
                 os.kill(os.getpid(), signal.SIGKILL)
     table = store.consolidate(out, [t.key for t in tasks])
     summaries = summarise(table)
-    write_summary_csv(summaries, out / "summary.csv")
+    write_dataclass_csv(DesignSummary, summaries, out / "summary.csv")
     summary_figure(table, summaries, out / "summary.png")
     n_failed = len({k for k, s in zip(table["task"].to_pylist(), table["status"].to_pylist(), strict=True)
                     if s == "failed"})

@@ -23,7 +23,6 @@ unlike it, keeps its nominal coverage for small cohorts.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import io
 import json
@@ -356,7 +355,8 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
     """
     from tqdm import tqdm
 
-    from reachplan.planner.study import _dask, _serial, check_manifest, dask_client
+    from reachplan.planner.study import check_manifest, dask_client, dask_results, serial_results
+    from reachplan.planner.study.summary import write_dataclass_csv
 
     out = Path(out)
     t0 = time.perf_counter()
@@ -369,11 +369,11 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
         if not todo:
             results = iter(())
         elif client is None and scheduler is None and workers == 0:
-            results = _serial(todo, spec, task_fn, failed_case)
+            results = serial_results(todo, spec, task_fn, failed_case)
         else:
             if client is None:
                 client = stack.enter_context(dask_client(scheduler, workers, len(todo)))
-            results = _dask(client, todo, spec, task_fn, failed_case)
+            results = dask_results(client, todo, spec, task_fn, failed_case)
         bar = stack.enter_context(tqdm(total=len(todo), desc="implant cases", unit="case", disable=quiet or not todo))
         for task, part in results:
             atomic_write_json(out / PARTS / f"{task.key}.json", part)
@@ -381,7 +381,7 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
             bar.update()
     rows = tuple(ImplantRow(**done[t.key]["row"]) for t in tasks)
     summary = _summary([dataclasses.asdict(r) for r in rows], level)
-    write_cases_csv(rows, out / CASES_CSV)
+    write_dataclass_csv(ImplantRow, rows, out / CASES_CSV)
     wall = time.perf_counter() - t0
     atomic_write_json(out / SUMMARY_JSON, summary_json(summary, rows, wall))
     summary_figure(rows, summary, out / SUMMARY_PNG)
@@ -402,17 +402,6 @@ def _read_parts(out: Path) -> dict[str, dict[str, Any]]:
         except (OSError, ValueError):
             raise StudyError(f"part file {p} cannot be read; delete it to plan that case again") from None
     return parts
-
-
-def write_cases_csv(rows: Sequence[ImplantRow], path: Path) -> None:
-    """Write one line per case (empty cells for None), atomically."""
-    buf = io.StringIO()
-    names = [f.name for f in dataclasses.fields(ImplantRow)]
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(names)
-    for r in rows:
-        w.writerow(["" if getattr(r, n) is None else getattr(r, n) for n in names])
-    atomic_write_bytes(path, buf.getvalue().encode("utf-8"))
 
 
 def _stat_json(s: PairedStat) -> dict[str, Any]:
