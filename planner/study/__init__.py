@@ -13,6 +13,9 @@ exactly when its part file exists, so a killed study resumes where it stopped, w
 repeated. A task that fails is recorded (rows with ``status = failed`` and the reason) and the study goes
 on; ``retry_failed`` runs those again. At the end the parts are consolidated into ``OUT/study.parquet``,
 with ``summary.csv`` and ``summary.png`` (reach rate and best-candidate metrics per design).
+
+The straight-vs-steered implant comparison over clinical cases (:mod:`reachplan.planner.study.implant`) runs on
+the same runners (:func:`serial_results`, :func:`dask_results`, :func:`dask_client`) with a ledger of its own.
 """
 
 from __future__ import annotations
