@@ -13,6 +13,9 @@ exactly when its part file exists, so a killed study resumes where it stopped, w
 repeated. A task that fails is recorded (rows with ``status = failed`` and the reason) and the study goes
 on; ``retry_failed`` runs those again. At the end the parts are consolidated into ``OUT/study.parquet``,
 with ``summary.csv`` and ``summary.png`` (reach rate and best-candidate metrics per design).
+
+The straight-vs-steered implant comparison over clinical cases (:mod:`reachplan.planner.study.implant`) runs on
+the same runners (:func:`serial_results`, :func:`dask_results`, :func:`dask_client`) with a ledger of its own.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from tqdm import tqdm
 
@@ -35,7 +38,7 @@ from reachplan.imaging.files import atomic_write_json
 from reachplan.planner.errors import StudyError
 from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.study import store
-from reachplan.planner.study.summary import DesignSummary, summarise, summary_figure, write_summary_csv
+from reachplan.planner.study.summary import DesignSummary, summarise, summary_figure, write_dataclass_csv
 from reachplan.planner.study.tasks import STRAIGHT, Case, StudyRow, StudyTask, discover_cases, failed_rows, run_task
 
 if TYPE_CHECKING:
@@ -45,6 +48,19 @@ __all__ = ["STRAIGHT", "Case", "DesignSummary", "StudyResult", "StudyRow", "Stud
            "discover_cases", "run_study", "run_task"]
 
 TaskFn = Callable[[StudyTask, PlanConfig], Sequence[StudyRow]]
+
+
+class Keyed(Protocol):
+    """A study task: its ``key`` names it uniquely (and its result file)."""
+
+    @property
+    def key(self) -> str:
+        """Return the task's unique, file-name-safe key."""
+        ...
+
+
+T = TypeVar("T", bound=Keyed)
+R = TypeVar("R")
 MANIFEST = "study.json"
 MANIFEST_VERSION = 1
 
@@ -103,9 +119,15 @@ class StudyResult:
     wall_s: float
 
 
-def _check_manifest(out: Path, spec: StudySpec) -> None:
+def check_manifest(out: Path, want: dict[str, Any]) -> None:
+    """Write the study's manifest ``want`` into ``out``, or check that the study already there has the same one.
+
+    Raises
+    ------
+    StudyError
+        ``out`` holds another study, or files that are not a study.
+    """
     path = out / MANIFEST
-    want = spec.manifest()
     if path.exists():
         have = json.loads(path.read_text(encoding="utf-8"))
         if have != want:
@@ -118,18 +140,23 @@ def _check_manifest(out: Path, spec: StudySpec) -> None:
         atomic_write_json(path, want)
 
 
-def _serial(todo: Sequence[StudyTask], config: PlanConfig, task_fn: TaskFn) -> Iterator[tuple[StudyTask,
-                                                                                             Sequence[StudyRow]]]:
+def serial_results(todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
+            fail: Callable[[T, str], R]) -> Iterator[tuple[T, R]]:
+    """Run ``task_fn(task, config)`` per task in this process; a task that raises gives ``fail(task, reason)``."""
     for task in todo:
         try:
             rows = task_fn(task, config)
         except Exception as exc:  # a failing task is recorded, the study goes on
-            rows = failed_rows(task, f"{type(exc).__name__}: {exc}")
+            rows = fail(task, f"{type(exc).__name__}: {exc}")
         yield task, rows
 
 
-def _dask(client: Any, todo: Sequence[StudyTask], config: PlanConfig,
-          task_fn: TaskFn) -> Iterator[tuple[StudyTask, Sequence[StudyRow]]]:
+def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
+          fail: Callable[[T, str], R]) -> Iterator[tuple[T, R]]:
+    """Run ``task_fn(task, config)`` per task on the Dask ``client``, yielding results as they finish.
+
+    Each task needs a unique ``key``; a task that raises (or whose worker keeps dying) gives ``fail(task, reason)``.
+    """
     from distributed import as_completed
 
     run = uuid.uuid4().hex[:8]
@@ -147,10 +174,10 @@ def _dask(client: Any, todo: Sequence[StudyTask], config: PlanConfig,
                 rows = fut.result()
             elif fut.status == "cancelled":  # the scheduler dropped it (restarted, or the client lost it)
                 raise StudyError(f"the Dask scheduler cancelled task {task.key}; run the study again to "
-                                     "resume it (finished tasks are kept)")
+                                 "resume it (finished tasks are kept)")
             else:  # an error inside the task, or a worker that kept dying while running it (KilledWorker)
                 exc = fut.exception()
-                rows = failed_rows(task, f"{type(exc).__name__}: {exc}")
+                rows = fail(task, f"{type(exc).__name__}: {exc}")
             fut.release()
             yield task, rows
     finally:
@@ -178,7 +205,7 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
     store.require_pyarrow()
     out = Path(out)
     t0 = time.perf_counter()
-    _check_manifest(out, spec)
+    check_manifest(out, spec.manifest())
     tasks = spec.tasks()
     done = store.finished(out)
     redo = store.failed_keys(out) if retry_failed else set()
@@ -187,11 +214,11 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
         if not todo:
             results: Iterator[tuple[StudyTask, Sequence[StudyRow]]] = iter(())
         elif client is None and scheduler is None and workers == 0:
-            results = _serial(todo, spec.config, task_fn)
+            results = serial_results(todo, spec.config, task_fn, failed_rows)
         else:
             if client is None:
-                client = stack.enter_context(_client(scheduler, workers, len(todo)))
-            results = _dask(client, todo, spec.config, task_fn)
+                client = stack.enter_context(dask_client(scheduler, workers, len(todo)))
+            results = dask_results(client, todo, spec.config, task_fn, failed_rows)
         bar = stack.enter_context(tqdm(total=len(todo), desc="study tasks", unit="task", disable=quiet or not todo))
         kill_after = _kill_after_parts()
         for n_written, (task, rows) in enumerate(results, start=1):
@@ -201,7 +228,7 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
                 os.kill(os.getpid(), signal.SIGKILL)
     table = store.consolidate(out, [t.key for t in tasks])
     summaries = summarise(table)
-    write_summary_csv(summaries, out / "summary.csv")
+    write_dataclass_csv(DesignSummary, summaries, out / "summary.csv")
     summary_figure(table, summaries, out / "summary.png")
     n_failed = len({k for k, s in zip(table["task"].to_pylist(), table["status"].to_pylist(), strict=True)
                     if s == "failed"})
@@ -218,7 +245,12 @@ def _kill_after_parts() -> int | None:
     return int(value) if value.strip().isdigit() else None
 
 
-def _client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any:
+#: The scheduler's HTTP server (health and metrics routes; it runs even without the dashboard) on a free loopback
+#: port: its default, port 8787 on every interface, warns and moves when another cluster on the machine holds it.
+LOOPBACK_HTTP = {"dashboard_address": "127.0.0.1:0"}
+
+
+def dask_client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any:
     """Connect a ``distributed.Client`` to ``scheduler``, or to a new loopback-only local cluster.
 
     The local cluster runs worker processes and is closed with the client.
@@ -238,7 +270,7 @@ def _client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any:
     if n < 1:
         raise StudyError(f"--workers must be >= 0, got {n}")
     cluster = LocalCluster(n_workers=min(n, n_tasks), threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None)
+                           dashboard_address=None, scheduler_kwargs=LOOPBACK_HTTP)
     client = Client(cluster)
     return _Closing(client, cluster)
 

@@ -1,29 +1,102 @@
-"""Straight against steered implants over a cohort: needles saved and HR-CTV D90 gained by steering.
+"""Straight against steered implants over a cohort of clinical cases: needles saved and HR-CTV D90 gained by steering.
 
-Each case contributes one pair of arms (:class:`reachplan.planner.pipeline.ImplantComparison`, or the
-``implant`` section of a plan.json). The summary gives the mean of the paired differences with a percentile
-bootstrap confidence interval (resampling cases with replacement; seeded, so the same cohort gives the same
-interval).
+The cohort is seeds of the built-in clinical case (:func:`reachplan.imaging.clinical.clinical_case`). One task per
+case: the worker builds the case in memory (no DICOM is written), its scene and planning structures on the case's
+image grid, and both implant arms with their Pareto curves (:func:`reachplan.planner.pipeline.plan_implants`, as
+``reachplan demo`` does: the tandem is an intracavitary channel and an organ to keep needles off). Tasks run on
+Dask as the design study's do (:func:`reachplan.planner.study.run_study`: a loopback ``LocalCluster`` of worker
+processes, a given scheduler, or this process with ``workers=0``).
+
+Results stream to ``OUT/parts/<case>.json`` (the case's row and both arms' plan.json ``implant`` section),
+written atomically as cases finish, so a stopped study resumes where it stopped. A case that fails, or one of
+whose arms has no implant, is a row with status ``failed`` and the reason; the study goes on. At the end:
+``cases.csv`` (one row per case), ``summary.json`` and ``summary.png``.
+
+Confidence intervals are paired Student t-intervals on the per-case differences (steered minus straight,
+cases where both arms have an implant): ``mean ± t(1 - α/2, n - 1) · s / √n`` with ``s`` the sample standard
+deviation (ddof 1). Sources: NIST/SEMATECH e-Handbook of Statistical Methods, section 1.3.5.2 "Confidence
+Limits for the Mean"; J. A. Rice, *Mathematical Statistics and Data Analysis*, 3rd ed. (2007), section 11.3
+"Comparing Paired Samples" (the paired t-interval is the one-sample interval on the differences). The
+interval assumes roughly normal differences; with few cases it is wider than a percentile bootstrap and,
+unlike it, keeps its nominal coverage for small cohorts.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+import dataclasses
+import io
+import json
+import os
+import socket
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from reachplan import ReachplanError
+from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
 from reachplan.planner.errors import StudyError
+from reachplan.planner.pipeline import DEFAULT_AIR_KERMA_U, DEFAULT_OARS, PlanConfig
 
+if TYPE_CHECKING:
+    from reachplan.planner.dose.implant import ImplantSettings
+    from reachplan.planner.pipeline import ImplantComparison
+
+ARMS = ("straight", "steered")
+PARTS = "parts"
+CASES_CSV = "cases.csv"
+SUMMARY_JSON = "summary.json"
+SUMMARY_PNG = "summary.png"
+MANIFEST_VERSION = 1
+
+
+# ------------------------------------------------------------------------------------------------ statistics
 
 @dataclass(frozen=True)
 class PairedStat:
-    """Mean of a paired difference over the cases and its bootstrap confidence interval (same unit)."""
+    """Mean of a paired difference over the cases and its two-sided t confidence interval (same unit).
 
-    mean: float
-    low: float
-    high: float
+    ``low`` and ``high`` are None when fewer than two cases give a difference (no spread to estimate);
+    ``mean`` is None when none does. ``level``: the interval's confidence level.
+    """
+
+    mean: float | None
+    low: float | None
+    high: float | None
     n: int
+    level: float
+
+
+def t_interval(diffs: Sequence[float] | np.ndarray, level: float = 0.95) -> PairedStat:
+    """Return the mean of the paired differences ``diffs`` and its Student t confidence interval.
+
+    ``mean ± t(1 - α/2, n - 1) · s / √n`` with ``α = 1 - level`` and ``s`` the sample standard deviation
+    (NIST/SEMATECH e-Handbook of Statistical Methods, 1.3.5.2; Rice 2007, 11.3).
+
+    Raises
+    ------
+    StudyError
+        ``level`` outside (0, 1) or a difference that is not finite.
+    """
+    from scipy.stats import t as student_t
+
+    if not 0.0 < level < 1.0:
+        raise StudyError(f"confidence level must be in (0, 1), got {level}")
+    d = np.asarray(diffs, dtype=float).ravel()
+    if not np.all(np.isfinite(d)):
+        raise StudyError("a paired difference is not finite; check the cases' results")
+    n = len(d)
+    if n == 0:
+        return PairedStat(None, None, None, 0, level)
+    mean = float(d.mean())
+    if n == 1:
+        return PairedStat(mean, None, None, 1, level)
+    half = float(student_t.ppf(0.5 + level / 2.0, n - 1)) * float(d.std(ddof=1)) / np.sqrt(n)
+    return PairedStat(mean, mean - half, mean + half, n, level)
 
 
 @dataclass(frozen=True)
@@ -31,8 +104,9 @@ class ImplantCohortSummary:
     """Needles saved and D90 gained by steering over a cohort.
 
     ``needles_saved``: straight-arm needles minus steered-arm needles of each case's chosen implant;
-    ``d90_gained_gy``: steered minus straight HR-CTV D90 (EQD2, Gy); ``aims_met_*``: cases whose chosen implant
-    meets every aim, per arm.
+    ``d90_gained_gy``: steered minus straight HR-CTV D90 (EQD2, Gy); both over the cases where both arms have an
+    implant. ``aims_met_*``: cases whose chosen implant meets every aim, per arm (an arm without an implant
+    does not); ``n_cases``: all cases, ``n_paired``: those with both arms planned.
     """
 
     needles_saved: PairedStat
@@ -40,20 +114,11 @@ class ImplantCohortSummary:
     aims_met_straight: int
     aims_met_steered: int
     n_cases: int
+    n_paired: int
 
 
-def _bootstrap(values: np.ndarray, level: float, resamples: int, seed: int) -> PairedStat:
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(values), size=(resamples, len(values)))
-    means = values[idx].mean(axis=1)
-    tail = 100.0 * (1.0 - level) / 2.0
-    low, high = np.percentile(means, [tail, 100.0 - tail])
-    return PairedStat(float(values.mean()), float(low), float(high), len(values))
-
-
-def summarise_implants(cases: Sequence[Mapping[str, object]], level: float = 0.95, resamples: int = 10_000,
-                       seed: int = 0) -> ImplantCohortSummary:
-    """Summarise a cohort from each case's plan.json ``implant`` section.
+def summarise_implants(cases: Sequence[Mapping[str, object]], level: float = 0.95) -> ImplantCohortSummary:
+    """Summarise a cohort from each case's plan.json ``implant`` section (paired t-intervals, see the module).
 
     Each section has ``straight`` and ``steered`` with ``n_needles``, ``hrctv_d90_eqd2_gy`` and ``aims_met``.
 
@@ -64,16 +129,370 @@ def summarise_implants(cases: Sequence[Mapping[str, object]], level: float = 0.9
     """
     if not cases:
         raise StudyError("no case to summarise: give at least one plan.json implant section")
-    saved, gained, met = [], [], [0, 0]
     for k, case in enumerate(cases):
-        arms = [case.get("straight"), case.get("steered")]
-        if not all(isinstance(a, Mapping) and "n_needles" in a for a in arms):
+        if not all("n_needles" in _arm(case, a) for a in ARMS):
             raise StudyError(f"case {k + 1}: both arms need a chosen implant (n_needles); plan it again")
-        straight, steered = arms
-        assert isinstance(straight, Mapping) and isinstance(steered, Mapping)
-        saved.append(float(straight["n_needles"]) - float(steered["n_needles"]))
-        gained.append(float(steered["hrctv_d90_eqd2_gy"]) - float(straight["hrctv_d90_eqd2_gy"]))
-        met[0] += bool(straight.get("aims_met"))
-        met[1] += bool(steered.get("aims_met"))
-    return ImplantCohortSummary(_bootstrap(np.array(saved), level, resamples, seed),
-                                _bootstrap(np.array(gained), level, resamples, seed + 1), met[0], met[1], len(cases))
+    return _summary([_arm_values(c) for c in cases], level)
+
+
+def _arm_values(implant: Mapping[str, object]) -> dict[str, Any]:
+    """Needles, D90 and aims met of each arm of a plan.json ``implant`` section (None where an arm has no plan)."""
+    out: dict[str, Any] = {}
+    for arm in ARMS:
+        a = _arm(implant, arm)
+        planned = "n_needles" in a
+        out[f"{arm}_needles"] = int(a["n_needles"]) if planned else None
+        out[f"{arm}_hrctv_d90_eqd2_gy"] = float(a["hrctv_d90_eqd2_gy"]) if planned else None
+        out[f"{arm}_aims_met"] = bool(a.get("aims_met")) if planned else False
+    return out
+
+
+def _arm(implant: Mapping[str, object], arm: str) -> Mapping[str, Any]:
+    a = implant.get(arm)
+    return a if isinstance(a, Mapping) else {}
+
+
+def _summary(rows: Sequence[Mapping[str, Any]], level: float) -> ImplantCohortSummary:
+    paired = [r for r in rows if all(r[f"{a}_needles"] is not None for a in ARMS)]
+    saved = [r["straight_needles"] - r["steered_needles"] for r in paired]
+    gained = [r["steered_hrctv_d90_eqd2_gy"] - r["straight_hrctv_d90_eqd2_gy"] for r in paired]
+    return ImplantCohortSummary(t_interval(saved, level), t_interval(gained, level),
+                                sum(bool(r["straight_aims_met"]) for r in rows),
+                                sum(bool(r["steered_aims_met"]) for r in rows), len(rows), len(paired))
+
+
+# ------------------------------------------------------------------------------------------------ one case
+
+@dataclass(frozen=True)
+class ImplantCase:
+    """One task: the clinical case of ``seed`` (``key`` names it and its part file)."""
+
+    seed: int
+
+    @property
+    def key(self) -> str:
+        """Return ``clinical_<seed>`` (the case's default id)."""
+        return f"clinical_{self.seed}"
+
+
+@dataclass(frozen=True)
+class ImplantStudySpec:
+    """What an implant study plans: both arms on the clinical case of each seed.
+
+    ``config``: the plan configuration (stylet designs of the steered arm, schedule family, template);
+    ``settings``: the implant settings (None: the defaults); ``source``: the TG-43 source; ``modality``: the
+    case's image series (``CT`` or ``MR``; the planning grid is its grid).
+    """
+
+    seeds: tuple[int, ...]
+    config: PlanConfig = field(default_factory=lambda: PlanConfig(oar_names=(*DEFAULT_OARS, "Tandem")))
+    settings: ImplantSettings | None = None
+    source: str = "gammamed_plus_hdr"
+    modality: str = "CT"
+
+    def __post_init__(self) -> None:
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError("an implant study needs at least one case, each seed once")
+        if not self.config.designs:
+            raise ValueError("the steered arm needs at least one stylet design")
+
+    def tasks(self) -> tuple[ImplantCase, ...]:
+        """One task per seed, in seed order."""
+        return tuple(ImplantCase(s) for s in self.seeds)
+
+    def manifest(self) -> dict[str, Any]:
+        """Return what identifies the study's results (JSON-ready); a resumed study must match it."""
+        doc = {"version": MANIFEST_VERSION, "kind": "implant", "seeds": list(self.seeds),
+               "config": dataclasses.asdict(self.config),
+               "settings": None if self.settings is None else dataclasses.asdict(self.settings),
+               "source": self.source, "modality": self.modality}
+        return dict(json.loads(json.dumps(doc)))
+
+
+@dataclass(frozen=True)
+class ImplantRow:
+    """One case of an implant study (a row of ``cases.csv``).
+
+    ``status`` is ``ok`` (both arms have a chosen implant) or ``failed`` (``reason`` says why: the error that
+    stopped the case, or each arm without an implant and its reason). Per arm (``straight_*``, ``steered_*``):
+    needles of the chosen implant, whether it meets every aim, HR-CTV D90 and D98 (EQD2, Gy), organ D2cm³ (EQD2,
+    Gy; JSON object by organ), candidate channels and the arm's own note (e.g. no budget meets every aim).
+    ``needles_saved`` (straight minus steered) and ``d90_gained_gy`` (steered minus straight) when both arms
+    have an implant. ``seconds`` and ``cpu_seconds``: the whole case (build, scene, both arms).
+    """
+
+    case: str
+    seed: int
+    status: str
+    reason: str
+    straight_needles: int | None = None
+    steered_needles: int | None = None
+    straight_aims_met: bool = False
+    steered_aims_met: bool = False
+    straight_hrctv_d90_eqd2_gy: float | None = None
+    steered_hrctv_d90_eqd2_gy: float | None = None
+    straight_hrctv_d98_eqd2_gy: float | None = None
+    steered_hrctv_d98_eqd2_gy: float | None = None
+    straight_oar_d2cc_eqd2_gy: str = ""
+    steered_oar_d2cc_eqd2_gy: str = ""
+    straight_candidates: int | None = None
+    steered_candidates: int | None = None
+    straight_note: str = ""
+    steered_note: str = ""
+    needles_saved: int | None = None
+    d90_gained_gy: float | None = None
+    seconds: float | None = None
+    cpu_seconds: float | None = None
+    worker: str = ""
+
+    def __post_init__(self) -> None:
+        if self.status not in ("ok", "failed"):
+            raise ValueError(f"row status must be 'ok' or 'failed', got {self.status!r}")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())[:500] or "failed without a message"
+
+
+def failed_case(task: ImplantCase, reason: str) -> dict[str, Any]:
+    """Return the part of a case that failed: its row (status ``failed``, the reason) and no implant."""
+    row = ImplantRow(task.key, task.seed, "failed", _one_line(reason), worker=f"{socket.gethostname()}:{os.getpid()}")
+    return {"row": dataclasses.asdict(row), "implant": None}
+
+
+def case_row(task: ImplantCase, implant: Mapping[str, Any], seconds: float | None = None,
+             cpu_seconds: float | None = None) -> ImplantRow:
+    """Return the row of a case from its plan.json ``implant`` section (both arms)."""
+    values = _arm_values(implant)
+    extra: dict[str, Any] = {}
+    missing = []
+    for arm in ARMS:
+        a = _arm(implant, arm)
+        note = _one_line(str(a.get("reason", ""))) if a.get("reason") else ""
+        if values[f"{arm}_needles"] is None:
+            missing.append(f"{arm} arm: {note or 'no implant'}")
+        oar = a.get("oar_d2cc_eqd2_gy")
+        extra.update({f"{arm}_hrctv_d98_eqd2_gy": a.get("hrctv_d98_eqd2_gy"),
+                      f"{arm}_oar_d2cc_eqd2_gy": json.dumps(oar, sort_keys=True) if oar else "",
+                      f"{arm}_candidates": a.get("candidates"), f"{arm}_note": note})
+    paired = not missing
+    return ImplantRow(
+        task.key, task.seed, "ok" if paired else "failed", "; ".join(missing), **values, **extra,
+        needles_saved=values["straight_needles"] - values["steered_needles"] if paired else None,
+        d90_gained_gy=round(values["steered_hrctv_d90_eqd2_gy"] - values["straight_hrctv_d90_eqd2_gy"], 3)
+        if paired else None,
+        seconds=None if seconds is None else round(seconds, 3),
+        cpu_seconds=None if cpu_seconds is None else round(cpu_seconds, 3),
+        worker=f"{socket.gethostname()}:{os.getpid()}")
+
+
+def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
+    """Build the clinical case of ``seed`` in memory and plan both implant arms on it (as ``reachplan demo``)."""
+    from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
+    from reachplan.planner.pipeline import build_scene, get_source, plan_implants, planning_structures, tandem_channels
+
+    case = clinical_case(seed, modality=spec.modality)
+    structures = structure_set(case.spec)
+    grid = image_grid(case.spec)
+    targets = [n for n in structures.names if n.casefold().startswith("target")]
+    scene = build_scene(structures, targets, grid=grid, config=spec.config)
+    config = dataclasses.replace(spec.config, oar_names=tuple(o.name for o in scene.organs))
+    planning = planning_structures(structures, grid, "HR-CTV", config.oar_names)
+    tandem = tandem_channels(structures, planning, scene.patient_from_template, spec.settings)
+    return plan_implants(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U, spec.settings,
+                         intracavitary=tandem)
+
+
+def run_case(task: ImplantCase, spec: ImplantStudySpec) -> dict[str, Any]:
+    """Plan one case (the worker's task): ``{"row": ImplantRow as a dict, "implant": plan.json's implant}``.
+
+    An expected failure (any :class:`ReachplanError`, e.g. no target volume) becomes the failed row; anything
+    else propagates and is recorded by the study the same way.
+    """
+    t, cpu = time.perf_counter(), time.process_time()
+    try:
+        implant = plan_case(task.seed, spec).to_json()
+    except ReachplanError as exc:
+        return failed_case(task, f"{type(exc).__name__}: {exc}")
+    row = case_row(task, implant, time.perf_counter() - t, time.process_time() - cpu)
+    return {"row": dataclasses.asdict(row), "implant": implant}
+
+
+# ------------------------------------------------------------------------------------------------ the study
+
+@dataclass(frozen=True, eq=False)
+class ImplantStudyResult:
+    """A finished implant study: one row per case (seed order), the summary, tasks resumed, wall time (s)."""
+
+    out: Path
+    rows: tuple[ImplantRow, ...]
+    summary: ImplantCohortSummary
+    n_resumed: int
+    wall_s: float
+
+
+CaseFn = Callable[[ImplantCase, ImplantStudySpec], dict[str, Any]]
+
+
+def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | None = None,
+                      workers: int | None = None, client: Any = None, retry_failed: bool = False,
+                      level: float = 0.95, quiet: bool = True, task_fn: CaseFn = run_case) -> ImplantStudyResult:
+    """Run (or resume) an implant study into the folder ``out``: ``cases.csv``, ``summary.json``, ``summary.png``.
+
+    Parameters
+    ----------
+    scheduler : address of a running Dask scheduler; None = a local cluster of worker processes
+    workers : worker processes of the local cluster (default: the CPU count); 0 = run in this process
+    client : an existing ``distributed.Client`` to use instead (``scheduler``/``workers`` ignored)
+    retry_failed : plan again the cases a previous run recorded as failed
+    level : confidence level of the intervals
+    task_fn : the function a worker runs per case (default :func:`run_case`; must be importable by workers)
+
+    Raises
+    ------
+    StudyError
+        ``out`` holds another study or unrelated files; Dask is missing.
+    """
+    from tqdm import tqdm
+
+    from reachplan.planner.study import check_manifest, dask_client, dask_results, serial_results
+    from reachplan.planner.study.summary import write_dataclass_csv
+
+    out = Path(out)
+    t0 = time.perf_counter()
+    check_manifest(out, spec.manifest())
+    tasks = spec.tasks()
+    done = _read_parts(out)
+    todo = [t for t in tasks if t.key not in done or (retry_failed and done[t.key]["row"]["status"] == "failed")]
+    with ExitStack() as stack:
+        results: Iterator[tuple[ImplantCase, dict[str, Any]]]
+        if not todo:
+            results = iter(())
+        elif client is None and scheduler is None and workers == 0:
+            results = serial_results(todo, spec, task_fn, failed_case)
+        else:
+            if client is None:
+                client = stack.enter_context(dask_client(scheduler, workers, len(todo)))
+            results = dask_results(client, todo, spec, task_fn, failed_case)
+        bar = stack.enter_context(tqdm(total=len(todo), desc="implant cases", unit="case", disable=quiet or not todo))
+        for task, part in results:
+            atomic_write_json(out / PARTS / f"{task.key}.json", part)
+            done[task.key] = part
+            bar.update()
+    rows = tuple(ImplantRow(**done[t.key]["row"]) for t in tasks)
+    summary = _summary([dataclasses.asdict(r) for r in rows], level)
+    write_dataclass_csv(ImplantRow, rows, out / CASES_CSV)
+    wall = time.perf_counter() - t0
+    atomic_write_json(out / SUMMARY_JSON, summary_json(summary, rows, wall))
+    summary_figure(rows, summary, out / SUMMARY_PNG)
+    return ImplantStudyResult(out, rows, summary, len(tasks) - len(todo), wall)
+
+
+def _read_parts(out: Path) -> dict[str, dict[str, Any]]:
+    """Case key -> finished part (row and implant) of every case already in ``out/parts``."""
+    folder = out / PARTS
+    if not folder.is_dir():
+        return {}
+    parts = {}
+    for p in sorted(folder.glob("*.json")):
+        if p.name.startswith("."):
+            continue
+        try:
+            parts[p.stem] = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            raise StudyError(f"part file {p} cannot be read; delete it to plan that case again") from None
+    return parts
+
+
+def _stat_json(s: PairedStat) -> dict[str, Any]:
+    def r(v: float | None) -> float | None:
+        return None if v is None else round(v, 4)
+
+    return {"mean": r(s.mean), "ci_low": r(s.low), "ci_high": r(s.high), "n": s.n}
+
+
+def summary_json(summary: ImplantCohortSummary, rows: Sequence[ImplantRow], wall_s: float) -> dict[str, Any]:
+    """Return ``summary.json``: paired differences with their intervals, aims met per arm, failed cases."""
+    secs = [r.seconds for r in rows if r.seconds is not None]
+    return {
+        "cases": summary.n_cases, "paired_cases": summary.n_paired,
+        "interval": f"two-sided {100 * summary.needles_saved.level:g} % paired Student t-interval on the per-case "
+                    "differences (NIST/SEMATECH e-Handbook 1.3.5.2; Rice 2007, 11.3)",
+        "needles_saved": _stat_json(summary.needles_saved),
+        "d90_gained_gy": _stat_json(summary.d90_gained_gy),
+        "aims_met": {"straight": summary.aims_met_straight, "steered": summary.aims_met_steered},
+        "failed": {r.case: r.reason for r in rows if r.status == "failed"},
+        "mean_case_seconds": round(float(np.mean(secs)), 3) if secs else None,
+        "wall_s": round(wall_s, 3),
+    }
+
+
+def format_summary(summary: ImplantCohortSummary, rows: Sequence[ImplantRow]) -> str:
+    """Return a plain-text table: one line per case, then the paired differences with their intervals."""
+    def v(x: object, fmt: str = "") -> str:
+        return "-" if x is None else format(x, fmt)
+
+    lines = [f"{'case':<14} {'needles':>11} {'D90 Gy (EQD2)':>15} {'aims met':>11}  note",
+             f"{'':<14} {'strt':>5} {'steer':>5} {'strt':>7} {'steer':>7} {'strt':>5} {'steer':>5}"]
+    for r in rows:
+        lines.append(f"{r.case:<14} {v(r.straight_needles):>5} {v(r.steered_needles):>5} "
+                     f"{v(r.straight_hrctv_d90_eqd2_gy, '.1f'):>7} {v(r.steered_hrctv_d90_eqd2_gy, '.1f'):>7} "
+                     f"{'yes' if r.straight_aims_met else 'no':>5} {'yes' if r.steered_aims_met else 'no':>5}  "
+                     f"{r.reason[:60]}")
+
+    def stat(name: str, s: PairedStat, unit: str) -> str:
+        if s.mean is None:
+            return f"{name}: no case with both arms planned"
+        ci = "CI needs 2 cases" if s.low is None else f"{100 * s.level:g} % CI {s.low:+.2f} .. {s.high:+.2f}"
+        return f"{name}: mean {s.mean:+.2f}{unit} ({ci}; {s.n} cases, paired t)"
+
+    lines += ["", stat("needles saved by steering", summary.needles_saved, ""),
+              stat("D90 gained by steering", summary.d90_gained_gy, " Gy"),
+              f"aims met: straight {summary.aims_met_straight}/{summary.n_cases}, "
+              f"steered {summary.aims_met_steered}/{summary.n_cases}"]
+    return "\n".join(lines)
+
+
+def summary_figure(rows: Sequence[ImplantRow], summary: ImplantCohortSummary, path: Path) -> None:
+    """Needles and D90 of each arm per case (lines join a case's arms), and the mean differences with their CIs."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12.0, 4.0), layout="constrained")
+    ax_n, ax_d, ax_ns, ax_dg = fig.subplots(1, 4)
+    for ax, col, label in ((ax_n, "needles", "needles in the chosen implant"),
+                           (ax_d, "hrctv_d90_eqd2_gy", "HR-CTV D90 (Gy EQD2)")):
+        for k, r in enumerate(rows):
+            ys = [getattr(r, f"{a}_{col}") for a in ARMS]
+            if any(y is None for y in ys):
+                continue
+            dx = 0.2 * (k / max(len(rows) - 1, 1) - 0.5)  # spread the cases apart: equal counts would hide each other
+            ax.plot([dx, 1 + dx], ys, "-", color="0.6", lw=0.8)
+            for x, a in enumerate(ARMS):
+                ax.plot([x + dx], [ys[x]], "o", color=f"C{x}",
+                        mfc=f"C{x}" if getattr(r, f"{a}_aims_met") else "white")
+        ax.set_xticks([0, 1], list(ARMS))
+        ax.set_xlim(-0.4, 1.4)
+        ax.set_ylabel(label)
+    ax_n.yaxis.get_major_locator().set_params(integer=True)
+    ax_n.set_title("per case (filled: aims met)", fontsize=9)
+    ax_d.axhline(85.0, color="grey", lw=0.8, ls="--")
+    ax_d.set_title("EMBRACE II aim D90 >= 85 Gy (dashed)", fontsize=9)
+    pct = f"{100 * summary.needles_saved.level:g} %"
+    for ax, col, st, label in ((ax_ns, "needles_saved", summary.needles_saved, "needles saved by steering"),
+                               (ax_dg, "d90_gained_gy", summary.d90_gained_gy, "D90 gained by steering (Gy)")):
+        diffs = [getattr(r, col) for r in rows if getattr(r, col) is not None]
+        ax.plot(np.linspace(-0.15, 0.15, len(diffs)) if len(diffs) > 1 else [0.0] * len(diffs), diffs, "o",
+                color="0.5", ms=4, label="cases")
+        if st.mean is not None:
+            err = None if st.low is None or st.high is None else [[st.mean - st.low], [st.high - st.mean]]
+            ax.errorbar([0.45], [st.mean], yerr=err, fmt="s", color="C2", capsize=6, label=f"mean, {pct} CI")
+        ax.axhline(0.0, color="grey", lw=0.8)
+        ax.set_xticks([])
+        ax.set_xlim(-0.5, 0.9)
+        ax.set_ylabel(label)
+        ax.legend(fontsize=7, loc="best")
+    ax_ns.yaxis.get_major_locator().set_params(integer=True)
+    ax_ns.set_title(f"paired t-interval, {summary.n_paired} of {summary.n_cases} cases", fontsize=9)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    atomic_write_bytes(path, buf.getvalue())

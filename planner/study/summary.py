@@ -91,14 +91,17 @@ def summarise(table: pa.Table) -> tuple[DesignSummary, ...]:
     return tuple(out)
 
 
-def write_summary_csv(summaries: Sequence[DesignSummary], path: Path) -> None:
-    """Write the summary as CSV (empty cells for None), atomically."""
+def write_dataclass_csv(cls: type, rows: Sequence[object], path: Path) -> None:
+    """Write ``rows`` (instances of the dataclass ``cls``) as CSV, one column per field, atomically.
+
+    Empty cells for None.
+    """
     buf = io.StringIO()
-    names = [f.name for f in dataclasses.fields(DesignSummary)]
+    names = [f.name for f in dataclasses.fields(cls)]
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(names)
-    for s in summaries:
-        w.writerow(["" if getattr(s, n) is None else getattr(s, n) for n in names])
+    for r in rows:
+        w.writerow(["" if getattr(r, n) is None else getattr(r, n) for n in names])
     atomic_write_bytes(path, buf.getvalue().encode("utf-8"))
 
 

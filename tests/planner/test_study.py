@@ -27,6 +27,7 @@ from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.steered import ScheduleFamily
 from reachplan.planner.study import (
     KILL_AFTER_PARTS_ENV,
+    LOOPBACK_HTTP,
     StudyRow,
     StudySpec,
     StudyTask,
@@ -237,7 +238,8 @@ def test_cli_rejects_missing_cases(tmp_path: Path, capsys: pytest.CaptureFixture
 def client() -> Iterator[Any]:
     import distributed  # a runtime dependency: the cluster tests must run, not skip
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+                                  dashboard_address=None, scheduler_kwargs=LOOPBACK_HTTP) as cluster, \
+            distributed.Client(cluster) as c:
         yield c
 
 
