@@ -434,6 +434,10 @@ def roi_mesh(
     m = z_supersample or max(1, math.ceil(spacing[2] / min(spacing[:2]) - 1e-6))
     if m > 1:  # sub-slice centres at k + (t + 0.5) / m - 0.5; the zero padding slices stay zero
         cov = np.repeat(cov, m, axis=0)
+    # A sample exactly at the iso-level puts marching-cubes vertices of neighbouring cells on one grid point;
+    # merged, they make non-manifold edges (seen on the clinical case, seed 5). Nudge such samples off the level
+    # by far less than any coverage step (the surface moves by 1e-4 voxel at most).
+    cov = np.where(cov == np.float32(0.5), np.float32(0.5 + 1e-4), cov)
     verts, faces, _, _ = marching_cubes(cov, level=0.5, step_size=step_size, allow_degenerate=False)
     ijk = verts[:, ::-1].copy()
     ijk[:, 2] = (ijk[:, 2] + 0.5) / m - 0.5

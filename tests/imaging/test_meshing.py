@@ -10,7 +10,14 @@ import pytest
 from matplotlib.path import Path as MplPath
 
 from reachplan.imaging.errors import StructureError
-from reachplan.imaging.meshing import contour_plane_frame, roi_coverage, roi_mask, roi_mesh, structure_volume_cc
+from reachplan.imaging.meshing import (
+    contour_plane_frame,
+    fit_grid,
+    roi_coverage,
+    roi_mask,
+    roi_mesh,
+    structure_volume_cc,
+)
 from reachplan.imaging.phantom import PhantomFiles, phantom_spec
 from reachplan.imaging.rtstruct import read_rtstruct
 from reachplan.imaging.types import Contour, Grid, Roi
@@ -195,3 +202,19 @@ def test_absurd_coordinates_are_refused_before_allocating() -> None:
         roi_mesh(roi)
     with pytest.raises(StructureError, match="voxels to rasterise"):
         structure_volume_cc(roi)
+
+
+def test_samples_on_the_iso_level_give_a_watertight_mesh() -> None:
+    """The clinical case of seed 5 puts coverage samples exactly at 0.5 where its HR-CTV meets a slab edge.
+
+    Marching cubes then places vertices of neighbouring cells on one grid point; merged, they made non-manifold
+    edges and the HR-CTV could not be meshed. Its volume must also agree with contour area x slice spacing.
+    """
+    from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
+
+    case = clinical_case(5)
+    roi, grid = structure_set(case.spec).get("HR-CTV"), image_grid(case.spec)
+    assert (roi_coverage(roi, fit_grid(roi, grid)) == 0.5).any()  # the case still exercises the rule
+    mesh = roi_mesh(roi, grid)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert abs(mesh.volume / 1000.0 - structure_volume_cc(roi, grid)) < 0.02 * structure_volume_cc(roi, grid)
