@@ -87,6 +87,69 @@ def _path_min(values, origin, inv_p, path, step, reach):  # type: ignore[no-unty
     return best, count
 
 
+@njit(cache=True)
+def _ray_crossings(tri, ox, oy, oz, dx, dy, dz):  # type: ignore[no-untyped-def]
+    """Number of triangles ((m, 3, 3) float) the ray from (ox, oy, oz) along (dx, dy, dz) crosses (Möller-Trumbore)."""
+    n = 0
+    for f in range(tri.shape[0]):
+        ax, ay, az = tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2]
+        e1x, e1y, e1z = tri[f, 1, 0] - ax, tri[f, 1, 1] - ay, tri[f, 1, 2] - az
+        e2x, e2y, e2z = tri[f, 2, 0] - ax, tri[f, 2, 1] - ay, tri[f, 2, 2] - az
+        px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+        det = e1x * px + e1y * py + e1z * pz
+        if abs(det) < 1e-14:
+            continue
+        inv = 1.0 / det
+        tx, ty, tz = ox - ax, oy - ay, oz - az
+        u = (tx * px + ty * py + tz * pz) * inv
+        if u < 0.0 or u > 1.0:
+            continue
+        qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+        v = (dx * qx + dy * qy + dz * qz) * inv
+        if v < 0.0 or u + v > 1.0:
+            continue
+        if (e2x * qx + e2y * qy + e2z * qz) * inv > 0.0:
+            n += 1
+    return n
+
+
+#: ray directions of the parity test: none along an axis, so no ray runs along a marching-cubes grid line
+_RAYS = np.array([[0.5773, 0.6214, 0.5302], [-0.7071, 0.3162, 0.6325], [0.2673, -0.8018, 0.5345]])
+
+
+@njit(cache=True)
+def _parity_votes(tri, p, rays):  # type: ignore[no-untyped-def]
+    """Odd-crossing rays among the first two, or the three when the first two disagree (0 to 3)."""
+    votes = 0
+    for r in range(rays.shape[0]):
+        votes += _ray_crossings(tri, p[0], p[1], p[2], rays[r, 0], rays[r, 1], rays[r, 2]) % 2
+        if r == 1 and votes != 1:  # two agree: the third cannot change the majority
+            return votes
+    return votes
+
+
+def inside_by_parity(triangles: np.ndarray, point_mm: np.ndarray) -> bool:
+    """Tell whether a point lies inside a closed triangle mesh: the parity of three rays' crossings, by majority.
+
+    ``triangles``: (m, 3, 3) float, mm (C order); ``point_mm``: (3,) float, mm. A ray through an edge or a
+    vertex can miscount; three rays in general directions outvote one such accident.
+    """
+    return bool(_parity_votes(triangles, np.asarray(point_mm, dtype=float), _RAYS) >= 2)
+
+
+@njit(cache=True)
+def _distances(nearest, pitch, reach, out):  # type: ignore[no-untyped-def]
+    """Distance (mm, clipped at ``reach``) from each node to the node ``nearest`` ((3, nx, ny, nz) int) names."""
+    nx, ny, nz = out.shape
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                dx = float(nearest[0, i, j, k] - i) * pitch
+                dy = float(nearest[1, i, j, k] - j) * pitch
+                dz = float(nearest[2, i, j, k] - k) * pitch
+                out[i, j, k] = min(math.sqrt(dx * dx + dy * dy + dz * dz), reach)
+
+
 #: default reach of a field (mm): estimates saturate there (reported clearances up to about this minus the radius)
 DEFAULT_REACH_MM = 20.0
 
@@ -158,8 +221,9 @@ class DistanceField:
         idx = np.rint((verts - lo) / pitch_mm).astype(int)
         free = np.ones(tuple(shape), dtype=bool)
         free[idx[:, 0], idx[:, 1], idx[:, 2]] = False
-        edt = ndimage.distance_transform_edt(free, sampling=pitch_mm)
-        values = np.minimum(edt, reach_mm).astype(np.float32)
+        nearest = ndimage.distance_transform_edt(free, return_distances=False, return_indices=True)
+        values = np.empty(tuple(shape), dtype=np.float32)
+        _distances(nearest, float(pitch_mm), float(reach_mm), values)
         values.setflags(write=False)
         return DistanceField(lo, float(pitch_mm), values, float(reach_mm), error, float(confirm_within_mm))
 
