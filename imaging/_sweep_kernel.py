@@ -33,7 +33,7 @@ def _interp(x, xp, fp):  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def nearest_samples(points, samples, cand, reach, idx):  # type: ignore[no-untyped-def]
-    """Index of the nearest of the samples ``cand`` to each point, -1 when none is within ``reach`` (mm)."""
+    """Write the index of the nearest of the samples ``cand`` to each point, -1 when none is within ``reach`` (mm)."""
     r2 = reach * reach
     for p in range(points.shape[0]):
         x, y, z = points[p, 0], points[p, 1], points[p, 2]
@@ -52,7 +52,7 @@ def nearest_samples(points, samples, cand, reach, idx):  # type: ignore[no-untyp
 
 @njit(cache=True)
 def field_at(points, idx, samples, s_arc, frames, semi_a, semi_b, reach, out):  # type: ignore[no-untyped-def]
-    """The sweep's signed field at each point in the frame of its sample ``idx`` (``reach`` where idx < 0)."""
+    """Write the sweep's signed field at each point, in the frame of its sample ``idx`` (``reach`` where idx < 0)."""
     length = s_arc[s_arc.shape[0] - 1]
     for p in range(points.shape[0]):
         i = idx[p]

@@ -89,7 +89,7 @@ def _path_min(values, origin, inv_p, path, step, reach):  # type: ignore[no-unty
 
 @njit(cache=True)
 def _ray_crossings(tri, ox, oy, oz, dx, dy, dz):  # type: ignore[no-untyped-def]
-    """Number of triangles ((m, 3, 3) float) the ray from (ox, oy, oz) along (dx, dy, dz) crosses (Möller-Trumbore)."""
+    """Count the triangles ((m, 3, 3) float, mm) that the ray from (ox, oy, oz) along (dx, dy, dz) crosses."""
     n = 0
     for f in range(tri.shape[0]):
         ax, ay, az = tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2]
