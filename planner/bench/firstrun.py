@@ -48,6 +48,12 @@ except ImportError:
     pass
 else:
     _warm_up()
+try:
+    from reachplan.imaging._sweep_kernel import warm_up
+except ImportError:
+    pass
+else:
+    warm_up()
 """
 
 

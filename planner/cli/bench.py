@@ -66,6 +66,8 @@ TARGETS: tuple[Target, ...] = (
     Target("dosekernel", "dosekernel", "TG-43 grid dose: voxel-dwell pairs/s by method and threads, accuracy"),
     Target("implant", "implant", "implant planning: both arms with their Pareto curves on the phantom (time, D90)",
            (Option("--repeat", int, "timed runs, the fastest is reported (3; quick 1)"),)),
+    Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
+           (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
 )
 
 
