@@ -46,6 +46,10 @@ class Organ:
     def _triangles(self) -> np.ndarray:
         return np.ascontiguousarray(self.mesh.triangles, dtype=float)
 
+    @cached_property
+    def _inside(self) -> dict[tuple[float, float, float], bool]:
+        return {}  # containment by point: the candidates of one template hole all start there
+
     def contains(self, point_mm: np.ndarray) -> bool:
         """Tell whether a point ((3,) float, mm, LPS) lies inside the organ.
 
@@ -56,7 +60,10 @@ class Organ:
         lo, hi = self.bounds_mm
         if not (np.all(q >= lo) and np.all(q <= hi)):
             return False
-        return bool(inside_by_parity(self._triangles, q))
+        key = (float(q[0]), float(q[1]), float(q[2]))
+        if key not in self._inside:
+            self._inside[key] = inside_by_parity(self._triangles, q)
+        return self._inside[key]
 
 
 def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
