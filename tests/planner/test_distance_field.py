@@ -89,3 +89,17 @@ def test_organ_containment_by_ray_parity_agrees_with_trimesh_on_a_torus() -> Non
     assert 50 < got.sum() < 550
     assert np.array_equal(got, mesh.contains(pts))
     assert not organ.contains(np.zeros(3)) and organ.contains(np.array([30.0, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize(("shape", "pitch_mm"), [((30, 41, 52), 1.0), ((23, 17, 35), 1.85), ((6, 1, 9), 1.19)])
+def test_compiled_distance_transform_equals_scipys_exact_edt(shape: tuple[int, int, int], pitch_mm: float) -> None:
+    from scipy import ndimage
+
+    from reachplan.planner.geometry.distance_field import _edt
+
+    seeds = np.random.default_rng(11).random(shape) < 0.003
+    seeds[-1, 0, -1] = True
+    got = np.empty(shape, dtype=np.float32)
+    _edt(seeds, pitch_mm, 15.0, got)
+    want = np.minimum(ndimage.distance_transform_edt(~seeds, sampling=pitch_mm), 15.0).astype(np.float32)
+    assert np.array_equal(got, want) and got.max() > 5.0
