@@ -54,6 +54,7 @@ def nearest_samples(points, samples, cand, reach, idx):  # type: ignore[no-untyp
 def field_at(points, idx, samples, s_arc, frames, semi_a, semi_b, reach, out):  # type: ignore[no-untyped-def]
     """Write the sweep's signed field at each point, in the frame of its sample ``idx`` (``reach`` where idx < 0)."""
     length = s_arc[s_arc.shape[0] - 1]
+    last_s, a, b = np.nan, 1e-6, 1e-6  # the section at the previous point's s (a whole slice of a straight sweep)
     for p in range(points.shape[0]):
         i = idx[p]
         if i < 0:
@@ -65,8 +66,10 @@ def field_at(points, idx, samples, s_arc, frames, semi_a, semi_b, reach, out):  
         s = s_arc[i] + dx * frames[i, 0, 0] + dy * frames[i, 0, 1] + dz * frames[i, 0, 2]
         u = dx * frames[i, 1, 0] + dy * frames[i, 1, 1] + dz * frames[i, 1, 2]
         v = dx * frames[i, 2, 0] + dy * frames[i, 2, 1] + dz * frames[i, 2, 2]
-        a = max(_interp(s, s_arc, semi_a), 1e-6)
-        b = max(_interp(s, s_arc, semi_b), 1e-6)
+        if s != last_s:
+            a = max(_interp(s, s_arc, semi_a), 1e-6)
+            b = max(_interp(s, s_arc, semi_b), 1e-6)
+            last_s = s
         f = (math.hypot(u / a, v / b) - 1.0) * min(a, b)
         out[p] = max(f, max(-s, s - length))
 
