@@ -138,13 +138,12 @@ def inside_by_parity(triangles: np.ndarray, point_mm: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def _envelope_1d(f, v, z, d):  # type: ignore[no-untyped-def]
-    """Squared distance transform of one line: ``d[q] = min_p (q - p)² + f[p]`` (``inf`` where ``f`` is all inf).
+def _envelope_1d(f, n, v, z, d):  # type: ignore[no-untyped-def]
+    """Squared distance transform of ``f[:n]``: ``d[q] = min_p (q - p)² + f[p]`` (``inf`` where ``f`` is all inf).
 
     The lower envelope of parabolas (Felzenszwalb & Huttenlocher, "Distance transforms of sampled functions",
     Theory of Computing 8, 2012), in exact integer arithmetic held in float64; ``v``, ``z`` are work space.
     """
-    n = f.shape[0]
     k = -1
     for q in range(n):
         if f[q] == np.inf:
@@ -191,20 +190,21 @@ def _edt(seeds, pitch, reach, out):  # type: ignore[no-untyped-def]
         for j in range(ny):
             for k in range(nz):
                 f[k] = 0.0 if seeds[i, j, k] else np.inf
-            _envelope_1d(f[:nz], v, z, g[:nz])
-            d2[i, j, :] = g[:nz]
+            _envelope_1d(f, nz, v, z, g)
+            for k in range(nz):
+                d2[i, j, k] = g[k]
     for i in range(nx):
         for k in range(nz):
             for j in range(ny):
                 f[j] = d2[i, j, k]
-            _envelope_1d(f[:ny], v, z, g[:ny])
+            _envelope_1d(f, ny, v, z, g)
             for j in range(ny):
                 d2[i, j, k] = g[j]
     for j in range(ny):
         for k in range(nz):
             for i in range(nx):
                 f[i] = d2[i, j, k]
-            _envelope_1d(f[:nx], v, z, g[:nx])
+            _envelope_1d(f, nx, v, z, g)
             for i in range(nx):
                 out[i, j, k] = min(math.sqrt(g[i]) * pitch, reach)
 
