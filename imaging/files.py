@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
@@ -45,6 +45,41 @@ def atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def atomic_write_files(files: Iterable[tuple[Path, bytes]]) -> None:
+    """Create or replace several files, each atomically (as :func:`atomic_write`), with the syncs batched.
+
+    Every file is written to its temporary name first, then all are flushed to disk, then each is renamed into
+    place: one series of slices costs about one disk flush instead of one per file. On failure no temporary file
+    is left; files already renamed stay (each is whole).
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    staged: list[tuple[Path, Path]] = []
+    fds: list[int] = []
+    try:
+        for path, data in files:
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+            fds.append(os.open(tmp, flags, 0o666))  # permissions: 0o666 less the umask, applied by the kernel
+            staged.append((path, tmp))
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fds[-1], view):]
+        for fd in fds:
+            os.fsync(fd)
+        while fds:
+            os.close(fds.pop())
+        for path, tmp in staged:
+            os.replace(tmp, path)
+    except BaseException:
+        for _, tmp in staged:  # the ones renamed already are no longer there
+            tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        for fd in fds:
+            os.close(fd)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from reachplan.imaging.errors import OutputExistsError
-from reachplan.imaging.files import atomic_write
+from reachplan.imaging.files import atomic_write_files
 from reachplan.imaging.sweep import Sweep, Union
 
 #: target spacing (mm) between polygon vertices written for a cross-section
@@ -943,8 +943,13 @@ def _is_phantom_file(path: Path) -> bool:
     return ds.get("Manufacturer") == MANUFACTURER and ds.get("ManufacturerModelName") == MODEL_NAME
 
 
-def _atomic_write(ds: Any, path: Path) -> None:
-    atomic_write(path, lambda fh: ds.save_as(fh, enforce_file_format=True))
+def _encode(ds: Any) -> bytes:
+    """Return the DICOM file of a dataset as bytes."""
+    import io
+
+    buf = io.BytesIO()
+    ds.save_as(buf, enforce_file_format=True)
+    return buf.getvalue()
 
 
 def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFiles:
@@ -992,10 +997,11 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFile
     ct_dir.mkdir(parents=True, exist_ok=True)
     for p in stale:  # slices of an older phantom version would form a second series
         p.unlink()
-    ct = []
+    ct, encoded = [], []
     for name, ds in _ct_datasets(spec):
-        _atomic_write(ds, ct_dir / name)
+        encoded.append((ct_dir / name, _encode(ds)))
         del ds.PixelData
         ct.append(ds)
-    _atomic_write(_rtstruct_dataset(spec, ct), rs_path)
+    encoded.append((rs_path, _encode(_rtstruct_dataset(spec, ct))))
+    atomic_write_files(encoded)  # each file atomic, one batch of disk flushes for the series
     return PhantomFiles(ct_dir=ct_dir, rtstruct_path=rs_path)

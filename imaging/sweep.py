@@ -29,6 +29,9 @@ SAMPLE_MM = 0.25
 FIELD_STEP_MM = 1.0
 #: target spacing (mm) of written contour vertices
 VERTEX_SPACING_MM = 0.75
+#: a field query whose points may lie near at most this many centreline samples compares them all (compiled);
+#: more go through the k-d tree
+BRUTE_FORCE_SAMPLES = 600
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -157,35 +160,35 @@ class Sweep:
 
     def field(self, p: np.ndarray) -> np.ndarray:
         """Return a signed field (about mm near the surface): negative inside. ``p`` (..., 3) LPS mm -> (...)."""
+        from reachplan.imaging._sweep_kernel import field_at, nearest_samples
+
         q = np.asarray(p, dtype=float)
-        flat = q.reshape(-1, 3)
+        flat = np.ascontiguousarray(q.reshape(-1, 3))
         reach = float(max(self.semi_a_mm.max(), self.semi_b_mm.max())) + 2.0
-        out = np.full(len(flat), reach, dtype=float)
         if self.axial:  # straight along z: the sample index follows from z directly
             step = self._s[-1] / (len(self._s) - 1)
             i_f = (flat[:, 2] - self.samples_mm[0, 2]) * np.sign(self._frames[0, 0, 2]) / step
             ok = (i_f > -reach / step) & (i_f < len(self._s) - 1 + reach / step)
-            idx = np.clip(np.round(i_f), 0, len(self._s) - 1).astype(np.int64)
+            idx = np.where(ok, np.clip(np.round(i_f), 0, len(self._s) - 1), -1).astype(np.int64)
         else:
             lo, hi = self.bounds()
             ok = np.all((flat >= lo - 2.0) & (flat <= hi + 2.0), axis=1)
-            dist = np.full(len(flat), np.inf)
-            idx = np.zeros(len(flat), dtype=np.int64)
+            idx = np.full(len(flat), -1, dtype=np.int64)
             if ok.any():
-                dist[ok], idx[ok] = self._tree.query(flat[ok], distance_upper_bound=reach)  # type: ignore[attr-defined]
-            ok = np.isfinite(dist)
-        if ok.any():
-            i = idx[ok]
-            d = flat[ok] - self.samples_mm[i]
-            fr = self._frames[i]
-            s = self._s[i] + np.einsum("ij,ij->i", d, fr[:, 0])
-            u = np.einsum("ij,ij->i", d, fr[:, 1])
-            v = np.einsum("ij,ij->i", d, fr[:, 2])
-            a = np.maximum(np.interp(s, self._s, self.semi_a_mm), 1e-6)
-            b = np.maximum(np.interp(s, self._s, self.semi_b_mm), 1e-6)
-            f = (np.hypot(u / a, v / b) - 1.0) * np.minimum(a, b)
-            ends = np.maximum(-s, s - self._s[-1])
-            out[ok] = np.maximum(f, ends)
+                pts = np.ascontiguousarray(flat[ok])
+                # the samples that can be within reach of a point: brute force over them when few (a slice's
+                # points), the k-d tree otherwise
+                cand = np.flatnonzero(np.all((self.samples_mm >= pts.min(axis=0) - reach)
+                                             & (self.samples_mm <= pts.max(axis=0) + reach), axis=1))
+                if len(cand) <= BRUTE_FORCE_SAMPLES:
+                    sub = np.empty(len(pts), dtype=np.int64)
+                    nearest_samples(pts, self.samples_mm, cand, reach, sub)
+                else:
+                    dist, sub = self._tree.query(pts, distance_upper_bound=reach)  # type: ignore[attr-defined]
+                    sub = np.where(np.isfinite(dist), sub, -1).astype(np.int64)
+                idx[ok] = sub
+        out = np.empty(len(flat))
+        field_at(flat, idx, self.samples_mm, self._s, self._frames, self.semi_a_mm, self.semi_b_mm, reach, out)
         return out.reshape(q.shape[:-1])
 
     def contains(self, p: np.ndarray) -> np.ndarray:

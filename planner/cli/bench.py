@@ -78,6 +78,8 @@ TARGETS: tuple[Target, ...] = (
            (Option("--repeat", int, "timed runs, the fastest is reported (3; quick 1)"),)),
     Target("report", "report", "report.html of the demo: seconds to build it from the plan in memory, bytes by part",
            (Option("--repeat", int, "timed renderings, the median is reported (5; quick 1)"),)),
+    Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
+           (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
 )
 
 

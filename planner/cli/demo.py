@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from reachplan.planner.cli.edges import output_folder, print_json, relocate, staged_folder
+from reachplan.planner.cli.edges import output_folder, print_json, staged_folder
 
 NAME = "demo"
 HELP = ("write a built-in case as DICOM (the clinical case by default), read it back, plan needles; write plan/"
@@ -69,7 +69,6 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet or args.json
     with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole demo succeeds
         doc = _demo(args, stage, quiet)
-        doc = relocate(stage, args.out, doc)
     if args.json:
         print_json(doc, NAME)
     return 0
@@ -108,10 +107,9 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     doc = run_plan(structures, volume, targets, [], config, out, quiet,
                    inputs=[files.ct_dir, files.rtstruct_path],
                    extra={"case": label, "case_about": about, "phantom_s": {"write": t_write, "read": t_read}},
-                   shown_out=args.out)
-    blocked = blocked_straight(doc)
-    doc["blocked_straight"] = blocked
-    atomic_write_json(out / "plan.json", doc)
+                   final_out=args.out, complete=lambda d: d.update(blocked_straight=blocked_straight(d)))
+    blocked = doc["blocked_straight"]
+    assert isinstance(blocked, list)
     targets_doc = doc["targets"]
     assert isinstance(targets_doc, dict)
     atomic_write_json(out / "ranking.json", {t: v["candidates"] for t, v in targets_doc.items()})

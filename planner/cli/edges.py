@@ -196,32 +196,6 @@ def _merge(src: Path, dest: Path) -> None:
             os.replace(entry, target)
 
 
-def relocate(stage: Path, out: Path, doc: Any = None) -> Any:
-    """Rewrite the staging folder's path as ``out`` in the staged text files and in ``doc`` (returned).
-
-    Text files: JSON, HTML, CSV written under ``stage``; done before the stage is moved into place.
-    """
-    old, new = str(stage), str(out)
-    for path in stage.rglob("*"):
-        if path.is_file() and path.suffix.lower() in (".json", ".html", ".csv", ".txt"):
-            text = path.read_text(encoding="utf-8", errors="surrogateescape")
-            if old in text:
-                from reachplan.imaging.files import atomic_write_bytes
-
-                atomic_write_bytes(path, text.replace(old, new).encode("utf-8", errors="surrogateescape"))
-
-    def walk(obj: Any) -> Any:
-        if isinstance(obj, str):
-            return obj.replace(old, new)
-        if isinstance(obj, dict):
-            return {k: walk(v) for k, v in obj.items()}
-        if isinstance(obj, list | tuple):
-            return [walk(v) for v in obj]
-        return obj
-
-    return walk(doc)
-
-
 # --- JSON and warnings -----------------------------------------------------------------------------------
 
 

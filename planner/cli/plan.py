@@ -12,19 +12,19 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from reachplan.planner.cli.edges import json_safe, output_folder, print_json, relocate, seen_warnings, staged_folder
+from reachplan.planner.cli.edges import json_safe, output_folder, print_json, seen_warnings, staged_folder
 from reachplan.planner.errors import PlanInputError
 
 if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of every command stays light
+    from collections.abc import Callable
+
     import numpy as np
 
+    from reachplan.imaging.names import SynonymTable
     from reachplan.imaging.types import StructureSet, Volume
+    from reachplan.planner.geometry.template import TemplatePose
     from reachplan.planner.pipeline import PlanConfig
     from reachplan.planner.steering.candidates import Target
-
-if TYPE_CHECKING:
-    from reachplan.imaging.names import SynonymTable
-    from reachplan.planner.geometry.template import TemplatePose
 
 NAME = "plan"
 HELP = "rank template holes, stylet designs and tension schedules for targets; write plan.json, figures, exports"
@@ -229,7 +229,6 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
 def run(args: argparse.Namespace) -> int:
     """Plan a case from the command line; returns the exit code."""
     from reachplan.imaging.dicom_io import read_series
-    from reachplan.imaging.files import atomic_write_json
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.pipeline import PlanConfig
@@ -254,16 +253,17 @@ def run(args: argparse.Namespace) -> int:
         doc = run_plan(structures, volume, names, points, config, stage, quiet,
                        export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs,
                        pose=pose, allow_no_oars=args.allow_no_oars, standard_names=table.standard_names,
-                       named_points=named_points, implant=not args.no_implant, shown_out=args.out)
-        # the scene's notes (organs not found, targets planned to points) and the named warnings met on the way
-        # (readers, planning), also in plan.json
-        notes = doc.get("warnings")
-        doc["warnings"] = [*(notes if isinstance(notes, list) else []), *seen_warnings(args)]
-        atomic_write_json(stage / "plan.json", json_safe(doc))
-        doc = relocate(stage, args.out, doc)
+                       named_points=named_points, implant=not args.no_implant, final_out=args.out,
+                       complete=lambda doc: _add_warnings(doc, args))
     if args.json:
         print_json(doc, NAME)
     return 0
+
+
+def _add_warnings(doc: dict[str, object], args: argparse.Namespace) -> None:
+    """Add the named warnings met on the way (readers, planning) to the scene's notes in ``doc["warnings"]``."""
+    notes = doc.get("warnings")
+    doc["warnings"] = [*(notes if isinstance(notes, list) else []), *seen_warnings(args)]
 
 
 def kernels_not_cached() -> bool:
@@ -288,10 +288,13 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
              extra: dict[str, object] | None = None, pose: TemplatePose | None = None, allow_no_oars: bool = False,
              standard_names: Sequence[str] | None = None,
              named_points: Sequence[tuple[str, tuple[float, float, float]]] = (),
-             implant: bool = True, shown_out: Path | None = None) -> dict[str, object]:
+             implant: bool = True, final_out: Path | None = None,
+             complete: Callable[[dict[str, object]], None] | None = None) -> dict[str, object]:
     """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan document.
 
-    ``shown_out``: where the files will be once the staging folder ``out`` is moved into place (the paths printed).
+    ``final_out``: where the files will be once the staging folder ``out`` is moved into place (default ``out``):
+    every path printed, returned or written inside a file is there. ``complete``: called with the document just
+    before plan.json is written (once), to add what the caller knows (warnings met, a table of its own).
 
     ``named_points``: dose reference points (name, (x, y, z) mm LPS) the exported plan carries with their doses.
 
@@ -323,6 +326,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         if not has_closed(roi):
             raise PlanInputError(f"the dose target ROI {roi.name!r} has no closed contours; name another with "
                                  "--target-roi or plan with --no-export")
+    final = out if final_out is None else Path(final_out)
     timings: dict[str, float] = {}
     if not quiet and kernels_not_cached():
         print("reachplan: compiling the numba kernels once (first run after an install: about 10 s of CPU, "
@@ -365,13 +369,13 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
             bar.set_postfix_str(f"export {name}")
             exporter = registry.get("exporters", name)
             written = exporter.export(delivery.export, out / "export", ExportOptions(overwrite=True))
-            files += [str(f.path) for f in written.files]
+            files += [str(final / Path(f.path).relative_to(out)) for f in written.files]
             bar.update()
         for arm_name, arm_export in delivery.implant_exports.items():  # loaded needles only
             for name in ("device_json", "device_csv"):
                 written = registry.get("exporters", name).export(arm_export, out / "export" / f"implant_{arm_name}",
                                                                  ExportOptions(overwrite=True))
-                files += [str(f.path) for f in written.files]
+                files += [str(final / Path(f.path).relative_to(out)) for f in written.files]
         bar.close()
         opt = delivery.optimisation
         ex = delivery.export
@@ -398,15 +402,15 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
                        comparison_note=comparison_note, case=case, timings=timings, source_name=source, quiet=quiet,
                        overview_png=overview_png, workspace_png=workspace_png, model_errors=rod_model_errors())
     atomic_write_bytes(out / "report.html", html.encode("utf-8"))
-    doc["report"] = str(out / "report.html")
+    doc["report"] = str(final / "report.html")
     timings["report_s"] = time.perf_counter() - t
     doc["timings"] = timings
-    atomic_write_json(out / "plan.json", doc)
+    if complete is not None:
+        complete(doc)
+    atomic_write_json(out / "plan.json", json_safe(doc))
     if not quiet:
-        final = out if shown_out is None else shown_out
         written = [("report", str(final / "report.html")), ("plan", str(final / "plan.json"))]
-        device = [f for f in files if "device" in Path(f).name and f.endswith(".json")] if export else []
-        written += [("device instructions", str(final / Path(f).relative_to(out))) for f in device]
+        written += [("device instructions", f) for f in files if "device" in Path(f).name and f.endswith(".json")]
         print(format_summary(result, targets=[t.name for t in scene.targets], delivery=delivery,
                              comparison=comparison, files=written))
         if delivery is not None and delivery.implant is not None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 
 import fcl
 import numpy as np
@@ -20,31 +21,49 @@ import trimesh
 
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.geometry.distance_field import DistanceField
+from reachplan.planner.geometry.distance_field import DistanceField, inside_by_parity
 
 
 @dataclass(frozen=True, eq=False)
 class Organ:
-    """An organ at risk (or bone) as a watertight mesh in LPS mm, with its FCL model."""
+    """An organ at risk (or bone) as a watertight mesh in LPS mm; its FCL model is built on first use."""
 
     name: str
     mesh: trimesh.Trimesh
-    fcl_object: fcl.CollisionObject
     bounds_mm: np.ndarray  # (2, 3) float, mm, LPS: axis-aligned box (min, max)
-    components: tuple[trimesh.Trimesh, ...] = ()  # connected parts, for cheap containment tests
     field: DistanceField | None = None  # screen: FCL only for paths that may come within its confirm band
+
+    @cached_property
+    def fcl_object(self) -> fcl.CollisionObject:
+        """The mesh as an FCL BVH model; built when first needed (an organ the screen always clears never is)."""
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(self.mesh.vertices), len(self.mesh.faces))
+        bvh.addSubModel(np.asarray(self.mesh.vertices, dtype=float), np.asarray(self.mesh.faces, dtype=np.int64))
+        bvh.endModel()
+        return fcl.CollisionObject(bvh, fcl.Transform())
+
+    @cached_property
+    def _triangles(self) -> np.ndarray:
+        return np.ascontiguousarray(self.mesh.triangles, dtype=float)
+
+    @cached_property
+    def _inside(self) -> dict[tuple[float, float, float], bool]:
+        return {}  # containment by point: the candidates of one template hole all start there
 
     def contains(self, point_mm: np.ndarray) -> bool:
         """Tell whether a point ((3,) float, mm, LPS) lies inside the organ.
 
-        By ray parity, only in the connected parts whose bounding box holds the point.
+        By ray parity (compiled, :func:`reachplan.planner.geometry.distance_field.inside_by_parity`) when the
+        point is within the bounding box.
         """
-        q = np.asarray(point_mm, dtype=float).reshape(1, 3)
-        for part in self.components or (self.mesh,):
-            lo, hi = part.bounds
-            if np.all(q >= lo) and np.all(q <= hi) and bool(part.contains(q)[0]):
-                return True
-        return False
+        q = np.asarray(point_mm, dtype=float).reshape(3)
+        lo, hi = self.bounds_mm
+        if not (np.all(q >= lo) and np.all(q <= hi)):
+            return False
+        key = (float(q[0]), float(q[1]), float(q[2]))
+        if key not in self._inside:
+            self._inside[key] = inside_by_parity(self._triangles, q)
+        return self._inside[key]
 
 
 def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
@@ -59,12 +78,7 @@ def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
         raise PlanInputError(f"organ {name!r} has an empty mesh")
     if not mesh.is_watertight:
         raise PlanInputError(f"organ {name!r}: mesh is not watertight; re-mesh it from its mask")
-    bvh = fcl.BVHModel()
-    bvh.beginModel(len(mesh.vertices), len(mesh.faces))
-    bvh.addSubModel(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64))
-    bvh.endModel()
-    parts = tuple(mesh.split(only_watertight=True)) if mesh.body_count > 1 else (mesh,)
-    return Organ(name, mesh, fcl.CollisionObject(bvh, fcl.Transform()), np.asarray(mesh.bounds, dtype=float), parts)
+    return Organ(name, mesh, np.asarray(mesh.bounds, dtype=float))
 
 
 def _rotation_to(direction: np.ndarray) -> np.ndarray:

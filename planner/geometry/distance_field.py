@@ -1,7 +1,7 @@
 """Organ distance fields: a cheap, guaranteed lower bound on a needle's clearance, to screen candidates.
 
 The field holds, on a regular grid aligned with the LPS axes (``pitch_mm``, by default 1 mm) around an
-organ's mesh, the Euclidean distance transform of the grid nodes nearest to the mesh vertices (scipy's exact
+organ's mesh, the Euclidean distance transform of the grid nodes nearest to the mesh vertices (exact
 EDT), clipped at ``reach_mm``. Between nodes it is trilinear. A path is sampled every ``step_mm`` (at most the
 pitch) and the smallest value found, minus the needle radius, is the *estimate* of the clearance.
 
@@ -87,6 +87,128 @@ def _path_min(values, origin, inv_p, path, step, reach):  # type: ignore[no-unty
     return best, count
 
 
+@njit(cache=True)
+def _ray_crossings(tri, ox, oy, oz, dx, dy, dz):  # type: ignore[no-untyped-def]
+    """Count the triangles ((m, 3, 3) float, mm) that the ray from (ox, oy, oz) along (dx, dy, dz) crosses."""
+    n = 0
+    for f in range(tri.shape[0]):
+        ax, ay, az = tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2]
+        e1x, e1y, e1z = tri[f, 1, 0] - ax, tri[f, 1, 1] - ay, tri[f, 1, 2] - az
+        e2x, e2y, e2z = tri[f, 2, 0] - ax, tri[f, 2, 1] - ay, tri[f, 2, 2] - az
+        px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+        det = e1x * px + e1y * py + e1z * pz
+        if abs(det) < 1e-14:
+            continue
+        inv = 1.0 / det
+        tx, ty, tz = ox - ax, oy - ay, oz - az
+        u = (tx * px + ty * py + tz * pz) * inv
+        if u < 0.0 or u > 1.0:
+            continue
+        qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+        v = (dx * qx + dy * qy + dz * qz) * inv
+        if v < 0.0 or u + v > 1.0:
+            continue
+        if (e2x * qx + e2y * qy + e2z * qz) * inv > 0.0:
+            n += 1
+    return n
+
+
+#: ray directions of the parity test: none along an axis, so no ray runs along a marching-cubes grid line
+_RAYS = np.array([[0.5773, 0.6214, 0.5302], [-0.7071, 0.3162, 0.6325], [0.2673, -0.8018, 0.5345]])
+
+
+@njit(cache=True)
+def _parity_votes(tri, p, rays):  # type: ignore[no-untyped-def]
+    """Odd-crossing rays among the first two, or the three when the first two disagree (0 to 3)."""
+    votes = 0
+    for r in range(rays.shape[0]):
+        votes += _ray_crossings(tri, p[0], p[1], p[2], rays[r, 0], rays[r, 1], rays[r, 2]) % 2
+        if r == 1 and votes != 1:  # two agree: the third cannot change the majority
+            return votes
+    return votes
+
+
+def inside_by_parity(triangles: np.ndarray, point_mm: np.ndarray) -> bool:
+    """Tell whether a point lies inside a closed triangle mesh: the parity of three rays' crossings, by majority.
+
+    ``triangles``: (m, 3, 3) float, mm (C order); ``point_mm``: (3,) float, mm. A ray through an edge or a
+    vertex can miscount; three rays in general directions outvote one such accident.
+    """
+    return bool(_parity_votes(triangles, np.asarray(point_mm, dtype=float), _RAYS) >= 2)
+
+
+@njit(cache=True)
+def _envelope_1d(f, n, v, z, d):  # type: ignore[no-untyped-def]
+    """Squared distance transform of ``f[:n]``: ``d[q] = min_p (q - p)² + f[p]`` (``inf`` where ``f`` is all inf).
+
+    The lower envelope of parabolas (Felzenszwalb & Huttenlocher, "Distance transforms of sampled functions",
+    Theory of Computing 8, 2012), in exact integer arithmetic held in float64; ``v``, ``z`` are work space.
+    """
+    k = -1
+    for q in range(n):
+        if f[q] == np.inf:
+            continue
+        if k < 0:
+            k = 0
+            v[0] = q
+            z[0] = -np.inf
+            z[1] = np.inf
+            continue
+        s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
+        while s <= z[k]:
+            k -= 1
+            s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
+        k += 1
+        v[k] = q
+        z[k] = s
+        z[k + 1] = np.inf
+    if k < 0:
+        for q in range(n):
+            d[q] = np.inf
+        return
+    k = 0
+    for q in range(n):
+        while z[k + 1] < q:
+            k += 1
+        d[q] = (q - v[k]) * (q - v[k]) + f[v[k]]
+
+
+@njit(cache=True)
+def _edt(seeds, pitch, reach, out):  # type: ignore[no-untyped-def]
+    """Write the distance (mm, clipped at ``reach``) from each node to the nearest ``seeds`` node (bool grid).
+
+    Exact Euclidean distance (squared, in whole voxels, by one envelope pass per axis), like scipy's EDT.
+    """
+    nx, ny, nz = seeds.shape
+    d2 = np.empty((nx, ny, nz))
+    m = max(nx, ny, nz)
+    f = np.empty(m)
+    g = np.empty(m)
+    v = np.empty(m, dtype=np.int64)
+    z = np.empty(m + 1)
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                f[k] = 0.0 if seeds[i, j, k] else np.inf
+            _envelope_1d(f, nz, v, z, g)
+            for k in range(nz):
+                d2[i, j, k] = g[k]
+    for i in range(nx):
+        for k in range(nz):
+            for j in range(ny):
+                f[j] = d2[i, j, k]
+            _envelope_1d(f, ny, v, z, g)
+            for j in range(ny):
+                d2[i, j, k] = g[j]
+    for j in range(ny):
+        for k in range(nz):
+            for i in range(nx):
+                f[i] = d2[i, j, k]
+            _envelope_1d(f, nx, v, z, g)
+            for i in range(nx):
+                out[i, j, k] = min(math.sqrt(g[i]) * pitch, reach)
+
+
 #: default reach of a field (mm): estimates saturate there (reported clearances up to about this minus the radius)
 DEFAULT_REACH_MM = 20.0
 
@@ -132,8 +254,6 @@ class DistanceField:
         pitch instead: its error bound grows with the pitch, so more of its clearances are confirmed by FCL,
         never fewer proven wrong.
         """
-        from scipy import ndimage
-
         verts = np.asarray(mesh.vertices, dtype=float)
         if len(verts) == 0:
             raise PlanInputError("cannot build a distance field of an empty mesh")
@@ -156,10 +276,10 @@ class DistanceField:
                 hi = verts.max(axis=0) + reach_mm
         shape = np.ceil((hi - lo) / pitch_mm).astype(int) + 1
         idx = np.rint((verts - lo) / pitch_mm).astype(int)
-        free = np.ones(tuple(shape), dtype=bool)
-        free[idx[:, 0], idx[:, 1], idx[:, 2]] = False
-        edt = ndimage.distance_transform_edt(free, sampling=pitch_mm)
-        values = np.minimum(edt, reach_mm).astype(np.float32)
+        seeds = np.zeros(tuple(shape), dtype=bool)
+        seeds[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+        values = np.empty(tuple(shape), dtype=np.float32)
+        _edt(seeds, float(pitch_mm), float(reach_mm), values)
         values.setflags(write=False)
         return DistanceField(lo, float(pitch_mm), values, float(reach_mm), error, float(confirm_within_mm))
 
@@ -188,3 +308,4 @@ def _warm_up() -> None:
     """Compile (or load) the kernel a plan uses: for the first-run benchmark."""
     f = DistanceField.from_mesh(trimesh.creation.box((4.0, 4.0, 4.0)), pitch_mm=1.0, reach_mm=3.0)
     f.path_clearance(np.array([[0.0, 0.0, -10.0], [0.0, 0.0, 10.0]]), 1.0)
+    inside_by_parity(np.ascontiguousarray(trimesh.creation.box((4.0, 4.0, 4.0)).triangles), np.zeros(3))

@@ -200,3 +200,23 @@ def test_case_json_lists_targets(written: PhantomFiles) -> None:
     assert doc["case"] == "clinical" and doc["seed"] == 0
     assert json.loads(json.dumps(dataclasses.asdict(ClinicalParams()))) == doc["params"]
     assert set(doc["targets"]) == {n for n, _ in clinical_case(0).targets}
+
+
+def test_sweep_field_is_the_same_by_brute_force_and_by_the_kd_tree(monkeypatch: pytest.MonkeyPatch) -> None:
+    import reachplan.imaging.sweep as sweep_module
+
+    bent = Sweep(arc_curve_for_test(), np.full(281, 12.0), np.full(281, 7.0), reference=(0.0, 1.0, 0.0))
+    rng = np.random.default_rng(5)
+    for z in (5.0, 30.0, 60.0):  # slices, as the CT painting and the contour tracing ask
+        pts = np.column_stack([rng.uniform(-40.0, 80.0, (2000, 2)), np.full(2000, z)])
+        brute = bent.field(pts)
+        monkeypatch.setattr(sweep_module, "BRUTE_FORCE_SAMPLES", 0)  # the k-d tree path
+        tree = bent.field(pts)
+        monkeypatch.undo()
+        assert np.array_equal(brute, tree) and (brute < 0).sum() > 20
+
+
+def arc_curve_for_test() -> np.ndarray:
+    from reachplan.imaging.sweep import arc_curve
+
+    return arc_curve(np.zeros(3), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 60.0, 60.0, straight_mm=10.0)

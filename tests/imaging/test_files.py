@@ -60,3 +60,22 @@ def test_threads_writing_side_by_side_each_get_their_file(tmp_path: Path) -> Non
         t.join()
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"f{i}.bin" for i in range(8)]
     assert all((tmp_path / f"f{i}.bin").read_bytes() == bytes([i]) * 20 for i in range(8))
+
+
+def test_a_batch_replaces_every_file_whole_and_a_failure_mid_batch_leaves_no_temporary_file(tmp_path: Path) -> None:
+    from reachplan.imaging.files import atomic_write_files
+
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "a.dcm").write_bytes(b"old")
+    atomic_write_files([(tmp_path / "s" / f"{n}.dcm", n.encode() * 1000) for n in "abc"])
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["a.dcm", "b.dcm", "c.dcm"]
+    assert (tmp_path / "s" / "a.dcm").read_bytes() == b"a" * 1000
+
+    def files() -> object:
+        yield tmp_path / "s" / "a.dcm", b"new"
+        raise RuntimeError("the encoder failed")
+
+    with pytest.raises(RuntimeError, match="encoder failed"):
+        atomic_write_files(files())  # type: ignore[arg-type]
+    assert (tmp_path / "s" / "a.dcm").read_bytes() == b"a" * 1000  # nothing was renamed: the old file stays
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["a.dcm", "b.dcm", "c.dcm"]

@@ -57,7 +57,7 @@ def _assert_real_png(path: Path) -> None:
 
 def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.CaptureFixture[str]) -> None:
     assert [t.name for t in bench.TARGETS] == ["models", "planning", "dose", "imaging", "study", "startup", "firstrun",
-                                              "distance", "dosekernel", "implant", "report"]
+                                              "distance", "dosekernel", "implant", "report", "demo"]
     for target in bench.TARGETS:
         module = bench._load(target.module)
         assert callable(module.run)
@@ -223,3 +223,15 @@ def test_report_sizes_by_part_and_the_summary_on_a_tiny_report(tmp_path: Path) -
     assert summary["bytes_total"] == parts["total"]
     write_png(tmp_path / "report_benchmark.png", report_bench._figure(rows, summary))
     _assert_real_png(tmp_path / "report_benchmark.png")
+
+
+def test_demo_stages_split_the_wall_time_of_a_plan_document() -> None:
+    from reachplan.planner.bench.demo import STAGES, stage_times
+
+    doc = {"phantom_s": {"write": 1.0, "read": 0.5}, "implant": {"straight": {"seconds": 4.0},
+                                                                 "steered": {"seconds": 6.0}, "candidates": []},
+           "timings": {"scene_s": 2.0, "plan_s": 3.0, "delivery_s": 12.5, "report_s": 1.5}}
+    stages = stage_times(doc, wall_s=25.0)
+    assert tuple(stages) == STAGES
+    assert stages["implant arms"] == 10.0 and stages["delivery (no implant)"] == 2.5
+    assert sum(stages.values()) == pytest.approx(25.0) and stages["other"] == pytest.approx(4.5)

@@ -77,3 +77,29 @@ def test_phantom_plan_same_with_and_without_screen(tmp_path: Path) -> None:
                 assert b.clearance_mm == a.clearance_mm
             else:
                 assert not (math.isfinite(b.clearance_mm) and b.clearance_mm <= cap)
+
+
+def test_organ_containment_by_ray_parity_agrees_with_trimesh_on_a_torus() -> None:
+    # a torus: points in its hole are outside, though inside its bounding box
+    mesh = trimesh.creation.torus(major_radius=30.0, minor_radius=10.0, major_sections=48, minor_sections=24)
+    organ = make_organ("Bowel", mesh)
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-45.0, 45.0, (600, 3)) * np.array([1.0, 1.0, 0.4])
+    got = np.array([organ.contains(p) for p in pts])
+    assert 50 < got.sum() < 550
+    assert np.array_equal(got, mesh.contains(pts))
+    assert not organ.contains(np.zeros(3)) and organ.contains(np.array([30.0, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize(("shape", "pitch_mm"), [((30, 41, 52), 1.0), ((23, 17, 35), 1.85), ((6, 1, 9), 1.19)])
+def test_compiled_distance_transform_equals_scipys_exact_edt(shape: tuple[int, int, int], pitch_mm: float) -> None:
+    from scipy import ndimage
+
+    from reachplan.planner.geometry.distance_field import _edt
+
+    seeds = np.random.default_rng(11).random(shape) < 0.003
+    seeds[-1, 0, -1] = True
+    got = np.empty(shape, dtype=np.float32)
+    _edt(seeds, pitch_mm, 15.0, got)
+    want = np.minimum(ndimage.distance_transform_edt(~seeds, sampling=pitch_mm), 15.0).astype(np.float32)
+    assert np.array_equal(got, want) and got.max() > 5.0

@@ -17,11 +17,27 @@ def rtstruct(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_plan_from_structures_alone_with_roi_and_point_targets(rtstruct: Path, tmp_path: Path,
-                                                                capsys: pytest.CaptureFixture[str]) -> None:
+                                                                capsys: pytest.CaptureFixture[str],
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    import reachplan.imaging.files as files
+
+    written: list[str] = []
+    write_json = files.atomic_write_json
+
+    def counting(path: Path, obj: object) -> None:
+        written.append(Path(path).name)
+        write_json(path, obj)
+
+    monkeypatch.setattr(files, "atomic_write_json", counting)
     code = main(["plan", "--rtstruct", str(rtstruct), "--targets", "Target_80_030", "35,10,80",
                  "--out", str(tmp_path), "--no-export", "--json"])
     assert code == 0
     doc = json.loads(capsys.readouterr().out)
+    # plan.json is written once, with the final paths from the start (the run is staged in a hidden folder)
+    assert written.count("plan.json") == 1
+    saved = (tmp_path / "plan.json").read_text()
+    assert "staging" not in saved and json.loads(saved)["report"] == str(tmp_path / "report.html") == doc["report"]
+    assert isinstance(json.loads(saved)["warnings"], list)
     assert set(doc["targets"]) == {"Target_80_030", "point_1"}
     point = doc["targets"]["point_1"]["candidates"][0]
     assert point["tip_position_mm"] == pytest.approx([35.0, 10.0, 80.0], abs=2.0)
