@@ -41,9 +41,9 @@ def test_demo_reaches_a_lateral_target_from_a_more_medial_hole_by_steering(demo:
     steered = [c for c in best["candidates"] if c["steered"] and c["feasible"]
                and c["hole_distance_mm"] == best["most_medial_steered_mm"]]
     assert steered and steered[0]["reach_error_mm"] <= 2.0 and steered[0]["clearance_mm"] >= 2.0
-    # lateral: the target lies at least 30 mm from the obturator axis
+    # lateral: the target lies at least 30 mm from the obturator axis (the tip, within its reach error of it)
     tip = steered[0]["tip_position_mm"]
-    assert (tip[0] ** 2 + tip[1] ** 2) ** 0.5 >= 30.0, target
+    assert (tip[0] ** 2 + tip[1] ** 2) ** 0.5 >= 30.0 - steered[0]["reach_error_mm"], target
 
 
 def test_demo_shows_straight_needles_blocked_where_a_steered_one_reaches(demo: Path) -> None:
