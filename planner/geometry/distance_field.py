@@ -174,39 +174,31 @@ def _envelope_1d(f, n, v, z, d):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def _lines(a, f, v, z, g):  # type: ignore[no-untyped-def]
+    """Replace every line of the 3-D array (view) ``a`` along its last axis by its 1-D squared transform."""
+    ni, nj, n = a.shape
+    for i in range(ni):
+        for j in range(nj):
+            for k in range(n):
+                f[k] = a[i, j, k]
+            _envelope_1d(f, n, v, z, g)
+            for k in range(n):
+                a[i, j, k] = g[k]
+
+
+@njit(cache=True)
 def _edt(seeds, pitch, reach, out):  # type: ignore[no-untyped-def]
     """Write the distance (mm, clipped at ``reach``) from each node to the nearest ``seeds`` node (bool grid).
 
     Exact Euclidean distance (squared, in whole voxels, by one envelope pass per axis), like scipy's EDT.
     """
-    nx, ny, nz = seeds.shape
-    d2 = np.empty((nx, ny, nz))
-    m = max(nx, ny, nz)
-    f = np.empty(m)
-    g = np.empty(m)
-    v = np.empty(m, dtype=np.int64)
-    z = np.empty(m + 1)
-    for i in range(nx):
-        for j in range(ny):
-            for k in range(nz):
-                f[k] = 0.0 if seeds[i, j, k] else np.inf
-            _envelope_1d(f, nz, v, z, g)
-            for k in range(nz):
-                d2[i, j, k] = g[k]
-    for i in range(nx):
-        for k in range(nz):
-            for j in range(ny):
-                f[j] = d2[i, j, k]
-            _envelope_1d(f, ny, v, z, g)
-            for j in range(ny):
-                d2[i, j, k] = g[j]
-    for j in range(ny):
-        for k in range(nz):
-            for i in range(nx):
-                f[i] = d2[i, j, k]
-            _envelope_1d(f, nx, v, z, g)
-            for i in range(nx):
-                out[i, j, k] = min(math.sqrt(g[i]) * pitch, reach)
+    m = max(seeds.shape)
+    f, g, v, z = np.empty(m), np.empty(m), np.empty(m, dtype=np.int64), np.empty(m + 1)
+    d2 = np.where(seeds, 0.0, np.inf)
+    _lines(d2, f, v, z, g)  # along the third axis, then the second, then the first
+    _lines(d2.transpose(0, 2, 1), f, v, z, g)
+    _lines(d2.transpose(1, 2, 0), f, v, z, g)
+    out[...] = np.minimum(np.sqrt(d2) * pitch, reach)
 
 
 #: default reach of a field (mm): estimates saturate there (reported clearances up to about this minus the radius)

@@ -224,7 +224,7 @@ class ImplantRow:
     case: str
     seed: int
     status: str
-    reason: str
+    reason: str = ""
     straight_needles: int | None = None
     steered_needles: int | None = None
     straight_aims_met: bool = False
