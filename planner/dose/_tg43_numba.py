@@ -137,3 +137,17 @@ def pair_matrix(pts, pos, dirs, table, inv_dr, r_min, length, eps_y, y_source, p
             out[m, d] = _pair(pts[m, 0], pts[m, 1], pts[m, 2], pos[0, d], pos[1, d], pos[2, d], dirs[0, d],
                               dirs[1, d], dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, y_source,
                                     point_model)
+
+
+@njit(cache=True, fastmath=True, parallel=True)  # threads over points: the dose without the (m, n) matrix
+def pair_dose(pts, pos, dirs, w, table, inv_dr, r_min, length, eps_y, y_source, point_model, out):  # type: ignore[no-untyped-def]
+    """Σ_n w[n] rate(point m, dwell n) into ``out`` (m,) float64; ``pts`` (m, 3), ``pos``/``dirs`` (3, n), cm."""
+    nt = table.shape[1]
+    ql2 = 0.25 * length * length
+    for m in prange(pts.shape[0]):
+        acc = 0.0
+        for d in range(pos.shape[1]):
+            acc += w[d] * _pair(pts[m, 0], pts[m, 1], pts[m, 2], pos[0, d], pos[1, d], pos[2, d], dirs[0, d],
+                                dirs[1, d], dirs[2, d], table, nt, inv_dr, r_min, length, ql2, eps_y, y_source,
+                                point_model)
+        out[m] = acc

@@ -60,6 +60,7 @@ patients: HR-CTV D90 > 85, D98 > 75, GTV D98 > 90 Gy), as :class:`reachplan.plan
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -255,6 +256,25 @@ def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.nd
     return _Field(grid.index_from_patient, lo, np.asarray(values, dtype=float), np.inf)
 
 
+@dataclass(frozen=True, eq=False)
+class _EntryMemoOrgan(Organ):
+    """An organ that remembers its containment answers: every candidate path of a hole starts at the hole's entry.
+
+    :func:`reachplan.planner.geometry.collision.check_path` asks whether a clear path's first point lies inside the
+    organ (a ray-parity test on its mesh, the largest cost of the FCL confirmation); the answer is the same for
+    every schedule and roll of one hole.
+    """
+
+    memo: dict[bytes, bool] = field(default_factory=dict, repr=False)
+
+    def contains(self, point_mm: np.ndarray) -> bool:
+        """Tell whether a point ((3,) float, mm, LPS) lies inside the organ (remembered to 1 µm)."""
+        key = np.round(np.asarray(point_mm, dtype=float).reshape(3), 3).tobytes()
+        if key not in self.memo:
+            self.memo[key] = Organ.contains(self, point_mm)
+        return self.memo[key]
+
+
 def _dwell_arclengths(inside: np.ndarray, s_mm: np.ndarray, settings: ImplantSettings) -> tuple[float, np.ndarray]:
     """Return the tip depth and the dwell arc lengths (mm, deepest first) of a path in a region.
 
@@ -333,8 +353,15 @@ def needle_candidates(
     s_axis = np.arange(0.0, max_depth_mm + 1e-9, 1.0)
     axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
 
+    memo_organs = tuple(_EntryMemoOrgan(**{f.name: getattr(o, f.name) for f in dataclasses.fields(o)})
+                        for o in organs)
+
     def confirm(path: np.ndarray) -> float | None:
-        checks = check_path(path, needle_radius_mm, tuple(organs)) if organs else ()
+        # an organ's distance field bounds the clearance from above: a path it proves too close fails FCL too
+        if any(o.field is not None and o.field.path_clearance(path, needle_radius_mm)[2] < settings.clearance_margin_mm
+               for o in organs):
+            return None
+        checks = check_path(path, needle_radius_mm, memo_organs) if organs else ()
         clearance = min((c.clearance_mm for c in checks), default=float("inf"))
         if any(c.collides for c in checks) or clearance < settings.clearance_margin_mm:
             return None
@@ -593,6 +620,34 @@ class _Problem:
     eval_radius_mm: float
     target_fine: tuple[np.ndarray, np.ndarray]  # points and weights of the final metrics (_supersampled)
     gtv_fine: tuple[np.ndarray, np.ndarray] | None
+    # each organ's voxels within ``eval_radius_mm`` of any candidate dwell (every loading's organ dose is read there)
+    oar_near: tuple[np.ndarray, ...] = ()
+    lattices: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+
+    def near_organ(self, o: int, pos: np.ndarray, radius_mm: float, vox_cc: float, times_2cc: int = 4) -> np.ndarray:
+        """:func:`_near_organ` of organ ``o`` for dwells ``pos`` (a subset of the candidates' dwells).
+
+        Read from ``oar_near`` when that provably holds the answer (every voxel of the organ outside it is farther
+        than ``eval_radius_mm`` from every candidate dwell), else from all the organ's voxels.
+        """
+        if self.oar_near and radius_mm <= self.eval_radius_mm:
+            near = self.oar_near[o]
+            n_min = min(len(self.oar_pts[o]), times_2cc * math.ceil(2.0 / vox_cc))
+            if len(near) >= n_min and len(pos):
+                dist = cKDTree(pos).query(near)[0]
+                if n_min == 0 or np.partition(dist, n_min - 1)[n_min - 1] <= self.eval_radius_mm:
+                    return _near_organ(near, pos, radius_mm, vox_cc, times_2cc, dist, n_min)
+        return _near_organ(self.oar_pts[o], pos, radius_mm, vox_cc, times_2cc)
+
+    def lattice(self, o: int, pitch_mm: float, vox_cc: float) -> tuple[np.ndarray, np.ndarray]:
+        """Organ ``o``'s voxels binned on a lattice of ``pitch_mm``: one point per bin and its volume (cm³)."""
+        key = (o, float(pitch_mm))
+        if key not in self.lattices:
+            pts = self.oar_pts[o]
+            _, first, counts = np.unique(np.floor(pts / pitch_mm).astype(np.int64), axis=0, return_index=True,
+                                         return_counts=True)
+            self.lattices[key] = (pts[first], counts * vox_cc)
+        return self.lattices[key]
 
 
 def _rates(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, prob: _Problem) -> np.ndarray:
@@ -608,13 +663,7 @@ def _rates(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, prob: _Problem
 
 def _dose(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, times: np.ndarray, prob: _Problem) -> np.ndarray:
     """(m,) dose, Gy per fraction, at ``points`` from dwells with ``times`` (s), by chunks of points."""
-    out = np.zeros(len(points))
-    if len(pos) == 0:
-        return out
-    step = max(1, (1 << 20) // len(pos))
-    for s0 in range(0, len(points), step):
-        out[s0:s0 + step] = prob.kernel.compiled_rates(points[s0:s0 + step], pos, dirs) @ times
-    return out * prob.gy_per_s
+    return prob.kernel.compiled_dose(points, pos, dirs, times) * prob.gy_per_s
 
 
 #: largest sub-voxel size (mm) at which the final metrics of the target (and GTV) are computed
@@ -685,19 +734,17 @@ def _tail_mean(rates: np.ndarray, weight_cc: np.ndarray, volume_cc: float) -> np
     return out
 
 
-def _organ_sample(points: np.ndarray, vox_cc: float, near_mm: np.ndarray, pitch_mm: float,
+def _organ_sample(lattice: tuple[np.ndarray, np.ndarray], near_mm: np.ndarray,
                   volume_cc: float) -> tuple[np.ndarray, np.ndarray]:
     """Return an organ's representative points for its D2cm³ row, and the volume (cm³) each stands for.
 
-    The organ's voxel centres (``points``, (n, 3) mm LPS) binned on a lattice of ``pitch_mm``, one point per bin
-    weighted by its voxels; of those, the ones nearest to the dwells ``near_mm`` ((d, 3) mm) until they hold
-    ``volume_cc``.
+    ``lattice``: the organ's voxel centres binned on a lattice, one point ((n, 3) mm LPS) per bin and the volume
+    (cm³) of its voxels (:meth:`_Problem.lattice`); of those, the ones nearest to the dwells ``near_mm``
+    ((d, 3) mm) until they hold ``volume_cc``.
     """
-    if len(points) == 0 or len(near_mm) == 0:
+    reps, w = lattice
+    if len(reps) == 0 or len(near_mm) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    _, first, counts = np.unique(np.floor(points / pitch_mm).astype(np.int64), axis=0, return_index=True,
-                                 return_counts=True)
-    reps, w = points[first], counts * vox_cc
     order = np.argsort(cKDTree(near_mm).query(reps)[0], kind="stable")
     n = min(len(order), int(np.searchsorted(np.cumsum(w[order]), volume_cc)) + 1)
     keep = np.sort(order[:n])
@@ -917,8 +964,8 @@ def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vo
     rx = aims.prescription_gy
     dose_oar = []
     scale = 1.0
-    for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
-        d = _dose(_near_organ(pts, pos, prob.eval_radius_mm, vox_cc), pos, dirs, t, prob)
+    for o, limit in enumerate(prob.oar_limits):
+        d = _dose(prob.near_organ(o, pos, prob.eval_radius_mm, vox_cc), pos, dirs, t, prob)
         dose_oar.append(d)
         if limit is not None and len(d):
             d2 = dose_to_volume(d, vox_cc, 2.0)
@@ -973,6 +1020,7 @@ class BudgetResult:
     seconds: float
     new: bool = True
     selected: tuple[Channel, ...] = field(default=(), repr=False, compare=False)
+    plan: ImplantPlan | None = field(default=None, repr=False, compare=False)  # the new selection's plan
 
     def to_json(self) -> dict[str, object]:
         """Return the record for plan.json ``selection.budgets``."""
@@ -986,10 +1034,10 @@ def _organ_rows(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, pitch_mm: flo
                 vox_cc: float) -> list[_OrganRows]:
     """Return the D2cm³ rows of every organ with a limit, for the dwells ``pos``/``dirs`` (module docstring)."""
     out = []
-    for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
+    for o, limit in enumerate(prob.oar_limits):
         if limit is None:
             continue
-        reps, w = _organ_sample(pts, vox_cc, pos, pitch_mm, volume_cc)
+        reps, w = _organ_sample(prob.lattice(o, pitch_mm, vox_cc), pos, volume_cc)
         out.append(_OrganRows(_rates(reps, pos, dirs, prob), w, float(limit)))
     return out
 
@@ -998,22 +1046,31 @@ def _d2cc(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, vox_
     """Return the D2cm³ (Gy per fraction) of every organ with a limit, on its 20 cm³ nearest the loaded dwells."""
     on = t > 0
     out = []
-    for pts, limit in zip(prob.oar_pts, prob.oar_limits, strict=True):
+    for o, (pts, limit) in enumerate(zip(prob.oar_pts, prob.oar_limits, strict=True)):
         if limit is None:
             continue
         if not on.any() or len(pts) == 0:
             out.append(0.0)
             continue
-        near = _near_organ(pts, pos[on], 0.0, vox_cc, 10)  # the nearest 20 cm³ hold the hottest 2 cm³
+        near = prob.near_organ(o, pos[on], 0.0, vox_cc, 10)  # the nearest 20 cm³ hold the hottest 2 cm³
         out.append(dose_to_volume(_dose(near, pos[on], dirs[on], t[on], prob), vox_cc, 2.0))
     return np.array(out)
 
 
-def _near_organ(pts: np.ndarray, pos: np.ndarray, radius_mm: float, vox_cc: float, times_2cc: int = 4) -> np.ndarray:
-    """Return an organ's voxels within ``radius_mm`` of a dwell, and at least its nearest ``times_2cc`` × 2 cm³."""
-    dist = cKDTree(pos).query(pts)[0] if len(pos) else np.zeros(len(pts))
-    n_min = min(len(pts), times_2cc * math.ceil(2.0 / vox_cc))
-    out: np.ndarray = pts[(dist <= radius_mm) | (np.argsort(np.argsort(dist, kind="stable")) < n_min)]
+def _near_organ(pts: np.ndarray, pos: np.ndarray, radius_mm: float, vox_cc: float, times_2cc: int = 4,
+                dist: np.ndarray | None = None, n_min: int | None = None) -> np.ndarray:
+    """Return an organ's voxels within ``radius_mm`` of a dwell, and at least its nearest ``times_2cc`` × 2 cm³.
+
+    ``dist``: each voxel's distance to the dwells when known; ``n_min``: the voxel count of ``times_2cc`` × 2 cm³
+    (of the whole organ when ``pts`` is a part of it).
+    """
+    if dist is None:
+        dist = cKDTree(pos).query(pts)[0] if len(pos) else np.zeros(len(pts))
+    if n_min is None:
+        n_min = min(len(pts), times_2cc * math.ceil(2.0 / vox_cc))
+    keep = dist <= radius_mm
+    keep[np.argsort(dist, kind="stable")[:n_min]] = True
+    out: np.ndarray = pts[keep]
     return out
 
 
@@ -1074,6 +1131,10 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         tuple(aims.oar_limit_gy(o.name) for o in planning.oars), air_kerma_strength_u / 360000.0, kernel,
         tuple(o.name for o in planning.oars), settings.oar_eval_radius_mm, _supersampled(grid, planning.target.mask),
         None if gtv is None else _supersampled(grid, gtv.mask))
+    tree = cKDTree(positions)  # every voxel of an organ outside oar_near is farther than the radius from any dwell
+    prob = dataclasses.replace(prob, oar_near=tuple(
+        pts[np.isfinite(tree.query(pts, distance_upper_bound=settings.oar_eval_radius_mm * (1 + 1e-6) + 1e-6)[0])]
+        for pts in prob.oar_pts))
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
         1.0 + settings.coverage_margin)
@@ -1117,6 +1178,8 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     index = {id(channels[c]): i for i, c in enumerate(needles)}
     given = {b.budget: [index[id(c)] for c in b.selected if id(c) in index] for b in (subset.budgets if subset
                                                                                    else ())}
+    # the subset arm's plans by selection: the same channels give the same dwell-time LP (computed once)
+    planned = {frozenset(id(c) for c in b.selected): b.plan for b in (subset.budgets if subset else ()) if b.new}
 
     def select(k: int, keep: Sequence[int]) -> tuple[np.ndarray | None, float, float | None, str]:
         """Select at most ``k`` needles: return (solution, objective, proven lower bound, how it ended)."""
@@ -1169,11 +1232,14 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
-        budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
-                                    tuple(channels[c] for c in picked)))
         if new:
-            seen[picked] = _final(prob, np.array(picked, dtype=int), fin_pts, fin_p, aims, settings, vox_cc,
-                                  kappa.copy(), f"budget {k}: selection objective {value:.6g}, {status}", gap)
+            ids = frozenset(id(channels[c]) for c in picked)
+            seen[picked] = planned[ids] if ids in planned else _final(
+                prob, np.array(picked, dtype=int), fin_pts, fin_p, aims, settings, vox_cc, kappa.copy(),
+                f"budget {k}: selection objective {value:.6g}, {status}", gap)
+        budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
+                                    tuple(channels[c] for c in picked), seen.get(picked) if new else None))
+        if new:
             stall = 0
             plan = seen[picked]
             if plan is not None:

@@ -168,6 +168,25 @@ class Tg43Kernel:
             out *= self._rate_factor()
         return out
 
+    def compiled_dose(self, points_mm: np.ndarray, positions_mm: np.ndarray, directions: np.ndarray,
+                      weights: np.ndarray) -> np.ndarray:
+        """``compiled_rates(points_mm, positions_mm, directions) @ weights`` without forming the matrix.
+
+        ``weights``: (n,) float (e.g. dwell times); returns (m,) float64 in cGy h⁻¹ U⁻¹ × the weights' unit (the
+        float32 pair rates summed in float64).
+        """
+        from reachplan.planner.dose import _tg43_numba as nb
+
+        p = np.ascontiguousarray(np.asarray(points_mm, dtype=float).reshape(-1, 3) * 0.1, dtype=np.float32)
+        s = np.ascontiguousarray((np.asarray(positions_mm, dtype=float).reshape(-1, 3) * 0.1).T, dtype=np.float32)
+        u = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3).T, dtype=np.float32)
+        w = np.ascontiguousarray(np.asarray(weights, dtype=float).reshape(-1))
+        out = np.zeros(len(p))
+        if len(p) and s.shape[1]:
+            nb.pair_dose(p, s, u, w, self._table32_2d, *self._scalars(), out)
+            out *= self._rate_factor()
+        return out
+
     def _scalars(self) -> tuple[np.float32, np.float32, np.float32, np.float32, np.float32, bool]:
         f = np.float32
         return (f(1.0 / DR_CM), f(self.r_min_cm), f(self.length_cm), f(_EPS_Y_CM), f(Y_SOURCE_CM),
