@@ -106,12 +106,20 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
         return f"; over the limit: {', '.join(bad)}" if bad else ""
 
     arms: list[tuple[str, int, float, bool, str]] = []
+    if delivery is not None and delivery.implant is not None:  # the whole HR-CTV: what the aims are about
+        for arm, label in zip(delivery.implant.arms, ("implant, straight", "implant, straight + steered"), strict=True):
+            pl = arm.plan
+            arms.append((label, 0, np.nan, False, f"; no implant: {arm.reason}") if pl is None else
+                        (label, pl.n_needles, pl.target.d90_eqd2_gy, pl.aims_met,
+                         over([(o.name, o.d2cc_eqd2_gy) for o in pl.oars])))
+    per_target = " (one needle per target)" if arms else ""
     if comparison is not None:
-        arms += [(f"{r.arm} arm", r.n_needles, r.d90_eqd2_gy, r.aim_met, over(r.oar_d2cc_eqd2_gy))
+        arms += [(f"{r.arm} arm{per_target}", r.n_needles, r.d90_eqd2_gy, r.aim_met, over(r.oar_d2cc_eqd2_gy))
                  for r in comparison.rows()]
     if delivery is not None:
         opt = delivery.optimisation
-        arms.append(("delivered plan", len(delivery.needles), opt.target.d90_eqd2_gy if opt.success else np.nan,
+        arms.append((f"exported plan{per_target}", len(delivery.needles),
+                     opt.target.d90_eqd2_gy if opt.success else np.nan,
                      opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]) if opt.success
                      else f"; not solved: {opt.reason}"))
     if not arms:

@@ -87,6 +87,33 @@ def test_summary_says_per_arm_whether_the_aims_are_met_and_where_the_files_are()
     assert "not computed" in format_summary(result)  # ranked only: says there is no dose
 
 
+
+def test_summary_puts_the_implant_arms_first_and_names_the_per_target_plans() -> None:
+    """With implant planning, the arms' lines are the whole-HR-CTV implants; per-target plans say what they are."""
+    result, _ = _result()
+
+    def metrics(name: str, d90: float = 0.0, d2cc: float = 0.0) -> SimpleNamespace:
+        return SimpleNamespace(name=name, d90_eqd2_gy=d90, d2cc_eqd2_gy=d2cc)
+
+    def arm(n: int, d90: float, met: bool, bladder: float) -> SimpleNamespace:
+        plan = SimpleNamespace(n_needles=n, target=metrics("HR-CTV", d90), aims_met=met,
+                               oars=(metrics("Bladder", d2cc=bladder),))
+        return SimpleNamespace(plan=plan, reason="")
+
+    implant = SimpleNamespace(arms=(arm(5, 84.0, False, 95.0), arm(3, 90.0, True, 79.0)))
+    opt = SimpleNamespace(success=True, target=metrics("HR-CTV", 60.0), aim_met=False, oars=(), reason="")
+    delivery = SimpleNamespace(implant=implant, optimisation=opt, needles=(1, 2))
+    text = format_summary(result, delivery=delivery, comparison=_comparison())  # type: ignore[arg-type]
+    lines = [ln.strip() for ln in text.splitlines()]
+    first = next(i for i, ln in enumerate(lines) if ln.startswith("implant, straight "))
+    straight, steered = lines[first], lines[first + 1]
+    assert re.search(r"\b5 needles\b", straight) and "aims NOT met" in straight and "Bladder 95.0 Gy" in straight
+    assert steered.startswith("implant, straight + steered") and re.search(r"\b3 needles\b", steered)
+    assert "aims met" in steered and "NOT" not in steered
+    assert any(ln.startswith("straight arm (one needle per target)") for ln in lines)
+    assert any(ln.startswith("exported plan (one needle per target)") for ln in lines)
+
+
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["--version"])
