@@ -739,6 +739,8 @@ def load_series(
 ) -> Volume:
     """Read the pixel data of one series of a :func:`scan` into a volume.
 
+    Slices in order along the slice normal; CT values rescaled (slope, intercept) to Hounsfield units.
+
     Parameters
     ----------
     found : FolderScan

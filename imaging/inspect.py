@@ -52,6 +52,8 @@ class SeriesInfo:
 class StructureInfo:
     """One ROI of a structure set.
 
+    From the Structure Set ROI Sequence and the RT ROI Observations Sequence of the file.
+
     Parameters
     ----------
     number : int
@@ -138,10 +140,12 @@ class OtherInfo:
 class Inspection:
     """The result of :func:`inspect_path`.
 
+    Built only after every object found was read completely, pixel data included (see the module notes).
+
     Parameters
     ----------
     path : str
-        What was inspected.
+        The file or folder inspected, as given.
     series, structure_sets, plans, others
         What was found, by kind.
     n_non_dicom : int

@@ -75,6 +75,8 @@ class PlanQuirkWarning(DicomQuirkWarning):
 class BrachySource:
     """One item of the Source Sequence.
 
+    Channels refer to it by ``number`` (Referenced Source Number).
+
     Parameters
     ----------
     number : int
@@ -113,6 +115,8 @@ class BrachySource:
 @dataclass(frozen=True, eq=False)
 class Channel:
     """A channel of a brachy application setup with its dwells.
+
+    One item of the Channel Sequence, its Brachy Control Point Sequence read into dwell positions and times.
 
     Parameters
     ----------

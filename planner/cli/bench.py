@@ -23,6 +23,8 @@ HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant, re
 class Option:
     """A target's own option (default ``None``: the target's full or quick setting).
 
+    Added to the target's sub-command; a value given on the command line overrides both settings.
+
     Parameters
     ----------
     flag : str
