@@ -174,16 +174,19 @@ def _envelope_1d(f, n, v, z, d):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _lines(a, f, v, z, g):  # type: ignore[no-untyped-def]
-    """Replace every line of the 3-D array (view) ``a`` along its last axis by its 1-D squared transform."""
-    ni, nj, n = a.shape
-    for i in range(ni):
-        for j in range(nj):
+def _lines(a, n1, s1, n2, s2, n, s, f, v, z, g):  # type: ignore[no-untyped-def]
+    """Replace each line ``a[i s1 + j s2 + k s]``, ``k < n`` (``i < n1``, ``j < n2``) by its 1-D squared transform.
+
+    ``a`` is flat (one compiled variant serves all three axes of a C-ordered grid).
+    """
+    for i in range(n1):
+        for j in range(n2):
+            base = i * s1 + j * s2
             for k in range(n):
-                f[k] = a[i, j, k]
+                f[k] = a[base + k * s]
             _envelope_1d(f, n, v, z, g)
             for k in range(n):
-                a[i, j, k] = g[k]
+                a[base + k * s] = g[k]
 
 
 @njit(cache=True)
@@ -192,13 +195,18 @@ def _edt(seeds, pitch, reach, out):  # type: ignore[no-untyped-def]
 
     Exact Euclidean distance (squared, in whole voxels, by one envelope pass per axis), like scipy's EDT.
     """
-    m = max(seeds.shape)
+    nx, ny, nz = seeds.shape
+    m = max(nx, ny, nz)
     f, g, v, z = np.empty(m), np.empty(m), np.empty(m, dtype=np.int64), np.empty(m + 1)
-    d2 = np.where(seeds, 0.0, np.inf)
-    _lines(d2, f, v, z, g)  # along the third axis, then the second, then the first
-    _lines(d2.transpose(0, 2, 1), f, v, z, g)
-    _lines(d2.transpose(1, 2, 0), f, v, z, g)
-    out[...] = np.minimum(np.sqrt(d2) * pitch, reach)
+    flat_seeds, flat_out = seeds.ravel(), out.reshape(nx * ny * nz)
+    d2 = np.empty(nx * ny * nz)
+    for q in range(d2.size):
+        d2[q] = 0.0 if flat_seeds[q] else np.inf
+    _lines(d2, nx, ny * nz, ny, nz, nz, 1, f, v, z, g)  # along the third axis
+    _lines(d2, nx, ny * nz, nz, 1, ny, nz, f, v, z, g)  # the second
+    _lines(d2, ny, nz, nz, 1, nx, ny * nz, f, v, z, g)  # the first
+    for q in range(d2.size):
+        flat_out[q] = min(math.sqrt(d2[q]) * pitch, reach)
 
 
 #: default reach of a field (mm): estimates saturate there (reported clearances up to about this minus the radius)
