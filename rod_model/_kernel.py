@@ -37,6 +37,9 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 NSTATE = 23
+# record flags as numpy booleans: a Python True/False passed inside compiled code is typed as a literal, which
+# compiled integrate() and integrate_from() twice more (seconds of the first run)
+_RECORD, _NO_RECORD = np.True_, np.False_
 NX = 8
 
 # status codes of shoot()
@@ -341,14 +344,14 @@ def fd_jacobian(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.nda
     xt = np.empty(NX)
     rt = np.empty(NX)
     r = np.empty(NX)
-    y0 = integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+    y0 = integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, _NO_RECORD)
     residual(y0, ftip, ltip, length, coupled, r)
     for c in range(n):
         eps = 1e-7 * fscale * (length if 3 <= c < 6 or c == 7 else 1.0)
         for q in range(NX):
             xt[q] = x[q]
         xt[c] += eps
-        yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+        yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, _NO_RECORD)
         residual(yt, ftip, ltip, length, coupled, rt)
         for q in range(n):
             jac[q, c] = (rt[q] - r[q]) / eps
@@ -375,7 +378,7 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
     work = np.empty((NX, NX))
     xt = np.empty(NX)
     step = np.zeros(NX)
-    y = integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+    y = integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, _NO_RECORD)
     res = residual(y, ftip, ltip, length, coupled, r)
     if not np.isfinite(res):
         return NON_FINITE, res, 0
@@ -399,7 +402,7 @@ def newton(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray,
         for _ in range((12 if fresh else 2) if solved else 0):  # backtracking line search on the residual
             for q in range(n):
                 xt[q] = x[q] + alpha * step[q]
-            yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, False)
+            yt = integrate(xt, sec, nsteps, rdir, lam, fext, coupled, traj, _NO_RECORD)
             rnew = residual(yt, ftip, ltip, length, coupled, rt)
             if np.isfinite(rnew) and rnew < res:
                 improved = True
@@ -476,7 +479,7 @@ def shoot(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarray, 
             if status != OK:
                 break
         if status == OK:
-            integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, True)
+            integrate(x, sec, nsteps, rdir, lam, fext, coupled, traj, _RECORD)
             return OK, res, total_it, ramp
         ramp *= 4
     return status, res, total_it, ramp // 4
