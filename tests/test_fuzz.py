@@ -203,6 +203,14 @@ def _mutants(src: Path, n: int, rng: random.Random) -> list[bytes]:
     return out
 
 
+def _mutant_file(folder: Path, name: str, data: bytes) -> Path:
+    """Write one mutant as ``folder/name`` (a folder of its own) and return its path."""
+    folder.mkdir()
+    path = folder / name
+    path.write_bytes(data)
+    return path
+
+
 def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
     rng = random.Random(SEED)
     tally = Tally()
@@ -216,17 +224,12 @@ def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
     ]
     for name, src, command in singles:
         for k, data in enumerate(_mutants(src, N_MUTANTS[name], rng)):
-            folder = tmp_path / f"{name}_{k}"
-            folder.mkdir()
-            path = folder / "x.dcm"
-            path.write_bytes(data)
+            path = _mutant_file(tmp_path / f"{name}_{k}", "x.dcm", data)
             _run(command(path), tally, f"{name} #{k}", [path])
     for name, rp, rs in plans:
         for k, data in enumerate(_mutants(rp, N_MUTANTS[name], rng)):
-            folder = tmp_path / f"{name}_{k}"
-            folder.mkdir()
-            path = folder / "RP.dcm"
-            path.write_bytes(data)
+            path = _mutant_file(tmp_path / f"{name}_{k}", "RP.dcm", data)
+            folder = path.parent
             _run(["inspect", str(path), "--json"], tally, f"{name} #{k} inspect", [path])
             if k % DOSE_EVERY == 0:
                 out = folder / "out"
