@@ -256,25 +256,6 @@ def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.nd
     return _Field(grid.index_from_patient, lo, np.asarray(values, dtype=float), np.inf)
 
 
-@dataclass(frozen=True, eq=False)
-class _EntryMemoOrgan(Organ):
-    """An organ that remembers its containment answers: every candidate path of a hole starts at the hole's entry.
-
-    :func:`reachplan.planner.geometry.collision.check_path` asks whether a clear path's first point lies inside the
-    organ (a ray-parity test on its mesh, the largest cost of the FCL confirmation); the answer is the same for
-    every schedule and roll of one hole.
-    """
-
-    memo: dict[bytes, bool] = field(default_factory=dict, repr=False)
-
-    def contains(self, point_mm: np.ndarray) -> bool:
-        """Tell whether a point ((3,) float, mm, LPS) lies inside the organ (remembered to 1 µm)."""
-        key = np.round(np.asarray(point_mm, dtype=float).reshape(3), 3).tobytes()
-        if key not in self.memo:
-            self.memo[key] = Organ.contains(self, point_mm)
-        return self.memo[key]
-
-
 def _dwell_arclengths(inside: np.ndarray, s_mm: np.ndarray, settings: ImplantSettings) -> tuple[float, np.ndarray]:
     """Return the tip depth and the dwell arc lengths (mm, deepest first) of a path in a region.
 
@@ -353,15 +334,12 @@ def needle_candidates(
     s_axis = np.arange(0.0, max_depth_mm + 1e-9, 1.0)
     axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
 
-    memo_organs = tuple(_EntryMemoOrgan(**{f.name: getattr(o, f.name) for f in dataclasses.fields(o)})
-                        for o in organs)
-
     def confirm(path: np.ndarray) -> float | None:
         # an organ's distance field bounds the clearance from above: a path it proves too close fails FCL too
         if any(o.field is not None and o.field.path_clearance(path, needle_radius_mm)[2] < settings.clearance_margin_mm
                for o in organs):
             return None
-        checks = check_path(path, needle_radius_mm, memo_organs) if organs else ()
+        checks = check_path(path, needle_radius_mm, tuple(organs)) if organs else ()  # containment cached per organ
         clearance = min((c.clearance_mm for c in checks), default=float("inf"))
         if any(c.collides for c in checks) or clearance < settings.clearance_margin_mm:
             return None
