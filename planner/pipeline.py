@@ -47,7 +47,8 @@ from reachplan.rod_model.protocol import Capabilities, RodModel
 
 if TYPE_CHECKING:
     from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantPlan, ImplantSettings
-    from reachplan.planner.dose.optimize import OptimisationResult, PlanningStructures, Structure
+    from reachplan.planner.dose.optimize import Aims, OptimisationResult, PlanningStructures, Structure
+    from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.plugins.exporters import ExportPlan, NeedleExport
     from reachplan.rod_model.select import ErrorRow
 
@@ -566,27 +567,43 @@ def choose_needles(result: PlanResult, targets: Sequence[str] | None = None,
     return tuple(out)
 
 
+#: What a delivered channel is for when it is an applicator channel (tandem, ring, ovoid), and the delivered plan's
+#: kind when every target got its own top-ranked needle (see :class:`Delivery`).
+INTRACAVITARY = "intracavitary"
+PER_TARGET = "one needle per target"
+#: The implant arm exported as the delivered plan: straight + steered (never worse than straight only).
+EXPORT_ARM = "steered"
+
 #: ASSUMED source strength for planning: a new Ir-192 HDR source of about 10 Ci, S_K ≈ 40 700 U.
 DEFAULT_AIR_KERMA_U = 40_700.0
 
 
 @dataclass(frozen=True, eq=False)
 class Delivery:
-    """Chosen needles with optimised dwell times, ready for the exporters.
+    """The delivered plan: loaded channels with their dwell times, ready for the exporters.
 
-    ``source``: the TG-43 data set the dwell times were optimised with. ``needles`` and ``export.needles`` hold
-    only the needles that carry dwell time (a needle the optimum leaves empty is not part of the implant and gets
-    no instructions). ``implant``: the two implant arms (:func:`plan_implants`) when asked for, and
-    ``implant_exports`` the export of each arm's chosen implant (loaded needles only), by arm name.
+    ``export`` holds only the channels that carry dwell time (a needle the optimum leaves empty is not part of the
+    implant and gets no instructions); ``roles`` says, per exported channel, what it is for (the target a
+    per-target needle was chosen for, the target volume for an implant needle, ``intracavitary`` for an applicator
+    channel); ``kind``: which plan is delivered (``implant, straight + steered``, ``implant, straight`` or
+    ``one needle per target``). ``optimisation``: its dwell times and dose-volume metrics. ``source``: the TG-43
+    data set the dwell times were optimised with. ``implant``: the two implant arms (:func:`plan_implants`) when
+    asked for, and ``implant_exports`` the export of each arm's chosen implant (loaded channels only), by arm name.
     """
 
-    needles: tuple[Candidate, ...]
     optimisation: OptimisationResult
     export: ExportPlan
     planning: PlanningStructures
     source: SourceData
+    roles: tuple[str, ...]
+    kind: str = PER_TARGET
     implant: ImplantComparison | None = None
     implant_exports: dict[str, ExportPlan] = field(default_factory=dict)
+
+    @property
+    def n_needles(self) -> int:
+        """Template needles delivered (intracavitary channels not counted)."""
+        return sum(r != INTRACAVITARY for r in self.roles)
 
 
 def plan_delivery(
@@ -604,10 +621,14 @@ def plan_delivery(
     scene: Scene | None = None,
     implant_settings: ImplantSettings | None = None,
 ) -> Delivery:
-    """Choose needles, optimise their dwell times on the target and assemble the export plan.
+    """Plan the dwell times on the target and assemble the export plan (RT Plan + Structure Set + Dose + device).
 
-    Dose by TG-43 against the EMBRACE II aims; the export plan holds RT Plan + RT Structure Set + RT Dose +
-    device instructions.
+    With ``scene`` the implant is planned for the whole target volume, straight only and straight + steered
+    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported as device instructions,
+    and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
+    other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
+    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
+    Dose by TG-43 against the EMBRACE II aims.
 
     The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
     fractions as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where
@@ -616,37 +637,34 @@ def plan_delivery(
     planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
     False: no RT Dose, for callers that only need the optimisation).
 
-    With ``scene`` the implant is also planned for the whole target volume, straight only and straight +
-    steered (:func:`plan_implants` with ``implant_settings``), and each arm's chosen implant exported.
-
     Raises
     ------
     PlanInputError
         No feasible needle, no target structure to optimise on, or a bad named point.
     """
-    from reachplan.planner.dose.optimize import Aims, optimise_dwell_times
+    from reachplan.planner.dose.optimize import Aims
     from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, rate_matrix
     from reachplan.planner.geometry.reference_points import place_reference_points
-    from reachplan.plugins.exporters import ExportPlan, NeedleExport, SourceSpec
+    from reachplan.plugins.exporters import ExportPlan, SourceSpec
     from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
-    needles = choose_needles(result)
-    if not needles:
-        raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
     source = get_source(source_name)
     kernel = Tg43Kernel(source)
     aims = Aims()
-    opt = optimise_dwell_times([c.path_mm for c in needles], planning, kernel, air_kerma_u, aims)
-    exports, kept, loaded = [], [], []
-    for ch, c in enumerate(needles, start=1):
-        keep = (opt.dwells.channels == ch) & (opt.dwells.times_s > 0)
-        if not keep.any():  # a needle the optimum leaves empty is not part of the implant: no instructions
-            continue
-        loaded.append(c)
-        kept.append(opt.dwells.select(keep))
-        exports.append(NeedleExport(c.hole_id, c.path_mm, opt.dwells.positions_mm[keep], opt.dwells.times_s[keep],
-                                    c.design_name, _schedule_rows(c.schedule)))
+    implant = None
+    if scene is not None:
+        tandem = tandem_channels(structures, planning, scene.patient_from_template, implant_settings)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
+                                intracavitary=tandem)
+    delivered = _delivered_implant(implant, planning.target.name)
+    if delivered is not None:
+        arm, opt, exports, roles = delivered
+        kind = "implant, straight + steered" if arm.name == EXPORT_ARM else f"implant, {arm.name}"
+    else:
+        opt, exports, roles = _per_target(result, planning, kernel, air_kerma_u, aims)
+        kind = PER_TARGET
+    active = opt.dwells.select(opt.dwells.times_s > 0)
     placed, _ = place_reference_points(structures)
     wanted = [(p.name, p.position_mm) for p in placed]
     for name, xyz in named_points:
@@ -657,7 +675,9 @@ def plan_delivery(
     gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
     points = []
     for name, pos in wanted:
-        rates = tuple(rate_matrix(pos[None], d.positions_mm, d.directions, kernel)[0] * gy_per_s for d in kept)
+        rate = rate_matrix(pos[None], opt.dwells.positions_mm, opt.dwells.directions, kernel)[0] * gy_per_s
+        # per exported channel, in its dwell order (exported channel ch holds the dwells with channels == ch)
+        rates = tuple(rate[opt.dwells.channels == ch] for ch in range(1, len(exports) + 1))
         try:
             points.append(ReferencePoint(name, pos, rates))
         except ValueError as exc:
@@ -666,31 +686,81 @@ def plan_delivery(
     dose = None
     if planned_dose:
         dose_grid = _dose_region(planning)
-        sub = opt.dwells.select(opt.dwells.times_s > 0)
-        values = dose_on_grid(dose_grid, sub, kernel, air_kerma_u) if len(sub) else np.zeros(dose_grid.shape)
+        values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
         dose = PlannedDose(values * fractions, dose_grid)
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
-    export = ExportPlan(label[:16], tuple(exports), spec, structure_set=structures, volume=volume,
-                        input_paths=tuple(input_paths), fractions_planned=fractions,
-                        prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
-                        reference_points=tuple(points),
-                        application_setup_type=load_template(result.config.template).application_setup_type,
-                        dose=dose)
-    implant = None
-    implant_exports: dict[str, ExportPlan] = {}
-    if scene is not None:
-        tandem = tandem_channels(structures, planning, scene.patient_from_template, implant_settings)
-        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
-                                intracavitary=tandem)
-        for arm in implant.arms:
-            if arm.plan is not None and arm.plan.channels:
-                implant_exports[arm.name] = ExportPlan(
-                    f"implant_{arm.name}"[:16], implant_needles(arm.plan), spec,
-                    structure_set=structures, volume=volume, input_paths=tuple(input_paths),
-                    fractions_planned=fractions, prescription_dose_gy=aims.prescription_gy,
-                    target_name=target_roi[:64],
-                    application_setup_type=load_template(result.config.template).application_setup_type)
-    return Delivery(tuple(loaded), opt, export, planning, source, implant, implant_exports)
+    setup = load_template(result.config.template).application_setup_type
+
+    def export_plan(name: str, needles: Sequence[NeedleExport], points: Sequence[ReferencePoint] = (),
+                    dose: PlannedDose | None = None) -> ExportPlan:
+        return ExportPlan(name[:16], tuple(needles), spec, structure_set=structures, volume=volume,
+                          input_paths=tuple(input_paths), fractions_planned=fractions,
+                          prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
+                          reference_points=tuple(points), application_setup_type=setup, dose=dose)
+
+    export = export_plan(label, exports, points, dose)
+    implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
+                       for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
+    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
+
+
+def _delivered_implant(
+    implant: ImplantComparison | None, target_name: str,
+) -> tuple[ImplantArm, OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...]] | None:
+    """Return the implant arm to deliver (:data:`EXPORT_ARM`, else the other) as an optimisation result, or None.
+
+    Each channel's role is ``target_name`` for a needle, :data:`INTRACAVITARY` for an applicator channel.
+    Channel ``ch`` of the exported plan is the plan's channel ``ch`` (its dwells are ``dwells.channels == ch``).
+    """
+    from reachplan.planner.dose.optimize import OptimisationResult
+
+    if implant is None:
+        return None
+    arms = sorted(implant.arms, key=lambda a: a.name != EXPORT_ARM)
+    arm = next((a for a in arms if a.plan is not None and a.plan.channels), None)
+    if arm is None or arm.plan is None:
+        return None
+    pl = arm.plan
+    gap = "" if pl.mip_gap is None else f", selection gap {pl.mip_gap:.2f}"
+    n_ic = len(pl.channels) - pl.n_needles
+    reason = (f"implant ({arm.name} arm): {pl.n_needles} needles and {n_ic} intracavitary channel"
+              f"{'s' if n_ic != 1 else ''}, chosen with the dwell times (mixed-integer selection{gap})")
+    opt = OptimisationResult(pl.dwells, pl.target, pl.oars, True, reason, scaled=pl.scale < 1.0, scale=pl.scale,
+                             dvhs=pl.dvhs, aim_met=pl.aims_met)
+    roles = tuple(target_name if c.is_needle else INTRACAVITARY for c in pl.channels)
+    return arm, opt, implant_needles(pl), roles
+
+
+def _per_target(
+    result: PlanResult, planning: PlanningStructures, kernel: Tg43Kernel, air_kerma_u: float, aims: Aims,
+) -> tuple[OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...]]:
+    """Every target's top-ranked feasible needle with optimised dwell times; empty needles are left out.
+
+    The dwells are renumbered so that channel ``ch`` of the result is the ``ch``-th exported needle.
+    """
+    from reachplan.planner.dose.optimize import optimise_dwell_times
+    from reachplan.planner.dose.tg43 import DwellSet
+    from reachplan.plugins.exporters import NeedleExport
+
+    needles = choose_needles(result)
+    if not needles:
+        raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
+    opt = optimise_dwell_times([c.path_mm for c in needles], planning, kernel, air_kerma_u, aims)
+    exports: list[NeedleExport] = []
+    roles: list[str] = []
+    kept: list[DwellSet] = []
+    for ch, c in enumerate(needles, start=1):
+        keep = (opt.dwells.channels == ch) & (opt.dwells.times_s > 0)
+        if not keep.any():  # a needle the optimum leaves empty is not part of the implant: no instructions
+            continue
+        sub = opt.dwells.select(keep)
+        kept.append(DwellSet(sub.positions_mm, sub.directions, sub.times_s, np.full(len(sub), len(kept) + 1)))
+        roles.append(c.target)
+        exports.append(NeedleExport(c.hole_id, c.path_mm, sub.positions_mm, sub.times_s, c.design_name,
+                                    _schedule_rows(c.schedule)))
+    if kept:
+        opt = dataclasses.replace(opt, dwells=DwellSet.concatenate(kept))
+    return opt, tuple(exports), tuple(roles)
 
 
 def tandem_channels(structures: StructureSet, planning: PlanningStructures, patient_from_template: np.ndarray,
@@ -739,7 +809,7 @@ def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
     for ch, c in enumerate(plan.channels, start=1):
         keep = plan.dwells.channels == ch
         out.append(NeedleExport(c.name, c.path_mm, plan.dwells.positions_mm[keep], plan.dwells.times_s[keep],
-                                c.design, _schedule_rows(c.schedule)))
+                                c.design, _schedule_rows(c.schedule), applicator=not c.is_needle))
     return tuple(out)
 
 

@@ -152,8 +152,13 @@ def test_demo_plans_the_implant_straight_against_steered(demo: Path) -> None:
         assert arm["selection"]["budgets"] and all("mip_gap" in b for b in arm["selection"]["budgets"])
         assert not [o for o in arm["oar_d2cc_eqd2_gy"] if "tandem" in o.casefold()]  # an applicator, not an organ
         device = json.loads(next((demo / "export" / f"implant_{name}").glob("*.json")).read_text())
-        text = json.dumps(device)
-        assert all(n["hole_id"] in text for n in arm["needles"])
+        holes = {n["hole_id"] for n in arm["needles"] if n["kind"] != "intracavitary"}
+        assert {n["hole_id"] for n in device["needles"]} == holes  # an applicator is placed by hand: no rows
+    # the RT Plan a TPS imports is the straight + steered implant, applicator channels included
+    delivered = plan["delivery"]
+    assert delivered["plan"] == "implant, straight + steered"
+    assert delivered["needles"] == [n["hole_id"] for n in plan["implant"]["steered"]["needles"]]
+    assert delivered["optimisation"]["aim_met"] == plan["implant"]["steered"]["aims_met"]
     steered_kinds = {n["kind"] for n in plan["implant"]["steered"]["needles"]}
     assert steered_kinds <= {"straight", "steered", "intracavitary"}
     assert {n["kind"] for n in plan["implant"]["straight"]["needles"]} <= {"straight", "intracavitary"}

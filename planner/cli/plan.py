@@ -380,7 +380,9 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
         opt = delivery.optimisation
         ex = delivery.export
         doc["delivery"] = {
-            "needles": [c.hole_id for c in delivery.needles],
+            "plan": delivery.kind,
+            "needles": [n.hole_id for n in ex.needles],
+            "roles": list(delivery.roles),
             "prescription": {"target": ex.target_name, "dose_per_fraction_gy": ex.prescription_dose_gy,
                              "fractions": ex.fractions_planned},
             "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}

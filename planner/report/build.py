@@ -118,7 +118,7 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
                  for r in comparison.rows()]
     if delivery is not None:
         opt = delivery.optimisation
-        arms.append((f"exported plan{per_target}", len(delivery.needles),
+        arms.append((f"exported plan ({delivery.kind})", delivery.n_needles,
                      opt.target.d90_eqd2_gy if opt.success else np.nan,
                      opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]) if opt.success
                      else f"; not solved: {opt.reason}"))
@@ -463,8 +463,8 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                    _f(o.d2cc_eqd2_gy)) for o in opt.oars]
         status = ("aim met" if opt.aim_met else "aim NOT met") if opt.success else f"not solved: {opt.reason}"
         blocks += [
-            Paragraph(f"Delivered plan ({len(delivery.needles)} needles: the top-ranked feasible needle of every "
-                      f"target, full optimiser settings): {status}; {opt.reason}."),
+            Paragraph(f"Delivered plan, the one exported as the RT Plan ({delivery.kind}, {delivery.n_needles} "
+                      f"needles{_intracavitary(delivery)}): {status}; {opt.reason}."),
             Table(("structure", "volume (cm³)", "D90 (Gy/fx)", "D90 EQD2 (Gy)", "D98 EQD2 (Gy)", "V100 (%)",
                    "D2cm³ EQD2 (Gy)"), tuple(rows2), "Delivered plan: dose-volume metrics",
                   numeric=(1, 2, 3, 4, 5, 6)),
@@ -476,6 +476,11 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
             blocks.append(Figure(png, "Delivered plan: cumulative DVHs per fraction with the EMBRACE II aim "
                                       "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
     return Section("Dose and coverage", "dose", tuple(blocks))
+
+
+def _intracavitary(delivery: Delivery) -> str:
+    n = len(delivery.roles) - delivery.n_needles
+    return f" and {n} intracavitary channel{'s' if n != 1 else ''}" if n else ""
 
 
 def _runs(schedule: np.ndarray) -> list[tuple[float, float, float]]:
@@ -492,21 +497,23 @@ def _device_section(delivery: Delivery | None) -> Section:
         return Section("Device instructions", "device", (
             Paragraph("No delivery: the plan was ranked only (--no-export)."),))
     rows = []
-    for ch, (n, c) in enumerate(zip(delivery.export.needles, delivery.needles, strict=True), start=1):
-        steps = ("straight needle, no tendon" if n.schedule is None else
+    for ch, (n, role) in enumerate(zip(delivery.export.needles, delivery.roles, strict=True), start=1):
+        steps = ("applicator channel, placed by hand" if n.applicator else "straight needle, no tendon"
+                 if n.schedule is None else
                  "; ".join(f"from {d:.1f} mm: {t:.2f} N, roll {r:.0f}°" for d, t, r in _runs(n.schedule)))
         active = n.dwell_times_s > 0
-        rows.append((str(ch), n.hole_id, c.target, n.design or "plain needle", _f(n.length_mm), steps,
+        rows.append((str(ch), n.hole_id, role, "-" if n.applicator else n.design or "plain needle",
+                     _f(n.length_mm), steps,
                      str(int(active.sum())), _f(float(n.dwell_times_s.sum()))))
     src = delivery.export.source
     return Section("Device instructions", "device", (
         Paragraph("Per needle, in channel order: the template hole, the stylet, how deep to insert (arc length from "
                   "the template plane) and the tension schedule (tendon tension and roll of the bending plane, "
-                  "template frame, 0° = template +x; held from each depth until the next). A needle with no active "
-                  "dwell is inserted but the optimiser left it unloaded. The exact rows are in "
+                  "template frame, 0° = template +x; held from each depth until the next). Only channels that carry "
+                  "dwell time are listed: a needle the optimum leaves empty is not inserted. The exact rows are in "
                   "export/*_device.json and one CSV per needle; the afterloader plan in export/RP_*.dcm. Source: "
                   f"{src.title or src.name}, S_K {src.air_kerma_rate_u:.0f} U (ASSUMED planning strength)."),
-        Table(("channel", "hole", "target", "stylet", "insertion depth (mm)", "schedule", "active dwells",
+        Table(("channel", "hole", "for", "stylet", "insertion depth (mm)", "schedule", "active dwells",
                "total dwell time (s)"), tuple(rows), "Device instructions", numeric=(0, 4, 6, 7)),
     ))
 
@@ -555,7 +562,7 @@ def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Seque
         return scene_figure(scene, needles, max_faces=max_faces)
     dwells = delivery.optimisation.dwells
     on = dwells.times_s > 0
-    holes = [c.hole_id for c in delivery.needles]
+    holes = [n.hole_id for n in delivery.export.needles]
     labels = [f"channel {ch} ({holes[ch - 1]})" if 0 < ch <= len(holes) else f"channel {ch}"
               for ch in dwells.channels[on]]
     return scene_figure(scene, needles, dwell_positions_mm=dwells.positions_mm[on], dwell_times_s=dwells.times_s[on],
@@ -699,6 +706,9 @@ def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: 
         return None, "No dose: the plan was ranked only (--no-export)."
     if not options.comparison:
         return None, ""
+    if delivery.implant is not None:  # the implant arms are the comparison (whole target volume, chosen sets)
+        return None, ("Straight versus steered is compared as whole implants, each arm's needle set and dwell "
+                      "times chosen together: see the section 'Implant'.")
     bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
     comparison = compare_chosen(result, structures, grid, delivery.source, target_roi,
                                 delivery.export.source.air_kerma_rate_u, options.comparison_settings,

@@ -98,6 +98,9 @@ class NeedleExport:
         Breakpoints (depth_mm, tension_n, roll_deg) of the insertion schedule: depth along the path from
         its entry, strictly increasing and >= 0; tension >= 0 N; roll in degrees, taken as given (not
         wrapped). Piecewise linear between breakpoints, constant outside. None: no tendon pulled.
+    applicator : bool
+        True for an intracavitary applicator channel (tandem, ring, ovoid): a channel of the RT Plan placed by
+        hand, not a template needle, so it gets no device instructions.
 
     Raises
     ------
@@ -113,6 +116,7 @@ class NeedleExport:
     dwell_times_s: np.ndarray
     design: str = ""
     schedule: np.ndarray | None = None
+    applicator: bool = False
 
     def __post_init__(self) -> None:
         _check_short_text(self.hole_id, "hole_id", 16)

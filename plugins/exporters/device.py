@@ -65,7 +65,7 @@ def schedule_rows(needle: NeedleExport, step_mm: float) -> np.ndarray:
 
 def _notes(plan: ExportPlan) -> tuple[str, ...]:
     return tuple(f"needle {n.hole_id}: no schedule given, written as a straight needle (0 N)"
-                 for n in plan.needles if n.schedule is None)
+                 for n in plan.needles if n.schedule is None and not n.applicator)
 
 
 def _r(x: float, nd: int) -> float:
@@ -76,9 +76,13 @@ def device_document(plan: ExportPlan, step_mm: float) -> dict[str, object]:
     """Build the JSON document (plain dict, format ``reachplan-device/1``) of the device instructions of ``plan``.
 
     Rows as in :func:`schedule_rows` every ``step_mm`` mm; depths in mm, tensions in N, rolls in degrees.
+    Applicator channels (tandem, ring, ovoids) are placed by hand and get no rows; every needle keeps its channel
+    number of the plan.
     """
     needles = []
     for k, n in enumerate(plan.needles, start=1):
+        if n.applicator:
+            continue
         rows = schedule_rows(n, step_mm)
         needles.append({
             "channel_number": k,
@@ -125,10 +129,14 @@ def export_device_json(plan: ExportPlan, out_dir: Path, options: ExportOptions |
 
 
 def export_device_csv(plan: ExportPlan, out_dir: Path, options: ExportOptions | None = None) -> ExportedFiles:
-    """Write one ``<stem>_needle_<hole>.csv`` per needle into ``out_dir``; errors as in :func:`_paths`."""
+    """Write one ``<stem>_needle_<hole>.csv`` per needle (not per applicator channel) into ``out_dir``.
+
+    Errors as in :func:`_paths`.
+    """
+    needles = [(k, n) for k, n in enumerate(plan.needles, 1) if not n.applicator]
     opts, paths = _paths(plan, out_dir, options, [
-        f"_needle_{base.safe_name(n.hole_id, fallback=f'channel{k}')}.csv" for k, n in enumerate(plan.needles, 1)])
-    for n, path in zip(plan.needles, paths, strict=True):
+        f"_needle_{base.safe_name(n.hole_id, fallback=f'channel{k}')}.csv" for k, n in needles])
+    for (_, n), path in zip(needles, paths, strict=True):
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(COLUMNS)

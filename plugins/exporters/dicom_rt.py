@@ -310,7 +310,8 @@ def build_rtstruct(plan: ExportPlan, ident: Identity, sop_uid: str, now: datetim
         rois += [(r, "") for r in plan.structure_set.rois]
     for number, needle in zip(channel_roi_numbers(plan), plan.needles, strict=True):
         tip_first = Contour(needle.path_mm[::-1], "OPEN_NONPLANAR")
-        rois.append((Roi(number, f"Needle {needle.hole_id}", (tip_first,), interpreted_type="BRACHY_CHANNEL",
+        kind = "Applicator" if needle.applicator else "Needle"
+        rois.append((Roi(number, f"{kind} {needle.hole_id}", (tip_first,), interpreted_type="BRACHY_CHANNEL",
                          color=CHANNEL_COLOR), "AUTOMATIC"))
 
     ssroi, contours, observations = [], [], []

@@ -105,3 +105,19 @@ def test_schedule_validation() -> None:
 def test_device_exporters_pass_their_protocol_check() -> None:
     check_exporter(JSON_EXPORTER)
     check_exporter(CSV_EXPORTER)
+
+
+def test_applicator_channels_get_no_device_rows(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:
+    """A tandem is a channel of the plan placed by hand: the handheld's instructions skip it, and every needle keeps
+    its channel number of the RT Plan."""
+    import dataclasses
+
+    base = make_plan()
+    tandem = dataclasses.replace(base.needles[1], hole_id="Tandem", schedule=None, design="", applicator=True)
+    plan = dataclasses.replace(base, needles=(base.needles[0], tandem, base.needles[2]))
+    JSON_EXPORTER.export(plan, tmp_path)
+    doc = json.loads(next(tmp_path.glob("*_device.json")).read_text())
+    assert [(n["channel_number"], n["hole_id"]) for n in doc["needles"]] == [(1, "A1"), (3, "C3")]
+    written = CSV_EXPORTER.export(plan, tmp_path)
+    assert sorted(f.path.name.split("_needle_")[1] for f in written.files) == ["A1.csv", "C3.csv"]
+    assert not [n for n in written.notes if "Tandem" in n]
