@@ -101,8 +101,8 @@ def test_summary_puts_the_implant_arms_first_and_names_the_per_target_plans() ->
         return SimpleNamespace(plan=plan, reason="")
 
     implant = SimpleNamespace(arms=(arm(5, 84.0, False, 95.0), arm(3, 90.0, True, 79.0)))
-    opt = SimpleNamespace(success=True, target=metrics("HR-CTV", 60.0), aim_met=False, oars=(), reason="")
-    delivery = SimpleNamespace(implant=implant, optimisation=opt, needles=(1, 2))
+    opt = SimpleNamespace(success=True, target=metrics("HR-CTV", 90.0), aim_met=True, oars=(), reason="")
+    delivery = SimpleNamespace(implant=implant, optimisation=opt, kind="implant, straight + steered", n_needles=3)
     text = format_summary(result, delivery=delivery, comparison=_comparison())  # type: ignore[arg-type]
     lines = [ln.strip() for ln in text.splitlines()]
     first = next(i for i, ln in enumerate(lines) if ln.startswith("implant, straight "))
@@ -111,7 +111,8 @@ def test_summary_puts_the_implant_arms_first_and_names_the_per_target_plans() ->
     assert steered.startswith("implant, straight + steered") and re.search(r"\b3 needles\b", steered)
     assert "aims met" in steered and "NOT" not in steered
     assert any(ln.startswith("straight arm (one needle per target)") for ln in lines)
-    assert any(ln.startswith("exported plan (one needle per target)") for ln in lines)
+    exported = next(ln for ln in lines if ln.startswith("exported plan (implant, straight + steered)"))
+    assert re.search(r"\b3 needles\b", exported) and "aims met" in exported and "NOT" not in exported
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:
