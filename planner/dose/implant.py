@@ -116,7 +116,8 @@ class ImplantSettings:
     max_needles : largest needle budget on the Pareto curve.
     extra_after_aims : Pareto points computed beyond the first budget that meets every aim.
     coverage_margin : the LP aims target points at (1 + this) × the D90 prescription.
-    mip_time_limit_s, mip_rel_gap : HiGHS limits of the selection MIP at each needle budget (time 0: none).
+    swap_pool, swap_passes : the selection's local search at each needle budget: swaps with the needles of the
+        largest relaxed ``y`` (this many), for at most this many passes (0: the rounded LP relaxation alone).
     selection_target_points, final_target_points : target points of the selection model and of the dwell-time
         LP on the chosen needles.
     selection_oar_pitch_mm, final_oar_pitch_mm : lattice pitch of the organs' representative points in each.
@@ -140,8 +141,8 @@ class ImplantSettings:
     max_needles: int = 16
     extra_after_aims: int = 1
     coverage_margin: float = 0.03
-    mip_time_limit_s: float = 1.0  # the selection MIP, per budget
-    mip_rel_gap: float = 0.02
+    swap_pool: int = 8
+    swap_passes: int = 3
     segments_per_channel: int = 2
     selection_target_points: int = 200
     final_target_points: int = 800
@@ -645,7 +646,7 @@ def _dose(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, times: np.ndarr
 
 
 #: largest sub-voxel size (mm) at which the final metrics of the target (and GTV) are computed
-SUBVOXEL_MM = 1.0
+SUBVOXEL_MM = 0.7
 
 
 def _supersampled(grid: Grid, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -839,6 +840,9 @@ class _Model:
             add(cols([(i_y, per_hole)], len(holes)), -np.inf, 1.0)
             add(cols([(i_y, np.ones((1, n_y)))], 1), -np.inf, np.inf)  # the budget row (last)
         self.a = sparse.vstack(blocks, format="csr")
+        self.a_csc = self.a.tocsc()
+        y_index = {ch: i for i, ch in enumerate(needles)}
+        self.unit_y = np.array([y_index.get(int(ch), -1) for ch in unit_ch], dtype=int)  # -1: not a needle
         self.lb, self.ub = np.concatenate(lb), np.concatenate(ub)
         self.limit_rows = np.array(limit_rows, dtype=int)
         self.limits = np.array([o.limit_gy for o in organs])
@@ -847,15 +851,14 @@ class _Model:
         self.needles, self.hole_of = list(needles), list(hole_of)
         self.settings = settings
 
-    def solve(self, budget: int | None = None, integral: bool = False, time_limit_s: float = 0.0,
-              kappa: np.ndarray | None = None, only: Sequence[int] | None = None,
-              cutoff: float | None = None) -> sopt.OptimizeResult:
-        """Solve with at most ``budget`` needles (None: no budget), binaries when ``integral``.
+    def solve(self, budget: int | None = None, kappa: np.ndarray | None = None,
+              only: Sequence[int] | None = None) -> sopt.OptimizeResult:
+        """Solve the LP (the needle binaries relaxed to [0, 1]) with at most ``budget`` needles (None: no budget).
 
         ``kappa`` (per organ): each organ's mean-tail-dose row may reach ``kappa`` × its limit (the calibration of
         that row to D2cm³, see :func:`_calibrate`). ``only``: the needles (indices into ``needles``) used (``y`` = 1),
-        the others held empty. ``cutoff``: an incumbent's objective, added as the row ``c·x <= cutoff`` (branch and
-        bound then only looks for better selections; infeasible means none is better).
+        the others held empty: the LP is then solved on their columns alone (and the intracavitary channels'), and
+        ``x`` returned in the full model's columns.
         """
         ub = self.ub.copy()
         if kappa is not None and len(self.limit_rows):
@@ -865,22 +868,24 @@ class _Model:
         lo = np.zeros(self.n)
         hi = np.full(self.n, np.inf)
         hi[self.i_y:self.i_u] = 1.0
+        cols = np.arange(self.n)
         if only is not None:
-            hi[self.i_y:self.i_u] = 0.0
-            hi[self.i_y + np.asarray(only, dtype=int)] = 1.0
-            lo[self.i_y + np.asarray(only, dtype=int)] = 1.0
-        integrality = np.zeros(self.n)
-        options: dict[str, object] = {"disp": False}
-        if integral and self.n_y:
-            integrality[self.i_y:self.i_u] = 1
-            options["mip_rel_gap"] = self.settings.mip_rel_gap
-            if time_limit_s > 0:
-                options["time_limit"] = time_limit_s
-        cons = [sopt.LinearConstraint(self.a, self.lb, ub)]
-        if cutoff is not None:
-            cons.append(sopt.LinearConstraint(self.c[None, :], -np.inf, cutoff))
-        return sopt.milp(self.c, constraints=cons, integrality=integrality, bounds=sopt.Bounds(lo, hi),
-                         options=options)
+            on = np.zeros(self.n_y, dtype=bool)
+            on[np.asarray(only, dtype=int)] = True
+            lo[self.i_y:self.i_u] = on
+            keep = np.ones(self.n, dtype=bool)
+            keep[:self.n_u] = self.unit_y < 0
+            keep[:self.n_u][self.unit_y >= 0] = on[self.unit_y[self.unit_y >= 0]]
+            keep[self.i_y:self.i_u] = on
+            cols = np.flatnonzero(keep)
+        a = self.a if only is None else self.a_csc[:, cols]
+        res = sopt.milp(self.c[cols], constraints=[sopt.LinearConstraint(a, self.lb, ub)],
+                        bounds=sopt.Bounds(lo[cols], hi[cols]), options={"disp": False})
+        if only is not None and res.x is not None:
+            x = np.zeros(self.n)
+            x[cols] = res.x
+            res.x = x
+        return res
 
     def rounded(self, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
                 keep: Sequence[int] = ()) -> sopt.OptimizeResult | None:
@@ -889,7 +894,7 @@ class _Model:
         The needles ``keep`` (an incumbent's), then those with the largest relaxed ``y``, one per hole; their best
         loading (an LP). None when that fails.
         """
-        picked = list(dict.fromkeys(int(i) for i in keep))
+        picked = list(dict.fromkeys(int(i) for i in keep))[:budget]
         holes = {self.hole_of[i] for i in picked}
         if relaxed.x is not None:
             y = relaxed.x[self.i_y:self.i_u]
@@ -899,8 +904,50 @@ class _Model:
                 if self.hole_of[int(i)] not in holes:
                     picked.append(int(i))
                     holes.add(self.hole_of[int(i)])
-        res = self.solve(budget, kappa=kappa, only=picked[:budget])
+        res = self.solve(budget, kappa=kappa, only=picked)
         return res if res.x is not None else None
+
+    def improved(self, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
+                 start: sopt.OptimizeResult) -> tuple[sopt.OptimizeResult, int]:
+        """Improve the selection ``start`` by swaps (a deterministic local search); return it and the LPs solved.
+
+        Moves: add a needle (when under ``budget``) or swap one for another, each drawn from the ``swap_pool``
+        needles with the largest relaxed ``y`` (``relaxed``, the LP relaxation at this budget); the best move is
+        taken while it lowers the objective, for at most ``swap_passes`` passes. Every move is a feasible selection,
+        so the objective never rises; the LP relaxation still bounds the optimum from below.
+        """
+        best = start
+        n_lp = 0
+        if relaxed.x is None or self.settings.swap_passes == 0:
+            return best, n_lp
+        y = relaxed.x[self.i_y:self.i_u]
+        pool = [int(i) for i in np.argsort(-y, kind="stable")[:self.settings.swap_pool] if y[i] > 1e-6]
+        tried: set[frozenset[int]] = set()
+        for _ in range(self.settings.swap_passes):
+            sel = [int(i) for i in np.flatnonzero(best.x[self.i_y:self.i_u] > 0.5)]
+            tried.add(frozenset(sel))
+            moves = []
+            for j in pool:
+                if j in sel:
+                    continue
+                outs: list[int | None] = [None] if len(sel) < budget else []
+                for out in [*outs, *sel]:
+                    rest = [i for i in sel if i != out]
+                    if self.hole_of[j] not in {self.hole_of[i] for i in rest}:
+                        moves.append([*rest, j])
+            step = best
+            for move in moves:
+                if frozenset(move) in tried:
+                    continue
+                tried.add(frozenset(move))
+                res = self.solve(budget, kappa=kappa, only=move)
+                n_lp += 1
+                if res.x is not None and float(res.fun) < float(step.fun) - 1e-9 * max(1.0, abs(float(step.fun))):
+                    step = res
+            if step is best:
+                break
+            best = step
+        return best, n_lp
 
     def dwell_times(self, x: np.ndarray) -> np.ndarray:
         """(D,) dwell times (s) of a solution ``x``."""
@@ -1160,36 +1207,24 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     planned = {frozenset(id(c) for c in b.selected): b.plan for b in (subset.budgets if subset else ()) if b.new}
 
     def select(k: int, keep: Sequence[int]) -> tuple[np.ndarray | None, float, float | None, str]:
-        """Select at most ``k`` needles: return (solution, objective, proven lower bound, how it ended)."""
-        nonlocal kappa
-        x, value, lower, status = None, float("inf"), None, "no feasible selection"
-        for _ in range(2):  # lazy organ rows: the exact D2cm³ near the implant
-            # incumbents: the LP relaxation rounded with the last budget's needles kept; the subset arm's selection
-            relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
-            inc = model.rounded(k, kappa, relaxed, keep)
-            if k in given:
-                other = model.rounded(k, kappa, relaxed, given[k])
-                if other is not None and (inc is None or float(other.fun) < float(inc.fun)):
-                    inc = other
-            res = model.solve(k, integral=True, time_limit_s=settings.mip_time_limit_s, kappa=kappa,
-                              cutoff=None if inc is None else float(inc.fun) + 1e-9 * max(1.0, abs(float(inc.fun))))
-            dual = getattr(res, "mip_dual_bound", None)
-            lower = max([float(v) for v in (dual, relaxed.fun) if v is not None and np.isfinite(v)], default=None)
-            if res.x is not None and (inc is None or float(res.fun) <= float(inc.fun)):
-                x, value, status = res.x, float(res.fun), f"HiGHS: {res.message}"
-            elif inc is not None:
-                x, value = inc.x, float(inc.fun)
-                if res.status == 2:  # nothing better than the incumbent exists
-                    lower, status = value, "HiGHS proved the rounded LP relaxation optimal"
-                else:
-                    status = f"rounded LP relaxation (HiGHS: {res.message})"
-            if x is None:
-                break
-            d2 = _d2cc(prob, positions, directions, model.dwell_times(x), vox_cc)
-            if not np.any(d2 > limits * (1 + 0.02)):
-                break  # within 2 %: the dwell-time LP calibrates its own rows
-            kappa = _calibrate(kappa, d2, model.tail_means(x), limits)
-        return x, value, lower, status
+        """Select at most ``k`` needles: return (solution, objective, lower bound (LP relaxation), how it ended).
+
+        Starts: the LP relaxation rounded with the last budget's needles kept (so the objective never rises with
+        ``k``: every budget's model has the same organ rows), and the subset arm's selection; then swaps.
+        """
+        relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
+        starts = [model.rounded(k, kappa, relaxed, keep), model.rounded(k, kappa, relaxed, given.get(k, ()))]
+        if keep:  # the last budget's selection itself (a needle added to it costs its invasiveness)
+            last = model.solve(k, kappa=kappa, only=keep)
+            starts.append(last if last.x is not None else None)
+        inc = min((r for r in starts if r is not None), key=lambda r: float(r.fun), default=None)
+        lower = float(relaxed.fun) if relaxed.x is not None else None
+        if inc is None:
+            return None, float("inf"), lower, "no feasible selection (the rounded LP relaxation failed)"
+        best, n_lp = model.improved(k, kappa, relaxed, inc)
+        status = (f"rounded LP relaxation improved by {n_lp} swap LPs" if best is not inc else
+                  f"rounded LP relaxation, no better swap in {n_lp} LPs")
+        return best.x, float(best.fun), lower, status
 
     intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
     budgets: list[BudgetResult] = []
