@@ -147,7 +147,7 @@ class ImplantSettings:
     selection_target_points: int = 200
     final_target_points: int = 800
     selection_oar_pitch_mm: float = 3.0
-    final_oar_pitch_mm: float = 2.0
+    final_oar_pitch_mm: float = 3.0
     oar_sample_cc: float = 4.0
     min_dwell_time_s: float = 0.1
     oar_eval_radius_mm: float = 40.0
@@ -1267,22 +1267,69 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
             break  # nothing new twice, or the selection reaches the bound of every candidate loaded
     if subset is not None:  # its implants are implants of this arm too
         plans += list(subset.plans)
-    pareto_plans = _pareto(plans)
-    pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
     record: dict[str, object] = {
-        "model": "needle selection: HiGHS MIP (scipy.optimize.milp) on sampled target points and organ mean-tail-dose "
-                 "rows, dwells in blocks; dwell times: LP on every dwell of the selection",
+        "model": "needle selection: LP relaxation (HiGHS through scipy.optimize.milp) on sampled target points and "
+                 "organ mean-tail-dose rows, dwells in blocks, rounded and improved by swaps; dwell times: LP on every "
+                 "dwell of the selection",
         "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
         "budgets": [b.to_json() for b in budgets]}
+    return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record)
+
+
+def _arm(name: str, n_candidates: int, plans: Sequence[ImplantPlan], seconds: float,
+         budgets: tuple[BudgetResult, ...], record: dict[str, object]) -> ImplantArm:
+    """Return an arm from its plans: the Pareto curve and the plan chosen from it (:func:`plan_implant`)."""
+    pareto_plans = _pareto(plans)
+    pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
     if not pareto_plans:
-        return ImplantArm(name, len(needles), (), None, time.perf_counter() - t0,
-                          "no needle budget gave a plan (every MIP or LP failed)", tuple(budgets), record)
+        return ImplantArm(name, n_candidates, (), None, seconds, "no needle budget gave a plan (every LP failed)",
+                          budgets, record)
     meeting = [p for p in pareto_plans if p.aims_met]
     chosen = (min(meeting, key=lambda p: (p.n_needles, -p.target.d90_eqd2_gy)) if meeting
               else max(pareto_plans, key=lambda p: (p.target.d90_eqd2_gy, -p.n_needles)))
     reason = "" if meeting else "no needle budget meets every aim; the plan with the highest D90 is kept"
-    return ImplantArm(name, len(needles), pareto, chosen, time.perf_counter() - t0, reason, tuple(budgets), record,
-                      tuple(pareto_plans))
+    return ImplantArm(name, n_candidates, pareto, chosen, seconds, reason, budgets, record, tuple(pareto_plans))
+
+
+def with_subset(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
+    """Return ``arm`` with the implants of ``subset`` (an arm planned on a subset of its candidates) added.
+
+    Every implant of the subset arm is one of this arm's too, so the result is never worse than ``subset``: its
+    Pareto curve and chosen plan are taken over both arms' plans (what ``plan_implant(..., subset=...)`` does
+    at the end, for two arms planned independently, e.g. at the same time).
+    """
+    return _arm(arm.name, arm.n_candidates, [*arm.plans, *subset.plans], arm.seconds, arm.budgets, arm.selection)
+
+
+def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningStructures, kernel: Tg43Kernel,
+              air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
+              gtv: Structure | None = None, workers: int = 2) -> tuple[ImplantArm, ...]:
+    """Plan several arms (:func:`plan_implant`, each on its own), in up to ``workers`` threads.
+
+    HiGHS and the compiled dose kernels release the GIL, so two arms run on two cores. Threads only when the
+    compiled kernels' threading layer allows calls from several threads at once (``omp`` or ``tbb``; numba's
+    ``workqueue`` does not); else one after the other, with the same result (the arms do not share state).
+    """
+    def one(arm: tuple[str, Sequence[Channel]]) -> ImplantArm:
+        return plan_implant(arm[0], arm[1], planning, kernel, air_kerma_strength_u, aims, settings, gtv=gtv)
+
+    if workers < 2 or len(arms) < 2 or not _threads_safe(kernel):
+        return tuple(one(a) for a in arms)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(workers, len(arms))) as pool:
+        return tuple(pool.map(one, arms))
+
+
+def _threads_safe(kernel: Tg43Kernel) -> bool:
+    """Return True when numba's threading layer runs parallel kernels called from several threads at once."""
+    import numba
+
+    kernel.compiled_dose(np.zeros((1, 3)), np.ones((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.ones(1))  # loads it
+    try:
+        return str(numba.threading_layer()) in ("omp", "tbb")
+    except ValueError:  # no parallel kernel has run
+        return False
 
 
 def _pareto(plans: Sequence[ImplantPlan]) -> list[ImplantPlan]:
