@@ -3,8 +3,9 @@
 Candidates (:func:`needle_candidates`): every template hole × (straight, and every stylet design × tension
 schedule of the shape bank × roll) whose path passes through the HR-CTV and keeps ``clearance_margin_mm``
 from every organ at risk. Paths are screened on Euclidean distance maps of the planning grid (target grown by
-the dwell margin; organs at risk), and the kept ones are confirmed with the FCL clearance of
-:func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels (tandem, ring, ovoids) are
+the dwell margin; organs at risk), and the kept ones are confirmed with the organs' distance fields (bounds on the
+clearance) and, for a path they cannot prove farther than the margin plus :data:`CONFIRM_BAND_MM` from every organ,
+with the FCL clearance of :func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels (tandem, ring, ovoids) are
 passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are always available and not counted
 as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel inside the HR-CTV grown
 by ``dwell_margin_mm``.
@@ -95,6 +96,9 @@ from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ShapeBank, place
 
 NEEDLE_KINDS = ("straight", "steered")
+#: a candidate's clearance is confirmed with FCL when an organ's distance field cannot prove it beyond the
+#: clearance margin plus this (mm); beyond, the candidate is clear and its clearance is the field's estimate
+CONFIRM_BAND_MM = 1.0
 
 
 @dataclass(frozen=True)
@@ -180,7 +184,8 @@ class Channel:
     dwell_positions_mm : (d, 3) float, mm, LPS, deepest first.
     hole_distance_mm : distance of the hole from the template centre (0 for intracavitary channels).
     tissue_length_mm : needle length beyond the template plane.
-    clearance_mm : smallest surface distance to an organ at risk (FCL).
+    clearance_mm : smallest surface distance to an organ at risk (FCL within the margin plus
+        :data:`CONFIRM_BAND_MM`; beyond, the organs' distance-field estimate, within its error bound).
     design : stylet preset ("" for a straight needle).
     schedule : tension and roll along the insertion (None for a straight needle).
     """
@@ -335,11 +340,18 @@ def needle_candidates(
     s_axis = np.arange(0.0, max_depth_mm + 1e-9, 1.0)
     axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
 
+    band_mm = settings.clearance_margin_mm + CONFIRM_BAND_MM
+
     def confirm(path: np.ndarray) -> float | None:
-        # an organ's distance field bounds the clearance from above: a path it proves too close fails FCL too
-        if any(o.field is not None and o.field.path_clearance(path, needle_radius_mm)[2] < settings.clearance_margin_mm
-               for o in organs):
+        # an organ's distance field bounds the clearance: a path it proves too close fails FCL too; one it proves
+        # farther than the band from every organ (and not inside one) is clear, its clearance the fields' estimate
+        bounds = [None if o.field is None else o.field.path_clearance(path, needle_radius_mm) for o in organs]
+        if any(b is not None and b[2] < settings.clearance_margin_mm for b in bounds):
             return None
+        if all(b is not None and b[1] > band_mm for b in bounds):
+            if any(o.contains(path[0]) for o in organs):
+                return None
+            return min((b[0] for b in bounds if b is not None), default=float("inf"))
         checks = check_path(path, needle_radius_mm, tuple(organs)) if organs else ()  # containment cached per organ
         clearance = min((c.clearance_mm for c in checks), default=float("inf"))
         if any(c.collides for c in checks) or clearance < settings.clearance_margin_mm:
