@@ -5,10 +5,10 @@ schedule of the shape bank × roll) whose path passes through the HR-CTV and kee
 from every organ at risk. Paths are screened on Euclidean distance maps of the planning grid (target grown by
 the dwell margin; organs at risk), and the kept ones are confirmed with the organs' distance fields (bounds on the
 clearance) and, for a path they cannot prove farther than the margin plus :data:`CONFIRM_BAND_MM` from every organ,
-with the FCL clearance of :func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels (tandem, ring, ovoids) are
-passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are always available and not counted
-as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel inside the HR-CTV grown
-by ``dwell_margin_mm``.
+with the FCL clearance of :func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels
+(tandem, ring, ovoids) are passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are always
+available and not counted as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel
+inside the HR-CTV grown by ``dwell_margin_mm``.
 
 Choice of needles and dwell times (:func:`plan_implant`), for each needle budget K = 1, 2, ... (K = 0 too when
 an intracavitary channel is given), meaning "at most K needles":
@@ -28,18 +28,22 @@ constraint / HIPO's dwell-time gradient restriction, Mosleh-Shirazi et al., J Co
 Objective: mean underdose (in units of the prescription) + ``time_weight`` × mean target dose (shorter plans) +
 ``invasiveness_weight`` × each used needle's normalised hole distance and tissue length ("least invasive").
 
-1. **Needle selection: a mixed-integer programme** (HiGHS through ``scipy.optimize.milp``): each channel's dwells
-   in ``segments_per_channel`` blocks of equal time, sampled target points; binary ``y_n`` per needle with each
-   block's time ``<= M y_n`` (``M``: the time at which the block alone brings every target point to ``P``, or fills
-   an organ's row), one needle per template hole, ``Σ y_n <= K``. Incumbents: the LP relaxation rounded (the
-   previous budget's needles kept, so the objective never rises with K) and, for the straight + steered arm, the
-   straight arm's selection at K (``subset``); branch and bound then runs for ``mip_time_limit_s`` with the
-   incumbent's objective as a cutoff. The bound reported per budget is HiGHS's dual bound or the LP
-   relaxation's, whichever is higher, and the relative gap to the selection kept (:class:`BudgetResult`; plan.json
-   ``selection``). The big-M relaxation is weak: gaps of 0.5-0.99 are typical on the clinical case, an honest
-   statement that the selection is not proven optimal. Exact D2cm³ of the selection's loading is checked on the
-   organ's 20 cm³ nearest to it, and the organ rows tightened and the MIP solved again when it is over by 2 %.
-   The LP with every candidate loaded bounds every budget (``selection.all_candidates_objective``).
+1. **Needle selection: a mixed-integer programme solved by a deterministic heuristic with a bound.** The model:
+   each channel's dwells in ``segments_per_channel`` blocks of equal time, sampled target points; binary ``y_n``
+   per needle with each block's time ``<= M y_n`` (``M``: the time at which the block alone brings every target
+   point to ``P``, or fills an organ's row), one needle per template hole, ``Σ y_n <= K``. Its LP relaxation
+   (HiGHS dual simplex through ``scipy.optimize.milp``) bounds every selection of K needles from below. Starts:
+   the relaxation rounded (its largest ``y`` first) with and without the previous budget's needles, that
+   selection itself (so the objective never rises with K), and the subset arm's selection at K when given; then
+   a local search (:meth:`_Model.improved`): add a needle or swap one for another of the ``swap_pool`` needles
+   with the largest relaxed ``y``, the best move while it lowers the objective, each move an LP on the chosen
+   needles' columns alone. No wall-clock limit anywhere: the same input gives the same selection on a quiet or
+   a loaded machine. (Before, HiGHS's branch and bound ran for 1 s per budget and seldom left the root node:
+   its selections depended on the load and were worse than this search's.) The bound reported per budget is the
+   LP relaxation's and the relative gap to the selection kept (:class:`BudgetResult`; plan.json ``selection``):
+   the big-M relaxation is weak, so gaps of 0.4-0.95 on the clinical case say that the selection is not proven
+   optimal, not that it is that far from it. The LP with every candidate loaded, its organ rows calibrated once,
+   bounds every budget (``selection.all_candidates_objective``); every budget's model has those rows.
 2. **Dwell times on the chosen channels: a linear programme** over every dwell (no blocks), its organ rows
    calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under ``min_dwell_time_s`` are dropped;
    a needle left with fewer than ``min_dwells`` loaded dwells is not part of the implant: it is dropped and the
@@ -476,9 +480,9 @@ class ImplantPlan:
     """One implant: its loaded channels, dwell times (per fraction) and metrics (EQD2 totals in the metrics).
 
     ``dwells.channels`` are 1-based indices into ``channels``. ``scale`` < 1 tells that the LP times were
-    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap HiGHS proved for the
-    selection MIP of the budget that gave this plan (None when it proved none); ``mip_status`` says which budget
-    and how the MIP ended.
+    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap between the selection of the
+    budget that gave this plan and that budget's LP relaxation (None when there is none); ``mip_status`` says
+    which budget and how the selection was made.
     """
 
     channels: tuple[Channel, ...]
@@ -536,7 +540,7 @@ class ParetoPoint:
 class ImplantArm:
     """One arm (e.g. straight only, straight + steered): its candidates, Pareto curve and chosen plan.
 
-    ``budgets``: the selection MIP at each needle budget tried; ``selection``: how the selection was made and the
+    ``budgets``: the needle selection at each budget tried; ``selection``: how the selection was made and the
     bound of every candidate loaded (plan.json ``selection``); ``plans``: the implant of each Pareto point.
     """
 
@@ -1041,10 +1045,11 @@ def _aims_met(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequ
 
 @dataclass(frozen=True)
 class BudgetResult:
-    """The selection MIP at one needle budget ("at most ``budget`` needles").
+    """The needle selection at one budget ("at most ``budget`` needles").
 
-    ``objective``: the model's value at the selection kept (the incumbent of a smaller budget when HiGHS ended
-    worse); ``dual_bound`` and ``mip_gap``: what HiGHS proves (None when it proved nothing); ``n_needles``: the
+    ``objective``: the selection model's value at the selection kept; ``dual_bound``: the LP relaxation's (a
+    lower bound of every selection of ``budget`` needles), ``mip_gap``: the relative gap between the two (None when
+    the relaxation failed); ``n_needles``: the
     needles selected; ``new``: False when the selection equals a smaller budget's (no new Pareto point).
     """
 
@@ -1140,7 +1145,7 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     aims : EMBRACE II by default.
     gtv : the GTV mask on the planning grid, when there is one (its D98 is then an aim).
     subset : an arm planned on a subset of ``channels`` (the straight arm for the straight + steered one): its
-        selection at each budget is an incumbent of this arm's MIP there, and its plans are implants of this arm
+        selection at each budget is a start of this arm's search there, and its plans are implants of this arm
         too, so this arm is never worse.
 
     Returns
