@@ -1044,7 +1044,7 @@ def plan_implants(
     (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
     of ``config`` with the screening model of ``models``.
     """
-    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_implant
+    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_arms, with_subset
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
     settings = settings or ImplantSettings()
@@ -1056,8 +1056,10 @@ def plan_implants(
                               np.array([h.distance_mm for h in holes]), scene.patient_from_template, planning,
                               scene.organs, config.needle_radius_mm, settings, banks, config.max_depth_mm)
     kernel = Tg43Kernel(source)
-    straight = plan_implant("straight", [*[c for c in cands if not c.steered], *intracavitary], planning, kernel,
-                            air_kerma_u, settings=settings, gtv=gtv)
-    steered = plan_implant("steered", [*cands, *intracavitary], planning, kernel, air_kerma_u, settings=settings,
-                           gtv=gtv, subset=straight)  # its candidates include the straight ones: never worse
+    # the two arms at once, on two cores; the steered arm's candidates include the straight ones, so the straight
+    # arm's implants are its too: never worse
+    straight, steered = plan_arms([("straight", [*[c for c in cands if not c.steered], *intracavitary]),
+                                   ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
+                                  settings=settings, gtv=gtv)
+    steered = with_subset(steered, straight)
     return ImplantComparison(straight, steered, (*cands, *intracavitary))

@@ -2,8 +2,9 @@
 
 Times, on the built-in clinical case (seed 0, CT grid; the tandem an obstacle for needles and an intracavitary
 channel, as in ``reachplan demo``): the candidate needles for the HR-CTV, then each arm's Pareto curve of needle
-count against HR-CTV D90 and its chosen implant (:func:`reachplan.planner.pipeline.plan_implants`); the target
-is both arms in at most 20 s on a quiet 2-core machine (the CSV also gives the CPU seconds and the load, since
+count against HR-CTV D90 and its chosen implant (:func:`reachplan.planner.pipeline.plan_implants`; the two arms
+run at once, each on a core, so ``seconds_arm`` overlap); the target is both arms in at most 20 s on a quiet
+2-core machine (the CSV also gives the CPU seconds and the load, since
 the wall time on a shared machine is not that). It also recomputes each chosen implant's dose with
 ``dose_on_grid`` on a grid of half the in-plane pixel (the HR-CTV re-rasterised from its contours) and records
 the D90 difference.

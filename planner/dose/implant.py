@@ -3,11 +3,12 @@
 Candidates (:func:`needle_candidates`): every template hole × (straight, and every stylet design × tension
 schedule of the shape bank × roll) whose path passes through the HR-CTV and keeps ``clearance_margin_mm``
 from every organ at risk. Paths are screened on Euclidean distance maps of the planning grid (target grown by
-the dwell margin; organs at risk), and the kept ones are confirmed with the FCL clearance of
-:func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels (tandem, ring, ovoids) are
-passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are always available and not counted
-as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel inside the HR-CTV grown
-by ``dwell_margin_mm``.
+the dwell margin; organs at risk), and the kept ones are confirmed with the organs' distance fields (bounds on the
+clearance) and, for a path they cannot prove farther than the margin plus :data:`CONFIRM_BAND_MM` from every organ,
+with the FCL clearance of :func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels
+(tandem, ring, ovoids) are passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are always
+available and not counted as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel
+inside the HR-CTV grown by ``dwell_margin_mm``.
 
 Choice of needles and dwell times (:func:`plan_implant`), for each needle budget K = 1, 2, ... (K = 0 too when
 an intracavitary channel is given), meaning "at most K needles":
@@ -27,18 +28,22 @@ constraint / HIPO's dwell-time gradient restriction, Mosleh-Shirazi et al., J Co
 Objective: mean underdose (in units of the prescription) + ``time_weight`` × mean target dose (shorter plans) +
 ``invasiveness_weight`` × each used needle's normalised hole distance and tissue length ("least invasive").
 
-1. **Needle selection: a mixed-integer programme** (HiGHS through ``scipy.optimize.milp``): each channel's dwells
-   in ``segments_per_channel`` blocks of equal time, sampled target points; binary ``y_n`` per needle with each
-   block's time ``<= M y_n`` (``M``: the time at which the block alone brings every target point to ``P``, or fills
-   an organ's row), one needle per template hole, ``Σ y_n <= K``. Incumbents: the LP relaxation rounded (the
-   previous budget's needles kept, so the objective never rises with K) and, for the straight + steered arm, the
-   straight arm's selection at K (``subset``); branch and bound then runs for ``mip_time_limit_s`` with the
-   incumbent's objective as a cutoff. The bound reported per budget is HiGHS's dual bound or the LP
-   relaxation's, whichever is higher, and the relative gap to the selection kept (:class:`BudgetResult`; plan.json
-   ``selection``). The big-M relaxation is weak: gaps of 0.5-0.99 are typical on the clinical case, an honest
-   statement that the selection is not proven optimal. Exact D2cm³ of the selection's loading is checked on the
-   organ's 20 cm³ nearest to it, and the organ rows tightened and the MIP solved again when it is over by 2 %.
-   The LP with every candidate loaded bounds every budget (``selection.all_candidates_objective``).
+1. **Needle selection: a mixed-integer programme solved by a deterministic heuristic with a bound.** The model:
+   each channel's dwells in ``segments_per_channel`` blocks of equal time, sampled target points; binary ``y_n``
+   per needle with each block's time ``<= M y_n`` (``M``: the time at which the block alone brings every target
+   point to ``P``, or fills an organ's row), one needle per template hole, ``Σ y_n <= K``. Its LP relaxation
+   (HiGHS dual simplex through ``scipy.optimize.milp``) bounds every selection of K needles from below. Starts:
+   the relaxation rounded (its largest ``y`` first) with and without the previous budget's needles, that
+   selection itself (so the objective never rises with K), and the subset arm's selection at K when given; then
+   a local search (:meth:`_Model.improved`): add a needle or swap one for another of the ``swap_pool`` needles
+   with the largest relaxed ``y``, the best move while it lowers the objective, each move an LP on the chosen
+   needles' columns alone. No wall-clock limit anywhere: the same input gives the same selection on a quiet or
+   a loaded machine. (Before, HiGHS's branch and bound ran for 1 s per budget and seldom left the root node:
+   its selections depended on the load and were worse than this search's.) The bound reported per budget is the
+   LP relaxation's and the relative gap to the selection kept (:class:`BudgetResult`; plan.json ``selection``):
+   the big-M relaxation is weak, so gaps of 0.4-0.95 on the clinical case say that the selection is not proven
+   optimal, not that it is that far from it. The LP with every candidate loaded, its organ rows calibrated once,
+   bounds every budget (``selection.all_candidates_objective``); every budget's model has those rows.
 2. **Dwell times on the chosen channels: a linear programme** over every dwell (no blocks), its organ rows
    calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under ``min_dwell_time_s`` are dropped;
    a needle left with fewer than ``min_dwells`` loaded dwells is not part of the implant: it is dropped and the
@@ -95,6 +100,9 @@ from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ShapeBank, place
 
 NEEDLE_KINDS = ("straight", "steered")
+#: a candidate's clearance is confirmed with FCL when an organ's distance field cannot prove it beyond the
+#: clearance margin plus this (mm); beyond, the candidate is clear and its clearance is the field's estimate
+CONFIRM_BAND_MM = 1.0
 
 
 @dataclass(frozen=True)
@@ -116,7 +124,8 @@ class ImplantSettings:
     max_needles : largest needle budget on the Pareto curve.
     extra_after_aims : Pareto points computed beyond the first budget that meets every aim.
     coverage_margin : the LP aims target points at (1 + this) × the D90 prescription.
-    mip_time_limit_s, mip_rel_gap : HiGHS limits of the selection MIP at each needle budget (time 0: none).
+    swap_pool, swap_passes : the selection's local search at each needle budget: swaps with the needles of the
+        largest relaxed ``y`` (this many), for at most this many passes (0: the rounded LP relaxation alone).
     selection_target_points, final_target_points : target points of the selection model and of the dwell-time
         LP on the chosen needles.
     selection_oar_pitch_mm, final_oar_pitch_mm : lattice pitch of the organs' representative points in each.
@@ -140,13 +149,13 @@ class ImplantSettings:
     max_needles: int = 16
     extra_after_aims: int = 1
     coverage_margin: float = 0.03
-    mip_time_limit_s: float = 1.0  # the selection MIP, per budget
-    mip_rel_gap: float = 0.02
+    swap_pool: int = 8
+    swap_passes: int = 3
     segments_per_channel: int = 2
     selection_target_points: int = 200
     final_target_points: int = 800
     selection_oar_pitch_mm: float = 3.0
-    final_oar_pitch_mm: float = 2.0
+    final_oar_pitch_mm: float = 3.0
     oar_sample_cc: float = 4.0
     min_dwell_time_s: float = 0.1
     oar_eval_radius_mm: float = 40.0
@@ -179,7 +188,8 @@ class Channel:
     dwell_positions_mm : (d, 3) float, mm, LPS, deepest first.
     hole_distance_mm : distance of the hole from the template centre (0 for intracavitary channels).
     tissue_length_mm : needle length beyond the template plane.
-    clearance_mm : smallest surface distance to an organ at risk (FCL).
+    clearance_mm : smallest surface distance to an organ at risk (FCL within the margin plus
+        :data:`CONFIRM_BAND_MM`; beyond, the organs' distance-field estimate, within its error bound).
     design : stylet preset ("" for a straight needle).
     schedule : tension and roll along the insertion (None for a straight needle).
     """
@@ -334,11 +344,18 @@ def needle_candidates(
     s_axis = np.arange(0.0, max_depth_mm + 1e-9, 1.0)
     axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
 
+    band_mm = settings.clearance_margin_mm + CONFIRM_BAND_MM
+
     def confirm(path: np.ndarray) -> float | None:
-        # an organ's distance field bounds the clearance from above: a path it proves too close fails FCL too
-        if any(o.field is not None and o.field.path_clearance(path, needle_radius_mm)[2] < settings.clearance_margin_mm
-               for o in organs):
+        # an organ's distance field bounds the clearance: a path it proves too close fails FCL too; one it proves
+        # farther than the band from every organ (and not inside one) is clear, its clearance the fields' estimate
+        bounds = [None if o.field is None else o.field.path_clearance(path, needle_radius_mm) for o in organs]
+        if any(b is not None and b[2] < settings.clearance_margin_mm for b in bounds):
             return None
+        if all(b is not None and b[1] > band_mm for b in bounds):
+            if any(o.contains(path[0]) for o in organs):
+                return None
+            return min((b[0] for b in bounds if b is not None), default=float("inf"))
         checks = check_path(path, needle_radius_mm, tuple(organs)) if organs else ()  # containment cached per organ
         clearance = min((c.clearance_mm for c in checks), default=float("inf"))
         if any(c.collides for c in checks) or clearance < settings.clearance_margin_mm:
@@ -463,9 +480,9 @@ class ImplantPlan:
     """One implant: its loaded channels, dwell times (per fraction) and metrics (EQD2 totals in the metrics).
 
     ``dwells.channels`` are 1-based indices into ``channels``. ``scale`` < 1 tells that the LP times were
-    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap HiGHS proved for the
-    selection MIP of the budget that gave this plan (None when it proved none); ``mip_status`` says which budget
-    and how the MIP ended.
+    scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap between the selection of the
+    budget that gave this plan and that budget's LP relaxation (None when there is none); ``mip_status`` says
+    which budget and how the selection was made.
     """
 
     channels: tuple[Channel, ...]
@@ -523,7 +540,7 @@ class ParetoPoint:
 class ImplantArm:
     """One arm (e.g. straight only, straight + steered): its candidates, Pareto curve and chosen plan.
 
-    ``budgets``: the selection MIP at each needle budget tried; ``selection``: how the selection was made and the
+    ``budgets``: the needle selection at each budget tried; ``selection``: how the selection was made and the
     bound of every candidate loaded (plan.json ``selection``); ``plans``: the implant of each Pareto point.
     """
 
@@ -645,7 +662,7 @@ def _dose(points: np.ndarray, pos: np.ndarray, dirs: np.ndarray, times: np.ndarr
 
 
 #: largest sub-voxel size (mm) at which the final metrics of the target (and GTV) are computed
-SUBVOXEL_MM = 1.0
+SUBVOXEL_MM = 0.7
 
 
 def _supersampled(grid: Grid, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -839,6 +856,9 @@ class _Model:
             add(cols([(i_y, per_hole)], len(holes)), -np.inf, 1.0)
             add(cols([(i_y, np.ones((1, n_y)))], 1), -np.inf, np.inf)  # the budget row (last)
         self.a = sparse.vstack(blocks, format="csr")
+        self.a_csc = self.a.tocsc()
+        y_index = {ch: i for i, ch in enumerate(needles)}
+        self.unit_y = np.array([y_index.get(int(ch), -1) for ch in unit_ch], dtype=int)  # -1: not a needle
         self.lb, self.ub = np.concatenate(lb), np.concatenate(ub)
         self.limit_rows = np.array(limit_rows, dtype=int)
         self.limits = np.array([o.limit_gy for o in organs])
@@ -847,15 +867,14 @@ class _Model:
         self.needles, self.hole_of = list(needles), list(hole_of)
         self.settings = settings
 
-    def solve(self, budget: int | None = None, integral: bool = False, time_limit_s: float = 0.0,
-              kappa: np.ndarray | None = None, only: Sequence[int] | None = None,
-              cutoff: float | None = None) -> sopt.OptimizeResult:
-        """Solve with at most ``budget`` needles (None: no budget), binaries when ``integral``.
+    def solve(self, budget: int | None = None, kappa: np.ndarray | None = None,
+              only: Sequence[int] | None = None) -> sopt.OptimizeResult:
+        """Solve the LP (the needle binaries relaxed to [0, 1]) with at most ``budget`` needles (None: no budget).
 
         ``kappa`` (per organ): each organ's mean-tail-dose row may reach ``kappa`` × its limit (the calibration of
         that row to D2cm³, see :func:`_calibrate`). ``only``: the needles (indices into ``needles``) used (``y`` = 1),
-        the others held empty. ``cutoff``: an incumbent's objective, added as the row ``c·x <= cutoff`` (branch and
-        bound then only looks for better selections; infeasible means none is better).
+        the others held empty: the LP is then solved on their columns alone (and the intracavitary channels'), and
+        ``x`` returned in the full model's columns.
         """
         ub = self.ub.copy()
         if kappa is not None and len(self.limit_rows):
@@ -865,22 +884,24 @@ class _Model:
         lo = np.zeros(self.n)
         hi = np.full(self.n, np.inf)
         hi[self.i_y:self.i_u] = 1.0
+        cols = np.arange(self.n)
         if only is not None:
-            hi[self.i_y:self.i_u] = 0.0
-            hi[self.i_y + np.asarray(only, dtype=int)] = 1.0
-            lo[self.i_y + np.asarray(only, dtype=int)] = 1.0
-        integrality = np.zeros(self.n)
-        options: dict[str, object] = {"disp": False}
-        if integral and self.n_y:
-            integrality[self.i_y:self.i_u] = 1
-            options["mip_rel_gap"] = self.settings.mip_rel_gap
-            if time_limit_s > 0:
-                options["time_limit"] = time_limit_s
-        cons = [sopt.LinearConstraint(self.a, self.lb, ub)]
-        if cutoff is not None:
-            cons.append(sopt.LinearConstraint(self.c[None, :], -np.inf, cutoff))
-        return sopt.milp(self.c, constraints=cons, integrality=integrality, bounds=sopt.Bounds(lo, hi),
-                         options=options)
+            on = np.zeros(self.n_y, dtype=bool)
+            on[np.asarray(only, dtype=int)] = True
+            lo[self.i_y:self.i_u] = on
+            keep = np.ones(self.n, dtype=bool)
+            keep[:self.n_u] = self.unit_y < 0
+            keep[:self.n_u][self.unit_y >= 0] = on[self.unit_y[self.unit_y >= 0]]
+            keep[self.i_y:self.i_u] = on
+            cols = np.flatnonzero(keep)
+        a = self.a if only is None else self.a_csc[:, cols]
+        res = sopt.milp(self.c[cols], constraints=[sopt.LinearConstraint(a, self.lb, ub)],
+                        bounds=sopt.Bounds(lo[cols], hi[cols]), options={"disp": False})
+        if only is not None and res.x is not None:
+            x = np.zeros(self.n)
+            x[cols] = res.x
+            res.x = x
+        return res
 
     def rounded(self, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
                 keep: Sequence[int] = ()) -> sopt.OptimizeResult | None:
@@ -889,7 +910,7 @@ class _Model:
         The needles ``keep`` (an incumbent's), then those with the largest relaxed ``y``, one per hole; their best
         loading (an LP). None when that fails.
         """
-        picked = list(dict.fromkeys(int(i) for i in keep))
+        picked = list(dict.fromkeys(int(i) for i in keep))[:budget]
         holes = {self.hole_of[i] for i in picked}
         if relaxed.x is not None:
             y = relaxed.x[self.i_y:self.i_u]
@@ -899,8 +920,50 @@ class _Model:
                 if self.hole_of[int(i)] not in holes:
                     picked.append(int(i))
                     holes.add(self.hole_of[int(i)])
-        res = self.solve(budget, kappa=kappa, only=picked[:budget])
+        res = self.solve(budget, kappa=kappa, only=picked)
         return res if res.x is not None else None
+
+    def improved(self, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
+                 start: sopt.OptimizeResult) -> tuple[sopt.OptimizeResult, int]:
+        """Improve the selection ``start`` by swaps (a deterministic local search); return it and the LPs solved.
+
+        Moves: add a needle (when under ``budget``) or swap one for another, each drawn from the ``swap_pool``
+        needles with the largest relaxed ``y`` (``relaxed``, the LP relaxation at this budget); the best move is
+        taken while it lowers the objective, for at most ``swap_passes`` passes. Every move is a feasible selection,
+        so the objective never rises; the LP relaxation still bounds the optimum from below.
+        """
+        best = start
+        n_lp = 0
+        if relaxed.x is None or self.settings.swap_passes == 0:
+            return best, n_lp
+        y = relaxed.x[self.i_y:self.i_u]
+        pool = [int(i) for i in np.argsort(-y, kind="stable")[:self.settings.swap_pool] if y[i] > 1e-6]
+        tried: set[frozenset[int]] = set()
+        for _ in range(self.settings.swap_passes):
+            sel = [int(i) for i in np.flatnonzero(best.x[self.i_y:self.i_u] > 0.5)]
+            tried.add(frozenset(sel))
+            moves = []
+            for j in pool:
+                if j in sel:
+                    continue
+                outs: list[int | None] = [None] if len(sel) < budget else []
+                for out in [*outs, *sel]:
+                    rest = [i for i in sel if i != out]
+                    if self.hole_of[j] not in {self.hole_of[i] for i in rest}:
+                        moves.append([*rest, j])
+            step = best
+            for move in moves:
+                if frozenset(move) in tried:
+                    continue
+                tried.add(frozenset(move))
+                res = self.solve(budget, kappa=kappa, only=move)
+                n_lp += 1
+                if res.x is not None and float(res.fun) < float(step.fun) - 1e-9 * max(1.0, abs(float(step.fun))):
+                    step = res
+            if step is best:
+                break
+            best = step
+        return best, n_lp
 
     def dwell_times(self, x: np.ndarray) -> np.ndarray:
         """(D,) dwell times (s) of a solution ``x``."""
@@ -982,10 +1045,11 @@ def _aims_met(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequ
 
 @dataclass(frozen=True)
 class BudgetResult:
-    """The selection MIP at one needle budget ("at most ``budget`` needles").
+    """The needle selection at one budget ("at most ``budget`` needles").
 
-    ``objective``: the model's value at the selection kept (the incumbent of a smaller budget when HiGHS ended
-    worse); ``dual_bound`` and ``mip_gap``: what HiGHS proves (None when it proved nothing); ``n_needles``: the
+    ``objective``: the selection model's value at the selection kept; ``dual_bound``: the LP relaxation's (a
+    lower bound of every selection of ``budget`` needles), ``mip_gap``: the relative gap between the two (None when
+    the relaxation failed); ``n_needles``: the
     needles selected; ``new``: False when the selection equals a smaller budget's (no new Pareto point).
     """
 
@@ -1081,7 +1145,7 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     aims : EMBRACE II by default.
     gtv : the GTV mask on the planning grid, when there is one (its D98 is then an aim).
     subset : an arm planned on a subset of ``channels`` (the straight arm for the straight + steered one): its
-        selection at each budget is an incumbent of this arm's MIP there, and its plans are implants of this arm
+        selection at each budget is a start of this arm's search there, and its plans are implants of this arm
         too, so this arm is never worse.
 
     Returns
@@ -1160,36 +1224,24 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     planned = {frozenset(id(c) for c in b.selected): b.plan for b in (subset.budgets if subset else ()) if b.new}
 
     def select(k: int, keep: Sequence[int]) -> tuple[np.ndarray | None, float, float | None, str]:
-        """Select at most ``k`` needles: return (solution, objective, proven lower bound, how it ended)."""
-        nonlocal kappa
-        x, value, lower, status = None, float("inf"), None, "no feasible selection"
-        for _ in range(2):  # lazy organ rows: the exact D2cm³ near the implant
-            # incumbents: the LP relaxation rounded with the last budget's needles kept; the subset arm's selection
-            relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
-            inc = model.rounded(k, kappa, relaxed, keep)
-            if k in given:
-                other = model.rounded(k, kappa, relaxed, given[k])
-                if other is not None and (inc is None or float(other.fun) < float(inc.fun)):
-                    inc = other
-            res = model.solve(k, integral=True, time_limit_s=settings.mip_time_limit_s, kappa=kappa,
-                              cutoff=None if inc is None else float(inc.fun) + 1e-9 * max(1.0, abs(float(inc.fun))))
-            dual = getattr(res, "mip_dual_bound", None)
-            lower = max([float(v) for v in (dual, relaxed.fun) if v is not None and np.isfinite(v)], default=None)
-            if res.x is not None and (inc is None or float(res.fun) <= float(inc.fun)):
-                x, value, status = res.x, float(res.fun), f"HiGHS: {res.message}"
-            elif inc is not None:
-                x, value = inc.x, float(inc.fun)
-                if res.status == 2:  # nothing better than the incumbent exists
-                    lower, status = value, "HiGHS proved the rounded LP relaxation optimal"
-                else:
-                    status = f"rounded LP relaxation (HiGHS: {res.message})"
-            if x is None:
-                break
-            d2 = _d2cc(prob, positions, directions, model.dwell_times(x), vox_cc)
-            if not np.any(d2 > limits * (1 + 0.02)):
-                break  # within 2 %: the dwell-time LP calibrates its own rows
-            kappa = _calibrate(kappa, d2, model.tail_means(x), limits)
-        return x, value, lower, status
+        """Select at most ``k`` needles: return (solution, objective, lower bound (LP relaxation), how it ended).
+
+        Starts: the LP relaxation rounded with the last budget's needles kept (so the objective never rises with
+        ``k``: every budget's model has the same organ rows), and the subset arm's selection; then swaps.
+        """
+        relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
+        starts = [model.rounded(k, kappa, relaxed, keep), model.rounded(k, kappa, relaxed, given.get(k, ()))]
+        if keep:  # the last budget's selection itself (a needle added to it costs its invasiveness)
+            last = model.solve(k, kappa=kappa, only=keep)
+            starts.append(last if last.x is not None else None)
+        inc = min((r for r in starts if r is not None), key=lambda r: float(r.fun), default=None)
+        lower = float(relaxed.fun) if relaxed.x is not None else None
+        if inc is None:
+            return None, float("inf"), lower, "no feasible selection (the rounded LP relaxation failed)"
+        best, n_lp = model.improved(k, kappa, relaxed, inc)
+        status = (f"rounded LP relaxation improved by {n_lp} swap LPs" if best is not inc else
+                  f"rounded LP relaxation, no better swap in {n_lp} LPs")
+        return best.x, float(best.fun), lower, status
 
     intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
     budgets: list[BudgetResult] = []
@@ -1232,22 +1284,69 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
             break  # nothing new twice, or the selection reaches the bound of every candidate loaded
     if subset is not None:  # its implants are implants of this arm too
         plans += list(subset.plans)
-    pareto_plans = _pareto(plans)
-    pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
     record: dict[str, object] = {
-        "model": "needle selection: HiGHS MIP (scipy.optimize.milp) on sampled target points and organ mean-tail-dose "
-                 "rows, dwells in blocks; dwell times: LP on every dwell of the selection",
+        "model": "needle selection: LP relaxation (HiGHS through scipy.optimize.milp) on sampled target points and "
+                 "organ mean-tail-dose rows, dwells in blocks, rounded and improved by swaps; dwell times: LP on every "
+                 "dwell of the selection",
         "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
         "budgets": [b.to_json() for b in budgets]}
+    return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record)
+
+
+def _arm(name: str, n_candidates: int, plans: Sequence[ImplantPlan], seconds: float,
+         budgets: tuple[BudgetResult, ...], record: dict[str, object]) -> ImplantArm:
+    """Return an arm from its plans: the Pareto curve and the plan chosen from it (:func:`plan_implant`)."""
+    pareto_plans = _pareto(plans)
+    pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
     if not pareto_plans:
-        return ImplantArm(name, len(needles), (), None, time.perf_counter() - t0,
-                          "no needle budget gave a plan (every MIP or LP failed)", tuple(budgets), record)
+        return ImplantArm(name, n_candidates, (), None, seconds, "no needle budget gave a plan (every LP failed)",
+                          budgets, record)
     meeting = [p for p in pareto_plans if p.aims_met]
     chosen = (min(meeting, key=lambda p: (p.n_needles, -p.target.d90_eqd2_gy)) if meeting
               else max(pareto_plans, key=lambda p: (p.target.d90_eqd2_gy, -p.n_needles)))
     reason = "" if meeting else "no needle budget meets every aim; the plan with the highest D90 is kept"
-    return ImplantArm(name, len(needles), pareto, chosen, time.perf_counter() - t0, reason, tuple(budgets), record,
-                      tuple(pareto_plans))
+    return ImplantArm(name, n_candidates, pareto, chosen, seconds, reason, budgets, record, tuple(pareto_plans))
+
+
+def with_subset(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
+    """Return ``arm`` with the implants of ``subset`` (an arm planned on a subset of its candidates) added.
+
+    Every implant of the subset arm is one of this arm's too, so the result is never worse than ``subset``: its
+    Pareto curve and chosen plan are taken over both arms' plans (what ``plan_implant(..., subset=...)`` does
+    at the end, for two arms planned independently, e.g. at the same time).
+    """
+    return _arm(arm.name, arm.n_candidates, [*arm.plans, *subset.plans], arm.seconds, arm.budgets, arm.selection)
+
+
+def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningStructures, kernel: Tg43Kernel,
+              air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
+              gtv: Structure | None = None, workers: int = 2) -> tuple[ImplantArm, ...]:
+    """Plan several arms (:func:`plan_implant`, each on its own), in up to ``workers`` threads.
+
+    HiGHS and the compiled dose kernels release the GIL, so two arms run on two cores. Threads only when the
+    compiled kernels' threading layer allows calls from several threads at once (``omp`` or ``tbb``; numba's
+    ``workqueue`` does not); else one after the other, with the same result (the arms do not share state).
+    """
+    def one(arm: tuple[str, Sequence[Channel]]) -> ImplantArm:
+        return plan_implant(arm[0], arm[1], planning, kernel, air_kerma_strength_u, aims, settings, gtv=gtv)
+
+    if workers < 2 or len(arms) < 2 or not _threads_safe(kernel):
+        return tuple(one(a) for a in arms)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(workers, len(arms))) as pool:
+        return tuple(pool.map(one, arms))
+
+
+def _threads_safe(kernel: Tg43Kernel) -> bool:
+    """Return True when numba's threading layer runs parallel kernels called from several threads at once."""
+    import numba
+
+    kernel.compiled_dose(np.zeros((1, 3)), np.ones((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.ones(1))  # loads it
+    try:
+        return str(numba.threading_layer()) in ("omp", "tbb")
+    except ValueError:  # no parallel kernel has run
+        return False
 
 
 def _pareto(plans: Sequence[ImplantPlan]) -> list[ImplantPlan]:

@@ -16,8 +16,10 @@ from reachplan.planner.dose.implant import (
     ImplantArm,
     ImplantSettings,
     needle_candidates,
+    plan_arms,
     plan_implant,
     recompute_target,
+    with_subset,
 )
 from reachplan.planner.dose.optimize import Aims, PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
@@ -360,3 +362,21 @@ def test_steered_arm_strictly_wins_with_a_hidden_lobe(bank: object, kernel: Tg43
     assert (s.aims_met and not t.aims_met) or (s.aims_met and s.n_needles < t.n_needles) \
         or s.target.d90_eqd2_gy > t.target.d90_eqd2_gy + 1.0, (steered.pareto, straight.pareto)
     assert any(c.steered for c in s.channels)
+
+
+def test_arms_at_once_are_deterministic_and_never_worse(open_case: tuple, kernel: Tg43Kernel) -> None:
+    """Both arms planned at once (two threads) give exactly what they give one after the other and what
+    ``plan_implant`` gives (no wall-clock limit decides a selection); the steered arm merged with the straight
+    one is never worse than it."""
+    case, cands, straight, _ = open_case
+    arms = [("straight", [c for c in cands if not c.steered]), ("steered", list(cands))]
+    at_once = plan_arms(arms, case.planning, kernel, SK, LOOSE, SETTINGS)
+    serial = plan_arms(arms, case.planning, kernel, SK, LOOSE, SETTINGS, workers=1)
+    for a, b in zip(at_once, serial, strict=True):
+        assert [(x.budget, x.objective, [c.name for c in x.selected]) for x in a.budgets] == \
+            [(x.budget, x.objective, [c.name for c in x.selected]) for x in b.budgets]
+        assert a.pareto == b.pareto
+    assert at_once[0].pareto == straight.pareto
+    assert at_once[0].plan is not None and straight.plan is not None
+    assert [c.name for c in at_once[0].plan.channels] == [c.name for c in straight.plan.channels]
+    _no_worse(with_subset(at_once[1], at_once[0]), at_once[0])
