@@ -274,3 +274,7 @@ def _pose_at(s_mm: np.ndarray, positions_mm: np.ndarray, frames: np.ndarray,
 
 
 TISSUE_ROD = TissueRodInsertion()
+#: The planner's reference re-solve (:func:`reachplan.planner.pipeline.refine_shortlist`): 2 mm insertion steps,
+#: 1 RK4 step per mm. 15ga-30j-tip, 5 mm ramp from the template to 10 N, tip at 120 mm in the gel: 29.80 mm;
+#: 1 mm insertion steps 29.85 mm, 2 RK4 steps per mm 29.80 mm (4 mm steps: 29.70 mm).
+PLANNER_REFERENCE = TissueRodInsertion(rod_model=TwoTubeCosserat(steps_per_mm=1.0))
