@@ -61,6 +61,8 @@ def curvature_factor(modulus_pa: float) -> float:
     within about a Winkler length of the tip, ``(4 EI / k)^(1/4)`` (Hetényi, *Beams on Elastic Foundation*,
     1946), and the held track keeps that extra turn (Glozman & Shoham, IEEE T-RO 23(3), 2007). That length
     scales as ``E^(−13/48) ≈ E^(−0.27)`` with Vesic's ``k``: the fitted exponent 0.35 is of that order.
+    The factor depends on the design: a shorter joint section (15ga-15j-tip) still bends more than tip following
+    at 1 MPa (``docs/mechanics.md``); the planner's reference re-solve corrects the shortlist of any design.
 
     Raises
     ------

@@ -28,27 +28,35 @@ Tip force
     ASSUMED default 0: no value is published for the phantom's gel, and with it the zero-modulus limit is the
     free-space shape. A symmetric tip has no lateral cutting force.
 
-The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; tip deflection at a fixed depth)
-    Two mechanisms, both physical, so the tip deflection is *not* monotonic in the modulus:
+The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; ``docs/mechanics.md``)
+    The tip deflection at a fixed depth is *not* monotonic in the modulus. The checks (slip threshold 0.25 mm /
+    1 mm / none, re-solve window on or off, insertion steps 4 / 2 / 1 mm) move the peak by less than 0.25 mm: the
+    branches are mechanical.
 
     1. *Holding* (rises with the modulus). At zero modulus the needle has the free-space shape of its inserted
        length (test); a steered needle turns only as far as the tissue holds its shaft on the curved track its
-       tip cut. The shaft (stylet tube in needle, EI ≈ 7 mN·m²) is held once its Winkler length
-       ``(4 EI / k)^(1/4)`` is short against the depth: about 115 mm at 1 kPa, 60 mm at 10 kPa, 33 mm at
-       0.1 MPa. 15ga-20j-tip pulled at 10 N from the template, tip at 120 mm: 4.98 mm at 0, 5.8 mm at 1 kPa,
-       11.4 mm at 10 kPa, 26.3 mm at 0.1 MPa, 29.6 mm at 0.19 MPa. Bevel-tip needles show the same
-       (curvature rises with tissue stiffness, Misra et al. 2010).
-    2. *Resisting* (falls with the modulus). A tendon pulled while the joints are embedded bends them only
+       tip cut. The shaft (stylet tube in needle, EI = 7.6 mN·m²) is held once its Winkler length
+       ``(4 EI / k)^(1/4)`` is short against the depth: 102 mm at 1 kPa, 55 mm at 10 kPa, 29 mm at 0.1 MPa.
+       15ga-20j-tip pulled at 10 N from the template, tip at 120 mm: 4.98 mm at 0, 5.8 mm at 1 kPa, 11.4 mm at
+       10 kPa, 26.3 mm at 0.1 MPa, 29.6 mm at 0.19 MPa. Bevel-tip needles show the same (curvature rises with
+       tissue stiffness, Misra et al. 2010).
+    2. *Decoupling* (falls to tip following). While the shaft's Winkler length is comparable with the joint
+       section, the held shaft's bending reaches the tip through the soft joints and the tip turns faster than
+       the joints' free-space curvature; the peak lies where that length is about 0.6 joint-section lengths
+       (0.1 MPa for 30 joints, 49.5 mm; about 1 MPa for 15 joints, 24.7 mm; test), and beyond it the deflection
+       falls to pure tip following at the free-space curvature (Webster et al., IJRR 25(5-6), 2006), reached by
+       about 1 MPa for 30 joints (pulled to 10 N at the template, tip at 120 mm: 30.25 / 27.94 / 27.89 mm at
+       0.1 / 1 / 10 MPa, tip following 27.97 mm; test).
+    3. *Resisting* (falls with the modulus). A tendon pulled while the joints are embedded bends them only
        within about their own Winkler length of the tip, which shrinks as ``k^(-1/4)``; with the tendon pulled
        before the joints enter, nothing resists them (the tip cuts its own curved track: at 30 mm the tip is
        the free-space one at every modulus, test). 15ga-30j-tip, 5 mm ramp at 40 mm to 10 N, tip at 140 mm:
-       26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa, falling toward pure tip
-       following at the free-space curvature (18.6 mm).
+       26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa.
 
-    The peak lies between 10 kPa and 1 MPa depending on the schedule. The monotonic quantity the planner needs
-    is the kinematic model's curvature factor over the tip-following range (>= 0.1 MPa), where the holding
-    is complete and only the resisting mechanism acts: :func:`~reachplan.planner.steering.insertion.curvature_factor`,
-    decreasing from 1.34 at 0.1 MPa (1.27 in the gel) to 1 in rigid tissue.
+    The monotonic quantity the planner needs is the kinematic model's curvature factor over the tip-following
+    range (>= 0.1 MPa), where the holding is complete:
+    :func:`~reachplan.planner.steering.insertion.curvature_factor`, decreasing from 1.34 at 0.1 MPa (1.27 in
+    the gel) to 1 in rigid tissue, fitted for 15ga-30j-tip (a shorter joint section peaks in stiffer tissue).
 """
 
 from __future__ import annotations
