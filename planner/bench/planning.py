@@ -2,7 +2,7 @@
 
 Run: ``reachplan bench planning --out DIR [--quick] [--install]``. Writes ``planning_timings.csv``,
 ``insertion_models.csv`` and ``insertion_models.png`` (time per path, log axis, against tip error relative to
-the finest ``tissue_rod`` solve, the in-tissue Cosserat rod at 1 mm insertion steps), plus ``workspace.png``;
+the in-tissue Cosserat rod ``tissue_rod`` at 1 and 2 mm insertion steps, extrapolated), plus ``workspace.png``;
 ``--install`` copies all four to ``docs/``.
 Medians over repeats: the machines are shared and noisy. ``--quick`` plans two targets once and uses coarse
 insertion steps.
@@ -52,8 +52,8 @@ class PlanningSettings:
     """What the planning benchmark measures.
 
     Plan repeats (the median is kept), how many phantom targets (``None``: all), the reference ``tissue_rod``
-    insertion step (mm, 2 RK4 steps per mm), the planner's ``tissue_rod`` (1 RK4 step per mm) at the insertion
-    steps (mm) compared with it, and the insertion depth (mm).
+    insertion step (mm; extrapolated with twice that step, 2 RK4 steps per mm), the plain ``tissue_rod`` (1 RK4
+    step per mm) at the insertion steps (mm) compared with it, and the insertion depth (mm).
     """
 
     repeats: int = 3
@@ -133,10 +133,11 @@ def plan_timings(out: Path, s: PlanningSettings) -> list[dict[str, object]]:
 def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
     """Time each insertion model variant and measure its tip error at ``s.depth_mm`` against the reference.
 
-    The reference is the in-tissue Cosserat rod (gel, 0.19 MPa) at ``s.reference_step_mm`` insertion steps; the
-    kinematic model runs with the planner's curvature factor for the gel (1.27, fitted to that rod), so its error
-    is the tip-following approximation's; the planner's rod (1 RK4 step per mm) at coarser insertion steps says
-    what the reference re-solve's step costs.
+    The reference is the in-tissue Cosserat rod (gel, 0.19 MPa) at ``s.reference_step_mm`` insertion steps,
+    Richardson-extrapolated with twice that step; the kinematic model runs with the planner's curvature factor
+    for the gel (1.27, fitted to that rod), so its error is the tip-following approximation's; the rod (1 RK4
+    step per mm) at coarser insertion steps, and the planner's reference re-solve (2 mm steps extrapolated with
+    4 mm ones), say what the insertion step costs.
 
     Returns one row per variant (:data:`INSERTION_COLUMNS`; ms per path, tip errors in mm).
     """
@@ -154,9 +155,12 @@ def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
         rows.append(_insertion_row(f"kinematic step {h} mm, factor {kin.factor:.2f} (batched)",
                                    t / (len(schedules) * 25), paths[: len(schedules), -1], ref_tips))
     for h in s.rod_steps_mm:
-        rod = replace(PLANNER_REFERENCE, step_mm=h)
+        rod = replace(PLANNER_REFERENCE, step_mm=h, richardson=False)
         t, tips = _median_time(partial(_tips, rod, design, schedules, depth), 1)
         rows.append(_insertion_row(f"tissue_rod step {h} mm", t / len(schedules), tips, ref_tips))
+    t, tips = _median_time(partial(_tips, PLANNER_REFERENCE, design, schedules, depth), 1)
+    rows.append(_insertion_row(f"tissue_rod step {PLANNER_REFERENCE.step_mm} mm, extrapolated (planner)",
+                               t / len(schedules), tips, ref_tips))
     return rows
 
 
@@ -182,7 +186,8 @@ def insertion_figure(rows: list[dict[str, object]]) -> Figure:
         x, y = float(r["ms_per_path"]), float(r["max_tip_error_mm"])  # type: ignore[arg-type]
         ax.plot(x, y, "o" if kin else "s", color="C0" if kin else "C3")
         ax.annotate(str(r["model"]), (x, y), fontsize=7, xytext=(4, 4), textcoords="offset points")
-    ax.set(xscale="log", xlabel="time per path (ms, log)", ylabel="max tip error vs tissue_rod, 1 mm steps (mm)",
+    ax.set(xscale="log", xlabel="time per path (ms, log)",
+           ylabel="max tip error vs tissue_rod, 1 + 2 mm steps extrapolated (mm)",
            title="insertion models in the gel (0.19 MPa), 15ga-30j-tip, 150 mm, ramps to 5-10 N")
     ax.grid(alpha=0.3)
     fig.tight_layout()

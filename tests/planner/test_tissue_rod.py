@@ -179,3 +179,21 @@ def test_the_peak_moves_to_stiffer_tissue_with_a_shorter_joint_section() -> None
     assert _tip_at("15ga-30j-tip", 1e5) > _tip_at("15ga-30j-tip", 1e6) + 1.5
     short_soft, short_stiff = _tip_at("15ga-15j-tip", 1e5), _tip_at("15ga-15j-tip", 1e6)
     assert short_stiff > short_soft + 5.0 and short_stiff > _tip_following("15ga-15j-tip") + 1.5
+
+
+def test_richardson_extrapolation_in_the_insertion_step() -> None:
+    # the step error is first order: 2 P(2 mm) - P(4 mm) lands nearer the limit (estimated from 1 and 2 mm)
+    # than either plain solve, and is sampled evenly from the template (origin) to the tip
+    ramp = TensionSchedule.ramp(0.0, 20.0, 10.0)
+    tips = {}
+    for h in (4.0, 2.0, 1.0):
+        path = TissueRodInsertion(step_mm=h).insert_one(DESIGN, ramp, 100.0)
+        assert isinstance(path, np.ndarray)
+        tips[h] = path[-1]
+    limit = 2 * tips[1.0] - tips[2.0]
+    extrapolated = TissueRodInsertion(step_mm=2.0, richardson=True).insert_one(DESIGN, ramp, 100.0)
+    assert isinstance(extrapolated, np.ndarray) and len(extrapolated) == 101
+    np.testing.assert_allclose(extrapolated[-1], 2 * tips[2.0] - tips[4.0], atol=1e-9)
+    np.testing.assert_allclose(extrapolated[0], 0.0, atol=1e-12)
+    err = np.linalg.norm(extrapolated[-1] - limit)
+    assert err < 0.5 * np.linalg.norm(tips[1.0] - limit) and err < 0.25 * np.linalg.norm(tips[2.0] - limit)
