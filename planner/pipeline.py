@@ -464,8 +464,8 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
     """Re-solve the best feasible steered candidates with the ``reference`` model (the in-tissue Cosserat rod).
 
     The rod takes the tissue modulus along the candidate's path (``config.tissue_moduli_pa`` per organ, the
-    reference's modulus elsewhere) and the schedule is re-aimed (:func:`~reachplan.planner.steering.steered.
-    refine_with`).
+    reference's modulus elsewhere) and the schedule is re-aimed
+    (:func:`~reachplan.planner.steering.steered.refine_with`).
 
     It stops when the top ``config.refine_top`` feasible ones all carry the reference's numbers (at most
     ``refine_top + 4`` solves: a refined candidate that no longer reaches, or that the reference fails to solve
