@@ -27,16 +27,11 @@ from reachplan.planner.geometry.organs import check_unique, has_closed, roi_poin
 from reachplan.planner.geometry.template import TemplatePose, hole_frames, pose_from_obturator
 from reachplan.planner.ranking import RankWeights, pareto_front, rank
 from reachplan.planner.steering.candidates import Candidate, Target, mark_failed, score_path, straight_candidates
-from reachplan.planner.steering.insertion import (
-    KINEMATIC,
-    SIMUGEL_MODULUS_PA,
-    TISSUE_BEAM,
-    KinematicInsertion,
-    TissueBeamInsertion,
-)
+from reachplan.planner.steering.insertion import KINEMATIC, SIMUGEL_MODULUS_PA, KinematicInsertion
 from reachplan.planner.steering.robustness import Perturbations, assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ScheduleFamily, match_targets, place, refine_with, shape_bank
+from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.plugins import registry
 from reachplan.plugins.errors import PluginError
 from reachplan.plugins.sources import BUILTIN, SourceData, normalise_label
@@ -74,8 +69,9 @@ class PlanConfig:
     ``designs``: stylet presets to steer with (empty: straight needles only; the pilot study used
     15ga-30j-tip). ``family``: the schedules screened per design. ``alternatives``: reaching schedules tried
     per hole before a steered candidate is declared colliding. ``refine_top``: feasible steered candidates
-    per target re-solved with the reference insertion model (tissue-embedded beam, two-tube Cosserat
-    curvatures); the others keep the screening model's numbers, and every candidate names its model.
+    per target re-solved with the reference insertion model (the two-tube Cosserat rod inserted in tissue,
+    :mod:`~reachplan.planner.steering.tissue_rod`); the others keep the screening model's numbers, and every
+    candidate names its model.
     ``robust_top``: feasible straight and steered candidates per target assessed under ``perturbations``
     (tension, roll and entry-angle errors); the ranking prefers robust ones among them.
     ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa), e.g. ``(("Uterus", 0.5e6),)``;
@@ -135,7 +131,7 @@ class PlanModels:
     """
 
     screening: KinematicInsertion = KINEMATIC
-    reference: TissueBeamInsertion = TISSUE_BEAM
+    reference: TissueRodInsertion = PLANNER_REFERENCE
     robustness: KinematicInsertion = KINEMATIC
 
     @classmethod
@@ -347,7 +343,7 @@ def target_modulus_pa(scene: Scene, target: Target, config: PlanConfig) -> float
 
 
 def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, float], ...],
-                    default_pa: float = TISSUE_BEAM.tissue_modulus_pa) -> tuple[np.ndarray, np.ndarray] | None:
+                    default_pa: float = SIMUGEL_MODULUS_PA) -> tuple[np.ndarray, np.ndarray] | None:
     """Return the tissue modulus along a needle path, ``(depth_mm, modulus_pa)``; None when ``moduli`` is empty.
 
     The modulus of the organ each point lies in (the first of ``moduli`` that contains it), ``default_pa``
@@ -465,8 +461,12 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
 
 
 def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: list[Candidate],
-                     config: PlanConfig, reference: TissueBeamInsertion = TISSUE_BEAM) -> list[Candidate]:
-    """Re-solve the best feasible steered candidates with the ``reference`` model.
+                     config: PlanConfig, reference: TissueRodInsertion = PLANNER_REFERENCE) -> list[Candidate]:
+    """Re-solve the best feasible steered candidates with the ``reference`` model (the in-tissue Cosserat rod).
+
+    The rod takes the tissue modulus along the candidate's path (``config.tissue_moduli_pa`` per organ, the
+    reference's modulus elsewhere) and the schedule is re-aimed
+    (:func:`~reachplan.planner.steering.steered.refine_with`).
 
     It stops when the top ``config.refine_top`` feasible ones all carry the reference's numbers (at most
     ``refine_top + 4`` solves: a refined candidate that no longer reaches, or that the reference fails to solve
@@ -497,7 +497,8 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
             new = mark_failed(c, f"reference re-solve ({reference.info.label}) failed: {exc}")
         else:
             sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), roll))
-            path = place(res.positions_mm, reference.step_mm, c.insertion_depth_mm, roll,
+            step = c.insertion_depth_mm / (len(res.positions_mm) - 1)
+            path = place(res.positions_mm, step, c.insertion_depth_mm, roll,
                          np.asarray(holes[c.hole_id].xy_mm), scene.patient_from_template)
             new = score_path(target, c.hole_id, c.hole_distance_mm, path, scene.organs, radius,
                              config.reach_tolerance_mm, res.model, steered=True, peak_tension_n=sch.peak_tension_n,

@@ -77,7 +77,7 @@ STABILITY_COLUMNS = ("solver", "placement", "tension_n", "guess", "success", "re
 FRICTION_COLUMNS = ROW_COLUMNS[:6]
 HONESTY_COLUMNS = ("case", "converged", "tip_x_mm", "tip_y_mm", "tip_z_mm", "ms", "reason")
 TISSUE_COLUMNS = ("modulus_pa", "schedule", "depth_mm", "tissue_rod_tip_mm", "kinematic_tip_mm",
-                  "kinematic_factor_fitted", "curvature_factor", "insertion_ms", "status")
+                  "tip_following_mm", "kinematic_factor_fitted", "curvature_factor", "insertion_ms", "status")
 FRICTION_MODEL = "two_tube_cosserat+friction"
 STEPS_PER_MM = (0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
 REFERENCE = TwoTubeCosserat(steps_per_mm=8.0, tol=1e-12)
@@ -428,7 +428,8 @@ class TissuePoint:
 
     ``factor`` is the kinematic curvature factor fitted to the rod at this modulus (over every schedule and
     depth), ``function`` the fitted function's value (NaN below the tip-following range), ``kinematic_mm`` the
-    kinematic model's tip with it; ``ms`` the insertion's wall time.
+    kinematic model's tip with it, ``tip_following_mm`` the kinematic model's at factor 1 (pure tip following at
+    the joint section's free-space curvature: the rigid-tissue limit); ``ms`` the insertion's wall time.
     """
 
     modulus_pa: float
@@ -436,6 +437,7 @@ class TissuePoint:
     depth_mm: float
     tissue_rod_mm: float
     kinematic_mm: float
+    tip_following_mm: float
     factor: float
     function: float
     ms: float
@@ -477,7 +479,7 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
     rod_ms: list[float] = []
     step_err: list[float] = []
     t_kin = time.perf_counter()
-    kinematic(1.0)
+    follow = kinematic(1.0)  # the rigid-tissue limit
     kin_ms = (time.perf_counter() - t_kin) * 1e3 / len(schedules)
     for e in s.tissue_moduli_pa:
         tips = np.full((len(schedules), len(depths), 3), np.nan)
@@ -509,7 +511,8 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
         for i, (label, _) in enumerate(schedules):
             for j, d in enumerate(depths):
                 out.append(TissuePoint(e, label, float(d), float(_lateral(tips[i, j])), float(_lateral(kin[i, j])),
-                                       factor, fn, ms[i], "ok" if ok[i, j] else status[i]))
+                                       float(_lateral(follow[i, j])), factor, fn, ms[i],
+                                       "ok" if ok[i, j] else status[i]))
         deep = ", ".join(f"{_lateral(t):.1f}" for t in tips[:, -1])
         log(f"tissue_rod E = {e:9.3g} Pa: tips at {depths[-1]:.0f} mm {deep} mm; factor fitted {factor:.3f}, "
             f"function {fn:.3f}; {statistics.median(ms):.0f} ms per insertion")
@@ -522,17 +525,23 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
 
 
 def tissue_figure(points: list[TissuePoint]) -> Figure:
-    """Tip deflection against modulus per schedule at the deepest depth (left); the curvature factor (right)."""
+    """Tip deflection against modulus per schedule at the deepest depth (left); the curvature factor (right).
+
+    Left, dashed: each schedule's tip-following limit (kinematic model at factor 1), which the rod approaches
+    in stiff tissue.
+    """
     fig = Figure(figsize=(12, 5), layout="tight")
     a1, a2 = fig.subplots(1, 2)
     moduli = sorted({p.modulus_pa for p in points})
     deepest = max(p.depth_mm for p in points)
     for label in dict.fromkeys(p.schedule for p in points):
         pts = sorted((p for p in points if p.schedule == label and p.depth_mm == deepest), key=lambda p: p.modulus_pa)
-        a1.plot([p.modulus_pa for p in pts], [p.tissue_rod_mm for p in pts], "o-", ms=4, label=label)
+        (line,) = a1.plot([p.modulus_pa for p in pts], [p.tissue_rod_mm for p in pts], "o-", ms=4, label=label)
+        a1.axhline(pts[0].tip_following_mm, color=line.get_color(), ls="--", lw=0.8)
     a1.axvline(TIP_FOLLOWING_MIN_PA, color="k", ls=":", lw=1)
     a1.set_ylabel(f"lateral tip deflection at {deepest:.0f} mm (mm)")
-    a1.set_title("15ga-30j-tip, in-tissue Cosserat rod: holding (rises) then resisting (falls)", fontsize=9)
+    a1.set_title("15ga-30j-tip, in-tissue Cosserat rod: held (rises), past the peak toward tip following\n"
+                 "(dashed: the rigid limit; joints pulled while embedded are also resisted)", fontsize=9)
     fac = [next(p.factor for p in points if p.modulus_pa == e) for e in moduli]
     a2.plot(moduli, fac, "s", label="fitted to the rod (all schedules, depths)")
     grid = np.geomspace(TIP_FOLLOWING_MIN_PA, max([*moduli, 1e7]), 100)
@@ -660,7 +669,8 @@ def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], fricti
                 c.reason] for c in honest])
     write_csv(out / "rod_models_tissue.csv", TISSUE_COLUMNS,
               [[f"{p.modulus_pa:g}", p.schedule, f"{p.depth_mm:g}", f"{p.tissue_rod_mm:.4f}",
-                f"{p.kinematic_mm:.4f}", f"{p.factor:.4f}", f"{p.function:.4f}", f"{p.ms:.0f}", p.status]
+                f"{p.kinematic_mm:.4f}", f"{p.tip_following_mm:.4f}", f"{p.factor:.4f}", f"{p.function:.4f}",
+                f"{p.ms:.0f}", p.status]
                for p in tissue_points])
     write_png(out / "rod_models_tissue.png", tissue_figure(tissue_points))
     write_png(out / "rod_models_pareto.png", pareto_figure([*rows, *friction_rows, *tissue_rows]))

@@ -2,9 +2,10 @@
 
 Run: ``reachplan bench planning --out DIR [--quick] [--install]``. Writes ``planning_timings.csv``,
 ``insertion_models.csv`` and ``insertion_models.png`` (time per path, log axis, against tip error relative to
-the finest ``tissue_beam`` solve), plus ``workspace.png``; ``--install`` copies all four to ``docs/``.
+the in-tissue Cosserat rod ``tissue_rod`` at 1 and 2 mm insertion steps, extrapolated), plus ``workspace.png``;
+``--install`` copies all four to ``docs/``.
 Medians over repeats: the machines are shared and noisy. ``--quick`` plans two targets once and uses coarse
-insertion grids.
+insertion steps.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import statistics
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import TypeVar
@@ -32,9 +33,10 @@ from reachplan.planner.bench.common import settings, write_csv, write_png
 from reachplan.planner.pipeline import PlanConfig, build_scene, plan
 from reachplan.planner.ranking import RankWeights
 from reachplan.planner.report.workspace import workspace_figure
-from reachplan.planner.steering.insertion import KinematicInsertion, TissueBeamInsertion
+from reachplan.planner.steering.insertion import KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import shape_bank
+from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.design import RodDesign, preset
 
 INSTALLS = {name: f"docs/{name}" for name in ("planning_timings.csv", "insertion_models.csv", "insertion_models.png",
@@ -49,17 +51,19 @@ T = TypeVar("T")
 class PlanningSettings:
     """What the planning benchmark measures.
 
-    Plan repeats (the median is kept), how many phantom targets (``None``: all), the reference ``tissue_beam``
-    grid (mm) and the ``tissue_beam`` grids (mm) compared with it.
+    Plan repeats (the median is kept), how many phantom targets (``None``: all), the reference ``tissue_rod``
+    insertion step (mm; extrapolated with twice that step, 2 RK4 steps per mm), the plain ``tissue_rod`` (1 RK4
+    step per mm) at the insertion steps (mm) compared with it, and the insertion depth (mm).
     """
 
     repeats: int = 3
     targets: int | None = None
-    reference_grid_mm: float = 0.125
-    beam_grids_mm: tuple[float, ...] = (1.0, 0.5, 0.25)
+    reference_step_mm: float = 1.0
+    rod_steps_mm: tuple[float, ...] = (8.0, 4.0, 2.0)
+    depth_mm: float = 150.0
 
 
-QUICK = PlanningSettings(repeats=1, targets=2, reference_grid_mm=0.5, beam_grids_mm=(1.0,))
+QUICK = PlanningSettings(repeats=1, targets=2, reference_step_mm=4.0, rod_steps_mm=(8.0,))
 
 
 class _CountingFcl:
@@ -127,37 +131,44 @@ def plan_timings(out: Path, s: PlanningSettings) -> list[dict[str, object]]:
 
 
 def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
-    """Time each insertion model variant and measure its tip error at 150 mm against the reference.
+    """Time each insertion model variant and measure its tip error at ``s.depth_mm`` against the reference.
 
-    The kinematic model runs at curvature factor 1, the linear beam's own physics (0.99 fitted to it): this
-    measures the tip-following approximation and its step. The planner's factor for the gel (1.27, fitted to
-    the in-tissue Cosserat rod) is charted against that rod by ``reachplan bench models``.
+    The reference is the in-tissue Cosserat rod (gel, 0.19 MPa) at ``s.reference_step_mm`` insertion steps,
+    Richardson-extrapolated with twice that step; the kinematic model runs with the planner's curvature factor
+    for the gel (1.27, fitted to that rod), so its error is the tip-following approximation's; the rod (1 RK4
+    step per mm) at coarser insertion steps, and the planner's reference re-solve (2 mm steps extrapolated with
+    4 mm ones), say what the insertion step costs.
 
     Returns one row per variant (:data:`INSERTION_COLUMNS`; ms per path, tip errors in mm).
     """
     design = preset("15ga-30j-tip")
     schedules = [TensionSchedule.ramp(o, 20.0, f * design.max_tension_n, 0.0)
                  for o in (0.0, 40.0) for f in (0.5, 1.0)]
-    depth = 150.0
-    reference = TissueBeamInsertion(grid_mm=s.reference_grid_mm, step_mm=s.reference_grid_mm)
-    ref_tips = np.array([reference.insert_one(design, sc, depth)[-1] for sc in schedules])
+    depth = s.depth_mm
+    reference = replace(PLANNER_REFERENCE, step_mm=s.reference_step_mm,
+                        rod_model=replace(PLANNER_REFERENCE.rod_model, steps_per_mm=2.0))
+    ref_tips = _tips(reference, design, schedules, depth)
     rows: list[dict[str, object]] = []
     for h in (4.0, 1.0, 0.25):
-        kin = KinematicInsertion(step_mm=h, tissue_factor=1.0)
+        kin = KinematicInsertion(step_mm=h)
         t, paths = _median_time(partial(kin.insert_array, design, schedules * 25, depth), 3)
-        rows.append(_insertion_row(f"kinematic step {h} mm, factor 1 (batched)", t / (len(schedules) * 25),
-                                   paths[: len(schedules), -1], ref_tips))
-    for h in s.beam_grids_mm:
-        beam = TissueBeamInsertion(grid_mm=h, step_mm=h)
-        t, tips = _median_time(partial(_tips, beam, design, schedules, depth), 1)
-        rows.append(_insertion_row(f"tissue_beam grid {h} mm", t / len(schedules), tips, ref_tips))
+        rows.append(_insertion_row(f"kinematic step {h} mm, factor {kin.factor:.2f} (batched)",
+                                   t / (len(schedules) * 25), paths[: len(schedules), -1], ref_tips))
+    for h in s.rod_steps_mm:
+        rod = replace(PLANNER_REFERENCE, step_mm=h, richardson=False)
+        t, tips = _median_time(partial(_tips, rod, design, schedules, depth), 1)
+        rows.append(_insertion_row(f"tissue_rod step {h} mm", t / len(schedules), tips, ref_tips))
+    t, tips = _median_time(partial(_tips, PLANNER_REFERENCE, design, schedules, depth), 1)
+    rows.append(_insertion_row(f"tissue_rod step {PLANNER_REFERENCE.step_mm} mm, extrapolated (planner)",
+                               t / len(schedules), tips, ref_tips))
     return rows
 
 
-def _tips(model: TissueBeamInsertion, design: RodDesign, schedules: list[TensionSchedule],
+def _tips(model: TissueRodInsertion, design: RodDesign, schedules: list[TensionSchedule],
           depth_mm: float) -> np.ndarray:
-    """Tip positions (n, 3), mm, template frame, of one insertion per schedule."""
-    return np.array([model.insert_one(design, sc, depth_mm)[-1] for sc in schedules])
+    """Tip positions (n, 3), mm, template frame, of one insertion per schedule (NaN where it fails)."""
+    paths = [model.insert_one(design, sc, depth_mm) for sc in schedules]
+    return np.array([p[-1] if isinstance(p, np.ndarray) else np.full(3, np.nan) for p in paths])
 
 
 def _insertion_row(label: str, s_per_path: float, tips: np.ndarray, ref_tips: np.ndarray) -> dict[str, object]:
@@ -175,8 +186,9 @@ def insertion_figure(rows: list[dict[str, object]]) -> Figure:
         x, y = float(r["ms_per_path"]), float(r["max_tip_error_mm"])  # type: ignore[arg-type]
         ax.plot(x, y, "o" if kin else "s", color="C0" if kin else "C3")
         ax.annotate(str(r["model"]), (x, y), fontsize=7, xytext=(4, 4), textcoords="offset points")
-    ax.set(xscale="log", xlabel="time per path (ms, log)", ylabel="max tip error vs finest tissue_beam (mm)",
-           title="insertion models, 15ga-30j-tip, 150 mm, ramps to 5-10 N")
+    ax.set(xscale="log", xlabel="time per path (ms, log)",
+           ylabel="max tip error vs tissue_rod, 1 + 2 mm steps extrapolated (mm)",
+           title="insertion models in the gel (0.19 MPa), 15ga-30j-tip, 150 mm, ramps to 5-10 N")
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return fig

@@ -67,7 +67,7 @@ TENSION_MARGIN = 0.05
 PLAIN_MODELS = {
     "straight": "a straight line from the hole (exact geometry)",
     "kinematic": "fast screening: the shaft follows the tip (kinematic insertion)",
-    "tissue_beam": "reference: the needle as a beam held by the surrounding tissue",
+    "tissue_rod": "reference: the needle as an exact rod pushed into the tissue, held on the track its tip cut",
     "planar_beam": "a planar beam model of the stylet",
     "two_tube_cosserat": "the two-tube Cosserat model of stylet inside needle",
     "cosserat_rod": "a single-rod Cosserat model",
@@ -77,7 +77,7 @@ PLAIN_MODELS = {
 
 #: The models in a few words, for the terminal.
 SHORT_MODELS = {"straight": "exact straight line", "kinematic": "fast screening model",
-                "tissue_beam": "reference model (beam in tissue)"}
+                "tissue_rod": "reference model (rod in tissue)"}
 
 
 def plain_model(c: Candidate) -> str:
@@ -320,7 +320,7 @@ def models_used(result: PlanResult) -> dict[str, str]:
 
     E.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``.
     """
-    from reachplan.planner.steering.insertion import TISSUE_BEAM
+    from reachplan.planner.steering.tissue_rod import TISSUE_ROD
 
     counts: dict[tuple[str, str], int] = {}
     for c in result.candidates:
@@ -329,7 +329,7 @@ def models_used(result: PlanResult) -> dict[str, str]:
     used: dict[str, list[str]] = {}
     for (insertion, rod), n in sorted(counts.items(), key=lambda kv: f"{kv[0][0]}+{kv[0][1]}"):
         if rod:
-            role = "reference re-solve" if insertion == TISSUE_BEAM.name else "screening"
+            role = "reference re-solve" if insertion == TISSUE_ROD.name else "screening"
             used.setdefault(rod, []).append(f"{role} with {insertion} ({n} candidates)")
     return {rod: "; ".join(roles) for rod, roles in used.items()}
 

@@ -1,6 +1,6 @@
 """Insertion models: the path a steered needle cuts while it is pushed in under a tension schedule.
 
-Two models behind one Protocol, both in the template frame (entry at the origin, ``+z`` the insertion
+Two built-in models behind one Protocol, both in the template frame (entry at the origin, ``+z`` the insertion
 direction, roll 0 bends toward template ``+x``), millimetres:
 
 ``kinematic``
@@ -9,20 +9,11 @@ direction, roll 0 bends toward template ``+x``), millimetres:
     from a rod model, times the curvature factor of the tissue's modulus (:func:`curvature_factor`, fitted to
     the in-tissue Cosserat insertion of :mod:`reachplan.planner.steering.tissue_rod`). Cheap and vectorised
     over many schedules at once.
-``tissue_beam``
-    Reference quasi-static model. The stylet-in-needle rod (piecewise bending stiffness and the tendon's
-    preferred curvature per section, both from the rod model's free-space solve at the current tension) is
-    clamped at the template and embedded in an elastic (Winkler) medium. It is inserted in steps; the tissue
-    cut at each step is attached, by springs, to where the tip cut it (the tip's tangent at that moment),
-    and the already-inserted part is held by that track. Each step solves the linear equilibrium by
-    minimising bending plus foundation energy on a finite-difference grid.
+``tissue_rod`` (:mod:`reachplan.planner.steering.tissue_rod`)
+    Reference. The two-tube Cosserat rod (geometrically exact) pushed in steps into an elastic foundation tied
+    to the track its tip cut, one modulus along the path or one per organ crossed.
 
-Assumptions (stated, not hidden): the mechanics is linearised in the lateral slopes (accurate to a few
-per cent up to ~0.3 rad), and the centreline is rebuilt inextensibly from those slopes; the two
-lateral planes decouple (isotropic medium and section); tissue is linear-elastic, one modulus along the
-path or one per organ crossed (``modulus_profile``, piecewise constant); no friction or axial load; the
-rod model's free-space section curvature is the tendon's preferred curvature (the tendon's compression
-stays internal to the rod). Winkler modulus after Vesic (1961), ``k = 0.65 E_s/(1-ν²) (E_s D⁴/EI)^(1/12)``,
+The medium: Winkler modulus after Vesic (1961), ``k = 0.65 E_s/(1-ν²) (E_s D⁴/EI)^(1/12)`` (:func:`winkler_modulus_pa`),
 with the phantom's SimuGel modulus E_s = 0.19 MPa (reference: ``oncoreach.md``, Tissue and phantom).
 """
 
@@ -39,7 +30,6 @@ import numpy as np
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.rod_model.beam import PLANAR_BEAM
-from reachplan.rod_model.cosserat import TWO_TUBE_COSSERAT
 from reachplan.rod_model.design import RodDesign
 from reachplan.rod_model.protocol import RodModel
 
@@ -71,6 +61,8 @@ def curvature_factor(modulus_pa: float) -> float:
     within about a Winkler length of the tip, ``(4 EI / k)^(1/4)`` (Hetényi, *Beams on Elastic Foundation*,
     1946), and the held track keeps that extra turn (Glozman & Shoham, IEEE T-RO 23(3), 2007). That length
     scales as ``E^(−13/48) ≈ E^(−0.27)`` with Vesic's ``k``: the fitted exponent 0.35 is of that order.
+    The factor depends on the design: a shorter joint section (15ga-15j-tip) still bends more than tip following
+    at 1 MPa (``docs/mechanics.md``); the planner's reference re-solve corrects the shortlist of any design.
 
     Raises
     ------
@@ -96,7 +88,7 @@ class ModelInfo:
     Parameters
     ----------
     insertion : str
-        Insertion model name (``kinematic``, ``tissue_beam``), or ``straight`` for a straight needle.
+        Insertion model name (``kinematic``, ``tissue_rod``), or ``straight`` for a straight needle.
     rod_model : str
         Rod model that gave the curvatures (``planar_beam``, ``two_tube_cosserat``); "" for a straight needle.
     settings : tuple of (name, value)
@@ -378,178 +370,6 @@ def winkler_modulus_pa(design: RodDesign, tissue_modulus_pa: float = SIMUGEL_MOD
     return 0.65 * tissue_modulus_pa / (1 - poisson**2) * (tissue_modulus_pa * d**4 / ei) ** (1 / 12)
 
 
-@dataclass(frozen=True)
-class TissueBeamInsertion(NamedInsertion):
-    """Reference quasi-static insertion in an elastic medium (see the module docstring).
-
-    Parameters
-    ----------
-    tissue_modulus_pa : float
-        Young's modulus of the medium (default: SimuGel #3, 0.19 MPa).
-    rod_model : RodModel
-        Rod model that gives each section's preferred (free-space) curvature under tension (default
-        :data:`~reachplan.rod_model.cosserat.TWO_TUBE_COSSERAT`).
-    grid_mm : float
-        Finite-difference spacing along the needle.
-    step_mm : float
-        Insertion step (new tissue is cut and attached once per step).
-    """
-
-    label: ClassVar[str] = "tissue_beam"
-    tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
-    rod_model: RodModel = TWO_TUBE_COSSERAT
-    grid_mm: float = 0.25
-    step_mm: float = 0.25
-    poisson: float = TISSUE_POISSON
-
-    def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
-               depth_mm: float) -> list[InsertionPath | FailedInsertion]:
-        """Insert ``design`` to ``depth_mm`` once per schedule (positions mm, template frame).
-
-        A schedule whose equilibrium system is singular gives a :class:`FailedInsertion` with the reason.
-        """
-        label = self.info
-        out: list[InsertionPath | FailedInsertion] = []
-        for sch in schedules:
-            try:
-                out.append(InsertionPath(self.insert_one(design, sch, depth_mm), depth_mm, label))
-            except np.linalg.LinAlgError as exc:
-                out.append(FailedInsertion(label, f"equilibrium system singular: {exc}"))
-        return out
-
-    def insert_one(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
-                   modulus_profile: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """(n, 3) float, mm, template frame: the needle's centreline at the final depth.
-
-        ``modulus_profile``: optional ``(depth_mm (p,), modulus_pa (p,))`` giving the tissue's Young's
-        modulus along the insertion (e.g. per organ the path crosses), piecewise constant from each depth
-        on; None = the model's ``tissue_modulus_pa`` everywhere.
-        """
-        _check_depth(design, depth_mm)
-        if schedule.peak_tension_n > design.max_tension_n + 1e-9:
-            raise PlanInputError(f"the schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
-        table = curvature_table(design, self.rod_model)
-        n_nodes_total = max(2, round(depth_mm / self.grid_mm)) + 1
-        node_depth = np.linspace(0.0, depth_mm, n_nodes_total)
-        if modulus_profile is None:
-            moduli = np.full(n_nodes_total, self.tissue_modulus_pa)
-        else:
-            at, values = (np.asarray(a, dtype=float) for a in modulus_profile)
-            if at.shape != values.shape or at.ndim != 1 or len(at) == 0 or np.any(np.diff(at) <= 0):
-                raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
-            moduli = values[np.clip(np.searchsorted(at, node_depth, side="right") - 1, 0, len(at) - 1)]
-        k_nodes = np.array([winkler_modulus_pa(design, e, self.poisson) for e in np.unique(moduli)])
-        k_n_per_m2 = k_nodes[np.searchsorted(np.unique(moduli), moduli)]  # per node, N/m per m
-        bounds = table.section_bounds_mm
-        ei_sec = np.array([s.ei1 + s.ei2 for s in design.sections()])  # N m², per section
-        n_total = max(2, round(depth_mm / self.grid_mm))
-        h = depth_mm / n_total  # node i sits at depth i * h throughout the insertion
-        per_step = max(1, round(self.step_mm / h))
-        ends = [*range(per_step, n_total, per_step), n_total]
-        # Node i at insertion depth d sits at needle arc length L - d + i h, so what a cell holds depends only
-        # on its distance from the tip, (end - i) h: the fraction of each cell in each section, once.
-        n_sec = len(ei_sec)
-        from_tip = design.length_mm - h * np.arange(n_total + 1)
-        frac = np.column_stack([_cell_average(bounds, np.eye(n_sec)[j], from_tip, h) for j in range(n_sec)])
-        ei_from_tip = 1.0 / (frac @ (1.0 / (ei_sec * 1e6)))  # N mm²; compliances add along the rod
-        track = np.zeros((1, 2))  # spring rest positions (the cut track), (x, y) mm, per node
-        w = np.zeros((1, 2))  # needle's lateral position per node, mm
-        for end in ends:
-            d = end * h
-            old = len(track)
-            if old >= 3:  # the tip's tangent, second-order one-sided difference
-                slope = (3 * w[-1] - 4 * w[-2] + w[-3]) / (2 * h)
-            elif old == 2:
-                slope = (w[-1] - w[-2]) / h
-            else:
-                slope = np.zeros(2)
-            new_depths = h * np.arange(1, end + 2 - old)
-            track = np.vstack([track, w[-1] + np.outer(new_depths, slope)])  # new tissue, cut along the tangent
-            tension, roll = schedule.at(np.array([d]))
-            kap_sec = table.sections(float(tension[0]))  # 1/mm per section
-            rows = end - np.arange(end + 1)  # each node's distance from the tip, in cells
-            ei = ei_from_tip[rows]  # N mm²
-            kappa0 = frac[rows] @ kap_sec  # 1/mm: cell averages (same moment across a cell)
-            direction = np.array([np.cos(np.radians(roll[0])), np.sin(np.radians(roll[0]))])
-            w = _solve_foundation_beam(ei, k_n_per_m2[: end + 1] * 1e-3, h, kappa0, track, direction)
-        # The mechanics is linear in the slopes; the centreline is rebuilt inextensibly from them, so the
-        # needle's arc length equals the inserted depth however far it bends.
-        slope = np.gradient(w, h, axis=0)
-        tangent = np.column_stack([slope, np.ones(len(w))])
-        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-        steps = 0.5 * (tangent[1:] + tangent[:-1])
-        steps *= h / np.linalg.norm(steps, axis=1, keepdims=True)
-        return np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
-
-
-def _cell_average(bounds: np.ndarray, values: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
-    """Return the average of a piecewise-constant function over the cells ``[c - h/2, c + h/2]``.
-
-    The function is ``values[i]`` on ``[bounds[i], bounds[i+1])``; averaging over cells puts a jump between
-    sections where it is, not on a node.
-    """
-    cum = np.concatenate([[0.0], np.cumsum(values * np.diff(bounds))])
-
-    def integral(x: np.ndarray) -> np.ndarray:
-        xc = np.clip(x, bounds[0], bounds[-1])
-        i = np.clip(np.searchsorted(bounds, xc, side="right") - 1, 0, len(values) - 1)
-        inside = cum[i] + values[i] * (xc - bounds[i])
-        # beyond the ends the function continues with its end values
-        return inside + values[0] * np.minimum(x - bounds[0], 0.0) + values[-1] * np.maximum(x - bounds[-1], 0.0)
-
-    return (integral(centres + h / 2) - integral(centres - h / 2)) / h
-
-
-def _solve_foundation_beam(ei_nmm2: np.ndarray, k_n_per_mm2: np.ndarray | float, h: float, kappa0: np.ndarray,
-                           rest: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """Minimise ``Σ ½ EI (w'' − κ0 dir)² h + Σ ½ k (w − rest)² h`` with ``w(0) = 0, w'(0) = 0``.
-
-    Parameters
-    ----------
-    ei_nmm2 : (n,) bending stiffness at the nodes, N·mm²
-    k_n_per_mm2 : foundation modulus, N/mm per mm of needle (scalar, or (n,) per node)
-    kappa0 : (n,) preferred curvature magnitude, 1/mm; ``direction`` (2,) unit bending direction
-    rest : (n, 2) spring rest positions, mm
-
-    Returns
-    -------
-    (n, 2) lateral positions, mm
-    """
-    from scipy.linalg import solveh_banded
-
-    n = len(kappa0)
-    if n < 3:
-        return np.zeros((n, 2))
-    # Curvature rows r = 0..n-2 at the nodes; unknowns w_1..w_{n-1} (w_0 = 0, ghost w_{-1} = w_1 for the
-    # clamp). Row r holds (v0, v1, v2) / h² at unknown columns (r-2, r-1, r). The last node's curvature is
-    # left free, which gives the natural free-end conditions. A = Dᵀ W D + K is pentadiagonal, SPD.
-    m = n - 1
-    v = np.tile([1.0, -2.0, 1.0], (m, 1)) / (h * h)
-    v[0] = [0.0, 0.0, 2.0 / (h * h)]
-    v[1, 0] = 0.0
-    wt = ei_nmm2[:m] * h
-    wt[0] *= 0.5  # trapezoid weight at the clamped end
-    pad = np.zeros((2, 3))
-    vp = np.vstack([v, pad])
-    wp = np.concatenate([wt, [0.0, 0.0]])
-    j = np.arange(m)
-    diag = wp[j] * vp[j, 2] ** 2 + wp[j + 1] * vp[j + 1, 1] ** 2 + wp[j + 2] * vp[j + 2, 0] ** 2
-    off1 = wp[j + 1] * vp[j + 1, 1] * vp[j + 1, 2] + wp[j + 2] * vp[j + 2, 0] * vp[j + 2, 1]
-    off2 = wp[j + 2] * vp[j + 2, 0] * vp[j + 2, 2]
-    kw = np.broadcast_to(np.asarray(k_n_per_mm2, dtype=float), (n,))[1:] * h  # a new array
-    kw[-1] *= 0.5
-    ab = np.zeros((3, m))
-    ab[0, 2:] = off2[:-2]
-    ab[1, 1:] = off1[:-1]
-    ab[2] = diag + kw
-    wk = np.concatenate([wt * kappa0[:m], [0.0, 0.0]])
-    dt_wk = wk[j] * vp[j, 2] + wk[j + 1] * vp[j + 1, 1] + wk[j + 2] * vp[j + 2, 0]
-    rhs = np.outer(dt_wk, direction) + kw[:, None] * rest[1:]
-    out = np.zeros((n, 2))
-    out[1:] = solveh_banded(ab, rhs, lower=False, check_finite=False)
-    return out
-
-
 def _check_depth(design: RodDesign, depth_mm: float) -> None:
     if not (np.isfinite(depth_mm) and 0 < depth_mm <= design.length_mm):
         raise PlanInputError(f"insertion depth must be in (0, {design.length_mm:.0f}] mm for {design.name}, "
@@ -557,4 +377,3 @@ def _check_depth(design: RodDesign, depth_mm: float) -> None:
 
 
 KINEMATIC = KinematicInsertion()
-TISSUE_BEAM = TissueBeamInsertion()

@@ -28,37 +28,46 @@ Tip force
     ASSUMED default 0: no value is published for the phantom's gel, and with it the zero-modulus limit is the
     free-space shape. A symmetric tip has no lateral cutting force.
 
-The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; tip deflection at a fixed depth)
-    Two mechanisms, both physical, so the tip deflection is *not* monotonic in the modulus:
+The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; ``docs/mechanics.md``)
+    The tip deflection at a fixed depth is *not* monotonic in the modulus. The checks (slip threshold 0.25 mm /
+    1 mm / none, re-solve window on or off, insertion steps 4 / 2 / 1 mm) move the peak by less than 0.25 mm: the
+    branches are mechanical.
 
     1. *Holding* (rises with the modulus). At zero modulus the needle has the free-space shape of its inserted
        length (test); a steered needle turns only as far as the tissue holds its shaft on the curved track its
-       tip cut. The shaft (stylet tube in needle, EI ≈ 7 mN·m²) is held once its Winkler length
-       ``(4 EI / k)^(1/4)`` is short against the depth: about 115 mm at 1 kPa, 60 mm at 10 kPa, 33 mm at
-       0.1 MPa. 15ga-20j-tip pulled at 10 N from the template, tip at 120 mm: 4.98 mm at 0, 5.8 mm at 1 kPa,
-       11.4 mm at 10 kPa, 26.3 mm at 0.1 MPa, 29.6 mm at 0.19 MPa. Bevel-tip needles show the same
-       (curvature rises with tissue stiffness, Misra et al. 2010).
-    2. *Resisting* (falls with the modulus). A tendon pulled while the joints are embedded bends them only
+       tip cut. The shaft (stylet tube in needle, EI = 7.6 mN·m²) is held once its Winkler length
+       ``(4 EI / k)^(1/4)`` is short against the depth: 102 mm at 1 kPa, 55 mm at 10 kPa, 29 mm at 0.1 MPa.
+       15ga-20j-tip pulled at 10 N from the template, tip at 120 mm: 4.98 mm at 0, 5.8 mm at 1 kPa, 11.4 mm at
+       10 kPa, 26.3 mm at 0.1 MPa, 29.6 mm at 0.19 MPa. Bevel-tip needles show the same (curvature rises with
+       tissue stiffness, Misra et al. 2010).
+    2. *Decoupling* (falls to tip following). While the shaft's Winkler length is comparable with the joint
+       section, the held shaft's bending reaches the tip through the soft joints and the tip turns faster than
+       the joints' free-space curvature; the peak lies where that length is about 0.6 joint-section lengths
+       (0.1 MPa for 30 joints, 49.5 mm; about 1 MPa for 15 joints, 24.7 mm; test), and beyond it the deflection
+       falls to pure tip following at the free-space curvature (Webster et al., IJRR 25(5-6), 2006), reached by
+       about 1 MPa for 30 joints (pulled to 10 N at the template, tip at 120 mm: 30.25 / 27.94 / 27.89 mm at
+       0.1 / 1 / 10 MPa, tip following 27.97 mm; test).
+    3. *Resisting* (falls with the modulus). A tendon pulled while the joints are embedded bends them only
        within about their own Winkler length of the tip, which shrinks as ``k^(-1/4)``; with the tendon pulled
        before the joints enter, nothing resists them (the tip cuts its own curved track: at 30 mm the tip is
        the free-space one at every modulus, test). 15ga-30j-tip, 5 mm ramp at 40 mm to 10 N, tip at 140 mm:
-       26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa, falling toward pure tip
-       following at the free-space curvature (18.6 mm).
+       26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa.
 
-    The peak lies between 10 kPa and 1 MPa depending on the schedule. The monotonic quantity the planner needs
-    is the kinematic model's curvature factor over the tip-following range (>= 0.1 MPa), where the holding
-    is complete and only the resisting mechanism acts: :func:`~reachplan.planner.steering.insertion.curvature_factor`,
-    decreasing from 1.34 at 0.1 MPa (1.27 in the gel) to 1 in rigid tissue.
+    The monotonic quantity the planner needs is the kinematic model's curvature factor over the tip-following
+    range (>= 0.1 MPa), where the holding is complete:
+    :func:`~reachplan.planner.steering.insertion.curvature_factor`, decreasing from 1.34 at 0.1 MPa (1.27 in
+    the gel) to 1 in rigid tissue, fitted for 15ga-30j-tip (a shorter joint section peaks in stiffer tissue).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import numpy as np
 
+from reachplan._arrays import arc_length_mm
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.steering.insertion import (
     SIMUGEL_MODULUS_PA,
@@ -102,6 +111,12 @@ class TissueRodInsertion(NamedInsertion):
         Re-solve only the joint section plus this many of the shaft's Winkler lengths behind it (the softest
         tissue inside sets the length), clamped where the last step left the needle; 0: always the whole
         inserted length.
+    richardson : bool
+        :meth:`insert_one` returns ``2 P(step) − P(2 step)`` (Richardson extrapolation in the insertion step,
+        whose error is first order: 4 → 2 mm moves the tip 1.6-1.7 times as much as 2 → 1 mm), both paths taken
+        at the same fractions of their arc length, every ``node_mm``. 15ga-30j-tip in the gel, 20 mm ramps from
+        0 / 40 mm to 5 / 10 N, tip at 150 mm: 2 mm steps are 0.18-0.41 mm from the extrapolation of 1 and 2 mm
+        steps, 1 mm steps 0.09-0.21 mm, this (2 and 4 mm, 1.5 times the cost of 2 mm) 0.03-0.08 mm.
     """
 
     label: ClassVar[str] = "tissue_rod"
@@ -114,6 +129,7 @@ class TissueRodInsertion(NamedInsertion):
     poisson: float = TISSUE_POISSON
     arc_cut: bool = True
     window_winkler: float = 6.0
+    richardson: bool = False
 
     def __post_init__(self) -> None:
         if not (self.tissue_modulus_pa >= 0 and self.step_mm > 0 and self.node_mm > 0 and self.slip_mm > 0
@@ -159,10 +175,19 @@ class TissueRodInsertion(NamedInsertion):
         Returns
         -------
         (n, 3) float ndarray or FailedInsertion
-            The inserted centreline, mm, template frame (row 0 at the template, last row the tip).
+            The inserted centreline, mm, template frame (row 0 at the template, last row the tip): at the rod
+            model's integration points, or with ``richardson`` every ``node_mm`` of arc length.
         """
         path, _ = self.insert_steps(design, schedule, depth_mm, modulus_profile)
-        return path
+        if not self.richardson or isinstance(path, FailedInsertion):
+            return path
+        coarse, _ = replace(self, step_mm=2 * self.step_mm).insert_steps(design, schedule, depth_mm, modulus_profile)
+        if isinstance(coarse, FailedInsertion):
+            return coarse
+        frac = np.linspace(0.0, 1.0, max(2, round(depth_mm / self.node_mm)) + 1)
+        fine_at, coarse_at = (np.column_stack([np.interp(frac, a / a[-1], p[:, i]) for i in range(3)])
+                              for p, a in ((path, arc_length_mm(path)), (coarse, arc_length_mm(coarse))))
+        return 2.0 * fine_at - coarse_at
 
     def insert_steps(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
                      modulus_profile: tuple[np.ndarray, np.ndarray] | None = None
@@ -274,3 +299,8 @@ def _pose_at(s_mm: np.ndarray, positions_mm: np.ndarray, frames: np.ndarray,
 
 
 TISSUE_ROD = TissueRodInsertion()
+#: The planner's reference re-solve (:func:`reachplan.planner.pipeline.refine_shortlist`): 2 mm insertion steps
+#: extrapolated with 4 mm ones (``richardson``), 1 RK4 step per mm. 15ga-30j-tip, 5 mm ramp from the template to
+#: 10 N, tip at 120 mm in the gel: 29.70 / 29.80 / 29.85 mm at 4 / 2 / 1 mm steps (extrapolated 29.90, from 1 and
+#: 2 mm 29.91); 2 RK4 steps per mm change it by 0.001 mm.
+PLANNER_REFERENCE = TissueRodInsertion(rod_model=TwoTubeCosserat(steps_per_mm=1.0), richardson=True)

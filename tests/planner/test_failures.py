@@ -17,38 +17,41 @@ from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import make_organ
 from reachplan.planner.pipeline import PlanConfig, PlanModels, PlanResult, Scene, load_template, plan
 from reachplan.planner.steering.candidates import Candidate, Target
-from reachplan.planner.steering.insertion import KinematicInsertion, TissueBeamInsertion
+from reachplan.planner.steering.insertion import FailedInsertion, KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
+from reachplan.rod_model.cosserat import TwoTubeCosserat
 from reachplan.rod_model.design import RodDesign
 from reachplan.rod_model.errors import RodModelError
 
 FAILURES = {
-    "singular": "equilibrium system singular",
+    "failed": "at depth 12.0 mm: stub multiple shooting did not converge",
     "not_finite": "the predicted shape is not finite",
     "rod_model": "stub rod model did not converge",
 }
 
 
-def _fail(kind: str) -> np.ndarray:
-    if kind == "singular":
-        raise np.linalg.LinAlgError("stub: singular matrix")
+def _fail(kind: str, model: TissueRodInsertion) -> np.ndarray | FailedInsertion:
+    if kind == "failed":
+        return FailedInsertion(model.info, FAILURES["failed"])
     if kind == "rod_model":
         raise RodModelError("stub rod model did not converge")
     return np.full((5, 3), np.nan)  # a shape out of range
 
 
 @dataclass(frozen=True)
-class ReferenceFailingOnce(TissueBeamInsertion):
-    """The reference model, failing (``kind``) on its first solve."""
+class ReferenceFailingOnce(TissueRodInsertion):
+    """The planner's reference model, failing (``kind``) on its first solve."""
 
-    kind: str = "singular"
+    rod_model: TwoTubeCosserat = PLANNER_REFERENCE.rod_model
+    kind: str = "failed"
     calls: list[int] = field(default_factory=list, compare=False, hash=False)
 
     def insert_one(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
-                   modulus_profile: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                   modulus_profile: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray | FailedInsertion:
         self.calls.append(1)
         if len(self.calls) == 1:
-            return _fail(self.kind)
+            return _fail(self.kind, self)
         return super().insert_one(design, schedule, depth_mm, modulus_profile)
 
 
@@ -82,7 +85,11 @@ def _failed(result: PlanResult) -> list[Candidate]:
 def test_a_failed_reference_resolve_marks_that_candidate_and_the_plan_goes_on(kind: str) -> None:
     reference = ReferenceFailingOnce(kind=kind)
     result = _planted_plan(PlanModels(reference=reference), robust_top=0)
-    (bad,) = _failed(result)
+    # the reference's solves are memoised: the mirror image of the failed candidate (the same schedule and depth
+    # from the hole mirrored about the target's plane) fails with it
+    bad, *mirrors = _failed(result)
+    assert len(mirrors) <= 1 and all(m.reason == bad.reason and m.peak_tension_n == bad.peak_tension_n
+                                     for m in mirrors)
     assert not bad.feasible and bad.steered and bad.reaches  # it did reach on the screening model's numbers
     assert f"reference re-solve ({reference.info.label}) failed" in bad.reason and FAILURES[kind] in bad.reason
     assert bad.model.insertion == "kinematic"  # its numbers are the screening model's, and it says so
@@ -90,7 +97,7 @@ def test_a_failed_reference_resolve_marks_that_candidate_and_the_plan_goes_on(ki
     assert doc["feasible"] is False and doc["reason"] == bad.reason and doc["model"] == bad.model.label
     ranked = result.ranking["T"]
     best = ranked[0]
-    assert best.feasible and best.steered and best.hole_id != bad.hole_id
+    assert best.feasible and best.steered and best.hole_id not in {c.hole_id for c in (bad, *mirrors)}
     assert best.model == reference.info  # the next candidate was re-solved by the reference instead
     feasible = [i for i, c in enumerate(ranked) if c.feasible]
     assert len(feasible) >= 2 and ranked.index(bad) > max(feasible)  # ranked after every feasible one

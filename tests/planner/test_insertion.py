@@ -9,11 +9,11 @@ from reachplan.planner.errors import PlanInputError
 from reachplan.planner.steering.insertion import (
     TIP_FOLLOWING_MIN_PA,
     KinematicInsertion,
-    TissueBeamInsertion,
     curvature_factor,
     curvature_table,
 )
 from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 from reachplan.rod_model.beam import PLANAR_BEAM
 from reachplan.rod_model.design import preset
 
@@ -39,44 +39,6 @@ def test_kinematic_roll_and_zero_tension(design) -> None:  # type: ignore[no-unt
     assert paths[1][-1, 1] > 5.0 and abs(paths[1][-1, 0]) < 1e-9
 
 
-def test_tissue_beam_in_a_vanishing_medium_takes_the_free_space_shape(design) -> None:  # type: ignore[no-untyped-def]
-    depth, tension = 150.0, 1.0  # small load: the small-deflection closed form holds
-    model = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=10.0)
-    tip = model.insert_one(design, TensionSchedule.constant(tension), depth)[-1]
-    table = curvature_table(design, PLANAR_BEAM)
-    kap = table.sections(tension)
-    a = design.length_mm - depth  # needle arc length at the template
-    joint0 = table.section_bounds_mm[table.joint_section] - a  # depth where the joint section starts
-    # small-deflection closed form: w(L) = integral of (L - s) kappa(s) ds
-    expected = kap[0] * (depth * joint0 - joint0**2 / 2) + kap[table.joint_section] * (depth - joint0) ** 2 / 2
-    assert tip[0] == pytest.approx(expected, rel=2e-3)
-    assert tip[1] == pytest.approx(0.0, abs=1e-9)
-
-
-def test_tissue_beam_converges_under_refinement(design) -> None:  # type: ignore[no-untyped-def]
-    sch = TensionSchedule.ramp(30.0, 20.0, 8.0, roll_deg=30.0)
-    tips = {h: TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=h, step_mm=h).insert_one(design, sch, 120.0)[-1]
-            for h in (2.0, 1.0, 0.5, 0.25)}
-    e = [np.linalg.norm(tips[h] - tips[0.25]) for h in (2.0, 1.0, 0.5)]
-    assert e[1] < 0.6 * e[0] and e[2] < 0.6 * e[1]  # converging, at least first order in the grid/step
-    assert e[2] < 1.0  # mm, at the default's twice coarser grid
-    direction = tips[0.25][:2] / np.linalg.norm(tips[0.25][:2])
-    np.testing.assert_allclose(direction, [np.cos(np.radians(30)), np.sin(np.radians(30))], atol=1e-9)
-
-
-def test_tissue_beam_straight_without_tension(design) -> None:  # type: ignore[no-untyped-def]
-    path = TissueBeamInsertion(rod_model=PLANAR_BEAM).insert_one(design, TensionSchedule.constant(0.0), 100.0)
-    np.testing.assert_allclose(path[:, :2], 0.0, atol=1e-12)
-
-
-def test_stiffer_tissue_holds_the_needle_closer_to_its_track(design) -> None:  # type: ignore[no-untyped-def]
-    sch = TensionSchedule.constant(10.0)
-    soft = TissueBeamInsertion(tissue_modulus_pa=1e-6, rod_model=PLANAR_BEAM, step_mm=5.0)
-    gel = TissueBeamInsertion(rod_model=PLANAR_BEAM, step_mm=5.0)
-    # the gel accumulates curvature along the track; free space bends only the distal section
-    assert gel.insert_one(design, sch, 150.0)[-1, 0] > soft.insert_one(design, sch, 150.0)[-1, 0]
-
-
 def test_curvature_factor_is_monotone_and_tends_to_tip_following() -> None:
     moduli = np.geomspace(TIP_FOLLOWING_MIN_PA, 1e12, 40)
     c = np.array([curvature_factor(float(e)) for e in moduli])
@@ -89,8 +51,6 @@ def test_curvature_factor_is_monotone_and_tends_to_tip_following() -> None:
 def test_curvature_factor_matches_the_in_tissue_rod_where_it_was_not_fitted() -> None:
     # 0.5 MPa is not among the fitted moduli: the factor fitted to the rod there against the function
     from scipy.optimize import minimize_scalar
-
-    from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 
     design = preset("15ga-30j-tip")
     schedules = [TensionSchedule.ramp(o, 20.0, design.max_tension_n) for o in (0.0, 20.0, 40.0, 60.0)]
@@ -113,7 +73,10 @@ def test_bad_inputs_are_typed_errors(design) -> None:  # type: ignore[no-untyped
     with pytest.raises(PlanInputError):
         KinematicInsertion().insert_array(design, [TensionSchedule.constant(50.0)], 100.0)
     with pytest.raises(PlanInputError):
-        TissueBeamInsertion().insert_one(design, TensionSchedule.constant(1.0), 500.0)
+        TissueRodInsertion().insert_one(design, TensionSchedule.constant(1.0), 500.0)
+    with pytest.raises(PlanInputError, match="modulus_profile"):
+        TissueRodInsertion().insert_one(design, TensionSchedule.constant(1.0), 10.0,
+                                        (np.array([10.0, 5.0]), np.array([1.0, 2.0])))
     with pytest.raises(ValueError, match="only pulls"):
         TensionSchedule.constant(-1.0)
 
@@ -136,23 +99,6 @@ def test_workspace_radius_is_positive_and_below_the_stylets_reach(design) -> Non
     assert 45.0 > radius > 0.0
 
 
-def test_tissue_modulus_profile_per_organ(design) -> None:  # type: ignore[no-untyped-def]
-    sch = TensionSchedule.ramp(20.0, 20.0, 8.0)
-    gel = TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=0.5)
-    soft = TissueBeamInsertion(rod_model=PLANAR_BEAM, grid_mm=0.5, step_mm=0.5, tissue_modulus_pa=2e4)
-    flat = gel.insert_one(design, sch, 120.0)
-    # a profile that repeats the default is the homogeneous model; one that is soft everywhere is the soft model
-    np.testing.assert_allclose(gel.insert_one(design, sch, 120.0, (np.array([0.0]), np.array([0.19e6]))), flat)
-    np.testing.assert_allclose(gel.insert_one(design, sch, 120.0, (np.array([0.0]), np.array([2e4]))),
-                               soft.insert_one(design, sch, 120.0))
-    # softer tissue over the distal half moves the tip between the two homogeneous answers
-    mixed = gel.insert_one(design, sch, 120.0, (np.array([0.0, 60.0]), np.array([0.19e6, 2e4])))[-1, 0]
-    lo, hi = sorted([flat[-1, 0], soft.insert_one(design, sch, 120.0)[-1, 0]])
-    assert lo - 1e-9 <= mixed <= hi + 1e-9 and lo < hi
-    with pytest.raises(PlanInputError, match="modulus_profile"):
-        gel.insert_one(design, sch, 120.0, (np.array([10.0, 5.0]), np.array([1.0, 2.0])))
-
-
 def test_insertion_models_use_the_rod_model_object_they_hold(design) -> None:  # type: ignore[no-untyped-def]
     from dataclasses import dataclass
     from typing import ClassVar
@@ -171,4 +117,3 @@ def test_insertion_models_use_the_rod_model_object_they_hold(design) -> None:  #
     assert path.model.to_json()["rod_model"] == "unregistered_beam"
     same = KinematicInsertion(tissue_factor=0.9, rod_model=PLANAR_BEAM).insert_array(design, sch, 100.0)[0]
     np.testing.assert_array_equal(path.positions_mm, same)
-    assert TissueBeamInsertion(rod_model=PLANAR_BEAM).info.label == "tissue_beam+planar_beam"

@@ -54,8 +54,8 @@ def test_planted_scene_only_a_curved_route_is_clear() -> None:
     best = result.ranking["T"][0]
     assert best.feasible and best.steered and best.hole_distance_mm < 40.0
     assert best.reach_error_mm <= 2.0 and best.clearance_mm > 0.0
-    assert best.model.insertion == "tissue_beam"  # the shortlisted candidate was re-solved by the reference
-    assert best.to_json()["model"] == f"tissue_beam+{best.model.rod_model}" and best.model.rod_model
+    assert best.model.insertion == "tissue_rod"  # the shortlisted candidate was re-solved by the reference
+    assert best.to_json()["model"] == f"tissue_rod+{best.model.rod_model}" and best.model.rod_model
     assert best.schedule is not None and 0 < best.peak_tension_n <= 10.0
     # the path's tip is where the candidate says, and it bends toward the target's side (+x)
     np.testing.assert_allclose(best.path_mm[-1], best.to_json()["tip_position_mm"], atol=1e-3)

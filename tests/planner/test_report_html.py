@@ -99,12 +99,13 @@ def test_speed_accuracy_chart_marks_the_models_used() -> None:
 
 
 def test_models_used_names_each_rod_models_role() -> None:
-    from reachplan.planner.steering.insertion import KINEMATIC, TISSUE_BEAM
+    from reachplan.planner.steering.insertion import KINEMATIC
+    from reachplan.planner.steering.tissue_rod import TISSUE_ROD
 
-    cands = [SimpleNamespace(model=m) for m in [STRAIGHT, KINEMATIC.info, KINEMATIC.info, TISSUE_BEAM.info]]
+    cands = [SimpleNamespace(model=m) for m in [STRAIGHT, KINEMATIC.info, KINEMATIC.info, TISSUE_ROD.info]]
     used = models_used(SimpleNamespace(candidates=cands))  # type: ignore[arg-type]
     assert used == {"planar_beam": f"screening with {KINEMATIC.name} (2 candidates)",
-                    "two_tube_cosserat": f"reference re-solve with {TISSUE_BEAM.name} (1 candidates)"}
+                    "two_tube_cosserat": f"reference re-solve with {TISSUE_ROD.name} (1 candidates)"}
 
 
 def test_interactive_figures_embed_plotly_once_and_escape_their_data() -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
 import pytest
 
@@ -141,3 +143,57 @@ def test_insertion_step_refinement_converges() -> None:
         tips.append(float(np.hypot(path[-1, 0], path[-1, 1])))
     d1, d2 = abs(tips[1] - tips[0]), abs(tips[2] - tips[1])
     assert d1 > 1e-3 and d2 < 0.7 * d1, tips
+
+
+@cache
+def _tip_at(design_name: str, modulus_pa: float, depth_mm: float = 120.0) -> float:
+    """Tip deflection (mm) of a stylet pulled to 10 N at the template and inserted to ``depth_mm``."""
+    path = TissueRodInsertion(tissue_modulus_pa=modulus_pa, step_mm=4.0).insert_one(
+        preset(design_name), PULL, depth_mm)
+    assert isinstance(path, np.ndarray), getattr(path, "reason", "")
+    return float(np.hypot(*path[-1, :2]))
+
+
+def _tip_following(design_name: str, depth_mm: float = 120.0) -> float:
+    """The rigid-tissue limit: pure tip following at the joint section's free-space curvature (mm)."""
+    from reachplan.planner.steering.insertion import KinematicInsertion
+
+    path = KinematicInsertion(tissue_factor=1.0).insert_array(preset(design_name), [PULL], depth_mm)[0]
+    return float(np.hypot(*path[-1, :2]))
+
+
+def test_past_the_peak_the_deflection_falls_to_tip_following() -> None:
+    # the planner's design, pulled at the template: above the peak (0.1 MPa for its 49.5 mm joint section) the
+    # deflection falls, and from about 1 MPa on it is the tip-following path (the rigid-tissue limit) to within
+    # the insertion step's error (measured 0.1-0.25 mm at 4 mm steps against 1 mm)
+    follow = _tip_following("15ga-30j-tip")
+    peak, stiff, rigid = (_tip_at("15ga-30j-tip", e) for e in (1e5, 1e6, 3e6))
+    assert peak > stiff + 1.5 and peak > follow + 1.5
+    assert stiff == pytest.approx(follow, abs=0.25) and rigid == pytest.approx(follow, abs=0.25)
+
+
+def test_the_peak_moves_to_stiffer_tissue_with_a_shorter_joint_section() -> None:
+    # the overshoot over tip following lasts while the shaft's Winkler length (4 EI / k)^(1/4) is longer than
+    # about 0.6 joint-section lengths: 29 mm at 0.1 MPa, 16 mm at 1 MPa. 30 joints (49.5 mm): past the peak
+    # between 0.1 and 1 MPa (the deflection falls); 15 joints (24.7 mm): before it (rises, and overshoots)
+    assert _tip_at("15ga-30j-tip", 1e5) > _tip_at("15ga-30j-tip", 1e6) + 1.5
+    short_soft, short_stiff = _tip_at("15ga-15j-tip", 1e5), _tip_at("15ga-15j-tip", 1e6)
+    assert short_stiff > short_soft + 5.0 and short_stiff > _tip_following("15ga-15j-tip") + 1.5
+
+
+def test_richardson_extrapolation_in_the_insertion_step() -> None:
+    # the step error is first order: 2 P(2 mm) - P(4 mm) lands nearer the limit (estimated from 1 and 2 mm)
+    # than either plain solve, and is sampled evenly from the template (origin) to the tip
+    ramp = TensionSchedule.ramp(0.0, 20.0, 10.0)
+    tips = {}
+    for h in (4.0, 2.0, 1.0):
+        path = TissueRodInsertion(step_mm=h).insert_one(DESIGN, ramp, 100.0)
+        assert isinstance(path, np.ndarray)
+        tips[h] = path[-1]
+    limit = 2 * tips[1.0] - tips[2.0]
+    extrapolated = TissueRodInsertion(step_mm=2.0, richardson=True).insert_one(DESIGN, ramp, 100.0)
+    assert isinstance(extrapolated, np.ndarray) and len(extrapolated) == 101
+    np.testing.assert_allclose(extrapolated[-1], 2 * tips[2.0] - tips[4.0], atol=1e-9)
+    np.testing.assert_allclose(extrapolated[0], 0.0, atol=1e-12)
+    err = np.linalg.norm(extrapolated[-1] - limit)
+    assert err < 0.5 * np.linalg.norm(tips[1.0] - limit) and err < 0.25 * np.linalg.norm(tips[2.0] - limit)
