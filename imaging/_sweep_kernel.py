@@ -37,8 +37,7 @@ CHUNK = 16
 
 @njit(cache=True)
 def nearest_samples(points, samples, centres, radii, chunks, reach, lo, hi, idx):  # type: ignore[no-untyped-def]
-    """Write the index of the nearest sample to each point, -1 when none is within ``reach`` (mm) or the point is
-    outside the box ``lo``..``hi`` (mm).
+    """Write the index of the nearest sample to each point (-1: none within ``reach`` mm, or outside ``lo``..``hi``).
 
     The samples are searched in chunks of :data:`CHUNK` consecutive ones, each inside the ball ``centres[c]``,
     ``radii[c]`` (mm); a chunk whose ball is farther than the best sample so far (at first the previous point's
