@@ -83,6 +83,19 @@ def nearest_samples(points, samples, centres, radii, chunks, reach, lo, hi, idx)
 
 
 @njit(cache=True)
+def axial_samples(z, z0, sign, step, n, reach, idx):  # type: ignore[no-untyped-def]
+    """Write the sample of a sweep straight along z nearest to each height ``z`` (mm), -1 beyond ``reach`` of its ends.
+
+    The samples are ``step`` mm apart from ``z0`` in the direction ``sign`` (+1 or -1); ties go to the even index,
+    as ``np.round``.
+    """
+    lo, hi = -reach / step, n - 1 + reach / step
+    for p in range(z.shape[0]):
+        i_f = (z[p] - z0) * sign / step
+        idx[p] = int(min(max(np.rint(i_f), 0.0), n - 1.0)) if lo < i_f < hi else -1
+
+
+@njit(cache=True)
 def field_at(points, idx, samples, s_arc, frames, semi_a, semi_b, reach, out):  # type: ignore[no-untyped-def]
     """Write the sweep's signed field at each point, in the frame of its sample ``idx`` (``reach`` where idx < 0)."""
     length = s_arc[s_arc.shape[0] - 1]
@@ -113,5 +126,6 @@ def warm_up() -> None:
     idx = np.zeros(1, dtype=np.int64)
     nearest_samples(pts, samples, np.zeros((1, 3)), np.ones(1), np.zeros(1, dtype=np.int64), 1.0,
                     np.full(3, -1.0), np.ones(3), idx)
+    axial_samples(np.zeros(1), 0.0, 1.0, 1.0, 2, 1.0, idx)
     frames = np.zeros((2, 3, 3))
     field_at(pts, idx, samples, np.array([0.0, 1.0]), frames, np.ones(2), np.ones(2), 1.0, np.empty(1))

@@ -167,16 +167,15 @@ class Sweep:
 
     def field(self, p: np.ndarray) -> np.ndarray:
         """Return a signed field (about mm near the surface): negative inside. ``p`` (..., 3) LPS mm -> (...)."""
-        from reachplan.imaging._sweep_kernel import field_at, nearest_samples
+        from reachplan.imaging._sweep_kernel import axial_samples, field_at, nearest_samples
 
         q = np.asarray(p, dtype=float)
         flat = np.ascontiguousarray(q.reshape(-1, 3))
         reach = float(max(self.semi_a_mm.max(), self.semi_b_mm.max())) + 2.0
         if self.axial:  # straight along z: the sample index follows from z directly
-            step = self._s[-1] / (len(self._s) - 1)
-            i_f = (flat[:, 2] - self.samples_mm[0, 2]) * np.sign(self._frames[0, 0, 2]) / step
-            ok = (i_f > -reach / step) & (i_f < len(self._s) - 1 + reach / step)
-            idx = np.where(ok, np.clip(np.round(i_f), 0, len(self._s) - 1), -1).astype(np.int64)
+            idx = np.empty(len(flat), dtype=np.int64)
+            axial_samples(flat[:, 2], float(self.samples_mm[0, 2]), float(np.sign(self._frames[0, 0, 2])),
+                          float(self._s[-1] / (len(self._s) - 1)), len(self._s), reach, idx)
         else:
             lo, hi = self._bounds[0] - 2.0, self._bounds[1] + 2.0
             idx = np.empty(len(flat), dtype=np.int64)
