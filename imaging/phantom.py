@@ -805,8 +805,8 @@ class _ImageRef:
 def _ct_files(spec: PhantomSpec) -> Iterator[tuple[str, bytes, _ImageRef]]:
     """Return the image slices, (file name, DICOM bytes, reference) each: CT (HU), or MR (T2-weighted-like).
 
-    MR when ``spec.modality == "MR"``. One dataset holds everything the slices share; per slice only the instance UID, number, position and pixels
-    are set before it is encoded.
+    MR when ``spec.modality == "MR"``. One dataset holds everything the slices share; per slice only the instance
+    UID, number, position and pixels are set before it is encoded.
     """
     values = phantom_ct_hu(spec)
     mr = spec.modality == "MR"
