@@ -50,9 +50,10 @@ def atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> None:
 def atomic_write_files(files: Iterable[tuple[Path, bytes]]) -> None:
     """Create or replace several files, each atomically (as :func:`atomic_write`), with the syncs batched.
 
-    Every file is written to its temporary name first, then all are flushed to disk, then each is renamed into
-    place: one series of slices costs about one disk flush instead of one per file. On failure no temporary file
-    is left; files already renamed stay (each is whole).
+    Every file is written to its temporary name first, then all are flushed to disk at once (``fsync`` from a few
+    threads: the file system commits them together, about one disk flush for a series of slices instead of one per
+    file, 0.3 s -> 0.03 s for 94 CT slices here), then each is renamed into place. On failure no temporary file is
+    left; files already renamed stay (each is whole).
     """
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
     staged: list[tuple[Path, Path]] = []
@@ -67,8 +68,14 @@ def atomic_write_files(files: Iterable[tuple[Path, bytes]]) -> None:
             view = memoryview(data)
             while view:
                 view = view[os.write(fds[-1], view):]
-        for fd in fds:
-            os.fsync(fd)
+        if len(fds) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(min(len(fds), 16)) as pool:
+                list(pool.map(os.fsync, fds))
+        else:
+            for fd in fds:
+                os.fsync(fd)
         while fds:
             os.close(fds.pop())
         for path, tmp in staged:

@@ -791,8 +791,23 @@ def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: 
     return ds
 
 
-def _ct_datasets(spec: PhantomSpec) -> Iterator[tuple[str, Any]]:
-    """Return the image slices: a CT series (HU) or, for ``spec.modality == "MR"``, a T2-weighted-like MR series."""
+@dataclass(frozen=True)
+class _ImageRef:
+    """What the structure set references of one written image."""
+
+    SOPClassUID: str
+    SOPInstanceUID: str
+    SeriesInstanceUID: str
+    StudyInstanceUID: str
+    FrameOfReferenceUID: str
+
+
+def _ct_files(spec: PhantomSpec) -> Iterator[tuple[str, bytes, _ImageRef]]:
+    """Return the image slices, (file name, DICOM bytes, reference) each: CT (HU), or MR (T2-weighted-like).
+
+    MR when ``spec.modality == "MR"``. One dataset holds everything the slices share; per slice only the instance
+    UID, number, position and pixels are set before it is encoded.
+    """
     values = phantom_ct_hu(spec)
     mr = spec.modality == "MR"
     tag = "mr" if mr else "ct"
@@ -800,57 +815,62 @@ def _ct_datasets(spec: PhantomSpec) -> Iterator[tuple[str, Any]]:
     for_uid = _uid("frame of reference", case_id=spec.case_id)
     x0 = spec.first_pixel_xy_mm
     sop = MR_IMAGE_STORAGE if mr else CT_IMAGE_STORAGE
+    ds = _base_dataset(sop, _uid(tag, "0", case_id=spec.case_id), spec.modality, series_uid, 1,
+                       f"phantom {spec.modality}", spec.case_id, spec.description)
+    ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"] if not mr else ["DERIVED", "SECONDARY", "OTHER"]
+    ds.InstanceNumber = 1
+    ds.FrameOfReferenceUID = for_uid
+    ds.PositionReferenceIndicator = ""
+    ds.PatientPosition = "HFS"
+    ds.BodyPartExamined = "PELVIS"
+    if mr:  # MR Image module (PS3.3 C.8.3.1): a T2-weighted turbo spin echo, described not simulated
+        ds.ScanningSequence = "SE"
+        ds.SequenceVariant = "SK"
+        ds.ScanOptions = ""
+        ds.MRAcquisitionType = "2D"
+        ds.RepetitionTime = 4000
+        ds.EchoTime = 100
+        ds.EchoTrainLength = 16
+        ds.MagneticFieldStrength = 1.5
+        ds.ImagedNucleus = "1H"
+        ds.SpacingBetweenSlices = spec.slice_thickness_mm
+    else:
+        ds.KVP = ""
+    ds.AcquisitionNumber = 1
+    ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+    ds.SliceThickness = spec.slice_thickness_mm
+    ds.PixelSpacing = [spec.pixel_mm, spec.pixel_mm]
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.Rows = ds.Columns = spec.matrix
+    ds.BitsAllocated = 16
+    ds.BitsStored = 16
+    ds.HighBit = 15
+    ds.PixelRepresentation = 0 if mr else 1
+    if mr:
+        ds.WindowCenter = 700
+        ds.WindowWidth = 1600
+        pixels = np.clip(values, 0, None).astype(np.uint16)
+    else:
+        ds.RescaleIntercept = 0
+        ds.RescaleSlope = 1
+        ds.RescaleType = "HU"
+        ds.WindowCenter = 40
+        ds.WindowWidth = 400
+        pixels = values
     for k, z in enumerate(spec.slice_z_mm):
-        ds = _base_dataset(sop, _uid(tag, str(k), case_id=spec.case_id), spec.modality, series_uid, 1,
-                           f"phantom {spec.modality}", spec.case_id, spec.description)
-        ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"] if not mr else ["DERIVED", "SECONDARY", "OTHER"]
+        uid = _uid(tag, str(k), case_id=spec.case_id)
+        ds.file_meta.MediaStorageSOPInstanceUID = uid
+        ds.SOPInstanceUID = uid
         ds.InstanceNumber = k + 1
-        ds.FrameOfReferenceUID = for_uid
-        ds.PositionReferenceIndicator = ""
-        ds.PatientPosition = "HFS"
-        ds.BodyPartExamined = "PELVIS"
-        if mr:  # MR Image module (PS3.3 C.8.3.1): a T2-weighted turbo spin echo, described not simulated
-            ds.ScanningSequence = "SE"
-            ds.SequenceVariant = "SK"
-            ds.ScanOptions = ""
-            ds.MRAcquisitionType = "2D"
-            ds.RepetitionTime = 4000
-            ds.EchoTime = 100
-            ds.EchoTrainLength = 16
-            ds.MagneticFieldStrength = 1.5
-            ds.ImagedNucleus = "1H"
-            ds.SpacingBetweenSlices = spec.slice_thickness_mm
-        else:
-            ds.KVP = ""
-        ds.AcquisitionNumber = 1
         ds.ImagePositionPatient = [f"{x0:.3f}", f"{x0:.3f}", f"{z:.3f}"]
-        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
-        ds.SliceThickness = spec.slice_thickness_mm
         ds.SliceLocation = f"{z:.3f}"
-        ds.PixelSpacing = [spec.pixel_mm, spec.pixel_mm]
-        ds.SamplesPerPixel = 1
-        ds.PhotometricInterpretation = "MONOCHROME2"
-        ds.Rows = ds.Columns = spec.matrix
-        ds.BitsAllocated = 16
-        ds.BitsStored = 16
-        ds.HighBit = 15
-        ds.PixelRepresentation = 0 if mr else 1
-        if mr:
-            ds.WindowCenter = 700
-            ds.WindowWidth = 1600
-            pixels = np.clip(values[k], 0, None).astype(np.uint16)
-        else:
-            ds.RescaleIntercept = 0
-            ds.RescaleSlope = 1
-            ds.RescaleType = "HU"
-            ds.WindowCenter = 40
-            ds.WindowWidth = 400
-            pixels = values[k]
-        ds.PixelData = np.ascontiguousarray(pixels).tobytes()
-        yield f"{spec.modality}.{k + 1:04d}.dcm", ds
+        ds.PixelData = pixels[k].tobytes()
+        yield (f"{spec.modality}.{k + 1:04d}.dcm", _encode(ds),
+               _ImageRef(sop, uid, series_uid, ds.StudyInstanceUID, for_uid))
 
 
-def _rtstruct_dataset(spec: PhantomSpec, ct: list[Any]) -> Any:
+def _rtstruct_dataset(spec: PhantomSpec, ct: list[_ImageRef]) -> Any:
     from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence
 
@@ -866,7 +886,7 @@ def _rtstruct_dataset(spec: PhantomSpec, ct: list[Any]) -> Any:
     ds.StructureSetDate = "20260101"
     ds.StructureSetTime = "120000"
 
-    def image_ref(img: Any) -> Dataset:
+    def image_ref(img: _ImageRef) -> Dataset:
         r = Dataset()
         r.ReferencedSOPClassUID = img.SOPClassUID
         r.ReferencedSOPInstanceUID = img.SOPInstanceUID
@@ -926,7 +946,7 @@ def _raw_ds(tag: int, values: np.ndarray) -> Any:
     from pydicom.dataelem import RawDataElement
     from pydicom.tag import Tag
 
-    text = "\\".join(f"{v:.3f}" for v in values).encode("ascii")
+    text = "\\".join([f"{v:.3f}" for v in values.tolist()]).encode("ascii")  # Python floats: 5x faster
     if len(text) % 2:
         text += b" "
     return RawDataElement(Tag(tag), "DS", len(text), text, 0, False, True)
@@ -998,10 +1018,9 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFile
     for p in stale:  # slices of an older phantom version would form a second series
         p.unlink()
     ct, encoded = [], []
-    for name, ds in _ct_datasets(spec):
-        encoded.append((ct_dir / name, _encode(ds)))
-        del ds.PixelData
-        ct.append(ds)
+    for name, data, ref in _ct_files(spec):
+        encoded.append((ct_dir / name, data))
+        ct.append(ref)
     encoded.append((rs_path, _encode(_rtstruct_dataset(spec, ct))))
     atomic_write_files(encoded)  # each file atomic, one batch of disk flushes for the series
     return PhantomFiles(ct_dir=ct_dir, rtstruct_path=rs_path)

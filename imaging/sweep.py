@@ -11,8 +11,9 @@ over a section symmetric about the centreline the linear terms integrate to zero
 the sweep does not fold onto itself (``max(a, b) · curvature < 1`` and no two distant parts closer than
 their sections). The integral is evaluated on the 0.25 mm samples of the profile (trapezoid rule).
 
-Points are located by their nearest centreline sample (a k-d tree); the local coordinates are taken in
-that sample's frame, which is exact to second order in the sampling step.
+Points are located by their nearest centreline sample (a compiled search over chunks of consecutive samples,
+each in a bounding ball, skipping the chunks farther than the best sample so far); the local coordinates are
+taken in that sample's frame, which is exact to second order in the sampling step.
 """
 
 from __future__ import annotations
@@ -29,9 +30,6 @@ SAMPLE_MM = 0.25
 FIELD_STEP_MM = 1.0
 #: target spacing (mm) of written contour vertices
 VERTEX_SPACING_MM = 0.75
-#: a field query whose points may lie near at most this many centreline samples compares them all (compiled);
-#: more go through the k-d tree
-BRUTE_FORCE_SAMPLES = 600
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -108,10 +106,12 @@ class Sweep:
     reference: tuple[float, float, float] = (0.0, 0.0, 1.0)
     _s: np.ndarray = field(init=False, repr=False)
     _frames: np.ndarray = field(init=False, repr=False)
-    _tree: object = field(init=False, repr=False)
+    _chunk_centres: np.ndarray = field(init=False, repr=False)
+    _chunk_radii: np.ndarray = field(init=False, repr=False)
+    _bounds: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from scipy.spatial import cKDTree
+        from reachplan.imaging._sweep_kernel import CHUNK
 
         c = np.asarray(self.samples_mm, dtype=float)
         a, b = np.asarray(self.semi_a_mm, float), np.asarray(self.semi_b_mm, float)
@@ -127,10 +127,17 @@ class Sweep:
         nrm = _unit(nrm)
         frames = np.stack([t, nrm, np.cross(t, nrm)], axis=1)  # (n, 3 [T N B], 3)
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
-        for name, v in (("samples_mm", c), ("semi_a_mm", a), ("semi_b_mm", b), ("_s", s), ("_frames", frames)):
+        # the nearest-sample search's chunks: consecutive samples in a ball (its radius 1 nm more than the farthest
+        # sample, so that rounding never skips a chunk that holds the nearest sample)
+        pad = np.concatenate([c, np.repeat(c[-1:], -len(c) % CHUNK, axis=0)]).reshape(-1, CHUNK, 3)
+        centres = 0.5 * (pad.min(axis=1) + pad.max(axis=1))
+        radii = np.linalg.norm(pad - centres[:, None], axis=2).max(axis=1) + 1e-6
+        for name, v in (("samples_mm", c), ("semi_a_mm", a), ("semi_b_mm", b), ("_s", s), ("_frames", frames),
+                        ("_chunk_centres", centres), ("_chunk_radii", radii)):
             v.setflags(write=False)
             object.__setattr__(self, name, v)
-        object.__setattr__(self, "_tree", cKDTree(c))
+        r = np.maximum(a, b)[:, None]
+        object.__setattr__(self, "_bounds", np.array([(c - r).min(axis=0), (c + r).max(axis=0)]))
 
     @property
     def length_mm(self) -> float:
@@ -160,33 +167,27 @@ class Sweep:
 
     def field(self, p: np.ndarray) -> np.ndarray:
         """Return a signed field (about mm near the surface): negative inside. ``p`` (..., 3) LPS mm -> (...)."""
-        from reachplan.imaging._sweep_kernel import field_at, nearest_samples
+        from reachplan.imaging._sweep_kernel import axial_samples, field_at, nearest_samples
 
         q = np.asarray(p, dtype=float)
         flat = np.ascontiguousarray(q.reshape(-1, 3))
         reach = float(max(self.semi_a_mm.max(), self.semi_b_mm.max())) + 2.0
         if self.axial:  # straight along z: the sample index follows from z directly
-            step = self._s[-1] / (len(self._s) - 1)
-            i_f = (flat[:, 2] - self.samples_mm[0, 2]) * np.sign(self._frames[0, 0, 2]) / step
-            ok = (i_f > -reach / step) & (i_f < len(self._s) - 1 + reach / step)
-            idx = np.where(ok, np.clip(np.round(i_f), 0, len(self._s) - 1), -1).astype(np.int64)
+            idx = np.empty(len(flat), dtype=np.int64)
+            axial_samples(flat[:, 2], float(self.samples_mm[0, 2]), float(np.sign(self._frames[0, 0, 2])),
+                          float(self._s[-1] / (len(self._s) - 1)), len(self._s), reach, idx)
         else:
-            lo, hi = self.bounds()
-            ok = np.all((flat >= lo - 2.0) & (flat <= hi + 2.0), axis=1)
-            idx = np.full(len(flat), -1, dtype=np.int64)
-            if ok.any():
-                pts = np.ascontiguousarray(flat[ok])
-                # the samples that can be within reach of a point: brute force over them when few (a slice's
-                # points), the k-d tree otherwise
-                cand = np.flatnonzero(np.all((self.samples_mm >= pts.min(axis=0) - reach)
-                                             & (self.samples_mm <= pts.max(axis=0) + reach), axis=1))
-                if len(cand) <= BRUTE_FORCE_SAMPLES:
-                    sub = np.empty(len(pts), dtype=np.int64)
-                    nearest_samples(pts, self.samples_mm, cand, reach, sub)
-                else:
-                    dist, sub = self._tree.query(pts, distance_upper_bound=reach)  # type: ignore[attr-defined]
-                    sub = np.where(np.isfinite(dist), sub, -1).astype(np.int64)
-                idx[ok] = sub
+            lo, hi = self._bounds[0] - 2.0, self._bounds[1] + 2.0
+            idx = np.empty(len(flat), dtype=np.int64)
+            # the chunks whose ball can be within reach of a point in the box
+            box_lo = np.maximum(flat.min(axis=0, initial=np.inf), lo)
+            box_hi = np.minimum(flat.max(axis=0, initial=-np.inf), hi)
+            chunks = np.empty(0, dtype=np.intp)
+            if np.all(box_lo <= box_hi):
+                gap = np.linalg.norm(self._chunk_centres - np.clip(self._chunk_centres, box_lo, box_hi), axis=1)
+                chunks = np.flatnonzero(gap <= reach + self._chunk_radii)
+            nearest_samples(flat, self.samples_mm, self._chunk_centres, self._chunk_radii, chunks, reach, lo, hi,
+                            idx)
         out = np.empty(len(flat))
         field_at(flat, idx, self.samples_mm, self._s, self._frames, self.semi_a_mm, self.semi_b_mm, reach, out)
         return out.reshape(q.shape[:-1])
@@ -197,8 +198,7 @@ class Sweep:
 
     def bounds(self) -> np.ndarray:
         """(2, 3) float, LPS mm: a box holding the solid."""
-        r = np.maximum(self.semi_a_mm, self.semi_b_mm)[:, None]
-        return np.array([(self.samples_mm - r).min(axis=0), (self.samples_mm + r).max(axis=0)])
+        return self._bounds.copy()
 
     def slice_window(self, z0: float) -> np.ndarray | None:
         """(2, 3) box (LPS mm) holding the cut ``z = z0``, or None when the plane misses the solid."""

@@ -123,14 +123,26 @@ def _section(mesh: trimesh.Trimesh, axis: int, value_mm: float) -> list[np.ndarr
     the faces the plane crosses (a vertex on the plane counts as above it), without chaining the segments into
     loops.
     """
+    lo, hi = mesh.bounds[:, axis]
+    if not lo < value_mm <= hi:  # the plane misses the mesh (every vertex on one side): nothing to cut
+        return []
+    return plane_section(mesh, _UNIT[axis], value_mm)
+
+
+def plane_section(mesh: trimesh.Trimesh, normal: np.ndarray, offset_mm: float) -> list[np.ndarray]:
+    """Return where the plane ``x · normal = offset_mm`` cuts ``mesh``, as :func:`_section` does.
+
+    ``normal``: (3,) unit vector, LPS; ``offset_mm``: the plane's signed distance from the origin, mm.
+    """
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    above = v[:, axis] >= value_mm
+    height = v @ np.asarray(normal, dtype=float) - offset_mm  # signed distance of each vertex, mm
+    above = height >= 0.0
     side = above[f]
     crossed = side.any(axis=1) & ~side.all(axis=1)
     if not crossed.any():
         return []
     tri, side = v[f[crossed]], side[crossed]
-    d = tri[:, :, axis] - value_mm
+    d = height[f[crossed]]
     pts, cuts = [], []
     for i, j in ((0, 1), (1, 2), (2, 0)):
         cut = side[:, i] != side[:, j]
@@ -326,7 +338,7 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
                 Line2D([], [], color=STEERED_COLOUR, label="top needle per target: steered"),
                 Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="top needle per target: straight")]
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.08, 1, 0.97))
+    fig.subplots_adjust(left=0.06, right=0.985, top=0.94, bottom=0.19, wspace=0.22)  # fixed: no tight-layout pass
     return png_bytes(fig, dpi=110)
 
 

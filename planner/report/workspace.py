@@ -8,7 +8,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
 from reachplan.planner.pipeline import PlanConfig, Scene
-from reachplan.planner.report.figures import label_edges, png_bytes
+from reachplan.planner.report.figures import label_edges, plane_section, png_bytes
 from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
 
 
@@ -40,14 +40,11 @@ def workspace_figure(scene: Scene, config: PlanConfig, depth_mm: float | None = 
         ax.plot(*h.xy_mm, "o", color=colour, ms=3)
     centre = scene.patient_from_template[:3, 3] + depth * scene.patient_from_template[:3, 2]
     normal = scene.patient_from_template[:3, 2]
+    targets = {t.name for t in scene.targets}
     for name, mesh in scene.meshes.items():
-        sec = mesh.section(plane_origin=centre, plane_normal=normal)
-        if sec is None:
-            continue
-        for loop in sec.discrete:
-            local = (np.asarray(loop) - scene.patient_from_template[:3, 3]) @ scene.patient_from_template[:3, :3]
-            ax.plot(local[:, 0], local[:, 1], lw=1, color="0.3" if name not in {t.name for t in scene.targets}
-                    else "red")
+        for cut in plane_section(mesh, normal, float(centre @ normal)):  # segments split by NaN rows
+            local = (cut - scene.patient_from_template[:3, 3]) @ scene.patient_from_template[:3, :3]
+            ax.plot(local[:, 0], local[:, 1], lw=1, color="red" if name in targets else "0.3")
     ax.plot(t_local[:, 0], t_local[:, 1], "r+", ms=9, label="targets")
     ax.set(title=f"reachable workspace per hole ({label})", xlabel="template x (mm)", ylabel="template y (mm)")
     ax.set_aspect("equal")
@@ -58,5 +55,5 @@ def workspace_figure(scene: Scene, config: PlanConfig, depth_mm: float | None = 
         ax.invert_yaxis()
     label_edges(ax, m[:3, 0], m[:3, 1])
     ax.legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.12, right=0.96, top=0.94, bottom=0.08)  # fixed margins: no tight-layout pass
     return png_bytes(fig, dpi=110)

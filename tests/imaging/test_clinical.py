@@ -202,18 +202,24 @@ def test_case_json_lists_targets(written: PhantomFiles) -> None:
     assert set(doc["targets"]) == {n for n, _ in clinical_case(0).targets}
 
 
-def test_sweep_field_is_the_same_by_brute_force_and_by_the_kd_tree(monkeypatch: pytest.MonkeyPatch) -> None:
-    import reachplan.imaging.sweep as sweep_module
+def test_sweep_field_finds_the_nearest_sample_as_a_plain_scan_does() -> None:
+    """The chunked nearest-sample search (chunks skipped by their bounding balls) against every sample compared."""
+    from reachplan.imaging._sweep_kernel import field_at
 
     bent = Sweep(arc_curve_for_test(), np.full(281, 12.0), np.full(281, 7.0), reference=(0.0, 1.0, 0.0))
     rng = np.random.default_rng(5)
-    for z in (5.0, 30.0, 60.0):  # slices, as the CT painting and the contour tracing ask
-        pts = np.column_stack([rng.uniform(-40.0, 80.0, (2000, 2)), np.full(2000, z)])
-        brute = bent.field(pts)
-        monkeypatch.setattr(sweep_module, "BRUTE_FORCE_SAMPLES", 0)  # the k-d tree path
-        tree = bent.field(pts)
-        monkeypatch.undo()
-        assert np.array_equal(brute, tree) and (brute < 0).sum() > 20
+    reach = 14.0
+    for z in (5.0, 30.0, 60.0):  # slices, as the CT painting and the contour tracing ask, and scattered points
+        for pts in (np.column_stack([rng.uniform(-40.0, 80.0, (2000, 2)), np.full(2000, z)]),
+                    rng.uniform(-40.0, 80.0, (2000, 3))):
+            d2 = ((pts[:, None, :] - bent.samples_mm[None]) ** 2).sum(axis=-1)
+            idx = np.where(d2.min(axis=1) < reach**2, d2.argmin(axis=1), -1)  # argmin: the first of equals
+            lo, hi = bent.bounds()
+            idx[np.any((pts < lo - 2.0) | (pts > hi + 2.0), axis=1)] = -1
+            plain = np.empty(len(pts))
+            field_at(pts, idx, bent.samples_mm, bent._s, bent._frames, bent.semi_a_mm, bent.semi_b_mm, reach, plain)
+            got = bent.field(pts)
+            assert np.array_equal(got, plain) and (got < 0).sum() > 10
 
 
 def arc_curve_for_test() -> np.ndarray:
