@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -1011,6 +1012,7 @@ class ImplantComparison:
     straight: ImplantArm
     steered: ImplantArm
     candidates: tuple[Channel, ...]
+    seconds: float = 0.0
 
     @property
     def arms(self) -> tuple[ImplantArm, ImplantArm]:
@@ -1020,12 +1022,14 @@ class ImplantComparison:
     def to_json(self) -> dict[str, object]:
         """Return plan.json's ``implant``.
 
-        ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`) and the count of candidate channels by kind.
+        ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`), the count of candidate channels by kind and the
+        wall time of the whole (candidates and both arms, which run at once), s.
         """
         kinds: dict[str, int] = {}
         for c in self.candidates:
             kinds[c.kind] = kinds.get(c.kind, 0) + 1
-        return {"straight": self.straight.to_json(), "steered": self.steered.to_json(), "candidates": kinds}
+        return {"straight": self.straight.to_json(), "steered": self.steered.to_json(), "candidates": kinds,
+                "seconds": round(self.seconds, 3)}
 
 
 def plan_implants(
@@ -1048,6 +1052,7 @@ def plan_implants(
     from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_arms, with_subset
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
+    t0 = time.perf_counter()
     settings = settings or ImplantSettings()
     models = models or PlanModels.for_config(config)
     holes = scene.template.needle_holes
@@ -1063,4 +1068,4 @@ def plan_implants(
                                    ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
                                   settings=settings, gtv=gtv)
     steered = with_subset(steered, straight)
-    return ImplantComparison(straight, steered, (*cands, *intracavitary))
+    return ImplantComparison(straight, steered, (*cands, *intracavitary), time.perf_counter() - t0)

@@ -235,5 +235,8 @@ def test_demo_stages_split_the_wall_time_of_a_plan_document() -> None:
            "timings": {"scene_s": 2.0, "plan_s": 3.0, "delivery_s": 12.5, "report_s": 1.5}}
     stages = stage_times(doc, wall_s=25.0)
     assert tuple(stages) == STAGES
-    assert stages["implant arms"] == 10.0 and stages["delivery (no implant)"] == 2.5
+    assert stages["implant"] == 10.0 and stages["delivery (no implant)"] == 2.5  # an older plan.json: the arms' sum
     assert sum(stages.values()) == pytest.approx(25.0) and stages["other"] == pytest.approx(4.5)
+    # the arms run at once: the implant's own wall time counts, not the arms' sum
+    stages = stage_times({**doc, "implant": {**doc["implant"], "seconds": 7.0}}, wall_s=25.0)
+    assert stages["implant"] == 7.0 and stages["delivery (no implant)"] == 5.5
