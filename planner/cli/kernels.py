@@ -106,6 +106,7 @@ class _Child:
         self.proc = proc
         self.folder = folder
         self.done: set[str] = set()
+        self.waited_s: dict[str, float] = {}  # how long the main process waited for each group
 
     def wait(self, group: str) -> None:
         """Block until the child has compiled ``group`` (or has exited)."""
@@ -114,15 +115,20 @@ class _Child:
         while not marker.exists() and self.proc.poll() is None and time.perf_counter() - t0 < _MAX_WAIT_S:
             time.sleep(0.02)
         self.done.add(group)
+        self.waited_s[group] = time.perf_counter() - t0
 
 
 _child: _Child | None = None
 
 
-def _hook(group: str) -> Callable[[], None]:
+def _hook(group: str, dispatcher: Any) -> Callable[[], None]:
+    """Return ``dispatcher``'s compile hook, which first waits for the child's work on ``group``."""
+    numba_hook = dispatcher._compilation_chain_init_hook  # numba's own (it initialises extension entry points)
+
     def hook() -> None:  # numba calls it before compiling (or loading) a new signature called from Python
         if _child is not None and group not in _child.done:
             _child.wait(group)
+        numba_hook()
 
     return hook
 
@@ -146,12 +152,13 @@ def start(quiet: bool = False) -> bool:
     atexit.register(shutil.rmtree, folder, ignore_errors=True)  # a child still compiling then fails only its marker
     proc = subprocess.Popen([sys.executable, "-m", "reachplan.planner.cli.kernels", str(folder), *groups],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    atexit.register(proc.poll)  # reap a child that has finished: its CPU time is then counted as this process's
     _child = _Child(proc, folder)
     for g in groups:
         for d in _dispatchers(g):
             # numba's Dispatcher._compile_for_args calls this per-instance hook first (an internal of numba; a
             # numba without it only loses the wait: both processes then compile, each saving whole files)
-            d._compilation_chain_init_hook = _hook(g)
+            d._compilation_chain_init_hook = _hook(g, d)
     if not quiet:
         print("reachplan: compiling the numerical kernels once (first run after an install: about 10 s of CPU), "
               "in the background; later runs load them from the cache", file=sys.stderr)
