@@ -121,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
             row.update({"cold_waited_s": round(cold.get("waited_s", 0.0), 3), "load_avg_1min": round(load_avg(), 2)})
             rows.append(row)
             print(f"{name} run {i}: cold {cold['wall_s']:.1f} s, warm {warm['wall_s']:.1f} s wall (CPU "
-                  f"{cold['cpu_s']:.1f} s, {warm['cpu_s']:.1f} s; main process {row['cold_main_cpu_s']} s, {row['warm_main_cpu_s']} s; waited "
+                  f"{cold['cpu_s']:.1f} s, {warm['cpu_s']:.1f} s; main process {row['cold_main_cpu_s']} s, "
+                  f"{row['warm_main_cpu_s']} s; waited "
                   f"{row['cold_waited_s']} s; load {row['load_avg_1min']})", file=sys.stderr)
 
     med: dict[str, dict[str, float]] = {}
