@@ -151,8 +151,8 @@ def run(args: argparse.Namespace) -> int:
             if name == "demo" else ""
         ax.set_title(f"{titles[name]}\npenalty {m['penalty_wall_s']:.1f} s wall, {m['penalty_cpu_s']:.1f} s CPU{main}",
                      fontsize=8)
-    runs = f"{repeat} run{'s' if repeat > 1 else ''}, median"
-    fig.suptitle(f"first run after an install ({runs}; load {load_avg():.1f})", fontsize=9)
+    label = f"{repeat} run{'s' if repeat > 1 else ''}, median"
+    fig.suptitle(f"first run after an install ({label}; load {load_avg():.1f})", fontsize=9)
     fig.tight_layout()
     fig.savefig(out / "firstrun.png", dpi=110)
     plt.close(fig)
