@@ -241,7 +241,8 @@ def integrate(x: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.ndarr
     y[3] = 1.0
     y[7] = 1.0
     y[11] = 1.0
-    y[12:18] = x[0:6]
+    for q in range(6):  # element loops, not slice assignment: numba's slice-shape error message alone costs
+        y[12 + q] = x[q]  # seconds of the first compile (it compiles the whole unicode formatting machinery)
     y[19] = x[6]
     y[20] = x[7]
     y[22] = sec[0, 0]
@@ -260,7 +261,8 @@ def integrate_from(y: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.
     st = np.empty(8)
     row = 0
     if record:
-        traj[0, :] = y
+        for q in range(NSTATE):
+            traj[0, q] = y[q]
     for i in range(sec.shape[0]):
         h = (sec[i, 1] - sec[i, 0]) / nsteps[i]
         s = sec[i]
@@ -279,7 +281,8 @@ def integrate_from(y: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: np.
                 y[q] += h / 6.0 * (k1[q] + 2.0 * k2[q] + 2.0 * k3[q] + k4[q])
             row += 1
             if record:
-                traj[row, :] = y
+                for q in range(NSTATE):
+                    traj[row, q] = y[q]
     return y
 
 
@@ -510,7 +513,8 @@ def batch_free(tensions: np.ndarray, sec: np.ndarray, nsteps: np.ndarray, rdir: 
                                traj, 1, nopred)
         status[b] = st
         resid[b] = res
-        tips[b, :] = traj[nrow - 1, 0:3]
+        for q in range(3):
+            tips[b, q] = traj[nrow - 1, q]
         row = 0
         tangents[b, 0, 0] = traj[0, 5]
         tangents[b, 0, 1] = traj[0, 8]

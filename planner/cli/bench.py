@@ -73,7 +73,8 @@ TARGETS: tuple[Target, ...] = (
             Option("--est-targets", int, "targets per patient of the estimated study (10)"),
             Option("--est-workers", int, "workers of the estimated study (32)"))),
     Target("startup", "startup", "start-up of reachplan --help and one reachplan rod solve against python -c pass"),
-    Target("firstrun", "firstrun", "first-run penalty: compiled kernels with a fresh numba cache against a warm one"),
+    Target("firstrun", "firstrun", "first-run penalty: reachplan demo and the kernels alone, fresh numba cache "
+           "against a warm one", (Option("--repeat", int, "cold + warm pairs, medians reported (3; quick 1)"),)),
     Target("distance", "distance", "organ distance fields: screen vs FCL alone (rates, largest difference, ranking)"),
     Target("dosekernel", "dosekernel", "TG-43 grid dose: voxel-dwell pairs/s by method and threads, accuracy"),
     Target("implant", "implant", "implant planning: both arms with their Pareto curves on the phantom (time, D90)",

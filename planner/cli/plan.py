@@ -231,11 +231,13 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.cli.kernels import start as start_kernels
     from reachplan.planner.pipeline import PlanConfig
 
     inputs = [p for p in (args.ct, args.rtstruct) if p is not None]
     check_plan_arguments(args, inputs)
     quiet = args.quiet or args.json
+    start_kernels(quiet)  # before reading the series: the first run's compile overlaps it
     names, points = _targets(args.targets)
     named_points = _reference_points(args.reference_point)
     config = PlanConfig(template=args.template, designs=tuple(args.design))
@@ -264,22 +266,6 @@ def _add_warnings(doc: dict[str, object], args: argparse.Namespace) -> None:
     """Add the named warnings met on the way (readers, planning) to the scene's notes in ``doc["warnings"]``."""
     notes = doc.get("warnings")
     doc["warnings"] = [*(notes if isinstance(notes, list) else []), *seen_warnings(args)]
-
-
-def kernels_not_cached() -> bool:
-    """Whether the rod kernel (the largest to compile) has no machine code in numba's cache yet.
-
-    Reads numba's cache index path (an internal of numba; any surprise there reads as "cached": the message
-    this feeds is only a courtesy).
-    """
-    import os
-
-    try:
-        from reachplan.rod_model import _kernel
-
-        return not os.path.exists(_kernel.shoot._cache._cache_file._index_path)  # type: ignore[attr-defined]
-    except Exception:  # numba internals may change: no message then
-        return False
 
 
 def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], points: list[Target],
@@ -328,9 +314,9 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
                                  "--target-roi or plan with --no-export")
     final = out if final_out is None else Path(final_out)
     timings: dict[str, float] = {}
-    if not quiet and kernels_not_cached():
-        print("reachplan: compiling the numba kernels once (first run after an install: about 10 s of CPU, "
-              "longer on a busy machine); later runs load them from the cache", file=sys.stderr)
+    from reachplan.planner.cli.kernels import start
+
+    start(quiet)  # first run after an install: the rod and dose kernels compile on the other core meanwhile
     t = time.perf_counter()
     grid = volume.grid if volume is not None else None
     scene = build_scene(structures, names, points, grid=grid, patient_from_template=pose, config=config,

@@ -202,9 +202,10 @@ def _edt(seeds, pitch, reach, out):  # type: ignore[no-untyped-def]
     d2 = np.empty(nx * ny * nz)
     for q in range(d2.size):
         d2[q] = 0.0 if flat_seeds[q] else np.inf
-    _lines(d2, nx, ny * nz, ny, nz, nz, 1, f, v, z, g)  # along the third axis
-    _lines(d2, nx, ny * nz, nz, 1, ny, nz, f, v, z, g)  # the second
-    _lines(d2, ny, nz, nz, 1, nx, ny * nz, f, v, z, g)  # the first
+    one = np.int64(1)  # not a literal 1: that compiled _lines twice (literal in another place), a first-run second
+    _lines(d2, nx, ny * nz, ny, nz, nz, one, f, v, z, g)  # along the third axis
+    _lines(d2, nx, ny * nz, nz, one, ny, nz, f, v, z, g)  # the second
+    _lines(d2, ny, nz, nz, one, nx, ny * nz, f, v, z, g)  # the first
     for q in range(d2.size):
         flat_out[q] = min(math.sqrt(d2[q]) * pitch, reach)
 

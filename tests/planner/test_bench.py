@@ -240,3 +240,32 @@ def test_demo_stages_split_the_wall_time_of_a_plan_document() -> None:
     # the arms run at once: the implant's own wall time counts, not the arms' sum
     stages = stage_times({**doc, "implant": {**doc["implant"], "seconds": 7.0}}, wall_s=25.0)
     assert stages["implant"] == 7.0 and stages["delivery (no implant)"] == 5.5
+
+
+def test_firstrun_reports_cold_minus_warm_per_measurement(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The table and chart of ``bench firstrun``, with the child runs replaced (the real ones take minutes)."""
+    import argparse
+
+    from reachplan.planner.bench import firstrun
+
+    calls: list[list[str]] = []
+
+    def fake_child(argv: list[str], cache_dir: str) -> dict[str, float]:
+        calls.append(argv)
+        cold = len(calls) % 2 == 1
+        demo = "demo" in argv
+        out = {"wall_s": (30.0 if cold else 25.0) if demo else (9.0 if cold else 1.0), "cpu_s": 40.0 if cold else 28.0}
+        if demo:
+            out.update(main_cpu_s=31.0 if cold else 27.0, waited_s=1.5 if cold else 0.0)
+        return out
+
+    monkeypatch.setattr(firstrun, "_child", fake_child)
+    assert firstrun.run(argparse.Namespace(out=tmp_path, quick=True, repeat=None)) == 0
+    assert len(calls) == 4 and "--case" in calls[0] and "pilot" in calls[0]
+    with (tmp_path / "firstrun.csv").open() as f:
+        rows = {(r["what"], r["run"]): r for r in csv.DictReader(f)}
+    demo, kernels = rows["demo", "median"], rows["kernels", "median"]
+    assert float(demo["penalty_wall_s"]) == 5.0 and float(demo["penalty_main_cpu_s"]) == 4.0
+    assert float(demo["cold_waited_s"]) == 1.5 and float(demo["penalty_cpu_s"]) == 12.0
+    assert float(kernels["penalty_wall_s"]) == 8.0
+    assert (tmp_path / "firstrun.png").stat().st_size > 0

@@ -1,0 +1,185 @@
+"""First run after an install: the numba kernels a plan needs, compiled once in a background process.
+
+Every numba kernel is compiled with ``cache=True``, so only the first run after an install (or after numba's cache
+was emptied) compiles; that costs about 10 s of CPU, mostly the two-tube rod kernel. A plan spends its first
+seconds on work that needs no rod or dose kernel (the case write, the scene: organ meshes and distance fields) on
+one core; :func:`start` compiles the rod and dose kernels meanwhile in a child interpreter on the other core, into
+the same on-disk cache, in the order a plan needs them. The main process compiles the kernels it needs first (the
+case's sweep field, the organ distance field) itself, and the first time it calls a rod or dose kernel it waits
+for the child to have compiled that group (:func:`_wait`), then loads the machine code from the cache.
+
+Races: numba writes each cache file (index and data) to a temporary name and renames it into place
+(``numba.core.caching.IndexDataCacheFile._open_for_write``, ``os.replace``), so a reader sees a whole file or none.
+Two processes saving *different* signatures of one function could still lose an index entry, so the main process
+never compiles a kernel of a group while the child works on it: it waits, and compiles only what the child did not
+(a signature the child's work did not use), after the child has finished that group.
+
+Run as ``python -m reachplan.planner.cli.kernels DIR GROUP...`` it is that child: for each group it compiles the
+kernels, then creates ``DIR/GROUP.done``.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+#: the groups the child compiles, in the order a plan needs them (planning: rod, delivery: dose)
+BACKGROUND: tuple[str, ...] = ("rod", "dose")
+#: longest wait for one group (s): a child that hangs must not hang the plan (the main process then compiles)
+_MAX_WAIT_S = 600.0
+
+
+def _modules(group: str) -> list[ModuleType]:
+    """Import and return the kernel modules of ``group``."""
+    if group == "rod":
+        from reachplan.rod_model import _kernel
+
+        return [_kernel]
+    if group == "dose":
+        from reachplan.planner.dose import _tg43_numba
+
+        return [_tg43_numba]
+    raise ValueError(f"unknown kernel group {group!r}")
+
+
+def _dispatchers(group: str) -> list[Any]:
+    """Return the numba dispatchers of ``group``'s modules (none without numba)."""
+    try:
+        from numba.core.dispatcher import Dispatcher
+    except ImportError:  # pragma: no cover - the rod kernel runs as plain Python without numba
+        return []
+    return [v for m in _modules(group) for v in vars(m).values() if isinstance(v, Dispatcher)]
+
+
+def _warm(group: str) -> None:
+    """Compile (or load) ``group``'s kernels with the argument types a plan uses: the public calls, on tiny inputs."""
+    import numpy as np
+
+    if group == "rod":
+        from reachplan.plugins import registry
+        from reachplan.rod_model.design import preset
+
+        d = preset("15ga-30j-tip")
+        model = registry.get("rod_models", "two_tube_cosserat")
+        model.solve(d, d.loads(5.0))
+        model.solve_batch(d, np.array([1.0, 2.0]))
+    elif group == "dose":
+        from reachplan.imaging.types import Grid
+        from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid
+        from reachplan.plugins.sources import BUILTIN
+
+        k = Tg43Kernel(BUILTIN["gammamed_plus_hdr"]())
+        dw = DwellSet(np.zeros((2, 3)), np.tile([0.0, 0.0, 1.0], (2, 1)), np.ones(2))
+        k.compiled_rates(np.ones((3, 3)), dw.positions_mm, dw.directions)
+        k.compiled_dose(np.ones((3, 3)), dw.positions_mm, dw.directions, np.ones(2))
+        dose_on_grid(Grid((4, 4, 4), np.diag([2.0, 2.0, 2.0, 1.0])), dw, k, 40000.0)
+    else:
+        raise ValueError(f"unknown kernel group {group!r}")
+
+
+def cold(group: str) -> bool:
+    """Whether ``group`` has a kernel without fresh machine code in numba's cache.
+
+    Reads numba's cache index (an internal of numba: any surprise there reads as "cold", which costs only a
+    child that loads the kernels from the cache). A stale index (the source changed, e.g. a reinstall) is cold.
+    """
+    try:
+        return any(not d._cache._cache_file._load_index() for d in _dispatchers(group))
+    except Exception:
+        return True
+
+
+class _Child:
+    """The background compile: the child process and its folder of ``GROUP.done`` markers."""
+
+    def __init__(self, proc: subprocess.Popen[bytes], folder: Path) -> None:
+        self.proc = proc
+        self.folder = folder
+        self.done: set[str] = set()
+        self.waited_s: dict[str, float] = {}  # how long the main process waited for each group
+
+    def wait(self, group: str) -> None:
+        """Block until the child has compiled ``group`` (or has exited)."""
+        marker = self.folder / f"{group}.done"
+        t0 = time.perf_counter()
+        while not marker.exists() and self.proc.poll() is None and time.perf_counter() - t0 < _MAX_WAIT_S:
+            time.sleep(0.02)
+        self.done.add(group)
+        self.waited_s[group] = time.perf_counter() - t0
+
+
+_child: _Child | None = None
+
+
+def _hook(group: str, dispatcher: Any) -> Callable[[], None]:
+    """Return ``dispatcher``'s compile hook, which first waits for the child's work on ``group``."""
+    numba_hook = dispatcher._compilation_chain_init_hook  # numba's own (it initialises extension entry points)
+
+    def hook() -> None:  # numba calls it before compiling (or loading) a new signature called from Python
+        if _child is not None and group not in _child.done:
+            _child.wait(group)
+        numba_hook()
+
+    return hook
+
+
+def start(quiet: bool = False) -> bool:
+    """Start compiling the cold kernel groups in a background process; return whether one was started.
+
+    Prints one line on stderr unless ``quiet``. Safe to call more than once (the second call does nothing).
+    Without numba, with numba's JIT disabled, or when every group is cached, nothing is started.
+    """
+    global _child
+    if _child is not None or os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0"):
+        return False
+    try:
+        groups = [g for g in BACKGROUND if _dispatchers(g) and cold(g)]
+    except ImportError:  # pragma: no cover - numba missing
+        return False
+    if not groups:
+        return False
+    folder = Path(tempfile.mkdtemp(prefix="reachplan-kernels-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)  # a child still compiling then fails only its marker
+    proc = subprocess.Popen([sys.executable, "-m", "reachplan.planner.cli.kernels", str(folder), *groups],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    atexit.register(proc.poll)  # reap a child that has finished: its CPU time is then counted as this process's
+    _child = _Child(proc, folder)
+    for g in groups:
+        for d in _dispatchers(g):
+            # numba's Dispatcher._compile_for_args calls this per-instance hook first (an internal of numba; a
+            # numba without it only loses the wait: both processes then compile, each saving whole files)
+            d._compilation_chain_init_hook = _hook(g, d)
+    if not quiet:
+        print("reachplan: compiling the numerical kernels once (first run after an install: about 10 s of CPU), "
+              "in the background; later runs load them from the cache", file=sys.stderr)
+    return True
+
+
+def _main(argv: list[str]) -> int:
+    """Run the child: compile each group of ``argv[1:]`` in turn, then create ``argv[0]/GROUP.done``."""
+    folder = Path(argv[0])
+    for group in argv[1:]:
+        try:
+            _warm(group)
+        except Exception as exc:  # the main process compiles what is missing and reports any real error itself
+            with contextlib.suppress(OSError):
+                (folder / f"{group}.error").write_text(f"{type(exc).__name__}: {exc}\n", encoding="utf-8")
+        try:
+            (folder / f"{group}.done").touch()
+        except OSError:  # the main process has exited (and removed the folder): nobody waits
+            return 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))
