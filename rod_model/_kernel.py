@@ -18,17 +18,24 @@ Unknowns at the base ``x`` (8): ``N(0)``, ``M(0)``, ``n2z(0)``, ``m2z(0)`` (the 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-try:
-    from numba import njit as _njit
+#: ``REACHPLAN_JIT=0`` in the environment when this module is imported: plain Python, numba not imported (for a
+#: process that makes one solve, e.g. ``reachplan rod --tension N``: the solve takes about 50 ms in Python, while
+#: importing numba and loading the cached machine code take about 0.8 s).
+JIT_WANTED = os.environ.get("REACHPLAN_JIT", "1") != "0"
+HAVE_NUMBA = False
+if JIT_WANTED:
+    try:
+        from numba import njit as _njit
 
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - exercised only without numba
-    HAVE_NUMBA = False
+        HAVE_NUMBA = True
+    except ImportError:  # pragma: no cover - exercised only without numba
+        pass
 
 
 def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:

@@ -19,6 +19,7 @@ import argparse
 import contextlib
 import importlib
 import io
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -74,6 +75,20 @@ class _VersionAction(argparse.Action):
 
         print(f"reachplan {__version__}")
         parser.exit()
+
+
+def console() -> int:
+    """Run :func:`main` on the process's arguments: the ``reachplan`` script and ``python -m reachplan.planner.cli``.
+
+    One rod solve (``rod ... --tension N``, no ``--tensions`` sweep) runs the rod kernel as plain Python
+    (``REACHPLAN_JIT=0``, see :mod:`reachplan.rod_model._kernel`): the solve takes about 50 ms so, while importing
+    numba and loading the kernel's cached machine code take about 0.8 s. Only here, where the process is the
+    command's own: a caller of :func:`main` keeps the compiled kernel.
+    """
+    argv = sys.argv[1:]
+    if argv[:1] == ["rod"] and not any(a.startswith("--tensions") for a in argv):
+        os.environ.setdefault("REACHPLAN_JIT", "0")
+    return main(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

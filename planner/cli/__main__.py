@@ -2,6 +2,6 @@
 
 import sys
 
-from reachplan.planner.cli import main
+from reachplan.planner.cli import console
 
-sys.exit(main())
+sys.exit(console())
