@@ -723,10 +723,11 @@ def _delivered_implant(
     if arm is None or arm.plan is None:
         return None
     pl = arm.plan
-    gap = "" if pl.mip_gap is None else f", selection gap {pl.mip_gap:.2f}"
+    gap = "" if pl.mip_gap is None else f"; gap to the LP bound {pl.mip_gap:.2f}"
     n_ic = len(pl.channels) - pl.n_needles
     reason = (f"implant ({arm.name} arm): {pl.n_needles} needles and {n_ic} intracavitary channel"
-              f"{'s' if n_ic != 1 else ''}, chosen with the dwell times (mixed-integer selection{gap})")
+              f"{'s' if n_ic != 1 else ''}, chosen with the dwell times (LP relaxation rounded, then a swap "
+              f"search{gap})")
     opt = OptimisationResult(pl.dwells, pl.target, pl.oars, True, reason, scaled=pl.scale < 1.0, scale=pl.scale,
                              dvhs=pl.dvhs, aim_met=pl.aims_met)
     roles = tuple(target_name if c.is_needle else INTRACAVITARY for c in pl.channels)
