@@ -34,7 +34,7 @@ Objective: mean underdose (in units of the prescription) + ``time_weight`` × me
    point to ``P``, or fills an organ's row), one needle per template hole, ``Σ y_n <= K``. Its LP relaxation
    (HiGHS dual simplex through ``scipy.optimize.milp``) bounds every selection of K needles from below. Starts:
    the relaxation rounded (its largest ``y`` first) with and without the previous budget's needles, that
-   selection itself (so the objective never rises with K), and the subset arm's selection at K when given; then
+   selection itself (so the objective never rises with K); then
    a local search (:meth:`_Model.improved`): add a needle or swap one for another of the ``swap_pool`` needles
    with the largest relaxed ``y``, the best move while it lowers the objective, each move an LP on the chosen
    needles' columns alone. No wall-clock limit anywhere: the same input gives the same selection on a quiet or
@@ -1132,7 +1132,7 @@ def _calibrate(kappa: np.ndarray, d2: np.ndarray, tails: np.ndarray, limits: np.
 
 def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
                  air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
-                 gtv: Structure | None = None, subset: ImplantArm | None = None) -> ImplantArm:
+                 gtv: Structure | None = None) -> ImplantArm:
     """Return the Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
 
     Parameters
@@ -1144,9 +1144,6 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     kernel, air_kerma_strength_u : TG-43 kernel and source strength (U).
     aims : EMBRACE II by default.
     gtv : the GTV mask on the planning grid, when there is one (its D98 is then an aim).
-    subset : an arm planned on a subset of ``channels`` (the straight arm for the straight + steered one): its
-        selection at each budget is a start of this arm's search there, and its plans are implants of this arm
-        too, so this arm is never worse.
 
     Returns
     -------
@@ -1217,20 +1214,14 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         free = model.solve(None, kappa=kappa)
     bound = float(free.fun) if free.x is not None else float("nan")
 
-    index = {id(channels[c]): i for i, c in enumerate(needles)}
-    given = {b.budget: [index[id(c)] for c in b.selected if id(c) in index] for b in (subset.budgets if subset
-                                                                                   else ())}
-    # the subset arm's plans by selection: the same channels give the same dwell-time LP (computed once)
-    planned = {frozenset(id(c) for c in b.selected): b.plan for b in (subset.budgets if subset else ()) if b.new}
-
     def select(k: int, keep: Sequence[int]) -> tuple[np.ndarray | None, float, float | None, str]:
         """Select at most ``k`` needles: return (solution, objective, lower bound (LP relaxation), how it ended).
 
         Starts: the LP relaxation rounded with the last budget's needles kept (so the objective never rises with
-        ``k``: every budget's model has the same organ rows), and the subset arm's selection; then swaps.
+        ``k``: every budget's model has the same organ rows); then swaps.
         """
         relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
-        starts = [model.rounded(k, kappa, relaxed, keep), model.rounded(k, kappa, relaxed, given.get(k, ()))]
+        starts = [model.rounded(k, kappa, relaxed, keep), model.rounded(k, kappa, relaxed, ())]
         if keep:  # the last budget's selection itself (a needle added to it costs its invasiveness)
             last = model.solve(k, kappa=kappa, only=keep)
             starts.append(last if last.x is not None else None)
@@ -1263,8 +1254,7 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
         if new:
-            ids = frozenset(id(channels[c]) for c in picked)
-            seen[picked] = planned[ids] if ids in planned else _final(
+            seen[picked] = _final(
                 prob, np.array(picked, dtype=int), fin_pts, fin_p, aims, settings, vox_cc, kappa.copy(),
                 f"budget {k}: selection objective {value:.6g}, {status}", gap)
         budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
@@ -1282,8 +1272,6 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
             break
         if stall >= 2 or value <= bound + 1e-9 * max(1.0, abs(bound)):
             break  # nothing new twice, or the selection reaches the bound of every candidate loaded
-    if subset is not None:  # its implants are implants of this arm too
-        plans += list(subset.plans)
     record: dict[str, object] = {
         "model": "needle selection: LP relaxation (HiGHS through scipy.optimize.milp) on sampled target points and "
                  "organ mean-tail-dose rows, dwells in blocks, rounded and improved by swaps; dwell times: LP on every "
@@ -1312,8 +1300,7 @@ def with_subset(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
     """Return ``arm`` with the implants of ``subset`` (an arm planned on a subset of its candidates) added.
 
     Every implant of the subset arm is one of this arm's too, so the result is never worse than ``subset``: its
-    Pareto curve and chosen plan are taken over both arms' plans (what ``plan_implant(..., subset=...)`` does
-    at the end, for two arms planned independently, e.g. at the same time).
+    Pareto curve and chosen plan are taken over both arms' plans (two arms planned independently, e.g. at once).
     """
     return _arm(arm.name, arm.n_candidates, [*arm.plans, *subset.plans], arm.seconds, arm.budgets, arm.selection)
 

@@ -101,7 +101,7 @@ def _arms(case: Case, bank: object, kernel: Tg43Kernel, settings: ImplantSetting
                               settings, [bank])  # type: ignore[list-item]
     straight = plan_implant("straight", [c for c in cands if not c.steered], case.planning, kernel, SK, aims,
                             settings)
-    steered = plan_implant("steered", cands, case.planning, kernel, SK, aims, settings, subset=straight)
+    steered = with_subset(plan_implant("steered", cands, case.planning, kernel, SK, aims, settings), straight)
     return cands, straight, steered
 
 
