@@ -12,6 +12,7 @@ Clearance is the smallest surface-to-surface distance (mm) between the needle (c
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -92,27 +93,36 @@ def _rotation_to(direction: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
-def capsule_chain(path_mm: np.ndarray, radius_mm: float) -> list[fcl.CollisionObject]:
-    """FCL capsules of radius ``radius_mm`` along ``path_mm`` ((n, 3) float, mm, LPS), one per segment.
+def _joints(path_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Return the points a needle path's capsules join ((m, 3) float, mm), zero-length segments dropped.
 
-    Zero-length segments are skipped; a single point becomes a sphere.
+    Raises :class:`PlanInputError` for a path that is not a finite (n, 3) array or a radius that is not positive.
     """
     p = np.asarray(path_mm, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or not np.all(np.isfinite(p)):
         raise PlanInputError("a needle path must be a finite (n, 3) array of points in mm")
     if radius_mm <= 0:
         raise PlanInputError(f"needle radius must be positive, got {radius_mm} mm")
-    d = np.diff(p, axis=0)
-    lengths = np.linalg.norm(d, axis=1)
-    objs = []
-    for a, seg, length in zip(p[:-1], d, lengths, strict=True):
-        if length < 1e-9:
-            continue
-        rot = _rotation_to(seg / length)
-        objs.append(fcl.CollisionObject(fcl.Capsule(radius_mm, length), fcl.Transform(rot, a + seg / 2)))
-    if not objs:
-        objs.append(fcl.CollisionObject(fcl.Sphere(radius_mm), fcl.Transform(np.eye(3), p[0])))
-    return objs
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(p, axis=0), axis=1) >= 1e-9])
+    return p[keep]
+
+
+def capsule_chain(path_mm: np.ndarray, radius_mm: float) -> list[fcl.CollisionObject]:
+    """FCL capsules of radius ``radius_mm`` along ``path_mm`` ((n, 3) float, mm, LPS), one per segment.
+
+    Zero-length segments are skipped; a single point becomes a sphere.
+    """
+    pts = _joints(path_mm, radius_mm)
+    if len(pts) == 1:
+        return [fcl.CollisionObject(fcl.Sphere(radius_mm), fcl.Transform(np.eye(3), pts[0]))]
+    return [_capsule(a, b, radius_mm) for a, b in itertools.pairwise(pts)]
+
+
+def _capsule(a: np.ndarray, b: np.ndarray, radius_mm: float) -> fcl.CollisionObject:
+    """FCL capsule of radius ``radius_mm`` from ``a`` to ``b`` ((3,) float, mm, LPS; distinct points)."""
+    seg = b - a
+    length = float(np.linalg.norm(seg))
+    return fcl.CollisionObject(fcl.Capsule(radius_mm, length), fcl.Transform(_rotation_to(seg / length), a + seg / 2))
 
 
 @dataclass(frozen=True)
@@ -146,15 +156,24 @@ def _first_contact_s(a: np.ndarray, b: np.ndarray, radius_mm: float, organ: Orga
 def path_clearance(
     path_mm: np.ndarray, radius_mm: float, organ: Organ, resolution_mm: float = 1.0
 ) -> Clearance:
-    """Clearance of a needle path ((n, 3) float, mm, LPS; capsules of ``radius_mm``) to one organ."""
-    p = np.asarray(path_mm, dtype=float)
-    caps = capsule_chain(p, radius_mm)
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(p, axis=0), axis=1) >= 1e-9])
-    pts = p[keep]  # the points the capsules join (zero-length segments dropped)
+    """Clearance of a needle path ((n, 3) float, mm, LPS; capsules of ``radius_mm``) to one organ.
+
+    Exact (FCL, one capsule per segment). With the organ's distance field, only the segments whose lower bound
+    is at most the smallest upper bound are measured
+    (:meth:`reachplan.planner.geometry.distance_field.DistanceField.segment_bounds`): any other is farther than
+    some segment and clear of the organ, so the clearance, the collision and its first contact are unchanged.
+    """
+    pts = _joints(path_mm, radius_mm)
+    measure: list[int] = list(range(max(len(pts) - 1, 1)))
+    if organ.field is not None and len(pts) > 2:
+        lower, upper = organ.field.segment_bounds(pts, radius_mm)
+        measure = np.flatnonzero(lower <= upper.min()).tolist()  # path order: the first collision is the first
+    caps = capsule_chain(pts, radius_mm) if len(pts) <= 2 else [_capsule(pts[i], pts[i + 1], radius_mm)
+                                                                 for i in measure]
     s0 = arc_length_mm(pts)
     req, creq = fcl.DistanceRequest(), fcl.CollisionRequest()
     best = np.inf
-    for i, obj in enumerate(caps):
+    for obj, i in zip(caps, measure, strict=True):
         d = fcl.distance(obj, organ.fcl_object, req, fcl.DistanceResult())
         if d <= 0.0 and fcl.collide(obj, organ.fcl_object, creq, fcl.CollisionResult()):
             if len(pts) < 2:
@@ -162,7 +181,7 @@ def path_clearance(
             s = s0[i] + _first_contact_s(pts[i], pts[i + 1], radius_mm, organ, resolution_mm)
             return Clearance(organ.name, 0.0, True, float(s))
         best = min(best, max(d, 0.0))
-    if organ.contains(p[0]):
+    if organ.contains(pts[0]):
         return Clearance(organ.name, 0.0, True, 0.0)
     return Clearance(organ.name, float(best), False, None)
 

@@ -87,6 +87,24 @@ def _path_min(values, origin, inv_p, path, step, reach):  # type: ignore[no-unty
     return best, count
 
 
+@njit(cache=True, fastmath=True)
+def _segment_min(values, origin, inv_p, path, step, reach, out):  # type: ignore[no-untyped-def]
+    """``out[s]``: smallest field value over samples every <= ``step`` mm along segment ``s`` (ends included)."""
+    for s in range(path.shape[0] - 1):
+        a = path[s]
+        b = path[s + 1]
+        length = math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2)
+        n = int(length / step) + 1
+        best = reach
+        for q in range(n + 1):
+            t = q / n
+            v = _trilinear(values, origin[0], origin[1], origin[2], inv_p, a[0] + t * (b[0] - a[0]),
+                           a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2]), reach)
+            if v < best:
+                best = v
+        out[s] = best
+
+
 @njit(cache=True)
 def _ray_crossings(tri, ox, oy, oz, dx, dy, dz):  # type: ignore[no-untyped-def]
     """Count the triangles ((m, 3, 3) float, mm) that the ray from (ox, oy, oz) along (dx, dy, dz) crosses."""
@@ -304,9 +322,25 @@ class DistanceField:
         upper = est + self.error_mm if best < self.reach_mm else math.inf
         return max(est, 0.0), est - self.error_mm - 0.5 * step, upper
 
+    def segment_bounds(self, path_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """Return (lower, upper) bounds (mm) of the clearance of each segment of a needle path.
+
+        ``path_mm``: (n, 3) float, mm, LPS, n >= 2; the bounds are (n - 1,) float, those of
+        :meth:`path_clearance` for each segment ``path_mm[s]``-``path_mm[s + 1]`` alone (upper infinite out of
+        reach). An exact query of the whole path need only measure the segments whose lower bound is at most the
+        smallest upper bound: no other can touch the organ or be the nearest.
+        """
+        p = np.ascontiguousarray(path_mm, dtype=float).reshape(-1, 3)
+        best = np.empty(max(len(p) - 1, 0))
+        _segment_min(self.values_mm, self.origin_mm, 1.0 / self.pitch_mm, p, self.pitch_mm, self.reach_mm, best)
+        est = best - radius_mm
+        upper = np.where(best < self.reach_mm, est + self.error_mm, np.inf)
+        return est - self.error_mm - 0.5 * self.pitch_mm, upper
+
 
 def _warm_up() -> None:
     """Compile (or load) the kernel a plan uses: for the first-run benchmark."""
     f = DistanceField.from_mesh(trimesh.creation.box((4.0, 4.0, 4.0)), pitch_mm=1.0, reach_mm=3.0)
     f.path_clearance(np.array([[0.0, 0.0, -10.0], [0.0, 0.0, 10.0]]), 1.0)
+    f.segment_bounds(np.array([[0.0, 0.0, -10.0], [0.0, 0.0, 10.0]]), 1.0)
     inside_by_parity(np.ascontiguousarray(trimesh.creation.box((4.0, 4.0, 4.0)).triangles), np.zeros(3))

@@ -138,7 +138,7 @@ def plane_section(mesh: trimesh.Trimesh, normal: np.ndarray, offset_mm: float) -
     height = v @ np.asarray(normal, dtype=float) - offset_mm  # signed distance of each vertex, mm
     above = height >= 0.0
     side = above[f]
-    crossed = side.any(axis=1) & ~side.all(axis=1)
+    crossed = (side[:, 0] != side[:, 1]) | (side[:, 1] != side[:, 2])  # not all three on one side
     if not crossed.any():
         return []
     tri, side = v[f[crossed]], side[crossed]
@@ -345,16 +345,55 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
 #: Faces of an organ in the 3-D view: quadric decimation keeps the organs' shapes (bladder, rectum, pelvic bone)
 #: recognisable at this size and the report small.
 VIEW_FACES = 1500
+#: A mesh with more than this many times :data:`VIEW_FACES` faces is first clustered down to that many
+#: (:func:`cluster_vertices`): quadric decimation of the demo's 243k-face pelvic bone took 0.49 s and stopped at
+#: 3.5k faces with parts of the bone gone (64 mm from the original at worst); clustered first, 0.07 s in all and
+#: within 2.3 mm.
+CLUSTER_FACTOR = 4
+
+
+def cluster_vertices(mesh: trimesh.Trimesh, face_count: int) -> trimesh.Trimesh:
+    """Return ``mesh`` simplified to about ``face_count`` faces by vertex clustering (mm, LPS).
+
+    The vertices are binned on a cubic grid whose cell, ``sqrt(2 area / face_count)``, holds about two faces of a
+    smooth surface; each cell's vertices merge into their mean, and faces that collapse or repeat are dropped
+    (Rossignac and Borrel, "Multi-resolution 3D approximations for rendering complex scenes", 1993). Linear in
+    the faces, vectorised; the result is for drawing (it may be non-manifold where thin parts meet). A mesh with
+    no area is returned as it is.
+    """
+    v0 = np.asarray(mesh.vertices, dtype=float)
+    area = float(mesh.area)
+    if not np.isfinite(area) or area <= 0.0 or face_count < 1:
+        return mesh
+    cell_mm = float(np.sqrt(2.0 * area / face_count))
+    key3 = np.floor((v0 - v0.min(axis=0)) / cell_mm).astype(np.int64)
+    dims = key3.max(axis=0) + 1
+    _, inv, counts = np.unique((key3[:, 0] * dims[1] + key3[:, 1]) * dims[2] + key3[:, 2], return_inverse=True,
+                               return_counts=True)
+    inv = inv.ravel()
+    sums = np.stack([np.bincount(inv, weights=v0[:, i], minlength=counts.size) for i in range(3)], axis=1)
+    merged = sums / counts[:, None].astype(float)
+    f = inv[np.asarray(mesh.faces)]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    s, n = np.sort(f, axis=1), counts.size
+    if n < 2**20:  # one integer per vertex triple (n**3 < 2**63)
+        _, first = np.unique((s[:, 0] * n + s[:, 1]) * n + s[:, 2], return_index=True)
+    else:
+        _, first = np.unique(s, axis=0, return_index=True)
+    return trimesh.Trimesh(merged, f[np.sort(first)], process=False)
 
 
 def light_mesh(mesh: trimesh.Trimesh, max_faces: int = VIEW_FACES) -> trimesh.Trimesh:
     """Return a mesh with at most about ``max_faces`` faces for 3-D drawing (mm, LPS).
 
     Quadric decimation (trimesh with the ``fast-simplification`` package, aggressiveness 9 of 10: a fifth faster than
-    its default 7 and alike at this size); a mesh already within the budget is returned as it is.
+    its default 7 and alike at this size), after :func:`cluster_vertices` down to :data:`CLUSTER_FACTOR` times the
+    budget for a mesh larger than that; a mesh already within the budget is returned as it is.
     """
     if len(mesh.faces) <= max_faces:
         return mesh
+    if len(mesh.faces) > CLUSTER_FACTOR * max_faces:
+        mesh = cluster_vertices(mesh, CLUSTER_FACTOR * max_faces)
     return mesh.simplify_quadric_decimation(face_count=max_faces, aggression=9)
 
 

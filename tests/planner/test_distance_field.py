@@ -48,6 +48,39 @@ def test_path_lower_bound_never_above_fcl() -> None:
             assert got.clearance_mm == exact.clearance_mm
 
 
+def test_exact_clearance_measures_only_the_segments_that_can_matter_and_is_unchanged() -> None:
+    """Segment pruning by the field: the same clearance, collision and first contact as every capsule measured."""
+    import reachplan.planner.geometry.collision as collision
+
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=15.0)
+    plain = make_organ("Ball", mesh)
+    screened = with_distance_field(plain)
+    assert screened.field is not None
+    rng = np.random.default_rng(11)
+    made: list[int] = []
+    capsule = collision._capsule
+    pruned_any = False
+    for n in range(60):
+        a, b = rng.uniform(-40, 40, (2, 3))
+        bend = rng.normal(scale=8.0, size=3)
+        t = np.linspace(0.0, 1.0, 25)[:, None]
+        path = a + t * (b - a) + 4 * t * (1 - t) * bend  # a curved needle, 24 segments
+        if n % 5 == 0:
+            path = np.vstack([path[:3], path[2:3], path[3:]])  # a repeated point: a zero-length segment
+        exact = path_clearance(path, 0.9, plain)
+        collision._capsule = lambda *args: (made.append(1), capsule(*args))[1]
+        try:
+            got = path_clearance(path, 0.9, screened)
+        finally:
+            collision._capsule = capsule
+        assert got.collides == exact.collides
+        assert got.clearance_mm == pytest.approx(exact.clearance_mm, abs=1e-12)
+        assert got.contact_s_mm == exact.contact_s_mm
+        pruned_any |= len(made) < 24
+        made.clear()
+    assert pruned_any  # the field spared FCL queries
+
+
 def test_phantom_plan_same_with_and_without_screen(tmp_path: Path) -> None:
     from reachplan.imaging.phantom import write_phantom
     from reachplan.imaging.rtstruct import read_rtstruct

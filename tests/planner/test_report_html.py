@@ -150,3 +150,28 @@ def test_3d_cameras_follow_the_slices_convention() -> None:
             continue
         right = np.cross(-np.asarray(eye), np.asarray(up))
         assert (figures.direction_letter(right), figures.direction_letter(np.asarray(up))) == expected[key], name
+
+
+def test_light_mesh_keeps_every_part_of_a_large_mesh_near_its_surface() -> None:
+    """Two fine spheres 60 mm apart (81,920 faces each): the 3-D view's mesh keeps both, within the budget.
+
+    Quadric decimation alone stopped early on the 243k-face pelvic bone and dropped parts of it; clustering first
+    (:func:`figures.cluster_vertices`) must keep every part. Checked against the spheres' closed form.
+    """
+    import trimesh
+
+    radius_mm, centres = 20.0, np.array([[-30.0, 0.0, 0.0], [30.0, 0.0, 0.0]])
+    parts = [trimesh.creation.icosphere(subdivisions=6, radius=radius_mm).apply_translation(c) for c in centres]
+    big = trimesh.util.concatenate(parts)
+    assert len(big.faces) > figures.CLUSTER_FACTOR * figures.VIEW_FACES
+    light = figures.light_mesh(big)
+    assert len(light.faces) <= 1.05 * figures.VIEW_FACES
+    v = np.asarray(light.vertices)
+    d = np.linalg.norm(v[:, None, :] - centres[None], axis=2)
+    assert np.all(np.abs(d.min(axis=1) - radius_mm) < 1.5)  # every vertex on one of the spheres
+    for c in range(2):  # each sphere still there, all round: its vertices span its whole diameter on every axis
+        own = v[np.argmin(d, axis=1) == c] - centres[c]
+        assert len(own) > 100
+        np.testing.assert_array_less(2 * radius_mm - 4.0, own.max(axis=0) - own.min(axis=0))
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], process=False)
+    assert figures.cluster_vertices(flat, 10) is flat  # no area: nothing to cluster
