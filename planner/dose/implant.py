@@ -73,8 +73,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage, sparse
 from scipy import optimize as sopt
+from scipy import sparse
 from scipy.spatial import cKDTree
 
 from reachplan._arrays import arc_length_mm
@@ -96,6 +96,7 @@ from reachplan.planner.dose.tg43 import (
     grid_points_mm,
 )
 from reachplan.planner.geometry.collision import Organ, check_path
+from reachplan.planner.geometry.distance_field import distance_transform
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ShapeBank, place
 
@@ -262,7 +263,7 @@ def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.nd
     lo = np.maximum(idx.min(axis=0) - pad, 0)
     hi = np.minimum(idx.max(axis=0) + pad + 1, np.array(grid.shape))
     crop = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    values = ndimage.distance_transform_edt(~crop, sampling=spacing) if crop.any() else np.full(crop.shape, np.inf)
+    values = distance_transform(crop, spacing)  # infinite without a seed
     return _Field(grid.index_from_patient, lo, np.asarray(values, dtype=float), np.inf)
 
 

@@ -156,11 +156,12 @@ def inside_by_parity(triangles: np.ndarray, point_mm: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def _envelope_1d(f, n, v, z, d):  # type: ignore[no-untyped-def]
-    """Squared distance transform of ``f[:n]``: ``d[q] = min_p (q - p)² + f[p]`` (``inf`` where ``f`` is all inf).
+def _envelope_1d(f, n, w2, v, z, d):  # type: ignore[no-untyped-def]
+    """Squared distance transform of ``f[:n]``: ``d[q] = min_p w2 (q - p)² + f[p]`` (``inf`` where ``f`` is all inf).
 
     The lower envelope of parabolas (Felzenszwalb & Huttenlocher, "Distance transforms of sampled functions",
-    Theory of Computing 8, 2012), in exact integer arithmetic held in float64; ``v``, ``z`` are work space.
+    Theory of Computing 8, 2012); ``w2`` is the squared node spacing along the line (1: exact integer arithmetic
+    held in float64); ``v``, ``z`` are work space.
     """
     k = -1
     for q in range(n):
@@ -172,10 +173,10 @@ def _envelope_1d(f, n, v, z, d):  # type: ignore[no-untyped-def]
             z[0] = -np.inf
             z[1] = np.inf
             continue
-        s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
+        s = ((f[q] + w2 * q * q) - (f[v[k]] + w2 * v[k] * v[k])) / (2.0 * w2 * (q - v[k]))
         while s <= z[k]:
             k -= 1
-            s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
+            s = ((f[q] + w2 * q * q) - (f[v[k]] + w2 * v[k] * v[k])) / (2.0 * w2 * (q - v[k]))
         k += 1
         v[k] = q
         z[k] = s
@@ -188,30 +189,32 @@ def _envelope_1d(f, n, v, z, d):  # type: ignore[no-untyped-def]
     for q in range(n):
         while z[k + 1] < q:
             k += 1
-        d[q] = (q - v[k]) * (q - v[k]) + f[v[k]]
+        d[q] = w2 * (q - v[k]) * (q - v[k]) + f[v[k]]
 
 
 @njit(cache=True)
-def _lines(a, n1, s1, n2, s2, n, s, f, v, z, g):  # type: ignore[no-untyped-def]
+def _lines(a, n1, s1, n2, s2, n, s, w2, f, v, z, g):  # type: ignore[no-untyped-def]
     """Replace each line ``a[i s1 + j s2 + k s]``, ``k < n`` (``i < n1``, ``j < n2``) by its 1-D squared transform.
 
-    ``a`` is flat (one compiled variant serves all three axes of a C-ordered grid).
+    ``a`` is flat (one compiled variant serves all three axes of a C-ordered grid); ``w2``: the squared spacing.
     """
     for i in range(n1):
         for j in range(n2):
             base = i * s1 + j * s2
             for k in range(n):
                 f[k] = a[base + k * s]
-            _envelope_1d(f, n, v, z, g)
+            _envelope_1d(f, n, w2, v, z, g)
             for k in range(n):
                 a[base + k * s] = g[k]
 
 
 @njit(cache=True)
-def _edt(seeds, pitch, reach, out):  # type: ignore[no-untyped-def]
-    """Write the distance (mm, clipped at ``reach``) from each node to the nearest ``seeds`` node (bool grid).
+def _edt(seeds, spacing, scale, reach, out):  # type: ignore[no-untyped-def]
+    """Write the distance (clipped at ``reach``) from each node to the nearest ``seeds`` node (bool grid).
 
-    Exact Euclidean distance (squared, in whole voxels, by one envelope pass per axis), like scipy's EDT.
+    ``spacing``: (3,) float, the node spacing along each array axis; the distance is in those units times
+    ``scale`` (the field: spacing 1, scale the pitch, so whole-voxel integer arithmetic). Exact Euclidean
+    distance (squared, by one envelope pass per axis), like scipy's EDT; ``out``: float64, the shape of ``seeds``.
     """
     nx, ny, nz = seeds.shape
     m = max(nx, ny, nz)
@@ -221,11 +224,25 @@ def _edt(seeds, pitch, reach, out):  # type: ignore[no-untyped-def]
     for q in range(d2.size):
         d2[q] = 0.0 if flat_seeds[q] else np.inf
     one = np.int64(1)  # not a literal 1: that compiled _lines twice (literal in another place), a first-run second
-    _lines(d2, nx, ny * nz, ny, nz, nz, one, f, v, z, g)  # along the third axis
-    _lines(d2, nx, ny * nz, nz, one, ny, nz, f, v, z, g)  # the second
-    _lines(d2, ny, nz, nz, one, nx, ny * nz, f, v, z, g)  # the first
+    _lines(d2, nx, ny * nz, ny, nz, nz, one, spacing[2] ** 2, f, v, z, g)  # along the third axis
+    _lines(d2, nx, ny * nz, nz, one, ny, nz, spacing[1] ** 2, f, v, z, g)  # the second
+    _lines(d2, ny, nz, nz, one, nx, ny * nz, spacing[0] ** 2, f, v, z, g)  # the first
     for q in range(d2.size):
-        flat_out[q] = min(math.sqrt(d2[q]) * pitch, reach)
+        flat_out[q] = min(math.sqrt(d2[q]) * scale, reach)
+
+
+def distance_transform(seeds: np.ndarray, spacing_mm: np.ndarray | tuple[float, float, float],
+                       reach_mm: float = math.inf) -> np.ndarray:
+    """Return the exact Euclidean distance (mm, float64, clipped at ``reach_mm``) to the nearest ``seeds`` voxel.
+
+    ``seeds``: 3-D bool array; ``spacing_mm``: (3,) voxel spacing along its axes. The compiled equivalent of
+    ``scipy.ndimage.distance_transform_edt(~seeds, sampling=spacing_mm)`` (within rounding; about 5 times faster on
+    the implant's organ map, with no feature-transform arrays); infinite everywhere when there is no seed.
+    """
+    out = np.empty(seeds.shape)
+    _edt(np.ascontiguousarray(seeds, dtype=bool), np.asarray(spacing_mm, dtype=float).reshape(3), 1.0,
+         float(reach_mm), out)
+    return out
 
 
 #: default reach of a field (mm): estimates saturate there (reported clearances up to about this minus the radius)
@@ -297,8 +314,9 @@ class DistanceField:
         idx = np.rint((verts - lo) / pitch_mm).astype(int)
         seeds = np.zeros(tuple(shape), dtype=bool)
         seeds[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-        values = np.empty(tuple(shape), dtype=np.float32)
-        _edt(seeds, float(pitch_mm), float(reach_mm), values)
+        values64 = np.empty(tuple(shape))
+        _edt(seeds, np.ones(3), float(pitch_mm), float(reach_mm), values64)
+        values = values64.astype(np.float32)
         values.setflags(write=False)
         return DistanceField(lo, float(pitch_mm), values, float(reach_mm), error, float(confirm_within_mm))
 

@@ -132,7 +132,22 @@ def test_compiled_distance_transform_equals_scipys_exact_edt(shape: tuple[int, i
 
     seeds = np.random.default_rng(11).random(shape) < 0.003
     seeds[-1, 0, -1] = True
-    got = np.empty(shape, dtype=np.float32)
-    _edt(seeds, pitch_mm, 15.0, got)
+    got = np.empty(shape)
+    _edt(seeds, np.ones(3), pitch_mm, 15.0, got)  # as a field builds it: whole voxels, scaled
     want = np.minimum(ndimage.distance_transform_edt(~seeds, sampling=pitch_mm), 15.0).astype(np.float32)
-    assert np.array_equal(got, want) and got.max() > 5.0
+    assert np.array_equal(got.astype(np.float32), want) and got.max() > 5.0
+
+
+@pytest.mark.parametrize("spacing_mm", [(2.5, 0.98, 0.98), (1.0, 3.0, 0.5)])
+def test_anisotropic_distance_transform_equals_scipys(spacing_mm: tuple[float, float, float]) -> None:
+    """The implant's organ map: a CT grid's voxels (slice thickness apart from the pixel), no clipping."""
+    from scipy import ndimage
+
+    from reachplan.planner.geometry.distance_field import distance_transform
+
+    seeds = np.random.default_rng(4).random((19, 47, 33)) < 0.002
+    seeds[0, 0, 0] = True
+    got = distance_transform(seeds, spacing_mm)
+    want = ndimage.distance_transform_edt(~seeds, sampling=spacing_mm)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert np.all(np.isinf(distance_transform(np.zeros((3, 4, 5), bool), spacing_mm)))
