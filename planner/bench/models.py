@@ -500,7 +500,7 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
                 return float(np.sum(np.sum((kinematic(f) - tips) ** 2, axis=-1)[ok]))
 
             factor = float(minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4}).x)
-        fn = curvature_factor(e) if e >= TIP_FOLLOWING_MIN_PA else math.nan
+        fn = curvature_factor(e, design) if e >= TIP_FOLLOWING_MIN_PA else math.nan
         kin = kinematic(fn) if math.isfinite(fn) else np.full_like(tips, np.nan)
         if math.isfinite(fn):
             kin_err += list(np.linalg.norm(kin - tips, axis=-1)[ok])
@@ -545,7 +545,7 @@ def tissue_figure(points: list[TissuePoint]) -> Figure:
     fac = [next(p.factor for p in points if p.modulus_pa == e) for e in moduli]
     a2.plot(moduli, fac, "s", label="fitted to the rod (all schedules, depths)")
     grid = np.geomspace(TIP_FOLLOWING_MIN_PA, max([*moduli, 1e7]), 100)
-    a2.plot(grid, [curvature_factor(float(e)) for e in grid], "-", label="curvature_factor(E)")
+    a2.plot(grid, [curvature_factor(float(e)) for e in grid], "-", label="curvature_factor(E), 15ga-30j-tip (table)")
     a2.axvspan(min(moduli), TIP_FOLLOWING_MIN_PA, color="0.9", label="below the tip-following range")
     a2.set_ylabel("kinematic curvature factor")
     for ax in (a1, a2):

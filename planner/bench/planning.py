@@ -152,7 +152,7 @@ def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
     for h in (4.0, 1.0, 0.25):
         kin = KinematicInsertion(step_mm=h)
         t, paths = _median_time(partial(kin.insert_array, design, schedules * 25, depth), 3)
-        rows.append(_insertion_row(f"kinematic step {h} mm, factor {kin.factor:.2f} (batched)",
+        rows.append(_insertion_row(f"kinematic step {h} mm, factor {kin.factor_for(design):.2f} (batched)",
                                    t / (len(schedules) * 25), paths[: len(schedules), -1], ref_tips))
     for h in s.rod_steps_mm:
         rod = replace(PLANNER_REFERENCE, step_mm=h, richardson=False)

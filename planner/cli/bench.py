@@ -16,7 +16,8 @@ from pathlib import Path
 from types import ModuleType
 
 NAME = "bench"
-HELP = "Run a benchmark (rod models, planning, dose, imaging, study, implant, report) and write CSV + PNG."
+HELP = ("Run a benchmark (rod models, curvature factors, planning, dose, imaging, study, implant, report) and "
+        "write CSV + PNG.")
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,8 @@ TARGETS: tuple[Target, ...] = (
            (Option("--repeat", int, "timed runs, the fastest is reported (3; quick 1)"),)),
     Target("report", "report", "report.html of the demo: seconds to build it from the plan in memory, bytes by part",
            (Option("--repeat", int, "timed renderings, the median is reported (5; quick 1)"),)),
+    Target("factors", "factors", "kinematic curvature factor per stylet design against the tissue modulus, "
+           "fitted to the in-tissue rod (the planner's package table)"),
     Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
            (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
 )

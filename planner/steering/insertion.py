@@ -6,9 +6,9 @@ direction, roll 0 bends toward template ``+x``), millimetres:
 ``kinematic``
     Tip following. The tip advances along its tangent, which turns toward the bending direction (set by the
     roll) at the free-space curvature of the stylet's distal (joint) section under the current tension,
-    from a rod model, times the curvature factor of the tissue's modulus (:func:`curvature_factor`, fitted to
-    the in-tissue Cosserat insertion of :mod:`reachplan.planner.steering.tissue_rod`). Cheap and vectorised
-    over many schedules at once.
+    from a rod model, times the design's curvature factor at the tissue's modulus (:func:`curvature_factor`,
+    fitted per design to the in-tissue Cosserat insertion of :mod:`reachplan.planner.steering.tissue_rod`).
+    Cheap and vectorised over many schedules at once.
 ``tissue_rod`` (:mod:`reachplan.planner.steering.tissue_rod`)
     Reference. The two-tube Cosserat rod (geometrically exact) pushed in steps into an elastic foundation tied
     to the track its tip cut, one modulus along the path or one per organ crossed.
@@ -20,9 +20,10 @@ with the phantom's SimuGel modulus E_s = 0.19 MPa (reference: ``oncoreach.md``, 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any, ClassVar, Protocol, cast, runtime_checkable
 
 import numpy as np
@@ -30,7 +31,7 @@ import numpy as np
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.rod_model.beam import PLANAR_BEAM
-from reachplan.rod_model.design import RodDesign
+from reachplan.rod_model.design import RodDesign, preset
 from reachplan.rod_model.protocol import RodModel
 
 #: SimuGel #3 Young's modulus (Pa), the phantom's tissue (reference: oncoreach.md, section 4).
@@ -43,26 +44,113 @@ TISSUE_POISSON = 0.49
 #: cut (the tube's Winkler length (4 EI / k)^(1/4) exceeds ~35 mm) and one curvature factor cannot describe the
 #: in-tissue rod (its fit error rises from 1.4 mm RMS at 0.1 MPa to 3.8 mm at 10 kPa; ``reachplan bench models``).
 TIP_FOLLOWING_MIN_PA = 1e5
-#: Fitted constants of :func:`curvature_factor`: amplitude at 1 MPa and exponent.
-CURVATURE_FACTOR_FIT = (0.1500, 0.3545)
+#: Package data: each stylet design's curvature factor against the tissue modulus, fitted to the in-tissue rod
+#: (``reachplan bench factors --install``; :func:`reachplan.planner.steering.tissue_rod.fit_curvature_factor`).
+FACTOR_TABLE = "curvature_factors.json"
+#: The design whose factor is used when none is named (the planner's default design).
+REFERENCE_DESIGN = "15ga-30j-tip"
 
 
-def curvature_factor(modulus_pa: float) -> float:
-    """Return the kinematic model's curvature factor for tissue of Young's modulus ``modulus_pa`` (Pa).
+def design_key(design: RodDesign) -> str:
+    """Return a fingerprint of a design's mechanics, its name left out (16 hex digits of a SHA-256).
 
-    ``c(E) = 1 + a (E / 1 MPa)^(−p)``, ``a = 0.150``, ``p = 0.354`` (:data:`CURVATURE_FACTOR_FIT`): least squares
-    on the factors fitted to the in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`;
-    ``reachplan bench models``, ``rod_models_tissue.csv``) of 15ga-30j-tip under ramps of 20 mm from 0 / 20 /
-    40 / 60 mm onset to 60 / 100 % of the maximum tension, tips at 60-150 mm: 1.334 / 1.283 / 1.137 / 1.101 /
-    1.075 at 0.1 / 0.19 / 1 / 3 / 10 MPa (residuals within 0.013). Held out: 0.5 MPa, 1.185 from the rod,
-    1.192 from ``c`` (test). It decreases monotonically to 1. In rigid tissue the joint section bends only as
-    it cuts new track, so the path takes the joint section's free-space curvature (tip following; Webster et
-    al., IJRR 25(5-6), 2006). In softer tissue a tendon pulled while the joints are embedded also bends them
-    within about a Winkler length of the tip, ``(4 EI / k)^(1/4)`` (Hetényi, *Beams on Elastic Foundation*,
-    1946), and the held track keeps that extra turn (Glozman & Shoham, IEEE T-RO 23(3), 2007). That length
-    scales as ``E^(−13/48) ≈ E^(−0.27)`` with Vesic's ``k``: the fitted exponent 0.35 is of that order.
-    The factor depends on the design: a shorter joint section (15ga-15j-tip) still bends more than tip following
-    at 1 MPa (``docs/mechanics.md``); the planner's reference re-solve corrects the shortlist of any design.
+    Of the design's ``repr``: frozen dataclasses of numbers and tuples, so the same design gives the same key in
+    every process; a calibrated preset keeps its name but not its key.
+    """
+    return hashlib.sha256(repr(dataclasses.replace(design, name="")).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class FactorCurve:
+    """One design's kinematic curvature factor against the tissue modulus, fitted to the in-tissue rod.
+
+    Parameters
+    ----------
+    design : str
+        The design's name when it was fitted.
+    key : str
+        :func:`design_key` of the design fitted.
+    moduli_pa : tuple of float, Pa
+        Increasing, from :data:`TIP_FOLLOWING_MIN_PA`.
+    factors : tuple of float
+        The fitted factor at each modulus.
+    rms_mm : tuple of float, mm
+        The kinematic model's root-mean-square tip error against the rod with that factor.
+    """
+
+    design: str
+    key: str
+    moduli_pa: tuple[float, ...]
+    factors: tuple[float, ...]
+    rms_mm: tuple[float, ...]
+
+    def __call__(self, modulus_pa: float) -> float:
+        """Return the factor at ``modulus_pa`` (Pa, at least the first tabulated modulus).
+
+        A natural cubic spline in log modulus through the fitted factors (held out at 0.5 MPa, the rod's factor and
+        the spline's differ by at most 0.002 over the presets; linear interpolation was up to 0.04 low at the
+        peaks; ``docs/curvature_factors.csv``). Stiffer than the last modulus, the excess over pure tip following
+        (factor 1) decays as the power of the modulus the last two points give, when it does decay there (the
+        joints' Winkler length shrinks as a power of the modulus, see :func:`curvature_factor`); otherwise the
+        last factor holds.
+        """
+        e = np.log(np.asarray(self.moduli_pa, dtype=float))
+        c = np.asarray(self.factors, dtype=float)
+        x = float(np.log(modulus_pa))
+        if x <= e[-1] or len(e) < 2:
+            return float(self._spline(x)) if len(e) > 2 else float(np.interp(x, e, c))
+        a, b = c[-2] - 1.0, c[-1] - 1.0
+        if not (a > b > 0.0):
+            return float(c[-1])
+        p = np.log(a / b) / (e[-1] - e[-2])
+        return float(1.0 + b * np.exp(-p * (x - e[-1])))
+
+    @cached_property
+    def _spline(self) -> Any:
+        from scipy.interpolate import CubicSpline
+
+        return CubicSpline(np.log(np.asarray(self.moduli_pa, dtype=float)), np.asarray(self.factors, dtype=float),
+                           bc_type="natural")
+
+    def to_json(self) -> dict[str, object]:
+        """Return the curve as plain JSON data (the package table's entry)."""
+        return {"design": self.design, "key": self.key, "moduli_pa": list(self.moduli_pa),
+                "factors": list(self.factors), "rms_mm": list(self.rms_mm)}
+
+
+@lru_cache(maxsize=1)
+def factor_table() -> dict[str, FactorCurve]:
+    """Return the packaged curvature factors by :func:`design_key` (empty when the package has no table)."""
+    import json
+    from importlib import resources
+
+    try:
+        text = resources.files("reachplan.planner.steering").joinpath(FACTOR_TABLE).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return {}
+    curves = [FactorCurve(str(d["design"]), str(d["key"]), tuple(map(float, d["moduli_pa"])),
+                          tuple(map(float, d["factors"])), tuple(map(float, d["rms_mm"])))
+              for d in json.loads(text)["designs"]]
+    return {c.key: c for c in curves}
+
+
+def curvature_factor(modulus_pa: float, design: RodDesign | None = None) -> float:
+    """Return the kinematic model's curvature factor of ``design`` in tissue of Young's modulus ``modulus_pa`` (Pa).
+
+    The path curvature over the joint section's free-space curvature, fitted per design to the in-tissue Cosserat
+    insertion (:func:`reachplan.planner.steering.tissue_rod.fit_curvature_factor`: 20 mm ramps from 0-60 mm
+    onsets to 60 / 100 % of the maximum tension, tips at 60-150 mm) at 0.1, 0.19, 0.3, 1, 3 and 10 MPa, and
+    interpolated (:class:`FactorCurve`; ``reachplan bench factors``, ``docs/curvature_factors.csv``). It depends
+    on the design: in the gel (0.19 MPa) it is 1.28 for 15ga-30j-tip, whose held shaft adds to the joints'
+    turn, but below 1 for 15ga-15j-tip and 13ga-20j-tip, whose shorter or stiffer joint sections are not yet
+    decoupled from a shaft the gel barely holds (``docs/mechanics.md``). In rigid tissue the joint section bends
+    only as it cuts new track, so the path takes the joint section's free-space curvature (tip following,
+    factor 1; Webster et al., IJRR 25(5-6), 2006); in softer tissue a tendon pulled while the joints are embedded
+    also bends them within about a Winkler length of the tip, ``(4 EI / k)^(1/4)`` (Hetényi, *Beams on Elastic
+    Foundation*, 1946), and the held track keeps that extra turn (Glozman & Shoham, IEEE T-RO 23(3), 2007).
+
+    ``design``: default :data:`REFERENCE_DESIGN`. A design not in the packaged table (a calibrated or new one,
+    told apart by :func:`design_key`) is fitted here, at this modulus, once per process (about 10 s).
 
     Raises
     ------
@@ -73,8 +161,20 @@ def curvature_factor(modulus_pa: float) -> float:
         raise PlanInputError(f"tissue modulus {modulus_pa:g} Pa is below the tip-following range (>= "
                              f"{TIP_FOLLOWING_MIN_PA:g} Pa): the tissue does not hold the needle on its track; "
                              "give a tissue_factor or use the tissue_rod insertion model")
-    a, p = CURVATURE_FACTOR_FIT
-    return 1.0 + a * (modulus_pa / 1e6) ** -p
+    if design is None:
+        design = preset(REFERENCE_DESIGN)
+    curve = factor_table().get(design_key(design))
+    if curve is not None:
+        return curve(float(modulus_pa))
+    return _fitted_factor(design, float(modulus_pa))
+
+
+@lru_cache(maxsize=64)
+def _fitted_factor(design: RodDesign, modulus_pa: float) -> float:
+    """Fit the factor of a design the packaged table does not hold (memoised)."""
+    from reachplan.planner.steering.tissue_rod import fit_curvature_factor  # the rod imports this module
+
+    return fit_curvature_factor(design, modulus_pa).factor
 
 
 #: One model setting: (name with its unit, value).
@@ -264,11 +364,12 @@ class KinematicInsertion(NamedInsertion):
     Parameters
     ----------
     tissue_modulus_pa : float
-        Young's modulus of the tissue the needle steers in (default the phantom's SimuGel, 0.19 MPa); it sets
-        the curvature factor by :func:`curvature_factor` (the per-organ modulus in a plan).
+        Young's modulus of the tissue the needle steers in (default the phantom's SimuGel, 0.19 MPa); with the
+        design it sets the curvature factor by :func:`curvature_factor` (the per-organ modulus in a plan).
     tissue_factor : float or None
         Path curvature over the joint section's free-space curvature; None (default): ``curvature_factor(
-        tissue_modulus_pa)``, fitted to the in-tissue Cosserat insertion. A number overrides it.
+        tissue_modulus_pa, design)``, fitted per design to the in-tissue Cosserat insertion. A number overrides
+        it for every design.
     rod_model : RodModel
         Rod model that gives the curvature table (default :data:`~reachplan.rod_model.beam.PLANAR_BEAM`,
         exact to 0.1 % of the two-tube model for free-space curvature; see the rod-model benchmark).
@@ -290,14 +391,17 @@ class KinematicInsertion(NamedInsertion):
 
     def __post_init__(self) -> None:
         if self.tissue_factor is None:
-            curvature_factor(self.tissue_modulus_pa)  # raises outside the tip-following range
+            if not (np.isfinite(self.tissue_modulus_pa) and self.tissue_modulus_pa >= TIP_FOLLOWING_MIN_PA):
+                curvature_factor(self.tissue_modulus_pa)  # raises: below the tip-following range
         elif not (np.isfinite(self.tissue_factor) and self.tissue_factor >= 0):
             raise PlanInputError(f"tissue_factor must be a finite number >= 0, got {self.tissue_factor}")
 
-    @property
-    def factor(self) -> float:
-        """The curvature factor in use: ``tissue_factor``, or the fitted one at ``tissue_modulus_pa``."""
-        return curvature_factor(self.tissue_modulus_pa) if self.tissue_factor is None else self.tissue_factor
+    def factor_for(self, design: RodDesign) -> float:
+        """Return the curvature factor in use for ``design``: ``tissue_factor``, or the design's fitted one.
+
+        The fitted one is :func:`curvature_factor` at ``tissue_modulus_pa``.
+        """
+        return curvature_factor(self.tissue_modulus_pa, design) if self.tissue_factor is None else self.tissue_factor
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
@@ -318,7 +422,7 @@ class KinematicInsertion(NamedInsertion):
             tension[i], roll[i] = sch.at(depths)
         if np.any(tension > design.max_tension_n + 1e-9):
             raise PlanInputError(f"a schedule exceeds {design.name}'s maximum tension {design.max_tension_n} N")
-        kappa = self.factor * table.joint(tension)  # (S, n+1), 1/mm
+        kappa = self.factor_for(design) * table.joint(tension)  # (S, n+1), 1/mm
         phi = np.radians(roll)
         if np.all(np.ptp(phi, axis=1) == 0.0):
             return _planar_paths(kappa, phi[:, 0], h)

@@ -53,10 +53,11 @@ The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; `
        the free-space one at every modulus, test). 15ga-30j-tip, 5 mm ramp at 40 mm to 10 N, tip at 140 mm:
        26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa.
 
-    The monotonic quantity the planner needs is the kinematic model's curvature factor over the tip-following
-    range (>= 0.1 MPa), where the holding is complete:
-    :func:`~reachplan.planner.steering.insertion.curvature_factor`, decreasing from 1.34 at 0.1 MPa (1.27 in
-    the gel) to 1 in rigid tissue, fitted for 15ga-30j-tip (a shorter joint section peaks in stiffer tissue).
+    What the planner needs is the kinematic model's curvature factor over the tip-following range (>= 0.1 MPa),
+    fitted per design (:func:`fit_curvature_factor`, :func:`~reachplan.planner.steering.insertion.curvature_factor`):
+    15ga-30j-tip is past its peak there and its factor falls monotonically, from 1.33 at 0.1 MPa (1.28 in the gel)
+    toward 1 in rigid tissue; a shorter or stiffer joint section peaks in stiffer tissue, so its factor rises
+    through the gel (15ga-15j-tip: below 1 there).
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ from reachplan.planner.steering.insertion import (
     TISSUE_POISSON,
     FailedInsertion,
     InsertionPath,
+    KinematicInsertion,
     NamedInsertion,
     winkler_modulus_pa,
 )
@@ -304,3 +306,66 @@ TISSUE_ROD = TissueRodInsertion()
 #: 10 N, tip at 120 mm in the gel: 29.70 / 29.80 / 29.85 mm at 4 / 2 / 1 mm steps (extrapolated 29.90, from 1 and
 #: 2 mm 29.91); 2 RK4 steps per mm change it by 0.001 mm.
 PLANNER_REFERENCE = TissueRodInsertion(rod_model=TwoTubeCosserat(steps_per_mm=1.0), richardson=True)
+
+
+#: The schedules and depths a curvature factor is fitted over (:func:`fit_curvature_factor`): 20 mm ramps from these
+#: onsets (mm) to these fractions of the design's maximum tension (the planner's schedule family), tips at these
+#: depths (mm; those beyond the design's length dropped).
+FACTOR_ONSETS_MM: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0)
+FACTOR_FRACTIONS: tuple[float, ...] = (0.6, 1.0)
+FACTOR_DEPTHS_MM: tuple[float, ...] = (60.0, 90.0, 120.0, 150.0)
+
+
+@dataclass(frozen=True)
+class FactorFit:
+    """The kinematic curvature factor fitted to the in-tissue rod at one modulus.
+
+    ``factor``: least squares over every schedule and depth; ``rms_mm``: the kinematic model's tip error with it,
+    root mean square (mm); ``tips``: how many rod tips were fitted (a failed insertion step loses its depths).
+    """
+
+    factor: float
+    rms_mm: float
+    tips: int
+
+
+def fit_curvature_factor(design: RodDesign, modulus_pa: float, onsets_mm: Sequence[float] = FACTOR_ONSETS_MM,
+                         fractions: Sequence[float] = FACTOR_FRACTIONS,
+                         depths_mm: Sequence[float] = FACTOR_DEPTHS_MM) -> FactorFit:
+    """Fit the kinematic model's curvature factor of ``design`` to the in-tissue rod in tissue of ``modulus_pa``.
+
+    The rod is the planner's reference (:data:`PLANNER_REFERENCE`: 1 RK4 step per mm) with 2 mm insertion steps
+    and no extrapolation (the tips at every depth come from one insertion; the step moves a 150 mm tip by 0.2-0.4
+    mm, a fifth of the fit's residual). The factor minimises the squared tip distance between the kinematic model
+    and the rod over 20 mm ramps from each onset to each fraction of the maximum tension, tips at each depth.
+    About 10 s for the default 8 schedules × 4 depths.
+
+    Raises
+    ------
+    PlanInputError
+        Fewer than two rod tips (every insertion failed early), or no depth within the design's length.
+    """
+    from scipy.optimize import minimize_scalar
+
+    depths = np.array([d for d in depths_mm if 0 < d <= design.length_mm], dtype=float)
+    if len(depths) == 0:
+        raise PlanInputError(f"no fitting depth within {design.name}'s length {design.length_mm:.0f} mm")
+    schedules = [TensionSchedule.ramp(float(o), 20.0, f * design.max_tension_n) for o in onsets_mm for f in fractions]
+    rod = replace(PLANNER_REFERENCE, richardson=False, tissue_modulus_pa=float(modulus_pa))
+    tips = np.full((len(schedules), len(depths), 3), np.nan)
+    for i, sch in enumerate(schedules):
+        _, steps = rod.insert_steps(design, sch, float(depths[-1]))
+        got = {round(d, 6): tip for d, tip in steps}
+        for j, d in enumerate(depths):
+            tips[i, j] = got.get(round(float(d), 6), np.full(3, np.nan))
+    ok = np.all(np.isfinite(tips), axis=-1)
+    if ok.sum() < 2:
+        raise PlanInputError(f"the in-tissue rod failed for {design.name} at {modulus_pa:g} Pa: no curvature factor")
+    rows = np.round(depths).astype(int)  # rows of a kinematic path at 1 mm steps
+
+    def misfit(f: float) -> float:
+        kin = KinematicInsertion(tissue_factor=f).insert_array(design, schedules, float(depths[-1]))[:, rows]
+        return float(np.sum(np.sum((kin - tips) ** 2, axis=-1)[ok]))
+
+    best = minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4})
+    return FactorFit(float(best.x), float(np.sqrt(misfit(float(best.x)) / ok.sum())), int(ok.sum()))

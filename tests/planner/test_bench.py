@@ -57,17 +57,37 @@ def _assert_real_png(path: Path) -> None:
 
 def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.CaptureFixture[str]) -> None:
     assert [t.name for t in bench.TARGETS] == ["models", "planning", "dose", "imaging", "study", "startup", "firstrun",
-                                              "distance", "dosekernel", "implant", "report", "demo"]
+                                              "distance", "dosekernel", "implant", "report", "factors", "demo"]
     for target in bench.TARGETS:
         module = bench._load(target.module)
         assert callable(module.run)
         for name, dest in module.INSTALLS.items():  # owned files: package data or docs/, relative to a checkout
-            assert Path(dest).parts[0] in {"docs", "rod_model"} and not Path(dest).is_absolute()
+            assert Path(dest).parts[0] in {"docs", "rod_model", "planner"} and not Path(dest).is_absolute()
             assert Path(dest).name == name
         with pytest.raises(SystemExit) as exc:
             main(["bench", target.name])  # --out is required
         assert exc.value.code == 2
     capsys.readouterr()
+
+
+def test_factors_quick_writes_a_table_the_planner_reads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from reachplan.planner.steering.insertion import FactorCurve, design_key, factor_table
+    from reachplan.rod_model.design import preset
+
+    out = tmp_path / "out"
+    assert main(["bench", "factors", "--quick", "--out", str(out)]) == 0
+    capsys.readouterr()
+    entry = json.loads((out / "curvature_factors.json").read_text())["designs"][0]
+    curve = FactorCurve(entry["design"], entry["key"], tuple(entry["moduli_pa"]), tuple(entry["factors"]),
+                        tuple(entry["rms_mm"]))
+    assert curve.key == design_key(preset("15ga-30j-tip"))
+    packaged = factor_table()[curve.key]  # the same fit as the packaged table's, at the same modulus
+    assert curve.factors[0] == pytest.approx(packaged(curve.moduli_pa[0]), abs=1e-3)
+    _, rows = _read_csv(out / "curvature_factors.csv")
+    assert len(rows) == 1 and float(rows[0]["rms_mm"]) < 2.0
+    assert (out / "curvature_factors.png").stat().st_size > 10_000
 
 
 def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
