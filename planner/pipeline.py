@@ -725,7 +725,8 @@ def _delivered_implant(
     pl = arm.plan
     gap = "" if pl.mip_gap is None else f"; gap to the LP bound {pl.mip_gap:.2f}"
     n_ic = len(pl.channels) - pl.n_needles
-    reason = (f"implant ({arm.name} arm): {pl.n_needles} needles and {n_ic} intracavitary channel"
+    reason = (f"implant ({arm.name} arm): {pl.n_needles} needle{'s' if pl.n_needles != 1 else ''} and {n_ic} "
+              f"intracavitary channel"
               f"{'s' if n_ic != 1 else ''}, chosen with the dwell times (LP relaxation rounded, then a swap "
               f"search{gap})")
     opt = OptimisationResult(pl.dwells, pl.target, pl.oars, True, reason, scaled=pl.scale < 1.0, scale=pl.scale,

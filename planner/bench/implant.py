@@ -130,7 +130,8 @@ def run(args: argparse.Namespace) -> int:
         pl = arm.plan
         print(f"{arm.name:<9} {arm.seconds:6.2f} s  candidates {arm.n_candidates:4d}  pareto "
               + " ".join(f"{p.n_needles}:{p.hrctv_d90_eqd2_gy:.1f}" for p in arm.pareto)
-              + ("" if pl is None else f"  chosen {pl.n_needles} needles, D90 {pl.target.d90_eqd2_gy:.1f} Gy"))
+              + ("" if pl is None else f"  chosen {pl.n_needles} needle{'s' if pl.n_needles != 1 else ''}, "
+                                       f"D90 {pl.target.d90_eqd2_gy:.1f} Gy"))
     print(f"both arms with candidates: {best_s:.2f} s wall, {best_cpu:.2f} s CPU (median of {len(runs)}; "
           f"load {load:.1f})")
     return 0

@@ -128,7 +128,7 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
     for name, n, d90, met, why in arms:
         low = "" if met or not d90 < aims.target_d90_eqd2_gy else f"; D90 below {aims.target_d90_eqd2_gy:g} Gy"
         why = f"{low}{why}".removeprefix("; ")
-        lines.append(f"  {name:<{width}}  {n:>3} needles  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
+        lines.append(f"  {name:<{width}}  {n:>3} needle{'s' if n != 1 else ' '}  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
                      f"{'aims met' if met else 'aims NOT met'}{f' ({why})' if why else ''}")
     return lines
 
