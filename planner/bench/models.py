@@ -52,12 +52,10 @@ from typing import Any, Protocol
 
 import numpy as np
 from matplotlib.figure import Figure
-from scipy.optimize import minimize_scalar
 
 from reachplan.planner.bench.common import BenchError, settings, write_csv, write_json, write_png
 from reachplan.planner.steering.insertion import TIP_FOLLOWING_MIN_PA, KinematicInsertion, curvature_factor
-from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.planner.steering.tissue_rod import TissueRodInsertion
+from reachplan.planner.steering.tissue_rod import FACTOR_FRACTIONS, TissueRodInsertion, factor_schedules, fit_factor
 from reachplan.rod_model.beam import PLANAR_BEAM, PlanarBeam
 from reachplan.rod_model.collocation import NS, CollocationCosserat
 from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat
@@ -464,8 +462,9 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
         error of its 2 mm insertion step against 1 mm, one schedule per modulus).
     """
     design = preset("15ga-30j-tip")
-    schedules = [(f"ramp {o:g} mm, {f:.0%}", TensionSchedule.ramp(o, 20.0, f * design.max_tension_n))
-                 for o in s.tissue_onsets_mm for f in (0.6, 1.0)]
+    ramps = factor_schedules(design, s.tissue_onsets_mm)  # the fitted table's ramps, onset-major
+    labels = [f"ramp {o:g} mm, {f:.0%}" for o in s.tissue_onsets_mm for f in FACTOR_FRACTIONS]
+    schedules = list(zip(labels, ramps, strict=True))
     depths = np.array(s.tissue_depths_mm, dtype=float)
     rows_at = np.round(depths).astype(int)  # rows of a kinematic path at 1 mm steps
 
@@ -494,12 +493,7 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
             status.append("ok" if isinstance(final, np.ndarray) else final.reason)
         rod_ms += ms
         ok = np.all(np.isfinite(tips), axis=-1)
-        factor = math.nan
-        if ok.sum() >= 2:
-            def misfit(f: float, ok: np.ndarray = ok, tips: np.ndarray = tips) -> float:
-                return float(np.sum(np.sum((kinematic(f) - tips) ** 2, axis=-1)[ok]))
-
-            factor = float(minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4}).x)
+        factor = fit_factor(design, ramps, depths, tips).factor if ok.sum() >= 2 else math.nan
         fn = curvature_factor(e, design) if e >= TIP_FOLLOWING_MIN_PA else math.nan
         kin = kinematic(fn) if math.isfinite(fn) else np.full_like(tips, np.nan)
         if math.isfinite(fn):

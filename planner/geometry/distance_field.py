@@ -67,27 +67,6 @@ def _sample(values, origin, inv_p, pts, reach, out):  # type: ignore[no-untyped-
 
 
 @njit(cache=True, fastmath=True)
-def _path_min(values, origin, inv_p, path, step, reach):  # type: ignore[no-untyped-def]
-    """(smallest field value over samples every <= ``step`` mm along the polyline, number of samples)."""
-    best = reach
-    count = 0
-    for s in range(max(path.shape[0] - 1, 1)):
-        a = path[s]
-        b = path[min(s + 1, path.shape[0] - 1)]
-        length = math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2)
-        n = int(length / step) + 1  # spacing <= step
-        first = 0 if s == 0 else 1
-        for q in range(first, n + 1):
-            t = q / n
-            v = _trilinear(values, origin[0], origin[1], origin[2], inv_p, a[0] + t * (b[0] - a[0]),
-                           a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2]), reach)
-            count += 1
-            if v < best:
-                best = v
-    return best, count
-
-
-@njit(cache=True, fastmath=True)
 def _segment_min(values, origin, inv_p, path, step, reach, out):  # type: ignore[no-untyped-def]
     """``out[s]``: smallest field value over samples every <= ``step`` mm along segment ``s`` (ends included)."""
     for s in range(path.shape[0] - 1):
@@ -334,11 +313,19 @@ class DistanceField:
         ``reach_mm − radius_mm`` and the upper bound infinite.
         """
         step = self.pitch_mm
-        best, _ = _path_min(self.values_mm, self.origin_mm, 1.0 / self.pitch_mm,
-                            np.ascontiguousarray(path_mm, dtype=float), step, self.reach_mm)
-        est = float(best) - radius_mm
+        best = float(self._segment_minima(path_mm).min())
+        est = best - radius_mm
         upper = est + self.error_mm if best < self.reach_mm else math.inf
         return max(est, 0.0), est - self.error_mm - 0.5 * step, upper
+
+    def _segment_minima(self, path_mm: np.ndarray) -> np.ndarray:
+        """Smallest field value (mm) along each segment of a path, sampled every <= pitch (a point: itself)."""
+        p = np.ascontiguousarray(path_mm, dtype=float).reshape(-1, 3)
+        if len(p) == 1:
+            p = np.repeat(p, 2, axis=0)
+        out = np.empty(len(p) - 1)
+        _segment_min(self.values_mm, self.origin_mm, 1.0 / self.pitch_mm, p, self.pitch_mm, self.reach_mm, out)
+        return out
 
     def segment_bounds(self, path_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
         """Return (lower, upper) bounds (mm) of the clearance of each segment of a needle path.
@@ -348,9 +335,7 @@ class DistanceField:
         reach). An exact query of the whole path need only measure the segments whose lower bound is at most the
         smallest upper bound: no other can touch the organ or be the nearest.
         """
-        p = np.ascontiguousarray(path_mm, dtype=float).reshape(-1, 3)
-        best = np.empty(max(len(p) - 1, 0))
-        _segment_min(self.values_mm, self.origin_mm, 1.0 / self.pitch_mm, p, self.pitch_mm, self.reach_mm, best)
+        best = self._segment_minima(path_mm)
         est = best - radius_mm
         upper = np.where(best < self.reach_mm, est + self.error_mm, np.inf)
         return est - self.error_mm - 0.5 * self.pitch_mm, upper
@@ -360,5 +345,4 @@ def _warm_up() -> None:
     """Compile (or load) the kernel a plan uses: for the first-run benchmark."""
     f = DistanceField.from_mesh(trimesh.creation.box((4.0, 4.0, 4.0)), pitch_mm=1.0, reach_mm=3.0)
     f.path_clearance(np.array([[0.0, 0.0, -10.0], [0.0, 0.0, 10.0]]), 1.0)
-    f.segment_bounds(np.array([[0.0, 0.0, -10.0], [0.0, 0.0, 10.0]]), 1.0)
     inside_by_parity(np.ascontiguousarray(trimesh.creation.box((4.0, 4.0, 4.0)).triangles), np.zeros(3))

@@ -157,16 +157,20 @@ def curvature_factor(modulus_pa: float, design: RodDesign | None = None) -> floa
     PlanInputError
         ``modulus_pa`` below :data:`TIP_FOLLOWING_MIN_PA` or not finite: use the in-tissue rod model there.
     """
-    if not (np.isfinite(modulus_pa) and modulus_pa >= TIP_FOLLOWING_MIN_PA):
-        raise PlanInputError(f"tissue modulus {modulus_pa:g} Pa is below the tip-following range (>= "
-                             f"{TIP_FOLLOWING_MIN_PA:g} Pa): the tissue does not hold the needle on its track; "
-                             "give a tissue_factor or use the tissue_rod insertion model")
+    _check_tip_following(modulus_pa)
     if design is None:
         design = preset(REFERENCE_DESIGN)
     curve = factor_table().get(design_key(design))
     if curve is not None:
         return curve(float(modulus_pa))
     return _fitted_factor(design, float(modulus_pa))
+
+
+def _check_tip_following(modulus_pa: float) -> None:
+    if not (np.isfinite(modulus_pa) and modulus_pa >= TIP_FOLLOWING_MIN_PA):
+        raise PlanInputError(f"tissue modulus {modulus_pa:g} Pa is below the tip-following range (>= "
+                             f"{TIP_FOLLOWING_MIN_PA:g} Pa): the tissue does not hold the needle on its track; "
+                             "give a tissue_factor or use the tissue_rod insertion model")
 
 
 @lru_cache(maxsize=64)
@@ -391,8 +395,7 @@ class KinematicInsertion(NamedInsertion):
 
     def __post_init__(self) -> None:
         if self.tissue_factor is None:
-            if not (np.isfinite(self.tissue_modulus_pa) and self.tissue_modulus_pa >= TIP_FOLLOWING_MIN_PA):
-                curvature_factor(self.tissue_modulus_pa)  # raises: below the tip-following range
+            _check_tip_following(self.tissue_modulus_pa)
         elif not (np.isfinite(self.tissue_factor) and self.tissue_factor >= 0):
             raise PlanInputError(f"tissue_factor must be a finite number >= 0, got {self.tissue_factor}")
 

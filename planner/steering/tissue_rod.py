@@ -329,6 +329,40 @@ class FactorFit:
     tips: int
 
 
+def factor_schedules(design: RodDesign, onsets_mm: Sequence[float] = FACTOR_ONSETS_MM,
+                     fractions: Sequence[float] = FACTOR_FRACTIONS) -> list[TensionSchedule]:
+    """Return the ramps a curvature factor is fitted over: 20 mm from each onset (mm) to each fraction of the limit."""
+    return [TensionSchedule.ramp(float(o), 20.0, f * design.max_tension_n) for o in onsets_mm for f in fractions]
+
+
+def fit_factor(design: RodDesign, schedules: Sequence[TensionSchedule], depths_mm: np.ndarray,
+               tips_mm: np.ndarray) -> FactorFit:
+    """Fit the kinematic curvature factor of ``design`` to rod tips (least squares over the finite ones).
+
+    ``tips_mm``: (S, D, 3) float, mm, template frame: the rod's tip for each of ``schedules`` at each of
+    ``depths_mm`` (D,), NaN past a failed insertion step.
+
+    Raises
+    ------
+    PlanInputError
+        Fewer than two finite tips.
+    """
+    from scipy.optimize import minimize_scalar
+
+    depths = np.asarray(depths_mm, dtype=float)
+    ok = np.all(np.isfinite(tips_mm), axis=-1)
+    if ok.sum() < 2:
+        raise PlanInputError(f"the in-tissue rod failed for {design.name}: fewer than two tips, no curvature factor")
+    rows = np.round(depths).astype(int)  # rows of a kinematic path at 1 mm steps
+
+    def misfit(f: float) -> float:
+        kin = KinematicInsertion(tissue_factor=f).insert_array(design, schedules, float(depths[-1]))[:, rows]
+        return float(np.sum(np.sum((kin - tips_mm) ** 2, axis=-1)[ok]))
+
+    best = minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4})
+    return FactorFit(float(best.x), float(np.sqrt(misfit(float(best.x)) / ok.sum())), int(ok.sum()))
+
+
 def fit_curvature_factor(design: RodDesign, modulus_pa: float, onsets_mm: Sequence[float] = FACTOR_ONSETS_MM,
                          fractions: Sequence[float] = FACTOR_FRACTIONS,
                          depths_mm: Sequence[float] = FACTOR_DEPTHS_MM) -> FactorFit:
@@ -337,20 +371,18 @@ def fit_curvature_factor(design: RodDesign, modulus_pa: float, onsets_mm: Sequen
     The rod is the planner's reference (:data:`PLANNER_REFERENCE`: 1 RK4 step per mm) with 2 mm insertion steps
     and no extrapolation (the tips at every depth come from one insertion; the step moves a 150 mm tip by 0.2-0.4
     mm, a fifth of the fit's residual). The factor minimises the squared tip distance between the kinematic model
-    and the rod over 20 mm ramps from each onset to each fraction of the maximum tension, tips at each depth.
-    About 10 s for the default 8 schedules × 4 depths.
+    and the rod over :func:`factor_schedules`, tips at each depth (:func:`fit_factor`). About 10 s for the
+    default 8 schedules × 4 depths.
 
     Raises
     ------
     PlanInputError
         Fewer than two rod tips (every insertion failed early), or no depth within the design's length.
     """
-    from scipy.optimize import minimize_scalar
-
     depths = np.array([d for d in depths_mm if 0 < d <= design.length_mm], dtype=float)
     if len(depths) == 0:
         raise PlanInputError(f"no fitting depth within {design.name}'s length {design.length_mm:.0f} mm")
-    schedules = [TensionSchedule.ramp(float(o), 20.0, f * design.max_tension_n) for o in onsets_mm for f in fractions]
+    schedules = factor_schedules(design, onsets_mm, fractions)
     rod = replace(PLANNER_REFERENCE, richardson=False, tissue_modulus_pa=float(modulus_pa))
     tips = np.full((len(schedules), len(depths), 3), np.nan)
     for i, sch in enumerate(schedules):
@@ -358,14 +390,4 @@ def fit_curvature_factor(design: RodDesign, modulus_pa: float, onsets_mm: Sequen
         got = {round(d, 6): tip for d, tip in steps}
         for j, d in enumerate(depths):
             tips[i, j] = got.get(round(float(d), 6), np.full(3, np.nan))
-    ok = np.all(np.isfinite(tips), axis=-1)
-    if ok.sum() < 2:
-        raise PlanInputError(f"the in-tissue rod failed for {design.name} at {modulus_pa:g} Pa: no curvature factor")
-    rows = np.round(depths).astype(int)  # rows of a kinematic path at 1 mm steps
-
-    def misfit(f: float) -> float:
-        kin = KinematicInsertion(tissue_factor=f).insert_array(design, schedules, float(depths[-1]))[:, rows]
-        return float(np.sum(np.sum((kin - tips) ** 2, axis=-1)[ok]))
-
-    best = minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4})
-    return FactorFit(float(best.x), float(np.sqrt(misfit(float(best.x)) / ok.sum())), int(ok.sum()))
+    return fit_factor(design, schedules, depths, tips)
