@@ -41,25 +41,13 @@ LIMIT_S = 10.0
 
 #: the kernels-only work: every compiled kernel once, on tiny inputs, in one process
 WORK = """
-import numpy as np
-from reachplan.plugins import registry
-from reachplan.rod_model.design import preset
-from reachplan.imaging.types import Grid
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid
-from reachplan.plugins.sources import BUILTIN
-from reachplan.planner.geometry.distance_field import _warm_up
 from reachplan.imaging._sweep_kernel import warm_up
+from reachplan.planner.cli.kernels import BACKGROUND, _warm
+from reachplan.planner.geometry.distance_field import _warm_up
 warm_up()
 _warm_up()
-d = preset("15ga-30j-tip")
-m = registry.get("rod_models", "two_tube_cosserat")
-m.solve(d, d.loads(5.0))
-m.solve_batch(d, np.array([1.0, 2.0]))
-k = Tg43Kernel(BUILTIN["gammamed_plus_hdr"]())
-dw = DwellSet(np.zeros((2, 3)), np.tile([0.0, 0.0, 1.0], (2, 1)), np.ones(2))
-k.compiled_rates(np.ones((3, 3)), dw.positions_mm, dw.directions)
-k.compiled_dose(np.ones((3, 3)), dw.positions_mm, dw.directions, np.ones(2))
-dose_on_grid(Grid((4, 4, 4), np.diag([2.0, 2.0, 2.0, 1.0])), dw, k, 40000.0)
+for group in BACKGROUND:  # the rod and dose kernels, as the background process of a first run compiles them
+    _warm(group)
 """
 
 
