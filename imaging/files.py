@@ -9,6 +9,7 @@ and ``tempfile.mkstemp`` would give ``0o600`` and need the umask to widen it aga
 from __future__ import annotations
 
 import json
+import math
 import os
 import secrets
 from collections.abc import Callable, Iterable
@@ -105,3 +106,35 @@ def atomic_write_json(path: Path, obj: Any) -> None:
         ``obj`` holds a value JSON cannot represent.
     """
     atomic_write_bytes(path, (json.dumps(obj, indent=2, allow_nan=False) + "\n").encode("utf-8"))
+
+
+def json_safe(obj: Any, where: str = "", nulled: list[str] | None = None) -> Any:
+    """Return ``obj`` with every NaN or infinite float replaced by None (strict JSON).
+
+    Parameters
+    ----------
+    obj : object
+        JSON-like values: dicts, lists, tuples, floats, numpy scalars, anything else kept as is.
+    where : str
+        The JSON path of ``obj`` (for ``nulled``).
+    nulled : list of str or None
+        The JSON paths replaced are appended here.
+
+    Returns
+    -------
+    object
+        The same structure, tuples as lists.
+    """
+    if isinstance(obj, float):
+        if math.isfinite(obj):
+            return obj
+        if nulled is not None:
+            nulled.append(where or "$")
+        return None
+    if isinstance(obj, dict):
+        return {k: json_safe(v, f"{where}.{k}", nulled) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v, f"{where}[{i}]", nulled) for i, v in enumerate(obj)]
+    if hasattr(obj, "item") and callable(obj.item) and getattr(obj, "ndim", None) == 0:  # numpy scalars
+        return json_safe(obj.item(), where, nulled)
+    return obj

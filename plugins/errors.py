@@ -11,3 +11,7 @@ class PluginError(ReachplanError):
 
 class ExportError(ReachplanError):
     """A plan cannot be exported as asked (file exists, would overwrite an input, inconsistent identity)."""
+
+
+class SourceMatchError(PluginError):
+    """A plan's source matches no registered TG-43 data set, or several, or contradicts the one it names."""

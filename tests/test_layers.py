@@ -37,7 +37,7 @@ def test_installed_package_keeps_its_floors_and_rooms(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("module", "upward"), [
-    ("imaging/meshing.py", "import reachplan.planner.pipeline"),           # floor 1 -> floor 3
+    ("imaging/meshing.py", "import reachplan.planner.run.case"),           # floor 1 -> floor 3
     ("rod_model/select.py", "import reachplan.plugins.registry"),           # floor 1 -> floor 2
     ("plugins/exporters/device.py", "import reachplan.planner.errors"),     # floor 2 -> floor 3
     ("planner/geometry/collision.py", "import reachplan.planner.dose.tg43"),  # room -> a room above it
@@ -73,7 +73,7 @@ def test_every_package_folder_is_listed_in_pyproject() -> None:
     assert found == listed
 
 
-#: The only modules that may look plugins up: the pipeline and the command line (everything else is passed
+#: The only module that may look plugins up: planner/lookup.py (everything else is passed
 #: what it needs).
 REGISTRY = "reachplan.plugins.registry"
 
@@ -93,16 +93,16 @@ def _registry_importers(pythonpath: Path | None, cwd: Path) -> list[str]:
 
 
 def _may_look_up_plugins(module: str) -> bool:
-    return module == "reachplan.planner.pipeline" or module.startswith("reachplan.planner.cli.")
+    return module == "reachplan.planner.lookup"
 
 
-def test_only_the_pipeline_and_the_cli_import_the_plugin_registry(tmp_path: Path) -> None:
+def test_only_the_lookup_module_imports_the_plugin_registry(tmp_path: Path) -> None:
     importers = _registry_importers(None, tmp_path)
-    assert "reachplan.planner.pipeline" in importers  # the check sees the registry's imports at all
+    assert "reachplan.planner.lookup" in importers  # the check sees the registry's imports at all
     assert [m for m in importers if not _may_look_up_plugins(m)] == []
 
 
-@pytest.mark.parametrize("module", ["planner/steering/insertion.py", "planner/report/build.py",
+@pytest.mark.parametrize("module", ["planner/steering/insertion.py", "planner/report/build.py", "planner/cli/plan.py",
                                     "planner/dose/tg43.py", "rod_model/select.py"])
 def test_a_registry_import_elsewhere_is_found(tmp_path: Path, module: str) -> None:
     copy = tmp_path / "site" / "reachplan"

@@ -39,8 +39,10 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.phantom import write_phantom
     from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.case.config import PlanConfig
+    from reachplan.planner.case.scene import build_scene
+    from reachplan.planner.case.search import plan
     from reachplan.planner.geometry.collision import path_clearance, with_distance_field
-    from reachplan.planner.pipeline import PlanConfig, build_scene, plan
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from reachplan.imaging.types import Grid
 from reachplan.planner.bench.common import settings, write_csv, write_png
 from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid, grid_points_mm, rate_matrix
-from reachplan.planner.pipeline import get_source
+from reachplan.planner.lookup import get_source
 
 INSTALLS = {"dose_benchmark.csv": "docs/dose_benchmark.csv", "dose_benchmark.png": "docs/dose_benchmark.png"}
 COLUMNS = ("variant", "workers", "chunk_pairs", "seconds", "mpairs_per_s", "peak_mb", "max_rel_err",

@@ -2,7 +2,7 @@
 
 Times, on the built-in clinical case (seed 0, CT grid; the tandem an obstacle for needles and an intracavitary
 channel, as in ``reachplan demo``): the candidate needles for the HR-CTV, then each arm's Pareto curve of needle
-count against HR-CTV D90 and its chosen implant (:func:`reachplan.planner.pipeline.plan_implants`; the two arms
+count against HR-CTV D90 and its chosen implant (:func:`reachplan.planner.delivery.plan_implants`; the two arms
 run at once, each on a core, so ``seconds_arm`` overlap); the target is both arms in at most 20 s on a quiet
 2-core machine (the CSV also gives the CPU seconds and the load, since
 the wall time on a shared machine is not that). It also recomputes each chosen implant's dose with
@@ -27,18 +27,12 @@ from matplotlib.figure import Figure
 from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
 from reachplan.imaging.meshing import fit_grid, roi_mask
 from reachplan.planner.bench.common import settings, write_csv, write_png
+from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, DEFAULT_OARS, PlanConfig
+from reachplan.planner.case.scene import build_scene
+from reachplan.planner.delivery import plan_implants, planning_structures, tandem_channels
 from reachplan.planner.dose.implant import ImplantSettings, recompute_target
 from reachplan.planner.dose.tg43 import Tg43Kernel
-from reachplan.planner.pipeline import (
-    DEFAULT_AIR_KERMA_U,
-    DEFAULT_OARS,
-    PlanConfig,
-    build_scene,
-    get_source,
-    plan_implants,
-    planning_structures,
-    tandem_channels,
-)
+from reachplan.planner.lookup import get_source
 
 INSTALLS = {"implant_benchmark.csv": "docs/implant_benchmark.csv",
             "implant_benchmark.png": "docs/implant_benchmark.png"}

@@ -30,7 +30,9 @@ from reachplan.imaging.files import atomic_write_bytes
 from reachplan.imaging.phantom import write_phantom
 from reachplan.imaging.rtstruct import read_rtstruct
 from reachplan.planner.bench.common import settings, write_csv, write_png
-from reachplan.planner.pipeline import PlanConfig, build_scene, plan
+from reachplan.planner.case.config import PlanConfig
+from reachplan.planner.case.scene import build_scene
+from reachplan.planner.case.search import plan
 from reachplan.planner.ranking import RankWeights
 from reachplan.planner.report.workspace import workspace_figure
 from reachplan.planner.steering.insertion import KinematicInsertion

@@ -56,17 +56,14 @@ def demo_inputs(folder: Path, implant: bool = True) -> dict[str, Any]:
     from reachplan.imaging.clinical import clinical_case, write_clinical
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.pipeline import (
-        DEFAULT_OARS,
-        PlanConfig,
-        build_scene,
-        plan,
-        plan_delivery,
-        rod_model_errors,
-    )
+    from reachplan.planner.case.config import DEFAULT_OARS, PlanConfig
+    from reachplan.planner.case.scene import build_scene
+    from reachplan.planner.case.search import plan
+    from reachplan.planner.delivery import plan_delivery
     from reachplan.planner.report import figures
     from reachplan.planner.report.build import top_candidates
     from reachplan.planner.report.workspace import workspace_figure
+    from reachplan.planner.run.case import rod_model_errors
 
     case = clinical_case(0, modality="CT")
     files = write_clinical(folder, case)

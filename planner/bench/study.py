@@ -30,7 +30,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from reachplan.planner.bench.common import BenchError, settings, write_csv, write_png
-from reachplan.planner.pipeline import PlanConfig
+from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.study import StudySpec, discover_cases, run_study
 from reachplan.planner.study.cohort import make_cohort
 

@@ -3,7 +3,7 @@
 The source data set is the one named in the plan (Source Model ID, Isotope Name, manufacturer, treatment
 machine) when its isotope, kind and active length agree; for an anonymised plan the only registered one of the
 plan's isotope (named or told by the half-life), treatment type and active length (see
-:func:`reachplan.planner.pipeline.identify_source`); else ``--source``. S_K is the plan's Reference Air Kerma
+:func:`reachplan.plugins.sources.identify.identify_source`); else ``--source``. S_K is the plan's Reference Air Kerma
 Rate decayed from its reference date to the treatment date: ``--treatment-date``, else the RT Plan Date (whole
 days; Eclipse dates the strength to the plan day at midnight, rtplan_conventions.md §5). Dwell times follow the
 Eclipse conventions (see :mod:`reachplan.imaging.rtplan`), doses are totals over fractions and pulses.
@@ -20,7 +20,7 @@ from reachplan.planner.cli.edges import ArgumentError, finite, finite_float, out
 
 if TYPE_CHECKING:
     from reachplan.imaging.rtplan import BrachySource, RtPlan
-    from reachplan.planner.pipeline import SourceChoice
+    from reachplan.plugins.sources.identify import SourceChoice
 
 NAME = "dose"
 HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary check of TPS point doses)"
@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.types import Grid
     from reachplan.planner.dose.tg43 import Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
     from reachplan.planner.errors import PlanInputError
-    from reachplan.planner.pipeline import get_source
+    from reachplan.planner.lookup import get_source
     from reachplan.plugins.exporters.rtdose import (
         CEILING_TIMES_PRESCRIPTION,
         DoseContext,
@@ -165,7 +165,8 @@ def run(args: argparse.Namespace) -> int:
 def _choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> SourceChoice:
     """Return the TG-43 data set: ``--source`` (checked against the plan's isotope) or identified from the plan."""
     from reachplan.planner.errors import PlanInputError
-    from reachplan.planner.pipeline import SourceChoice, get_source, identify_source, plan_isotope
+    from reachplan.planner.lookup import all_sources, get_source
+    from reachplan.plugins.sources.identify import PlanSource, SourceChoice, identify_source, plan_isotope
 
     if given:
         data = get_source(given)
@@ -174,8 +175,9 @@ def _choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> Source
             raise PlanInputError(f"--source {given} is {data.isotope} but the plan's source is {isotope}; "
                                  "choose a data set of that isotope")
         return SourceChoice(given, f"{given}: given with --source")
-    return identify_source(src.model_id, src.isotope_name, src.manufacturer, plan.treatment_type,
-                           src.half_life_days, src.active_length_mm, plan.machine_name)
+    return identify_source(all_sources(), PlanSource(src.model_id, src.isotope_name, src.manufacturer,
+                                                     plan.treatment_type, src.half_life_days, src.active_length_mm,
+                                                     plan.machine_name))
 
 
 def _parse_date(text: str, what: str) -> datetime:
@@ -194,7 +196,7 @@ def _parse_date(text: str, what: str) -> datetime:
 def _decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None) -> tuple[float, dict[str, Any]]:
     """Return S_K (U) at the treatment date and what was used (reference and treatment dates, elapsed days, S_K)."""
     from reachplan.planner.errors import PlanInputError
-    from reachplan.planner.pipeline import decay_factor
+    from reachplan.plugins.sources.identify import decay_factor
 
     info: dict[str, Any] = {"air_kerma_reference_u": src.air_kerma_rate_u, "reference_date": src.reference_date,
                             "treatment_date": "", "elapsed_days": 0.0}

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from reachplan import ReachplanError
+from reachplan.imaging.files import json_safe
 
 
 class ArgumentError(ReachplanError):
@@ -197,23 +198,6 @@ def _merge(src: Path, dest: Path) -> None:
 
 
 # --- JSON and warnings -----------------------------------------------------------------------------------
-
-
-def json_safe(obj: Any, where: str = "", nulled: list[str] | None = None) -> Any:
-    """``obj`` with every NaN or infinite float replaced by None; the JSON paths replaced are added to ``nulled``."""
-    if isinstance(obj, float):
-        if math.isfinite(obj):
-            return obj
-        if nulled is not None:
-            nulled.append(where or "$")
-        return None
-    if isinstance(obj, dict):
-        return {k: json_safe(v, f"{where}.{k}", nulled) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [json_safe(v, f"{where}[{i}]", nulled) for i, v in enumerate(obj)]
-    if hasattr(obj, "item") and callable(obj.item) and getattr(obj, "ndim", None) == 0:  # numpy scalars
-        return json_safe(obj.item(), where, nulled)
-    return obj
 
 
 def print_json(doc: Any, command: str = "") -> None:

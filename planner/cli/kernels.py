@@ -66,11 +66,11 @@ def _warm(group: str) -> None:
     import numpy as np
 
     if group == "rod":
-        from reachplan.plugins import registry
+        from reachplan.planner.lookup import rod_model
         from reachplan.rod_model.design import preset
 
         d = preset("15ga-30j-tip")
-        model = registry.get("rod_models", "two_tube_cosserat")
+        model = rod_model("two_tube_cosserat")
         model.solve(d, d.loads(5.0))
         model.solve_batch(d, np.array([1.0, 2.0]))
     elif group == "dose":

@@ -7,12 +7,11 @@ import dataclasses
 import json
 import math
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from reachplan.planner.cli.edges import json_safe, output_folder, print_json, seen_warnings, staged_folder
+from reachplan.planner.cli.edges import output_folder, print_json, seen_warnings, staged_folder
 from reachplan.planner.errors import PlanInputError
 
 if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of every command stays light
@@ -21,9 +20,11 @@ if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of 
     import numpy as np
 
     from reachplan.imaging.names import SynonymTable
-    from reachplan.imaging.types import StructureSet, Volume
+    from reachplan.imaging.types import StructureSet
+    from reachplan.planner.case.config import PlanConfig
+    from reachplan.planner.case.scene import Scene
     from reachplan.planner.geometry.template import TemplatePose
-    from reachplan.planner.pipeline import PlanConfig
+    from reachplan.planner.run.case import CaseConfig, CaseInput, CaseResult
     from reachplan.planner.steering.candidates import Target
 
 NAME = "plan"
@@ -213,12 +214,11 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
     ReachplanError
         The first argument found wrong (one line saying what to do).
     """
-    from reachplan.planner.pipeline import get_source
-    from reachplan.plugins import registry
+    from reachplan.planner.lookup import get_source, load_template
     from reachplan.rod_model.design import preset
 
     output_folder(args.out, inputs)
-    registry.get("templates", args.template)
+    load_template(args.template)
     for name in args.design:
         preset(name)
     if not args.no_export:
@@ -226,37 +226,70 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
     _targets(args.targets)
 
 
+def case_config(args: argparse.Namespace, structures: StructureSet, config: PlanConfig,
+                standard_names: Sequence[str]) -> CaseConfig:
+    """Return what the command line asks to plan on ``structures``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed ``plan`` arguments.
+    structures : StructureSet
+        The case's ROIs (for the template pose from an RT Plan and the target checks).
+    config : PlanConfig
+        The steering search's settings (template, designs, organs at risk with ``--oar`` added).
+    standard_names : sequence of str
+        The synonym table's standard names.
+
+    Returns
+    -------
+    CaseConfig
+        The case's configuration.
+
+    Raises
+    ------
+    ReachplanError
+        A target or dose target ROI that is not in the structure set, or a bad template pose.
+    """
+    from reachplan.planner.run.case import CaseConfig
+
+    names, points = _targets(args.targets)
+    for n in names:
+        structures.get(n)  # a typed error naming the available ROIs
+    if not args.no_export:
+        structures.get(args.target_roi)  # the ROI the dwell times are optimised on, checked before planning
+    return CaseConfig(plan=config, target_names=tuple(names), target_points=tuple(points),
+                      pose=template_pose(args, structures, config), allow_no_oars=args.allow_no_oars,
+                      standard_names=tuple(standard_names), export=not args.no_export, implant=not args.no_implant,
+                      source=args.source, target_roi=args.target_roi,
+                      named_points=tuple(_reference_points(args.reference_point)))
+
+
 def run(args: argparse.Namespace) -> int:
     """Plan a case from the command line; returns the exit code."""
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.cli.kernels import start as start_kernels
-    from reachplan.planner.pipeline import PlanConfig
+    from reachplan.planner.run.case import CaseInput
 
     inputs = [p for p in (args.ct, args.rtstruct) if p is not None]
     check_plan_arguments(args, inputs)
     quiet = args.quiet or args.json
     start_kernels(quiet)  # before reading the series: the first run's compile overlaps it
-    names, points = _targets(args.targets)
-    named_points = _reference_points(args.reference_point)
+    _reference_points(args.reference_point)
     config = PlanConfig(template=args.template, designs=tuple(args.design))
     table, overrides, config = _names(args, config)
     volume = read_series(args.ct) if args.ct else None
     structures = read_rtstruct(args.rtstruct, volume, synonyms=table)
     if overrides:
         structures = rename(structures, overrides)
-    for n in names:
-        structures.get(n)  # a typed error naming the available ROIs
-    if not args.no_export:
-        structures.get(args.target_roi)  # the ROI the dwell times are optimised on, checked before planning
-    pose = template_pose(args, structures, config)
+    case = case_config(args, structures, config, table.standard_names)
+    label = inputs[-1].name
     with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole plan succeeds
-        doc = run_plan(structures, volume, names, points, config, stage, quiet,
-                       export=not args.no_export, source=args.source, target_roi=args.target_roi, inputs=inputs,
-                       pose=pose, allow_no_oars=args.allow_no_oars, standard_names=table.standard_names,
-                       named_points=named_points, implant=not args.no_implant, final_out=args.out,
-                       complete=lambda doc: _add_warnings(doc, args))
+        _, doc = plan_and_write(CaseInput(structures, volume, tuple(inputs), label), case, stage, quiet,
+                                final_out=args.out, complete=lambda doc: _add_warnings(doc, args))
     if args.json:
         print_json(doc, NAME)
     return 0
@@ -268,139 +301,62 @@ def _add_warnings(doc: dict[str, object], args: argparse.Namespace) -> None:
     doc["warnings"] = [*(notes if isinstance(notes, list) else []), *seen_warnings(args)]
 
 
-def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], points: list[Target],
-             config: PlanConfig, out: Path, quiet: bool, *, export: bool = True, source: str = "gammamed_plus_hdr",
-             target_roi: str = "HR-CTV", inputs: list[Path] | None = None,
-             extra: dict[str, object] | None = None, pose: TemplatePose | None = None, allow_no_oars: bool = False,
-             standard_names: Sequence[str] | None = None,
-             named_points: Sequence[tuple[str, tuple[float, float, float]]] = (),
-             implant: bool = True, final_out: Path | None = None,
-             complete: Callable[[dict[str, object]], None] | None = None) -> dict[str, object]:
-    """Scene → plan → files (plan.json, overview.png, workspace.png, exports, report.html); returns the plan document.
-
-    ``final_out``: where the files will be once the staging folder ``out`` is moved into place (default ``out``):
-    every path printed, returned or written inside a file is there. ``complete``: called with the document just
-    before plan.json is written (once), to add what the caller knows (warnings met, a table of its own).
-
-    ``named_points``: dose reference points (name, (x, y, z) mm LPS) the exported plan carries with their doses.
-
-    ``pose``: the template pose (None: fitted to the Obturator ROI). The pose and how it was found, and the
-    warnings about the input (organs at risk not found, targets planned to points), are printed and saved in
-    plan.json (``template_pose``, ``warnings``). ``implant``: also plan the implant for the whole target
-    volume, straight only and straight + steered (plan.json ``implant``, printed side by side).
-    """
+def _print_scene(scene: Scene, quiet: bool) -> None:
+    """Print the scene's warnings (stderr) and, unless ``quiet``, the template pose."""
     import numpy as np
     from tqdm import tqdm
 
-    from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
-    from reachplan.planner.geometry.organs import has_closed
-    from reachplan.planner.pipeline import build_scene, plan, plan_delivery
-    from reachplan.planner.report import figures
-    from reachplan.planner.report.build import (
-        format_implant,
-        format_summary,
-        report_html,
-        straight_vs_steered,
-        top_candidates,
-    )
-    from reachplan.planner.report.workspace import workspace_figure
-    from reachplan.plugins import registry
-    from reachplan.plugins.exporters import ExportOptions
-
-    if export:  # the dose target is checked before any work
-        roi = structures.get(target_roi)
-        if not has_closed(roi):
-            raise PlanInputError(f"the dose target ROI {roi.name!r} has no closed contours; name another with "
-                                 "--target-roi or plan with --no-export")
-    final = out if final_out is None else Path(final_out)
-    timings: dict[str, float] = {}
-    from reachplan.planner.cli.kernels import start
-
-    start(quiet)  # first run after an install: the rod and dose kernels compile on the other core meanwhile
-    t = time.perf_counter()
-    grid = volume.grid if volume is not None else None
-    scene = build_scene(structures, names, points, grid=grid, patient_from_template=pose, config=config,
-                        quiet=quiet, allow_no_oars=allow_no_oars, standard_names=standard_names)
-    timings["scene_s"] = time.perf_counter() - t
-    config = dataclasses.replace(config, oar_names=tuple(o.name for o in scene.organs))
     for note in scene.notes:
         tqdm.write(f"reachplan: warning: {note}", file=sys.stderr)
     if scene.pose is not None and not quiet:
         m = scene.pose.patient_from_template
         print(f"template pose: {scene.pose.method}; centre {np.round(m[:3, 3], 2).tolist()} mm, axis "
               f"{np.round(m[:3, 2], 4).tolist()} (LPS)")
-    t = time.perf_counter()
-    result = plan(scene, config, quiet=quiet)
-    timings["plan_s"] = time.perf_counter() - t
-    doc: dict[str, object] = {**(extra or {}), **result.to_json()}
-    if scene.pose is not None:
-        doc["template_pose"] = scene.pose.to_json()
-    doc["warnings"] = list(scene.notes)
-    overview_png = figures.overview(scene, top_candidates(result), volume)
-    workspace_png = workspace_figure(scene, config)
-    atomic_write_bytes(out / "overview.png", overview_png)
-    atomic_write_bytes(out / "workspace.png", workspace_png)
-    delivery = None
-    comparison, comparison_note = straight_vs_steered(result, structures, None)  # no dose: the note says so
-    files: list[str] = []
-    if export:
-        t = time.perf_counter()
-        bar = tqdm(total=4, desc="delivery", unit="step", disable=quiet, leave=False)
-        bar.set_postfix_str("dwell times (TG-43, LP)")
-        delivery = plan_delivery(result, structures, grid, source_name=source, target_roi=target_roi,
-                                 volume=volume, input_paths=inputs or [], named_points=named_points,
-                                 scene=scene if implant else None)
-        bar.update()
-        for name in ("dicom_rt", "device_json", "device_csv"):
-            bar.set_postfix_str(f"export {name}")
-            exporter = registry.get("exporters", name)
-            written = exporter.export(delivery.export, out / "export", ExportOptions(overwrite=True))
-            files += [str(final / Path(f.path).relative_to(out)) for f in written.files]
-            bar.update()
-        for arm_name, arm_export in delivery.implant_exports.items():  # loaded needles only
-            for name in ("device_json", "device_csv"):
-                written = registry.get("exporters", name).export(arm_export, out / "export" / f"implant_{arm_name}",
-                                                                 ExportOptions(overwrite=True))
-                files += [str(final / Path(f.path).relative_to(out)) for f in written.files]
-        bar.close()
-        opt = delivery.optimisation
-        ex = delivery.export
-        doc["delivery"] = {
-            "plan": delivery.kind,
-            "needles": [n.hole_id for n in ex.needles],
-            "roles": list(delivery.roles),
-            "prescription": {"target": ex.target_name, "dose_per_fraction_gy": ex.prescription_dose_gy,
-                             "fractions": ex.fractions_planned},
-            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}
-                                 for p in ex.reference_points],
-            "optimisation": {"success": opt.success, "reason": opt.reason, "aim_met": opt.aim_met,
-                             "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
-            "files": files,
-        }
-        if delivery.implant is not None:
-            doc["implant"] = delivery.implant.to_json()
-        comparison, comparison_note = straight_vs_steered(result, structures, delivery, grid, target_roi,
-                                                          quiet=quiet)
-        timings["delivery_s"] = time.perf_counter() - t
-    from reachplan.planner.pipeline import rod_model_errors
 
-    t = time.perf_counter()
-    case = str((extra or {}).get("case") or (inputs[-1].name if inputs else "case"))
-    html = report_html(scene, result, volume=volume, delivery=delivery, comparison=comparison,
-                       comparison_note=comparison_note, case=case, timings=timings, source_name=source, quiet=quiet,
-                       overview_png=overview_png, workspace_png=workspace_png, model_errors=rod_model_errors())
-    atomic_write_bytes(out / "report.html", html.encode("utf-8"))
-    doc["report"] = str(final / "report.html")
-    timings["report_s"] = time.perf_counter() - t
-    doc["timings"] = timings
-    if complete is not None:
-        complete(doc)
-    atomic_write_json(out / "plan.json", json_safe(doc))
+
+def plan_and_write(inputs: CaseInput, config: CaseConfig, out: Path, quiet: bool, *,
+                   final_out: Path | None = None, extra: dict[str, object] | None = None,
+                   complete: Callable[[dict[str, object]], None] | None = None,
+                   ) -> tuple[CaseResult, dict[str, object]]:
+    """Plan a case (:func:`~reachplan.planner.run.case.run_case`), write its files and print the summary.
+
+    Parameters
+    ----------
+    inputs : CaseInput
+        The case.
+    config : CaseConfig
+        What to plan.
+    out : Path
+        The staging folder written into.
+    quiet : bool
+        No progress bars or tables.
+    final_out : Path or None
+        Where ``out`` will be moved (the paths printed and written name it).
+    extra : dict or None
+        Keys put first in plan.json.
+    complete : callable or None
+        Called with plan.json's content before it is written.
+
+    Returns
+    -------
+    CaseResult
+        What was computed.
+    dict
+        plan.json's content.
+    """
+    from reachplan.planner.cli.kernels import start
+    from reachplan.planner.report.build import format_implant, format_summary
+    from reachplan.planner.run.case import run_case
+    from reachplan.planner.run.outputs import write_outputs
+
+    start(quiet)  # first run after an install: the rod and dose kernels compile on the other core meanwhile
+    case = run_case(inputs, config, quiet=quiet, on_scene=lambda scene: _print_scene(scene, quiet))
+    files = write_outputs(case, out, final_out, extra=extra or {}, complete=complete, quiet=quiet)
     if not quiet:
-        written = [("report", str(final / "report.html")), ("plan", str(final / "plan.json"))]
-        written += [("device instructions", f) for f in files if "device" in Path(f).name and f.endswith(".json")]
-        print(format_summary(result, targets=[t.name for t in scene.targets], delivery=delivery,
-                             comparison=comparison, files=written))
-        if delivery is not None and delivery.implant is not None:
-            print("\n" + format_implant(delivery.implant))
-    return doc
+        written = [("report", str(files.report)), ("plan", str(files.plan))]
+        written += [("device instructions", str(f)) for f in files.device_instructions]
+        print(format_summary(case.result, targets=[t.name for t in case.scene.targets], delivery=case.delivery,
+                             comparison=case.comparison, files=written))
+        if case.delivery is not None and case.delivery.implant is not None:
+            print("\n" + format_implant(case.delivery.implant))
+    return case, files.doc

@@ -24,9 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print the installed plugins and whether they load; return 0."""
-    from reachplan.plugins import registry
+    from reachplan.planner.lookup import plugin_info
 
-    infos = registry.info(args.kind)
+    infos = plugin_info(args.kind)
     if args.json:
         print_json([dataclasses.asdict(i) for i in infos], NAME)
         return 0

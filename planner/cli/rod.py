@@ -68,7 +68,7 @@ def _check(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     """Solve the preset at each tension and print the shapes; return 0, or 1 when a solve did not converge."""
     # imported here, not at the top: ``reachplan --help`` and the other commands must not pay for them
-    from reachplan.plugins import registry
+    from reachplan.planner.lookup import rod_model, rod_model_capabilities
     from reachplan.rod_model.design import preset
     from reachplan.rod_model.friction import loop_width_mm, solve_sweep
     from reachplan.rod_model.select import Scene, select_model
@@ -88,12 +88,11 @@ def run(args: argparse.Namespace) -> int:
         raise RodArgumentError(f"tension {max(over):g} N exceeds {design.name}'s limit of {design.max_tension_n:g} N; "
                                "lower it or pass --allow-over-limit")
     if args.model == "auto":
-        from reachplan.planner.pipeline import rod_model_capabilities
 
         name = select_model(args.tolerance, Scene.of(design.loads(values[0], args.roll)), rod_model_capabilities())
     else:
         name = args.model
-    model = registry.get("rod_models", name)
+    model = rod_model(name)
     model.solve(design, design.loads(0.0))  # load compiled kernels before timing (solve_ms is the solve only)
     out: list[dict[str, Any]] = []
     with warnings.catch_warnings():

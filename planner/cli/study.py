@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.cases:
         raise StudyError("give --cases DIR... (or --make-cohort N to write phantom cases, or --implant N)")
     output_folder(args.out, args.cases)
-    from reachplan.planner.pipeline import PlanConfig
+    from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.steering.steered import ScheduleFamily
     from reachplan.planner.study import StudySpec, discover_cases, run_study
     from reachplan.planner.study.summary import format_summary
@@ -119,8 +119,8 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
     if args.max_needles < 1:
         raise StudyError(f"--max-needles must be at least 1, got {args.max_needles}")
     output_folder(args.out)
+    from reachplan.planner.case.config import DEFAULT_OARS, PlanConfig
     from reachplan.planner.dose.implant import ImplantSettings
-    from reachplan.planner.pipeline import DEFAULT_OARS, PlanConfig
     from reachplan.planner.steering.steered import ScheduleFamily
     from reachplan.planner.study.implant import ImplantStudySpec, format_summary, run_implant_study, summary_json
 

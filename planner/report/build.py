@@ -11,15 +11,11 @@ import numpy as np
 from tqdm import tqdm
 
 from reachplan.imaging.types import Grid, StructureSet, Volume
+from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
+from reachplan.planner.case.result import PlanResult, choose_needles
+from reachplan.planner.case.scene import Scene
+from reachplan.planner.delivery import Delivery, planning_structures
 from reachplan.planner.dose.optimize import Comparison, OptimizerSettings, PlanningStructures, compare_arms
-from reachplan.planner.pipeline import (
-    DEFAULT_AIR_KERMA_U,
-    Delivery,
-    PlanResult,
-    Scene,
-    choose_needles,
-    planning_structures,
-)
 from reachplan.planner.report import figures
 from reachplan.planner.report.html import (
     Block,
@@ -37,8 +33,8 @@ from reachplan.plugins.sources import SourceData
 from reachplan.rod_model.select import ErrorRow
 
 if TYPE_CHECKING:
+    from reachplan.planner.delivery import ImplantComparison
     from reachplan.planner.dose.implant import ImplantArm, ImplantPlan
-    from reachplan.planner.pipeline import ImplantComparison
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
@@ -292,11 +288,11 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
                    planning: PlanningStructures | None = None) -> Comparison | None:
     """Compare straight and steered dose with the per-target best needle of each kind.
 
-    Each arm gets the per-target best needle of its kind (:func:`~reachplan.planner.pipeline.choose_needles`),
+    Each arm gets the per-target best needle of its kind (:func:`~reachplan.planner.case.result.choose_needles`),
     optimised the same way (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm with no feasible needle
     is left out; None when both are empty. ``planning``: the delivery's structures, when already built (else
-    :func:`reachplan.planner.pipeline.planning_structures` builds them). ``source``: the TG-43 data set (the
-    delivery's, :attr:`~reachplan.planner.pipeline.Delivery.source`).
+    :func:`reachplan.planner.delivery.planning_structures` builds them). ``source``: the TG-43 data set (the
+    delivery's, :attr:`~reachplan.planner.delivery.Delivery.source`).
     """
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
@@ -615,14 +611,15 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
 
     Parameters
     ----------
-    scene, result : the plan (:func:`reachplan.planner.pipeline.build_scene`, :func:`reachplan.planner.pipeline.plan`)
+    scene, result : the plan (:func:`~reachplan.planner.case.scene.build_scene`,
+        :func:`~reachplan.planner.case.search.plan`)
     volume : the image series, drawn under the organ outlines (optional)
-    delivery : the delivered plan (:func:`reachplan.planner.pipeline.plan_delivery`), or None (ranked only)
+    delivery : the delivered plan (:func:`reachplan.planner.delivery.plan_delivery`), or None (ranked only)
     comparison : straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why)
     case : one line naming the case
     timings : seconds per stage, shown at the end
     case_figures : further figures for the case section (e.g. the overview and workspace figures)
-    model_errors : the measured rod-model error table (:func:`reachplan.planner.pipeline.rod_model_errors`) for
+    model_errors : the measured rod-model error table (:func:`reachplan.planner.run.case.rod_model_errors`) for
         the speed-versus-accuracy section; empty: the section says it is not available
     """
     options = options or ReportOptions()

@@ -27,7 +27,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter
 
 from reachplan.imaging.types import Volume
-from reachplan.planner.pipeline import Scene
+from reachplan.planner.case.scene import Scene
 from reachplan.planner.steering.candidates import Candidate
 
 ORGAN_COLOURS = {

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from reachplan.planner.pipeline import Scene
+from reachplan.planner.case.scene import Scene
 from reachplan.planner.report.figures import (
     STEERED_COLOUR,
     STRAIGHT_COLOUR,

@@ -7,7 +7,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from reachplan.planner.pipeline import PlanConfig, Scene
+from reachplan.planner.case.config import PlanConfig
+from reachplan.planner.case.scene import Scene
 from reachplan.planner.report.figures import label_edges, plane_section, png_bytes
 from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
 

@@ -301,7 +301,7 @@ def _pose_at(s_mm: np.ndarray, positions_mm: np.ndarray, frames: np.ndarray,
 
 
 TISSUE_ROD = TissueRodInsertion()
-#: The planner's reference re-solve (:func:`reachplan.planner.pipeline.refine_shortlist`): 2 mm insertion steps
+#: The planner's reference re-solve (:func:`reachplan.planner.case.search.refine_shortlist`): 2 mm insertion steps
 #: extrapolated with 4 mm ones (``richardson``), 1 RK4 step per mm. 15ga-30j-tip, 5 mm ramp from the template to
 #: 10 N, tip at 120 mm in the gel: 29.70 / 29.80 / 29.85 mm at 4 / 2 / 1 mm steps (extrapolated 29.90, from 1 and
 #: 2 mm 29.91); 2 RK4 steps per mm change it by 0.001 mm.

@@ -35,8 +35,8 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from tqdm import tqdm
 
 from reachplan.imaging.files import atomic_write_json
+from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.errors import StudyError
-from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.study import store
 from reachplan.planner.study.summary import DesignSummary, summarise, summary_figure, write_dataclass_csv
 from reachplan.planner.study.tasks import STRAIGHT, Case, StudyRow, StudyTask, discover_cases, failed_rows, run_task

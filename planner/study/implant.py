@@ -2,7 +2,7 @@
 
 The cohort is seeds of the built-in clinical case (:func:`reachplan.imaging.clinical.clinical_case`). One task per
 case: the worker builds the case in memory (no DICOM is written), its scene and planning structures on the case's
-image grid, and both implant arms with their Pareto curves (:func:`reachplan.planner.pipeline.plan_implants`, as
+image grid, and both implant arms with their Pareto curves (:func:`reachplan.planner.delivery.plan_implants`, as
 ``reachplan demo`` does: the tandem is an intracavitary channel and an organ to keep needles off). Tasks run on
 Dask as the design study's do (:func:`reachplan.planner.study.run_study`: a loopback ``LocalCluster`` of worker
 processes, a given scheduler, or this process with ``workers=0``).
@@ -39,12 +39,12 @@ import numpy as np
 
 from reachplan import ReachplanError
 from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
+from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, DEFAULT_OARS, PlanConfig
 from reachplan.planner.errors import StudyError
-from reachplan.planner.pipeline import DEFAULT_AIR_KERMA_U, DEFAULT_OARS, PlanConfig
 
 if TYPE_CHECKING:
+    from reachplan.planner.delivery import ImplantComparison
     from reachplan.planner.dose.implant import ImplantSettings
-    from reachplan.planner.pipeline import ImplantComparison
 
 ARMS = ("straight", "steered")
 PARTS = "parts"
@@ -289,7 +289,9 @@ def case_row(task: ImplantCase, implant: Mapping[str, Any], seconds: float | Non
 def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
     """Build the clinical case of ``seed`` in memory and plan both implant arms on it (as ``reachplan demo``)."""
     from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
-    from reachplan.planner.pipeline import build_scene, get_source, plan_implants, planning_structures, tandem_channels
+    from reachplan.planner.case.scene import build_scene
+    from reachplan.planner.delivery import plan_implants, planning_structures, tandem_channels
+    from reachplan.planner.lookup import get_source
 
     case = clinical_case(seed, modality=spec.modality)
     structures = structure_set(case.spec)

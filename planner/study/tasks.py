@@ -24,7 +24,9 @@ from reachplan.planner.errors import StudyError
 
 if TYPE_CHECKING:
     from reachplan.imaging.types import StructureSet
-    from reachplan.planner.pipeline import PlanConfig, PlanResult, Scene
+    from reachplan.planner.case.config import PlanConfig
+    from reachplan.planner.case.result import PlanResult
+    from reachplan.planner.case.scene import Scene
 
 #: The design name that plans straight needles only (no stylet): the baseline of a study.
 STRAIGHT = "straight"
@@ -151,7 +153,7 @@ def load_scene(case: Case, targets: tuple[str, ...] | None,
     without its designs (a scene does not depend on them).
     """
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.pipeline import build_scene
+    from reachplan.planner.case.scene import build_scene
 
     t = time.perf_counter()
     key = (str(case.rtstruct), case.rtstruct.stat().st_mtime_ns, targets, repr(dataclasses.replace(config, designs=())))
@@ -186,7 +188,7 @@ class DoseOutcome:
 
 def task_dose(result: PlanResult, structures: StructureSet) -> DoseOutcome:
     """Choose one needle per target and optimise their dwell times on the HR-CTV (no export)."""
-    from reachplan.planner.pipeline import plan_delivery
+    from reachplan.planner.delivery import plan_delivery
 
     try:
         opt = plan_delivery(result, structures, None, planned_dose=False).optimisation
@@ -238,7 +240,7 @@ def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
     An expected failure (unreadable case, missing ROI, unknown design...) becomes failed rows with the
     reason; anything else propagates (the driver records it as a failure too).
     """
-    from reachplan.planner.pipeline import plan
+    from reachplan.planner.case.search import plan
 
     cpu = time.process_time()
     try:

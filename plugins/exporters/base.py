@@ -233,7 +233,7 @@ class SourceSpec:
 
         ``extra`` sets the fields SourceData does not hold (manufacturer, active_diameter_mm, ...). Source Model
         ID defaults to the data set's first alias of at most 16 characters (e.g. ``gammamedplushdr``), which
-        :func:`reachplan.planner.pipeline.recognise_source` maps back to the data set.
+        :func:`reachplan.plugins.sources.identify.recognise_source` maps back to the data set.
 
         Parameters
         ----------

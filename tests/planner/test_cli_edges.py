@@ -19,9 +19,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from reachplan.imaging.files import json_safe
 from reachplan.imaging.phantom import PhantomFiles, write_phantom
 from reachplan.planner.cli import INTERNAL_ERROR_EXIT, main
-from reachplan.planner.cli.edges import ArgumentError, finite, json_safe, print_json, staged_folder
+from reachplan.planner.cli.edges import ArgumentError, finite, print_json, staged_folder
 from reachplan.planner.cli.plan import _targets
 from reachplan.planner.errors import PlanInputError
 

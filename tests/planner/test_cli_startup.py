@@ -24,7 +24,7 @@ def test_rod_does_not_import_the_planner_or_mesh_libraries() -> None:
             "from reachplan.planner.cli import main\n"
             "with contextlib.redirect_stdout(io.StringIO()):\n"
             "    main(['rod', '--preset', '15ga-30j-tip', '--tension', '2', '--json'])\n"
-            "print(json.dumps([m for m in ('trimesh', 'fcl', 'matplotlib', 'pydicom', 'reachplan.planner.pipeline')"
+            "print(json.dumps([m for m in ('trimesh', 'fcl', 'matplotlib', 'pydicom', 'reachplan.planner.case.search')"
             " if m in sys.modules]))")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert json.loads(out.strip().splitlines()[-1]) == []

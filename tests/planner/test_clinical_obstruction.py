@@ -16,7 +16,9 @@ import dataclasses
 import pytest
 
 from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
-from reachplan.planner.pipeline import DEFAULT_OARS, PlanConfig, build_scene, plan
+from reachplan.planner.case.config import DEFAULT_OARS, PlanConfig
+from reachplan.planner.case.scene import build_scene
+from reachplan.planner.case.search import plan
 from reachplan.planner.steering.candidates import Target
 
 ROIS = ("Bladder", "Rectum", "Colon_Sigmoid", "Bowel_Small", "Bone_Pelvic", "Tandem", "Obturator")

@@ -84,7 +84,9 @@ def test_exact_clearance_measures_only_the_segments_that_can_matter_and_is_uncha
 def test_phantom_plan_same_with_and_without_screen(tmp_path: Path) -> None:
     from reachplan.imaging.phantom import write_phantom
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.pipeline import PlanConfig, build_scene, plan
+    from reachplan.planner.case.config import PlanConfig
+    from reachplan.planner.case.scene import build_scene
+    from reachplan.planner.case.search import plan
 
     files = write_phantom(tmp_path / "phantom")
     structures = read_rtstruct(files.rtstruct_path, None)

@@ -21,9 +21,10 @@ from reachplan.planner.dose.tg43 import (
     grid_points_mm,
     radial_dose,
 )
-from reachplan.planner.pipeline import get_source, recognise_source
+from reachplan.planner.lookup import all_sources, get_source
 from reachplan.plugins.errors import PluginError
 from reachplan.plugins.sources import BUILTIN
+from reachplan.plugins.sources.identify import recognise_source
 
 NAMES = sorted(BUILTIN)
 
@@ -309,6 +310,6 @@ def test_source_lookup() -> None:
     assert get_source("gammamed_plus_pdr").kind == "PDR"
     with pytest.raises(PluginError, match="available"):
         get_source("no_such_source")
-    assert recognise_source("GammaMed Plus HDR source 0.9 mm") == "gammamed_plus_hdr"
-    assert recognise_source("", "GammaMed PlusPDR") == "gammamed_plus_pdr"
-    assert recognise_source("mHDR-v2") is None
+    assert recognise_source(all_sources(), "GammaMed Plus HDR source 0.9 mm") == "gammamed_plus_hdr"
+    assert recognise_source(all_sources(), "", "GammaMed PlusPDR") == "gammamed_plus_pdr"
+    assert recognise_source(all_sources(), "mHDR-v2") is None

@@ -26,8 +26,9 @@ from reachplan.planner.dose.tg43 import (
     grid_points_mm,
     plan_dwells,
 )
-from reachplan.planner.pipeline import get_source, recognise_source
+from reachplan.planner.lookup import all_sources, get_source
 from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
+from reachplan.plugins.sources.identify import recognise_source
 
 
 def _load(folder: Path):  # type: ignore[no-untyped-def]
@@ -44,7 +45,7 @@ def _load(folder: Path):  # type: ignore[no-untyped-def]
 def test_tps_point_doses_within_0_2_percent(reference_dir: Path, case: str, source: str) -> None:
     _, _, plan, ss = _load(reference_dir / "tps_examples" / case)
     src = plan.source()
-    assert recognise_source(*src.labels(), plan.machine_name) == source
+    assert recognise_source(all_sources(), *src.labels(), plan.machine_name) == source
     dwells = plan_dwells(plan, channel_paths(plan, ss))
     assert len(dwells) == plan.n_dwells
     checks = check_points(plan, dwells, Tg43Kernel(get_source(source)), src.air_kerma_rate_u)

@@ -13,9 +13,13 @@ import numpy as np
 import pytest
 import trimesh
 
+from reachplan.planner.case.config import PlanConfig, PlanModels
+from reachplan.planner.case.result import PlanResult
+from reachplan.planner.case.scene import Scene
+from reachplan.planner.case.search import plan
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import make_organ
-from reachplan.planner.pipeline import PlanConfig, PlanModels, PlanResult, Scene, load_template, plan
+from reachplan.planner.lookup import load_template
 from reachplan.planner.steering.candidates import Candidate, Target
 from reachplan.planner.steering.insertion import FailedInsertion, KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule

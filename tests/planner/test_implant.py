@@ -11,6 +11,8 @@ import pytest
 import trimesh
 
 from reachplan.imaging.types import Grid
+from reachplan.planner.case.config import PlanConfig, PlanModels
+from reachplan.planner.delivery import implant_needles
 from reachplan.planner.dose.implant import (
     Channel,
     ImplantArm,
@@ -24,7 +26,7 @@ from reachplan.planner.dose.implant import (
 from reachplan.planner.dose.optimize import Aims, PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.geometry.collision import Organ, check_path, make_organ
-from reachplan.planner.pipeline import PlanConfig, PlanModels, get_source, implant_needles
+from reachplan.planner.lookup import get_source
 from reachplan.planner.steering.steered import shape_bank
 
 SK = 40700.0

@@ -17,7 +17,7 @@ from reachplan.planner.dose.optimize import (
     optimise_dwell_times,
 )
 from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid
-from reachplan.planner.pipeline import get_source
+from reachplan.planner.lookup import get_source
 
 SK = 40000.0
 H = 2.5

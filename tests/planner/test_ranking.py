@@ -7,8 +7,11 @@ import time
 import numpy as np
 import trimesh
 
+from reachplan.planner.case.config import PlanConfig
+from reachplan.planner.case.scene import Scene
+from reachplan.planner.case.search import plan
 from reachplan.planner.geometry.collision import make_organ
-from reachplan.planner.pipeline import PlanConfig, Scene, load_template, plan
+from reachplan.planner.lookup import load_template
 from reachplan.planner.ranking import RankWeights, pareto_front, rank
 from reachplan.planner.steering.candidates import Target
 
@@ -92,7 +95,7 @@ def test_pareto_front_is_not_dominated() -> None:
 
 
 def test_screening_model_is_chosen_by_the_measured_error_table() -> None:
-    from reachplan.planner.pipeline import screening_model
+    from reachplan.planner.case.config import screening_model
     from reachplan.rod_model.select import error_table
 
     rows = {r.model: r for r in error_table() if r.resolution == "default"}

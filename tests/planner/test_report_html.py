@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure as MplFigure
 
-from reachplan.planner.pipeline import choose_needles
+from reachplan.planner.case.result import choose_needles
 from reachplan.planner.report import figures
 from reachplan.planner.report.build import _runs, models_used
 from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html

@@ -14,7 +14,7 @@ from matplotlib.text import Text
 
 from reachplan.imaging.phantom import write_phantom
 from reachplan.imaging.rtstruct import read_rtstruct
-from reachplan.planner.pipeline import Scene, build_scene
+from reachplan.planner.case.scene import Scene, build_scene
 from reachplan.planner.report import figures
 
 

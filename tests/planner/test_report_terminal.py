@@ -12,8 +12,9 @@ import pytest
 from tqdm import tqdm
 
 from reachplan import ReachplanError, __version__
+from reachplan.planner.case.config import PlanConfig
+from reachplan.planner.case.result import PlanResult
 from reachplan.planner.cli import COMMAND_MODULES, build_parser, main
-from reachplan.planner.pipeline import PlanConfig, PlanResult
 from reachplan.planner.report.build import format_summary
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.planner.steering.insertion import KINEMATIC, STRAIGHT

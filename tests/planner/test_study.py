@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 
 from reachplan.imaging.phantom import Cylinder
+from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.cli import main
 from reachplan.planner.cli.study import COARSE_FAMILY
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.pipeline import PlanConfig
 from reachplan.planner.steering.steered import ScheduleFamily
 from reachplan.planner.study import (
     KILL_AFTER_PARTS_ENV,
@@ -192,7 +192,9 @@ def test_failing_tasks_are_recorded_and_the_study_goes_on(cohort: Path, tmp_path
 
 def test_dose_is_what_the_plan_command_computes(cohort: Path, tmp_path: Path) -> None:
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.pipeline import build_scene, plan, plan_delivery
+    from reachplan.planner.case.scene import build_scene
+    from reachplan.planner.case.search import plan
+    from reachplan.planner.delivery import plan_delivery
 
     case = discover_cases([cohort])[0]
     res = run_study(StudySpec((case,), DESIGNS, TARGETS, _config(), dose=True), tmp_path / "study", workers=0)

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from reachplan.planner.case.config import DEFAULT_OARS, PlanConfig
 from reachplan.planner.cli import main
 from reachplan.planner.cli.study import COARSE_FAMILY
 from reachplan.planner.errors import StudyError
-from reachplan.planner.pipeline import DEFAULT_OARS, PlanConfig
 from reachplan.planner.steering.steered import ScheduleFamily
 from reachplan.planner.study import LOOPBACK_HTTP
 from reachplan.planner.study.implant import (

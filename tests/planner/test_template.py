@@ -9,7 +9,7 @@ import pytest
 
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.template import check_rigid, hole_frames
-from reachplan.planner.pipeline import load_template
+from reachplan.planner.lookup import load_template
 from reachplan.plugins.templates import TemplateFileError, load_template_csv
 
 

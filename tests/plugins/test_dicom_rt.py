@@ -300,7 +300,8 @@ def test_round_trip_through_reachplan_readers(make_plan: Callable[..., ExportPla
     from reachplan.imaging.errors import OutsideImageWarning
     from reachplan.imaging.rtplan import read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.pipeline import recognise_source
+    from reachplan.planner.lookup import all_sources
+    from reachplan.plugins.sources.identify import recognise_source
 
     plan = make_plan()
     out = export_plan(plan, tmp_path)
@@ -314,7 +315,7 @@ def test_round_trip_through_reachplan_readers(make_plan: Callable[..., ExportPla
     (src,) = rp.sources
     assert (src.isotope_name, src.air_kerma_rate_u, src.half_life_days, src.active_length_mm) == (
         "Ir-192", 40700.0, 73.83, 3.5)
-    assert recognise_source(*src.labels(), rp.machine_name) == plan.source.name == "gammamed_plus_hdr"
+    assert recognise_source(all_sources(), *src.labels(), rp.machine_name) == plan.source.name == "gammamed_plus_hdr"
     (setup,) = rp.setups
     assert [c.applicator_id for c in setup.channels] == [n.hole_id for n in plan.needles]
     for ch, needle in zip(setup.channels, plan.needles, strict=True):

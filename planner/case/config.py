@@ -1,0 +1,131 @@
+"""The settings of a plan and the insertion models it uses (all lengths in mm)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from reachplan.planner.lookup import rod_model, rod_model_capabilities
+from reachplan.planner.ranking import RankWeights
+from reachplan.planner.steering.insertion import KINEMATIC, KinematicInsertion
+from reachplan.planner.steering.robustness import Perturbations
+from reachplan.planner.steering.steered import ScheduleFamily
+from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
+from reachplan.rod_model.design import RodDesign, preset
+
+if TYPE_CHECKING:
+    pass
+
+
+#: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
+DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")
+
+
+#: clearances up to the ranking's clearance cap + this (mm) are FCL's; beyond, the organ distance field's
+#: estimate (within its error bound, about 4 mm) is reported, and the Pareto flags use it. Scores and the
+#: ranking are unchanged (the score caps clearance); re-ranking with a larger cap uses the estimates.
+SCREEN_BAND_MM = 1.0
+
+
+#: 15-gauge plastic ISBT needle, outer diameter 1.83 mm (reference: oncoreach.md, ASSUMED dimensions).
+NEEDLE_RADIUS_15GA_MM = 1.83 / 2
+
+#: ASSUMED source strength for planning: a new Ir-192 HDR source of about 10 Ci, S_K ≈ 40 700 U.
+DEFAULT_AIR_KERMA_U = 40_700.0
+
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """Settings of a plan (all lengths in mm).
+
+    ``reach_tolerance_mm``: a candidate reaches its target when its tip is within this distance of the
+    target point. ``max_depth_mm``: free length of the needle beyond the template (reference: about 200 mm).
+    ``obturator_depth_mm``: how far the obturator tip lies beyond the template plane, used to place the
+    template from an ``Obturator`` ROI when no pose is given.
+    ``designs``: stylet presets to steer with (empty: straight needles only; the pilot study used
+    15ga-30j-tip). ``family``: the schedules screened per design. ``alternatives``: reaching schedules tried
+    per hole before a steered candidate is declared colliding. ``refine_top``: feasible steered candidates
+    per target re-solved with the reference insertion model (the two-tube Cosserat rod inserted in tissue,
+    :mod:`~reachplan.planner.steering.tissue_rod`); the others keep the screening model's numbers, and every
+    candidate names its model.
+    ``robust_top``: feasible straight and steered candidates per target assessed under ``perturbations``
+    (tension, roll and entry-angle errors); the ranking prefers robust ones among them.
+    ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa), e.g. ``(("Uterus", 0.5e6),)``;
+    tissue outside the named organs keeps the gel's 0.19 MPa (the reference's only modulus). The organ holding
+    a target sets the screening and robustness models' curvature factor
+    (:func:`~reachplan.planner.steering.insertion.curvature_factor`); the reference model takes the modulus
+    along the path.
+    ``screen_tolerance_mm``: the screening uses the cheapest rod model (by batched throughput) whose
+    measured free-space tip error (the rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
+    """
+
+    template: str = "needlefinder_syed_63"
+    needle_radius_mm: float = NEEDLE_RADIUS_15GA_MM
+    reach_tolerance_mm: float = 2.0
+    max_depth_mm: float = 200.0
+    oar_names: tuple[str, ...] = DEFAULT_OARS
+    obturator_depth_mm: float = 60.0
+    designs: tuple[str, ...] = ("15ga-30j-tip",)
+    family: ScheduleFamily = field(default_factory=ScheduleFamily)
+    alternatives: int = 8
+    refine_top: int = 1
+    weights: RankWeights = field(default_factory=RankWeights)
+    robust_top: int = 2
+    perturbations: Perturbations = field(default_factory=Perturbations)
+    tissue_moduli_pa: tuple[tuple[str, float], ...] = ()
+    screen_tolerance_mm: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number of mm, got {v}")
+
+    @cached_property
+    def rod_designs(self) -> tuple[RodDesign, ...]:
+        """The stylet designs of ``designs``, resolved once from their preset names.
+
+        The candidates carry these objects.
+
+        Raises
+        ------
+        UnknownPresetError
+            A name is not a preset.
+        """
+        return tuple(preset(name) for name in self.designs)
+
+
+@dataclass(frozen=True)
+class PlanModels:
+    """The insertion models a plan uses, resolved once per plan.
+
+    :meth:`for_config` looks the screening rod model up in the plugin registry; nothing below the pipeline looks
+    plugins up.
+
+    ``screening`` screens every schedule of the family; ``reference`` re-solves the shortlist
+    (``PlanConfig.refine_top``); ``robustness`` re-evaluates the shortlist under the perturbations.
+    """
+
+    screening: KinematicInsertion = KINEMATIC
+    reference: TissueRodInsertion = PLANNER_REFERENCE
+    robustness: KinematicInsertion = KINEMATIC
+
+    @classmethod
+    def for_config(cls, config: PlanConfig) -> PlanModels:
+        """Return the default models, with the screening model of ``config`` (:func:`screening_model`)."""
+        return cls(screening=screening_model(config))
+
+
+def screening_model(config: PlanConfig) -> KinematicInsertion:
+    """Return the kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm``.
+
+    The rod model is looked up in the plugin registry.
+    """
+    from reachplan.rod_model.select import Scene as RodScene
+    from reachplan.rod_model.select import select_model
+
+    name = select_model(config.screen_tolerance_mm, RodScene(), rod_model_capabilities(), batched=True)
+    return KinematicInsertion(rod_model=rod_model(name))

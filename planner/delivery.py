@@ -1,0 +1,436 @@
+"""The delivered plan: the implant (or one needle per target) with its dwell times, assembled for the exporters.
+
+The implant of both arms (straight only, straight + steered) is planned here for a case's scene
+(:func:`plan_implants`); the delivered plan is the straight + steered arm's chosen implant.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from reachplan.imaging.types import Grid, Roi, StructureSet, Volume
+from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig, PlanModels
+from reachplan.planner.case.result import PlanResult, choose_needles
+from reachplan.planner.case.scene import Scene
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.lookup import get_source, load_template
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.planner.steering.steered import shape_bank
+from reachplan.plugins.sources import SourceData
+
+if TYPE_CHECKING:
+    from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantPlan, ImplantSettings
+    from reachplan.planner.dose.optimize import Aims, OptimisationResult, PlanningStructures, Structure
+    from reachplan.planner.dose.tg43 import Tg43Kernel
+    from reachplan.plugins.exporters import ExportPlan, NeedleExport
+
+
+#: words naming an applicator part (name keys): an obstacle for needles, not an organ at risk for dose
+APPLICATOR_WORDS = ("tandem", "intrauterine", "ovoid", "obturator", "applicator", "cylinder")
+
+
+def is_applicator(name: str) -> bool:
+    """Return True when ``name`` is an applicator part (:data:`APPLICATOR_WORDS`), not tissue."""
+    from reachplan.imaging.names import name_key
+
+    key = name_key(name)
+    return any(w in key for w in APPLICATOR_WORDS)
+
+
+def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str,
+                        oar_names: Sequence[str]) -> PlanningStructures:
+    """Return the target and organs at risk (bone and applicator parts excluded) as masks for dose.
+
+    An applicator part (:data:`APPLICATOR_WORDS` in its name: the tandem, ovoids, obturator) may be an obstacle to
+    needles (an organ of the scene) but receives no dose limit and is no organ at risk for dose.
+
+    On ``grid`` (the CT's), or without a CT on a 2 mm grid on the contours' own slices that holds the target and
+    every organ.
+
+    Raises
+    ------
+    PlanInputError
+        ``target_roi`` is not in the structure set.
+    """
+    from reachplan.imaging.meshing import fit_grid, roi_mask
+    from reachplan.planner.dose.optimize import PlanningStructures, Structure
+
+    if target_roi not in structures.names:
+        raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
+    roi = structures.get(target_roi)
+    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone"
+                and not is_applicator(n)]
+    if grid is None:
+        union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
+                                                  if c.geometric_type == "CLOSED_PLANAR"))
+        grid = fit_grid(union, None, 2.0)
+    oars = tuple(Structure(r.normalized_name, roi_mask(r, grid)) for r in oar_rois)
+    return PlanningStructures(grid, Structure(target_roi, roi_mask(roi, grid)), oars)
+
+
+#: What a delivered channel is for when it is an applicator channel (tandem, ring, ovoid), and the delivered plan's
+#: kind when every target got its own top-ranked needle (see :class:`Delivery`).
+INTRACAVITARY = "intracavitary"
+
+
+PER_TARGET = "one needle per target"
+
+
+#: The implant arm exported as the delivered plan: straight + steered (never worse than straight only).
+EXPORT_ARM = "steered"
+
+
+
+
+@dataclass(frozen=True, eq=False)
+class Delivery:
+    """The delivered plan: loaded channels with their dwell times, ready for the exporters.
+
+    ``export`` holds only the channels that carry dwell time (a needle the optimum leaves empty is not part of the
+    implant and gets no instructions); ``roles`` says, per exported channel, what it is for (the target a
+    per-target needle was chosen for, the target volume for an implant needle, ``intracavitary`` for an applicator
+    channel); ``kind``: which plan is delivered (``implant, straight + steered``, ``implant, straight`` or
+    ``one needle per target``). ``optimisation``: its dwell times and dose-volume metrics. ``source``: the TG-43
+    data set the dwell times were optimised with. ``implant``: the two implant arms (:func:`plan_implants`) when
+    asked for, and ``implant_exports`` the export of each arm's chosen implant (loaded channels only), by arm name.
+    """
+
+    optimisation: OptimisationResult
+    export: ExportPlan
+    planning: PlanningStructures
+    source: SourceData
+    roles: tuple[str, ...]
+    kind: str = PER_TARGET
+    implant: ImplantComparison | None = None
+    implant_exports: dict[str, ExportPlan] = field(default_factory=dict)
+
+    @property
+    def n_needles(self) -> int:
+        """Template needles delivered (intracavitary channels not counted)."""
+        return sum(r != INTRACAVITARY for r in self.roles)
+
+    def to_json(self) -> dict[str, object]:
+        """Return plan.json's ``delivery``: the plan's kind, its channels, prescription, points and optimisation.
+
+        Returns
+        -------
+        dict
+            JSON-ready values (mm LPS, Gy); the writer adds the exported ``files``.
+        """
+        opt = self.optimisation
+        ex = self.export
+        return {
+            "plan": self.kind,
+            "needles": [n.hole_id for n in ex.needles],
+            "roles": list(self.roles),
+            "prescription": {"target": ex.target_name, "dose_per_fraction_gy": ex.prescription_dose_gy,
+                             "fractions": ex.fractions_planned},
+            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}
+                                 for p in ex.reference_points],
+            "optimisation": {"success": opt.success, "reason": opt.reason, "aim_met": opt.aim_met,
+                             "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
+        }
+
+
+def plan_delivery(
+    result: PlanResult,
+    structures: StructureSet,
+    grid: Grid | None,
+    source_name: str = "gammamed_plus_hdr",
+    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
+    target_roi: str = "HR-CTV",
+    label: str = "reachplan",
+    volume: Volume | None = None,
+    input_paths: Sequence[Path] = (),
+    named_points: Sequence[tuple[str, Sequence[float]]] = (),
+    planned_dose: bool = True,
+    scene: Scene | None = None,
+    implant_settings: ImplantSettings | None = None,
+) -> Delivery:
+    """Plan the dwell times on the target and assemble the export plan (RT Plan + Structure Set + Dose + device).
+
+    With ``scene`` the implant is planned for the whole target volume, straight only and straight + steered
+    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported as device instructions,
+    and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
+    other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
+    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
+    Dose by TG-43 against the EMBRACE II aims.
+
+    The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
+    fractions as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where
+    the structures allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``,
+    (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
+    planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
+    False: no RT Dose, for callers that only need the optimisation).
+
+    Raises
+    ------
+    PlanInputError
+        No feasible needle, no target structure to optimise on, or a bad named point.
+    """
+    from reachplan.planner.dose.optimize import Aims
+    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, rate_matrix
+    from reachplan.planner.geometry.reference_points import place_reference_points
+    from reachplan.plugins.exporters import ExportPlan, SourceSpec
+    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
+
+    planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
+    source = get_source(source_name)
+    kernel = Tg43Kernel(source)
+    aims = Aims()
+    implant = None
+    if scene is not None:
+        tandem = tandem_channels(structures, planning, scene.patient_from_template, implant_settings)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
+                                intracavitary=tandem)
+    delivered = _delivered_implant(implant, planning.target.name)
+    if delivered is not None:
+        arm, opt, exports, roles = delivered
+        kind = "implant, straight + steered" if arm.name == EXPORT_ARM else f"implant, {arm.name}"
+    else:
+        opt, exports, roles = _per_target(result, planning, kernel, air_kerma_u, aims)
+        kind = PER_TARGET
+    active = opt.dwells.select(opt.dwells.times_s > 0)
+    placed, _ = place_reference_points(structures)
+    wanted = [(p.name, p.position_mm) for p in placed]
+    for name, xyz in named_points:
+        pos = np.asarray(xyz, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise PlanInputError(f"reference point {name!r}: give three finite coordinates in mm (LPS)")
+        wanted.append((name, pos))
+    gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
+    points = []
+    for name, pos in wanted:
+        rate = rate_matrix(pos[None], opt.dwells.positions_mm, opt.dwells.directions, kernel)[0] * gy_per_s
+        # per exported channel, in its dwell order (exported channel ch holds the dwells with channels == ch)
+        rates = tuple(rate[opt.dwells.channels == ch] for ch in range(1, len(exports) + 1))
+        try:
+            points.append(ReferencePoint(name, pos, rates))
+        except ValueError as exc:
+            raise PlanInputError(str(exc)) from None
+    fractions = aims.fractionation.n_fractions
+    dose = None
+    if planned_dose:
+        dose_grid = _dose_region(planning)
+        values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
+        dose = PlannedDose(values * fractions, dose_grid)
+    spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
+    setup = load_template(result.config.template).application_setup_type
+
+    def export_plan(name: str, needles: Sequence[NeedleExport], points: Sequence[ReferencePoint] = (),
+                    dose: PlannedDose | None = None) -> ExportPlan:
+        return ExportPlan(name[:16], tuple(needles), spec, structure_set=structures, volume=volume,
+                          input_paths=tuple(input_paths), fractions_planned=fractions,
+                          prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
+                          reference_points=tuple(points), application_setup_type=setup, dose=dose)
+
+    export = export_plan(label, exports, points, dose)
+    implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
+                       for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
+    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
+
+
+def _delivered_implant(
+    implant: ImplantComparison | None, target_name: str,
+) -> tuple[ImplantArm, OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...]] | None:
+    """Return the implant arm to deliver (:data:`EXPORT_ARM`, else the other) as an optimisation result, or None.
+
+    Each channel's role is ``target_name`` for a needle, :data:`INTRACAVITARY` for an applicator channel.
+    Channel ``ch`` of the exported plan is the plan's channel ``ch`` (its dwells are ``dwells.channels == ch``).
+    """
+    from reachplan.planner.dose.optimize import OptimisationResult
+
+    if implant is None:
+        return None
+    arms = sorted(implant.arms, key=lambda a: a.name != EXPORT_ARM)
+    arm = next((a for a in arms if a.plan is not None and a.plan.channels), None)
+    if arm is None or arm.plan is None:
+        return None
+    pl = arm.plan
+    gap = "" if pl.mip_gap is None else f"; gap to the LP bound {pl.mip_gap:.2f}"
+    n_ic = len(pl.channels) - pl.n_needles
+    reason = (f"implant ({arm.name} arm): {pl.n_needles} needle{'s' if pl.n_needles != 1 else ''} and {n_ic} "
+              f"intracavitary channel"
+              f"{'s' if n_ic != 1 else ''}, chosen with the dwell times (LP relaxation rounded, then a swap "
+              f"search{gap})")
+    opt = OptimisationResult(pl.dwells, pl.target, pl.oars, True, reason, scaled=pl.scale < 1.0, scale=pl.scale,
+                             dvhs=pl.dvhs, aim_met=pl.aims_met)
+    roles = tuple(target_name if c.is_needle else INTRACAVITARY for c in pl.channels)
+    return arm, opt, implant_needles(pl), roles
+
+
+def _per_target(
+    result: PlanResult, planning: PlanningStructures, kernel: Tg43Kernel, air_kerma_u: float, aims: Aims,
+) -> tuple[OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...]]:
+    """Every target's top-ranked feasible needle with optimised dwell times; empty needles are left out.
+
+    The dwells are renumbered so that channel ``ch`` of the result is the ``ch``-th exported needle.
+    """
+    from reachplan.planner.dose.optimize import optimise_dwell_times
+    from reachplan.planner.dose.tg43 import DwellSet
+    from reachplan.plugins.exporters import NeedleExport
+
+    needles = choose_needles(result)
+    if not needles:
+        raise PlanInputError("no feasible needle to deliver: every target is out of reach or blocked")
+    opt = optimise_dwell_times([c.path_mm for c in needles], planning, kernel, air_kerma_u, aims)
+    exports: list[NeedleExport] = []
+    roles: list[str] = []
+    kept: list[DwellSet] = []
+    for ch, c in enumerate(needles, start=1):
+        keep = (opt.dwells.channels == ch) & (opt.dwells.times_s > 0)
+        if not keep.any():  # a needle the optimum leaves empty is not part of the implant: no instructions
+            continue
+        sub = opt.dwells.select(keep)
+        kept.append(DwellSet(sub.positions_mm, sub.directions, sub.times_s, np.full(len(sub), len(kept) + 1)))
+        roles.append(c.target)
+        exports.append(NeedleExport(c.hole_id, c.path_mm, sub.positions_mm, sub.times_s, c.design_name,
+                                    _schedule_rows(c.schedule)))
+    if kept:
+        opt = dataclasses.replace(opt, dwells=DwellSet.concatenate(kept))
+    return opt, tuple(exports), tuple(roles)
+
+
+def tandem_channels(structures: StructureSet, planning: PlanningStructures, patient_from_template: np.ndarray,
+                    settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
+    """Intracavitary channels from tandem ROIs (a name containing ``tandem`` or ``intrauterine``).
+
+    The straight line through the ROI's points along their principal axis, from the end nearer the template (ASSUMED
+    straight: a curved tandem is approximated by its chord). Ring and ovoid channels are not modelled yet. Channels
+    with fewer than ``settings.min_dwells`` dwells in the target region are left out.
+    """
+    from reachplan.imaging.names import name_key
+    from reachplan.planner.dose.implant import intracavitary_channel
+
+    axis = np.asarray(patient_from_template, float)[:3, 2]
+    out = []
+    for roi in structures.rois:
+        key = name_key(roi.name)
+        if "tandem" not in key and "intrauterine" not in key:
+            continue
+        pts = np.concatenate([c.points_mm for c in roi.contours]) if roi.contours else np.zeros((0, 3))
+        if len(pts) < 2:
+            continue
+        centre = pts.mean(axis=0)
+        u = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+        u = u if u @ axis >= 0 else -u
+        s = (pts - centre) @ u
+        channel = intracavitary_channel(roi.name, centre + np.outer([s.min(), s.max()], u), planning, settings)
+        if channel is not None:
+            out.append(channel)
+    return tuple(out)
+
+
+def _schedule_rows(schedule: TensionSchedule | None) -> np.ndarray | None:
+    """(k, 3) rows (depth mm, tension N, roll deg) of a schedule, or None."""
+    return None if schedule is None else np.column_stack([schedule.depth_mm, schedule.tension_n, schedule.roll_deg])
+
+
+def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
+    """Return the loaded channels of an implant as exporter needles, in the plan's order.
+
+    Every one carries time: an empty channel is not in ``plan.channels``.
+    """
+    from reachplan.plugins.exporters import NeedleExport
+
+    out = []
+    for ch, c in enumerate(plan.channels, start=1):
+        keep = plan.dwells.channels == ch
+        out.append(NeedleExport(c.name, c.path_mm, plan.dwells.positions_mm[keep], plan.dwells.times_s[keep],
+                                c.design, _schedule_rows(c.schedule), applicator=not c.is_needle))
+    return tuple(out)
+
+
+def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
+    """Return the part of the planning grid around the target and the organs at risk, as a grid of its own.
+
+    ``margin``: voxels added on every side.
+    """
+    mask = planning.target.mask.copy()
+    for o in planning.oars:
+        mask |= o.mask
+    idx = np.argwhere(mask)
+    lo = np.maximum(idx.min(axis=0) - margin, 0)
+    hi = np.minimum(idx.max(axis=0) + margin + 1, planning.grid.shape)
+    affine = planning.grid.patient_from_index.copy()
+    affine[:3, 3] = affine[:3, :3] @ np.array([lo[2], lo[1], lo[0]], dtype=float) + affine[:3, 3]
+    shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]), int(hi[2] - lo[2]))
+    return Grid(shape, affine)
+
+
+@dataclass(frozen=True, eq=False)
+class ImplantComparison:
+    """The two implant arms on the same anatomy and template.
+
+    Straight needles only, and straight + steered (see :mod:`reachplan.planner.dose.implant`); ``candidates`` every
+    candidate channel of the steered arm (the straight arm's are its straight ones and the intracavitary channels).
+    """
+
+    straight: ImplantArm
+    steered: ImplantArm
+    candidates: tuple[Channel, ...]
+    seconds: float = 0.0
+
+    @property
+    def arms(self) -> tuple[ImplantArm, ImplantArm]:
+        """Return the straight and the steered arm."""
+        return self.straight, self.steered
+
+    def to_json(self) -> dict[str, object]:
+        """Return plan.json's ``implant``.
+
+        ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`), the count of candidate channels by kind and the
+        wall time of the whole (candidates and both arms, which run at once), s.
+        """
+        kinds: dict[str, int] = {}
+        for c in self.candidates:
+            kinds[c.kind] = kinds.get(c.kind, 0) + 1
+        return {"straight": self.straight.to_json(), "steered": self.steered.to_json(), "candidates": kinds,
+                "seconds": round(self.seconds, 3)}
+
+
+def plan_implants(
+    scene: Scene,
+    planning: PlanningStructures,
+    config: PlanConfig,
+    source: SourceData,
+    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
+    settings: ImplantSettings | None = None,
+    intracavitary: Sequence[Channel] = (),
+    gtv: Structure | None = None,
+    models: PlanModels | None = None,
+) -> ImplantComparison:
+    """Candidate needles for the target volume and both implant arms (Pareto curve and chosen plan each).
+
+    ``intracavitary``: applicator channels (tandem, ring, ovoids) available to both arms
+    (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
+    of ``config`` with the screening model of ``models``.
+    """
+    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_arms, with_subset
+    from reachplan.planner.dose.tg43 import Tg43Kernel
+
+    t0 = time.perf_counter()
+    settings = settings or ImplantSettings()
+    models = models or PlanModels.for_config(config)
+    holes = scene.template.needle_holes
+    banks = [shape_bank(d, config.family, min(config.max_depth_mm, d.length_mm), models.screening)
+             for d in config.rod_designs]
+    cands = needle_candidates([h.hole_id for h in holes], np.array([h.xy_mm for h in holes]),
+                              np.array([h.distance_mm for h in holes]), scene.patient_from_template, planning,
+                              scene.organs, config.needle_radius_mm, settings, banks, config.max_depth_mm)
+    kernel = Tg43Kernel(source)
+    # the two arms at once, on two cores; the steered arm's candidates include the straight ones, so the straight
+    # arm's implants are its too: never worse
+    straight, steered = plan_arms([("straight", [*[c for c in cands if not c.steered], *intracavitary]),
+                                   ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
+                                  settings=settings, gtv=gtv)
+    steered = with_subset(steered, straight)
+    return ImplantComparison(straight, steered, (*cands, *intracavitary), time.perf_counter() - t0)
