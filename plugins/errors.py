@@ -1,4 +1,4 @@
-"""Errors of the plugin floor (registry lookups and exporters)."""
+"""Errors of the plugin floor (registry lookups, exporters and applicators)."""
 
 from __future__ import annotations
 
@@ -11,3 +11,7 @@ class PluginError(ReachplanError):
 
 class ExportError(ReachplanError):
     """A plan cannot be exported as asked (file exists, would overwrite an input, inconsistent identity)."""
+
+
+class ApplicatorError(ReachplanError):
+    """Applicators cannot be built as asked (an unknown kind or ROI assigned, a name two kinds claim)."""
