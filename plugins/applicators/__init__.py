@@ -23,6 +23,7 @@ from reachplan.plugins.applicators.build import (
     applicator_from_roi,
     applicators_from_rtplan,
     applicators_from_structures,
+    channel_label,
     kind_of_name,
     name_table,
 )
@@ -44,6 +45,7 @@ __all__ = [
     "applicator_from_roi",
     "applicators_from_rtplan",
     "applicators_from_structures",
+    "channel_label",
     "check_applicator_kind",
     "kind_of_name",
     "name_table",

@@ -108,11 +108,30 @@ class ApplicatorKind(Protocol):
         True: the planner loads its channels for dose.
     """
 
-    name: str
-    description: str
-    roi_names: tuple[str, ...]
-    obstacle: bool
-    loadable: bool
+    @property
+    def name(self) -> str:
+        """The kind's name."""
+        ...
+
+    @property
+    def description(self) -> str:
+        """One line for ``reachplan plugins``."""
+        ...
+
+    @property
+    def roi_names(self) -> tuple[str, ...]:
+        """The ROI names it claims, standard name first."""
+        ...
+
+    @property
+    def obstacle(self) -> bool:
+        """True: needles must not cross it."""
+        ...
+
+    @property
+    def loadable(self) -> bool:
+        """True: its channels are loaded for dose."""
+        ...
 
     def channels_from_roi(self, roi: Roi, axis: np.ndarray | None) -> tuple[tuple[np.ndarray, ...], tuple[str, ...]]:
         """Return the channel centre lines of an applicator drawn as ``roi``.

@@ -80,7 +80,7 @@ def _assigned(assign: Mapping[str, str], kinds: Mapping[str, ApplicatorKind], na
 
 def _kind_of(names: Sequence[str], kinds: Mapping[str, ApplicatorKind], table: SynonymTable,
              by_hand: Mapping[str, str]) -> str | None:
-    """The kind of the first of ``names`` assigned by hand, else of the first recognised."""
+    """Return the kind of the first of ``names`` assigned by hand, else of the first recognised (or None)."""
     for n in names:
         if n.strip().casefold() in by_hand:
             return by_hand[n.strip().casefold()]
@@ -145,8 +145,21 @@ def applicators_from_structures(structures: StructureSet, kinds: Mapping[str, Ap
     return tuple(out)
 
 
-def _label(channel: Channel, roi_names: Mapping[int, str]) -> str:
-    """``applicator ID / ROI name`` of a plan channel (one of them when they agree), else ``channel <n>``."""
+def channel_label(channel: Channel, roi_names: Mapping[int, str]) -> str:
+    """Return ``"<applicator ID> / <ROI name>"`` of a plan channel (one when they agree), else ``"channel <n>"``.
+
+    Parameters
+    ----------
+    channel : reachplan.imaging.rtplan.Channel
+        The plan's channel.
+    roi_names : mapping of int to str
+        ROI Number -> ROI name of the plan's structure set.
+
+    Returns
+    -------
+    str
+        The label.
+    """
     roi = roi_names.get(channel.roi_number, "") if channel.roi_number is not None else ""
     parts = [channel.applicator_id.strip(), roi.strip()]
     return " / ".join(dict.fromkeys(x for x in parts if x)) or f"channel {channel.number}"
@@ -190,14 +203,14 @@ def applicators_from_rtplan(plan: RtPlan, kinds: Mapping[str, ApplicatorKind],
     paths = channel_paths(plan, structures)
     out = []
     for c in plan.channels:
-        roi = roi_names.get(c.roi_number, None) if c.roi_number is not None else None
+        roi = roi_names.get(c.roi_number) if c.roi_number is not None else None
         kind = _kind_of((c.applicator_id, roi or ""), kinds, table, by_hand)
         if kind is None:
             continue
         k = kinds[kind]
         channels = tuple(k.channels_from_plan(c, paths.get(c.number)))
         how = "its channel contour" if c.number in paths else "its dwell positions"
-        out.append(Applicator(kind, _label(c, roi_names), roi, c.roi_number, channels, k.obstacle,
+        out.append(Applicator(kind, channel_label(c, roi_names), roi, c.roi_number, channels, k.obstacle,
                               k.loadable and bool(channels), (c.number,) * len(channels), how,
                               () if channels else (f"channel {c.number}: no centre line and fewer than two dwells",)))
     return tuple(out)
