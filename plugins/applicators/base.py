@@ -303,3 +303,36 @@ class KindSpec:
         """
         line = plan_centreline(channel, path_mm)
         return () if line is None else (line,)
+
+
+@dataclass(frozen=True)
+class PlanOnlyKind(KindSpec):
+    """A kind whose channels are read from an RT Plan only: from contours it gives none, and says why.
+
+    Parameters
+    ----------
+    name, description, roi_names, obstacle, loadable
+        See :class:`KindSpec`.
+    why : str
+        Why the contours give no honest channel (the note, after the ROI name).
+    """
+
+    why: str = "its channel is not derived from its contours"
+
+    def channels_from_roi(self, roi: Roi, axis: np.ndarray | None) -> tuple[tuple[np.ndarray, ...], tuple[str, ...]]:
+        """Return no channel and the reason.
+
+        Parameters
+        ----------
+        roi : Roi
+            The applicator's ROI.
+        axis : (3,) float, LPS, or None
+            Unused.
+
+        Returns
+        -------
+        channels : empty tuple
+        notes : tuple of str
+            ``"ROI '<name>': <why>"``.
+        """
+        return (), (f"ROI {roi.name!r}: {self.why}",)

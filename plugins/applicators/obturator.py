@@ -36,8 +36,8 @@ def axis_channel(roi: Roi, axis: np.ndarray | None) -> tuple[tuple[np.ndarray, .
 
 
 @dataclass(frozen=True)
-class Obturator(KindSpec):
-    """A vaginal obturator: the template sits on it and its needles run through it, so it is no obstacle."""
+class AxisKind(KindSpec):
+    """A vaginal obturator or cylinder: one channel, its principal axis (where the template sits)."""
 
     def channels_from_roi(self, roi: Roi, axis: np.ndarray | None) -> tuple[tuple[np.ndarray, ...], tuple[str, ...]]:
         """Return its principal axis (:func:`axis_channel`).
@@ -45,7 +45,7 @@ class Obturator(KindSpec):
         Parameters
         ----------
         roi : Roi
-            The obturator ROI.
+            The obturator's or cylinder's ROI.
         axis : (3,) float, LPS, or None
             The template's insertion direction (None: patient cranial, +z).
 
@@ -57,7 +57,8 @@ class Obturator(KindSpec):
         return axis_channel(roi, axis)
 
 
-OBTURATOR = Obturator(
+#: The template sits on the obturator and its needles run through it, so it is no obstacle.
+OBTURATOR = AxisKind(
     name="obturator",
     description="vaginal obturator of an interstitial template: its axis places the template; not loaded",
     roi_names=("Obturator", "Vaginal_Obturator", "Obturator_Vaginal", "Applicator_Obturator"),
