@@ -21,9 +21,10 @@ from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig, PlanM
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.lookup import get_source, load_template
+from reachplan.planner.lookup import applicator_kinds, get_source, load_template
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import shape_bank
+from reachplan.plugins.applicators import Applicator, applicators_from_structures
 from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
@@ -33,27 +34,30 @@ if TYPE_CHECKING:
     from reachplan.plugins.exporters import ExportPlan, NeedleExport
 
 
-#: words naming an applicator part (name keys): an obstacle for needles, not an organ at risk for dose
-APPLICATOR_WORDS = ("tandem", "intrauterine", "ovoid", "obturator", "applicator", "cylinder")
+def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str, oar_names: Sequence[str],
+                        applicators: Sequence[Applicator] | None = None) -> PlanningStructures:
+    """Return the target and organs at risk (bone and applicators excluded) as masks for dose.
 
+    An applicator (the tandem, ovoids, obturator) may be an obstacle to needles (an organ of the scene) but receives
+    no dose limit and is no organ at risk for dose.
 
-def is_applicator(name: str) -> bool:
-    """Return True when ``name`` is an applicator part (:data:`APPLICATOR_WORDS`), not tissue."""
-    from reachplan.imaging.names import name_key
+    Parameters
+    ----------
+    structures : StructureSet
+        The case's ROIs (contours mm, LPS).
+    grid : Grid or None
+        The CT's grid; None: a 2 mm grid on the contours' own slices that holds the target and every organ.
+    target_roi : str
+        The ROI the dwell times are optimised on.
+    oar_names : sequence of str
+        Normalised names of the organs at risk (those not in the structure set are skipped).
+    applicators : sequence of Applicator or None
+        The case's applicators (:attr:`Scene.applicators`); None: recognised here with the installed kinds.
 
-    key = name_key(name)
-    return any(w in key for w in APPLICATOR_WORDS)
-
-
-def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str,
-                        oar_names: Sequence[str]) -> PlanningStructures:
-    """Return the target and organs at risk (bone and applicator parts excluded) as masks for dose.
-
-    An applicator part (:data:`APPLICATOR_WORDS` in its name: the tandem, ovoids, obturator) may be an obstacle to
-    needles (an organ of the scene) but receives no dose limit and is no organ at risk for dose.
-
-    On ``grid`` (the CT's), or without a CT on a 2 mm grid on the contours' own slices that holds the target and
-    every organ.
+    Returns
+    -------
+    PlanningStructures
+        Boolean masks (k, j, i) on the grid.
 
     Raises
     ------
@@ -66,8 +70,10 @@ def planning_structures(structures: StructureSet, grid: Grid | None, target_roi:
     if target_roi not in structures.names:
         raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
     roi = structures.get(target_roi)
-    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone"
-                and not is_applicator(n)]
+    if applicators is None:
+        applicators = applicators_from_structures(structures, applicator_kinds())
+    parts = {structures.get(a.roi_name).normalized_name for a in applicators if a.roi_name}
+    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone" and n not in parts]
     if grid is None:
         union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
                                                   if c.geometric_type == "CLOSED_PLANAR"))
@@ -182,13 +188,14 @@ def plan_delivery(
     from reachplan.plugins.exporters import ExportPlan, SourceSpec
     from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
-    planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
+    planning = planning_structures(structures, grid, target_roi, result.config.oar_names,
+                                   None if scene is None else scene.applicators)
     source = get_source(source_name)
     kernel = Tg43Kernel(source)
     aims = Aims()
     implant = None
     if scene is not None:
-        tandem = tandem_channels(structures, planning, scene.patient_from_template, implant_settings)
+        tandem = applicator_channels(scene.applicators, planning, implant_settings)
         implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
                                 intracavitary=tandem)
     delivered = _delivered_implant(implant, planning.target.name)
@@ -299,33 +306,36 @@ def _per_target(
     return opt, tuple(exports), tuple(roles)
 
 
-def tandem_channels(structures: StructureSet, planning: PlanningStructures, patient_from_template: np.ndarray,
-                    settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
-    """Intracavitary channels from tandem ROIs (a name containing ``tandem`` or ``intrauterine``).
+def applicator_channels(applicators: Sequence[Applicator], planning: PlanningStructures,
+                        settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
+    """Return the intracavitary channels of the loadable applicators (a tandem's), with dwells in the target.
 
-    The straight line through the ROI's points along their principal axis, from the end nearer the template (ASSUMED
-    straight: a curved tandem is approximated by its chord). Ring and ovoid channels are not modelled yet. Channels
-    with fewer than ``settings.min_dwells`` dwells in the target region are left out.
+    Parameters
+    ----------
+    applicators : sequence of Applicator
+        The case's applicators (:attr:`Scene.applicators`); their channels are (n, 3) centrelines, mm, LPS, base to
+        tip (a tandem's is the chord of its ROI: see :mod:`reachplan.plugins.applicators.tandem`).
+    planning : PlanningStructures
+        The target whose grown region holds the dwells.
+    settings : ImplantSettings or None
+        Dwell step and margin; channels with fewer than ``settings.min_dwells`` dwells there are left out.
+
+    Returns
+    -------
+    tuple of Channel
+        One per loaded applicator channel, named after the applicator (``name k`` when it has several).
     """
-    from reachplan.imaging.names import name_key
     from reachplan.planner.dose.implant import intracavitary_channel
 
-    axis = np.asarray(patient_from_template, float)[:3, 2]
     out = []
-    for roi in structures.rois:
-        key = name_key(roi.name)
-        if "tandem" not in key and "intrauterine" not in key:
+    for a in applicators:
+        if not a.loadable:
             continue
-        pts = np.concatenate([c.points_mm for c in roi.contours]) if roi.contours else np.zeros((0, 3))
-        if len(pts) < 2:
-            continue
-        centre = pts.mean(axis=0)
-        u = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
-        u = u if u @ axis >= 0 else -u
-        s = (pts - centre) @ u
-        channel = intracavitary_channel(roi.name, centre + np.outer([s.min(), s.max()], u), planning, settings)
-        if channel is not None:
-            out.append(channel)
+        for k, path in enumerate(a.channels, start=1):
+            name = a.name if len(a.channels) == 1 else f"{a.name} {k}"
+            channel = intracavitary_channel(name, path, planning, settings)
+            if channel is not None:
+                out.append(channel)
     return tuple(out)
 
 

@@ -9,10 +9,12 @@ else in the planner imports :mod:`reachplan.plugins.registry`.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 from reachplan.planner.errors import PlanInputError
 from reachplan.plugins import registry
+from reachplan.plugins.applicators import ApplicatorKind
 from reachplan.plugins.errors import PluginError
 from reachplan.plugins.sources import BUILTIN, SourceData
 from reachplan.plugins.templates import Template
@@ -177,3 +179,14 @@ def plugin_info(kind: str | None = None) -> tuple[PluginInfo, ...]:
         An unknown kind.
     """
     return registry.info(kind)
+
+
+def applicator_kinds() -> Mapping[str, ApplicatorKind]:
+    """Return the installed applicator kinds (entry-point group ``reachplan.applicators``) by name.
+
+    Returns
+    -------
+    mapping of str to ApplicatorKind
+        Kind name -> kind, sorted by name; unavailable plugins are left out (``reachplan plugins`` says why).
+    """
+    return MappingProxyType({name: registry.get("applicators", name) for name in registry.names("applicators")})

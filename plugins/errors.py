@@ -1,4 +1,4 @@
-"""Errors of the plugin floor (registry lookups and exporters)."""
+"""Errors of the plugin floor (registry lookups, exporters and applicators)."""
 
 from __future__ import annotations
 
@@ -15,3 +15,7 @@ class ExportError(ReachplanError):
 
 class SourceMatchError(PluginError):
     """A plan's source matches no registered TG-43 data set, or several, or contradicts the one it names."""
+
+
+class ApplicatorError(ReachplanError):
+    """Applicators cannot be built as asked (an unknown kind or ROI assigned, a name two kinds claim)."""

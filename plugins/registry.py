@@ -10,6 +10,8 @@ Groups (entry-point group ``reachplan.<kind>``) and the Protocol each plugin is 
 ``sources``          zero-argument callables returning a :class:`reachplan.plugins.sources.SourceData`
 ``exporters``        objects implementing :class:`reachplan.plugins.exporters.base.Exporter`
                      (check: ``reachplan.plugins.exporters.base.check_exporter``)
+``applicators``      objects implementing :class:`reachplan.plugins.applicators.ApplicatorKind`
+                     (check: ``reachplan.plugins.applicators.base.check_applicator_kind``)
 
 Built-ins register through the same entry points as third-party plugins (see ``pyproject.toml``).
 Entry points are loaded lazily, on first use of their group; a plugin that fails to import, or does not
@@ -32,7 +34,7 @@ from typing import Any
 
 from reachplan.plugins.errors import PluginError
 
-KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters")
+KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators")
 
 BUILTIN_DISTRIBUTION = "reachplan"
 
@@ -76,6 +78,7 @@ DEFAULT_CHECKS: Mapping[str, str] = MappingProxyType({
     "templates": "reachplan.plugins.registry:check_template_factory",
     "sources": "reachplan.plugins.registry:check_source_factory",
     "exporters": "reachplan.plugins.exporters.base:check_exporter",
+    "applicators": "reachplan.plugins.applicators.base:check_applicator_kind",
 })
 
 

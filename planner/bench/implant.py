@@ -27,9 +27,9 @@ from matplotlib.figure import Figure
 from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
 from reachplan.imaging.meshing import fit_grid, roi_mask
 from reachplan.planner.bench.common import settings, write_csv, write_png
-from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, DEFAULT_OARS, PlanConfig
+from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.case.scene import build_scene
-from reachplan.planner.delivery import plan_implants, planning_structures, tandem_channels
+from reachplan.planner.delivery import applicator_channels, plan_implants, planning_structures
 from reachplan.planner.dose.implant import ImplantSettings, recompute_target
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.lookup import get_source
@@ -61,13 +61,13 @@ def run(args: argparse.Namespace) -> int:
     case = clinical_case(0)
     structures = structure_set(case.spec)
     grid = image_grid(case.spec)
-    config = PlanConfig(oar_names=(*DEFAULT_OARS, "Tandem"))  # as the demo: the tandem stands in the way
+    config = PlanConfig()  # as the demo: the tandem (an applicator) stands in the way
     scene = build_scene(structures, grid=grid, config=config)
     config = replace(config, oar_names=tuple(o.name for o in scene.organs))
-    planning = planning_structures(structures, grid, "HR-CTV", config.oar_names)
+    planning = planning_structures(structures, grid, "HR-CTV", config.oar_names, scene.applicators)
     source = get_source("gammamed_plus_hdr")
     implant = ImplantSettings(max_needles=s.max_needles)
-    tandem = tandem_channels(structures, planning, scene.patient_from_template, implant)
+    tandem = applicator_channels(scene.applicators, planning, implant)
     runs = []
     for _ in range(max(1, s.repeat)):
         t, cpu = time.perf_counter(), time.process_time()

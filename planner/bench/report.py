@@ -56,7 +56,7 @@ def demo_inputs(folder: Path, implant: bool = True) -> dict[str, Any]:
     from reachplan.imaging.clinical import clinical_case, write_clinical
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.case.config import DEFAULT_OARS, PlanConfig
+    from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.case.scene import build_scene
     from reachplan.planner.case.search import plan
     from reachplan.planner.delivery import plan_delivery
@@ -70,7 +70,7 @@ def demo_inputs(folder: Path, implant: bool = True) -> dict[str, Any]:
     volume = read_series(files.ct_dir)
     structures = read_rtstruct(files.rtstruct_path, volume)
     targets = [n for n in structures.names if n.casefold().startswith("target")]
-    config = PlanConfig(oar_names=(*DEFAULT_OARS, "Tandem"))
+    config = PlanConfig()
     scene = build_scene(structures, targets, grid=volume.grid, config=config)
     config = replace(config, oar_names=tuple(o.name for o in scene.organs))
     result = plan(scene, config)

@@ -60,6 +60,8 @@ class PlanConfig:
     along the path.
     ``screen_tolerance_mm``: the screening uses the cheapest rod model (by batched throughput) whose
     measured free-space tip error (the rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
+    ``applicators``: (ROI name, applicator kind) pairs from ``--applicator KIND=ROI``; they override the recognition
+    of applicator ROIs by name (:func:`reachplan.plugins.applicators.applicators_from_structures`).
     """
 
     template: str = "needlefinder_syed_63"
@@ -77,6 +79,7 @@ class PlanConfig:
     perturbations: Perturbations = field(default_factory=Perturbations)
     tissue_moduli_pa: tuple[tuple[str, float], ...] = ()
     screen_tolerance_mm: float = 0.5
+    applicators: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):

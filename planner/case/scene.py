@@ -4,24 +4,21 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from reachplan.imaging.types import Grid, StructureSet
+from reachplan.imaging.types import Grid, Roi, StructureSet
 from reachplan.planner.case.config import SCREEN_BAND_MM, PlanConfig
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import Organ, make_organ, with_distance_field
 from reachplan.planner.geometry.organs import check_unique, has_closed, roi_points, select_oars
 from reachplan.planner.geometry.template import TemplatePose, pose_from_obturator
-from reachplan.planner.lookup import load_template
+from reachplan.planner.lookup import applicator_kinds, load_template
 from reachplan.planner.steering.candidates import Target
+from reachplan.plugins.applicators import Applicator, applicators_from_structures
 from reachplan.plugins.templates import Template
-
-if TYPE_CHECKING:
-    pass
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,7 +27,8 @@ class Scene:
 
     ``meshes`` holds every meshed ROI by normalised name (for figures and exports);
     ``patient_from_template`` is (4, 4), LPS mm; ``pose`` says how it was found; ``notes`` are warnings about
-    the input (organs at risk not found or skipped, targets planned to points).
+    the input (organs at risk not found or skipped, targets planned to points); ``applicators`` the applicators
+    recognised in the structure set (or assigned with ``--applicator``), channels oriented along the template axis.
     """
 
     organs: tuple[Organ, ...]
@@ -40,6 +38,7 @@ class Scene:
     meshes: dict[str, trimesh.Trimesh] = field(default_factory=dict)
     pose: TemplatePose | None = None
     notes: tuple[str, ...] = ()
+    applicators: tuple[Applicator, ...] = ()
 
 
 def mesh_structures(
@@ -69,26 +68,56 @@ def build_scene(
     allow_no_oars: bool = False,
     standard_names: Sequence[str] | None = None,
 ) -> Scene:
-    """Mesh the organs at risk and the target ROIs and place the template.
+    """Recognise the applicators, mesh the organs at risk and the target ROIs, and place the template.
 
     Parameters
     ----------
-    target_names : ROI names whose centroids are targets; None = every ROI named ``Target*``. A target ROI made
-        only of POINT contours gives one target per point (named ``ROI`` or ``ROI_k``; a note says so).
-    target_points : further targets given as points.
-    grid : the CT grid to rasterise contours on (None: a grid derived from the contours).
-    patient_from_template : (4, 4) float, a :class:`TemplatePose`, or None = placed on the ``Obturator`` ROI.
-    allow_no_oars : plan even when no organ at risk is found (otherwise a :class:`PlanInputError`).
-    standard_names : the synonym table's standard names (ROIs not mapped to one are listed in the notes).
+    structures : StructureSet
+        The case's ROIs (contours mm, LPS).
+    target_names : sequence of str or None
+        ROI names whose centroids are targets; None = every ROI named ``Target*``. A target ROI made only of POINT
+        contours gives one target per point (named ``ROI`` or ``ROI_k``; a note says so).
+    target_points : sequence of Target
+        Further targets given as points (mm, LPS).
+    grid : Grid or None
+        The CT grid to rasterise contours on (None: a grid derived from the contours).
+    patient_from_template : (4, 4) float array, TemplatePose or None
+        The template pose (mm, LPS); None = placed on the obturator (or vaginal cylinder) applicator's ROI.
+    config : PlanConfig or None
+        Organs at risk, template, obturator depth, ranking cap and the ``--applicator`` assignments.
+    quiet : bool
+        No progress bars.
+    allow_no_oars : bool
+        Plan even when no organ at risk is found (otherwise a :class:`PlanInputError`).
+    standard_names : sequence of str or None
+        The synonym table's standard names (ROIs not mapped to one are listed in the notes).
 
+    Returns
+    -------
+    Scene
+        Organs (those of ``config.oar_names`` and every applicator that is an obstacle), targets, template, pose
+        and applicators.
+
+    Raises
+    ------
+    PlanInputError
+        No organ at risk (unless allowed), no target, no ROI to place the template on, or a duplicate ROI name.
+
+    Notes
+    -----
     Organs at risk that are missing or have no closed contours are named in ``Scene.notes`` (see
-    :func:`reachplan.planner.geometry.organs.select_oars`); ROIs of one name twice are an error.
+    :func:`reachplan.planner.geometry.organs.select_oars`).
     """
     config = config or PlanConfig()
     if target_names is None:
         target_names = [n for n in structures.names if n.casefold().startswith("target")]
-    check_unique(structures, [*target_names, *(["Obturator"] if patient_from_template is None else [])])
-    selection = select_oars(structures, config.oar_names, standard_names, exclude=target_names)
+    kinds = applicator_kinds()
+    found = applicators_from_structures(structures, kinds, dict(config.applicators))
+    check_unique(structures, [*target_names, *([] if patient_from_template is not None or _cylinder(found)
+                                                else ["Obturator"])])
+    obstacles = [structures.get(a.roi_name).normalized_name for a in found if a.obstacle and a.roi_name]
+    oar_names = (*config.oar_names, *[n for n in obstacles if n not in config.oar_names])
+    selection = select_oars(structures, oar_names, standard_names, exclude=target_names)
     oars = list(selection.found)
     notes = list(selection.notes)
     if not oars and not allow_no_oars:
@@ -101,6 +130,26 @@ def build_scene(
     context = [n for n in ("HR-CTV", "Uterus", "Cervix", "Obturator") if n in structures.names]
     meshes = mesh_structures(structures, [*oars, *[r.normalized_name for r in rois if has_closed(r)], *context],
                              grid, quiet)
+    targets = [*_targets(rois, meshes, notes), *target_points]
+    if not targets:
+        raise PlanInputError("no targets: name target ROIs or give target points")
+    pose = _pose(structures, patient_from_template, config, _cylinder(found))
+    applicators = applicators_from_structures(structures, kinds, dict(config.applicators),
+                                              axis=pose.patient_from_template[:3, 2])
+    # distance-field screen (issue 19): FCL confirms clearances up to the ranking's cap + SCREEN_BAND_MM
+    confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
+    organs = tuple(with_distance_field(make_organ(n, meshes[n]), confirm) for n in oars)
+    return Scene(organs, tuple(targets), load_template(config.template), pose.patient_from_template,
+                 meshes, pose=pose, notes=tuple(notes), applicators=applicators)
+
+
+def _cylinder(applicators: Sequence[Applicator]) -> str | None:
+    """Return the ROI name of the first obturator or vaginal cylinder among ``applicators`` (None: none)."""
+    return next((a.roi_name for a in applicators if a.kind in ("obturator", "cylinder") and a.roi_name), None)
+
+
+def _targets(rois: Sequence[Roi], meshes: dict[str, trimesh.Trimesh], notes: list[str]) -> list[Target]:
+    """Return the targets of target ROIs: a closed ROI's centroid, or each point of a POINT ROI (noted in ``notes``)."""
     targets = []
     for roi in rois:
         if has_closed(roi):
@@ -112,24 +161,22 @@ def build_scene(
         for k, p in enumerate(pts, start=1):
             name = roi.normalized_name if len(pts) == 1 else f"{roi.normalized_name}_{k}"
             targets.append(Target(name, (float(p[0]), float(p[1]), float(p[2]))))
-    targets += list(target_points)
-    if not targets:
-        raise PlanInputError("no targets: name target ROIs or give target points")
-    if patient_from_template is None:
-        if "Obturator" not in structures.names:
-            raise PlanInputError("no Obturator (or vaginal cylinder) ROI to place the template on; give the pose "
-                                 "with --template-origin X,Y,Z --template-axis X,Y,Z, --template-pose FILE or "
-                                 "--rtplan FILE")
-        obturator = structures.get("Obturator")
-        pose = TemplatePose(pose_from_obturator(obturator, config.obturator_depth_mm),
-                            f"fitted to ROI {obturator.name!r} (principal axis of its contours; template "
-                            f"{config.obturator_depth_mm:g} mm behind its cranial tip)")
-    elif isinstance(patient_from_template, TemplatePose):
-        pose = patient_from_template
-    else:
-        pose = TemplatePose(np.asarray(patient_from_template, dtype=float), "given")
-    # distance-field screen (issue 19): FCL confirms clearances up to the ranking's cap + SCREEN_BAND_MM
-    confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
-    organs = tuple(with_distance_field(make_organ(n, meshes[n]), confirm) for n in oars)
-    return Scene(organs, tuple(targets), load_template(config.template), pose.patient_from_template,
-                 meshes, pose=pose, notes=tuple(notes))
+    return targets
+
+
+def _pose(structures: StructureSet, given: np.ndarray | TemplatePose | None, config: PlanConfig,
+          cylinder: str | None) -> TemplatePose:
+    """Return the template pose: ``given``, else fitted to the obturator/cylinder ROI ``cylinder`` or ``Obturator``."""
+    if isinstance(given, TemplatePose):
+        return given
+    if given is not None:
+        return TemplatePose(np.asarray(given, dtype=float), "given")
+    name = cylinder or "Obturator"
+    if name not in structures.names:
+        raise PlanInputError("no Obturator (or vaginal cylinder) ROI to place the template on; give the pose "
+                             "with --template-origin X,Y,Z --template-axis X,Y,Z, --template-pose FILE or "
+                             "--rtplan FILE")
+    obturator = structures.get(name)
+    return TemplatePose(pose_from_obturator(obturator, config.obturator_depth_mm),
+                        f"fitted to ROI {obturator.name!r} (principal axis of its contours; template "
+                        f"{config.obturator_depth_mm:g} mm behind its cranial tip)")

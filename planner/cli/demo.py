@@ -74,7 +74,7 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.files import atomic_write_json
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.case.config import DEFAULT_OARS, PlanConfig
+    from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.cli.kernels import start as start_kernels
     from reachplan.planner.cli.phantom import write_case
     from reachplan.planner.cli.plan import plan_and_write
@@ -97,8 +97,7 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
               "read back: "
               f"{volume.modality} {volume.grid.shape}, {len(structures.rois)} ROIs ({t_read:.1f} s)", file=sys.stderr)
     targets = tuple(n for n in structures.names if n.casefold().startswith("target"))
-    # the clinical case's tandem is in the uterine canal: a needle must not cross it
-    config = PlanConfig(oar_names=(*DEFAULT_OARS, "Tandem")) if args.case == "clinical" else PlanConfig()
+    config = PlanConfig()  # the clinical case's tandem (an applicator) is an obstacle: a needle must not cross it
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label)

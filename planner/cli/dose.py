@@ -19,7 +19,13 @@ from typing import TYPE_CHECKING, Any
 from reachplan.planner.cli.edges import ArgumentError, finite, finite_float, output_file, print_json, seen_warnings
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    import numpy as np
+
     from reachplan.imaging.rtplan import BrachySource, RtPlan
+    from reachplan.imaging.types import Grid
+    from reachplan.planner.dose.tg43 import PointCheck
     from reachplan.plugins.sources.identify import SourceChoice
 
 NAME = "dose"
@@ -55,14 +61,13 @@ def run(args: argparse.Namespace) -> int:
 
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.imaging.types import Grid
     from reachplan.planner.dose.tg43 import Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
     from reachplan.planner.errors import PlanInputError
     from reachplan.planner.lookup import get_source
+    from reachplan.plugins.errors import SourceMatchError
     from reachplan.plugins.exporters.rtdose import (
         CEILING_TIMES_PRESCRIPTION,
         DoseContext,
-        read_rtdose_grid,
         write_rtdose,
     )
 
@@ -84,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         raise PlanInputError(f"{args.plan}: the source has no Reference Air Kerma Rate; cannot compute dose")
     try:
         choice = _choose_source(plan, src, args.source)
-    except PlanInputError as exc:
+    except (PlanInputError, SourceMatchError) as exc:
         raise PlanInputError(f"{args.plan}: {exc}") from None
     data = chosen if chosen is not None and choice.name == args.source else get_source(choice.name)
     check_isotope(src, data, str(args.plan))
@@ -94,18 +99,7 @@ def run(args: argparse.Namespace) -> int:
     if not len(dwells):
         raise PlanInputError(f"{args.plan}: the plan has no dwell positions; there is no dose to compute")
 
-    if args.like is not None:
-        _, grid = read_rtdose_grid(args.like)
-    else:
-        spacing = 2.5 if args.spacing is None else args.spacing
-        lo = dwells.positions_mm.min(axis=0) - args.margin
-        hi = dwells.positions_mm.max(axis=0) + args.margin
-        n = np.floor((hi - lo) / spacing).astype(int) + 1
-        affine = np.diag([spacing, spacing, spacing, 1.0])
-        affine[:3, 3] = lo
-        grid = Grid((int(n[2]), int(n[1]), int(n[0])), affine)
-    if int(np.prod(grid.shape)) > 60_000_000:
-        raise PlanInputError(f"the dose grid {grid.shape} is too large; use a coarser --spacing")
+    grid = _dose_grid(args, dwells.positions_mm)
     for_uid = plan.frame_of_reference_uid or structures.frame_of_reference_uid
     if not for_uid:
         raise PlanInputError("neither the plan nor the structure set gives a Frame of Reference UID")
@@ -124,6 +118,38 @@ def run(args: argparse.Namespace) -> int:
     write_rtdose(args.out, dose, grid, context, bits=args.bits,
                  ceiling_gy=CEILING_TIMES_PRESCRIPTION * setup if setup > 0 else None)
 
+    _report(args, choice, decay, grid, dose, len(dwells), checks, f"{plan.n_fractions} fraction(s) x "
+            f"{plan.n_pulses} pulse(s)", sk_u)
+    return 0
+
+
+def _dose_grid(args: argparse.Namespace, positions_mm: np.ndarray) -> Grid:
+    """Return the dose grid: ``--like``'s, else ``--spacing`` around the dwells with ``--margin`` (mm, LPS)."""
+    import numpy as np
+
+    from reachplan.imaging.types import Grid
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.plugins.exporters.rtdose import read_rtdose_grid
+
+    if args.like is not None:
+        _, grid = read_rtdose_grid(args.like)
+    else:
+        spacing = 2.5 if args.spacing is None else args.spacing
+        lo = positions_mm.min(axis=0) - args.margin
+        hi = positions_mm.max(axis=0) + args.margin
+        n = np.floor((hi - lo) / spacing).astype(int) + 1
+        affine = np.diag([spacing, spacing, spacing, 1.0])
+        affine[:3, 3] = lo
+        grid = Grid((int(n[2]), int(n[1]), int(n[0])), affine)
+    if int(np.prod(grid.shape)) > 60_000_000:
+        raise PlanInputError(f"the dose grid {grid.shape} is too large; use a coarser --spacing")
+    grid_out: Grid = grid
+    return grid_out
+
+
+def _report(args: argparse.Namespace, choice: SourceChoice, decay: dict[str, Any], grid: Grid, dose: np.ndarray,
+            n_dwells: int, checks: Sequence[PointCheck], fractions: str, sk_u: float) -> None:
+    """Print what was computed: one JSON document (``--json``) or lines of text."""
     if args.json:
         doc: dict[str, object] = {
             "out": str(args.out),
@@ -134,32 +160,22 @@ def run(args: argparse.Namespace) -> int:
             "grid_shape": list(grid.shape),
             "spacing_mm": [float(x) for x in grid.spacing_mm],
             "max_dose_gy": float(dose.max()),
-            "n_dwells": len(dwells),
+            "n_dwells": n_dwells,
         }
         if args.points:
-            doc["points"] = [
-                {
-                    "name": c.name,
-                    "position_mm": [float(x) for x in c.position_mm],
-                    "dose_gy": c.dose_gy,
-                    "tps_gy": c.tps_gy,
-                    "diff_percent": c.diff_percent,
-                }
-                for c in checks
-            ]
+            doc["points"] = [{"name": c.name, "position_mm": [float(x) for x in c.position_mm], "dose_gy": c.dose_gy,
+                              "tps_gy": c.tps_gy, "diff_percent": c.diff_percent} for c in checks]
         doc["warnings"] = seen_warnings(args)
         print_json(doc, NAME)
-        return 0
+        return
     print(f"source {choice.how} ({args.model} model)")
     print(f"S_K {decay['air_kerma_reference_u']:.6g} U on {decay['reference_date']}, {sk_u:.6g} U on "
-          f"{decay['treatment_date']} ({decay['elapsed_days']:.3f} d); {len(dwells)} dwells, "
-          f"{plan.n_fractions} fraction(s) x {plan.n_pulses} pulse(s)")
+          f"{decay['treatment_date']} ({decay['elapsed_days']:.3f} d); {n_dwells} dwells, {fractions}")
     print(f"wrote {args.out}: grid {grid.shape} (k, j, i), max {float(dose.max()):.3f} Gy")
     for c in checks:
         tps = "-" if c.tps_gy is None else f"{c.tps_gy:.4f}"
         diff = "-" if c.diff_percent is None else f"{c.diff_percent:+.3f} %"
         print(f"  {c.name:<20} ours {c.dose_gy:.4f} Gy  planned {tps} Gy  {diff}")
-    return 0
 
 
 def _choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> SourceChoice:

@@ -19,7 +19,7 @@ import shutil
 import sys
 import tempfile
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -65,6 +65,51 @@ def finite_float(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
+
+
+# --- applicators ------------------------------------------------------------------------------------------
+
+
+def applicator_assignments(specs: Sequence[str], kinds: Iterable[str], roi_names: Iterable[str]) -> dict[str, str]:
+    """Parse repeated ``--applicator KIND=ROI`` options into ROI name -> applicator kind name.
+
+    Parameters
+    ----------
+    specs : sequence of str
+        The option values, ``KIND=ROI`` each (spaces around ``=`` ignored; ROI names may contain ``=``).
+    kinds : iterable of str
+        The installed applicator kind names.
+    roi_names : iterable of str
+        The ROI names of the structure set (matched ignoring case).
+
+    Returns
+    -------
+    dict of str to str
+        ROI name as written in the structure set -> kind name.
+
+    Raises
+    ------
+    ArgumentError
+        A value not ``KIND=ROI``, an unknown kind, an ROI not in the structure set, or one ROI given twice.
+    """
+    known_kinds = list(kinds)
+    rois = {n.strip().casefold(): n for n in roi_names}
+    out: dict[str, str] = {}
+    for spec in specs:
+        kind, sep, roi = (x.strip() for x in spec.partition("="))
+        if not sep or not kind or not roi:
+            raise ArgumentError(f"--applicator {spec!r}: write KIND=ROI_NAME, e.g. tandem=IU_1")
+        if kind not in known_kinds:
+            raise ArgumentError(f"--applicator {spec!r}: unknown applicator kind {kind!r}; kinds: "
+                                f"{', '.join(known_kinds) or 'none'}")
+        if roi.casefold() not in rois:
+            raise ArgumentError(f"--applicator {spec!r}: no ROI named {roi!r}; available: "
+                                f"{', '.join(map(repr, rois.values())) or 'none'}")
+        name = rois[roi.casefold()]
+        if name in out:
+            raise ArgumentError(f"--applicator names ROI {name!r} twice")
+        out[name] = kind
+    return out
 
 
 # --- where outputs go ------------------------------------------------------------------------------------

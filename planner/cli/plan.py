@@ -7,11 +7,17 @@ import dataclasses
 import json
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from reachplan.planner.cli.edges import output_folder, print_json, seen_warnings, staged_folder
+from reachplan.planner.cli.edges import (
+    applicator_assignments,
+    output_folder,
+    print_json,
+    seen_warnings,
+    staged_folder,
+)
 from reachplan.planner.errors import PlanInputError
 
 if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of every command stays light
@@ -55,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--oar", action="append", default=[], metavar="ORGAN=ROI_NAME",
                         help="use ROI_NAME as organ at risk ORGAN (e.g. Rectum=Rect_PRV); repeatable; an ORGAN "
                              "outside the default list (Bladder, Rectum, Sigmoid, Bowel, Bone) is added to it")
+    parser.add_argument("--applicator", action="append", default=[], metavar="KIND=ROI_NAME",
+                        help="treat ROI_NAME as an applicator of KIND (tandem, ring, ovoid, cylinder, obturator or a "
+                             "plugin's), overriding recognition by name; repeatable")
     parser.add_argument("--synonyms", type=Path, default=None,
                         help="CSV file with 'standard,synonym' rows added to the built-in ROI name table")
     parser.add_argument("--allow-no-oars", action="store_true",
@@ -150,9 +159,14 @@ def read_pose_file(path: Path) -> np.ndarray:
     return m
 
 
-def template_pose(args: argparse.Namespace, structures: StructureSet, config: PlanConfig) -> TemplatePose | None:
-    """Return the pose asked for on the command line (None: fit it to the Obturator ROI)."""
+def template_pose(args: argparse.Namespace, structures: StructureSet, config: PlanConfig,
+                  applicators: Mapping[str, str] | None = None) -> TemplatePose | None:
+    """Return the pose asked for on the command line (None: fit it to the Obturator ROI).
+
+    ``applicators``: ROI name -> applicator kind from ``--applicator`` (for an RT Plan's channels).
+    """
     from reachplan.planner.geometry.template import TemplatePose, pose_from_axis, pose_from_rtplan
+    from reachplan.planner.lookup import applicator_kinds
 
     given = [n for n, v in (("--template-origin/--template-axis", args.template_origin or args.template_axis),
                             ("--template-pose", args.template_pose), ("--rtplan", args.rtplan)) if v]
@@ -180,7 +194,7 @@ def template_pose(args: argparse.Namespace, structures: StructureSet, config: Pl
             rtplan = read_rtplan(args.rtplan)
         for quirk in rtplan.quirks:
             print(f"reachplan: warning: RT Plan {args.rtplan.name}: {quirk}; read anyway", file=sys.stderr)
-        return pose_from_rtplan(rtplan, structures, config.obturator_depth_mm)
+        return pose_from_rtplan(rtplan, structures, config.obturator_depth_mm, applicator_kinds(), applicators)
     return None
 
 
@@ -251,6 +265,7 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
     ReachplanError
         A target or dose target ROI that is not in the structure set, or a bad template pose.
     """
+    from reachplan.planner.lookup import applicator_kinds
     from reachplan.planner.run.case import CaseConfig
 
     names, points = _targets(args.targets)
@@ -258,8 +273,10 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
         structures.get(n)  # a typed error naming the available ROIs
     if not args.no_export:
         structures.get(args.target_roi)  # the ROI the dwell times are optimised on, checked before planning
-    return CaseConfig(plan=config, target_names=tuple(names), target_points=tuple(points),
-                      pose=template_pose(args, structures, config), allow_no_oars=args.allow_no_oars,
+    assign = applicator_assignments(args.applicator, applicator_kinds(), [r.name for r in structures.rois])
+    return CaseConfig(plan=dataclasses.replace(config, applicators=tuple(assign.items())), target_names=tuple(names),
+                      target_points=tuple(points), pose=template_pose(args, structures, config, assign),
+                      allow_no_oars=args.allow_no_oars,
                       standard_names=tuple(standard_names), export=not args.no_export, implant=not args.no_implant,
                       source=args.source, target_roi=args.target_roi,
                       named_points=tuple(_reference_points(args.reference_point)))

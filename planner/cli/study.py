@@ -119,15 +119,14 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
     if args.max_needles < 1:
         raise StudyError(f"--max-needles must be at least 1, got {args.max_needles}")
     output_folder(args.out)
-    from reachplan.planner.case.config import DEFAULT_OARS, PlanConfig
+    from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.dose.implant import ImplantSettings
     from reachplan.planner.steering.steered import ScheduleFamily
     from reachplan.planner.study.implant import ImplantStudySpec, format_summary, run_implant_study, summary_json
 
     family = ScheduleFamily(**COARSE_FAMILY) if args.family == "coarse" else ScheduleFamily()
-    # as the demo: the clinical case's tandem is in the uterine canal, a needle must not cross it
-    config = PlanConfig(template=args.template, family=family, designs=tuple(args.designs),
-                        oar_names=(*DEFAULT_OARS, "Tandem"))
+    # as the demo: the clinical case's tandem (an applicator) is an obstacle, a needle must not cross it
+    config = PlanConfig(template=args.template, family=family, designs=tuple(args.designs))
     spec = ImplantStudySpec(tuple(range(args.seed, args.seed + args.implant)), config,
                             ImplantSettings(max_needles=args.max_needles))
     result = run_implant_study(spec, args.out, scheduler=args.scheduler, workers=args.workers,

@@ -3,14 +3,18 @@
 * Point A (GEC-ESTRO / ICRU Report 89, 2013, §10.3, the revised Manchester definition): on each side, 20 mm
   cranial along the tandem from the level of the vaginal fornix (the flange or the vaginal applicator's cranial
   surface) and 20 mm lateral, perpendicular to the tandem, in the plane of the tandem and the patient's
-  left-right axis. Placed only when a tandem ROI is present (a ``Tandem`` ROI) and the fornix level is known
-  (a ``Flange`` POINT ROI, else the cranial end of the ``Obturator`` / vaginal cylinder).
+  left-right axis. Placed only when a tandem is present (an ROI the ``tandem`` applicator kind recognises, with a
+  channel) and the fornix level is known (a ``Flange`` POINT ROI, else the cranial end of the obturator / vaginal
+  cylinder: an ROI of the ``obturator`` or ``cylinder`` kind).
 * ICRU bladder point (ICRU Report 38, 1985, §2.3; kept by ICRU 89 §10.4): on the anterior-posterior line through
   the centre of the Foley balloon, on the balloon's posterior surface. Placed when a ``Foley`` (or ``Balloon``)
   ROI is present.
 * ICRU rectum point (ICRU 38 §2.3): on the anterior-posterior line through the intravaginal applicator at the
   level of its cranial end (the lower end of the intrauterine source), 5 mm posterior to the posterior vaginal
-  wall, here the posterior surface of the ``Obturator`` (vaginal cylinder). Placed when that ROI is present.
+  wall, here the posterior surface of the obturator (vaginal cylinder). Placed when that ROI is present.
+
+Applicator ROIs are recognised by :func:`reachplan.plugins.applicators.applicators_from_structures` (the kinds passed
+in, the built-in ones by default), not by their names here.
 
 Positions are mm, DICOM patient coordinates (LPS: +x left, +y posterior, +z cranial).
 """
@@ -18,16 +22,19 @@ Positions are mm, DICOM patient coordinates (LPS: +x left, +y posterior, +z cran
 from __future__ import annotations
 
 import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from reachplan.imaging.types import Roi, StructureSet
+from reachplan.plugins.applicators import BUILTIN_KINDS, ApplicatorKind, applicators_from_structures
 
 POINT_A_CRANIAL_MM = 20.0
 POINT_A_LATERAL_MM = 20.0
 RECTUM_POINT_DEPTH_MM = 5.0
-_TANDEM_NAMES = ("tandem", "ut", "intrauterine tube")
+#: Applicator kinds that stand for the vaginal applicator (fornix level, ICRU rectum point).
+VAGINAL_KINDS = ("obturator", "cylinder")
 _FOLEY_NAMES = ("foley", "balloon", "foley balloon")
 
 
@@ -136,19 +143,35 @@ def icru_rectum_point(obturator: Roi) -> np.ndarray | None:
     return np.array([x, y, float(top[:, 2].mean())])
 
 
-def place_reference_points(structures: StructureSet) -> tuple[tuple[PlacedPoint, ...], tuple[str, ...]]:
+def place_reference_points(structures: StructureSet, kinds: Mapping[str, ApplicatorKind] = BUILTIN_KINDS,
+                           assign: Mapping[str, str] | None = None,
+                           ) -> tuple[tuple[PlacedPoint, ...], tuple[str, ...]]:
     """Point A left/right, the ICRU bladder and rectum points, where the structure set allows.
+
+    Parameters
+    ----------
+    structures : StructureSet
+        The case's ROIs (mm, LPS).
+    kinds : mapping of str to ApplicatorKind
+        The applicator kinds that recognise the tandem and the obturator / cylinder (default: the built-in ones).
+    assign : mapping of str to str, optional
+        ROI name -> applicator kind name, overriding recognition (``--applicator KIND=ROI``).
 
     Returns
     -------
     points : tuple of PlacedPoint
+        Positions (3,) float, mm, LPS.
     notes : tuple of str
         One line per point that could not be placed, saying what is missing.
     """
     out: list[PlacedPoint] = []
     notes: list[str] = []
-    tandem = _find(structures, _TANDEM_NAMES)
-    obturator = _find(structures, ("obturator", "vaginal cylinder", "cylinder"))
+    applicators = applicators_from_structures(structures, kinds, assign)
+    by_number = {r.number: r for r in structures.rois}
+    tandem = next((by_number[a.roi_number] for a in applicators
+                   if a.kind == "tandem" and a.channels and a.roi_number is not None), None)
+    obturator = next((by_number[a.roi_number] for a in applicators
+                      if a.kind in VAGINAL_KINDS and a.roi_number is not None), None)
     flange = _find(structures, ("flange", "fornix"))
     if tandem is None:
         notes.append("no tandem ROI: Point A (ICRU 89) not placed")
@@ -162,7 +185,7 @@ def place_reference_points(structures: StructureSet) -> tuple[tuple[PlacedPoint,
         if fornix is None:
             notes.append("no Flange point or Obturator ROI for the vaginal fornix level: Point A not placed")
         else:
-            left, right = point_a(_points(tandem), fornix)
+            left, right = point_a(_points(tandem), fornix)  # all its points: the channel's axis, as drawn
             out += [PlacedPoint("Point A left", left, "ICRU 89 (tandem + fornix level)"),
                     PlacedPoint("Point A right", right, "ICRU 89 (tandem + fornix level)")]
     foley = _find(structures, _FOLEY_NAMES)

@@ -7,14 +7,17 @@ the template plane, ``+z`` the insertion direction. A template is placed with a 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from reachplan.imaging.rtplan import Channel, RtPlan
+from reachplan.imaging.rtplan import RtPlan
 from reachplan.imaging.types import Roi, StructureSet
 from reachplan.planner.errors import PlanInputError
+from reachplan.plugins.applicators import BUILTIN_KINDS, ApplicatorKind, applicators_from_rtplan, channel_label
+from reachplan.plugins.errors import ApplicatorError
 from reachplan.plugins.templates import Hole, Template
 
 
@@ -149,8 +152,9 @@ def pose_from_obturator(obturator: Roi, depth_mm: float = 60.0) -> np.ndarray:
     return pose_from_axis(tip - axis * depth_mm, axis)
 
 
-#: Words that name a channel the template sits on (applicator IDs / ROI names, case-insensitive).
-CENTRAL_CHANNEL_WORDS: tuple[str, ...] = ("tandem", "obturator", "cylinder", "intrauterine", "uterine", "iu")
+#: Applicator kinds the template sits on, in order of preference: the vaginal obturator or cylinder (its tip), else
+#: the tandem (its most proximal dwell).
+SEAT_KINDS: tuple[tuple[str, ...], ...] = (("obturator", "cylinder"), ("tandem",))
 
 
 def pose_from_channel(path_mm: np.ndarray, dwell_positions_mm: np.ndarray, tandem: bool,
@@ -195,23 +199,40 @@ def pose_from_channel(path_mm: np.ndarray, dwell_positions_mm: np.ndarray, tande
     return pose_from_axis(ref - axis * depth_mm, axis)
 
 
-def pose_from_rtplan(rtplan: RtPlan, structures: StructureSet | None = None, depth_mm: float = 60.0) -> TemplatePose:
-    """Find the template pose from the obturator (preferred) or tandem channel of a brachy RT Plan.
+def pose_from_rtplan(rtplan: RtPlan, structures: StructureSet | None = None, depth_mm: float = 60.0,
+                     kinds: Mapping[str, ApplicatorKind] = BUILTIN_KINDS,
+                     assign: Mapping[str, str] | None = None) -> TemplatePose:
+    """Find the template pose from the obturator or cylinder (preferred) or tandem channel of a brachy RT Plan.
 
-    The channel is the one whose applicator ID or channel ROI name contains one of
-    :data:`CENTRAL_CHANNEL_WORDS` (obturator/cylinder before tandem); its centre line is the channel ROI's
-    contour in ``structures`` or the plan's catheter sequence, else the dwell positions in order of relative
-    position (from the tip). See :func:`pose_from_channel`.
+    The plan's applicator channels are recognised by :func:`reachplan.plugins.applicators.applicators_from_rtplan`
+    (applicator ID or channel ROI name, whole names of the ``kinds``; ``assign`` overrides); the first of
+    :data:`SEAT_KINDS` found is used. Its centre line is the channel ROI's contour in ``structures`` or the plan's
+    catheter sequence, else the dwell positions in order of relative position. See :func:`pose_from_channel`.
+
+    Parameters
+    ----------
+    rtplan : RtPlan
+        The brachy plan.
+    structures : StructureSet, optional
+        Its structure set (channel ROIs; must share the plan's Frame of Reference).
+    depth_mm : float, mm
+        How far the seat's reference point lies beyond the template plane.
+    kinds : mapping of str to ApplicatorKind
+        The applicator kinds (default: the built-in ones).
+    assign : mapping of str to str, optional
+        Applicator ID or channel ROI name -> kind name (``--applicator KIND=NAME``).
+
+    Returns
+    -------
+    TemplatePose
+        ``patient_from_template`` (4, 4) float, template frame -> LPS mm, and how it was found.
 
     Raises
     ------
     PlanInputError
-        Another Frame of Reference than ``structures``, no brachy channel, no channel named as a tandem or
-        obturator, or no centre line.
+        Another Frame of Reference than ``structures``, no brachy channel, no tandem, obturator or cylinder
+        channel, no centre line, or a bad ``assign``.
     """
-    from reachplan.imaging.names import name_key
-    from reachplan.imaging.rtplan import channel_paths
-
     where = f"RT Plan {Path(rtplan.path).name}"
     if structures is not None and rtplan.frame_of_reference_uid and structures.frame_of_reference_uid \
             and rtplan.frame_of_reference_uid != structures.frame_of_reference_uid:
@@ -219,36 +240,22 @@ def pose_from_rtplan(rtplan: RtPlan, structures: StructureSet | None = None, dep
                              "this case")
     if not rtplan.channels:
         raise PlanInputError(f"{where} has no brachy channels to place the template on")
-    roi_names = {r.number: r.name for r in structures.rois} if structures is not None else {}
-
-    def label(c: Channel) -> str:
-        roi = roi_names.get(c.roi_number, "") if c.roi_number is not None else ""
-        parts = [c.applicator_id.strip(), roi.strip()]
-        return " / ".join(dict.fromkeys(x for x in parts if x)) or f"channel {c.number}"
-
-    def kind(c: Channel) -> str | None:
-        keys = [name_key(x) for x in label(c).split(" / ")]
-        if any(w in k for k in keys for w in ("obturator", "cylinder")):
-            return "obturator"
-        if any((w in k if len(w) > 2 else k == w) for k in keys for w in CENTRAL_CHANNEL_WORDS):
-            return "tandem"
-        return None
-
-    kinds = [(kind(c), c) for c in rtplan.channels]
-    chosen = [c for k, c in kinds if k == "obturator"] or [c for k, c in kinds if k == "tandem"]
-    if not chosen:
-        raise PlanInputError(f"{where}: no channel is named as a tandem or obturator (channels: "
-                             f"{', '.join(repr(label(c)) for c in rtplan.channels)}); give the pose with "
-                             "--template-origin/--template-axis or --template-pose")
-    ch = chosen[0]
-    paths = channel_paths(rtplan, structures)
-    if ch.number in paths:
-        path, source = paths[ch.number], "its channel contour"
-    else:
-        order = np.argsort(ch.dwell_relative_mm, kind="stable")
-        path, source = ch.dwell_positions_mm[order], "its dwell positions"
-    tandem = kind(ch) == "tandem"
-    m = pose_from_channel(path, ch.dwell_positions_mm, tandem, depth_mm)
+    try:
+        found = applicators_from_rtplan(rtplan, kinds, structures, assign)
+    except ApplicatorError as exc:
+        raise PlanInputError(f"{where}: {exc}") from None
+    seats = [a for group in SEAT_KINDS for a in found if a.kind in group and a.channels]
+    if not seats:
+        roi_names = {r.number: r.name for r in structures.rois} if structures is not None else {}
+        labels = [channel_label(c, roi_names) for c in rtplan.channels]
+        raise PlanInputError(f"{where}: no channel is named as a tandem, obturator or cylinder (channels: "
+                             f"{', '.join(map(repr, labels))}); name its kind with --applicator KIND=NAME or give "
+                             "the pose with --template-origin/--template-axis or --template-pose")
+    seat = seats[0]
+    number = seat.plan_channels[0]
+    channel = next(c for c in rtplan.channels if c.number == number)
+    tandem = seat.kind == "tandem"
+    m = pose_from_channel(seat.channels[0][::-1], channel.dwell_positions_mm, tandem, depth_mm)
     ref = "its most proximal dwell (the cervical os, assumed)" if tandem else "its tip"
-    return TemplatePose(m, f"from {where}, channel {ch.number} {label(ch)!r} ({source}; template {depth_mm:g} mm "
+    return TemplatePose(m, f"from {where}, channel {number} {seat.name!r} ({seat.how}; template {depth_mm:g} mm "
                            f"behind {ref})")

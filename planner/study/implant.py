@@ -39,7 +39,7 @@ import numpy as np
 
 from reachplan import ReachplanError
 from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
-from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, DEFAULT_OARS, PlanConfig
+from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.errors import StudyError
 
 if TYPE_CHECKING:
@@ -185,7 +185,7 @@ class ImplantStudySpec:
     """
 
     seeds: tuple[int, ...]
-    config: PlanConfig = field(default_factory=lambda: PlanConfig(oar_names=(*DEFAULT_OARS, "Tandem")))
+    config: PlanConfig = field(default_factory=PlanConfig)
     settings: ImplantSettings | None = None
     source: str = "gammamed_plus_hdr"
     modality: str = "CT"
@@ -290,7 +290,7 @@ def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
     """Build the clinical case of ``seed`` in memory and plan both implant arms on it (as ``reachplan demo``)."""
     from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
     from reachplan.planner.case.scene import build_scene
-    from reachplan.planner.delivery import plan_implants, planning_structures, tandem_channels
+    from reachplan.planner.delivery import applicator_channels, plan_implants, planning_structures
     from reachplan.planner.lookup import get_source
 
     case = clinical_case(seed, modality=spec.modality)
@@ -299,8 +299,8 @@ def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
     targets = [n for n in structures.names if n.casefold().startswith("target")]
     scene = build_scene(structures, targets, grid=grid, config=spec.config)
     config = dataclasses.replace(spec.config, oar_names=tuple(o.name for o in scene.organs))
-    planning = planning_structures(structures, grid, "HR-CTV", config.oar_names)
-    tandem = tandem_channels(structures, planning, scene.patient_from_template, spec.settings)
+    planning = planning_structures(structures, grid, "HR-CTV", config.oar_names, scene.applicators)
+    tandem = applicator_channels(scene.applicators, planning, spec.settings)
     return plan_implants(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U, spec.settings,
                          intracavitary=tandem)
 
