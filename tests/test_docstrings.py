@@ -191,11 +191,19 @@ def _is_dataclass(node: ast.ClassDef) -> bool:
     return False
 
 
+def _init_false(value: ast.expr | None) -> bool:
+    """``field(..., init=False)``: not a parameter of the class."""
+    return isinstance(value, ast.Call) and any(
+        k.arg == "init" and isinstance(k.value, ast.Constant) and k.value.value is False for k in value.keywords)
+
+
 def _fields(node: ast.ClassDef) -> list[str]:
+    """The public fields a dataclass's ``__init__`` takes (no ``ClassVar``, no ``init=False``)."""
     out = []
     for stmt in node.body:
         if isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name) \
-                and not stmt.target.id.startswith("_") and "ClassVar" not in ast.unparse(stmt.annotation):
+                and not stmt.target.id.startswith("_") and "ClassVar" not in ast.unparse(stmt.annotation) \
+                and not _init_false(stmt.value):
             out.append(stmt.target.id)
     return out
 
@@ -257,6 +265,7 @@ class Hole:
     row: str
     position_mm: tuple[float, float, float]
     depth_mm: float = field(default=0.0)
+    area_mm2: float = field(init=False, default=0.0)
     KIND: ClassVar[str] = "hole"
     _cache: int = 0
 
