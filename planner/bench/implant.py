@@ -50,7 +50,15 @@ COLUMNS = ("arm", "run", "seconds_candidates_and_arms", "cpu_seconds_candidates_
 
 @dataclass(frozen=True)
 class ImplantBenchSettings:
-    """Timed runs (the median is reported) and the implant settings' needle budget."""
+    """Timed runs (the median is reported) and the implant settings' needle budget.
+
+    Parameters
+    ----------
+    repeat : int
+        Timed runs of both arms.
+    max_needles : int
+        Largest number of template needles per implant.
+    """
 
     repeat: int = 3
     max_needles: int = 16
@@ -60,7 +68,18 @@ QUICK = ImplantBenchSettings(repeat=1, max_needles=2)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench implant`` (``--quick``, ``--repeat``) into ``args.out``."""
+    """Run ``reachplan bench implant`` (``--quick``, ``--repeat``) into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    int
+        Exit status, 0.
+    """
     s = settings(args, ImplantBenchSettings(), QUICK)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
