@@ -70,8 +70,9 @@ def _pydoclint(paths: list[Path], *, short_allowed: bool = False) -> list[str]:
         return []
     args = ["--config", str(PYPROJECT), "--show-filenames-in-every-violation-message", "true",
             "--skip-checking-short-docstrings", str(short_allowed)]
-    out = subprocess.run([sys.executable, "-c", "from pydoclint.main import main; main()", *args,
-                          *map(str, paths)], capture_output=True, text=True, timeout=120, cwd=REPO_ROOT)
+    names = [str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(p) for p in paths]
+    out = subprocess.run([sys.executable, "-c", "from pydoclint.main import main; main()", *args, *names],
+                         capture_output=True, text=True, timeout=120, cwd=REPO_ROOT)
     findings = []
     for line in (out.stdout + out.stderr).splitlines():  # pydoclint writes its findings to stderr
         m = _FINDING.match(line.strip())
