@@ -1,9 +1,10 @@
 """Every public function and class documents its Parameters and Returns (numpydoc: shape, unit, frame).
 
 pydoclint checks each function's sections against its signature with the options of ``[tool.pydoclint]`` in
-pyproject.toml; a dataclass documents its fields in its class docstring's Parameters section, which is checked here
-(pydoclint's own class-attribute check wants an Attributes section). Private names (leading underscore), dunders and
-``__init__`` are exempt. The source tree is checked (the files a change edits), not the installed copy.
+pyproject.toml; a dataclass documents its fields in its class docstring's Parameters section, which is checked
+here (pydoclint's own class-attribute check wants an Attributes section). Private names (leading underscore),
+private modules (``_name.py``, pydoclint's ``exclude``), dunders and ``__init__`` are exempt. The source tree is
+checked (the files a change edits), not the installed copy.
 """
 
 from __future__ import annotations
@@ -230,7 +231,9 @@ def _dataclass_findings(path: Path, *, short_allowed: bool = False) -> Iterator[
 
 
 def _python_files(paths: list[Path]) -> list[Path]:
-    return sorted(f for p in paths for f in ([p] if p.is_file() else p.rglob("*.py")) if "__pycache__" not in f.parts)
+    """The modules at ``paths``, private ones (``_name.py``, as pydoclint's ``exclude``) left out."""
+    return sorted(f for p in paths for f in ([p] if p.is_file() else p.rglob("*.py"))
+                  if "__pycache__" not in f.parts and (f.name == "__init__.py" or not f.name.startswith("_")))
 
 
 def test_dataclasses_document_their_fields() -> None:
