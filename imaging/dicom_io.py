@@ -380,7 +380,7 @@ def scan(path: Path) -> FolderScan:
     Parameters
     ----------
     path : Path
-        A file or a folder.
+        What to scan: one file, or a folder and everything below it.
 
     Returns
     -------

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     Returns
     -------
     int
-        Exit status, 0.
+        0 after the medians are printed and the CSV and PNG written.
     """
     s = settings(args, DemoBenchSettings(), QUICK)
     out: Path = args.out

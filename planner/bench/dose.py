@@ -205,12 +205,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        ``out``, ``quick``, ``voxels``, ``dwells`` and ``repeat`` from the command line.
 
     Returns
     -------
     int
-        Exit status, 0.
+        0 (the table and chart are in ``args.out``).
     """
     s = settings(args, DoseSettings(), QUICK)
     rows, n_vox = measure(s)

@@ -39,12 +39,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        Command line: ``out``, ``quick``.
 
     Returns
     -------
     int
-        Exit status, 0.
+        Always 0; failures raise.
     """
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

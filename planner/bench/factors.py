@@ -139,12 +139,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        ``out`` and ``quick`` of ``reachplan bench factors``.
 
     Returns
     -------
     int
-        Exit status, 0.
+        0 once the table, CSV and chart are written.
     """
     s = settings(args, FactorSettings(), QUICK)
     out: Path = args.out

@@ -225,12 +225,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        Parsed options: ``out``, ``quick``, ``slices``, ``size``, ``repeat``, ``workdir``.
 
     Returns
     -------
     int
-        Exit status, 0.
+        Zero; the medians are printed.
     """
     s = settings(args, ImagingSettings(), QUICK)
     rows = measure(s)

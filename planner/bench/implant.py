@@ -55,9 +55,9 @@ class ImplantBenchSettings:
     Parameters
     ----------
     repeat : int
-        Timed runs of both arms.
-    max_needles : int
-        Largest number of template needles per implant.
+        Timed runs of both arms; the median run is reported.
+    max_needles : int, needles
+        Largest implant.
     """
 
     repeat: int = 3
@@ -73,12 +73,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        The options ``out``, ``quick`` and ``repeat``.
 
     Returns
     -------
     int
-        Exit status, 0.
+        0, after printing each arm's Pareto curve.
     """
     s = settings(args, ImplantBenchSettings(), QUICK)
     out: Path = args.out

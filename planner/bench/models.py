@@ -357,7 +357,7 @@ def stability(s: ModelSettings, log: Callable[[str], None]) -> list[StabilityCas
     s : ModelSettings
         Tensions and placements of the map.
     log : callable (str) -> None
-        Progress lines.
+        Where the progress goes, line by line.
 
     Returns
     -------
@@ -900,12 +900,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        Parsed ``reachplan bench models`` options (``out``, ``quick``).
 
     Returns
     -------
     int
-        Exit status, 0.
+        0; progress went to stderr.
     """
     run_benchmark(args.out, settings(args, ModelSettings(), QUICK), log=lambda m: print(m, file=sys.stderr, flush=True))
     return 0

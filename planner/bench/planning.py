@@ -237,12 +237,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        Options of ``reachplan bench planning``: ``out`` and ``quick``.
 
     Returns
     -------
     int
-        Exit status, 0.
+        The exit status (0).
     """
     s = settings(args, PlanningSettings(), QUICK)
     out: Path = args.out

@@ -164,7 +164,7 @@ def summarise(rows: list[dict[str, object]]) -> dict[str, object]:
     Parameters
     ----------
     rows : list of dict of str to object
-        The rows of :func:`measure`.
+        One per rendering, as :func:`measure` returns them.
 
     Returns
     -------
@@ -213,12 +213,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        What ``reachplan bench report`` was given (``out``, ``quick``, ``repeat``).
 
     Returns
     -------
     int
-        Exit status, 0.
+        0 when the report renders.
     """
     s = settings(args, ReportBenchSettings(), QUICK)
     out: Path = args.out

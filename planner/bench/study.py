@@ -334,12 +334,12 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed command line.
+        ``out`` (the working folder) and ``quick`` from the command line.
 
     Returns
     -------
     int
-        Exit status, 0.
+        0; the estimate is printed.
     """
     s = settings(args, StudySettings(), QUICK)
     out: Path = args.out

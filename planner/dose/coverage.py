@@ -231,9 +231,9 @@ def dose_per_fraction_for_eqd2(eqd2_gy: float, n_fractions: int, alpha_beta_gy: 
     eqd2_gy : float, Gy
         EQD2 to deliver.
     n_fractions : int
-        Number of fractions (>= 1).
+        Fractions that share it (>= 1).
     alpha_beta_gy : float, Gy
-        α/β of the tissue (> 0).
+        The tissue's α/β (> 0).
 
     Returns
     -------

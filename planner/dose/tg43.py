@@ -334,9 +334,9 @@ def anisotropy(source: SourceData, r_cm: np.ndarray, theta_deg: np.ndarray) -> n
     Parameters
     ----------
     source : SourceData
-        Consensus data of the source.
+        The source's consensus tables (F is read from them).
     r_cm : array, cm
-        Distances from the source centre.
+        Distance of each point from the source centre.
     theta_deg : array, degrees
         Polar angle from the source axis (toward the tip), clipped to [0, 180]; broadcast with ``r_cm``.
 
@@ -368,7 +368,7 @@ def phi_an(source: SourceData, r_cm: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     source : SourceData
-        Consensus data of the source.
+        Its active length and F table give the integrand.
     r_cm : array, cm
         Distances from the source centre (held at 0.6 L below it).
 

@@ -101,9 +101,9 @@ def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
     Parameters
     ----------
     name : str
-        The organ's normalised name.
+        Name the organ goes by (normalised).
     mesh : trimesh.Trimesh
-        Its triangle mesh, vertices in mm, LPS.
+        Its triangle mesh (vertices in mm, LPS); must be watertight.
 
     Returns
     -------
@@ -322,9 +322,9 @@ def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...])
     Parameters
     ----------
     path_mm : (n, 3) float, mm, LPS
-        Needle centreline.
+        The needle's centreline, hole first.
     radius_mm : float, mm
-        Needle radius.
+        Outer radius of the needle.
     organs : tuple of Organ
         Organs at risk and bone.
 

@@ -289,7 +289,7 @@ def format_implant(comparison: ImplantComparison) -> str:
     Parameters
     ----------
     comparison : ImplantComparison
-        Both implant arms.
+        The straight and the steered arm, each with its chosen implant or reason.
 
     Returns
     -------
@@ -899,9 +899,9 @@ def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: 
     Parameters
     ----------
     result : PlanResult
-        The ranked plan.
+        The ranked plan whose chosen needles are compared.
     structures : StructureSet
-        The case's structures.
+        The case's structures (HR-CTV and organs at risk).
     delivery : Delivery or None
         The delivered plan; None: ranked only.
     grid : Grid or None

@@ -603,11 +603,11 @@ def template_map(scene: Scene, straight: Sequence[Candidate], steered: Sequence[
     Parameters
     ----------
     scene : Scene
-        The template and its pose.
+        Template and pose, as for :func:`template_map_figure`.
     straight : sequence of Candidate
-        The chosen straight needles.
+        Straight needles whose holes are marked.
     steered : sequence of Candidate
-        The chosen steered needles.
+        Steered needles whose holes are marked.
 
     Returns
     -------

@@ -325,11 +325,11 @@ def straight_candidates(
     direction : (n_holes, 3) float, unit vectors, LPS
         Axis of each hole.
     organs : sequence of Organ
-        Organs at risk and bone to check against.
+        What the candidates that reach are checked against.
     needle_radius_mm : float, mm
-        Needle radius of the collision check.
+        Radius of the needles.
     reach_tolerance_mm : float, mm
-        A tip within this distance of the target reaches it.
+        Largest tip-to-target distance that still counts as reaching.
     max_depth_mm : float, mm
         Longest insertion; deeper targets are clipped to it (and missed).
 

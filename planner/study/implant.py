@@ -519,11 +519,11 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
     out : Path
         The study's folder (new, empty, or holding this study to resume).
     scheduler : str or None
-        Address of a running Dask scheduler; None = a local cluster of worker processes.
+        A Dask scheduler's address; None starts a loopback cluster of worker processes.
     workers : int or None
-        Worker processes of the local cluster (default: the CPU count); 0 = run in this process.
+        Worker processes of that cluster (one per CPU by default); 0 plans every case in this process.
     client : distributed.Client or None
-        An existing client to use instead (``scheduler``/``workers`` ignored).
+        A client already connected; then ``scheduler`` and ``workers`` are not used.
     retry_failed : bool
         Plan again the cases a previous run recorded as failed.
     level : float
@@ -638,9 +638,9 @@ def format_summary(summary: ImplantCohortSummary, rows: Sequence[ImplantRow]) ->
     Parameters
     ----------
     summary : ImplantCohortSummary
-        The cohort's summary.
+        Paired differences and aims met, printed last.
     rows : sequence of ImplantRow
-        The cases.
+        One line each.
 
     Returns
     -------

@@ -102,9 +102,9 @@ def write_part(out: Path, key: str, rows: Sequence[StudyRow]) -> Path:
     Parameters
     ----------
     out : Path
-        The study's folder.
+        Folder of the study.
     key : str
-        The task's key.
+        Key of the finished task.
     rows : sequence of StudyRow
         The task's rows (all of task ``key``).
 
@@ -170,7 +170,7 @@ def failed_keys(out: Path) -> set[str]:
     Parameters
     ----------
     out : Path
-        The study's folder.
+        Folder of the study whose part files are read.
 
     Returns
     -------
