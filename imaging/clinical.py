@@ -305,9 +305,19 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
 
     Parameters
     ----------
-    seed : 0 = the reference case; others vary the anatomy (:func:`sample_params`)
-    modality : ``"CT"`` or ``"MR"`` (T2-like contrast)
-    case_id : gives the written files their own Patient ID and UIDs (default ``clinical_<seed>``)
+    seed : int
+        0 = the reference case; others vary the anatomy (:func:`sample_params`).
+    params : ClinicalParams or None
+        Explicit anatomy instead of the seed's.
+    modality : str
+        ``"CT"`` or ``"MR"`` (T2-like contrast).
+    case_id : str
+        Gives the written files their own Patient ID and UIDs (default ``clinical_<seed>``).
+
+    Returns
+    -------
+    ClinicalCase
+        The phantom description and the named target points (LPS mm).
     """
     p = params or sample_params(seed)
     uterus, cervix, axis = _uterus(p)

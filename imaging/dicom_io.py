@@ -46,6 +46,16 @@ NON_IMAGE_MODALITIES = frozenset({"RTSTRUCT", "RTPLAN", "RTDOSE", "RTRECORD", "R
 def list_files(path: Path) -> list[Path]:
     """List every regular, non-hidden file at ``path`` (itself, or recursively below a folder), sorted.
 
+    Parameters
+    ----------
+    path : Path
+        A file or a folder.
+
+    Returns
+    -------
+    list of Path
+        The files, sorted.
+
     Raises
     ------
     NoDicomError
@@ -367,6 +377,16 @@ def scan(path: Path) -> FolderScan:
     Values over 1 KiB (pixel data, long contour lists) stay on disk until used. Every DICOM file is checked to
     be complete.
 
+    Parameters
+    ----------
+    path : Path
+        What to scan: one file, or a folder and everything below it.
+
+    Returns
+    -------
+    FolderScan
+        The headers found, by series and object.
+
     Raises
     ------
     NoDicomError
@@ -413,6 +433,11 @@ def select_series(
         SeriesInstanceUID to pick.
     modality : str, optional
         ``"CT"``, ``"MR"``, ... (case-insensitive).
+
+    Returns
+    -------
+    SeriesSummary
+        The matching series.
 
     Raises
     ------
@@ -817,8 +842,10 @@ def check_reference(volume: Volume, frame_of_reference_uid: str | None, series_u
     ----------
     volume : Volume
         The images at hand.
-    frame_of_reference_uid, series_uid : str or None
-        What the object refers to; empty or None is not checked.
+    frame_of_reference_uid : str or None
+        The Frame of Reference the object refers to; empty or None is not checked.
+    series_uid : str or None
+        The series it refers to; empty or None is not checked.
     what : str
         Names the object in the message.
 

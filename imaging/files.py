@@ -98,6 +98,13 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 def atomic_write_json(path: Path, obj: Any) -> None:
     """Write ``obj`` as indented JSON (UTF-8, final newline), atomically.
 
+    Parameters
+    ----------
+    path : Path
+        The file to write.
+    obj : Any
+        JSON-ready value.
+
     Raises
     ------
     ValueError

@@ -287,6 +287,11 @@ def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection
     synonyms : SynonymTable, optional
         ROI name table (default :data:`reachplan.imaging.names.DEFAULT_SYNONYMS`).
 
+    Returns
+    -------
+    Inspection
+        What was found, with the warnings collected.
+
     Raises
     ------
     NoDicomError

@@ -194,7 +194,9 @@ def roi_coverage(roi: Roi, grid: Grid, supersample: int = 4) -> np.ndarray:
 
     Parameters
     ----------
-    roi, grid : Roi, Grid
+    roi : Roi
+        As for :func:`roi_mask`.
+    grid : Grid
         As for :func:`roi_mask`.
     supersample : int
         Sub-rows per pixel (exact along rows); at least 1.
@@ -481,8 +483,12 @@ def structure_volume_cc(roi: Roi, grid: Grid | None = None, pixel_mm: float | No
 
     Parameters
     ----------
-    roi, grid, pixel_mm : Roi, Grid or None, float or None
+    roi : Roi
         As for :func:`fit_grid`.
+    grid : Grid or None
+        As for :func:`fit_grid`.
+    pixel_mm : float or None
+        As for :func:`fit_grid`, mm.
 
     Returns
     -------

@@ -103,6 +103,16 @@ class SynonymTable:
     def extended(self, entries: tuple[tuple[str, tuple[str, ...]], ...]) -> SynonymTable:
         """Return a new table with ``entries`` added (synonyms of an existing standard name are merged).
 
+        Parameters
+        ----------
+        entries : tuple of (str, tuple of str)
+            Standard name and its synonyms.
+
+        Returns
+        -------
+        SynonymTable
+            This table's entries and ``entries``.
+
         Raises
         ------
         ValueError
@@ -123,6 +133,11 @@ class SynonymTable:
             CSV file, UTF-8, one synonym per row.
         base : SynonymTable, optional
             The table to extend (default: the built-in table).
+
+        Returns
+        -------
+        SynonymTable
+            ``base`` extended by the file's rows.
 
         Raises
         ------

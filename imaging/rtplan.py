@@ -330,6 +330,16 @@ class RtPlan:
     def source(self, number: int | None = None) -> BrachySource:
         """Return the source with ``number`` (or the only / first one).
 
+        Parameters
+        ----------
+        number : int or None
+            Source Number; None: the only or first source.
+
+        Returns
+        -------
+        BrachySource
+            The source.
+
         Raises
         ------
         NoDicomError

@@ -289,6 +289,16 @@ class StructureSet:
     def get(self, name: str) -> Roi:
         """Return the ROI whose normalised (or original) name is ``name``, case-insensitively.
 
+        Parameters
+        ----------
+        name : str
+            Normalised or original ROI name.
+
+        Returns
+        -------
+        Roi
+            The ROI.
+
         Raises
         ------
         StructureError

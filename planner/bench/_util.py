@@ -12,7 +12,15 @@ from reachplan.imaging.files import atomic_write_bytes
 
 
 def write_csv(path: Path, rows: Sequence[dict[str, object]]) -> None:
-    """Write ``rows`` (dicts with the same keys) as CSV, atomically."""
+    """Write ``rows`` (dicts with the same keys) as CSV, atomically.
+
+    Parameters
+    ----------
+    path : Path
+        The file to write.
+    rows : sequence of dict of str to object
+        At least one row; the first row's keys are the columns.
+    """
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
     writer.writeheader()
@@ -21,7 +29,13 @@ def write_csv(path: Path, rows: Sequence[dict[str, object]]) -> None:
 
 
 def load_avg() -> float:
-    """1-minute load average (NaN where unknown): these machines are shared, so every CSV records it."""
+    """1-minute load average (NaN where unknown): these machines are shared, so every CSV records it.
+
+    Returns
+    -------
+    float
+        Runnable processes averaged over the last minute.
+    """
     try:
         return os.getloadavg()[0]
     except OSError:  # pragma: no cover - not on Linux

@@ -65,6 +65,18 @@ def source_checkout(repo: Path) -> Path:
 def check_install(repo: Path, quick: bool) -> Path:
     """Return the checkout ``--install`` will write into, before the benchmark runs.
 
+    Parameters
+    ----------
+    repo : Path
+        The folder given by ``--repo``.
+    quick : bool
+        ``--quick`` was given.
+
+    Returns
+    -------
+    Path
+        The checkout, resolved.
+
     Raises
     ------
     BenchError
@@ -123,14 +135,32 @@ def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[object]
 
 
 def write_png(path: Path, fig: Figure, dpi: int = 110) -> None:
-    """Render ``fig`` (a :class:`matplotlib.figure.Figure`, not attached to pyplot) to PNG at ``path``, atomically."""
+    """Render ``fig`` (a :class:`matplotlib.figure.Figure`, not attached to pyplot) to PNG at ``path``, atomically.
+
+    Parameters
+    ----------
+    path : Path
+        The file to write.
+    fig : matplotlib.figure.Figure
+        The figure.
+    dpi : int
+        Dots per inch.
+    """
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
     atomic_write_bytes(path, buf.getvalue())
 
 
 def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON atomically (non-finite numbers as ``NaN``/``Infinity``: timings may be)."""
+    """Write ``obj`` as indented JSON atomically (non-finite numbers as ``NaN``/``Infinity``: timings may be).
+
+    Parameters
+    ----------
+    path : Path
+        The file to write.
+    obj : object
+        JSON-ready value.
+    """
     atomic_write_bytes(path, (json.dumps(obj, indent=1) + "\n").encode("utf-8"))
 
 
@@ -141,8 +171,10 @@ def settings(args: argparse.Namespace, full: S, quick: S) -> S:
     ----------
     args : argparse.Namespace
         The parsed command line; ``args.quick`` picks ``quick`` over ``full``.
-    full, quick : frozen dataclass
-        The target's full and quick settings (same type).
+    full : frozen dataclass
+        The target's full settings.
+    quick : frozen dataclass
+        Its quick settings (same type).
 
     Returns
     -------

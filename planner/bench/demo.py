@@ -38,7 +38,15 @@ STAGES = ("case write", "read back", "scene", "planning", "delivery (no implant)
 
 @dataclass(frozen=True)
 class DemoBenchSettings:
-    """Which case, and how many runs (the medians are reported)."""
+    """Which case, and how many runs (the medians are reported).
+
+    Parameters
+    ----------
+    repeat : int
+        Runs of ``reachplan demo``.
+    case : str
+        ``clinical`` or ``pilot``.
+    """
 
     repeat: int = 3
     case: str = "clinical"
@@ -50,7 +58,17 @@ QUICK = DemoBenchSettings(repeat=1, case="pilot")
 def stage_times(doc: dict[str, object], wall_s: float) -> dict[str, float]:
     """Split one demo's wall time (s) into :data:`STAGES` from its plan.json document ``doc``.
 
-    ``other`` is what the named stages leave of ``wall_s`` (start-up, figures, writes).
+    Parameters
+    ----------
+    doc : dict of str to object
+        The demo's plan.json (``phantom_s``, ``timings``, ``implant``).
+    wall_s : float, s
+        The run's wall time.
+
+    Returns
+    -------
+    dict of str to float, s
+        Seconds per stage; ``other`` is what the named stages leave of ``wall_s`` (start-up, figures, writes).
     """
     phantom = doc.get("phantom_s") or {}
     timings = doc.get("timings") or {}
@@ -80,7 +98,18 @@ def _one_run(case: str, folder: Path) -> tuple[float, float, dict[str, object]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench demo`` (``--quick``, ``--repeat``) into ``args.out``."""
+    """Run ``reachplan bench demo`` (``--quick``, ``--repeat``) into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line (``out``, ``quick``, ``repeat``).
+
+    Returns
+    -------
+    int
+        0 after the medians are printed and the CSV and PNG written.
+    """
     s = settings(args, DemoBenchSettings(), QUICK)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

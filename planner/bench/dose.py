@@ -35,7 +35,19 @@ SK_U = 40000.0
 
 @dataclass(frozen=True)
 class DoseSettings:
-    """Grid size (``voxels``, about; a cube of 2.5 mm voxels), dwell count, timed runs, chunk sizes (pairs)."""
+    """What the dose benchmark computes.
+
+    Parameters
+    ----------
+    voxels : int
+        Grid size, about (a cube of 2.5 mm voxels).
+    dwells : int
+        Number of random dwells.
+    repeat : int
+        Timed runs (the best counts).
+    chunks : tuple of int
+        Voxel-dwell pairs per chunk to try.
+    """
 
     voxels: int = 400_000
     dwells: int = 100
@@ -48,7 +60,27 @@ QUICK = DoseSettings(voxels=8_000, dwells=20, repeat=1, chunks=(1 << 12, 1 << 14
 
 @dataclass(frozen=True)
 class DoseRow:
-    """One timed variant: ``seconds`` is the best of the timed runs; ``max_rel_err`` against float64."""
+    """One timed variant.
+
+    Parameters
+    ----------
+    variant : str
+        ``float64 dense`` or ``float32 chunked``.
+    workers : int
+        Threads.
+    chunk_pairs : int
+        Voxel-dwell pairs per chunk.
+    seconds : float, s
+        Best of the timed runs.
+    mpairs_per_s : float, 1e6 pairs/s
+        Throughput.
+    peak_mb : float, MB
+        Peak traced Python heap of one extra run.
+    max_rel_err : float or None
+        Largest relative dose difference from the float64 evaluation; None for the baseline itself.
+    load_avg_1min : float
+        1-minute load average when it ran.
+    """
 
     variant: str
     workers: int
@@ -76,6 +108,11 @@ def _timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
 
 def measure(s: DoseSettings) -> tuple[list[DoseRow], int]:
     """Time the float64 dense baseline and the float32 chunked kernel on 1 and 2 threads.
+
+    Parameters
+    ----------
+    s : DoseSettings
+        Grid, dwells, runs and chunk sizes.
 
     Returns
     -------
@@ -126,7 +163,19 @@ def measure(s: DoseSettings) -> tuple[list[DoseRow], int]:
 
 
 def write_results(out: Path, rows: list[DoseRow], n_vox: int, dwells: int) -> None:
-    """``dose_benchmark.csv`` (one row per variant, :data:`COLUMNS`) and ``dose_benchmark.png`` under ``out``."""
+    """``dose_benchmark.csv`` (one row per variant, :data:`COLUMNS`) and ``dose_benchmark.png`` under ``out``.
+
+    Parameters
+    ----------
+    out : Path
+        The results folder.
+    rows : list of DoseRow
+        The timed variants.
+    n_vox : int
+        Voxels of the grid.
+    dwells : int
+        Dwells of the run.
+    """
     write_csv(out / "dose_benchmark.csv", COLUMNS,
               [["" if v is None else v for v in (r.variant, r.workers, r.chunk_pairs, r.seconds, r.mpairs_per_s,
                                                  r.peak_mb, r.max_rel_err, r.load_avg_1min)] for r in rows])
@@ -151,7 +200,18 @@ def write_results(out: Path, rows: list[DoseRow], n_vox: int, dwells: int) -> No
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench dose`` (``--quick``, ``--voxels``, ``--dwells``, ``--repeat``) into ``args.out``."""
+    """Run ``reachplan bench dose`` (``--quick``, ``--voxels``, ``--dwells``, ``--repeat``) into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``out``, ``quick``, ``voxels``, ``dwells`` and ``repeat`` from the command line.
+
+    Returns
+    -------
+    int
+        0 (the table and chart are in ``args.out``).
+    """
     s = settings(args, DoseSettings(), QUICK)
     rows, n_vox = measure(s)
     write_results(args.out, rows, n_vox, s.dwells)

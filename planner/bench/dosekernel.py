@@ -34,7 +34,18 @@ INSTALLS = {"dosekernel.csv": "docs/speed/dosekernel.csv", "dosekernel.png": "do
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
+    """Run the benchmark into ``args.out`` (CSV + PNG).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Command line: ``out``, ``quick``.
+
+    Returns
+    -------
+    int
+        Always 0; failures raise.
+    """
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     side = 40 if args.quick else 74

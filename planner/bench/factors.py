@@ -37,7 +37,17 @@ INSTALLS = {"curvature_factors.json": "planner/steering/curvature_factors.json",
 
 @dataclass(frozen=True)
 class FactorSettings:
-    """Designs (preset names), the tabulated moduli (Pa) and the held-out ones (Pa, not tabulated)."""
+    """Which designs and moduli the curvature factor is fitted at.
+
+    Parameters
+    ----------
+    designs : tuple of str
+        Stylet preset names.
+    moduli_pa : tuple of float, Pa
+        Tissue Young's moduli tabulated in the package.
+    held_out_pa : tuple of float, Pa
+        Moduli fitted but not tabulated (to check the interpolation).
+    """
 
     designs: tuple[str, ...] = PRESET_NAMES
     moduli_pa: tuple[float, ...] = (1e5, 1.9e5, 3e5, 1e6, 3e6, 1e7)
@@ -58,7 +68,18 @@ def _fit(job: tuple[str, float]) -> tuple[str, float, float, float, int, float]:
 
 
 def fit_all(s: FactorSettings) -> list[tuple[str, float, float, float, int, float]]:
-    """Fit every design at every modulus (tabulated and held out), on every core; rows in job order."""
+    """Fit every design at every modulus (tabulated and held out), on every core; rows in job order.
+
+    Parameters
+    ----------
+    s : FactorSettings
+        Designs and moduli.
+
+    Returns
+    -------
+    list of (str, float, float, float, int, float)
+        (design, modulus Pa, factor, RMS tip distance mm, tips fitted, seconds) per fit.
+    """
     jobs = [(d, e) for d in s.designs for e in (*s.moduli_pa, *s.held_out_pa)]
     if len(jobs) == 1:
         return [_fit(jobs[0])]
@@ -67,7 +88,20 @@ def fit_all(s: FactorSettings) -> list[tuple[str, float, float, float, int, floa
 
 
 def table(s: FactorSettings, fits: list[tuple[str, float, float, float, int, float]]) -> list[FactorCurve]:
-    """Return the package table: one curve per design over the tabulated moduli."""
+    """Return the package table: one curve per design over the tabulated moduli.
+
+    Parameters
+    ----------
+    s : FactorSettings
+        Designs and moduli.
+    fits : list of (str, float, float, float, int, float)
+        The fits of :func:`fit_all`.
+
+    Returns
+    -------
+    list of FactorCurve
+        One per design, moduli increasing (Pa), with the factors and their RMS (mm).
+    """
     out = []
     for name in s.designs:
         rows = sorted((f for f in fits if f[0] == name and f[1] in s.moduli_pa), key=lambda f: f[1])
@@ -100,7 +134,18 @@ def _figure(curves: list[FactorCurve], fits: list[tuple[str, float, float, float
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench factors`` into ``args.out``; return 0."""
+    """Run ``reachplan bench factors`` into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``out`` and ``quick`` of ``reachplan bench factors``.
+
+    Returns
+    -------
+    int
+        0 once the table, CSV and chart are written.
+    """
     s = settings(args, FactorSettings(), QUICK)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

@@ -35,8 +35,16 @@ READERS = ("reachplan", "simpleitk")
 class ImagingSettings:
     """How big a series to load and how often.
 
-    ``slices`` of ``size`` x ``size`` int16 pixels, ``repeat`` alternating runs per reader, written into
-    ``workdir`` (``None``: a temporary folder).
+    Parameters
+    ----------
+    slices : int
+        Slices of the series.
+    size : int
+        Rows and columns of each slice (int16 pixels).
+    repeat : int
+        Alternating runs per reader.
+    workdir : Path or None
+        Where the series is written (``None``: a temporary folder).
     """
 
     slices: int = 300
@@ -72,7 +80,17 @@ print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_mb": resource.getrusage(re
 
 
 def write_ct(folder: Path, slices: int, size: int) -> None:
-    """Write a plain CT series: 0.8 mm pixels, 1 mm slices, files named in reverse slice order."""
+    """Write a plain CT series: 0.8 mm pixels, 1 mm slices, files named in reverse slice order.
+
+    Parameters
+    ----------
+    folder : Path
+        Where to write (created).
+    slices : int
+        Number of slices.
+    size : int
+        Rows and columns per slice.
+    """
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
@@ -102,7 +120,20 @@ def write_ct(folder: Path, slices: int, size: int) -> None:
 
 
 def run_child(folder: Path, which: str) -> dict[str, float]:
-    """Load the series in ``folder`` with ``which`` reader in a fresh process; its timings, memory and checksum."""
+    """Load the series in ``folder`` with ``which`` reader in a fresh process.
+
+    Parameters
+    ----------
+    folder : Path
+        The series.
+    which : str
+        ``reachplan`` or ``simpleitk``.
+
+    Returns
+    -------
+    dict of str to float
+        ``wall_s`` and ``cpu_s`` (s), ``peak_mb`` (MB), the array's ``shape`` and a ``checksum``.
+    """
     res = subprocess.run([sys.executable, "-c", _CHILD, str(folder), which], capture_output=True, text=True,
                          check=True)
     out: dict[str, float] = json.loads(res.stdout.strip().splitlines()[-1])
@@ -112,7 +143,15 @@ def run_child(folder: Path, which: str) -> dict[str, float]:
 def measure(s: ImagingSettings) -> list[dict[str, object]]:
     """Write the series and load it with both readers; one row per run and reader.
 
-    Each row holds :data:`COLUMNS` and the shape and checksum the child read.
+    Parameters
+    ----------
+    s : ImagingSettings
+        Series size and runs.
+
+    Returns
+    -------
+    list of dict of str to object
+        Each row holds :data:`COLUMNS` and the shape and checksum the child read.
 
     Raises
     ------
@@ -135,13 +174,34 @@ def measure(s: ImagingSettings) -> list[dict[str, object]]:
 
 
 def medians(rows: list[dict[str, object]]) -> dict[str, dict[str, float]]:
-    """Return the median of ``wall_s``, ``cpu_s`` and ``peak_mb`` per reader."""
+    """Return the median of ``wall_s``, ``cpu_s`` and ``peak_mb`` per reader.
+
+    Parameters
+    ----------
+    rows : list of dict of str to object
+        The rows of :func:`measure`.
+
+    Returns
+    -------
+    dict of str to dict of str to float
+        Metric -> reader -> median (s or MB).
+    """
     return {m: {rd: float(np.median([float(row[m]) for row in rows if row["reader"] == rd]))  # type: ignore[arg-type]
                 for rd in READERS} for m in ("wall_s", "cpu_s", "peak_mb")}
 
 
 def write_results(out: Path, rows: list[dict[str, object]], title: str) -> None:
-    """Write ``imaging_load.csv`` (:data:`COLUMNS`) and ``imaging_load.png`` (time, peak memory per reader)."""
+    """Write ``imaging_load.csv`` (:data:`COLUMNS`) and ``imaging_load.png`` (time, peak memory per reader).
+
+    Parameters
+    ----------
+    out : Path
+        The results folder.
+    rows : list of dict of str to object
+        The rows of :func:`measure`.
+    title : str
+        The figure's title.
+    """
     write_csv(out / "imaging_load.csv", COLUMNS, rows)
     med = medians(rows)
     fig = Figure(figsize=(8, 3.2))
@@ -160,7 +220,18 @@ def write_results(out: Path, rows: list[dict[str, object]], title: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench imaging`` (``--quick``, ``--slices``, ``--size``, ``--repeat``, ``--workdir``)."""
+    """Run ``reachplan bench imaging`` (``--quick``, ``--slices``, ``--size``, ``--repeat``, ``--workdir``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options: ``out``, ``quick``, ``slices``, ``size``, ``repeat``, ``workdir``.
+
+    Returns
+    -------
+    int
+        Zero; the medians are printed.
+    """
     s = settings(args, ImagingSettings(), QUICK)
     rows = measure(s)
     write_results(args.out, rows, f"CT series {s.slices} x {s.size}² (median of {s.repeat})")

@@ -44,7 +44,15 @@ COLUMNS = ("arm", "run", "seconds_candidates_and_arms", "cpu_seconds_candidates_
 
 @dataclass(frozen=True)
 class ImplantBenchSettings:
-    """Timed runs (the median is reported) and the implant settings' needle budget."""
+    """Timed runs (the median is reported) and the implant settings' needle budget.
+
+    Parameters
+    ----------
+    repeat : int
+        Timed runs of both arms; the median run is reported.
+    max_needles : int, needles
+        Largest implant.
+    """
 
     repeat: int = 3
     max_needles: int = 16
@@ -54,7 +62,18 @@ QUICK = ImplantBenchSettings(repeat=1, max_needles=2)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench implant`` (``--quick``, ``--repeat``) into ``args.out``."""
+    """Run ``reachplan bench implant`` (``--quick``, ``--repeat``) into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The options ``out``, ``quick`` and ``repeat``.
+
+    Returns
+    -------
+    int
+        0, after printing each arm's Pareto curve.
+    """
     s = settings(args, ImplantBenchSettings(), QUICK)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

@@ -83,7 +83,23 @@ REFERENCE = TwoTubeCosserat(steps_per_mm=8.0, tol=1e-12)
 
 @dataclass(frozen=True)
 class Row:
-    """One point of the speed/accuracy chart."""
+    """One point of the speed/accuracy chart.
+
+    Parameters
+    ----------
+    model, resolution : str
+        Model label and its resolution (steps/mm, nodes, or ``default``).
+    median_ms : float, ms
+        Median time per solve.
+    max_tip_error_mm, median_tip_error_mm : float, mm
+        Worst and median tip distance from the reference.
+    success_rate : float
+        Fraction of the grid solved.
+    batched_solves_per_s : float or None, 1/s
+        Throughput of the batched run (None when not run).
+    batched_peak_mb : float or None, MB
+        Its peak traced memory.
+    """
 
     model: str
     resolution: str
@@ -99,9 +115,28 @@ class Row:
 class ModelSettings:
     """What the rod-model benchmark measures.
 
-    The grid (presets × tensions in N, free space), the stability map's tensions (N) and placements, the batch
-    sizes of the throughput runs, whether to time the uncompiled kernel (a child process without numba), the
-    presets whose friction hysteresis loop is measured, and the in-tissue chart's moduli (Pa) and depths (mm).
+    Parameters
+    ----------
+    presets : tuple of str
+        Stylet presets of the free-space grid.
+    tensions_n : tuple of float, N
+        Tendon tensions of the grid.
+    stability_tensions_n : tuple of float, N
+        Tensions of the stability map.
+    stability_placements : tuple of str
+        Joint placements of the stability map (``tip``, ``mid``, ``base``).
+    batch, planar_batch : int
+        Batch sizes of the throughput runs (two-tube, planar beam).
+    interpreted : bool
+        Also time the uncompiled kernel (a child process without numba).
+    friction_presets : tuple of str
+        Presets whose friction hysteresis loop is measured.
+    tissue_moduli_pa : tuple of float, Pa
+        Tissue moduli of the in-tissue chart.
+    tissue_depths_mm : tuple of float, mm
+        Its insertion depths.
+    tissue_onsets_mm : tuple of float, mm
+        Its ramp onsets.
     """
 
     presets: tuple[str, ...] = PRESET_NAMES
@@ -197,6 +232,13 @@ def _interpreted_ms() -> float | None:
 def speed_accuracy(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[Row], dict[str, float]]:
     """Time every model and resolution on the grid against the converged two-tube reference.
 
+    Parameters
+    ----------
+    s : ModelSettings
+        Presets and tensions of the grid, batch sizes.
+    log : callable (str) -> None
+        Progress lines.
+
     Returns
     -------
     rows : list of Row
@@ -277,7 +319,25 @@ def speed_accuracy(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[R
 
 @dataclass(frozen=True)
 class StabilityCase:
-    """One case of the stability map."""
+    """One case of the stability map.
+
+    Parameters
+    ----------
+    solver, placement : str
+        Solver and joint placement.
+    tension_n : float, N
+        Tendon tension.
+    guess : str
+        Initial guess (``zero``, ``small``, ``large``).
+    success : bool
+        The solve converged.
+    residual : float, N
+        Boundary residual.
+    ms : float, ms
+        Solve time.
+    reason : str
+        Why it failed ("" when it did not).
+    """
 
     solver: str
     placement: str
@@ -290,7 +350,20 @@ class StabilityCase:
 
 
 def stability(s: ModelSettings, log: Callable[[str], None]) -> list[StabilityCase]:
-    """Every solver on placement × tension × initial guess, with an out-of-plane tip force."""
+    """Every solver on placement × tension × initial guess, with an out-of-plane tip force.
+
+    Parameters
+    ----------
+    s : ModelSettings
+        Tensions and placements of the map.
+    log : callable (str) -> None
+        Where the progress goes, line by line.
+
+    Returns
+    -------
+    list of StabilityCase
+        One per solver, placement, tension and guess.
+    """
     rng = np.random.default_rng(7)
     out: list[StabilityCase] = []
     collocation = CollocationCosserat(tol=1e-6, nodes_per_section=11, max_nodes=300, max_ramp=2)
@@ -337,6 +410,13 @@ def _with_friction(d: RodDesign, mu: float) -> RodDesign:
 def friction(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[Row], dict[str, float]]:
     """Time the friction model against itself at 8 steps/mm and measure its hysteresis loop per preset.
 
+    Parameters
+    ----------
+    s : ModelSettings
+        The grid and the friction presets.
+    log : callable (str) -> None
+        Progress lines.
+
     Returns
     -------
     rows : list of Row
@@ -377,7 +457,21 @@ def friction(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[Row], d
 
 @dataclass(frozen=True)
 class HonestyCase:
-    """One load case of the honesty table (tip position (3,) mm, rod frame; None when the solve failed)."""
+    """One load case of the honesty table.
+
+    Parameters
+    ----------
+    case : str
+        The load case in words.
+    converged : bool
+        The solver reports convergence.
+    tip_mm : (3,) float or None, mm, rod frame
+        Tip position; None when the solve failed.
+    ms : float, ms
+        Solve time.
+    reason : str
+        Why it failed.
+    """
 
     case: str
     converged: bool
@@ -391,6 +485,16 @@ def honesty(log: Callable[[str], None]) -> list[HonestyCase]:
 
     The Euler load is that of the tube-plus-needle column clamped at the template, free at the tip:
     ``P = π² EI / (4 L²)`` (Timoshenko & Gere, Theory of Elastic Stability, 2nd ed., 1961, §2.1).
+
+    Parameters
+    ----------
+    log : callable (str) -> None
+        One line per case.
+
+    Returns
+    -------
+    list of HonestyCase
+        One per load case.
     """
     base, tip = preset("15ga-20j-base"), preset("15ga-20j-tip")
     sec = tip.sections()[0]
@@ -422,12 +526,28 @@ def honesty(log: Callable[[str], None]) -> list[HonestyCase]:
 
 @dataclass(frozen=True)
 class TissuePoint:
-    """One point of the in-tissue chart: a modulus, a schedule, a depth (tips in mm, NaN past a failed step).
+    """One point of the in-tissue chart: a modulus, a schedule, a depth (tip deflections NaN past a failed step).
 
-    ``factor`` is the kinematic curvature factor fitted to the rod at this modulus (over every schedule and
-    depth), ``function`` the fitted function's value (NaN below the tip-following range), ``kinematic_mm`` the
-    kinematic model's tip with it, ``tip_following_mm`` the kinematic model's at factor 1 (pure tip following at
-    the joint section's free-space curvature: the rigid-tissue limit); ``ms`` the insertion's wall time.
+    Parameters
+    ----------
+    modulus_pa : float, Pa
+        Tissue Young's modulus.
+    schedule : str
+        The ramp in words.
+    depth_mm : float, mm
+        Insertion depth.
+    tissue_rod_mm, kinematic_mm : float, mm
+        Lateral tip deflection of the in-tissue rod, and of the kinematic model with the fitted function.
+    tip_following_mm : float, mm
+        The kinematic model's at factor 1 (pure tip following: the rigid-tissue limit).
+    factor : float
+        Kinematic curvature factor fitted to the rod at this modulus (over every schedule and depth).
+    function : float
+        The fitted function's value (NaN below the tip-following range).
+    ms : float, ms
+        The insertion's wall time.
+    status : str
+        ``ok`` or the failure's reason.
     """
 
     modulus_pa: float
@@ -451,6 +571,13 @@ def tissue(s: ModelSettings, log: Callable[[str], None]) -> tuple[list[TissuePoi
 
     15ga-30j-tip; ramps of 20 mm from the onsets of ``s`` to 60 / 100 % of the maximum tension (the planner's
     schedule family); moduli and depths of ``s``.
+
+    Parameters
+    ----------
+    s : ModelSettings
+        Moduli, depths and onsets of the chart.
+    log : callable (str) -> None
+        One line per modulus.
 
     Returns
     -------
@@ -523,6 +650,15 @@ def tissue_figure(points: list[TissuePoint]) -> Figure:
 
     Left, dashed: each schedule's tip-following limit (kinematic model at factor 1), which the rod approaches
     in stiff tissue.
+
+    Parameters
+    ----------
+    points : list of TissuePoint
+        The chart's points.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     fig = Figure(figsize=(12, 5), layout="tight")
     a1, a2 = fig.subplots(1, 2)
@@ -550,7 +686,17 @@ def tissue_figure(points: list[TissuePoint]) -> Figure:
 
 
 def pareto_figure(rows: list[Row]) -> Figure:
-    """Median time per solve against the worst tip error (log-log), with the Pareto front of the frictionless rows."""
+    """Median time per solve against the worst tip error (log-log), with the Pareto front of the frictionless rows.
+
+    Parameters
+    ----------
+    rows : list of Row
+        The chart's points (ms against mm).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
     floor = 1e-10
     fig = Figure(figsize=(9, 6))
     ax = fig.subplots()
@@ -596,7 +742,17 @@ def pareto_figure(rows: list[Row]) -> Figure:
 
 
 def stability_figure(cases: list[StabilityCase]) -> Figure:
-    """Converged / failed map of each solver over placement × initial guess (rows) and tension (columns)."""
+    """Converged / failed map of each solver over placement × initial guess (rows) and tension (columns).
+
+    Parameters
+    ----------
+    cases : list of StabilityCase
+        The map's cases.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
     solvers = list(dict.fromkeys(c.solver for c in cases))
     tensions = sorted({c.tension_n for c in cases})
     rows = list(dict.fromkeys((c.placement, c.guess) for c in cases))
@@ -624,7 +780,18 @@ def stability_figure(cases: list[StabilityCase]) -> Figure:
 
 
 def error_table(rows: list[Row]) -> dict[str, object]:
-    """Return the package-data document read by :func:`reachplan.rod_model.select.error_table`."""
+    """Return the package-data document read by :func:`reachplan.rod_model.select.error_table`.
+
+    Parameters
+    ----------
+    rows : list of Row
+        The frictionless rows.
+
+    Returns
+    -------
+    dict of str to object
+        JSON-ready: source and one entry per row (ms, mm).
+    """
     return {
         "source": "reachplan bench models",
         "generated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -646,6 +813,23 @@ def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], fricti
     ``rod_models_friction.csv`` (:data:`FRICTION_COLUMNS`), ``rod_models_honesty.csv`` (:data:`HONESTY_COLUMNS`),
     ``rod_models_tissue.csv`` (:data:`TISSUE_COLUMNS`) and its chart ``rod_models_tissue.png``, and
     ``model_errors.json`` (the frictionless rows only).
+
+    Parameters
+    ----------
+    out : Path
+        The results folder.
+    rows : list of Row
+        Speed/accuracy rows.
+    cases : list of StabilityCase
+        Stability map.
+    friction_rows : list of Row
+        The friction row.
+    honest : list of HonestyCase
+        The honesty table.
+    tissue_points : list of TissuePoint
+        The in-tissue chart.
+    tissue_rows : sequence of Row
+        Its speed/accuracy rows.
     """
     write_csv(out / "rod_models.csv", ROW_COLUMNS,
               [[r.model, r.resolution, f"{r.median_ms:.5g}", f"{r.max_tip_error_mm:.4g}",
@@ -675,6 +859,15 @@ def write_results(out: Path, rows: list[Row], cases: list[StabilityCase], fricti
 def run_benchmark(out: Path, s: ModelSettings, log: Callable[[str], None] = print) -> dict[str, object]:
     """Run the whole benchmark and write its CSV, PNG and JSON files into ``out``.
 
+    Parameters
+    ----------
+    out : Path
+        The results folder.
+    s : ModelSettings
+        What to measure.
+    log : callable (str) -> None
+        Progress lines.
+
     Returns
     -------
     dict
@@ -702,6 +895,17 @@ def run_benchmark(out: Path, s: ModelSettings, log: Callable[[str], None] = prin
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench models`` (``--quick``: a smoke run) into ``args.out``; progress on stderr."""
+    """Run ``reachplan bench models`` (``--quick``: a smoke run) into ``args.out``; progress on stderr.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``reachplan bench models`` options (``out``, ``quick``).
+
+    Returns
+    -------
+    int
+        0; progress went to stderr.
+    """
     run_benchmark(args.out, settings(args, ModelSettings(), QUICK), log=lambda m: print(m, file=sys.stderr, flush=True))
     return 0

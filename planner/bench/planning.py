@@ -53,9 +53,18 @@ T = TypeVar("T")
 class PlanningSettings:
     """What the planning benchmark measures.
 
-    Plan repeats (the median is kept), how many phantom targets (``None``: all), the reference ``tissue_rod``
-    insertion step (mm; extrapolated with twice that step, 2 RK4 steps per mm), the plain ``tissue_rod`` (1 RK4
-    step per mm) at the insertion steps (mm) compared with it, and the insertion depth (mm).
+    Parameters
+    ----------
+    repeats : int
+        Plan repeats (the median is kept).
+    targets : int or None
+        How many phantom targets (``None``: all).
+    reference_step_mm : float, mm
+        The reference ``tissue_rod`` insertion step (extrapolated with twice that step, 2 RK4 steps per mm).
+    rod_steps_mm : tuple of float, mm
+        Insertion steps of the plain ``tissue_rod`` (1 RK4 step per mm) compared with it.
+    depth_mm : float, mm
+        Insertion depth.
     """
 
     repeats: int = 3
@@ -102,9 +111,19 @@ def _median_time(fn: Callable[[], T], repeats: int) -> tuple[float, T]:
 
 
 def plan_timings(out: Path, s: PlanningSettings) -> list[dict[str, object]]:
-    """Time the screening and the full plan of the phantom (median of ``s.repeats``).
+    """Time the screening and the full plan of the phantom (median of ``s.repeats``); also writes ``workspace.png``.
 
-    Returns one row each (:data:`TIMING_COLUMNS`); also writes ``workspace.png`` under ``out``.
+    Parameters
+    ----------
+    out : Path
+        The results folder.
+    s : PlanningSettings
+        Repeats and targets.
+
+    Returns
+    -------
+    list of dict of str to object
+        One row each (:data:`TIMING_COLUMNS`, s).
     """
     with tempfile.TemporaryDirectory() as tmp:
         files = write_phantom(Path(tmp) / "phantom")
@@ -141,7 +160,15 @@ def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
     step per mm) at coarser insertion steps, and the planner's reference re-solve (2 mm steps extrapolated with
     4 mm ones), say what the insertion step costs.
 
-    Returns one row per variant (:data:`INSERTION_COLUMNS`; ms per path, tip errors in mm).
+    Parameters
+    ----------
+    s : PlanningSettings
+        Reference step, rod steps and depth.
+
+    Returns
+    -------
+    list of dict of str to object
+        One row per variant (:data:`INSERTION_COLUMNS`; ms per path, tip errors in mm).
     """
     design = preset("15ga-30j-tip")
     schedules = [TensionSchedule.ramp(o, 20.0, f * design.max_tension_n, 0.0)
@@ -180,7 +207,17 @@ def _insertion_row(label: str, s_per_path: float, tips: np.ndarray, ref_tips: np
 
 
 def insertion_figure(rows: list[dict[str, object]]) -> Figure:
-    """Time per path (log) against the worst tip error of each insertion model variant."""
+    """Time per path (log) against the worst tip error of each insertion model variant.
+
+    Parameters
+    ----------
+    rows : list of dict of str to object
+        The rows of :func:`insertion_models` (ms, mm).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
     fig = Figure(figsize=(7, 4.5))
     ax = fig.subplots()
     for r in rows:
@@ -197,7 +234,18 @@ def insertion_figure(rows: list[dict[str, object]]) -> Figure:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench planning`` (``--quick``: two targets, coarse grids) into ``args.out``."""
+    """Run ``reachplan bench planning`` (``--quick``: two targets, coarse grids) into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Options of ``reachplan bench planning``: ``out`` and ``quick``.
+
+    Returns
+    -------
+    int
+        The exit status (0).
+    """
     s = settings(args, PlanningSettings(), QUICK)
     out: Path = args.out
     timing = plan_timings(out, s)

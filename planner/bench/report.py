@@ -38,7 +38,15 @@ LIMIT_S = 3.0
 
 @dataclass(frozen=True)
 class ReportBenchSettings:
-    """Timed renderings of the report (the median is reported) and whether the implant arms are planned."""
+    """Timed renderings of the report (the median is reported) and whether the implant arms are planned.
+
+    Parameters
+    ----------
+    repeat : int
+        Timed renderings.
+    implant : bool
+        Plan the implant arms (as the demo does) before rendering.
+    """
 
     repeat: int = 5
     implant: bool = True
@@ -50,8 +58,18 @@ QUICK = ReportBenchSettings(repeat=1, implant=False)
 def demo_inputs(folder: Path, implant: bool = True) -> dict[str, Any]:
     """Run the demo's pipeline on the built-in clinical case (seed 0, CT) written into ``folder``.
 
-    Returns the keyword arguments of :func:`reachplan.planner.report.build.report_html` the demo passes, plus
-    ``scene``, ``result`` and ``structures``.
+    Parameters
+    ----------
+    folder : Path
+        Where the case is written.
+    implant : bool
+        Plan the implant arms too.
+
+    Returns
+    -------
+    dict of str to object
+        The keyword arguments of :func:`reachplan.planner.report.build.report_html` the demo passes, plus
+        ``scene``, ``result`` and ``structures``.
     """
     from reachplan.imaging.clinical import clinical_case, write_clinical
     from reachplan.imaging.dicom_io import read_series
@@ -83,7 +101,18 @@ def demo_inputs(folder: Path, implant: bool = True) -> dict[str, Any]:
 
 
 def html_parts(html: str) -> dict[str, int]:
-    """Return the bytes (UTF-8) of a report by part: ``plotly_js``, ``images`` (base64), ``view_3d``, ``rest``."""
+    """Return the bytes (UTF-8) of a report by part: ``plotly_js``, ``images`` (base64), ``view_3d``, ``rest``.
+
+    Parameters
+    ----------
+    html : str
+        The report.
+
+    Returns
+    -------
+    dict of str to int
+        Bytes per part, and ``total``.
+    """
     total = len(html.encode("utf-8"))
     scripts = re.findall(r"<script>(.*?)</script>", html, flags=re.S)
     js = sum(len(s.encode("utf-8")) for s in scripts if not s.startswith("Plotly.newPlot"))
@@ -93,7 +122,20 @@ def html_parts(html: str) -> dict[str, int]:
 
 
 def measure(inputs: dict[str, Any], repeat: int) -> list[dict[str, object]]:
-    """Render the report ``repeat`` times; one row per run (seconds, CPU seconds, bytes by part)."""
+    """Render the report ``repeat`` times; one row per run (seconds, CPU seconds, bytes by part).
+
+    Parameters
+    ----------
+    inputs : dict of str to object
+        The inputs of :func:`demo_inputs`.
+    repeat : int
+        Renderings.
+
+    Returns
+    -------
+    list of dict of str to object
+        One row per run.
+    """
     from reachplan.planner.report.build import report_html, straight_vs_steered
 
     kw = {k: v for k, v in inputs.items() if k not in ("scene", "result", "structures")}
@@ -114,7 +156,18 @@ def measure(inputs: dict[str, Any], repeat: int) -> list[dict[str, object]]:
 
 
 def summarise(rows: list[dict[str, object]]) -> dict[str, object]:
-    """Medians of the runs and the limit."""
+    """Medians of the runs and the limit.
+
+    Parameters
+    ----------
+    rows : list of dict of str to object
+        One per rendering, as :func:`measure` returns them.
+
+    Returns
+    -------
+    dict of str to object
+        Median wall and CPU seconds (s), bytes by part, the limit (s) and the load average.
+    """
     def med(key: str) -> float:
         return statistics.median(float(str(r[key])) for r in rows)
 
@@ -152,7 +205,18 @@ def _figure(rows: list[dict[str, object]], summary: dict[str, object]) -> Figure
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench report`` (``--quick``, ``--repeat``) into ``args.out``; return 0."""
+    """Run ``reachplan bench report`` (``--quick``, ``--repeat``) into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        What ``reachplan bench report`` was given (``out``, ``quick``, ``repeat``).
+
+    Returns
+    -------
+    int
+        0 when the report renders.
+    """
     s = settings(args, ReportBenchSettings(), QUICK)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

@@ -41,7 +41,20 @@ def _run_once(argv: tuple[str, ...]) -> tuple[float, float]:
 
 
 def measure(repeat: int) -> tuple[list[dict[str, object]], list[dict[str, object]]]:
-    """Every run and the summary rows (medians, ratio to ``python -c pass``)."""
+    """Every run and the summary rows (medians, ratio to ``python -c pass``).
+
+    Parameters
+    ----------
+    repeat : int
+        Runs of each command.
+
+    Returns
+    -------
+    runs : list of dict of str to object
+        One row per run and command (wall and CPU s).
+    summary : list of dict of str to object
+        One row per command: medians (s), ratio to ``python -c pass`` and the limit (s).
+    """
     for _, argv, _ in COMMANDS:  # warm the OS file cache and the numba cache
         _run_once(argv)
     runs: list[dict[str, object]] = []
@@ -89,7 +102,18 @@ INSTALLS = {name: f"docs/speed/{name}" for name in ("startup.csv", "startup.png"
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
+    """Run the benchmark into ``args.out`` (CSV + PNG).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``args.out`` receives the files; ``args.quick`` runs 3 times instead of 7.
+
+    Returns
+    -------
+    int
+        0 (the summary is printed).
+    """
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     runs, summary = measure(3 if args.quick else 7)

@@ -46,9 +46,20 @@ RUNS_HEADER = ("engine", "workers", "tasks", "rows", "wall_s", "cluster_start_s"
 class StudySettings:
     """What the study benchmark measures and estimates.
 
-    The measured study (phantom cases x the first ``designs`` of :data:`DESIGNS` x the first ``targets`` of
-    :data:`TARGETS`), alternating 1- and 2-worker runs (best kept), and the estimated study (patients, designs,
-    targets, workers) with its number of simulated draws.
+    Parameters
+    ----------
+    cases : int
+        Phantom cases of the measured study.
+    targets : int
+        The first ``targets`` of :data:`TARGETS`.
+    designs : int
+        The first ``designs`` of :data:`DESIGNS`.
+    repeat : int
+        Alternating 1- and 2-worker runs (best kept).
+    est_cases, est_designs, est_targets, est_workers : int
+        The estimated study: patients, designs, targets and workers.
+    draws : int
+        Simulated draws of the estimate.
     """
 
     cases: int = 4
@@ -67,7 +78,25 @@ QUICK = StudySettings(cases=2, targets=1, designs=1, repeat=1, draws=50)
 
 @dataclass(frozen=True)
 class StudyRun:
-    """One timed run of the study: ``workers`` 0 is the in-process reference."""
+    """One timed run of the study.
+
+    Parameters
+    ----------
+    engine : str
+        ``in-process`` or ``LocalCluster``.
+    workers : int
+        Worker processes; 0 is the in-process reference.
+    wall_s : float, s
+        Wall time of the study.
+    cluster_start_s : float, s
+        Time to start the cluster (0 in process).
+    load_avg_1min : float
+        1-minute load average after the run.
+    cpu_utilisation : float
+        CPU seconds the tasks got / (workers x wall seconds).
+    same_rows : bool
+        The rows equal the in-process run's (timings and workers aside).
+    """
 
     engine: str
     workers: int
@@ -100,10 +129,27 @@ def _utilisation(table: Any, workers: int, wall_s: float) -> float:
 
 def simulate(task_costs_s: np.ndarray, scene_s: float, n_cases: int, workers: int, warmup_s: float,
              cache: int = 4) -> float:
-    """Simulate the makespan (s) of case-major tasks given in order to the first free worker.
+    """Simulate the makespan of case-major tasks given in order to the first free worker.
 
-    ``task_costs_s`` is (n_cases * designs,) in s; a worker pays ``scene_s`` for a case not among its last
-    ``cache`` cases, and ``warmup_s`` once.
+    Parameters
+    ----------
+    task_costs_s : (n_cases * designs,) float, s
+        Cost of each task, case-major.
+    scene_s : float, s
+        What a worker pays to load a case not among its last ``cache`` cases.
+    n_cases : int
+        Cases of the study.
+    workers : int
+        Workers.
+    warmup_s : float, s
+        Each worker's start-up, paid once.
+    cache : int
+        Cases a worker keeps loaded.
+
+    Returns
+    -------
+    float, s
+        The makespan.
     """
     per_case = len(task_costs_s) // n_cases
     free = np.full(workers, warmup_s)
@@ -118,10 +164,28 @@ def simulate(task_costs_s: np.ndarray, scene_s: float, n_cases: int, workers: in
 
 
 def simulate_blocks(task_costs_s: np.ndarray, scene_s: float, n_cases: int, workers: int, warmup_s: float) -> float:
-    """Simulate the makespan (s) when worker ``k`` runs the ``k``-th contiguous block of the case-major tasks.
+    """Simulate the makespan when worker ``k`` runs the ``k``-th contiguous block of the case-major tasks.
 
     As :func:`reachplan.planner.study.run_study` prefers (loading each case of its block once), without work
     stealing (which only shortens it).
+
+    Parameters
+    ----------
+    task_costs_s : (n_cases * designs,) float, s
+        Cost of each task, case-major.
+    scene_s : float, s
+        What a worker pays to load each case of its block.
+    n_cases : int
+        Cases of the study.
+    workers : int
+        Workers.
+    warmup_s : float, s
+        Each worker's start-up.
+
+    Returns
+    -------
+    float, s
+        The makespan.
     """
     per_case = len(task_costs_s) // n_cases
     edges = np.arange(workers + 1) * len(task_costs_s) // workers
@@ -134,14 +198,23 @@ def measure(out: Path, s: StudySettings) -> tuple[list[StudyRun], dict[str, floa
                                                  tuple[int, int]]:
     """Run the study in process and on 1- and 2-worker clusters under ``out``, then estimate the large study.
 
+    Parameters
+    ----------
+    out : Path
+        Working folder (the cohort and each run's results go under it).
+    s : StudySettings
+        What to measure and estimate.
+
     Returns
     -------
     runs : list of StudyRun
         The in-process run first.
     estimate : dict of str to float
         Quantity -> value (:data:`INSTALLS` ``study_estimate.csv``).
-    draws, blocks : ndarray
-        (s.draws,) simulated wall times in s of the estimated study: first free worker; case blocks.
+    draws : (s.draws,) float, s
+        Simulated wall times of the estimated study, first free worker.
+    blocks : (s.draws,) float, s
+        The same, case blocks per worker.
     counts : tuple of int
         The in-process study's (tasks, rows).
 
@@ -214,9 +287,22 @@ def write_results(out: Path, s: StudySettings, runs: list[StudyRun], estimate: d
                   blocks: np.ndarray, counts: tuple[int, int]) -> None:
     """Write ``study_runs.csv``, ``study_estimate.csv`` and ``study_benchmark.png`` under ``out``.
 
-    ``study_runs.csv`` has :data:`RUNS_HEADER`, ``study_estimate.csv`` (quantity, value); the chart shows the
-    wall times and histograms of the simulated wall times ``draws`` and ``blocks`` ((n,) s). ``counts``: the
-    in-process study's (tasks, rows).
+    Parameters
+    ----------
+    out : Path
+        The results folder.
+    s : StudySettings
+        What was measured.
+    runs : list of StudyRun
+        The timed runs (``study_runs.csv``, :data:`RUNS_HEADER`).
+    estimate : dict of str to float
+        Quantity -> value (``study_estimate.csv``).
+    draws : (n,) float, s
+        Simulated wall times, first free worker (histogram).
+    blocks : (n,) float, s
+        Simulated wall times, case blocks per worker (histogram).
+    counts : (int, int)
+        The in-process study's (tasks, rows).
     """
     n_tasks, n_rows = counts
     write_csv(out / "study_runs.csv", RUNS_HEADER,
@@ -243,7 +329,18 @@ def write_results(out: Path, s: StudySettings, runs: list[StudyRun], estimate: d
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``reachplan bench study`` (``--quick``: 2 cases x 1 design x 1 target) into ``args.out``."""
+    """Run ``reachplan bench study`` (``--quick``: 2 cases x 1 design x 1 target) into ``args.out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``out`` (the working folder) and ``quick`` from the command line.
+
+    Returns
+    -------
+    int
+        0; the estimate is printed.
+    """
     s = settings(args, StudySettings(), QUICK)
     out: Path = args.out
     runs, estimate, draws, blocks, counts = measure(out, s)

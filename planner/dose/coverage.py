@@ -24,7 +24,18 @@ from reachplan.imaging.types import Grid
 
 
 def voxel_volume_cc(grid: Grid) -> float:
-    """Volume of one voxel of ``grid``, cm³."""
+    """Volume of one voxel of ``grid``, cm³.
+
+    Parameters
+    ----------
+    grid : Grid
+        The dose or mask grid.
+
+    Returns
+    -------
+    float, cm³
+        ``|det|`` of the grid's voxel steps (mm³) / 1000.
+    """
     return abs(float(np.linalg.det(grid.patient_from_index[:3, :3]))) / 1000.0
 
 
@@ -50,7 +61,19 @@ def dose_to_volume(doses_gy: np.ndarray, voxel_cc: float, volume_cc: float) -> f
     doses_gy : (n,) float, Gy
         Dose at each voxel of the structure.
     voxel_cc : float, cm³
-    volume_cc : float, cm³ (> 0)
+        Volume of one voxel.
+    volume_cc : float, cm³
+        The hottest volume asked for (> 0).
+
+    Returns
+    -------
+    float, Gy
+        The structure's minimum dose when it is smaller than ``volume_cc``.
+
+    Raises
+    ------
+    ValueError
+        No voxels, doses not finite, or a voxel or asked volume that is not positive.
     """
     d = _doses(doses_gy)
     _check_voxel(voxel_cc)
@@ -61,7 +84,24 @@ def dose_to_volume(doses_gy: np.ndarray, voxel_cc: float, volume_cc: float) -> f
 
 
 def dose_to_fraction(doses_gy: np.ndarray, fraction: float) -> float:
-    """``D_x``: minimum dose to the hottest ``fraction`` (0-1] of the structure's voxels, Gy."""
+    """``D_x``: minimum dose to the hottest ``fraction`` (0-1] of the structure's voxels, Gy.
+
+    Parameters
+    ----------
+    doses_gy : (n,) float, Gy
+        Dose at each voxel of the structure.
+    fraction : float
+        Volume fraction in (0, 1] (0.9 for D90).
+
+    Returns
+    -------
+    float, Gy
+
+    Raises
+    ------
+    ValueError
+        No voxels, doses not finite, or a fraction outside (0, 1].
+    """
     d = _doses(doses_gy)
     if not 0 < fraction <= 1:
         raise ValueError(f"volume fraction must be in (0, 1], got {fraction}")
@@ -70,7 +110,19 @@ def dose_to_fraction(doses_gy: np.ndarray, fraction: float) -> float:
 
 
 def volume_receiving(doses_gy: np.ndarray, threshold_gy: float) -> float:
-    """Percentage (0-100) of the structure's voxels with dose >= ``threshold_gy``."""
+    """Percentage (0-100) of the structure's voxels with dose >= ``threshold_gy``.
+
+    Parameters
+    ----------
+    doses_gy : (n,) float, Gy
+        Dose at each voxel of the structure.
+    threshold_gy : float, Gy
+        Dose threshold (e.g. the prescription for V100).
+
+    Returns
+    -------
+    float, %
+    """
     d = _doses(doses_gy)
     return 100.0 * float(np.count_nonzero(d >= threshold_gy)) / len(d)
 
@@ -120,9 +172,16 @@ def cumulative_dvh(
     Parameters
     ----------
     doses_gy : (n,) float, Gy
+        Dose at each voxel of the structure.
     voxel_cc : float, cm³
+        Volume of one voxel.
     dose_axis_gy : (m,) float, Gy, optional
         Increasing axis starting at 0; default 0 to the maximum dose in 1001 points.
+
+    Returns
+    -------
+    Dvh
+        Volume (cm³) receiving at least each dose of the axis.
     """
     d = np.sort(_doses(doses_gy))
     _check_voxel(voxel_cc)
@@ -138,14 +197,54 @@ def cumulative_dvh(
 
 
 def eqd2(dose_per_fraction_gy: np.ndarray | float, n_fractions: int, alpha_beta_gy: float) -> np.ndarray:
-    """EQD2 (Gy) of ``n_fractions`` fractions of ``dose_per_fraction_gy`` (linear-quadratic model)."""
+    """EQD2 (Gy) of ``n_fractions`` fractions of ``dose_per_fraction_gy`` (linear-quadratic model).
+
+    Parameters
+    ----------
+    dose_per_fraction_gy : float or array, Gy
+        Physical dose per fraction.
+    n_fractions : int
+        Number of fractions (>= 1).
+    alpha_beta_gy : float, Gy
+        α/β of the tissue (> 0).
+
+    Returns
+    -------
+    ndarray, Gy
+        EQD2, the shape of ``dose_per_fraction_gy`` (0-d for a number).
+
+    Raises
+    ------
+    ValueError
+        Fewer than one fraction or α/β not positive.
+    """
     _check_lq(n_fractions, alpha_beta_gy)
     d = np.asarray(dose_per_fraction_gy, dtype=float)
     return n_fractions * d * (d + alpha_beta_gy) / (2.0 + alpha_beta_gy)
 
 
 def dose_per_fraction_for_eqd2(eqd2_gy: float, n_fractions: int, alpha_beta_gy: float) -> float:
-    """Inverse of :func:`eqd2`: the dose per fraction (Gy) giving ``eqd2_gy`` in ``n_fractions``."""
+    """Inverse of :func:`eqd2`: the dose per fraction (Gy) giving ``eqd2_gy`` in ``n_fractions``.
+
+    Parameters
+    ----------
+    eqd2_gy : float, Gy
+        EQD2 to deliver.
+    n_fractions : int
+        Fractions that share it (>= 1).
+    alpha_beta_gy : float, Gy
+        The tissue's α/β (> 0).
+
+    Returns
+    -------
+    float, Gy
+        Dose per fraction; 0 when ``eqd2_gy`` <= 0.
+
+    Raises
+    ------
+    ValueError
+        Fewer than one fraction or α/β not positive.
+    """
     _check_lq(n_fractions, alpha_beta_gy)
     if eqd2_gy <= 0:
         return 0.0
@@ -168,8 +267,15 @@ class Fractionation:
     ----------
     n_fractions : int
         Brachytherapy fractions (the plan's dose is per fraction).
-    ebrt_dose_gy, ebrt_fractions : float, int
-        External-beam course added to every structure (EMBRACE II: 45 Gy in 25 fractions); 0 for none.
+    ebrt_dose_gy : float, Gy
+        External-beam dose added to every structure (EMBRACE II: 45 Gy); 0 for none.
+    ebrt_fractions : int
+        Fractions of the external-beam course (EMBRACE II: 25).
+
+    Raises
+    ------
+    ValueError
+        Fewer than one fraction, or a negative external-beam dose.
     """
 
     n_fractions: int = 4
@@ -181,12 +287,38 @@ class Fractionation:
             raise ValueError("fractions must be >= 1 and the external-beam dose >= 0 Gy")
 
     def total_eqd2(self, dose_per_fraction_gy: float, alpha_beta_gy: float) -> float:
-        """EQD2 of brachytherapy (per-fraction dose × n) plus the external-beam course, Gy."""
+        """EQD2 of brachytherapy (per-fraction dose × n) plus the external-beam course, Gy.
+
+        Parameters
+        ----------
+        dose_per_fraction_gy : float, Gy
+            Brachytherapy dose per fraction.
+        alpha_beta_gy : float, Gy
+            α/β of the tissue.
+
+        Returns
+        -------
+        float, Gy
+            Total EQD2.
+        """
         ebrt = float(eqd2(self.ebrt_dose_gy / self.ebrt_fractions, self.ebrt_fractions, alpha_beta_gy))
         return float(eqd2(dose_per_fraction_gy, self.n_fractions, alpha_beta_gy)) + ebrt
 
     def per_fraction_for(self, total_eqd2_gy: float, alpha_beta_gy: float) -> float:
-        """Brachytherapy dose per fraction (Gy) that brings the total to ``total_eqd2_gy``."""
+        """Brachytherapy dose per fraction (Gy) that brings the total to ``total_eqd2_gy``.
+
+        Parameters
+        ----------
+        total_eqd2_gy : float, Gy
+            Total EQD2 aimed at (external beam included).
+        alpha_beta_gy : float, Gy
+            α/β of the tissue.
+
+        Returns
+        -------
+        float, Gy
+            Dose per brachytherapy fraction; 0 when the external beam alone reaches the total.
+        """
         ebrt = float(eqd2(self.ebrt_dose_gy / self.ebrt_fractions, self.ebrt_fractions, alpha_beta_gy))
         return dose_per_fraction_for_eqd2(total_eqd2_gy - ebrt, self.n_fractions, alpha_beta_gy)
 
@@ -197,7 +329,24 @@ class StructureMetrics:
 
     Physical values are Gy per brachytherapy fraction; ``*_eqd2_gy`` are totals (brachytherapy
     fractions + external beam) with the structure's α/β. V100/V150 are % of the volume receiving at
-    least 100 %/150 % of ``prescription_gy``.
+    least 100 %/150 % of the prescription.
+
+    Parameters
+    ----------
+    name : str
+        The structure's name.
+    volume_cc : float, cm³
+        Its volume (voxels × voxel volume).
+    d90_gy, d98_gy : float, Gy per fraction
+        Minimum dose to the hottest 90 % and 98 %.
+    d2cc_gy : float, Gy per fraction
+        Minimum dose to the hottest 2 cm³.
+    v100_pct, v150_pct : float, %
+        Volume receiving at least 100 % and 150 % of the prescription.
+    d90_eqd2_gy, d98_eqd2_gy, d2cc_eqd2_gy : float, Gy
+        The same doses as total EQD2.
+    alpha_beta_gy : float, Gy
+        The α/β used.
     """
 
     name: str
@@ -226,11 +375,27 @@ def structure_metrics(
     Parameters
     ----------
     name : str
-    doses_gy : (n,) float, Gy per fraction, at the structure's voxels
+        The structure's name.
+    doses_gy : (n,) float, Gy per fraction
+        Dose at the structure's voxels.
     voxel_cc : float, cm³
-    prescription_gy : float, Gy per fraction (> 0), for V100 and V150
-    alpha_beta_gy : float, Gy (10 for tumour, 3 for organs at risk)
-    fractionation : Fractionation, optional (default: EMBRACE II, 4 fractions + 45 Gy / 25)
+        Volume of one voxel.
+    prescription_gy : float, Gy per fraction
+        Prescribed dose (> 0), for V100 and V150.
+    alpha_beta_gy : float, Gy
+        α/β of the structure (10 for tumour, 3 for organs at risk).
+    fractionation : Fractionation, optional
+        Default: EMBRACE II, 4 fractions + 45 Gy / 25.
+
+    Returns
+    -------
+    StructureMetrics
+        D90, D98, D2cc, V100, V150, physical and EQD2.
+
+    Raises
+    ------
+    ValueError
+        A prescription that is not positive, or no voxels.
     """
     fr = Fractionation() if fractionation is None else fractionation
     if not prescription_gy > 0:

@@ -172,8 +172,21 @@ class Tg43Kernel:
                       weights: np.ndarray) -> np.ndarray:
         """``compiled_rates(points_mm, positions_mm, directions) @ weights`` without forming the matrix.
 
-        ``weights``: (n,) float (e.g. dwell times); returns (m,) float64 in cGy h⁻¹ U⁻¹ × the weights' unit (the
-        float32 pair rates summed in float64).
+        Parameters
+        ----------
+        points_mm : (m, 3) float, mm, LPS
+            Where the dose is computed.
+        positions_mm : (n, 3) float, mm, LPS
+            Source centre at each dwell.
+        directions : (n, 3) float, unit vectors, LPS
+            Source axis at each dwell, toward the needle tip.
+        weights : (n,) float
+            Weight of each dwell (e.g. dwell times).
+
+        Returns
+        -------
+        (m,) float64, cGy h⁻¹ U⁻¹ × the weights' unit
+            The float32 pair rates summed in float64.
         """
         from reachplan.planner.dose import _tg43_numba as nb
 
@@ -205,7 +218,14 @@ class Tg43Kernel:
         r_cm : array, cm
             Distance from the source centre.
         cos_theta : array
-            Cosine of the angle between the source axis (toward the tip) and the point; same shape.
+            Cosine of the angle between the source axis (toward the tip) and the point; broadcast with ``r_cm``.
+        dtype : type
+            Float type of the computation (``np.float32`` for grids).
+
+        Returns
+        -------
+        array of ``dtype``, cGy h⁻¹ U⁻¹
+            The broadcast shape of ``r_cm`` and ``cos_theta``.
         """
         r, c = np.broadcast_arrays(np.asarray(r_cm, dtype=dtype), np.asarray(cos_theta, dtype=dtype))
         r = np.array(r, dtype=dtype)  # a private copy: the kernel works in place
@@ -284,7 +304,20 @@ class Tg43Kernel:
 
 
 def radial_dose(source: SourceData, r_cm: np.ndarray) -> np.ndarray:
-    """g_L(r) with TG-43U1 interpolation and extrapolation (see module docstring)."""
+    """g_L(r) with TG-43U1 interpolation and extrapolation (see module docstring).
+
+    Parameters
+    ----------
+    source : SourceData
+        Consensus data of the source.
+    r_cm : array, cm
+        Distances from the source centre.
+
+    Returns
+    -------
+    array
+        Radial dose function (dimensionless), the shape of ``r_cm``.
+    """
     r = np.asarray(r_cm, dtype=float)
     rt, gt = source.radial_r_cm, source.radial_g
     g = np.interp(r, rt, gt)
@@ -296,7 +329,22 @@ def radial_dose(source: SourceData, r_cm: np.ndarray) -> np.ndarray:
 
 
 def anisotropy(source: SourceData, r_cm: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
-    """F(r, θ): bilinear in (r, θ), nearest column outside the tabulated r range."""
+    """F(r, θ): bilinear in (r, θ), nearest column outside the tabulated r range.
+
+    Parameters
+    ----------
+    source : SourceData
+        The source's consensus tables (F is read from them).
+    r_cm : array, cm
+        Distance of each point from the source centre.
+    theta_deg : array, degrees
+        Polar angle from the source axis (toward the tip), clipped to [0, 180]; broadcast with ``r_cm``.
+
+    Returns
+    -------
+    array
+        2D anisotropy function (dimensionless), the broadcast shape.
+    """
     fr, ft, f = source.anisotropy_r_cm, source.anisotropy_theta_deg, source.anisotropy_f
     r, th = np.broadcast_arrays(np.asarray(r_cm, float), np.asarray(theta_deg, float))
     rr = np.clip(r, fr[0], fr[-1]).ravel()
@@ -315,7 +363,20 @@ def anisotropy(source: SourceData, r_cm: np.ndarray, theta_deg: np.ndarray) -> n
 
 
 def phi_an(source: SourceData, r_cm: np.ndarray) -> np.ndarray:
-    """1D anisotropy function φ_an(r) = ½ ∫ F(r,θ) G_L(r,θ)/G_L(r,90°) sin θ dθ (trapezoidal, 0.25°)."""
+    """1D anisotropy function φ_an(r) = ½ ∫ F(r,θ) G_L(r,θ)/G_L(r,90°) sin θ dθ (trapezoidal, 0.25°).
+
+    Parameters
+    ----------
+    source : SourceData
+        Its active length and F table give the integrand.
+    r_cm : array, cm
+        Distances from the source centre (held at 0.6 L below it).
+
+    Returns
+    -------
+    array
+        φ_an (dimensionless), the shape of ``r_cm``.
+    """
     r = np.maximum(np.asarray(r_cm, dtype=float), 0.6 * source.active_length_cm)
     theta = np.radians(np.arange(0.0, 180.0 + 0.125, 0.25))
     L = source.active_length_cm
@@ -374,17 +435,50 @@ class DwellSet:
         return len(self.times_s)
 
     def with_times(self, times_s: np.ndarray) -> DwellSet:
-        """Return the same dwells with other times (``times_s``: (n,) float, s)."""
+        """Return the same dwells with other times.
+
+        Parameters
+        ----------
+        times_s : (n,) float, s
+            New dwell times (>= 0).
+
+        Returns
+        -------
+        DwellSet
+            Same positions, directions and channels.
+        """
         return DwellSet(self.positions_mm, self.directions, times_s, self.channels)
 
     def select(self, mask: np.ndarray) -> DwellSet:
-        """Return the dwells where ``mask`` (n,) bool is true."""
+        """Return the dwells where ``mask`` is true.
+
+        Parameters
+        ----------
+        mask : (n,) bool
+            Which dwells to keep.
+
+        Returns
+        -------
+        DwellSet
+            The kept dwells, in order.
+        """
         m = np.asarray(mask, dtype=bool)
         return DwellSet(self.positions_mm[m], self.directions[m], self.times_s[m], self.channels[m])
 
     @staticmethod
     def concatenate(parts: Iterable[DwellSet]) -> DwellSet:
-        """Join dwell sets in order into one (an empty set when there are none)."""
+        """Join dwell sets in order into one (an empty set when there are none).
+
+        Parameters
+        ----------
+        parts : iterable of DwellSet
+            The sets to join.
+
+        Returns
+        -------
+        DwellSet
+            Their dwells one after the other.
+        """
         ps = list(parts)
         if not ps:
             return DwellSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int))
@@ -637,14 +731,25 @@ def dwells_along_path(
     ----------
     path_mm : (k, 3) float, mm, LPS
         Needle centre line ordered from the tip to the base.
-    step_mm, tip_offset_mm, active_length_mm : float, mm
-        Dwell step, distance of the first dwell from the tip, and length (from the first dwell) over
-        which dwells are placed; positions beyond the path's length are dropped.
+    step_mm : float, mm
+        Dwell step along the path (> 0).
+    tip_offset_mm : float, mm
+        Distance of the first dwell from the tip (>= 0).
+    active_length_mm : float, mm
+        Length (from the first dwell) over which dwells are placed (>= 0); positions beyond the path's length
+        are dropped.
 
     Returns
     -------
     positions : (n, 3) float, mm, LPS
-    directions : (n, 3) float, unit, toward the tip
+        Dwell positions on the path.
+    directions : (n, 3) float, unit, LPS
+        Source axis at each, toward the tip.
+
+    Raises
+    ------
+    ValueError
+        A step, offset or length out of range, or a path of fewer than two distinct points.
     """
     if not (step_mm > 0 and tip_offset_mm >= 0 and active_length_mm >= 0):
         raise ValueError("dwell step must be > 0 mm, tip offset and active length >= 0 mm")
@@ -671,7 +776,15 @@ _KNOWN_ISOTOPES = frozenset({"ir192", "co60", "cs137", "i125", "pd103", "yb169",
 def isotope_of(text: str) -> str | None:
     """Return the isotope named in ``text`` as ``"ir192"`` (``"Ir-192"``, ``"192Ir"``, ``"GammaMed Ir192 HDR"``).
 
-    None when it names no known brachytherapy isotope.
+    Parameters
+    ----------
+    text : str
+        A Source Isotope Name, a source's name or any label.
+
+    Returns
+    -------
+    str or None
+        Element symbol and mass number in lower case; None when it names no known brachytherapy isotope.
     """
     for m in _ISOTOPE.finditer(text.lower()):
         key = f"{m.group(1)}{m.group(2)}" if m.group(1) else f"{m.group(4)}{m.group(3)}"
@@ -682,6 +795,15 @@ def isotope_of(text: str) -> str | None:
 
 def check_isotope(source: BrachySource, data: SourceData, where: str) -> None:
     """Refuse TG-43 data of another isotope than the plan's source.
+
+    Parameters
+    ----------
+    source : BrachySource
+        The plan's source.
+    data : SourceData
+        The TG-43 data to compute with.
+    where : str
+        What is being checked (starts the error message).
 
     Raises
     ------
@@ -702,8 +824,22 @@ def check_isotope(source: BrachySource, data: SourceData, where: str) -> None:
 class PointCheck:
     """Our dose and the TPS's at one dose reference point.
 
-    ``position_mm`` (3,) mm LPS; doses in Gy over the whole plan (all fractions and pulses);
-    ``tps_gy`` and ``diff_percent`` are None when the plan carries no TPS dose for the point.
+    Doses are in Gy over the whole plan (all fractions and pulses).
+
+    Parameters
+    ----------
+    number : int
+        Dose Reference Number.
+    name : str
+        Dose Reference Description.
+    position_mm : (3,) float, mm, LPS
+        The point.
+    dose_gy : float, Gy
+        Our dose there.
+    tps_gy : float or None, Gy
+        The TPS's dose; None when the plan carries none for the point.
+    diff_percent : float or None, %
+        ``100 (dose_gy / tps_gy − 1)``; None without a TPS dose.
     """
 
     number: int
@@ -753,7 +889,24 @@ def plan_dwells(plan: RtPlan, paths: Mapping[int, np.ndarray]) -> DwellSet:
 def check_points(
     plan: RtPlan, dwells: DwellSet, kernel: Tg43Kernel, air_kerma_strength_u: float
 ) -> tuple[PointCheck, ...]:
-    """Recompute the dose at every point dose reference of ``plan`` and set it beside the TPS's."""
+    """Recompute the dose at every point dose reference of ``plan`` and set it beside the TPS's.
+
+    Parameters
+    ----------
+    plan : RtPlan
+        The plan; references without a position are skipped.
+    dwells : DwellSet
+        The plan's dwells with whole-plan times (see :func:`plan_dwells`).
+    kernel : Tg43Kernel
+        The source's dose-rate kernel.
+    air_kerma_strength_u : float, U
+        Source strength (cGy cm² h⁻¹).
+
+    Returns
+    -------
+    tuple of PointCheck
+        One per point reference with a position, in the plan's order.
+    """
     refs = [r for r in plan.dose_references if r.position_mm is not None]
     if not refs:
         return ()

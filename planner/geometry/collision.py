@@ -27,7 +27,19 @@ from reachplan.planner.geometry.distance_field import DistanceField, inside_by_p
 
 @dataclass(frozen=True, eq=False)
 class Organ:
-    """An organ at risk (or bone) as a watertight mesh in LPS mm; its FCL model is built on first use."""
+    """An organ at risk (or bone) as a watertight mesh in LPS mm; its FCL model is built on first use.
+
+    Parameters
+    ----------
+    name : str
+        The organ's normalised name.
+    mesh : trimesh.Trimesh
+        Watertight triangle mesh, vertices in mm, LPS.
+    bounds_mm : (2, 3) float, mm, LPS
+        Axis-aligned box of the mesh (min, max).
+    field : DistanceField or None
+        Screen: FCL only for paths that may come within its confirm band; None measures every path with FCL.
+    """
 
     name: str
     mesh: trimesh.Trimesh
@@ -36,7 +48,13 @@ class Organ:
 
     @cached_property
     def fcl_object(self) -> fcl.CollisionObject:
-        """The mesh as an FCL BVH model; built when first needed (an organ the screen always clears never is)."""
+        """The mesh as an FCL BVH model; built when first needed (an organ the screen always clears never is).
+
+        Returns
+        -------
+        fcl.CollisionObject
+            The mesh (LPS mm) at the identity transform.
+        """
         bvh = fcl.BVHModel()
         bvh.beginModel(len(self.mesh.vertices), len(self.mesh.faces))
         bvh.addSubModel(np.asarray(self.mesh.vertices, dtype=float), np.asarray(self.mesh.faces, dtype=np.int64))
@@ -52,10 +70,20 @@ class Organ:
         return {}  # containment by point: the candidates of one template hole all start there
 
     def contains(self, point_mm: np.ndarray) -> bool:
-        """Tell whether a point ((3,) float, mm, LPS) lies inside the organ.
+        """Tell whether a point lies inside the organ.
 
         By ray parity (compiled, :func:`reachplan.planner.geometry.distance_field.inside_by_parity`) when the
         point is within the bounding box.
+
+        Parameters
+        ----------
+        point_mm : (3,) float, mm, LPS
+            The point.
+
+        Returns
+        -------
+        bool
+            True inside the mesh (cached per point).
         """
         q = np.asarray(point_mm, dtype=float).reshape(3)
         lo, hi = self.bounds_mm
@@ -69,6 +97,18 @@ class Organ:
 
 def make_organ(name: str, mesh: trimesh.Trimesh) -> Organ:
     """Wrap a mesh (LPS mm) for collision queries.
+
+    Parameters
+    ----------
+    name : str
+        Name the organ goes by (normalised).
+    mesh : trimesh.Trimesh
+        Its triangle mesh (vertices in mm, LPS); must be watertight.
+
+    Returns
+    -------
+    Organ
+        Without a distance field (see :func:`with_distance_field`).
 
     Raises
     ------
@@ -108,9 +148,26 @@ def _joints(path_mm: np.ndarray, radius_mm: float) -> np.ndarray:
 
 
 def capsule_chain(path_mm: np.ndarray, radius_mm: float) -> list[fcl.CollisionObject]:
-    """FCL capsules of radius ``radius_mm`` along ``path_mm`` ((n, 3) float, mm, LPS), one per segment.
+    """FCL capsules of radius ``radius_mm`` along a needle path, one per segment.
 
     Zero-length segments are skipped; a single point becomes a sphere.
+
+    Parameters
+    ----------
+    path_mm : (n, 3) float, mm, LPS
+        Needle centreline.
+    radius_mm : float, mm
+        Needle radius (> 0).
+
+    Returns
+    -------
+    list of fcl.CollisionObject
+        One capsule per non-zero segment, in path order (one sphere for a single point).
+
+    Raises
+    ------
+    PlanInputError
+        A path that is not a finite (n, 3) array, or a radius that is not positive.
     """
     pts = _joints(path_mm, radius_mm)
     if len(pts) == 1:
@@ -129,10 +186,17 @@ def _capsule(a: np.ndarray, b: np.ndarray, radius_mm: float) -> fcl.CollisionObj
 class Clearance:
     """Result of checking one path against one organ.
 
-    ``clearance_mm`` is the surface-to-surface distance (0.0 when touching or inside); ``collides`` is
-    True when the needle touches, crosses or lies inside the organ; ``contact_s_mm`` is the arc length
-    along the path (from its first point) where the needle first touches the organ, to within
-    ``resolution_mm``, or None when clear.
+    Parameters
+    ----------
+    organ : str
+        The organ's name.
+    clearance_mm : float, mm
+        Surface-to-surface distance from the needle to the organ (0.0 when touching or inside).
+    collides : bool
+        True when the needle touches, crosses or lies inside the organ.
+    contact_s_mm : float or None, mm
+        Arc length along the path (from its first point) where the needle first touches the organ, to within
+        the check's resolution; None when clear.
     """
 
     organ: str
@@ -156,12 +220,33 @@ def _first_contact_s(a: np.ndarray, b: np.ndarray, radius_mm: float, organ: Orga
 def path_clearance(
     path_mm: np.ndarray, radius_mm: float, organ: Organ, resolution_mm: float = 1.0
 ) -> Clearance:
-    """Clearance of a needle path ((n, 3) float, mm, LPS; capsules of ``radius_mm``) to one organ.
+    """Clearance of a needle path to one organ.
 
     Exact (FCL, one capsule per segment). With the organ's distance field, only the segments whose lower bound
     is at most the smallest upper bound are measured
     (:meth:`reachplan.planner.geometry.distance_field.DistanceField.segment_bounds`): any other is farther than
     some segment and clear of the organ, so the clearance, the collision and its first contact are unchanged.
+
+    Parameters
+    ----------
+    path_mm : (n, 3) float, mm, LPS
+        Needle centreline, checked as capsules of ``radius_mm``.
+    radius_mm : float, mm
+        Needle radius (> 0).
+    organ : Organ
+        The organ.
+    resolution_mm : float, mm
+        Arc-length resolution of the first contact.
+
+    Returns
+    -------
+    Clearance
+        Clearance (mm), whether it collides and where it first touches.
+
+    Raises
+    ------
+    PlanInputError
+        A path that is not a finite (n, 3) array, or a radius that is not positive.
     """
     pts = _joints(path_mm, radius_mm)
     measure: list[int] = list(range(max(len(pts) - 1, 1)))
@@ -201,6 +286,23 @@ def with_distance_field(organ: Organ, confirm_within_mm: float = np.inf, pitch_m
 
     With a finite ``confirm_within_mm`` clearances proven beyond it are the field's
     estimates instead of FCL's.
+
+    Parameters
+    ----------
+    organ : Organ
+        The organ to screen.
+    confirm_within_mm : float, mm
+        Clearances whose lower bound is at most this are confirmed by FCL (infinite: all).
+    pitch_mm : float, mm
+        Grid pitch of the field.
+    reach_mm : float or None, mm
+        How far the field reaches beyond the mesh's box; None: the default (see
+        :meth:`DistanceField.from_mesh`).
+
+    Returns
+    -------
+    Organ
+        A copy with ``field`` set.
     """
     f = DistanceField.from_mesh(organ.mesh, pitch_mm=pitch_mm, reach_mm=reach_mm, confirm_within_mm=confirm_within_mm)
     return dataclasses.replace(organ, field=f)
@@ -216,6 +318,25 @@ def check_path(path_mm: np.ndarray, radius_mm: float, organs: tuple[Organ, ...])
     whose lower bound exceeds its field's ``confirm_within_mm`` (infinite unless set) gets the field's estimate.
     The rest is measured exactly with FCL, so the minimum clearance, the nearest organ and every collision are
     exact (with an infinite band); skipped organs are absent from the result.
+
+    Parameters
+    ----------
+    path_mm : (n, 3) float, mm, LPS
+        The needle's centreline, hole first.
+    radius_mm : float, mm
+        Outer radius of the needle.
+    organs : tuple of Organ
+        Organs at risk and bone.
+
+    Returns
+    -------
+    tuple of Clearance
+        One per organ measured, nearest boxes first; organs that cannot matter are absent.
+
+    Raises
+    ------
+    PlanInputError
+        A path that is not an (n, 3) array.
     """
     p = np.asarray(path_mm, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:

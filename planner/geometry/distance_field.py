@@ -128,8 +128,19 @@ def _parity_votes(tri, p, rays):  # type: ignore[no-untyped-def]
 def inside_by_parity(triangles: np.ndarray, point_mm: np.ndarray) -> bool:
     """Tell whether a point lies inside a closed triangle mesh: the parity of three rays' crossings, by majority.
 
-    ``triangles``: (m, 3, 3) float, mm (C order); ``point_mm``: (3,) float, mm. A ray through an edge or a
-    vertex can miscount; three rays in general directions outvote one such accident.
+    A ray through an edge or a vertex can miscount; three rays in general directions outvote one such accident.
+
+    Parameters
+    ----------
+    triangles : (m, 3, 3) float, mm
+        The mesh's triangles (C order), in the point's frame (LPS in the planner).
+    point_mm : (3,) float, mm
+        The point.
+
+    Returns
+    -------
+    bool
+        True when at least two of the rays cross the surface an odd number of times.
     """
     return bool(_parity_votes(triangles, np.asarray(point_mm, dtype=float), _RAYS) >= 2)
 
@@ -212,11 +223,25 @@ def _edt(seeds, spacing, scale, reach, out):  # type: ignore[no-untyped-def]
 
 def distance_transform(seeds: np.ndarray, spacing_mm: np.ndarray | tuple[float, float, float],
                        reach_mm: float = math.inf) -> np.ndarray:
-    """Return the exact Euclidean distance (mm, float64, clipped at ``reach_mm``) to the nearest ``seeds`` voxel.
+    """Return the exact Euclidean distance to the nearest ``seeds`` voxel, clipped at ``reach_mm``.
 
-    ``seeds``: 3-D bool array; ``spacing_mm``: (3,) voxel spacing along its axes. The compiled equivalent of
-    ``scipy.ndimage.distance_transform_edt(~seeds, sampling=spacing_mm)`` (within rounding; about 5 times faster on
-    the implant's organ map, with no feature-transform arrays); infinite everywhere when there is no seed.
+    The compiled equivalent of ``scipy.ndimage.distance_transform_edt(~seeds, sampling=spacing_mm)`` (within
+    rounding; about 5 times faster on the implant's organ map, with no feature-transform arrays).
+
+    Parameters
+    ----------
+    seeds : (n0, n1, n2) bool
+        The voxels distances are measured to.
+    spacing_mm : (3,) float, mm
+        Voxel spacing along the array's axes.
+    reach_mm : float, mm
+        Distances are clipped at this.
+
+    Returns
+    -------
+    (n0, n1, n2) float64, mm
+        Distance of each voxel centre to the nearest seed's; infinite (or ``reach_mm``) everywhere when there is
+        no seed.
     """
     out = np.empty(seeds.shape)
     _edt(np.ascontiguousarray(seeds, dtype=bool), np.asarray(spacing_mm, dtype=float).reshape(3), 1.0,
@@ -268,6 +293,29 @@ class DistanceField:
         A large organ (a pelvic bone) whose grid would exceed ``max_voxels`` at ``pitch_mm`` gets a coarser
         pitch instead: its error bound grows with the pitch, so more of its clearances are confirmed by FCL,
         never fewer proven wrong.
+
+        Parameters
+        ----------
+        mesh : trimesh.Trimesh
+            The organ's mesh, vertices in mm, LPS.
+        pitch_mm : float, mm
+            Grid pitch asked for (> 0).
+        reach_mm : float or None, mm
+            How far the grid extends beyond the mesh's box; None: the default described above.
+        confirm_within_mm : float, mm
+            Clearances whose lower bound is at most this are confirmed by FCL (infinite: all).
+        max_voxels : int
+            Largest grid built at ``pitch_mm``.
+
+        Returns
+        -------
+        DistanceField
+            The field on an LPS-aligned grid, with its error bound.
+
+        Raises
+        ------
+        PlanInputError
+            An empty mesh, or a pitch or reach that is not positive.
         """
         verts = np.asarray(mesh.vertices, dtype=float)
         if len(verts) == 0:
@@ -300,17 +348,43 @@ class DistanceField:
         return DistanceField(lo, float(pitch_mm), values, float(reach_mm), error, float(confirm_within_mm))
 
     def sample(self, points_mm: np.ndarray) -> np.ndarray:
-        """Field at points ((n, 3) float, mm, LPS) -> (n,) float64, mm."""
+        """Return the field at points.
+
+        Parameters
+        ----------
+        points_mm : (n, 3) float, mm, LPS
+            The points.
+
+        Returns
+        -------
+        (n,) float64, mm
+            Trilinear field value (``reach_mm`` outside the grid).
+        """
         p = np.ascontiguousarray(np.asarray(points_mm, dtype=float).reshape(-1, 3))
         out = np.empty(len(p))
         _sample(self.values_mm, self.origin_mm, 1.0 / self.pitch_mm, p, self.reach_mm, out)
         return out
 
     def path_clearance(self, path_mm: np.ndarray, radius_mm: float) -> tuple[float, float, float]:
-        """Return (estimate, lower bound, upper bound) of the clearance (mm).
+        """Return (estimate, lower bound, upper bound) of the clearance of a needle of ``radius_mm`` along ``path_mm``.
 
-        Of a needle of ``radius_mm`` along ``path_mm`` ((n, 3) float, mm, LPS). Out of reach the estimate is
-        ``reach_mm − radius_mm`` and the upper bound infinite.
+        Out of reach the estimate is ``reach_mm − radius_mm`` and the upper bound infinite.
+
+        Parameters
+        ----------
+        path_mm : (n, 3) float, mm, LPS
+            Needle centreline.
+        radius_mm : float, mm
+            Needle radius.
+
+        Returns
+        -------
+        estimate : float, mm
+            Smallest sampled field value minus the radius, at least 0.
+        lower : float, mm
+            Guaranteed lower bound on the clearance (may be negative).
+        upper : float, mm
+            Guaranteed upper bound (infinite out of reach).
         """
         step = self.pitch_mm
         best = float(self._segment_minima(path_mm).min())
@@ -328,12 +402,25 @@ class DistanceField:
         return out
 
     def segment_bounds(self, path_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
-        """Return (lower, upper) bounds (mm) of the clearance of each segment of a needle path.
+        """Return (lower, upper) bounds of the clearance of each segment of a needle path.
 
-        ``path_mm``: (n, 3) float, mm, LPS, n >= 2; the bounds are (n - 1,) float, those of
-        :meth:`path_clearance` for each segment ``path_mm[s]``-``path_mm[s + 1]`` alone (upper infinite out of
-        reach). An exact query of the whole path need only measure the segments whose lower bound is at most the
-        smallest upper bound: no other can touch the organ or be the nearest.
+        The bounds are those of :meth:`path_clearance` for each segment ``path_mm[s]``-``path_mm[s + 1]`` alone. An
+        exact query of the whole path need only measure the segments whose lower bound is at most the smallest upper
+        bound: no other can touch the organ or be the nearest.
+
+        Parameters
+        ----------
+        path_mm : (n, 3) float, mm, LPS
+            Needle centreline, n >= 2.
+        radius_mm : float, mm
+            Needle radius.
+
+        Returns
+        -------
+        lower : (n - 1,) float, mm
+            Lower bound per segment.
+        upper : (n - 1,) float, mm
+            Upper bound per segment (infinite out of reach).
         """
         best = self._segment_minima(path_mm)
         est = best - radius_mm

@@ -18,7 +18,18 @@ from reachplan.planner.errors import PlanInputError
 
 
 def has_closed(roi: Roi) -> bool:
-    """Whether ``roi`` has at least one closed planar contour of 3 or more points (something to mesh)."""
+    """Whether ``roi`` has at least one closed planar contour of 3 or more points (something to mesh).
+
+    Parameters
+    ----------
+    roi : Roi
+        The ROI.
+
+    Returns
+    -------
+    bool
+        True when it can be meshed.
+    """
     return any(c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3 for c in roi.contours)
 
 
@@ -34,9 +45,18 @@ def _kinds(roi: Roi) -> str:
 class OarSelection:
     """The organs at risk found in a structure set.
 
-    ``found``: normalised names of the organs at risk with closed contours (meshed and checked);
-    ``missing``: standard organs at risk no ROI maps to; ``skipped``: present but without closed contours;
-    ``unmapped``: original names of the ROIs that no standard name matched; ``notes``: one line per problem.
+    Parameters
+    ----------
+    found : tuple of str
+        Normalised names of the organs at risk with closed contours (meshed and checked).
+    missing : tuple of str
+        Standard organs at risk no ROI maps to.
+    skipped : tuple of str
+        Present but without closed contours.
+    unmapped : tuple of str
+        Original names of the ROIs that no standard name matched.
+    notes : tuple of str
+        One line per problem.
     """
 
     found: tuple[str, ...]
@@ -53,6 +73,13 @@ def _ambiguous(structures: StructureSet, name: str) -> list[Roi]:
 
 def check_unique(structures: StructureSet, names: Collection[str] = ()) -> None:
     """Refuse ROI names that occur twice, and standard names in ``names`` that several ROIs map to.
+
+    Parameters
+    ----------
+    structures : StructureSet
+        The structure set.
+    names : collection of str
+        Standard (normalised) names that must map to one ROI at most.
 
     Raises
     ------
@@ -80,9 +107,20 @@ def select_oars(structures: StructureSet, oar_names: Sequence[str],
 
     Parameters
     ----------
-    standard_names : the names the synonym table maps to (default: the built-in table's); an ROI whose
-        normalised name is not among them is listed as unmapped.
-    exclude : original or normalised ROI names not to list as unmapped (the targets).
+    structures : StructureSet
+        The structure set, its ROIs normalised through the synonym table.
+    oar_names : sequence of str
+        Normalised names of the organs at risk to look for.
+    standard_names : collection of str or None
+        The names the synonym table maps to (default: the built-in table's); an ROI whose normalised name is not
+        among them is listed as unmapped.
+    exclude : collection of str
+        Original or normalised ROI names not to list as unmapped (the targets).
+
+    Returns
+    -------
+    OarSelection
+        Found, missing, skipped and unmapped names, with notes.
 
     Raises
     ------
@@ -127,9 +165,15 @@ def select_oars(structures: StructureSet, oar_names: Sequence[str],
 def roi_points(roi: Roi) -> np.ndarray:
     """Return the points of a target ROI made only of POINT contours.
 
+    Parameters
+    ----------
+    roi : Roi
+        The target ROI.
+
     Returns
     -------
     (n, 3) float, mm, LPS
+        The points of its POINT contours, in contour order.
 
     Raises
     ------

@@ -38,7 +38,20 @@ if TYPE_CHECKING:
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
-    """Return the best ``n_per_target`` feasible candidates of every target."""
+    """Return the best ``n_per_target`` feasible candidates of every target.
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    n_per_target : int
+        Feasible candidates kept per target.
+
+    Returns
+    -------
+    list of Candidate
+        Target by target in ranking order, best first.
+    """
     return [c for cs in result.ranking.values() for c in [c for c in cs if c.feasible][:n_per_target]]
 
 
@@ -47,12 +60,35 @@ def _cell(v: float, digits: int = 1) -> str:
 
 
 def tension_flag(c: Candidate) -> bool:
-    """Return True when a needle's peak tension is within :data:`TENSION_MARGIN` of its stylet's design limit."""
+    """Return True when a needle's peak tension is within :data:`TENSION_MARGIN` of its stylet's design limit.
+
+    Parameters
+    ----------
+    c : Candidate
+        The needle.
+
+    Returns
+    -------
+    bool
+        False for a plain straight needle (no design).
+    """
     return c.design is not None and c.peak_tension_n >= (1 - TENSION_MARGIN) * c.design.max_tension_n
 
 
 def miss_flag(c: Candidate, tolerance_mm: float) -> bool:
-    """Return True when the worst-case reach error under the perturbations exceeds the reach tolerance."""
+    """Return True when the worst-case reach error under the perturbations exceeds the reach tolerance.
+
+    Parameters
+    ----------
+    c : Candidate
+        The needle (not assessed: False).
+    tolerance_mm : float, mm
+        The plan's reach tolerance.
+
+    Returns
+    -------
+    bool
+    """
     return bool(np.isfinite(c.worst_reach_mm) and c.worst_reach_mm > tolerance_mm)
 
 
@@ -80,6 +116,16 @@ def plain_model(c: Candidate) -> str:
     """Return the model behind a candidate's numbers in plain words.
 
     E.g. ``fast screening: ... bending from a planar beam model of the stylet``.
+
+    Parameters
+    ----------
+    c : Candidate
+        The candidate.
+
+    Returns
+    -------
+    str
+        Its insertion model, and rod model when there is one, in words.
     """
     words = PLAIN_MODELS.get(c.model.insertion, c.model.insertion)
     if c.model.rod_model:
@@ -135,7 +181,25 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
 
     Per target (in ``targets``' order, the user's; default the ranking's) its best straight and best steered
     needle with units in every header, then one line per arm with the dose aims met or not, then the files
-    written (``files``: (what, path) pairs).
+    written.
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    targets : sequence of str or None
+        Target names in the user's order; None: the ranking's.
+    delivery : Delivery or None
+        The delivered plan (its dose line); None: ranked only.
+    comparison : Comparison or None
+        Straight versus steered dose (one line per arm).
+    files : sequence of (str, str)
+        (what, path) of the files written.
+
+    Returns
+    -------
+    str
+        Lines of text (mm, N, Gy EQD2).
     """
     tol = result.config.reach_tolerance_mm
     head = (f"{'target':<15} {'needle':<9} {'hole':<5} {'from centre (mm)':>16} {'reach error (mm)':>16} "
@@ -174,6 +238,16 @@ def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
     Needles (candidates), aims, HR-CTV D90/D98/V100/V150/V200 (EQD2 totals, Gy), organ D2cm³, the needles' share of
     the dwell weight, the largest single dwell's share, loaded dwells per needle and the Pareto curve
     (needles:D90). The terminal (:func:`format_implant`) and the report print the same rows.
+
+    Parameters
+    ----------
+    comparison : ImplantComparison
+        Both implant arms.
+
+    Returns
+    -------
+    list of tuple of str
+        Label then one cell per arm ("-" for an arm without an implant).
     """
     arms = comparison.arms
     rows: list[tuple[str, ...]] = [("implant", *(a.name for a in arms))]
@@ -206,7 +280,18 @@ def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
 
 
 def format_implant(comparison: ImplantComparison) -> str:
-    """Return the two implant arms side by side (:func:`implant_rows`) for the terminal, then each arm's note."""
+    """Return the two implant arms side by side (:func:`implant_rows`) for the terminal, then each arm's note.
+
+    Parameters
+    ----------
+    comparison : ImplantComparison
+        The straight and the steered arm, each with its chosen implant or reason.
+
+    Returns
+    -------
+    str
+        The aligned table and the notes.
+    """
     rows = implant_rows(comparison)
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
@@ -264,9 +349,21 @@ WORKSPACE_CAPTION = ("Reachable workspace: where each hole's steered needle can 
 class ReportOptions:
     """What the report computes and draws.
 
-    ``max_slice_targets``: targets that get slice overlays (in ranking order); ``comparison``: run the
-    straight-versus-steered dose comparison; ``comparison_settings``: its LP settings; ``mesh_faces``:
-    faces per organ in the 3-D view (quadric decimation).
+    Parameters
+    ----------
+    max_slice_targets : int
+        Targets that get slice overlays (in ranking order), >= 0.
+    comparison : bool
+        Run the straight-versus-steered dose comparison.
+    comparison_settings : OptimizerSettings
+        Its LP settings.
+    mesh_faces : int
+        Faces per organ in the 3-D view (quadric decimation), >= 4.
+
+    Raises
+    ------
+    ValueError
+        ``max_slice_targets`` < 0 or ``mesh_faces`` < 4.
     """
 
     max_slice_targets: int = 12
@@ -290,9 +387,32 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
 
     Each arm gets the per-target best needle of its kind (:func:`~reachplan.planner.case.result.choose_needles`),
     optimised the same way (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm with no feasible needle
-    is left out; None when both are empty. ``planning``: the delivery's structures, when already built (else
-    :func:`reachplan.planner.delivery.planning_structures` builds them). ``source``: the TG-43 data set (the
-    delivery's, :attr:`~reachplan.planner.delivery.Delivery.source`).
+    is left out.
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    structures : StructureSet
+        The case's structures.
+    grid : Grid or None
+        Planning grid; None: the structures' own (see :func:`reachplan.planner.delivery.planning_structures`).
+    source : SourceData
+        The TG-43 data set (the delivery's, :attr:`~reachplan.planner.delivery.Delivery.source`).
+    target_roi : str
+        The target volume's ROI name.
+    air_kerma_u : float, U
+        Source strength (cGy cm² h⁻¹).
+    settings : OptimizerSettings
+        LP settings of both arms.
+    planning : PlanningStructures or None
+        The delivery's structures, when already built (else
+        :func:`reachplan.planner.delivery.planning_structures` builds them).
+
+    Returns
+    -------
+    Comparison or None
+        Both arms' coverage; None when both are empty.
     """
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
@@ -315,6 +435,16 @@ def models_used(result: PlanResult) -> dict[str, str]:
     """Say what each rod model did in this plan, by rod model name (from the candidates' models).
 
     E.g. ``{"planar_beam": "screening with kinematic (728 candidates)"}``.
+
+    Parameters
+    ----------
+    result : PlanResult
+        The plan.
+
+    Returns
+    -------
+    dict of str to str
+        Rod model name -> what it did.
     """
     from reachplan.planner.steering.tissue_rod import TISSUE_ROD
 
@@ -375,7 +505,20 @@ def _cand_cells(c: Candidate | None, steered: bool) -> tuple[str, ...]:
 
 
 def target_order(scene: Scene, result: PlanResult) -> list[str]:
-    """Return the ranked targets in the scene's order (the order the user gave them), then any others."""
+    """Return the ranked targets in the scene's order (the order the user gave them), then any others.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene (its targets in the user's order).
+    result : PlanResult
+        The ranked plan.
+
+    Returns
+    -------
+    list of str
+        Target names.
+    """
     named = [t.name for t in scene.targets if t.name in result.ranking]
     return named + [t for t in result.ranking if t not in named]
 
@@ -536,7 +679,18 @@ def _models_section(result: PlanResult, chart: bytes | None, rows: Sequence[Any]
 
 
 def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
-    """Isodoses and dwell positions of the delivered plan for the slices (None without a solved delivery)."""
+    """Isodoses and dwell positions of the delivered plan for the slices (None without a solved delivery).
+
+    Parameters
+    ----------
+    delivery : Delivery or None
+        The delivered plan.
+
+    Returns
+    -------
+    figures.DoseOverlay or None
+        Dose (Gy per fraction) at LPS mm points, the prescription and the active dwells.
+    """
     if delivery is None or not delivery.optimisation.success:
         return None
     from reachplan.planner.dose.optimize import Aims
@@ -552,7 +706,26 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
 
 def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate],
                      delivery: Delivery | None, max_faces: int) -> dict[str, Any]:
-    """Return the 3-D view's plotly figure: both arms' needles and the delivered plan's active dwells."""
+    """Return the 3-D view's plotly figure: both arms' needles and the delivered plan's active dwells.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organs and targets (LPS mm).
+    straight : sequence of Candidate
+        The chosen straight needles.
+    steered : sequence of Candidate
+        The chosen steered needles.
+    delivery : Delivery or None
+        The delivered plan (its active dwells are drawn when solved).
+    max_faces : int
+        Faces per organ mesh.
+
+    Returns
+    -------
+    dict of str to object
+        A plotly figure as a JSON-ready dict.
+    """
     needles = [Needle3d.of(c) for c in (*straight, *steered)]
     if delivery is None or not delivery.optimisation.success:
         return scene_figure(scene, needles, max_faces=max_faces)
@@ -611,16 +784,38 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
 
     Parameters
     ----------
-    scene, result : the plan (:func:`~reachplan.planner.case.scene.build_scene`,
-        :func:`~reachplan.planner.case.search.plan`)
-    volume : the image series, drawn under the organ outlines (optional)
-    delivery : the delivered plan (:func:`reachplan.planner.delivery.plan_delivery`), or None (ranked only)
-    comparison : straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why)
-    case : one line naming the case
-    timings : seconds per stage, shown at the end
-    case_figures : further figures for the case section (e.g. the overview and workspace figures)
-    model_errors : the measured rod-model error table (:func:`reachplan.planner.run.case.rod_model_errors`) for
-        the speed-versus-accuracy section; empty: the section says it is not available
+    scene : Scene
+        The plan's scene (:func:`reachplan.planner.case.scene.build_scene`).
+    result : PlanResult
+        The ranked plan (:func:`reachplan.planner.case.search.plan`).
+    volume : Volume or None
+        The image series, drawn under the organ outlines.
+    delivery : Delivery or None
+        The delivered plan (:func:`reachplan.planner.delivery.plan_delivery`), or None (ranked only).
+    comparison : Comparison or None
+        Straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why).
+    case : str
+        One line naming the case.
+    timings : mapping of str to float, s, or None
+        Seconds per stage, shown at the end.
+    source_name : str
+        The TG-43 source's name, for the dose section.
+    comparison_note : str
+        Why there is no comparison.
+    options : ReportOptions or None
+        What to compute and draw (None: the defaults).
+    quiet : bool
+        No progress bar.
+    case_figures : sequence of Figure
+        Further figures for the case section (e.g. the overview and workspace figures).
+    model_errors : sequence of ErrorRow
+        The measured rod-model error table (:func:`reachplan.planner.run.case.rod_model_errors`) for the
+        speed-versus-accuracy section; empty: the section says it is not available.
+
+    Returns
+    -------
+    Report
+        The report's sections, ready for :func:`reachplan.planner.report.html.render_html`.
     """
     options = options or ReportOptions()
     straight, steered = choose_needles(result, steered=False), choose_needles(result, steered=True)
@@ -695,8 +890,32 @@ def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: 
                         quiet: bool = True) -> tuple[Comparison | None, str]:
     """Run the straight-versus-steered dose comparison the report shows (:func:`compare_chosen`).
 
-    A dose computation, run with the delivery (the report only draws). Returns the comparison, or None with the
-    sentence the report prints instead: no delivery (ranked only), comparison turned off, or no feasible needle.
+    A dose computation, run with the delivery (the report only draws).
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan whose chosen needles are compared.
+    structures : StructureSet
+        The case's structures (HR-CTV and organs at risk).
+    delivery : Delivery or None
+        The delivered plan; None: ranked only.
+    grid : Grid or None
+        Planning grid (None: the structures').
+    target_roi : str
+        The target volume's ROI name.
+    options : ReportOptions or None
+        Whether and how to compare (None: the defaults).
+    quiet : bool
+        No progress bar.
+
+    Returns
+    -------
+    comparison : Comparison or None
+        The comparison, or None.
+    note : str
+        The sentence the report prints instead: no delivery (ranked only), comparison turned off, implant arms
+        compared instead, or no feasible needle; "" with a comparison.
     """
     options = options or ReportOptions()
     if delivery is None:
@@ -723,10 +942,43 @@ def report_html(scene: Scene, result: PlanResult, *, volume: Volume | None = Non
     """Build the report and render it as one self-contained HTML document, returned as text for the caller to write.
 
     Nothing is solved here: ``comparison`` (and ``comparison_note``) come from :func:`straight_vs_steered`, the
-    implant arms from ``delivery``. ``overview_png``, ``workspace_png``: the overview
-    (:func:`reachplan.planner.report.figures.overview`) and workspace
-    (:func:`reachplan.planner.report.workspace.workspace_figure`) figures, embedded in the case section when given.
-    ``model_errors``: see :func:`build_report`.
+    implant arms from ``delivery``.
+
+    Parameters
+    ----------
+    scene : Scene
+        The plan's scene.
+    result : PlanResult
+        The ranked plan.
+    volume : Volume or None
+        The image series, drawn under the organ outlines.
+    delivery : Delivery or None
+        The delivered plan, or None (ranked only).
+    comparison : Comparison or None
+        Straight versus steered.
+    comparison_note : str
+        Why there is no comparison.
+    case : str
+        One line naming the case.
+    timings : mapping of str to float, s, or None
+        Seconds per stage.
+    source_name : str
+        The TG-43 source's name.
+    options : ReportOptions or None
+        What to compute and draw.
+    quiet : bool
+        No progress bar.
+    overview_png : bytes or None
+        The overview figure (:func:`reachplan.planner.report.figures.overview`), embedded in the case section.
+    workspace_png : bytes or None
+        The workspace figure (:func:`reachplan.planner.report.workspace.workspace_figure`), likewise.
+    model_errors : sequence of ErrorRow
+        See :func:`build_report`.
+
+    Returns
+    -------
+    str
+        The HTML document.
     """
     from importlib.metadata import PackageNotFoundError, version
 

@@ -49,17 +49,34 @@ RADIOLOGICAL = ("seen from the patient's feet, as the operator sees the template
 
 
 def direction_letter(v: np.ndarray) -> str:
-    """Return the anatomical letter (R/L, A/P, I/S) of the LPS component that dominates direction ``v`` (3,)."""
+    """Return the anatomical letter (R/L, A/P, I/S) of the LPS component that dominates a direction.
+
+    Parameters
+    ----------
+    v : (3,) float, LPS
+        The direction.
+
+    Returns
+    -------
+    str
+        One letter: the negative or positive end of the dominant axis.
+    """
     v = np.asarray(v, dtype=float)
     i = int(np.argmax(np.abs(v)))
     return DIRECTION_LETTERS[i][int(v[i] > 0)]
 
 
 def label_edges(ax: Any, right: np.ndarray, up: np.ndarray) -> None:
-    """Write the anatomical letter of each edge of a 2-D axes inside it.
+    """Write the anatomical letter of each edge of a 2-D axes inside it (inverted axes are taken into account).
 
-    ``right`` and ``up`` (3,) are the patient (LPS) directions of the axes' +horizontal and +vertical data axes;
-    inverted axes are taken into account.
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes
+        The axes.
+    right : (3,) float, LPS
+        Patient direction of the axes' +horizontal data axis.
+    up : (3,) float, LPS
+        Patient direction of the axes' +vertical data axis.
     """
     r = -np.asarray(right, float) if ax.xaxis_inverted() else np.asarray(right, float)
     u = -np.asarray(up, float) if ax.yaxis_inverted() else np.asarray(up, float)
@@ -81,6 +98,18 @@ def png_bytes(fig: Figure, dpi: int = 100) -> bytes:
 
     256 colours (fast octree quantisation) keep the line art and the grey image underneath, at about a third of the
     size of matplotlib's RGBA PNG.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure (its log axes get plain labels, :func:`plain_log_labels`).
+    dpi : int
+        Dots per inch.
+
+    Returns
+    -------
+    bytes
+        The PNG file.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from PIL import Image
@@ -100,6 +129,11 @@ def plain_log_labels(fig: Figure) -> None:
 
     Matplotlib parses every ``$10^{n}$`` tick label with its mathtext parser, about a tenth of the report's
     drawing time; plain labels read as well.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure, changed in place.
     """
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
@@ -109,7 +143,18 @@ def plain_log_labels(fig: Figure) -> None:
 
 
 def organ_colour(name: str) -> str:
-    """Display colour of an organ (target ROIs green, unknown ones grey)."""
+    """Display colour of an organ (target ROIs green, unknown ones grey).
+
+    Parameters
+    ----------
+    name : str
+        The organ's or ROI's name.
+
+    Returns
+    -------
+    str
+        ``#rrggbb``.
+    """
     if name.casefold().startswith("target"):
         return TARGET_COLOUR
     return ORGAN_COLOURS.get(name, "#7f7f7f")
@@ -132,7 +177,19 @@ def _section(mesh: trimesh.Trimesh, axis: int, value_mm: float) -> list[np.ndarr
 def plane_section(mesh: trimesh.Trimesh, normal: np.ndarray, offset_mm: float) -> list[np.ndarray]:
     """Return where the plane ``x · normal = offset_mm`` cuts ``mesh``, as :func:`_section` does.
 
-    ``normal``: (3,) unit vector, LPS; ``offset_mm``: the plane's signed distance from the origin, mm.
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The organ's mesh, mm, LPS.
+    normal : (3,) float, unit vector, LPS
+        The plane's normal.
+    offset_mm : float, mm
+        The plane's signed distance from the origin.
+
+    Returns
+    -------
+    list of (3 n, 3) float, mm, LPS
+        One array of the n cut segments, each two points followed by a NaN row; empty when the plane misses.
     """
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     height = v @ np.asarray(normal, dtype=float) - offset_mm  # signed distance of each vertex, mm
@@ -241,11 +298,33 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
     """Axial, sagittal and coronal slices through a target with organ outlines and its two needles.
 
     The needles (best straight: dashed orange, best steered: solid cyan) are drawn projected onto each
-    plane, with their tips as dots; the target point is a green cross. ``organs`` names the meshes to
-    outline (default: the organs at risk, HR-CTV and the target's own ROI). Each view shows the needles and
-    the outlines in its plane, at most ``window_mm`` from the target. ``dose``: isodose lines (50, 100, 150,
-    200 % of the prescription) and dwell positions with their times (s). Organ outlines carry the gid
+    plane, with their tips as dots; the target point is a green cross. Each view shows the needles and
+    the outlines in its plane, at most ``window_mm`` from the target. Organ outlines carry the gid
     ``organ:NAME``, the axes the gid of their view (``axial``, ``sagittal``, ``coronal``).
+
+    Parameters
+    ----------
+    scene : Scene
+        Organ meshes and targets, mm, LPS.
+    target : str
+        The target's name; the planes pass through its point.
+    straight : Candidate or None
+        Its best straight needle.
+    steered : Candidate or None
+        Its best steered needle.
+    volume : Volume or None
+        The image, drawn in grey underneath (axis-aligned grids only).
+    organs : sequence of str or None
+        The meshes to outline (default: the organs at risk, HR-CTV and the target's own ROI).
+    window_mm : float, mm
+        Half-width of each view.
+    dose : DoseOverlay or None
+        Isodose lines (50, 100, 150, 200 % of the prescription) and dwell positions with their times (s).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Three axes, in the radiological convention (see the module docstring).
     """
     point = np.asarray(next(t.position_mm for t in scene.targets if t.name == target), dtype=float)
     names = list(organs) if organs is not None else [*(o.name for o in scene.organs), "HR-CTV", target]
@@ -300,7 +379,32 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
 def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: Candidate | None,
                 volume: Volume | None = None, organs: Sequence[str] | None = None,
                 window_mm: float = 120.0, dose: DoseOverlay | None = None) -> bytes:
-    """:func:`slice_figure` as PNG bytes."""
+    """:func:`slice_figure` as PNG bytes.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organ meshes and targets, mm, LPS.
+    target : str
+        The target's name.
+    straight : Candidate or None
+        Its best straight needle.
+    steered : Candidate or None
+        Its best steered needle.
+    volume : Volume or None
+        The image underneath.
+    organs : sequence of str or None
+        The meshes to outline.
+    window_mm : float, mm
+        Half-width of each view.
+    dose : DoseOverlay or None
+        Isodoses and dwells.
+
+    Returns
+    -------
+    bytes
+        PNG at 90 dpi.
+    """
     return png_bytes(slice_figure(scene, target, straight, steered, volume, organs, window_mm, dose), dpi=90)
 
 
@@ -309,6 +413,20 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
 
     With organ outlines, the target points (green crosses) and ``needles`` (steered: solid cyan, straight: dashed
     orange).
+
+    Parameters
+    ----------
+    scene : Scene
+        Organ meshes and targets, mm, LPS.
+    needles : sequence of Candidate
+        The needles to draw.
+    volume : Volume or None
+        The image underneath.
+
+    Returns
+    -------
+    bytes
+        PNG.
     """
     points = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)
     tz = float(np.mean(points[:, 2]))
@@ -360,6 +478,18 @@ def cluster_vertices(mesh: trimesh.Trimesh, face_count: int) -> trimesh.Trimesh:
     (Rossignac and Borrel, "Multi-resolution 3D approximations for rendering complex scenes", 1993). Linear in
     the faces, vectorised; the result is for drawing (it may be non-manifold where thin parts meet). A mesh with
     no area is returned as it is.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The mesh, mm, LPS.
+    face_count : int
+        About how many faces to keep.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        The simplified mesh, mm, LPS.
     """
     v0 = np.asarray(mesh.vertices, dtype=float)
     area = float(mesh.area)
@@ -389,6 +519,18 @@ def light_mesh(mesh: trimesh.Trimesh, max_faces: int = VIEW_FACES) -> trimesh.Tr
     Quadric decimation (trimesh with the ``fast-simplification`` package, aggressiveness 9 of 10: a fifth faster than
     its default 7 and alike at this size), after :func:`cluster_vertices` down to :data:`CLUSTER_FACTOR` times the
     budget for a mesh larger than that; a mesh already within the budget is returned as it is.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The mesh, mm, LPS.
+    max_faces : int
+        Face budget.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        mm, LPS.
     """
     if len(mesh.faces) <= max_faces:
         return mesh
@@ -404,6 +546,20 @@ def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Se
     (:data:`RADIOLOGICAL`). The axes are flipped as the pose requires (patient left to the right, anterior up)
     and the edges carry the anatomical letters of the pose. The holes of the chosen needles are filled and named
     in bold; the hole markers carry the gid ``holes``.
+
+    Parameters
+    ----------
+    scene : Scene
+        The template and its pose.
+    straight : sequence of Candidate
+        The chosen straight needles.
+    steered : sequence of Candidate
+        The chosen steered needles.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One axes in template coordinates (mm).
     """
     m = scene.patient_from_template
     fig = Figure(figsize=(8.0, 5.2))
@@ -442,7 +598,22 @@ def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Se
 
 
 def template_map(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> bytes:
-    """:func:`template_map_figure` as PNG bytes."""
+    """:func:`template_map_figure` as PNG bytes.
+
+    Parameters
+    ----------
+    scene : Scene
+        Template and pose, as for :func:`template_map_figure`.
+    straight : sequence of Candidate
+        Straight needles whose holes are marked.
+    steered : sequence of Candidate
+        Steered needles whose holes are marked.
+
+    Returns
+    -------
+    bytes
+        PNG at 90 dpi.
+    """
     return png_bytes(template_map_figure(scene, straight, steered), dpi=90)
 
 
@@ -451,10 +622,16 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
 
     Parameters
     ----------
-    rows : sequence of :class:`reachplan.rod_model.select.ErrorRow`
-        The packaged benchmark table (``rod_model/model_errors.json``).
-    used : mapping rod model name -> how this plan used it (e.g. ``"screening"``)
-        The registered (``default``) configuration of these models is ringed and labelled.
+    rows : sequence of ErrorRow
+        The packaged benchmark table (``rod_model/model_errors.json``, :class:`reachplan.rod_model.select.ErrorRow`).
+    used : mapping of str to str
+        Rod model name -> how this plan used it (e.g. ``"screening"``); the registered (``default``) configuration
+        of these models is ringed and labelled.
+
+    Returns
+    -------
+    bytes
+        PNG (ms against mm).
     """
     floor = 1e-10
     fig = Figure(figsize=(8.5, 5.4))
@@ -535,11 +712,20 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
 
     Parameters
     ----------
-    dvhs : sequence of (structure name, :class:`reachplan.planner.dose.coverage.Dvh`)
-    aims : :class:`reachplan.planner.dose.optimize.Aims`
-        Its D90 aim becomes a diamond at (prescription, 90 % of the target volume) that the target's curve must
-        pass to the right of; each organ limit a cross at (D2cm³ limit per fraction, 2 cm³) that the organ's
-        curve must pass to the left of.
+    dvhs : sequence of (str, Dvh)
+        Structure name and its :class:`reachplan.planner.dose.coverage.Dvh` (Gy per fraction, cm³).
+    aims : Aims
+        :class:`reachplan.planner.dose.optimize.Aims`: its D90 aim becomes a diamond at (prescription, 90 % of the
+        target volume) that the target's curve must pass to the right of; each organ limit a cross at (D2cm³ limit
+        per fraction, 2 cm³) that the organ's curve must pass to the left of.
+    target : str
+        The target's structure name (drawn thicker).
+    title : str
+        The axes' title.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     fig = Figure(figsize=(7.5, 5.6))
     ax = fig.add_subplot()
@@ -552,12 +738,18 @@ def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -
 
     Parameters
     ----------
-    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
-        Each arm with a chosen plan contributes its ``plan.dvhs`` (Gy per fraction, cm³); curves carry the gid
-        ``dvh:ARM:NAME``.
-    aims : :class:`reachplan.planner.dose.optimize.Aims`
-        Marked as in :func:`dvh_aims_figure` (once: the marks do not depend on the arm).
-    target : the target's structure name (drawn thicker, its D90 aim marked)
+    arms : sequence of ImplantArm
+        :class:`reachplan.planner.dose.implant.ImplantArm`: each arm with a chosen plan contributes its ``plan.dvhs``
+        (Gy per fraction, cm³); curves carry the gid ``dvh:ARM:NAME``.
+    aims : Aims
+        :class:`reachplan.planner.dose.optimize.Aims`, marked as in :func:`dvh_aims_figure` (once: the marks do not
+        depend on the arm).
+    target : str
+        The target's structure name (drawn thicker, its D90 aim marked).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     fig = Figure(figsize=(8.0, 5.6))
     ax = fig.add_subplot()
@@ -577,12 +769,17 @@ def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
 
     Parameters
     ----------
-    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
-        Each arm's ``pareto`` points are one curve (gid ``pareto:ARM``), the points that meet every aim filled
-        (gid ``met:ARM``) and the others hollow (``unmet:ARM``); the chosen plan (``plan.n_needles``,
-        ``plan.target.d90_eqd2_gy``) is circled (gid ``chosen:ARM``).
-    aim_gy : float
-        The HR-CTV D90 aim (EQD2, Gy; EMBRACE II: 85 Gy), a horizontal line (gid ``aim:D90``).
+    arms : sequence of ImplantArm
+        :class:`reachplan.planner.dose.implant.ImplantArm`: each arm's ``pareto`` points are one curve (gid
+        ``pareto:ARM``), the points that meet every aim filled (gid ``met:ARM``) and the others hollow
+        (``unmet:ARM``); the chosen plan (``plan.n_needles``, ``plan.target.d90_eqd2_gy``) is circled (gid
+        ``chosen:ARM``).
+    aim_gy : float, Gy
+        The HR-CTV D90 aim (EQD2; EMBRACE II: 85 Gy), a horizontal line (gid ``aim:D90``).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     fig = Figure(figsize=(7.5, 4.6))
     ax = fig.add_subplot()
@@ -617,5 +814,16 @@ def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
 
 
 def dvh_png(comparison: Any) -> bytes:
-    """Render the DVH figure of a :class:`reachplan.planner.dose.optimize.Comparison` as PNG bytes."""
+    """Render the DVH figure of a :class:`reachplan.planner.dose.optimize.Comparison` as PNG bytes.
+
+    Parameters
+    ----------
+    comparison : Comparison
+        The straight-versus-steered comparison.
+
+    Returns
+    -------
+    bytes
+        PNG at 90 dpi.
+    """
     return png_bytes(comparison.figure(), dpi=90)

@@ -23,7 +23,13 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 @dataclass(frozen=True)
 class Paragraph:
-    """A paragraph of plain text (escaped when rendered)."""
+    """A paragraph of plain text (escaped when rendered).
+
+    Parameters
+    ----------
+    text : str
+        The text.
+    """
 
     text: str
 
@@ -32,8 +38,23 @@ class Paragraph:
 class Table:
     """A table of text cells.
 
-    ``numeric`` marks the columns to right-align; ``collapsed`` puts the table in a closed
-    ``<details>`` element (for long tables), with ``caption`` as its summary.
+    Parameters
+    ----------
+    headers : tuple of str
+        Column headings.
+    rows : tuple of tuple of str
+        The rows, one cell per heading.
+    caption : str
+        The table's caption (its summary when collapsed).
+    numeric : tuple of int
+        Indices of the columns to right-align.
+    collapsed : bool
+        Put the table in a closed ``<details>`` element (for long tables).
+
+    Raises
+    ------
+    ValueError
+        A row with another number of cells than the headers, or a numeric column out of range.
     """
 
     headers: tuple[str, ...]
@@ -54,7 +75,22 @@ class Table:
 
 @dataclass(frozen=True, eq=False)
 class Figure:
-    """A PNG image with its caption (``alt`` defaults to the caption)."""
+    """A PNG image with its caption.
+
+    Parameters
+    ----------
+    png : bytes
+        The PNG file.
+    caption : str
+        Its caption.
+    alt : str
+        Alternative text (default: the caption).
+
+    Raises
+    ------
+    ValueError
+        ``png`` is not a PNG image.
+    """
 
     png: bytes
     caption: str
@@ -67,7 +103,20 @@ class Figure:
 
 @dataclass(frozen=True, eq=False)
 class Interactive:
-    """A plotly.js figure (``{"data": [...], "layout": {...}}``, JSON-ready) with its caption."""
+    """A plotly.js figure with its caption.
+
+    Parameters
+    ----------
+    figure : dict of str to object
+        ``{"data": [...], "layout": {...}}``, JSON-ready.
+    caption : str
+        Its caption.
+
+    Raises
+    ------
+    ValueError
+        No ``data`` list of traces.
+    """
 
     figure: dict[str, Any] = field(repr=False)
     caption: str
@@ -82,9 +131,23 @@ Block = Paragraph | Table | Figure | Interactive
 
 @dataclass(frozen=True, eq=False)
 class Section:
-    """A titled part of the report; ``anchor`` is its HTML id (letters, digits, ``-``).
+    """A titled part of the report.
 
     Rendered as ``<section id="ANCHOR">`` with the title as its heading and the blocks in order.
+
+    Parameters
+    ----------
+    title : str
+        Its heading.
+    anchor : str
+        Its HTML id (letters, digits, ``-``).
+    blocks : tuple of Block
+        Paragraphs, tables and figures, in order.
+
+    Raises
+    ------
+    ValueError
+        An empty anchor or one with other characters.
     """
 
     title: str
@@ -99,7 +162,22 @@ class Section:
 
 @dataclass(frozen=True, eq=False)
 class Report:
-    """A whole report: a title, a one-line subtitle and its sections in order."""
+    """A whole report.
+
+    Parameters
+    ----------
+    title : str
+        The document's title.
+    subtitle : str
+        A one-line subtitle.
+    sections : tuple of Section
+        Its sections in order, anchors unique.
+
+    Raises
+    ------
+    ValueError
+        Two sections with the same anchor.
+    """
 
     title: str
     subtitle: str
@@ -202,7 +280,13 @@ PLOTLY_BUNDLE = "plotly-gl3d.min.js"
 
 
 def plotly_js() -> str:
-    """Return the plotly.js gl3d partial bundle packaged beside this module (1.75 MB, minified)."""
+    """Return the plotly.js gl3d partial bundle packaged beside this module (1.75 MB, minified).
+
+    Returns
+    -------
+    str
+        The script.
+    """
     return (resources.files("reachplan.planner.report") / PLOTLY_BUNDLE).read_text(encoding="utf-8")
 
 
@@ -210,6 +294,23 @@ def render_html(report: Report, footer: str = "") -> str:
     """Render the report as one self-contained HTML5 document (no external resource; plotly.js inline when needed).
 
     Interactive figures get the ids ``plot-1``, ``plot-2``, ... in document order.
+
+    Parameters
+    ----------
+    report : Report
+        The report.
+    footer : str
+        The footer's text.
+
+    Returns
+    -------
+    str
+        The HTML document.
+
+    Raises
+    ------
+    ValueError
+        The plotly.js bundle contains ``</script`` and cannot be inlined.
     """
     nav = "".join(f'<a href="#{s.anchor}">{_e(s.title)}</a>' for s in report.sections)
     n_plots = 0

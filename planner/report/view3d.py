@@ -47,7 +47,17 @@ HIDDEN_ORGANS = ("Bone", "Obturator")
 
 @dataclass(frozen=True, eq=False)
 class Needle3d:
-    """A needle to draw: ``label`` (legend), ``path_mm`` (n, 3) float, mm, LPS, base to tip; ``steered``."""
+    """A needle to draw.
+
+    Parameters
+    ----------
+    label : str
+        Legend entry.
+    path_mm : (n, 3) float, mm, LPS
+        Centreline from base to tip.
+    steered : bool
+        Drawn as a steered needle (solid cyan) or a straight one (dashed orange).
+    """
 
     label: str
     path_mm: np.ndarray
@@ -55,7 +65,20 @@ class Needle3d:
 
     @staticmethod
     def of(c: Candidate, note: str = "") -> Needle3d:
-        """Return a candidate's needle, labelled by kind, hole and target."""
+        """Return a candidate's needle, labelled by kind, hole and target.
+
+        Parameters
+        ----------
+        c : Candidate
+            The candidate.
+        note : str
+            Appended to the label.
+
+        Returns
+        -------
+        Needle3d
+            Its path (mm, LPS) and kind.
+        """
         kind = "steered" if c.steered else "straight"
         return Needle3d(f"{kind} {c.hole_id} → {c.target}{note}", c.path_mm, c.steered)
 
@@ -81,20 +104,27 @@ def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_m
 
     Parameters
     ----------
-    scene : the plan's scene; every mesh in ``scene.meshes`` is one trace (Bone and Obturator start hidden)
-    needles : one trace each
+    scene : Scene
+        The plan's scene; every mesh in ``scene.meshes`` (mm, LPS) is one trace (Bone and Obturator start hidden).
+    needles : sequence of Needle3d
+        One trace each.
     dwell_positions_mm : (m, 3) float, mm, LPS, optional
         Active dwell positions of the delivered plan (one trace, marker size by time).
-    dwell_times_s : (m,) float, s
-    dwell_labels : m strings naming each dwell's needle (hover text)
-    max_faces : each organ is decimated to about this many faces
-        (:func:`reachplan.planner.report.figures.light_mesh`) to keep the report small
-    meshes : pre-decimated meshes by name (default: decimated here)
+    dwell_times_s : (m,) float, s, optional
+        Their dwell times.
+    dwell_labels : sequence of str, optional
+        m strings naming each dwell's needle (hover text).
+    max_faces : int
+        Each organ is decimated to about this many faces (:func:`reachplan.planner.report.figures.light_mesh`) to
+        keep the report small.
+    meshes : mapping of str to trimesh.Trimesh, optional
+        Pre-decimated meshes by name (default: decimated here).
 
     Returns
     -------
-    dict with ``data`` (traces; each has ``meta`` = ``organ``, ``needle``, ``targets``, ``template`` or
-    ``dwells``) and ``layout``
+    dict of str to object
+        ``data`` (traces; each has ``meta`` = ``organ``, ``needle``, ``targets``, ``template`` or ``dwells``) and
+        ``layout``; coordinates in mm, LPS.
     """
     data: list[dict[str, Any]] = []
     for name, mesh in scene.meshes.items():

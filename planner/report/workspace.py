@@ -16,9 +16,22 @@ from reachplan.planner.steering.steered import reach_radius_mm, shape_bank
 def workspace_figure(scene: Scene, config: PlanConfig, depth_mm: float | None = None) -> bytes:
     """Draw the reachable-workspace map at ``depth_mm`` beyond the template plane as PNG bytes.
 
-    An axial map in the template plane's coordinates (mm) at ``depth_mm`` (default: the targets' mean depth):
-    every needle hole with the disk its needle reaches there (first design of ``config``), the targets, and the
-    organs' outlines at that depth.
+    An axial map in the template plane's coordinates (mm) at ``depth_mm``: every needle hole with the disk its
+    needle reaches there (first design of ``config``), the targets, and the organs' outlines at that depth.
+
+    Parameters
+    ----------
+    scene : Scene
+        Template pose, targets and organ meshes (mm, LPS).
+    config : PlanConfig
+        Its first stylet design and schedule family set the reach; no design: straight only (radius 0).
+    depth_mm : float or None, mm
+        Depth along the template's z axis; None: the targets' mean depth.
+
+    Returns
+    -------
+    bytes
+        PNG.
     """
     inv = np.linalg.inv(scene.patient_from_template)
     t_local = np.array([inv[:3, :3] @ np.asarray(t.position_mm) + inv[:3, 3] for t in scene.targets])

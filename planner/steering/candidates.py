@@ -22,7 +22,20 @@ from reachplan.rod_model.design import RodDesign
 
 @dataclass(frozen=True)
 class Target:
-    """A point to reach: ``position_mm`` (3,) float, mm, LPS (e.g. the centroid of a target ROI)."""
+    """A point to reach (e.g. the centroid of a target ROI).
+
+    Parameters
+    ----------
+    name : str
+        The target's name (the ROI's).
+    position_mm : (3,) float, mm, LPS
+        The point.
+
+    Raises
+    ------
+    ValueError
+        ``position_mm`` is not three finite numbers.
+    """
 
     name: str
     position_mm: tuple[float, float, float]
@@ -113,7 +126,15 @@ class Candidate:
         return "" if self.design is None else self.design.name
 
     def to_json(self) -> dict[str, Any]:
-        """Return the candidate as JSON-ready values (mm, N, LPS)."""
+        """Return the candidate as JSON-ready values (mm, N, LPS).
+
+        Returns
+        -------
+        dict of str to JSON value
+            Its fields rounded to 1e-3 (``contact_depth_mm`` to 0.1 mm), ``entry_position_mm`` and
+            ``tip_position_mm`` (mm, LPS), the schedule as rows (depth mm, tension N, roll deg) and the robustness
+            (None when not assessed); ``clearance_mm`` None when not finite.
+        """
         sched = None if self.schedule is None else [
             [round(float(d), 3), round(float(t), 3), round(float(r), 3)]
             for d, t, r in zip(self.schedule.depth_mm, self.schedule.tension_n, self.schedule.roll_deg, strict=True)]
@@ -149,14 +170,40 @@ def mark_failed(candidate: Candidate, reason: str) -> Candidate:
     """Return the candidate marked as failed (not feasible) with ``reason`` added to its reasons.
 
     Its numbers stay those of the model that did solve it (``model`` names it).
+
+    Parameters
+    ----------
+    candidate : Candidate
+        The candidate a model failed on.
+    reason : str
+        Which model failed and why.
+
+    Returns
+    -------
+    Candidate
+        A copy with ``failed=True`` and the reasons joined by ``"; "``.
     """
     return dataclasses.replace(candidate, failed=True, reason="; ".join(r for r in (candidate.reason, reason) if r))
 
 
 def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float) -> np.ndarray:
-    """Return a straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``: (2, 3) float, mm, LPS.
+    """Return a straight needle from ``entry_mm`` along unit ``direction`` to ``depth_mm``.
 
     One capsule; collision depths are still resolved to 1 mm by the collision check.
+
+    Parameters
+    ----------
+    entry_mm : (3,) float, mm, LPS
+        The hole's entry point on the template plane.
+    direction : (3,) float, unit vector, LPS
+        The hole's axis (insertion direction).
+    depth_mm : float, mm
+        Inserted length.
+
+    Returns
+    -------
+    (2, 3) float, mm, LPS
+        Entry and tip.
     """
     return np.asarray(entry_mm, float) + np.outer([0.0, depth_mm], direction)
 
@@ -180,8 +227,44 @@ def score_path(
 ) -> Candidate:
     """Score one predicted path: reach error at the target, clearance and collisions against ``organs``.
 
-    ``depth_mm`` is the inserted arc length (default: the polyline's length); ``check=False`` skips the
-    collision check (clearance NaN) for a candidate that does not reach anyway.
+    Parameters
+    ----------
+    target : Target
+        The point to reach.
+    hole_id : str
+        The template hole the path enters by.
+    hole_distance_mm : float, mm
+        Distance of the hole from the template centre.
+    path_mm : (n, 3) float, mm, LPS
+        Needle centreline from the hole (first point) to the tip (last point).
+    organs : sequence of Organ
+        Organs at risk and bone to check against.
+    needle_radius_mm : float, mm
+        Needle radius of the collision check.
+    reach_tolerance_mm : float, mm
+        A tip within this distance of the target reaches it.
+    model : ModelInfo
+        The model that produced the path.
+    steered : bool
+        False for a straight needle.
+    peak_tension_n : float, N
+        Largest tendon tension of the schedule.
+    reason : str
+        A reason to carry over (e.g. why the depth was clipped); "" for none.
+    design : RodDesign or None
+        The stylet design (None for a plain straight needle).
+    schedule : TensionSchedule or None
+        Tension and roll along the insertion (None for a straight needle).
+    depth_mm : float or None, mm
+        The inserted arc length; None: the polyline's length.
+    check : bool
+        False skips the collision check (clearance NaN) for a candidate that does not reach anyway.
+
+    Returns
+    -------
+    Candidate
+        Reach error, clearance (0 when it collides, inf with no organ, NaN unchecked), closest organ, first
+        contact depth and the reasons it is rejected.
     """
     tip = path_mm[-1]
     reach = float(np.linalg.norm(tip - np.asarray(target.position_mm)))
@@ -231,8 +314,29 @@ def straight_candidates(
 
     Parameters
     ----------
-    entry_mm, direction : (n_holes, 3) float, mm and unit vectors, LPS
+    targets : iterable of Target
+        The points to reach.
+    hole_ids : sequence of str
+        The template holes, ``n_holes`` of them.
     hole_distances_mm : (n_holes,) float, mm
+        Distance of each hole from the template centre.
+    entry_mm : (n_holes, 3) float, mm, LPS
+        Entry point of each hole on the template plane.
+    direction : (n_holes, 3) float, unit vectors, LPS
+        Axis of each hole.
+    organs : sequence of Organ
+        What the candidates that reach are checked against.
+    needle_radius_mm : float, mm
+        Radius of the needles.
+    reach_tolerance_mm : float, mm
+        Largest tip-to-target distance that still counts as reaching.
+    max_depth_mm : float, mm
+        Longest insertion; deeper targets are clipped to it (and missed).
+
+    Returns
+    -------
+    list of Candidate
+        One per target and hole, targets in the given order, holes in ``hole_ids`` order.
     """
     out: list[Candidate] = []
     for target in targets:

@@ -27,6 +27,20 @@ class Perturbations:
     """Errors to test: tension × (1 ± ``tension_fraction``), roll ± ``roll_deg`` and an entry tilt of ``tilt_deg``.
 
     The entry direction is tilted about the two axes of the template plane (both signs).
+
+    Parameters
+    ----------
+    tension_fraction : float
+        Relative tension error, in [0, 1).
+    roll_deg : float, degrees
+        Roll error of the bending plane (>= 0).
+    tilt_deg : float, degrees
+        Tilt of the entry direction about the hole, in [0, 30).
+
+    Raises
+    ------
+    ValueError
+        A value outside its range.
     """
 
     tension_fraction: float = 0.10
@@ -48,7 +62,19 @@ def _tilt(path_mm: np.ndarray, axis: np.ndarray, angle_deg: float) -> np.ndarray
 
 @dataclass(frozen=True)
 class Robustness:
-    """Worst case over the perturbations: reach error (mm), clearance (mm), and the perturbation it came from."""
+    """Worst case over the perturbations: reach error (mm), clearance (mm), and the perturbation it came from.
+
+    Parameters
+    ----------
+    worst_reach_mm : float, mm
+        Largest reach error over the nominal path and the perturbed ones.
+    worst_clearance_mm : float, mm
+        Smallest clearance over them (0 when one collides).
+    worst_case : str
+        The perturbation that set the worst case (``"nominal"`` when none is worse), with the organ hit if any.
+    model : ModelInfo
+        The fast insertion model the perturbed paths came from.
+    """
 
     worst_reach_mm: float
     worst_clearance_mm: float
@@ -59,7 +85,32 @@ class Robustness:
 def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patient_from_template: np.ndarray,
            needle_radius_mm: float, perturbations: Perturbations = Perturbations(),
            model: KinematicInsertion = KINEMATIC, reach_tolerance_mm: float = 2.0) -> Robustness:
-    """Re-evaluate one candidate under every perturbation (see the module docstring)."""
+    """Re-evaluate one candidate under every perturbation (see the module docstring).
+
+    Parameters
+    ----------
+    candidate : Candidate
+        A scored candidate; tension and roll are perturbed only for a steered one with its schedule and design.
+    target : Target
+        The candidate's target.
+    organs : sequence of Organ
+        Organs at risk and bone (meshes in LPS mm) the perturbed paths are checked against.
+    patient_from_template : (4, 4) float
+        Template pose: template frame (mm) to patient LPS (mm); its x and y axes are the tilt axes.
+    needle_radius_mm : float, mm
+        Needle radius for the collision check.
+    perturbations : Perturbations
+        The errors to apply.
+    model : KinematicInsertion
+        Fast insertion model that re-inserts the perturbed schedules (template frame).
+    reach_tolerance_mm : float, mm
+        Reach tolerance of the plan.
+
+    Returns
+    -------
+    Robustness
+        Worst reach error and smallest clearance over the perturbations, and the perturbation responsible.
+    """
     m = np.asarray(patient_from_template, float)
     variants: list[tuple[str, np.ndarray]] = []
     design = candidate.design
@@ -97,6 +148,19 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
 
 
 def with_robustness(c: Candidate, r: Robustness) -> Candidate:
-    """Return the candidate carrying its robustness numbers."""
+    """Return the candidate carrying its robustness numbers.
+
+    Parameters
+    ----------
+    c : Candidate
+        The candidate that was assessed.
+    r : Robustness
+        Its assessment by :func:`assess`.
+
+    Returns
+    -------
+    Candidate
+        A copy of ``c`` with ``worst_reach_mm``, ``worst_clearance_mm`` and ``worst_case`` set.
+    """
     return dataclasses.replace(c, worst_reach_mm=r.worst_reach_mm, worst_clearance_mm=r.worst_clearance_mm,
                                worst_case=r.worst_case)

@@ -54,17 +54,42 @@ class TensionSchedule:
         return float(self.tension_n.max())
 
     def at(self, depth_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Tension (N) and roll (deg) at the given depths (mm); constant outside the breakpoints."""
+        """Tension (N) and roll (deg) at the given depths (mm); constant outside the breakpoints.
+
+        Parameters
+        ----------
+        depth_mm : (m,) float, mm
+            Insertion depths beyond the template plane (any shape; the results take it).
+
+        Returns
+        -------
+        tension_n : (m,) float, N
+            Tendon tension, linearly interpolated between breakpoints.
+        roll_deg : (m,) float, degrees
+            Roll of the bending plane in the template frame (0 = template +x).
+        """
         q = np.asarray(depth_mm, dtype=float)
         return np.interp(q, self.depth_mm, self.tension_n), np.interp(q, self.depth_mm, self.roll_deg)
 
     def rows(self, step_mm: float, end_mm: float) -> np.ndarray:
         """Return the device instructions resampled every ``step_mm`` to ``end_mm``.
 
+        Parameters
+        ----------
+        step_mm : float, mm
+            Depth step of the rows (> 0).
+        end_mm : float, mm
+            Last depth (>= 0), usually the insertion depth.
+
         Returns
         -------
         (n, 3) float
             Rows of (depth mm, tension N, roll deg), the breakpoints included.
+
+        Raises
+        ------
+        ValueError
+            ``step_mm`` <= 0 or ``end_mm`` < 0.
         """
         if step_mm <= 0 or end_mm < 0:
             raise ValueError("step_mm must be > 0 and end_mm >= 0")
@@ -74,12 +99,47 @@ class TensionSchedule:
 
     @classmethod
     def constant(cls, tension_n: float = 0.0, roll_deg: float = 0.0) -> TensionSchedule:
-        """Return the same tension and roll from the template on (``tension_n = 0``: a straight needle)."""
+        """Return the same tension and roll from the template on (``tension_n = 0``: a straight needle).
+
+        Parameters
+        ----------
+        tension_n : float, N
+            Tendon tension held along the whole insertion.
+        roll_deg : float, degrees
+            Roll of the bending plane in the template frame.
+
+        Returns
+        -------
+        TensionSchedule
+            One breakpoint at depth 0.
+        """
         return cls(np.array([0.0]), np.array([tension_n]), np.array([roll_deg]))
 
     @classmethod
     def ramp(cls, onset_mm: float, ramp_mm: float, plateau_n: float, roll_deg: float = 0.0) -> TensionSchedule:
-        """No tension until ``onset_mm``, a linear ramp over ``ramp_mm`` to ``plateau_n``, then held."""
+        """No tension until ``onset_mm``, a linear ramp over ``ramp_mm`` to ``plateau_n``, then held.
+
+        Parameters
+        ----------
+        onset_mm : float, mm
+            Depth beyond the template plane where the ramp starts (>= 0).
+        ramp_mm : float, mm
+            Depth over which the tension rises (> 0).
+        plateau_n : float, N
+            Tension held after the ramp.
+        roll_deg : float, degrees
+            Roll of the bending plane in the template frame, constant.
+
+        Returns
+        -------
+        TensionSchedule
+            Two or three breakpoints (two when ``onset_mm`` is 0).
+
+        Raises
+        ------
+        ValueError
+            ``onset_mm`` < 0 or ``ramp_mm`` <= 0.
+        """
         if onset_mm < 0 or ramp_mm <= 0:
             raise ValueError("onset_mm must be >= 0 and ramp_mm > 0")
         d = np.array([0.0, onset_mm, onset_mm + ramp_mm]) if onset_mm > 0 else np.array([0.0, ramp_mm])

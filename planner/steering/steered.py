@@ -27,6 +27,20 @@ class ScheduleFamily:
 
     Defaults: 11 onsets (0-100 mm) × 2 ramps × 5 plateaus = 110 schedules per design (the roll is solved
     exactly for each hole and target, so it is not gridded).
+
+    Parameters
+    ----------
+    onsets_mm : tuple of float, mm
+        Depths beyond the template plane where the ramp starts.
+    ramps_mm : tuple of float, mm
+        Depths over which the tension rises.
+    plateau_fractions : tuple of float
+        Plateau tensions as fractions of the design's maximum tension, in (0, 1].
+
+    Raises
+    ------
+    ValueError
+        An empty tuple, or a fraction outside (0, 1].
     """
 
     onsets_mm: tuple[float, ...] = tuple(float(v) for v in range(0, 101, 10))
@@ -40,7 +54,20 @@ class ScheduleFamily:
             raise ValueError("plateau fractions must be in (0, 1] of the design's maximum tension")
 
     def schedules(self, design: RodDesign, roll_deg: float = 0.0) -> tuple[TensionSchedule, ...]:
-        """Return every onset × ramp × plateau (fraction of ``design``'s maximum tension) ramp at ``roll_deg``."""
+        """Return every onset × ramp × plateau (fraction of ``design``'s maximum tension) ramp at ``roll_deg``.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet design; its ``max_tension_n`` scales the plateaus.
+        roll_deg : float, degrees
+            Roll of every schedule, template frame.
+
+        Returns
+        -------
+        tuple of TensionSchedule
+            ``len(onsets_mm) * len(ramps_mm) * len(plateau_fractions)`` schedules, onset slowest, plateau fastest.
+        """
         return tuple(TensionSchedule.ramp(o, r, f * design.max_tension_n, roll_deg)
                      for o in self.onsets_mm for r in self.ramps_mm for f in self.plateau_fractions)
 
@@ -49,8 +76,19 @@ class ScheduleFamily:
 class ShapeBank:
     """Insertion shapes of one design at roll 0, in the template frame.
 
-    ``shapes_mm`` is (S, n, 3) float, mm: row ``i`` of shape ``k`` is the tip after ``i * step_mm`` of
-    insertion (tip-following models: the path to a shallower depth is a prefix of the deeper one).
+    Parameters
+    ----------
+    design : RodDesign
+        The stylet design.
+    schedules : tuple of TensionSchedule
+        The S schedules, at roll 0.
+    shapes_mm : (S, n, 3) float, mm, template frame
+        Row ``i`` of shape ``k`` is the tip after ``i * step_mm`` of insertion from the hole at the origin along
+        +z (tip-following models: the path to a shallower depth is a prefix of the deeper one).
+    step_mm : float, mm
+        Insertion depth between rows.
+    model : ModelInfo
+        The insertion model that computed the shapes.
     """
 
     design: RodDesign
@@ -63,7 +101,24 @@ class ShapeBank:
 @lru_cache(maxsize=32)
 def shape_bank(design: RodDesign, family: ScheduleFamily = ScheduleFamily(), depth_mm: float = 200.0,
                model: KinematicInsertion = KINEMATIC) -> ShapeBank:
-    """Compute (and cache) the shapes of ``family`` for ``design`` up to ``depth_mm``."""
+    """Compute (and cache) the shapes of ``family`` for ``design`` up to ``depth_mm``.
+
+    Parameters
+    ----------
+    design : RodDesign
+        The stylet design.
+    family : ScheduleFamily
+        The schedules to insert.
+    depth_mm : float, mm
+        Deepest insertion (capped at the design's length).
+    model : KinematicInsertion
+        The fast insertion model.
+
+    Returns
+    -------
+    ShapeBank
+        The shapes at roll 0, template frame.
+    """
     schedules = family.schedules(design)
     depth = min(depth_mm, design.length_mm)
     shapes = model.insert_array(design, schedules, depth)
@@ -74,8 +129,16 @@ def shape_bank(design: RodDesign, family: ScheduleFamily = ScheduleFamily(), dep
 class Match:
     """Best schedules of a bank for one hole and target (template frame quantities).
 
-    ``order`` (K,) indices into the bank's schedules, best first; ``depth_mm`` (K,) insertion depth of each;
-    ``reach_mm`` (K,) tip distance to the target; ``roll_deg`` the roll that aims the bend at the target.
+    Parameters
+    ----------
+    order : (K,) int
+        Indices into the bank's schedules, best first.
+    depth_mm : (K,) float, mm
+        Insertion depth of each where its path passes closest to the target.
+    reach_mm : (K,) float, mm
+        Distance from that point of the path to the target.
+    roll_deg : float, degrees
+        The roll that aims the bend at the target (template frame, 0 = template +x).
     """
 
     order: np.ndarray
@@ -93,12 +156,22 @@ def _planar(rel_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def match_targets(bank: ShapeBank, rel_mm: np.ndarray, keep: int = 8) -> list[Match]:
     """For each hole, the ``keep`` schedules whose tips pass closest to the target.
 
-    Parameters
-    ----------
-    rel_mm : (H, 3) float, mm, template frame: target minus hole entry.
-
     The distance of the target to each shape is minimised over the insertion depth, projecting onto the
     shape's segments (so it does not depend on the sampling step).
+
+    Parameters
+    ----------
+    bank : ShapeBank
+        The shapes of one design.
+    rel_mm : (H, 3) float, mm, template frame
+        Target minus hole entry, one row per hole.
+    keep : int
+        Number of schedules kept per hole.
+
+    Returns
+    -------
+    list of Match
+        One per hole, in the rows' order.
     """
     rho, zeta, roll = _planar(np.asarray(rel_mm, float))
     xz = bank.shapes_mm[:, :, [0, 2]]  # (S, n, 2)
@@ -122,9 +195,27 @@ def place(shape_mm: np.ndarray, step_mm: float, depth_mm: float, roll_deg: float
           patient_from_template: np.ndarray, sample_mm: float = 5.0) -> np.ndarray:
     """Cut a bank shape at ``depth_mm``, roll it by ``roll_deg`` and put it at a hole, in the patient.
 
+    Parameters
+    ----------
+    shape_mm : (n, 3) float, mm, template frame
+        One shape of a :class:`ShapeBank` (hole at the origin, roll 0).
+    step_mm : float, mm
+        Insertion depth between the shape's rows.
+    depth_mm : float, mm
+        Insertion depth to cut at.
+    roll_deg : float, degrees
+        Roll about the hole's axis (template frame).
+    entry_xy_mm : (2,) float, mm, template frame
+        The hole's position in the template plane.
+    patient_from_template : (4, 4) float
+        Template frame (mm) to patient LPS (mm).
+    sample_mm : float, mm
+        Approximate spacing of the returned points.
+
     Returns
     -------
-    (m, 3) float, mm, LPS: points about ``sample_mm`` apart from the hole to the tip (the tip exact).
+    (m, 3) float, mm, LPS
+        Points about ``sample_mm`` apart from the hole to the tip (the tip exact).
     """
     n_full = int(np.floor(depth_mm / step_mm + 1e-9))
     prefix = shape_mm[: n_full + 1]
@@ -179,8 +270,31 @@ def refine_with(model: TissueRodInsertion, design: RodDesign, schedule: TensionS
     plateau changes by less than 0.01 N: e.g. at the stylet's limit). The in-tissue rod and the kinematic model
     differ by a few millimetres, by more at higher tension: one iteration left 1.2 mm of miss on the clinical
     case's Target_param_L, the loop 0.17 mm. The closest of the solves is returned; repeated solves of one
-    schedule are memoised. ``modulus_profile`` is passed to :meth:`TissueRodInsertion.insert_one` (tissue modulus
-    along the insertion, per organ).
+    schedule are memoised.
+
+    Parameters
+    ----------
+    model : TissueRodInsertion
+        The richer insertion model.
+    design : RodDesign
+        The stylet design.
+    schedule : TensionSchedule
+        The screened candidate's schedule (roll 0).
+    depth_mm : float, mm
+        Insertion depth.
+    rel_mm : (3,) float, mm, template frame
+        Target minus hole entry.
+    fast : KinematicInsertion
+        The fast model that is re-aimed.
+    iterations : int
+        Most corrections.
+    modulus_profile : tuple of ((p,) float, (p,) float) or None
+        ``(depth_mm, modulus_pa)``: the tissue modulus (Pa) along the insertion, piecewise constant from each
+        depth (mm) on (per organ), passed to :meth:`TissueRodInsertion.insert_one`; None: the model's own modulus.
+    sample_mm : float, mm
+        Arc-length spacing of the returned path.
+    tolerance_mm : float, mm
+        Stop once the richer model's tip is this close to the target.
 
     Returns
     -------
@@ -241,7 +355,19 @@ def reach_radius_mm(bank: ShapeBank, depths_mm: np.ndarray) -> np.ndarray:
     """Return the largest lateral offset (mm) a hole reaches at each depth (mm along its axis).
 
     Over the bank's schedules and all rolls: the reachable workspace at that depth is a disk of this radius about
-    the hole's axis (organs not considered). ``depths_mm``: (k,) float; returns (k,) float, mm.
+    the hole's axis (organs not considered).
+
+    Parameters
+    ----------
+    bank : ShapeBank
+        The shapes of one design.
+    depths_mm : (k,) float, mm
+        Depths along the hole's axis (template z).
+
+    Returns
+    -------
+    (k,) float, mm
+        The radius at each depth (0 where no shape gets that deep).
     """
     xz = bank.shapes_mm[:, :, [0, 2]]
     out = np.zeros(len(depths_mm))

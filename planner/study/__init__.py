@@ -69,9 +69,23 @@ MANIFEST_VERSION = 1
 class StudySpec:
     """What a study plans: every case x design x target with one plan configuration.
 
-    ``designs`` are stylet presets or ``straight`` (straight needles only); ``targets`` are ROI names
-    (None: every ROI named ``Target*`` in each case); ``config.designs`` is ignored (each task sets its own);
-    ``dose``: also optimise each case x design's dwell times and report the HR-CTV D90.
+    Parameters
+    ----------
+    cases : tuple of Case
+        The cases (at least one).
+    designs : tuple of str
+        Stylet presets or ``straight`` (straight needles only), each once.
+    targets : tuple of str or None
+        ROI names; None: every ROI named ``Target*`` in each case.
+    config : PlanConfig
+        The plan configuration; its ``designs`` are ignored (each task sets its own).
+    dose : bool
+        Also optimise each case x design's dwell times and report the HR-CTV D90.
+
+    Raises
+    ------
+    ValueError
+        No case, no design or a design twice, or an empty or repeated target list.
     """
 
     cases: tuple[Case, ...]
@@ -89,11 +103,23 @@ class StudySpec:
             raise ValueError("targets, when given, must be at least one ROI name, each named once")
 
     def tasks(self) -> tuple[StudyTask, ...]:
-        """Case-major order: a worker that takes consecutive tasks reuses the loaded case."""
+        """Case-major order: a worker that takes consecutive tasks reuses the loaded case.
+
+        Returns
+        -------
+        tuple of StudyTask
+            One per case x design.
+        """
         return tuple(StudyTask(c, d, self.targets, self.dose) for c in self.cases for d in self.designs)
 
     def manifest(self) -> dict[str, Any]:
-        """Return what identifies the study's results (JSON-ready); a resumed study must match it."""
+        """Return what identifies the study's results (JSON-ready); a resumed study must match it.
+
+        Returns
+        -------
+        dict of str to JSON value
+            Version, cases (id -> structure set path), designs, targets, dose and the configuration without designs.
+        """
         config = dataclasses.asdict(dataclasses.replace(self.config, designs=()))
         return {"version": MANIFEST_VERSION, "cases": {c.case_id: str(c.rtstruct) for c in self.cases},
                 "designs": list(self.designs), "targets": None if self.targets is None else list(self.targets),
@@ -105,9 +131,22 @@ class StudySpec:
 class StudyResult:
     """A finished study.
 
-    The consolidated ``table`` (one row per case x design x target, or per failed task whose targets were not
-    known), the per-design ``summaries``, how many tasks there were, how many were already done before this run
-    (``n_resumed``), how many failed, and the wall time of this run (s).
+    Parameters
+    ----------
+    out : Path
+        The study's folder.
+    table : pyarrow.Table
+        The consolidated rows: one per case x design x target, or per failed task whose targets were not known.
+    summaries : tuple of DesignSummary
+        One per design.
+    n_tasks : int
+        Tasks of the study.
+    n_resumed : int
+        Tasks already done before this run.
+    n_failed_tasks : int
+        Tasks that failed.
+    wall_s : float, s
+        Wall time of this run.
     """
 
     out: Path
@@ -121,6 +160,13 @@ class StudyResult:
 
 def check_manifest(out: Path, want: dict[str, Any]) -> None:
     """Write the study's manifest ``want`` into ``out``, or check that the study already there has the same one.
+
+    Parameters
+    ----------
+    out : Path
+        The study's folder.
+    want : dict of str to JSON value
+        The manifest of the study to run (:meth:`StudySpec.manifest`).
 
     Raises
     ------
@@ -142,7 +188,24 @@ def check_manifest(out: Path, want: dict[str, Any]) -> None:
 
 def serial_results(todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
             fail: Callable[[T, str], R]) -> Iterator[tuple[T, R]]:
-    """Run ``task_fn(task, config)`` per task in this process; a task that raises gives ``fail(task, reason)``."""
+    """Run ``task_fn(task, config)`` per task in this process; a task that raises gives ``fail(task, reason)``.
+
+    Parameters
+    ----------
+    todo : sequence of tasks
+        Tasks with a unique ``key``.
+    config : object
+        Passed to every task.
+    task_fn : callable (task, config) -> result
+        Runs one task.
+    fail : callable (task, reason) -> result
+        The result of a task that raised.
+
+    Yields
+    ------
+    tuple of (task, result)
+        In the order of ``todo``.
+    """
     for task in todo:
         try:
             rows = task_fn(task, config)
@@ -156,6 +219,29 @@ def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[
     """Run ``task_fn(task, config)`` per task on the Dask ``client``, yielding results as they finish.
 
     Each task needs a unique ``key``; a task that raises (or whose worker keeps dying) gives ``fail(task, reason)``.
+
+    Parameters
+    ----------
+    client : distributed.Client
+        Connected client.
+    todo : sequence of tasks
+        Tasks with a unique ``key``.
+    config : object
+        Passed to every task.
+    task_fn : callable (task, config) -> result
+        Runs one task (importable by the workers).
+    fail : callable (task, reason) -> result
+        The result of a task that raised.
+
+    Yields
+    ------
+    tuple of (task, result)
+        In the order they finish.
+
+    Raises
+    ------
+    StudyError
+        The scheduler cancelled a task.
     """
     from distributed import as_completed
 
@@ -191,11 +277,28 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
 
     Parameters
     ----------
-    scheduler : address of a running Dask scheduler (``tcp://host:8786``); None = a local cluster
-    workers : worker processes of the local cluster (default: the CPU count); 0 = run in this process
-    client : an existing ``distributed.Client`` to use instead (``scheduler``/``workers`` ignored)
-    retry_failed : run again the tasks a previous run recorded as failed
-    task_fn : the function a worker runs per task (default :func:`run_task`; must be importable by workers)
+    spec : StudySpec
+        What to plan.
+    out : Path
+        The study's folder (new, empty, or holding this study to resume).
+    scheduler : str or None
+        Address of a running Dask scheduler (``tcp://host:8786``); None = a local cluster.
+    workers : int or None
+        Worker processes of the local cluster (default: the CPU count); 0 = run in this process.
+    client : distributed.Client or None
+        An existing client to use instead (``scheduler``/``workers`` ignored).
+    retry_failed : bool
+        Run again the tasks a previous run recorded as failed.
+    quiet : bool
+        No progress bar.
+    task_fn : callable (StudyTask, PlanConfig) -> sequence of StudyRow
+        The function a worker runs per task (default :func:`run_task`; must be importable by workers).
+
+    Returns
+    -------
+    StudyResult
+        The consolidated table and per-design summaries (also written to ``out``: parts, ``summary.csv``,
+        ``summary.png``).
 
     Raises
     ------
@@ -254,6 +357,25 @@ def dask_client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any
     """Connect a ``distributed.Client`` to ``scheduler``, or to a new loopback-only local cluster.
 
     The local cluster runs worker processes and is closed with the client.
+
+    Parameters
+    ----------
+    scheduler : str or None
+        Address of a running scheduler; None starts a local cluster.
+    workers : int or None
+        Worker processes of the local cluster (default: the CPU count).
+    n_tasks : int
+        Tasks to run (the local cluster starts no more workers than this).
+
+    Returns
+    -------
+    distributed.Client or context manager
+        The client for a scheduler; for a local cluster a context manager giving the client and closing both.
+
+    Raises
+    ------
+    StudyError
+        Dask is not installed, the scheduler cannot be reached, or ``workers`` < 1.
     """
     try:
         from distributed import Client, LocalCluster

@@ -40,10 +40,27 @@ from reachplan.imaging.phantom import (
 class Perturbation:
     """How one cohort variant differs from the reference phantom (mm, degrees, dimensionless factors).
 
-    ``shift_xy_mm`` maps an organ name to its axial shift; ``scale`` maps an organ name to the factor on its
-    axial size (radius or x/y semi-axes); ``bone_shift_mm`` moves each pelvic side wall outward (> 0) or
-    inward; ``target_rotation_deg`` rotates the target pattern about the z axis and ``target_radius_scale``
-    scales its radius.
+    Parameters
+    ----------
+    seed : int
+        The cohort's seed.
+    index : int
+        The variant's index (0 = the reference phantom).
+    shift_xy_mm : tuple of (str, float, float)
+        Organ name -> its axial shift (x, y), mm, LPS.
+    scale : tuple of (str, float)
+        Organ name -> the factor on its axial size (radius or x/y semi-axes), > 0.
+    bone_shift_mm : float, mm
+        Each pelvic side wall moves outward (> 0) or inward.
+    target_rotation_deg : float, degrees
+        Rotation of the target pattern about the z axis.
+    target_radius_scale : float
+        Factor on the target pattern's radius (> 0).
+
+    Raises
+    ------
+    ValueError
+        A scale factor that is not positive.
     """
 
     seed: int
@@ -66,7 +83,20 @@ _SCALE = {"Bladder": (0.85, 1.2), "Rectum": (0.85, 1.15), "HR-CTV": (0.85, 1.15)
 
 
 def perturbation(seed: int, index: int) -> Perturbation:
-    """Return the deterministic perturbation of variant ``index`` (0 = the reference phantom, unperturbed)."""
+    """Return the deterministic perturbation of variant ``index`` (0 = the reference phantom, unperturbed).
+
+    Parameters
+    ----------
+    seed : int
+        The cohort's seed.
+    index : int
+        The variant's index; its generator is seeded by ``(seed, index)``.
+
+    Returns
+    -------
+    Perturbation
+        Shifts, scales, wall shift and target rotation and scale, rounded.
+    """
     if index == 0:
         return Perturbation(seed, 0, (), (), 0.0, 0.0, 1.0)
     rng = np.random.default_rng([seed, index])
@@ -102,7 +132,21 @@ def _structure(s: PhantomStructure, fn: Callable[[Shape], Shape]) -> PhantomStru
 
 
 def perturbed_spec(p: Perturbation, base: PhantomSpec | None = None) -> PhantomSpec:
-    """Return the phantom ``base`` (default: the built-in one) with perturbation ``p`` applied."""
+    """Return the phantom ``base`` (default: the built-in one) with perturbation ``p`` applied.
+
+    Parameters
+    ----------
+    p : Perturbation
+        The variant's perturbation.
+    base : PhantomSpec or None
+        The phantom to perturb; None: :func:`reachplan.imaging.phantom.phantom_spec`.
+
+    Returns
+    -------
+    PhantomSpec
+        Organs shifted and scaled in the axial plane, side walls moved, targets rotated and scaled; every z bound
+        kept.
+    """
     base = base or phantom_spec()
     shift = {n: (dx, dy) for n, dx, dy in p.shift_xy_mm}
     scale = dict(p.scale)
@@ -136,11 +180,29 @@ def make_cohort(out_dir: Path, n: int, seed: int = 0, case: str = "clinical") ->
 
     Deterministic in ``(seed, index)``. ``case="clinical"``: the clinical case of seed ``seed + index``;
     ``case="pilot"``: the pilot phantom perturbed (variant 0 is its reference geometry). Each variant carries
-    its own Patient ID and DICOM UIDs (``PhantomSpec.case_id`` = the folder name).
+    its own Patient ID and DICOM UIDs (``PhantomSpec.case_id`` = the folder name). ``out_dir/cohort.json``
+    records the variants.
+
+    Parameters
+    ----------
+    out_dir : Path
+        The cohort folder.
+    n : int
+        Number of variants (>= 1).
+    seed : int
+        The cohort's seed.
+    case : {"clinical", "pilot"}
+        Which case to vary.
 
     Returns
     -------
-    the case folders, in index order
+    tuple of Path
+        The case folders, in index order.
+
+    Raises
+    ------
+    ValueError
+        ``n`` < 1 or an unknown ``case``.
     """
     if n < 1:
         raise ValueError(f"a cohort needs at least one case, got {n}")

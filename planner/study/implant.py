@@ -60,8 +60,16 @@ MANIFEST_VERSION = 1
 class PairedStat:
     """Mean of a paired difference over the cases and its two-sided t confidence interval (same unit).
 
-    ``low`` and ``high`` are None when fewer than two cases give a difference (no spread to estimate);
-    ``mean`` is None when none does. ``level``: the interval's confidence level.
+    Parameters
+    ----------
+    mean : float or None
+        Mean difference; None when no case gives one.
+    low, high : float or None
+        Interval bounds; None when fewer than two cases give a difference (no spread to estimate).
+    n : int
+        Cases that give a difference.
+    level : float
+        The interval's confidence level, in (0, 1).
     """
 
     mean: float | None
@@ -76,6 +84,18 @@ def t_interval(diffs: Sequence[float] | np.ndarray, level: float = 0.95) -> Pair
 
     ``mean ± t(1 - α/2, n - 1) · s / √n`` with ``α = 1 - level`` and ``s`` the sample standard deviation
     (NIST/SEMATECH e-Handbook of Statistical Methods, 1.3.5.2; Rice 2007, 11.3).
+
+    Parameters
+    ----------
+    diffs : (n,) float
+        Per-case differences (steered minus straight), in their own unit.
+    level : float
+        Confidence level, in (0, 1).
+
+    Returns
+    -------
+    PairedStat
+        Mean and interval, in the unit of ``diffs``.
 
     Raises
     ------
@@ -103,10 +123,19 @@ def t_interval(diffs: Sequence[float] | np.ndarray, level: float = 0.95) -> Pair
 class ImplantCohortSummary:
     """Needles saved and D90 gained by steering over a cohort.
 
-    ``needles_saved``: straight-arm needles minus steered-arm needles of each case's chosen implant;
-    ``d90_gained_gy``: steered minus straight HR-CTV D90 (EQD2, Gy); both over the cases where both arms have an
-    implant. ``aims_met_*``: cases whose chosen implant meets every aim, per arm (an arm without an implant
-    does not); ``n_cases``: all cases, ``n_paired``: those with both arms planned.
+    Parameters
+    ----------
+    needles_saved : PairedStat
+        Straight-arm needles minus steered-arm needles of each case's chosen implant, over the cases where both
+        arms have an implant.
+    d90_gained_gy : PairedStat
+        Steered minus straight HR-CTV D90 (EQD2, Gy), over the same cases.
+    aims_met_straight, aims_met_steered : int
+        Cases whose chosen implant meets every aim, per arm (an arm without an implant does not).
+    n_cases : int
+        All cases.
+    n_paired : int
+        Cases with both arms planned.
     """
 
     needles_saved: PairedStat
@@ -120,7 +149,18 @@ class ImplantCohortSummary:
 def summarise_implants(cases: Sequence[Mapping[str, object]], level: float = 0.95) -> ImplantCohortSummary:
     """Summarise a cohort from each case's plan.json ``implant`` section (paired t-intervals, see the module).
 
-    Each section has ``straight`` and ``steered`` with ``n_needles``, ``hrctv_d90_eqd2_gy`` and ``aims_met``.
+    Parameters
+    ----------
+    cases : sequence of mapping
+        One plan.json ``implant`` section per case: ``straight`` and ``steered`` with ``n_needles``,
+        ``hrctv_d90_eqd2_gy`` (Gy) and ``aims_met``.
+    level : float
+        Confidence level of the intervals.
+
+    Returns
+    -------
+    ImplantCohortSummary
+        Needles saved, D90 gained and aims met.
 
     Raises
     ------
@@ -165,7 +205,13 @@ def _summary(rows: Sequence[Mapping[str, Any]], level: float) -> ImplantCohortSu
 
 @dataclass(frozen=True)
 class ImplantCase:
-    """One task: the clinical case of ``seed`` (``key`` names it and its part file)."""
+    """One task: the clinical case of ``seed`` (``key`` names it and its part file).
+
+    Parameters
+    ----------
+    seed : int
+        Seed of :func:`reachplan.imaging.clinical.clinical_case`.
+    """
 
     seed: int
 
@@ -179,9 +225,23 @@ class ImplantCase:
 class ImplantStudySpec:
     """What an implant study plans: both arms on the clinical case of each seed.
 
-    ``config``: the plan configuration (stylet designs of the steered arm, schedule family, template);
-    ``settings``: the implant settings (None: the defaults); ``source``: the TG-43 source; ``modality``: the
-    case's image series (``CT`` or ``MR``; the planning grid is its grid).
+    Parameters
+    ----------
+    seeds : tuple of int
+        One case per seed, each once.
+    config : PlanConfig
+        The plan configuration (stylet designs of the steered arm, at least one; schedule family, template).
+    settings : ImplantSettings or None
+        The implant settings (None: the defaults).
+    source : str
+        Name of the TG-43 source data.
+    modality : str
+        The case's image series (``CT`` or ``MR``; the planning grid is its grid).
+
+    Raises
+    ------
+    ValueError
+        No seed or a repeated one, or no stylet design.
     """
 
     seeds: tuple[int, ...]
@@ -197,11 +257,23 @@ class ImplantStudySpec:
             raise ValueError("the steered arm needs at least one stylet design")
 
     def tasks(self) -> tuple[ImplantCase, ...]:
-        """One task per seed, in seed order."""
+        """One task per seed, in seed order.
+
+        Returns
+        -------
+        tuple of ImplantCase
+            The tasks.
+        """
         return tuple(ImplantCase(s) for s in self.seeds)
 
     def manifest(self) -> dict[str, Any]:
-        """Return what identifies the study's results (JSON-ready); a resumed study must match it."""
+        """Return what identifies the study's results (JSON-ready); a resumed study must match it.
+
+        Returns
+        -------
+        dict of str to JSON value
+            Version, kind, seeds, configuration, settings, source and modality.
+        """
         doc = {"version": MANIFEST_VERSION, "kind": "implant", "seeds": list(self.seeds),
                "config": dataclasses.asdict(self.config),
                "settings": None if self.settings is None else dataclasses.asdict(self.settings),
@@ -214,11 +286,43 @@ class ImplantRow:
     """One case of an implant study (a row of ``cases.csv``).
 
     ``status`` is ``ok`` (both arms have a chosen implant) or ``failed`` (``reason`` says why: the error that
-    stopped the case, or each arm without an implant and its reason). Per arm (``straight_*``, ``steered_*``):
-    needles of the chosen implant, whether it meets every aim, HR-CTV D90 and D98 (EQD2, Gy), organ D2cm³ (EQD2,
-    Gy; JSON object by organ), candidate channels and the arm's own note (e.g. no budget meets every aim).
-    ``needles_saved`` (straight minus steered) and ``d90_gained_gy`` (steered minus straight) when both arms
-    have an implant. ``seconds`` and ``cpu_seconds``: the whole case (build, scene, both arms).
+    stopped the case, or each arm without an implant and its reason). Doses are EQD2 totals, Gy.
+
+    Parameters
+    ----------
+    case : str
+        The case's key (``clinical_<seed>``).
+    seed : int
+        Its seed.
+    status, reason : str
+        ``ok`` or ``failed``, and why.
+    straight_needles, steered_needles : int or None
+        Needles of each arm's chosen implant; None without one.
+    straight_aims_met, steered_aims_met : bool
+        Whether it meets every aim.
+    straight_hrctv_d90_eqd2_gy, steered_hrctv_d90_eqd2_gy : float or None, Gy
+        HR-CTV D90.
+    straight_hrctv_d98_eqd2_gy, steered_hrctv_d98_eqd2_gy : float or None, Gy
+        HR-CTV D98.
+    straight_oar_d2cc_eqd2_gy, steered_oar_d2cc_eqd2_gy : str
+        Organ D2cm³ (Gy) as a JSON object by organ; "" without.
+    straight_candidates, steered_candidates : int or None
+        Candidate channels of each arm.
+    straight_note, steered_note : str
+        The arm's own note (e.g. no budget meets every aim).
+    needles_saved : int or None
+        Straight minus steered needles, when both arms have an implant.
+    d90_gained_gy : float or None, Gy
+        Steered minus straight HR-CTV D90, when both arms have an implant.
+    seconds, cpu_seconds : float or None, s
+        Wall and CPU time of the whole case (build, scene, both arms).
+    worker : str
+        ``host:pid`` of the process that planned it.
+
+    Raises
+    ------
+    ValueError
+        A status other than ``ok`` or ``failed``.
     """
 
     case: str
@@ -255,14 +359,44 @@ def _one_line(text: str) -> str:
 
 
 def failed_case(task: ImplantCase, reason: str) -> dict[str, Any]:
-    """Return the part of a case that failed: its row (status ``failed``, the reason) and no implant."""
+    """Return the part of a case that failed: its row (status ``failed``, the reason) and no implant.
+
+    Parameters
+    ----------
+    task : ImplantCase
+        The case.
+    reason : str
+        Why it failed (whitespace collapsed, cut at 500 characters).
+
+    Returns
+    -------
+    dict of str to object
+        ``{"row": ImplantRow as a dict, "implant": None}``.
+    """
     row = ImplantRow(task.key, task.seed, "failed", _one_line(reason), worker=f"{socket.gethostname()}:{os.getpid()}")
     return {"row": dataclasses.asdict(row), "implant": None}
 
 
 def case_row(task: ImplantCase, implant: Mapping[str, Any], seconds: float | None = None,
              cpu_seconds: float | None = None) -> ImplantRow:
-    """Return the row of a case from its plan.json ``implant`` section (both arms)."""
+    """Return the row of a case from its plan.json ``implant`` section (both arms).
+
+    Parameters
+    ----------
+    task : ImplantCase
+        The case.
+    implant : mapping
+        Its plan.json ``implant`` section.
+    seconds : float or None, s
+        Wall time of the case.
+    cpu_seconds : float or None, s
+        CPU time of the case.
+
+    Returns
+    -------
+    ImplantRow
+        Status ``failed`` when an arm has no implant.
+    """
     values = _arm_values(implant)
     extra: dict[str, Any] = {}
     missing = []
@@ -287,7 +421,20 @@ def case_row(task: ImplantCase, implant: Mapping[str, Any], seconds: float | Non
 
 
 def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
-    """Build the clinical case of ``seed`` in memory and plan both implant arms on it (as ``reachplan demo``)."""
+    """Build the clinical case of ``seed`` in memory and plan both implant arms on it (as ``reachplan demo``).
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the clinical case.
+    spec : ImplantStudySpec
+        Configuration, settings, source and modality.
+
+    Returns
+    -------
+    ImplantComparison
+        Both arms with their Pareto curves.
+    """
     from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
     from reachplan.planner.case.scene import build_scene
     from reachplan.planner.delivery import applicator_channels, plan_implants, planning_structures
@@ -306,10 +453,22 @@ def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
 
 
 def run_case(task: ImplantCase, spec: ImplantStudySpec) -> dict[str, Any]:
-    """Plan one case (the worker's task): ``{"row": ImplantRow as a dict, "implant": plan.json's implant}``.
+    """Plan one case (the worker's task).
 
     An expected failure (any :class:`ReachplanError`, e.g. no target volume) becomes the failed row; anything
     else propagates and is recorded by the study the same way.
+
+    Parameters
+    ----------
+    task : ImplantCase
+        The case.
+    spec : ImplantStudySpec
+        The study.
+
+    Returns
+    -------
+    dict of str to object
+        ``{"row": ImplantRow as a dict, "implant": plan.json's implant section or None}``.
     """
     t, cpu = time.perf_counter(), time.process_time()
     try:
@@ -324,7 +483,21 @@ def run_case(task: ImplantCase, spec: ImplantStudySpec) -> dict[str, Any]:
 
 @dataclass(frozen=True, eq=False)
 class ImplantStudyResult:
-    """A finished implant study: one row per case (seed order), the summary, tasks resumed, wall time (s)."""
+    """A finished implant study.
+
+    Parameters
+    ----------
+    out : Path
+        The study's folder.
+    rows : tuple of ImplantRow
+        One per case, in seed order.
+    summary : ImplantCohortSummary
+        Needles saved, D90 gained, aims met.
+    n_resumed : int
+        Cases already done before this run.
+    wall_s : float, s
+        Wall time of this run.
+    """
 
     out: Path
     rows: tuple[ImplantRow, ...]
@@ -343,12 +516,29 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
 
     Parameters
     ----------
-    scheduler : address of a running Dask scheduler; None = a local cluster of worker processes
-    workers : worker processes of the local cluster (default: the CPU count); 0 = run in this process
-    client : an existing ``distributed.Client`` to use instead (``scheduler``/``workers`` ignored)
-    retry_failed : plan again the cases a previous run recorded as failed
-    level : confidence level of the intervals
-    task_fn : the function a worker runs per case (default :func:`run_case`; must be importable by workers)
+    spec : ImplantStudySpec
+        What to plan.
+    out : Path
+        The study's folder (new, empty, or holding this study to resume).
+    scheduler : str or None
+        A Dask scheduler's address; None starts a loopback cluster of worker processes.
+    workers : int or None
+        Worker processes of that cluster (one per CPU by default); 0 plans every case in this process.
+    client : distributed.Client or None
+        A client already connected; then ``scheduler`` and ``workers`` are not used.
+    retry_failed : bool
+        Plan again the cases a previous run recorded as failed.
+    level : float
+        Confidence level of the intervals.
+    quiet : bool
+        No progress bar.
+    task_fn : callable (ImplantCase, ImplantStudySpec) -> dict
+        The function a worker runs per case (default :func:`run_case`; must be importable by workers).
+
+    Returns
+    -------
+    ImplantStudyResult
+        Rows, summary and times.
 
     Raises
     ------
@@ -414,7 +604,22 @@ def _stat_json(s: PairedStat) -> dict[str, Any]:
 
 
 def summary_json(summary: ImplantCohortSummary, rows: Sequence[ImplantRow], wall_s: float) -> dict[str, Any]:
-    """Return ``summary.json``: paired differences with their intervals, aims met per arm, failed cases."""
+    """Return ``summary.json``: paired differences with their intervals, aims met per arm, failed cases.
+
+    Parameters
+    ----------
+    summary : ImplantCohortSummary
+        The cohort's summary.
+    rows : sequence of ImplantRow
+        The cases.
+    wall_s : float, s
+        Wall time of the run.
+
+    Returns
+    -------
+    dict of str to JSON value
+        Numbers rounded (4 decimals for the statistics, 3 for seconds).
+    """
     secs = [r.seconds for r in rows if r.seconds is not None]
     return {
         "cases": summary.n_cases, "paired_cases": summary.n_paired,
@@ -430,7 +635,20 @@ def summary_json(summary: ImplantCohortSummary, rows: Sequence[ImplantRow], wall
 
 
 def format_summary(summary: ImplantCohortSummary, rows: Sequence[ImplantRow]) -> str:
-    """Return a plain-text table: one line per case, then the paired differences with their intervals."""
+    """Return a plain-text table: one line per case, then the paired differences with their intervals.
+
+    Parameters
+    ----------
+    summary : ImplantCohortSummary
+        Paired differences and aims met, printed last.
+    rows : sequence of ImplantRow
+        One line each.
+
+    Returns
+    -------
+    str
+        The table (D90 in Gy EQD2).
+    """
     def v(x: object, fmt: str = "") -> str:
         return "-" if x is None else format(x, fmt)
 
@@ -456,7 +674,17 @@ def format_summary(summary: ImplantCohortSummary, rows: Sequence[ImplantRow]) ->
 
 
 def summary_figure(rows: Sequence[ImplantRow], summary: ImplantCohortSummary, path: Path) -> None:
-    """Needles and D90 of each arm per case (lines join a case's arms), and the mean differences with their CIs."""
+    """Needles and D90 of each arm per case (lines join a case's arms), and the mean differences with their CIs.
+
+    Parameters
+    ----------
+    rows : sequence of ImplantRow
+        The cases.
+    summary : ImplantCohortSummary
+        The cohort's summary.
+    path : Path
+        The PNG file to write (atomically).
+    """
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(12.0, 4.0), layout="constrained")

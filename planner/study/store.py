@@ -34,7 +34,13 @@ def require_pyarrow() -> None:
 
 
 def schema() -> pa.Schema:
-    """Return the Arrow schema of :class:`StudyRow` (``X | None`` fields are nullable, the others not)."""
+    """Return the Arrow schema of :class:`StudyRow` (``X | None`` fields are nullable, the others not).
+
+    Returns
+    -------
+    pyarrow.Schema
+        One field per :class:`StudyRow` field, in order.
+    """
     import pyarrow as pa
 
     fields = []
@@ -45,7 +51,18 @@ def schema() -> pa.Schema:
 
 
 def to_table(rows: Sequence[StudyRow]) -> pa.Table:
-    """Return ``rows`` as an Arrow table of :func:`schema`, one row each, in order."""
+    """Return ``rows`` as an Arrow table of :func:`schema`, one row each, in order.
+
+    Parameters
+    ----------
+    rows : sequence of StudyRow
+        The rows.
+
+    Returns
+    -------
+    pyarrow.Table
+        Of :func:`schema`.
+    """
     import pyarrow as pa
 
     names = [f.name for f in dataclasses.fields(StudyRow)]
@@ -62,12 +79,45 @@ def _write_table(table: pa.Table, path: Path) -> None:
 
 
 def part_path(out: Path, key: str) -> Path:
-    """Return the part file of task ``key`` in the study folder ``out`` (``parts/<key>.parquet``)."""
+    """Return the part file of task ``key`` in the study folder ``out`` (``parts/<key>.parquet``).
+
+    Parameters
+    ----------
+    out : Path
+        The study's folder.
+    key : str
+        The task's key.
+
+    Returns
+    -------
+    Path
+        ``out/parts/<key>.parquet``.
+    """
     return Path(out) / PARTS / f"{key}.parquet"
 
 
 def write_part(out: Path, key: str, rows: Sequence[StudyRow]) -> Path:
-    """Record a finished task: its rows in ``parts/<key>.parquet``, atomically. Returns the path."""
+    """Record a finished task: its rows in ``parts/<key>.parquet``, atomically.
+
+    Parameters
+    ----------
+    out : Path
+        Folder of the study.
+    key : str
+        Key of the finished task.
+    rows : sequence of StudyRow
+        The task's rows (all of task ``key``).
+
+    Returns
+    -------
+    Path
+        The part file written.
+
+    Raises
+    ------
+    ValueError
+        A row of another task.
+    """
     if any(r.task != key for r in rows):
         raise ValueError(f"rows of another task than {key!r}")
     path = part_path(out, key)
@@ -76,7 +126,18 @@ def write_part(out: Path, key: str, rows: Sequence[StudyRow]) -> Path:
 
 
 def finished(out: Path) -> dict[str, Path]:
-    """Task key -> part file of every finished task (stray temporary files are ignored)."""
+    """Task key -> part file of every finished task (stray temporary files are ignored).
+
+    Parameters
+    ----------
+    out : Path
+        The study's folder.
+
+    Returns
+    -------
+    dict of str to Path
+        Sorted by file name; empty when there is no ``parts`` folder.
+    """
     folder = Path(out) / PARTS
     if not folder.is_dir():
         return {}
@@ -84,7 +145,18 @@ def finished(out: Path) -> dict[str, Path]:
 
 
 def read_parts(paths: Iterable[Path]) -> pa.Table:
-    """Read part files into one Arrow table of :func:`schema` (empty when there are none)."""
+    """Read part files into one Arrow table of :func:`schema` (empty when there are none).
+
+    Parameters
+    ----------
+    paths : iterable of Path
+        Part files.
+
+    Returns
+    -------
+    pyarrow.Table
+        Their rows, in order.
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -93,7 +165,18 @@ def read_parts(paths: Iterable[Path]) -> pa.Table:
 
 
 def failed_keys(out: Path) -> set[str]:
-    """Keys of finished tasks whose rows say ``failed``."""
+    """Keys of finished tasks whose rows say ``failed``.
+
+    Parameters
+    ----------
+    out : Path
+        Folder of the study whose part files are read.
+
+    Returns
+    -------
+    set of str
+        Task keys.
+    """
     import pyarrow.compute as pc
 
     done = finished(out)
@@ -103,6 +186,18 @@ def failed_keys(out: Path) -> set[str]:
 
 def consolidate(out: Path, keys: Iterable[str]) -> pa.Table:
     """Merge the part files of ``keys`` into ``study.parquet`` (sorted by case, design, target) and return it.
+
+    Parameters
+    ----------
+    out : Path
+        The study's folder.
+    keys : iterable of str
+        Keys of every task of the study.
+
+    Returns
+    -------
+    pyarrow.Table
+        The consolidated rows, also written to ``out/study.parquet``.
 
     Raises
     ------

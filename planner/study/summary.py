@@ -22,13 +22,40 @@ if TYPE_CHECKING:
 class DesignSummary:
     """One design across the cohort.
 
-    Rates are fractions of the planned (``ok``) case x target rows: reached with a feasible steered needle,
-    with a feasible straight needle, with either, and only by steering. ``median_*`` are over the targets the
-    design reaches with a steered needle (None when it reaches none): reach error (mm), clearance to the
-    nearest organ at risk (mm), peak tendon tension (N), insertion depth (mm). ``mean_task_plan_s`` is the mean
-    planning time of one case (all targets), s. With dose: ``median_hrctv_d90_gy`` over the cases with a dose
-    and ``dose_aim_met_rate``, the fraction of planned cases whose optimised dwell times meet the aims
-    (a case without a feasible needle counts as not met).
+    Rates are fractions of the planned (``ok``) case x target rows; ``median_*`` are over the targets the design
+    reaches with a steered needle (None when it reaches none). Numbers are rounded to 1e-3 (rates 1e-4).
+
+    Parameters
+    ----------
+    design : str
+        Stylet preset, or ``straight``.
+    n_cases : int
+        Cases with a row of this design.
+    n_targets : int
+        Planned (``ok``) case x target rows.
+    n_failed : int
+        Failed rows.
+    reach_rate_steered, reach_rate_straight : float or None
+        Fraction reached with a feasible steered (straight) needle; None with no planned row.
+    reach_rate_any : float or None
+        Fraction reached with either.
+    steered_only_rate : float or None
+        Fraction reached only by steering.
+    median_steered_reach_error_mm : float or None, mm
+        Reach error of the best steered candidates.
+    median_steered_clearance_mm : float or None, mm
+        Their clearance to the nearest organ at risk.
+    median_steered_peak_tension_n : float or None, N
+        Their peak tendon tension.
+    median_steered_insertion_depth_mm : float or None, mm
+        Their insertion depth beyond the template.
+    mean_task_plan_s : float or None, s
+        Mean planning time of one case (all targets).
+    median_hrctv_d90_gy : float or None, Gy
+        With dose: median HR-CTV D90 over the cases with a dose.
+    dose_aim_met_rate : float or None
+        With dose: fraction of planned cases whose optimised dwell times meet the aims (a case without a feasible
+        needle counts as not met).
     """
 
     design: str
@@ -58,7 +85,18 @@ def _median(v: np.ndarray) -> float | None:
 
 
 def summarise(table: pa.Table) -> tuple[DesignSummary, ...]:
-    """One :class:`DesignSummary` per design (in name order) from a study table."""
+    """One :class:`DesignSummary` per design (in name order) from a study table.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        Study rows (:func:`reachplan.planner.study.store.schema`).
+
+    Returns
+    -------
+    tuple of DesignSummary
+        In design name order.
+    """
     import pyarrow.compute as pc
 
     out = []
@@ -95,6 +133,15 @@ def write_dataclass_csv(cls: type, rows: Sequence[object], path: Path) -> None:
     """Write ``rows`` (instances of the dataclass ``cls``) as CSV, one column per field, atomically.
 
     Empty cells for None.
+
+    Parameters
+    ----------
+    cls : type
+        The dataclass; its fields name the columns, in order.
+    rows : sequence of object
+        Instances of ``cls``.
+    path : Path
+        The CSV file to write.
     """
     buf = io.StringIO()
     names = [f.name for f in dataclasses.fields(cls)]
@@ -106,7 +153,18 @@ def write_dataclass_csv(cls: type, rows: Sequence[object], path: Path) -> None:
 
 
 def format_summary(summaries: Sequence[DesignSummary]) -> str:
-    """Return a plain-text table: one line per design."""
+    """Return a plain-text table: one line per design.
+
+    Parameters
+    ----------
+    summaries : sequence of DesignSummary
+        The designs' summaries.
+
+    Returns
+    -------
+    str
+        Header and one line per design (rates in %, mm, N; dose columns when a design has a dose).
+    """
     def pct(v: float | None) -> str:
         return "   -" if v is None else f"{100 * v:3.0f}%"
 
@@ -127,7 +185,17 @@ def format_summary(summaries: Sequence[DesignSummary]) -> str:
 
 
 def summary_figure(table: pa.Table, summaries: Sequence[DesignSummary], path: Path) -> None:
-    """Reach rates per design (bars) and the best steered candidates' clearance and peak tension (boxes)."""
+    """Reach rates per design (bars) and the best steered candidates' clearance and peak tension (boxes).
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        Study rows.
+    summaries : sequence of DesignSummary
+        The designs' summaries, in the figure's order.
+    path : Path
+        The PNG file to write (atomically); with dose a third panel shows the HR-CTV D90 (Gy).
+    """
     import pyarrow.compute as pc
     from matplotlib.figure import Figure
 

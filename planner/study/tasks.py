@@ -34,7 +34,20 @@ STRAIGHT = "straight"
 
 @dataclass(frozen=True)
 class Case:
-    """A patient (or phantom) case: ``case_id`` names it in the results; ``rtstruct`` is its RT Structure Set."""
+    """A patient (or phantom) case.
+
+    Parameters
+    ----------
+    case_id : str
+        Names the case in the results (a plain folder name).
+    rtstruct : Path
+        Its RT Structure Set.
+
+    Raises
+    ------
+    ValueError
+        A case id that is empty, holds a path separator or starts with a dot.
+    """
 
     case_id: str
     rtstruct: Path
@@ -48,8 +61,17 @@ class Case:
 class StudyTask:
     """One unit of work: every target of ``case`` planned with stylet ``design`` (``straight``: none).
 
-    ``targets`` are ROI names; None = every ROI named ``Target*`` in the case. ``dose``: also choose one needle
-    per target and optimise the dwell times on the HR-CTV (as ``reachplan plan`` does before exporting).
+    Parameters
+    ----------
+    case : Case
+        The case.
+    design : str
+        Stylet preset name, or :data:`STRAIGHT` for straight needles only.
+    targets : tuple of str or None
+        ROI names of the targets; None = every ROI named ``Target*`` in the case.
+    dose : bool
+        Also choose one needle per target and optimise the dwell times on the HR-CTV (as ``reachplan plan`` does
+        before exporting).
     """
 
     case: Case
@@ -71,15 +93,57 @@ class StudyRow:
     ``target`` is "" when the task failed before its targets were known). For ``ok`` rows, ``reason`` is ""
     when the target is reached and otherwise the reason of its top-ranked candidate.
     ``steered_*`` describe the best-ranked feasible steered candidate and ``straight_*`` the best feasible
-    straight one (None when there is none): hole, reach error (mm), clearance to the nearest organ at risk
-    (mm), peak tendon tension (N), insertion depth beyond the template (mm), hole distance from the template
-    centre (mm). ``best_is_steered``: the overall top-ranked feasible candidate is steered.
-    ``task_scene_s`` is the time the task spent loading the case (0 when the worker had it cached),
-    ``task_plan_s`` the time planning all the task's targets and ``task_cpu_s`` the CPU time of the whole task
-    (all s, the same on every row of a task; CPU time well below wall time means the machine was oversubscribed).
-    ``task_hrctv_d90_gy`` (Gy), ``task_dose_aim_met`` and ``task_dose_reason``: the dwell-time optimisation of the
-    task's chosen needles (only when the study asks for dose; None otherwise; the reason says why there is no
-    dose, e.g. no feasible needle).
+    straight one (None when there is none). Times are the same on every row of a task; CPU time well below wall
+    time means the machine was oversubscribed.
+
+    Parameters
+    ----------
+    task, case, design, target : str
+        Task key, case id, stylet design and target ROI name.
+    status, reason : str
+        ``ok`` or ``failed``, and why (see above).
+    reached_steered, reached_straight : bool or None
+        A feasible steered (straight) candidate exists.
+    n_candidates, n_feasible : int or None
+        Candidates of the target, and how many are feasible.
+    best_is_steered : bool or None
+        The overall top-ranked feasible candidate is steered.
+    steered_hole, straight_hole : str or None
+        Template hole of the best steered (straight) candidate.
+    steered_reach_error_mm, straight_reach_error_mm : float or None, mm
+        Reach error.
+    steered_clearance_mm, straight_clearance_mm : float or None, mm
+        Clearance to the nearest organ at risk.
+    steered_peak_tension_n : float or None, N
+        Peak tendon tension.
+    steered_insertion_depth_mm, straight_insertion_depth_mm : float or None, mm
+        Insertion depth beyond the template.
+    steered_hole_distance_mm, straight_hole_distance_mm : float or None, mm
+        Hole distance from the template centre.
+    steered_model : str or None
+        Label of the model that produced the steered path.
+    task_scene_s : float or None, s
+        Time the task spent loading the case (0 when the worker had it cached).
+    task_plan_s : float or None, s
+        Time planning all the task's targets.
+    task_cpu_s : float or None, s
+        CPU time of the whole task.
+    task_hrctv_d90_gy : float or None, Gy
+        HR-CTV D90 after the dwell-time optimisation of the task's chosen needles (only when the study asks for
+        dose; None otherwise).
+    task_dose_aim_met : bool or None
+        Whether that optimisation met the aims.
+    task_dose_reason : str or None
+        Why there is no dose (e.g. no feasible needle); "" when there is.
+    worker : str
+        ``host:pid`` of the process that ran the task.
+    finished_utc : str
+        ISO 8601 time the row was made, UTC, to the second.
+
+    Raises
+    ------
+    ValueError
+        A status other than ``ok`` or ``failed``.
     """
 
     task: str
@@ -128,7 +192,20 @@ def _now() -> str:
 
 
 def failed_rows(task: StudyTask, reason: str) -> tuple[StudyRow, ...]:
-    """Return the rows recording a failed task: one per requested target (one with target "" when unknown)."""
+    """Return the rows recording a failed task: one per requested target (one with target "" when unknown).
+
+    Parameters
+    ----------
+    task : StudyTask
+        The task that failed.
+    reason : str
+        Why (whitespace collapsed, cut at 500 characters).
+
+    Returns
+    -------
+    tuple of StudyRow
+        Rows with status ``failed`` and every metric None.
+    """
     reason = " ".join(reason.split())[:500] or "failed without a message"
     none: dict[str, object] = {f.name: None for f in dataclasses.fields(StudyRow) if str(f.type).endswith("| None")}
     worker, now = _worker_name(), _now()
@@ -151,6 +228,24 @@ def load_scene(case: Case, targets: tuple[str, ...] | None,
 
     The cache key holds the file's modification time, so an edited case is reloaded, and the configuration
     without its designs (a scene does not depend on them).
+
+    Parameters
+    ----------
+    case : Case
+        The case to load.
+    targets : tuple of str or None
+        Target ROI names; None = every ``Target*`` ROI.
+    config : PlanConfig
+        The plan configuration (its designs do not matter).
+
+    Returns
+    -------
+    scene : Scene
+        Organs, targets and template pose (LPS mm).
+    structures : StructureSet
+        The case's structures as read.
+    seconds : float, s
+        Loading time; 0 when cached.
     """
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.case.scene import build_scene
@@ -178,7 +273,14 @@ def _num(v: float) -> float:
 class DoseOutcome:
     """The dwell-time optimisation of a task's needles.
 
-    HR-CTV D90 (Gy), whether the aims were met, and why there is no dose when ``d90_gy`` is None.
+    Parameters
+    ----------
+    d90_gy : float or None, Gy
+        HR-CTV D90 (per fraction, rounded to 1e-4); None when there is no dose.
+    aim_met : bool or None
+        Whether the aims were met; None without a dose.
+    reason : str
+        Why there is no dose ("" when there is).
     """
 
     d90_gy: float | None
@@ -187,7 +289,20 @@ class DoseOutcome:
 
 
 def task_dose(result: PlanResult, structures: StructureSet) -> DoseOutcome:
-    """Choose one needle per target and optimise their dwell times on the HR-CTV (no export)."""
+    """Choose one needle per target and optimise their dwell times on the HR-CTV (no export).
+
+    Parameters
+    ----------
+    result : PlanResult
+        The task's plan.
+    structures : StructureSet
+        The case's structures (the HR-CTV and organs at risk).
+
+    Returns
+    -------
+    DoseOutcome
+        D90 and aims, or the reason the optimisation failed.
+    """
     from reachplan.planner.delivery import plan_delivery
 
     try:
@@ -201,7 +316,28 @@ def task_dose(result: PlanResult, structures: StructureSet) -> DoseOutcome:
 
 def rows_from_result(task: StudyTask, result: PlanResult, scene_s: float, plan_s: float,
                      cpu_s: float, dose: DoseOutcome | None = None) -> tuple[StudyRow, ...]:
-    """Return the task's rows (one per target, in ranking order) from a plan result."""
+    """Return the task's rows (one per target, in ranking order) from a plan result.
+
+    Parameters
+    ----------
+    task : StudyTask
+        The task.
+    result : PlanResult
+        Its plan.
+    scene_s : float, s
+        Time spent loading the case (0 when cached).
+    plan_s : float, s
+        Time planning the task's targets.
+    cpu_s : float, s
+        CPU time of the whole task.
+    dose : DoseOutcome or None
+        The dwell-time optimisation; None when the study asks for no dose.
+
+    Returns
+    -------
+    tuple of StudyRow
+        Status ``ok``, numbers rounded to 1e-4.
+    """
     rows = []
     worker, now = _worker_name(), _now()
     for target, cands in result.ranking.items():
@@ -239,6 +375,18 @@ def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
 
     An expected failure (unreadable case, missing ROI, unknown design...) becomes failed rows with the
     reason; anything else propagates (the driver records it as a failure too).
+
+    Parameters
+    ----------
+    task : StudyTask
+        The task.
+    config : PlanConfig
+        The plan configuration; its designs are replaced by the task's.
+
+    Returns
+    -------
+    tuple of StudyRow
+        One per target.
     """
     from reachplan.planner.case.search import plan
 
@@ -280,6 +428,16 @@ def discover_cases(paths: Sequence[Path]) -> tuple[Case, ...]:
 
     A folder holding an RT Structure Set is a case (named after the folder); a folder without one contributes
     each of its sub-folders that holds one (a cohort folder).
+
+    Parameters
+    ----------
+    paths : sequence of Path
+        Case folders or cohort folders.
+
+    Returns
+    -------
+    tuple of Case
+        In the order found (sub-folders sorted by name).
 
     Raises
     ------
