@@ -8,7 +8,8 @@
   ``roi_mesh``, ``structure_volume_cc``).
 * :mod:`reachplan.imaging.names` : ROI name synonyms.
 * :mod:`reachplan.imaging.phantom` : the pilot phantom and the DICOM writer of built-in cases (``write_phantom``,
-  ``phantom_spec``).
+  ``phantom_spec``), built from the analytic solids of :mod:`reachplan.imaging.solids`; the files are encoded by
+  :mod:`reachplan.imaging.case_dicom`.
 * :mod:`reachplan.imaging.clinical` : the built-in clinical case (``clinical_case``, ``write_clinical``), built
   from the smooth solids of :mod:`reachplan.imaging.sweep`.
 * :mod:`reachplan.imaging.inspect` : what a DICOM folder holds (``reachplan inspect``).
