@@ -1,7 +1,9 @@
 """Medical images and structures in, clean geometry out.
 
 * :mod:`reachplan.imaging.types` : the shared plain data (Grid, Volume, Contour, Roi, StructureSet).
-* :mod:`reachplan.imaging.dicom_io` : CT/MR series -> :class:`~reachplan.imaging.types.Volume` (``read_series``).
+* :mod:`reachplan.imaging.dicom_io` : CT/MR series -> :class:`~reachplan.imaging.types.Volume` (``read_series``),
+  with :mod:`~reachplan.imaging.dicom_files` (finding and opening files), :mod:`~reachplan.imaging.series_geometry`
+  (the frames' grid, ``SeriesTolerance``) and :mod:`~reachplan.imaging.pixels` (decoding pixel data).
 * :mod:`reachplan.imaging.rtstruct` : RT Structure Set -> :class:`~reachplan.imaging.types.StructureSet`
   (``read_rtstruct``).
 * :mod:`reachplan.imaging.meshing` : contours -> masks, volumes (cm³) and watertight meshes (``roi_mask``,

@@ -272,7 +272,7 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         Unreadable, incomplete geometry, or frames that are not evenly spaced (or absolute offsets on a
         non-axial grid).
     """
-    from reachplan.imaging.dicom_io import one_line
+    from reachplan.imaging.dicom_files import one_line
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     p = Path(path)
@@ -293,7 +293,7 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
 
 
 def _dose_and_grid(ds: Any, p: Path) -> tuple[np.ndarray, Grid]:
-    from reachplan.imaging.dicom_io import one_line
+    from reachplan.imaging.dicom_files import one_line
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     if str(ds.get("Modality", "")) != "RTDOSE":
