@@ -6,6 +6,8 @@
   (the frames' grid, ``SeriesTolerance``) and :mod:`~reachplan.imaging.pixels` (decoding pixel data).
 * :mod:`reachplan.imaging.rtstruct` : RT Structure Set -> :class:`~reachplan.imaging.types.StructureSet`
   (``read_rtstruct``).
+* :mod:`reachplan.imaging.rtplan` : RT Plan (brachy) -> :class:`~reachplan.imaging.brachy_plan.RtPlan` (``read_rtplan``,
+  ``channel_paths``); the plan's types live in :mod:`reachplan.imaging.brachy_plan`.
 * :mod:`reachplan.imaging.meshing` : contours -> masks, volumes (cm³) and watertight meshes (``roi_mask``,
   ``roi_mesh``, ``structure_volume_cc``).
 * :mod:`reachplan.imaging.names` : ROI name synonyms.
