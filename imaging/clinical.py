@@ -320,112 +320,187 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
         The phantom description and the named target points (LPS mm).
     """
     p = params or sample_params(seed)
+    mr = modality.upper() == "MR"
     uterus, cervix, axis = _uterus(p)
+    hrctv = _hrctv(p, uterus, axis)
+    hips = (_hip(1.0), _hip(-1.0))
+    bladder = _placed_bladder(p, hrctv, hips)
+    rectum = tube(_RECTUM_POINTS, p.rectum_radius_mm, rounded=False)
+    sigmoid = _placed_sigmoid(p, hrctv, bladder)
+    bowel = _placed_bowel(sigmoid)
+    bones = (*hips, _sacrum())
+    body = _z_rod(np.linspace(0.0, 210.0, 841), 150.0, 108.0, y_mm=5.0)
+    structures = (
+        _roi("Body", "EXTERNAL", (body,), "fat", (200, 180, 140), mr),
+        _roi("Bone_Pelvic", "AVOIDANCE", bones, "cortical bone", (240, 240, 220), mr, oar=True),
+        _roi("Rectum", "ORGAN", (rectum,), "soft tissue", (150, 90, 40), mr, oar=True),
+        _roi("Colon_Sigmoid", "ORGAN", (sigmoid,), "soft tissue", (200, 120, 60), mr, oar=True),
+        _roi("Bowel_Small", "ORGAN", bowel, "soft tissue", (230, 180, 60), mr, oar=True),
+        _roi("Bladder", "ORGAN", (bladder,), "soft tissue", (250, 230, 50), mr, oar=True),
+        _roi("Uterus", "ORGAN", (uterus,), "myometrium", (230, 130, 170), mr),
+        _roi("Cervix", "ORGAN", (cervix,), "cervical stroma", (200, 90, 140), mr),
+        _roi("Vagina", "ORGAN", (_z_rod(np.linspace(0.0, 60.0, 241), 18.0, 18.0),), "soft tissue", (210, 150, 150),
+             mr),
+        _roi("CTV_HR", "CTV", (hrctv,), "tumour", (255, 60, 60), mr),
+        _roi("Obturator", "BRACHY_ACCESSORY", (_z_rod(np.linspace(-20.0, 60.0, 321), 15.0, 15.0),), "plastic",
+             (120, 120, 255), mr),
+        _roi("Tandem", "BRACHY_ACCESSORY", (_tandem(uterus, axis),), "plastic", (90, 90, 255), mr),
+    )
+    tissues = _tissues(body, bladder, rectum, sigmoid, bowel, bones, cervix, mr)
+    spec = PhantomSpec(structures, slice_thickness_mm=2.5, z_range_mm=(-20.0, 210.0), matrix=320,
+                       air_hu=0.0 if mr else TISSUES["air"][0], fat_thickness_mm=0.0,
+                       case_id=case_id or f"clinical_{seed}", tissues=tissues, paint_order=_CLINICAL_PAINT_ORDER,
+                       modality="MR" if mr else "CT", description="reachplan clinical case (cervix ISBT)")
+    points = _target_points(p, uterus, hrctv)
+    target_rois = tuple(_roi(f"Target_{n}", "PTV", (_target_cylinder(xyz),), "tumour", (255, 0, 0), mr)
+                        for n, xyz in points)
+    spec = dataclasses.replace(spec, structures=(*spec.structures, *target_rois))
+    return ClinicalCase(p, seed, spec, tuple(points))
+
+
+#: The rectum's centre line (LPS mm), from the anal canal up to the recto-sigmoid junction.
+_RECTUM_POINTS = ((0, 36, 4), (0, 37, 30), (0, 42, 65), (0, 50, 95), (3, 56, 112), (14, 56, 124))
+#: The sigmoid loop's course (LPS mm) before the case's shift, between its fixed ends.
+_SIGMOID_LOOP = ((33, 44, 130), (35, 18, 124), (36, -16, 112), (36, -46, 104), (20, -72, 118), (0, -66, 140),
+                 (25, -35, 152), (50, -24, 170))
+#: Paint order of the clinical case's structures and tissues (later wins).
+_CLINICAL_PAINT_ORDER = (
+    "Body", "muscle", "pelvic fat", "obturator internus 0", "obturator internus 1", "psoas 0", "psoas 1",
+    "Vagina", "Rectum", "rectal gas", "Colon_Sigmoid", "sigmoid gas", "Bowel_Small", "bowel fluid 0",
+    "bowel fluid 1", "Bladder", "urine", "CTV_HR", "Uterus", "Cervix", "cervical tumour", "Obturator",
+    "Tandem", "Bone_Pelvic", "marrow 0", "marrow 1", "marrow 2")
+
+
+def _roi(name: str, kind: str, parts: tuple[Sweep | Union, ...], tissue: str, color: tuple[int, int, int], mr: bool,
+         oar: bool = False) -> PhantomStructure:
+    """Return a written ROI of the case, painted with ``tissue``'s CT number (or MR signal when ``mr``)."""
+    return PhantomStructure(name, kind, parts, hu=TISSUES[tissue][1 if mr else 0], color=color, is_oar=oar)
+
+
+def _paint(name: str, shape: Sweep | Union, tissue: str, mr: bool) -> PhantomStructure:
+    """Return a painted tissue of the case (not written as a ROI)."""
+    return PhantomStructure(name, "", (shape,), hu=TISSUES[tissue][1 if mr else 0], color=(0, 0, 0))
+
+
+def _hrctv(p: ClinicalParams, uterus: Sweep, axis: np.ndarray) -> Union:
+    """Return the HR-CTV: the uterus grown by the case's margin, with the parametrial extension on its side(s).
+
+    Parameters
+    ----------
+    p : ClinicalParams
+        The case's anatomy (margin, which parametria, reach).
+    uterus : Sweep
+        The uterus (corpus and cervix).
+    axis : (n, 3) float, mm, LPS
+        The uterus' centre line, sampled every ``SAMPLE_MM`` from the external os.
+    """
     cervix_mid = axis[round(0.55 * p.cervix_length_mm / SAMPLE_MM)]
     sides = [1.0] if p.parametria == "L" else [-1.0] if p.parametria == "R" else [1.0, -1.0]
-    hrctv = Union((uterus.grown(p.hrctv_margin_mm), *(_parametrium(p, cervix_mid, s) for s in sides)))
+    return Union((uterus.grown(p.hrctv_margin_mm), *(_parametrium(p, cervix_mid, s) for s in sides)))
 
-    hips = (_hip(1.0), _hip(-1.0))
+
+def _placed_bladder(p: ClinicalParams, hrctv: Union, hips: tuple[Sweep, Sweep]) -> Sweep:
+    """Return the bladder, anchored at its posterior wall and emptied in 5 % steps until it is clear.
+
+    Clear: 3 mm of tissue from the HR-CTV and 2 mm from the bones (at most 30 steps; a fuller bladder would lift
+    the uterus: not modelled).
+    """
     fill = 1.0
-    for _ in range(30):  # anchored at its posterior wall; emptied in 5 % steps until 3 mm of tissue separate
-        # it from the HR-CTV and 2 mm from the bones (a fuller bladder would lift the uterus: not modelled)
+    for _ in range(30):
         bladder = _bladder(p, fill)
         bladder = _shifted(bladder, (0.0, p.bladder_wall_y_mm - _back_y(bladder), 0.0))
         if _overlap(bladder, hrctv, gap_mm=3.0, step=2.0) == 0 and all(
                 _overlap(bladder, h, gap_mm=2.0, step=2.0) == 0 for h in hips):
             break
         fill *= 0.95
+    return bladder
 
-    rect_pts = [(0, 36, 4), (0, 37, 30), (0, 42, 65), (0, 50, 95), (3, 56, 112), (14, 56, 124)]
-    rectum = tube(rect_pts, p.rectum_radius_mm, rounded=False)
+
+def _placed_sigmoid(p: ClinicalParams, hrctv: Union, bladder: Sweep) -> Sweep:
+    """Return the sigmoid colon, lifted in 2 mm steps until 3 mm of fat separate it from the HR-CTV and bladder."""
     dx, dy, dz = p.sigmoid_shift_mm
-    loop = [(33, 44, 130), (35, 18, 124), (36, -16, 112), (36, -46, 104), (20, -72, 118), (0, -66, 140),
-            (25, -35, 152), (50, -24, 170)]
-    sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (56, -10, 205)],
-                   p.sigmoid_radius_mm, rounded=False)
-    for _ in range(20):  # keep the sigmoid off the HR-CTV and the bladder (3 mm of fat between)
+
+    def course(dz: float) -> Sweep:
+        loop = ((x + dx, y + dy, z + dz) for x, y, z in _SIGMOID_LOOP)
+        return tube([(26, 56, 127), *loop, (56, -10, 205)], p.sigmoid_radius_mm, rounded=False)
+
+    sigmoid = course(dz)
+    for _ in range(20):
         if _overlap(sigmoid, hrctv, 3.0, step=2.0) == 0 and _overlap(sigmoid, bladder, 3.0, step=2.0) == 0:
             break
         dz += 2.0
-        sigmoid = tube([(26, 56, 127), *((x + dx, y + dy, z + dz) for x, y, z in loop), (56, -10, 205)],
-                       p.sigmoid_radius_mm, rounded=False)
+        sigmoid = course(dz)
+    return sigmoid
+
+
+def _placed_bowel(sigmoid: Sweep) -> tuple[Sweep, Sweep]:
+    """Return the small-bowel loops on the right, moved further right (up to 12 mm) until clear of the sigmoid."""
     bowel_shift = 0.0
-    while True:  # small-bowel loops on the right, moved further right until 3 mm clear of the sigmoid
+    while True:
         bowel = _bowel(bowel_shift)
         if bowel_shift <= -12.0 or all(_overlap(b, sigmoid, 4.0, step=2.0) == 0 for b in bowel):
-            break
+            return bowel
         bowel_shift -= 2.0
-    vagina = Sweep(np.column_stack([np.zeros(241), np.zeros(241), np.linspace(0.0, 60.0, 241)]),
-                   np.full(241, 18.0), np.full(241, 18.0), (1.0, 0.0, 0.0))
-    obturator = Sweep(np.column_stack([np.zeros(321), np.zeros(321), np.linspace(-20.0, 60.0, 321)]),
-                      np.full(321, 15.0), np.full(321, 15.0), (1.0, 0.0, 0.0))
-    # the tandem: straight through the obturator, then bent into the uterine canal, ending 12 mm short of
-    # the fundus; 6 mm across (ASSUMED)
+
+
+def _z_rod(z_mm: np.ndarray, semi_x_mm: float, semi_y_mm: float, y_mm: float = 0.0) -> Sweep:
+    """Return a straight elliptic rod along z at ``x = 0, y = y_mm`` through the samples ``z_mm`` (mm, LPS)."""
+    n = len(z_mm)
+    return Sweep(np.column_stack([np.zeros(n), np.full(n, y_mm), z_mm]), np.full(n, semi_x_mm), np.full(n, semi_y_mm),
+                 (1.0, 0.0, 0.0))
+
+
+def _tandem(uterus: Sweep, axis: np.ndarray) -> Sweep:
+    """Return the tandem: straight through the obturator, then bent into the uterine canal.
+
+    It ends 12 mm short of the fundus and is 6 mm across (ASSUMED), with rounded ends.
+    """
     canal = axis[: int((uterus.length_mm - 12.0) / SAMPLE_MM)]
     tandem_line = resample_curve(np.vstack([[0.0, 0.0, -20.0], [0.0, 0.0, 40.0], canal[::24], canal[-1:]]))
     r_t = np.full(len(tandem_line), 3.0) * _round_ends(np.arange(len(tandem_line)) * SAMPLE_MM,
                                                        (len(tandem_line) - 1) * SAMPLE_MM, 0.0, 3.0)
-    tandem = Sweep(tandem_line, r_t, r_t, (1.0, 0.0, 0.0))
+    return Sweep(tandem_line, r_t, r_t, (1.0, 0.0, 0.0))
+
+
+def _sacrum() -> Sweep:
+    """Return the sacrum: a flat band along the posterior pelvic wall (ASSUMED course and size)."""
     sacrum_c = resample_curve(np.array([(0, 74, 62), (0, 86, 110), (0, 92, 160), (0, 92, 205)], float))
-    sacrum = Sweep(sacrum_c, np.full(len(sacrum_c), 42.0), np.full(len(sacrum_c), 11.0), (1.0, 0.0, 0.0))
-    bones = (*hips, sacrum)
-    body_z = np.linspace(0.0, 210.0, 841)
-    body = Sweep(np.column_stack([np.zeros(841), np.full(841, 5.0), body_z]), np.full(841, 150.0),
-                 np.full(841, 108.0), (1.0, 0.0, 0.0))
+    return Sweep(sacrum_c, np.full(len(sacrum_c), 42.0), np.full(len(sacrum_c), 11.0), (1.0, 0.0, 0.0))
 
-    hu = {k: v[0] for k, v in TISSUES.items()}
-    t2 = {k: v[1] for k, v in TISSUES.items()}
-    mr = modality.upper() == "MR"
 
-    def roi(name: str, kind: str, shape: Sweep | Union, tissue: str, color: tuple[int, int, int],
-            oar: bool = False, parts: tuple[Sweep | Union, ...] | None = None) -> PhantomStructure:
-        value = t2[tissue] if mr else hu[tissue]
-        return PhantomStructure(name, kind, parts or (shape,), hu=value, color=color, is_oar=oar)
+def _tissues(body: Sweep, bladder: Sweep, rectum: Sweep, sigmoid: Sweep, bowel: tuple[Sweep, Sweep],
+             bones: tuple[Sweep, ...], cervix: Sweep, mr: bool) -> tuple[PhantomStructure, ...]:
+    """Return the tissues painted into the image but not written as ROIs.
 
-    def paint(name: str, shape: Sweep | Union, tissue: str) -> PhantomStructure:
-        return PhantomStructure(name, "", (shape,), hu=t2[tissue] if mr else hu[tissue], color=(0, 0, 0))
-
-    structures = (
-        roi("Body", "EXTERNAL", body, "fat", (200, 180, 140)),
-        roi("Bone_Pelvic", "AVOIDANCE", bones[0], "cortical bone", (240, 240, 220), True, parts=bones),
-        roi("Rectum", "ORGAN", rectum, "soft tissue", (150, 90, 40), True),
-        roi("Colon_Sigmoid", "ORGAN", sigmoid, "soft tissue", (200, 120, 60), True),
-        roi("Bowel_Small", "ORGAN", bowel[0], "soft tissue", (230, 180, 60), True, parts=bowel),
-        roi("Bladder", "ORGAN", bladder, "soft tissue", (250, 230, 50), True),
-        roi("Uterus", "ORGAN", uterus, "myometrium", (230, 130, 170)),
-        roi("Cervix", "ORGAN", cervix, "cervical stroma", (200, 90, 140)),
-        roi("Vagina", "ORGAN", vagina, "soft tissue", (210, 150, 150)),
-        roi("CTV_HR", "CTV", hrctv, "tumour", (255, 60, 60)),
-        roi("Obturator", "BRACHY_ACCESSORY", obturator, "plastic", (120, 120, 255)),
-        roi("Tandem", "BRACHY_ACCESSORY", tandem, "plastic", (90, 90, 255)),
-    )
-    tissues = (
-        paint("muscle", body.shrunk(15.0), "muscle"),
-        paint("pelvic fat", Sweep(body.samples_mm - [0.0, 5.0, 0.0], np.full(841, 100.0), np.full(841, 85.0),
-                                  (1.0, 0.0, 0.0)), "fat"),
-        *(paint(f"obturator internus {i}", tube([(s * 55, 5, 10), (s * 56, 0, 60), (s * 54, 5, 110)], 8.0),
-                "muscle") for i, s in enumerate((1.0, -1.0))),
-        *(paint(f"psoas {i}", tube([(s * 45, 55, 120), (s * 50, 50, 160), (s * 50, 45, 215)], 16.0), "muscle")
+    Muscle and pelvic fat inside the body, the obturator internus and psoas muscles, urine, gas, bowel fluid,
+    marrow and the cervical tumour inside a rim of cervical stroma (T2: dark).
+    """
+    n = len(body.samples_mm)
+    return (
+        _paint("muscle", body.shrunk(15.0), "muscle", mr),
+        _paint("pelvic fat", Sweep(body.samples_mm - [0.0, 5.0, 0.0], np.full(n, 100.0), np.full(n, 85.0),
+                                   (1.0, 0.0, 0.0)), "fat", mr),
+        *(_paint(f"obturator internus {i}", tube([(s * 55, 5, 10), (s * 56, 0, 60), (s * 54, 5, 110)], 8.0),
+                 "muscle", mr) for i, s in enumerate((1.0, -1.0))),
+        *(_paint(f"psoas {i}", tube([(s * 45, 55, 120), (s * 50, 50, 160), (s * 50, 45, 215)], 16.0), "muscle", mr)
           for i, s in enumerate((1.0, -1.0))),
-        paint("urine", bladder.shrunk(2.8), "fluid"),
-        paint("rectal gas", rectum.shrunk(3.0), "air"),
-        paint("sigmoid gas", sigmoid.shrunk(3.0), "air"),
-        *(paint(f"bowel fluid {i}", b.shrunk(3.0), "fluid") for i, b in enumerate(bowel)),
-        *(paint(f"marrow {i}", b.shrunk(2.5), "cancellous bone") for i, b in enumerate(bones)),
-        paint("cervical tumour", cervix.shrunk(3.0), "tumour"),  # inside a rim of cervical stroma (T2: dark)
+        _paint("urine", bladder.shrunk(2.8), "fluid", mr),
+        _paint("rectal gas", rectum.shrunk(3.0), "air", mr),
+        _paint("sigmoid gas", sigmoid.shrunk(3.0), "air", mr),
+        *(_paint(f"bowel fluid {i}", b.shrunk(3.0), "fluid", mr) for i, b in enumerate(bowel)),
+        *(_paint(f"marrow {i}", b.shrunk(2.5), "cancellous bone", mr) for i, b in enumerate(bones)),
+        _paint("cervical tumour", cervix.shrunk(3.0), "tumour", mr),
     )
-    order = ("Body", "muscle", "pelvic fat", "obturator internus 0", "obturator internus 1", "psoas 0", "psoas 1",
-             "Vagina", "Rectum", "rectal gas", "Colon_Sigmoid", "sigmoid gas", "Bowel_Small", "bowel fluid 0",
-             "bowel fluid 1", "Bladder", "urine", "CTV_HR", "Uterus", "Cervix", "cervical tumour", "Obturator",
-             "Tandem", "Bone_Pelvic", "marrow 0", "marrow 1", "marrow 2")
-    spec = PhantomSpec(structures, slice_thickness_mm=2.5, z_range_mm=(-20.0, 210.0), matrix=320,
-                       air_hu=0.0 if mr else hu["air"], fat_thickness_mm=0.0, case_id=case_id or f"clinical_{seed}",
-                       tissues=tissues, paint_order=order, modality="MR" if mr else "CT",
-                       description="reachplan clinical case (cervix ISBT)")
-    # corpus targets in the anterior-inferior part of the body (a fifth of the chord up: about 10 mm from the
-    # canal and its tandem); parametrial targets in the middle of the extension. Each is written as a small
-    # target ROI (``Target_<name>``: a cylinder 8 mm across and 5 mm tall centred on the point, its flat ends
-    # on slice boundaries, so the ROI's centroid is the point exactly).
+
+
+def _target_points(p: ClinicalParams, uterus: Sweep, hrctv: Union) -> list[tuple[str, tuple[float, float, float]]]:
+    """Return the named target points (LPS mm), each on a slice boundary.
+
+    Corpus targets in the anterior-inferior part of the body (a fifth of the chord up: about 10 mm from the canal
+    and its tandem); parametrial targets in the middle of the extension, on the involved side(s) only. Each is
+    written as a small target ROI (``Target_<name>``: a cylinder 8 mm across and 5 mm tall centred on the point,
+    its flat ends on slice boundaries, so the ROI's centroid is the point exactly).
+    """
     points = []
     for name, xy in TARGET_COLUMNS.items():
         if name.startswith("param") and name[-1] not in p.parametria:
@@ -433,10 +508,7 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
         x, y, z = _column_target(uterus, xy, 0.2) if name.startswith("corpus") else _column_target(hrctv, xy)
         z = -20.0 + 2.5 * round((z + 20.0) / 2.5)  # on a slice boundary
         points.append((name, (x, y, z)))
-    target_rois = tuple(roi(f"Target_{n}", "PTV", _target_cylinder(xyz), "tumour", (255, 0, 0)) for n, xyz in points)
-    spec = dataclasses.replace(spec, structures=(*spec.structures, *target_rois))
-    targets = tuple(points)
-    return ClinicalCase(p, seed, spec, targets)
+    return points
 
 
 def _target_cylinder(xyz: tuple[float, float, float], radius_mm: float = 4.0) -> Sweep:

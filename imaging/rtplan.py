@@ -23,7 +23,8 @@ from the last control point's, weight between two different positions of a stepw
 Frame of Reference UID, a private catheter sequence stored as raw bytes.
 
 Positions are mm, DICOM patient coordinates (LPS); times s; doses Gy; air-kerma rate in U
-(µGy m² h⁻¹ = cGy cm² h⁻¹).
+(µGy m² h⁻¹ = cGy cm² h⁻¹). The plan's types live in :mod:`reachplan.imaging.brachy_plan` and are exported here
+too, so ``from reachplan.imaging.rtplan import RtPlan, read_rtplan`` gives the reader and what it returns.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import os
 import warnings
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +43,15 @@ from pydicom.dataset import Dataset
 from pydicom.filereader import read_sequence
 
 from reachplan._arrays import frozen_floats
-from reachplan.imaging.dicom_io import parsing, read_dataset
+from reachplan.imaging.brachy_plan import (
+    ApplicationSetup,
+    BrachySource,
+    CatheterPath,
+    Channel,
+    DoseReference,
+    RtPlan,
+)
+from reachplan.imaging.dicom_files import parsing, read_dataset
 from reachplan.imaging.errors import (
     CalibrationDateWarning,
     CorruptFileError,
@@ -51,6 +60,23 @@ from reachplan.imaging.errors import (
     NoDicomError,
 )
 from reachplan.imaging.types import PatientStudy, StructureSet
+
+__all__ = [
+    "MAX_CALIBRATION_AGE_DAYS",
+    "MAX_CHANNEL_TOTAL_TIME_S",
+    "ONCENTRA_CATHETER_TAG",
+    "ONCENTRA_CHANNEL_ROI_TAG",
+    "RT_PLAN_SOP_CLASSES",
+    "ApplicationSetup",
+    "BrachySource",
+    "CatheterPath",
+    "Channel",
+    "DoseReference",
+    "PlanQuirkWarning",
+    "RtPlan",
+    "channel_paths",
+    "read_rtplan",
+]
 
 RT_PLAN_SOP_CLASSES = {
     "1.2.840.10008.5.1.4.1.1.481.5": "RT Plan",
@@ -69,290 +95,6 @@ MAX_CALIBRATION_AGE_DAYS = 365.0
 
 class PlanQuirkWarning(DicomQuirkWarning):
     """A plan breaks a DICOM rule in a known way; it was read anyway (the message names the quirk)."""
-
-
-@dataclass(frozen=True)
-class BrachySource:
-    """One item of the Source Sequence.
-
-    Channels refer to it by ``number`` (Referenced Source Number).
-
-    Parameters
-    ----------
-    number : int
-        Source Number (0 when missing).
-    isotope_name, source_type, manufacturer : str
-        As written; empty when missing.
-    air_kerma_rate_u : float, U (µGy m² h⁻¹)
-        Reference Air Kerma Rate at the reference date and time (0 when missing).
-    reference_date, reference_time : str
-        Source Strength Reference Date (``YYYYMMDD``) and Time (``HHMMSS``), as written.
-    half_life_days : float or None, d
-        Source Isotope Half Life.
-    active_length_mm, diameter_mm : float or None, mm
-        Active Source Length and Diameter.
-    model_id : str
-        Source Model ID; empty when missing.
-    """
-
-    number: int
-    isotope_name: str
-    source_type: str
-    manufacturer: str
-    air_kerma_rate_u: float
-    reference_date: str
-    reference_time: str
-    half_life_days: float | None
-    active_length_mm: float | None
-    diameter_mm: float | None
-    model_id: str = ""
-
-    def labels(self) -> tuple[str, ...]:
-        """Strings that may identify the source model (for matching TG-43 data sets)."""
-        return tuple(x for x in (self.model_id, self.isotope_name, self.manufacturer) if x)
-
-
-@dataclass(frozen=True, eq=False)
-class Channel:
-    """A channel of a brachy application setup with its dwells.
-
-    One item of the Channel Sequence, its Brachy Control Point Sequence read into dwell positions and times.
-
-    Parameters
-    ----------
-    number : int
-        Channel Number.
-    setup_number : int
-        Application Setup Number it belongs to.
-    roi_number : int or None
-        ReferencedROINumber of the channel's ROI (an RT Structure Set BRACHY_CHANNEL ROI, or for
-        Oncentra the ROI of the private catheter sequence), None when the plan gives none.
-    total_time_s : float
-        Channel Total Time as written (per pulse for PDR).
-    dwell_positions_mm : (n, 3) float, mm, LPS
-        Control Point 3D Position of each dwell, in file order.
-    dwell_relative_mm : (n,) float, mm
-        Control Point Relative Position of each dwell.
-    dwell_times_s : (n,) float, s
-        Per fraction, per pulse for PDR.
-    source_number : int or None
-        Referenced Source Number.
-    applicator_id : str
-        Source Applicator ID.
-    source_movement : str
-        Source Movement Type (``"STEPWISE"``, ``"FIXED"``, ...).
-    final_weight : float
-        The Final Cumulative Time Weight the dwell times were normalised by (the sum of the dwell weights when
-        the file's value is missing or unusable).
-    n_pulses : int or None
-        Number of Pulses (PDR).
-    pulse_interval_s : float or None, s
-        Pulse Repetition Interval (PDR).
-    length_mm : float or None, mm
-        Channel Effective Length, else Channel Length.
-    step_mm : float or None, mm
-        Source Applicator Step Size.
-    dose_coefficients : tuple of (int, float)
-        (dose reference number, cumulative dose reference coefficient at the last control point).
-
-    Raises
-    ------
-    ValueError
-        Dwell arrays of different lengths.
-    """
-
-    number: int
-    setup_number: int
-    roi_number: int | None
-    source_number: int | None
-    applicator_id: str
-    source_movement: str
-    total_time_s: float
-    final_weight: float
-    n_pulses: int | None
-    pulse_interval_s: float | None
-    length_mm: float | None
-    step_mm: float | None
-    dwell_positions_mm: np.ndarray
-    dwell_relative_mm: np.ndarray
-    dwell_times_s: np.ndarray
-    dose_coefficients: tuple[tuple[int, float], ...] = ()
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "dwell_positions_mm", frozen_floats(np.reshape(self.dwell_positions_mm, (-1, 3))))
-        object.__setattr__(self, "dwell_relative_mm", frozen_floats(self.dwell_relative_mm))
-        object.__setattr__(self, "dwell_times_s", frozen_floats(self.dwell_times_s))
-        n = len(self.dwell_times_s)
-        if not (len(self.dwell_positions_mm) == len(self.dwell_relative_mm) == n):
-            raise ValueError(f"channel {self.number}: dwell arrays disagree in length")
-
-    @property
-    def n_dwells(self) -> int:
-        """Number of dwell positions."""
-        return len(self.dwell_times_s)
-
-
-@dataclass(frozen=True)
-class ApplicationSetup:
-    """An item of the Application Setup Sequence: Application Setup Number, Name and Type, and its channels."""
-
-    number: int
-    name: str
-    setup_type: str
-    channels: tuple[Channel, ...]
-
-
-@dataclass(frozen=True, eq=False)
-class DoseReference:
-    """A dose reference of the plan.
-
-    Parameters
-    ----------
-    number : int
-        Dose Reference Number.
-    description, structure_type, reference_type : str
-        Dose Reference Description, Structure Type (``"POINT"``, ``"VOLUME"``, ...) and Type
-        (``"TARGET"``, ``"ORGAN_AT_RISK"``).
-    position_mm : (3,) float, mm, LPS, or None
-        Dose Reference Point Coordinates; None when the reference is not a point.
-    tps_dose_gy : float or None, Gy
-        The TPS's total dose there (all fractions, all pulses) from the cumulative dose reference
-        coefficients (see the module docstring); None when the plan does not carry them.
-    """
-
-    number: int
-    description: str
-    structure_type: str
-    reference_type: str
-    position_mm: np.ndarray | None
-    tps_dose_gy: float | None
-
-
-@dataclass(frozen=True, eq=False)
-class CatheterPath:
-    """A catheter reconstruction from Oncentra's private sequence (300F,1000).
-
-    Parameters
-    ----------
-    roi_number : int
-        The ROI the catheter belongs to (channels refer to it).
-    points_mm : (k, 3) float, mm, LPS
-        The catheter's centre line, as written.
-    """
-
-    roi_number: int
-    points_mm: np.ndarray
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "points_mm", frozen_floats(np.reshape(self.points_mm, (-1, 3))))
-
-
-@dataclass(frozen=True, eq=False)
-class RtPlan:
-    """An RT Plan: for brachy plans ``setups`` holds the channels; ``is_brachy`` is False otherwise.
-
-    Parameters
-    ----------
-    path : str
-        The file it was read from.
-    sop_instance_uid, frame_of_reference_uid, label, name, manufacturer : str
-        As written (RT Plan Label and Name); empty when missing.
-    is_brachy : bool
-        The plan has a Brachy Treatment Type or application setups.
-    treatment_type : str
-        Brachy Treatment Type: ``"HDR"``, ``"PDR"``, ``"MDR"``, ``"LDR"``; empty for a beam plan.
-    technique : str
-        Brachy Treatment Technique: ``"INTERSTITIAL"``, ``"INTRACAVITARY"``, ...
-    n_fractions : int
-        Number of Fractions Planned of the first fraction group (1 when missing).
-    n_beams : int
-        External beams (0 for brachy).
-    sources : tuple of BrachySource
-    setups : tuple of ApplicationSetup
-    dose_references : tuple of DoseReference
-    setup_doses_gy : tuple of (int, float)
-        (application setup number, Brachy Application Setup Dose in Gy) of the first fraction group.
-    catheter_paths : tuple of CatheterPath
-        From Oncentra's private catheter sequence; empty otherwise.
-    machine_name : str
-        Treatment Machine Name as written; empty when missing.
-    patient_study : PatientStudy
-        Patient and study as written.
-    plan_date, plan_time : str
-        RT Plan Date (``YYYYMMDD``) and Time as written; empty when missing.
-    quirks : tuple of str
-        Every rule the file breaks that was read anyway (also warned as :class:`PlanQuirkWarning`).
-    """
-
-    path: str
-    sop_instance_uid: str
-    frame_of_reference_uid: str
-    label: str
-    name: str
-    manufacturer: str
-    is_brachy: bool
-    treatment_type: str  # HDR, PDR, MDR, LDR (brachy) or "" (beam)
-    technique: str  # INTRACAVITARY, INTERSTITIAL, ...
-    n_fractions: int
-    n_beams: int
-    sources: tuple[BrachySource, ...]
-    setups: tuple[ApplicationSetup, ...]
-    dose_references: tuple[DoseReference, ...]
-    setup_doses_gy: tuple[tuple[int, float], ...] = ()
-    catheter_paths: tuple[CatheterPath, ...] = ()
-    machine_name: str = ""
-    patient_study: PatientStudy = field(default_factory=PatientStudy)
-    plan_date: str = ""
-    plan_time: str = ""
-    quirks: tuple[str, ...] = field(default=())
-
-    @property
-    def channels(self) -> tuple[Channel, ...]:
-        """Every channel of every application setup, in file order."""
-        return tuple(c for s in self.setups for c in s.channels)
-
-    @property
-    def n_pulses(self) -> int:
-        """Pulses per fraction (1 unless PDR)."""
-        pulses = {c.n_pulses for c in self.channels if c.n_pulses}
-        return int(max(pulses)) if pulses and self.treatment_type == "PDR" else 1
-
-    @property
-    def n_dwells(self) -> int:
-        """Number of dwell positions over all channels."""
-        return sum(c.n_dwells for c in self.channels)
-
-    @property
-    def total_time_s(self) -> float:
-        """Σ Channel Total Time as written (per pulse for PDR)."""
-        return float(sum(c.total_time_s for c in self.channels))
-
-    def source(self, number: int | None = None) -> BrachySource:
-        """Return the source with ``number`` (or the only / first one).
-
-        Parameters
-        ----------
-        number : int or None
-            Source Number; None: the only or first source.
-
-        Returns
-        -------
-        BrachySource
-            The source.
-
-        Raises
-        ------
-        NoDicomError
-            The plan has no sources (it is not a brachy plan).
-        CorruptFileError
-            No source has ``number``.
-        """
-        if not self.sources:
-            raise NoDicomError(f"{self.path}: the plan has no Source Sequence; it is not a brachy plan")
-        for s in self.sources:
-            if number is None or s.number == number:
-                return s
-        raise CorruptFileError(f"{self.path}: a channel refers to source {number}, which the plan lacks")
 
 
 # --- reading ------------------------------------------------------------------------------------------
@@ -620,6 +362,30 @@ def _private_roi_number(c: Dataset) -> int | None:
 
 
 def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Channel:
+    """Read one item of a Channel Sequence: its control points become dwell positions and times.
+
+    Parameters
+    ----------
+    c : pydicom.Dataset
+        The channel item.
+    setup_number : int
+        The Application Setup Number it belongs to.
+    path : str
+        The plan's file (for the messages).
+    found : list of str
+        Quirks met so far; the channel's are appended.
+
+    Returns
+    -------
+    Channel
+
+    Raises
+    ------
+    CorruptFileError
+        No Channel Total Time, or a control point without its position or cumulative time weight.
+    InvalidValueError
+        A value out of range (see :func:`read_rtplan`).
+    """
     number = _int(c, "ChannelNumber", 0) or 0
     where = f"{path}: channel {number}"
     if c.get("ChannelTotalTime") in (None, ""):
@@ -627,75 +393,17 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
     total = _value(c, "ChannelTotalTime", where, lo=0, hi=MAX_CHANNEL_TOTAL_TIME_S, unit=" s")
     assert total is not None
     cps = list(c.get("BrachyControlPointSequence", []))
-    rel = np.array([_float(cp, "ControlPointRelativePosition", np.nan) for cp in cps], dtype=float)
-    pos = np.full((len(cps), 3), np.nan)
-    for k, cp in enumerate(cps):
-        v = cp.get("ControlPoint3DPosition")
-        if v is not None and len(v) == 3:
-            pos[k] = [float(x) for x in v]
-    ctw = np.array([_float(cp, "CumulativeTimeWeight", np.nan) for cp in cps], dtype=float)
-    if len(cps) and (np.any(np.isnan(ctw)) or np.any(np.isnan(pos))):
-        raise CorruptFileError(
-            f"{where}: a control point lacks its 3D position or cumulative time weight; "
-            "re-export the plan with control point positions"
-        )
-    if not np.all(np.isfinite(pos)) or np.abs(pos).max(initial=0.0) > 1e5:
-        raise InvalidValueError(f"{where}: a Control Point 3D Position is infinite or beyond 100 m; fix the plan in "
-                                "the planning system and export it again")
-    if not np.all(np.isfinite(ctw)) or np.any(ctw < 0):
-        raise InvalidValueError(f"{where}: a Cumulative Time Weight is negative or infinite; time weights must be "
-                                "finite and >= 0: fix the plan in the planning system and export it again")
-    _check_accumulating(ctw, pos, where)
+    rel, pos, ctw = _control_points(cps, where)
     final = _value(c, "FinalCumulativeTimeWeight", where, lo=0)
-    dwell_pos: list[np.ndarray] = []
-    dwell_rel: list[float] = []
-    weights: list[float] = []
     restarts = bool(np.any(np.diff(ctw) < 0))
     if restarts:
         found.append("cumulative time weights do not accumulate (restart at 0 for each dwell)")
-    transit = 0.0
-    for k in range(len(cps) - 1):
-        delta = ctw[k + 1] - ctw[k]
-        if np.linalg.norm(pos[k + 1] - pos[k]) <= _SAME_POSITION_MM:
-            if dwell_pos and np.linalg.norm(dwell_pos[-1] - pos[k]) <= _SAME_POSITION_MM and k > 0 and (
-                np.linalg.norm(pos[k] - pos[k - 1]) <= _SAME_POSITION_MM
-            ):
-                weights[-1] += max(delta, 0.0)  # three or more control points at one position
-            else:
-                dwell_pos.append(pos[k])
-                dwell_rel.append(float(rel[k]))
-                weights.append(max(delta, 0.0))
-        elif delta > 0:
-            transit += delta
+    dwell_pos, dwell_rel, weights, transit = _dwell_weights(rel, pos, ctw)
     movement = _str(c, "SourceMovementType")
     if transit > 0 and movement == "STEPWISE":
         found.append("time weight between two different positions of a stepwise channel (ignored)")
-    w = np.array(weights, dtype=float)
-    last = float(ctw[-1]) if len(ctw) else 0.0
-    if final is not None and final <= 0 and w.sum() > 0:
-        raise InvalidValueError(f"{where}: Final Cumulative Time Weight is {final:g} but the control points carry "
-                                "weight; it must be > 0: fix the plan in the planning system and export it again")
-    if restarts or final is None or final <= 0:
-        norm = float(w.sum())
-        if final is None and not restarts:
-            found.append("missing Final Cumulative Time Weight (used the sum of dwell weights)")
-    else:
-        norm = final
-        if abs(final - last) > 1e-6 * max(abs(final), 1.0):
-            found.append("Final Cumulative Time Weight differs from the last control point's (used the former)")
-    times = total * w / norm if norm > 0 else np.zeros_like(w)
-    if times.sum() > total * (1 + 1e-6) + 1e-9:
-        raise InvalidValueError(
-            f"{where}: the dwell times add up to {times.sum():g} s, more than the Channel Total Time {total:g} s "
-            f"(Final Cumulative Time Weight {norm:g} below the control points' {last:g}); fix the plan in the "
-            "planning system and export it again")
-    coeffs: list[tuple[int, float]] = []
-    if cps:
-        for item in cps[-1].get("BrachyReferencedDoseReferenceSequence", []):
-            ref = _int(item, "ReferencedDoseReferenceNumber")
-            coef = _value(item, "CumulativeDoseReferenceCoefficient", where, lo=-1e6, hi=1e6)
-            if ref is not None and coef is not None:
-                coeffs.append((ref, coef))
+    times, norm = _dwell_times(total, weights, ctw, final, restarts, where, found)
+    coeffs = _dose_coefficients(cps, where)
     roi = _int(c, "ReferencedROINumber")
     if roi is None:
         roi = _private_roi_number(c)
@@ -715,11 +423,181 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
         pulse_interval_s=_value(c, "PulseRepetitionInterval", where, lo=0, hi=1e7, unit=" s"),
         length_mm=length,
         step_mm=_float(c, "SourceApplicatorStepSize"),
-        dwell_positions_mm=np.array(dwell_pos).reshape(-1, 3),
-        dwell_relative_mm=np.array(dwell_rel),
+        dwell_positions_mm=dwell_pos,
+        dwell_relative_mm=dwell_rel,
         dwell_times_s=times,
-        dose_coefficients=tuple(coeffs),
+        dose_coefficients=coeffs,
     )
+
+
+def _control_points(cps: list[Dataset], where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a channel's control points as arrays and check them.
+
+    Parameters
+    ----------
+    cps : list of pydicom.Dataset
+        The Brachy Control Point Sequence, in file order.
+    where : str
+        Names the channel in messages.
+
+    Returns
+    -------
+    rel : (n,) float, mm
+        Control Point Relative Position (NaN where absent).
+    pos : (n, 3) float, mm, LPS
+        Control Point 3D Position.
+    ctw : (n,) float
+        Cumulative Time Weight.
+
+    Raises
+    ------
+    CorruptFileError
+        A control point lacks its 3D position or cumulative time weight.
+    InvalidValueError
+        A position infinite or beyond 100 m, a weight negative or infinite, or weights that decrease (other than
+        the restart-at-0 quirk).
+    """
+    rel = np.array([_float(cp, "ControlPointRelativePosition", np.nan) for cp in cps], dtype=float)
+    pos = np.full((len(cps), 3), np.nan)
+    for k, cp in enumerate(cps):
+        v = cp.get("ControlPoint3DPosition")
+        if v is not None and len(v) == 3:
+            pos[k] = [float(x) for x in v]
+    ctw = np.array([_float(cp, "CumulativeTimeWeight", np.nan) for cp in cps], dtype=float)
+    if len(cps) and (np.any(np.isnan(ctw)) or np.any(np.isnan(pos))):
+        raise CorruptFileError(
+            f"{where}: a control point lacks its 3D position or cumulative time weight; "
+            "re-export the plan with control point positions"
+        )
+    if not np.all(np.isfinite(pos)) or np.abs(pos).max(initial=0.0) > 1e5:
+        raise InvalidValueError(f"{where}: a Control Point 3D Position is infinite or beyond 100 m; fix the plan in "
+                                "the planning system and export it again")
+    if not np.all(np.isfinite(ctw)) or np.any(ctw < 0):
+        raise InvalidValueError(f"{where}: a Cumulative Time Weight is negative or infinite; time weights must be "
+                                "finite and >= 0: fix the plan in the planning system and export it again")
+    _check_accumulating(ctw, pos, where)
+    return rel, pos, ctw
+
+
+def _dwell_weights(
+    rel: np.ndarray, pos: np.ndarray, ctw: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Turn control points into dwells: each run of control points at one position is one dwell.
+
+    Parameters
+    ----------
+    rel : (n,) float, mm
+        Control Point Relative Position.
+    pos : (n, 3) float, mm, LPS
+        Control Point 3D Position.
+    ctw : (n,) float
+        Cumulative Time Weight.
+
+    Returns
+    -------
+    dwell_pos : (m, 3) float, mm, LPS
+        Position of each dwell.
+    dwell_rel : (m,) float, mm
+        Its relative position.
+    weights : (m,) float
+        Its time weight (the increase of the cumulative weight at that position, at least 0).
+    transit : float
+        Weight gained between two different positions (a moving source).
+    """
+    dwell_pos: list[np.ndarray] = []
+    dwell_rel: list[float] = []
+    weights: list[float] = []
+    transit = 0.0
+    for k in range(len(pos) - 1):
+        delta = ctw[k + 1] - ctw[k]
+        if np.linalg.norm(pos[k + 1] - pos[k]) <= _SAME_POSITION_MM:
+            if dwell_pos and np.linalg.norm(dwell_pos[-1] - pos[k]) <= _SAME_POSITION_MM and k > 0 and (
+                np.linalg.norm(pos[k] - pos[k - 1]) <= _SAME_POSITION_MM
+            ):
+                weights[-1] += max(delta, 0.0)  # three or more control points at one position
+            else:
+                dwell_pos.append(pos[k])
+                dwell_rel.append(float(rel[k]))
+                weights.append(max(delta, 0.0))
+        elif delta > 0:
+            transit += delta
+    return np.array(dwell_pos).reshape(-1, 3), np.array(dwell_rel), np.array(weights, dtype=float), transit
+
+
+def _dwell_times(total: float, w: np.ndarray, ctw: np.ndarray, final: float | None, restarts: bool, where: str,
+                 found: list[str]) -> tuple[np.ndarray, float]:
+    """Scale dwell weights to dwell times: ``total * w / norm`` with the Final Cumulative Time Weight as ``norm``.
+
+    The sum of the weights is the norm instead when the weights restart at 0 for every dwell or the final weight
+    is missing or 0 (the missing one is a quirk); a final weight that differs from the last control point's is a
+    quirk too.
+
+    Parameters
+    ----------
+    total : float, s
+        Channel Total Time.
+    w : (m,) float
+        Dwell weights (:func:`_dwell_weights`).
+    ctw : (n,) float
+        Cumulative Time Weights of the control points.
+    final : float or None
+        Final Cumulative Time Weight, None when absent.
+    restarts : bool
+        The weights restart at 0 for every dwell.
+    where : str
+        Names the channel in messages.
+    found : list of str
+        Quirks met so far; appended to.
+
+    Returns
+    -------
+    times : (m,) float, s
+        Dwell times.
+    norm : float
+        The weight that stands for ``total``.
+
+    Raises
+    ------
+    InvalidValueError
+        A final weight of 0 while the control points carry weight, or dwell times adding up to more than ``total``.
+    """
+    last = float(ctw[-1]) if len(ctw) else 0.0
+    if final is not None and final <= 0 and w.sum() > 0:
+        raise InvalidValueError(f"{where}: Final Cumulative Time Weight is {final:g} but the control points carry "
+                                "weight; it must be > 0: fix the plan in the planning system and export it again")
+    if restarts or final is None or final <= 0:
+        norm = float(w.sum())
+        if final is None and not restarts:
+            found.append("missing Final Cumulative Time Weight (used the sum of dwell weights)")
+    else:
+        norm = final
+        if abs(final - last) > 1e-6 * max(abs(final), 1.0):
+            found.append("Final Cumulative Time Weight differs from the last control point's (used the former)")
+    times = total * w / norm if norm > 0 else np.zeros_like(w)
+    if times.sum() > total * (1 + 1e-6) + 1e-9:
+        raise InvalidValueError(
+            f"{where}: the dwell times add up to {times.sum():g} s, more than the Channel Total Time {total:g} s "
+            f"(Final Cumulative Time Weight {norm:g} below the control points' {last:g}); fix the plan in the "
+            "planning system and export it again")
+    return times, norm
+
+
+def _dose_coefficients(cps: list[Dataset], where: str) -> tuple[tuple[int, float], ...]:
+    """Read the last control point's (Referenced Dose Reference Number, Cumulative Dose Reference Coefficient) pairs.
+
+    Raises
+    ------
+    InvalidValueError
+        A coefficient beyond 1e6 in magnitude or not finite.
+    """
+    coeffs: list[tuple[int, float]] = []
+    if cps:
+        for item in cps[-1].get("BrachyReferencedDoseReferenceSequence", []):
+            ref = _int(item, "ReferencedDoseReferenceNumber")
+            coef = _value(item, "CumulativeDoseReferenceCoefficient", where, lo=-1e6, hi=1e6)
+            if ref is not None and coef is not None:
+                coeffs.append((ref, coef))
+    return tuple(coeffs)
 
 
 def _check_accumulating(ctw: np.ndarray, pos: np.ndarray, where: str) -> None:

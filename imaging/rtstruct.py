@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from reachplan.imaging.dicom_io import check_reference, parsing, read_dataset
+from reachplan.imaging.dicom_files import parsing, read_dataset
+from reachplan.imaging.dicom_io import check_reference
 from reachplan.imaging.errors import (
     CorruptFileError,
     DicomQuirkWarning,

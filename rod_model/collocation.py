@@ -145,88 +145,19 @@ class CollocationCosserat:
         if loads.foundation is not None:
             raise UnsupportedLoadError(f"model {self.name} has no elastic foundation; use two_tube_cosserat")
         sec = section_table(design)
-        sec_mm = sec.copy()
-        sec_mm[:, :2] *= 1e3
-        sec_mm[:, 2:4] *= 1e6
-        sec_mm[:, 6:8] *= 1e6
-        sec_mm[:, 10] *= 1e3
-        k = len(sec)
-        lengths = sec_mm[:, 1] - sec_mm[:, 0]
+        sec_mm = _in_mm(sec)
         r = design.tendon_unit_offsets(loads.roll_deg)
         lam_full = np.array(loads.tensions_n)
-        f_full = np.array(loads.distributed_n_per_m) * 1e-3
-        ftip_full = np.array(loads.tip_force_n)
-        ltip_full = np.array(loads.tip_moment_nm) * 1e3
-        tau = np.linspace(0.0, 1.0, self.nodes_per_section)
+        full = _Bvp(sec_mm, r, lam_full, np.array(loads.distributed_n_per_m) * 1e-3, np.array(loads.tip_force_n),
+                    np.array(loads.tip_moment_nm) * 1e3, self.coupled)
         if initial_guess is None:
-            y0 = np.zeros((NS * k, tau.size))
-            for i in range(k):
-                b = y0[NS * i:NS * (i + 1)]
-                b[2] = sec_mm[i, 0] + tau * lengths[i]
-                b[3] = b[7] = b[11] = 1.0
+            tau = np.linspace(0.0, 1.0, self.nodes_per_section)
+            y0 = _straight(sec_mm, tau)
         else:
             y0 = np.asarray(initial_guess, dtype=float)
             tau = np.linspace(0.0, 1.0, y0.shape[1])
-
-        def solve_at(f: float, mesh: np.ndarray, guess: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, float]:
-            lam, fext, ftip, ltip = f * lam_full, f * f_full, f * ftip_full, f * ltip_full
-
-            def fun(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-                out = np.empty_like(y)
-                for i in range(k):
-                    sl = slice(NS * i, NS * (i + 1))
-                    out[sl] = lengths[i] * _block_rhs(y[sl], sec_mm[i], sec_mm[i, 10] * r, lam, fext, self.coupled)
-                return out
-
-            def fun_jac(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-                # blocks are independent: perturb state q of every block at once (21 evaluations, not 21 k)
-                f0 = fun(x, y)
-                jac = np.zeros((y.shape[0], y.shape[0], y.shape[1]))
-                for q in range(NS):
-                    h = 1e-7 * (1.0 + np.abs(y[q::NS]))
-                    yp = y.copy()
-                    yp[q::NS] += h
-                    df = (fun(x, yp) - f0)
-                    for i in range(k):
-                        jac[NS * i:NS * (i + 1), NS * i + q] = df[NS * i:NS * (i + 1)] / h[i]
-                return jac
-
-            def bc(ya: np.ndarray, yb: np.ndarray) -> np.ndarray:
-                res = [ya[0:3], ya[3:12] - np.eye(3).ravel(), ya[18:19]]
-                for i in range(k - 1):
-                    res.append(ya[NS * (i + 1):NS * (i + 2)] - yb[NS * i:NS * (i + 1)])
-                tip = yb[NS * (k - 1):]
-                rz = tip[[5, 8, 11]]
-                res += [tip[12:15] - ftip, tip[15:18] - ltip]
-                if self.coupled:
-                    res.append(ya[19:21])
-                else:
-                    res.append(np.array([tip[19] - rz @ ftip, tip[20] - rz @ ltip]))
-                return np.concatenate(res)
-
-            with np.errstate(all="ignore"):  # a diverging iterate is reported as a failure below
-                sol = solve_bvp(fun, bc, mesh, guess, tol=self.tol, max_nodes=self.max_nodes, fun_jac=fun_jac)
-            finite = bool(np.all(np.isfinite(sol.y)))
-            with np.errstate(all="ignore"):
-                bres = float(np.max(np.abs(bc(sol.y[:, 0], sol.y[:, -1])))) if finite else np.inf
-            rms = float(np.max(sol.rms_residuals)) if finite and sol.rms_residuals is not None else np.inf
-            res = max(bres, rms) if np.isfinite(bres) and np.isfinite(rms) else np.inf
-            messages.append(str(sol.message))
-            return bool(sol.success and finite and bres < 1e-8 and rms < 10 * self.tol), sol.x, sol.y, res
-
         messages: list[str] = []
-        ramp = 1
-        res = np.inf
-        while ramp <= (self.max_ramp if continuation else 1):
-            mesh, guess = tau, y0
-            ok = True
-            for j in range(1, ramp + 1):
-                ok, mesh, guess, res = solve_at(j / ramp, mesh, guess)
-                if not ok:
-                    break
-            if ok:
-                break
-            ramp *= 2
+        ok, mesh, guess, res, ramp = self._continued(full, tau, y0, continuation, messages)
         ms = (time.perf_counter() - t0) * 1e3
         if not ok:
             why = messages[-1].rstrip(".") if messages else "no attempt"
@@ -240,9 +171,178 @@ class CollocationCosserat:
             if at_mm is not None:
                 return FailedSolve(self.name, f"unstable equilibrium: conjugate point at s = {at_mm:.1f} mm",
                                    res, ms, loads.tensions_n, loads.roll_deg)
+        return self._path(sec_mm, mesh, guess, res, ms, ramp, loads)
+
+    def _continued(self, full: _Bvp, tau: np.ndarray, y0: np.ndarray, continuation: bool,
+                   messages: list[str]) -> tuple[bool, np.ndarray, np.ndarray, float, int]:
+        """Solve at the full loads, ramping them from zero in 2, 4, ... steps while the solve fails.
+
+        Parameters
+        ----------
+        full : _Bvp
+            The problem at the full loads.
+        tau, y0 : (n,) float and (21 k, n) float
+            Initial mesh in ``τ ∈ [0, 1]`` and states on it.
+        continuation : bool
+            Ramp at all (else one direct attempt).
+        messages : list of str
+            ``solve_bvp``'s message of every attempt, appended to.
+
+        Returns
+        -------
+        ok : bool
+            The last ramp reached the full loads.
+        mesh, states : (m,) float and (21 k, m) float
+            The last solution (of the last step tried).
+        residual : float
+            Its residual.
+        ramp : int
+            Number of load steps of the last ramp tried.
+        """
+        ramp = 1
+        res = np.inf
+        ok = True
+        mesh, guess = tau, y0
+        while ramp <= (self.max_ramp if continuation else 1):
+            mesh, guess = tau, y0
+            ok = True
+            for j in range(1, ramp + 1):
+                ok, mesh, guess, res = self._solve_at(full.scaled(j / ramp), mesh, guess, messages)
+                if not ok:
+                    break
+            if ok:
+                break
+            ramp *= 2
+        return ok, mesh, guess, res, ramp
+
+    def _solve_at(self, bvp: _Bvp, mesh: np.ndarray, guess: np.ndarray,
+                  messages: list[str]) -> tuple[bool, np.ndarray, np.ndarray, float]:
+        """Run ``solve_bvp`` once on ``bvp`` from ``guess``; success needs boundary and collocation residuals small.
+
+        Returns
+        -------
+        ok : bool
+            Converged, finite, boundary residual below 1e-8 and collocation residual below ``10 tol``.
+        mesh, states : (m,) float and (21 k, m) float
+            The solution ``solve_bvp`` returned.
+        residual : float
+            The larger of the two residuals (inf when not finite).
+        """
+        with np.errstate(all="ignore"):  # a diverging iterate is reported as a failure below
+            sol = solve_bvp(bvp.fun, bvp.bc, mesh, guess, tol=self.tol, max_nodes=self.max_nodes, fun_jac=bvp.fun_jac)
+        finite = bool(np.all(np.isfinite(sol.y)))
+        with np.errstate(all="ignore"):
+            bres = float(np.max(np.abs(bvp.bc(sol.y[:, 0], sol.y[:, -1])))) if finite else np.inf
+        rms = float(np.max(sol.rms_residuals)) if finite and sol.rms_residuals is not None else np.inf
+        res = max(bres, rms) if np.isfinite(bres) and np.isfinite(rms) else np.inf
+        messages.append(str(sol.message))
+        return bool(sol.success and finite and bres < 1e-8 and rms < 10 * self.tol), sol.x, sol.y, res
+
+    def _path(self, sec_mm: np.ndarray, mesh: np.ndarray, states: np.ndarray, res: float, ms: float, ramp: int,
+              loads: Loads) -> RodPath:
+        """Join the section blocks of a solution into one path (positions and frames in mm, needle frame)."""
+        k = len(sec_mm)
+        lengths = sec_mm[:, 1] - sec_mm[:, 0]
         s = np.concatenate([sec_mm[i, 0] + mesh[(1 if i else 0):] * lengths[i] for i in range(k)])
-        ys = np.concatenate([guess[NS * i:NS * (i + 1), (1 if i else 0):] for i in range(k)], axis=1)
+        ys = np.concatenate([states[NS * i:NS * (i + 1), (1 if i else 0):] for i in range(k)], axis=1)
         keep = np.r_[True, np.diff(s) > 1e-12]
         frames = ys[3:12].T.reshape(-1, 3, 3)
         return RodPath(self.name, s[keep], ys[0:3].T[keep], frames[keep], res, ms, ramp, loads.tensions_n,
                        loads.roll_deg, None if self.coupled else ys[18][keep])
+
+
+def _in_mm(sec: np.ndarray) -> np.ndarray:
+    """Return a section table (SI, :func:`reachplan.rod_model.cosserat.section_table`) in mm and N units."""
+    sec_mm = sec.copy()
+    sec_mm[:, :2] *= 1e3
+    sec_mm[:, 2:4] *= 1e6
+    sec_mm[:, 6:8] *= 1e6
+    sec_mm[:, 10] *= 1e3
+    return sec_mm
+
+
+def _straight(sec_mm: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Return the states (21 k, n) of the straight, unloaded rod on the mesh ``tau`` of every section block."""
+    k = len(sec_mm)
+    lengths = sec_mm[:, 1] - sec_mm[:, 0]
+    y0 = np.zeros((NS * k, tau.size))
+    for i in range(k):
+        b = y0[NS * i:NS * (i + 1)]
+        b[2] = sec_mm[i, 0] + tau * lengths[i]
+        b[3] = b[7] = b[11] = 1.0
+    return y0
+
+
+@dataclass(frozen=True)
+class _Bvp:
+    """The rod's boundary-value problem for ``solve_bvp``: one block of 21 states per section, mm and N units.
+
+    Parameters
+    ----------
+    sec_mm : (k, 11) float
+        Section table in mm and N units (:func:`_in_mm`).
+    r : (n_tendons, 3) float
+        Tendon unit offsets (times ``sec_mm[i, 10]``, the moment arm of section ``i``, mm).
+    lam : (n_tendons,) float, N
+        Tendon tensions.
+    fext : (3,) float, N/mm
+        Distributed force.
+    ftip, ltip : (3,) float, N and N·mm
+        Tip force and moment.
+    coupled : bool
+        The tubes are bonded (no relative twist or sliding).
+    """
+
+    sec_mm: np.ndarray
+    r: np.ndarray
+    lam: np.ndarray
+    fext: np.ndarray
+    ftip: np.ndarray
+    ltip: np.ndarray
+    coupled: bool
+
+    def scaled(self, f: float) -> _Bvp:
+        """Return the problem with every load times ``f``."""
+        return _Bvp(self.sec_mm, self.r, f * self.lam, f * self.fext, f * self.ftip, f * self.ltip, self.coupled)
+
+    def fun(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Return d y / d τ (21 k, m) of every block at the states ``y`` (21 k, m)."""
+        out = np.empty_like(y)
+        lengths = self.sec_mm[:, 1] - self.sec_mm[:, 0]
+        for i in range(len(self.sec_mm)):
+            sl = slice(NS * i, NS * (i + 1))
+            out[sl] = lengths[i] * _block_rhs(y[sl], self.sec_mm[i], self.sec_mm[i, 10] * self.r, self.lam, self.fext,
+                                              self.coupled)
+        return out
+
+    def fun_jac(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Return the Jacobian (21 k, 21 k, m) of :meth:`fun` by forward differences.
+
+        The blocks are independent: state ``q`` of every block is perturbed at once (21 evaluations, not 21 k).
+        """
+        k = len(self.sec_mm)
+        f0 = self.fun(x, y)
+        jac = np.zeros((y.shape[0], y.shape[0], y.shape[1]))
+        for q in range(NS):
+            h = 1e-7 * (1.0 + np.abs(y[q::NS]))
+            yp = y.copy()
+            yp[q::NS] += h
+            df = (self.fun(x, yp) - f0)
+            for i in range(k):
+                jac[NS * i:NS * (i + 1), NS * i + q] = df[NS * i:NS * (i + 1)] / h[i]
+        return jac
+
+    def bc(self, ya: np.ndarray, yb: np.ndarray) -> np.ndarray:
+        """Return the boundary residuals: clamped base, continuity between blocks, tip loads (and twist ends)."""
+        k = len(self.sec_mm)
+        res = [ya[0:3], ya[3:12] - np.eye(3).ravel(), ya[18:19]]
+        for i in range(k - 1):
+            res.append(ya[NS * (i + 1):NS * (i + 2)] - yb[NS * i:NS * (i + 1)])
+        tip = yb[NS * (k - 1):]
+        rz = tip[[5, 8, 11]]
+        res += [tip[12:15] - self.ftip, tip[15:18] - self.ltip]
+        if self.coupled:
+            res.append(ya[19:21])
+        else:
+            res.append(np.array([tip[19] - rz @ self.ftip, tip[20] - rz @ self.ltip]))
+        return np.concatenate(res)

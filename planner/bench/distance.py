@@ -18,6 +18,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -36,33 +37,102 @@ INSTALLS = {"distance.csv": "docs/speed/distance.csv", "distance.png": "docs/spe
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
-    from reachplan.imaging.dicom_io import read_series
-    from reachplan.imaging.phantom import write_phantom
-    from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.case.config import PlanConfig
-    from reachplan.planner.case.scene import build_scene
-    from reachplan.planner.case.search import plan
-    from reachplan.planner.geometry.collision import path_clearance, with_distance_field
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     repeat = 1 if args.quick else 3
+    cfg = PlanConfig(refine_top=0, robust_top=0)
+    scene, banded, bare, build_s = _scenes(cfg.weights.clearance_cap_mm + 1.0)
+    t_screen, t_band, t_fcl, res_screen, res_band, res_fcl = _timed_plans(scene, banded, bare, cfg, repeat)
+    same = _ranking_key(res_screen) == _ranking_key(res_fcl)
+    identical = res_screen.to_json() == res_fcl.to_json()
+    same_banded = _ranking_key(res_band) == _ranking_key(res_fcl)
+
+    # raw rates and the largest difference, on the candidate paths that were collision-checked
+    clear = [c.path_mm for c in res_fcl.candidates if np.isfinite(c.clearance_mm) and not c.collides]
+    paths = clear[:: max(1, len(clear) // (60 if args.quick else 400))]
+    f0 = scene.organs[0].field
+    assert f0 is not None
+    samples_per_s, samples_per_cpu_s = _sample_rates(f0)
+    q = _path_queries(paths, scene.organs, radius=1.0)
+    row = {
+        "plan_fcl_only_s": round(statistics.median(t_fcl), 3),
+        "plan_banded_screen_s": round(statistics.median(t_band), 3),
+        "ratio_fcl_to_banded": round(statistics.median(t_fcl) / statistics.median(t_band), 2),
+        "same_ranking_banded": same_banded,
+        "plan_exact_screen_s": round(statistics.median(t_screen), 3),
+        "same_plan_json_exact": identical,
+        "same_ranking_exact": same,
+        "field_samples_per_s": round(samples_per_s),
+        "field_samples_per_cpu_s": round(samples_per_cpu_s),
+        "field_path_queries_per_s": round(q.n_pairs / q.field_s),
+        "fcl_path_queries_per_s": round(q.n_pairs / q.fcl_s),
+        "max_abs_diff_mm": round(q.worst_mm, 3),
+        "error_bound_mm": round(q.worst_bound_mm, 3),
+        "field_build_s": round(build_s, 3),
+        "pairs_timed": q.n_pairs,
+        "pairs_compared": q.n_compared,
+        "repeats": repeat,
+        "load_avg_1min": round(load_avg(), 2),
+    }
+    write_csv(out / "distance.csv", [row])
+    for k, v in row.items():
+        print(f"{k:<26} {v}")
+    _plot(out / "distance.png", row, samples_per_s, same_banded, q.worst_mm)
+    return 0
+
+
+def _scenes(band_mm: float) -> tuple[Any, Any, Any, float]:
+    """Build the phantom's scene three ways: exact screen, banded screen and FCL alone (no fields).
+
+    Parameters
+    ----------
+    band_mm : float, mm
+        The banded fields' reach (the ranking's clearance cap + 1 mm).
+
+    Returns
+    -------
+    exact, banded, bare : Scene
+        Organs with full distance fields, with the planner's banded fields, and without fields.
+    build_s : float, s
+        Time to build the banded fields of every organ.
+    """
+    from reachplan.imaging.dicom_io import read_series
+    from reachplan.imaging.phantom import write_phantom
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.case.scene import build_scene
+    from reachplan.planner.geometry.collision import with_distance_field
+
     with tempfile.TemporaryDirectory() as tmp:
         files = write_phantom(Path(tmp) / "phantom")
         volume = read_series(files.ct_dir)
         structures = read_rtstruct(files.rtstruct_path, volume)
     scene = build_scene(structures, grid=volume.grid)
     bare = dataclasses.replace(scene, organs=tuple(dataclasses.replace(o, field=None) for o in scene.organs))
-    cfg = PlanConfig(refine_top=0, robust_top=0)
-    band = cfg.weights.clearance_cap_mm + 1.0
     t0 = time.perf_counter()
     for o in bare.organs:
-        with_distance_field(o, band)
+        with_distance_field(o, band_mm)
     build_s = time.perf_counter() - t0
     # the planner's scene is banded (the field's estimate beyond the ranking's cap + 1 mm); the exact variant
     # asks FCL for every organ that can be the nearest
-    banded = scene
-    scene = dataclasses.replace(scene, organs=tuple(with_distance_field(o) for o in bare.organs))
+    exact = dataclasses.replace(scene, organs=tuple(with_distance_field(o) for o in bare.organs))
+    return exact, scene, bare, build_s
+
+
+def _timed_plans(scene: Any, banded: Any, bare: Any, cfg: Any,
+                 repeat: int) -> tuple[list[float], list[float], list[float], Any, Any, Any]:
+    """Plan the three scenes ``repeat`` times in turns (after one warm-up plan of one target).
+
+    Returns
+    -------
+    t_screen, t_band, t_fcl : list of float, s
+        Wall time of each plan: exact screen, banded screen, FCL alone.
+    res_screen, res_band, res_fcl : PlanResult
+        The last plan of each.
+    """
+    from reachplan.planner.case.search import plan
+
     plan(dataclasses.replace(scene, targets=scene.targets[:1]), cfg)  # warm caches and kernels
     t_screen: list[float] = []
     t_fcl: list[float] = []
@@ -78,23 +148,47 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         res_fcl = plan(bare, cfg)
         t_fcl.append(time.perf_counter() - t0)
-    same = _ranking_key(res_screen) == _ranking_key(res_fcl)
-    identical = res_screen.to_json() == res_fcl.to_json()  # type: ignore[union-attr]
-    same_banded = _ranking_key(res_band) == _ranking_key(res_fcl)
+    return t_screen, t_band, t_fcl, res_screen, res_band, res_fcl
 
-    # raw rates and the largest difference, on the candidate paths that were collision-checked
-    clear = [c.path_mm for c in res_fcl.candidates if np.isfinite(c.clearance_mm) and not c.collides]  # type: ignore[union-attr]
-    paths = clear[:: max(1, len(clear) // (60 if args.quick else 400))]
-    radius = 1.0
+
+def _sample_rates(field: Any) -> tuple[float, float]:
+    """Time one call sampling a field at 2 M random points in its box; return samples per wall and CPU second."""
     rng = np.random.default_rng(0)
-    f0 = scene.organs[0].field
-    assert f0 is not None
-    pts = f0.origin_mm + rng.uniform(0, 1, (2_000_000, 3)) * (np.array(f0.values_mm.shape) - 1) * f0.pitch_mm
-    f0.sample(pts[:10])
+    pts = field.origin_mm + rng.uniform(0, 1, (2_000_000, 3)) * (np.array(field.values_mm.shape) - 1) * field.pitch_mm
+    field.sample(pts[:10])
     t0, c0 = time.perf_counter(), time.process_time()
-    f0.sample(pts)
-    samples_per_s = len(pts) / (time.perf_counter() - t0)
-    samples_per_cpu_s = len(pts) / max(time.process_time() - c0, 1e-9)
+    field.sample(pts)
+    return len(pts) / (time.perf_counter() - t0), len(pts) / max(time.process_time() - c0, 1e-9)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Queries:
+    """Path-clearance queries timed against every organ, and the field's largest error on them.
+
+    Parameters
+    ----------
+    n_pairs : int
+        Path-organ pairs queried.
+    n_compared : int
+        Pairs clear of the organ and within the field's reach (where the estimate is compared).
+    field_s, fcl_s : float, s
+        Total time of the field's and FCL's queries.
+    worst_mm, worst_bound_mm : float, mm
+        Largest ``|estimate - FCL|`` and the field's error bound on that pair.
+    """
+
+    n_pairs: int
+    n_compared: int
+    field_s: float
+    fcl_s: float
+    worst_mm: float
+    worst_bound_mm: float
+
+
+def _path_queries(paths: list[np.ndarray], organs: tuple[Any, ...], radius: float) -> _Queries:
+    """Query the clearance of every path (``(n, 3)`` float, mm, LPS) to every organ with its field and with FCL."""
+    from reachplan.planner.geometry.collision import path_clearance
+
     worst = 0.0
     worst_bound = 0.0
     n_pairs = 0
@@ -102,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     t_fcl_q = 0.0
     t_field_q = 0.0
     for p in paths:
-        for organ in scene.organs:
+        for organ in organs:
             f = organ.field
             assert f is not None
             t0 = time.perf_counter()
@@ -116,30 +210,11 @@ def run(args: argparse.Namespace) -> int:
                 n_diff += 1
                 if abs(est - exact) > worst:
                     worst, worst_bound = abs(est - exact), f.error_mm + 0.5 * f.pitch_mm
-    row = {
-        "plan_fcl_only_s": round(statistics.median(t_fcl), 3),
-        "plan_banded_screen_s": round(statistics.median(t_band), 3),
-        "ratio_fcl_to_banded": round(statistics.median(t_fcl) / statistics.median(t_band), 2),
-        "same_ranking_banded": same_banded,
-        "plan_exact_screen_s": round(statistics.median(t_screen), 3),
-        "same_plan_json_exact": identical,
-        "same_ranking_exact": same,
-        "field_samples_per_s": round(samples_per_s),
-        "field_samples_per_cpu_s": round(samples_per_cpu_s),
-        "field_path_queries_per_s": round(n_pairs / t_field_q),
-        "fcl_path_queries_per_s": round(n_pairs / t_fcl_q),
-        "max_abs_diff_mm": round(worst, 3),
-        "error_bound_mm": round(worst_bound, 3),
-        "field_build_s": round(build_s, 3),
-        "pairs_timed": n_pairs,
-        "pairs_compared": n_diff,
-        "repeats": repeat,
-        "load_avg_1min": round(load_avg(), 2),
-    }
-    write_csv(out / "distance.csv", [row])
-    for k, v in row.items():
-        print(f"{k:<26} {v}")
+    return _Queries(n_pairs, n_diff, t_field_q, t_fcl_q, worst, worst_bound)
 
+
+def _plot(path: Path, row: dict[str, Any], samples_per_s: float, same_banded: bool, worst: float) -> None:
+    """Draw the rates against the goal and the three plans' times into ``path`` (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -157,6 +232,5 @@ def run(args: argparse.Namespace) -> int:
     a2.set_title(f"same ranking: {same_banded}; max |diff| {worst:.2f} mm", fontsize=9)
     fig.suptitle(f"organ distance (load {load_avg():.1f})", fontsize=10)
     fig.tight_layout()
-    fig.savefig(out / "distance.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    return 0

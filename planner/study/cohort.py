@@ -22,18 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from reachplan.imaging.phantom import (
-    Box,
-    Cylinder,
-    Ellipsoid,
-    EllipticCylinder,
-    PhantomSpec,
-    PhantomStructure,
-    Shape,
-    TorusSection,
-    phantom_spec,
-    write_phantom,
-)
+from reachplan.imaging.phantom import PhantomSpec, PhantomStructure, phantom_spec, write_phantom
+from reachplan.imaging.solids import Box, Cylinder, Ellipsoid, EllipticCylinder, Shape, TorusSection
 
 
 @dataclass(frozen=True)

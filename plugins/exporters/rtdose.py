@@ -112,12 +112,42 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     """
     if bits not in (16, 32):
         raise ValueError(f"RT Dose pixels are 16 or 32 bits, got {bits}")
-    top = 2**bits - 1
     dose = np.asarray(dose_gy, dtype=float)
     if dose.shape != grid.shape:
         raise ValueError(f"dose shape {dose.shape} does not match grid shape {grid.shape}")
     if not np.all(np.isfinite(dose)) or np.any(dose < 0):
         raise ValueError("dose must be finite and >= 0 Gy")
+    row_dir, col_dir, along = _frame_axes(grid)
+    ds = _identity(context)
+    _write_geometry(ds, grid, row_dir, col_dir, along)
+    ds.DoseUnits = "GY"
+    ds.DoseType = "PHYSICAL"
+    ds.DoseSummationType = "PLAN"
+    ds.TissueHeterogeneityCorrection = "WATER"
+    _write_pixels(ds, dose, bits, ceiling_gy)
+    if context.referenced_plan_uid:
+        ref = Dataset()
+        ref.ReferencedSOPClassUID = RT_PLAN_STORAGE
+        ref.ReferencedSOPInstanceUID = context.referenced_plan_uid
+        ds.ReferencedRTPlanSequence = [ref]
+    return ds
+
+
+def _frame_axes(grid: Grid) -> tuple[np.ndarray, np.ndarray, float]:
+    """Return the row and column directions of ``grid`` and its slice step along their normal.
+
+    Returns
+    -------
+    row_dir, col_dir : (3,) float, LPS
+        Unit directions of increasing column and row index.
+    along : float, mm
+        Slice step along ``row_dir x col_dir`` (negative when the slices run against it).
+
+    Raises
+    ------
+    ValueError
+        Rows and columns not orthogonal, or slices not stacked along their normal (sheared grid).
+    """
     a = grid.patient_from_index
     sp = grid.spacing_mm
     row_dir, col_dir = a[:3, 0] / sp[0], a[:3, 1] / sp[1]
@@ -128,6 +158,14 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     along = float(step @ normal)
     if np.linalg.norm(step - along * normal) > 1e-6 * max(1.0, abs(along)):
         raise ValueError("RT Dose frames must be stacked along the image normal (sheared grid)")
+    return row_dir, col_dir, along
+
+
+def _identity(context: DoseContext) -> Dataset:
+    """Start the RT Dose dataset: file meta, new SOP and series UIDs, dates, patient and study, Frame of Reference.
+
+    An invalid Study Instance UID in ``context.patient_study`` is replaced by a new one.
+    """
     now = _dt.datetime.now()
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = UID(RT_DOSE_STORAGE)
@@ -159,6 +197,25 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.InstanceNumber = 1
     ds.FrameOfReferenceUID = context.frame_of_reference_uid
     ds.PositionReferenceIndicator = ""
+    return ds
+
+
+def _write_geometry(ds: Dataset, grid: Grid, row_dir: np.ndarray, col_dir: np.ndarray, along: float) -> None:
+    """Set the image plane and multi-frame attributes of ``ds`` for ``grid`` (frames at GridFrameOffsetVector).
+
+    Parameters
+    ----------
+    ds : pydicom.Dataset
+        The RT Dose, changed in place.
+    grid : Grid
+        Where the dose is, LPS mm.
+    row_dir, col_dir : (3,) float, LPS
+        Its row and column directions (:func:`_frame_axes`).
+    along : float, mm
+        Its slice step along their normal.
+    """
+    a = grid.patient_from_index
+    sp = grid.spacing_mm
     ds.ImagePositionPatient = [_ds(x) for x in a[:3, 3]]
     ds.ImageOrientationPatient = [_ds(x) for x in np.concatenate([row_dir, col_dir])]
     ds.PixelSpacing = [_ds(sp[1]), _ds(sp[0])]  # row spacing (between rows), column spacing
@@ -170,15 +227,25 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     ds.FrameIncrementPointer = pydicom.tag.Tag(0x3004, 0x000C)
     ds.Rows = nj
     ds.Columns = ni
+    ds.GridFrameOffsetVector = [_ds(along * k) for k in range(nk)]
+
+
+def _write_pixels(ds: Dataset, dose: np.ndarray, bits: int, ceiling_gy: float | None) -> None:
+    """Store ``dose`` (Gy, capped at ``ceiling_gy``) as unsigned ``bits``-bit pixels times DoseGridScaling.
+
+    The scaling is rounded up so that the peak stays representable, and the pixels are computed with the scaling
+    a reader will parse.
+
+    Raises
+    ------
+    ValueError
+        A ceiling that is not a positive number of Gy.
+    """
+    top = 2**bits - 1
     ds.BitsAllocated = bits
     ds.BitsStored = bits
     ds.HighBit = bits - 1
     ds.PixelRepresentation = 0
-    ds.DoseUnits = "GY"
-    ds.DoseType = "PHYSICAL"
-    ds.DoseSummationType = "PLAN"
-    ds.TissueHeterogeneityCorrection = "WATER"
-    ds.GridFrameOffsetVector = [_ds(along * k) for k in range(nk)]
     if ceiling_gy is not None:
         if not (np.isfinite(ceiling_gy) and ceiling_gy > 0):
             raise ValueError(f"the dose ceiling must be a positive number of Gy, got {ceiling_gy}")
@@ -190,12 +257,6 @@ def rtdose_dataset(dose_gy: np.ndarray, grid: Grid, context: DoseContext, *, bit
     pixels = np.clip(np.rint(dose / scaling), 0, top).astype("<u2" if bits == 16 else "<u4")
     ds.PixelData = pixels.tobytes()
     ds["PixelData"].VR = "OW"
-    if context.referenced_plan_uid:
-        ref = Dataset()
-        ref.ReferencedSOPClassUID = RT_PLAN_STORAGE
-        ref.ReferencedSOPInstanceUID = context.referenced_plan_uid
-        ds.ReferencedRTPlanSequence = [ref]
-    return ds
 
 
 def _is_ours(path: Path) -> bool:
@@ -272,7 +333,7 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         Unreadable, incomplete geometry, or frames that are not evenly spaced (or absolute offsets on a
         non-axial grid).
     """
-    from reachplan.imaging.dicom_io import one_line
+    from reachplan.imaging.dicom_files import one_line
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     p = Path(path)
@@ -293,7 +354,7 @@ def read_rtdose_grid(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
 
 
 def _dose_and_grid(ds: Any, p: Path) -> tuple[np.ndarray, Grid]:
-    from reachplan.imaging.dicom_io import one_line
+    from reachplan.imaging.dicom_files import one_line
     from reachplan.imaging.errors import CorruptFileError, NoDicomError
 
     if str(ds.get("Modality", "")) != "RTDOSE":

@@ -202,7 +202,7 @@ def test_spec_is_validated() -> None:
     with pytest.raises(ValueError, match="whole number of slices"):
         type(spec)(spec.structures, z_range_mm=(-30.0, 181.0))
     with pytest.raises(ValueError, match="positive"):
-        from reachplan.imaging.phantom import Cylinder
+        from reachplan.imaging.solids import Cylinder
 
         Cylinder((0.0, 0.0), -1.0, 0.0, 1.0)
 

@@ -9,8 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from reachplan.imaging.dicom_io import SeriesTolerance, read_series
+from reachplan.imaging.dicom_io import read_series
 from reachplan.imaging.errors import NoDicomError, ObliqueSliceWarning, SeriesError
+from reachplan.imaging.series_geometry import SeriesTolerance
 
 
 def _sitk_affine(paths: list[Path]) -> tuple[np.ndarray, np.ndarray]:

@@ -296,7 +296,7 @@ def test_error_messages_are_one_line_without_embedded_tracebacks(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     import reachplan.planner.cli.plugins as plugins_cli
-    from reachplan.imaging.dicom_io import parsing
+    from reachplan.imaging.dicom_files import parsing
 
     def nested(args: argparse.Namespace) -> int:  # what pydicom raises for a damaged nested sequence
         with parsing(Path("RP.dcm")):

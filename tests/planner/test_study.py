@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pytest
 
-from reachplan.imaging.phantom import Cylinder
+from reachplan.imaging.solids import Cylinder
 from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.cli import main
 from reachplan.planner.cli.study import COARSE_FAMILY
