@@ -28,7 +28,8 @@ from reachplan.planner.geometry.organs import check_unique, has_closed, roi_poin
 from reachplan.planner.geometry.template import TemplatePose, hole_frames, pose_from_obturator
 from reachplan.planner.ranking import RankWeights, pareto_front, rank
 from reachplan.planner.steering.candidates import Candidate, Target, mark_failed, score_path, straight_candidates
-from reachplan.planner.steering.insertion import KINEMATIC, SIMUGEL_MODULUS_PA, KinematicInsertion
+from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA
+from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.robustness import Perturbations, assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ScheduleFamily, match_targets, place, refine_with, shape_bank
@@ -78,7 +79,7 @@ class PlanConfig:
     ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa), e.g. ``(("Uterus", 0.5e6),)``;
     tissue outside the named organs keeps the gel's 0.19 MPa (the reference's only modulus). The organ holding
     a target sets the screening and robustness models' curvature factor
-    (:func:`~reachplan.planner.steering.insertion.curvature_factor`); the reference model takes the modulus
+    (:func:`~reachplan.planner.steering.factors.curvature_factor`); the reference model takes the modulus
     along the path.
     ``screen_tolerance_mm``: the screening uses the cheapest rod model (by batched throughput) whose
     measured free-space tip error (the rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.

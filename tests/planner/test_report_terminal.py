@@ -16,7 +16,8 @@ from reachplan.planner.cli import COMMAND_MODULES, build_parser, main
 from reachplan.planner.pipeline import PlanConfig, PlanResult
 from reachplan.planner.report.build import format_summary
 from reachplan.planner.steering.candidates import Candidate
-from reachplan.planner.steering.insertion import KINEMATIC, STRAIGHT
+from reachplan.planner.steering.insertion import STRAIGHT
+from reachplan.planner.steering.kinematic import KINEMATIC
 from reachplan.rod_model.design import preset
 
 
