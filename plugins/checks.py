@@ -1,8 +1,16 @@
-"""The check each plugin kind is held to before the registry lists a plugin as available.
+"""The check each plugin kind is held to before the registry lists a plugin as available (:data:`DEFAULT_CHECKS`).
 
 One function per kind, ``check(obj)``, which returns None for a plugin that qualifies and raises ``TypeError`` with
-the reason otherwise. A kind whose Protocol is defined in another module (rod models, exporters, the data types of
-templates and sources) imports it when a plugin of that kind is first checked, so importing the registry stays cheap.
+the reason otherwise:
+
+``rod_models``       :func:`reachplan.rod_model.protocol.check_rod_model`
+``insertion_models`` :func:`check_insertion_model`
+``templates``        ``obj()`` (no arguments) returns a :class:`reachplan.plugins.templates.Template`
+``sources``          ``obj()`` (no arguments) returns a :class:`reachplan.plugins.sources.SourceData`
+``exporters``        :func:`reachplan.plugins.exporters.base.check_exporter`
+
+A kind whose Protocol is defined in another module imports it when a plugin of that kind is first checked, so
+importing the registry stays cheap.
 
 Insertion models are the planner's: the planner defines their typed Protocol, and this floor, which the planner
 builds on, holds the structural check the registry applies (a ``str`` name and an ``insert(design, schedules,
@@ -15,24 +23,6 @@ import inspect
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
 from typing import Any
-
-
-def check_rod_model(obj: object) -> None:
-    """Check that ``obj`` implements the rod-model Protocol (:func:`reachplan.rod_model.protocol.check_rod_model`).
-
-    Parameters
-    ----------
-    obj : object
-        The loaded entry point.
-
-    Raises
-    ------
-    TypeError
-        A missing member, a name that is not a str or capabilities of the wrong type.
-    """
-    from reachplan.rod_model.protocol import check_rod_model as check
-
-    check(obj)
 
 
 def check_insertion_model(obj: object) -> None:
@@ -89,65 +79,39 @@ def _check_made(obj: Any, kind: str, made_class: type) -> None:
                         f"got {type(made).__name__}")
 
 
-def check_template_factory(obj: object) -> None:
-    """Check that ``obj()`` returns a :class:`reachplan.plugins.templates.Template` (the templates check).
+def _rod_model(obj: object) -> None:
+    """Apply the rod-model Protocol's own check (:func:`reachplan.rod_model.protocol.check_rod_model`)."""
+    from reachplan.rod_model.protocol import check_rod_model
 
-    Parameters
-    ----------
-    obj : object
-        The loaded entry point.
+    check_rod_model(obj)
 
-    Raises
-    ------
-    TypeError
-        ``obj`` is not a zero-argument callable, or returns something else.
-    """
+
+def _template_factory(obj: object) -> None:
+    """Check that ``obj()`` returns a :class:`reachplan.plugins.templates.Template`."""
     from reachplan.plugins.templates import Template
 
     _check_made(obj, "templates", Template)
 
 
-def check_source_factory(obj: object) -> None:
-    """Check that ``obj()`` returns a :class:`reachplan.plugins.sources.SourceData` (the sources check).
-
-    Parameters
-    ----------
-    obj : object
-        The loaded entry point.
-
-    Raises
-    ------
-    TypeError
-        ``obj`` is not a zero-argument callable, or returns something else.
-    """
+def _source_factory(obj: object) -> None:
+    """Check that ``obj()`` returns a :class:`reachplan.plugins.sources.SourceData`."""
     from reachplan.plugins.sources import SourceData
 
     _check_made(obj, "sources", SourceData)
 
 
-def check_exporter(obj: object) -> None:
-    """Check that ``obj`` implements the exporter Protocol (:func:`reachplan.plugins.exporters.base.check_exporter`).
+def _exporter(obj: object) -> None:
+    """Apply the exporter Protocol's own check (:func:`reachplan.plugins.exporters.base.check_exporter`)."""
+    from reachplan.plugins.exporters.base import check_exporter
 
-    Parameters
-    ----------
-    obj : object
-        The loaded entry point.
-
-    Raises
-    ------
-    TypeError
-        A missing member, an empty or non-str name, or a non-str description.
-    """
-    from reachplan.plugins.exporters.base import check_exporter as check
-
-    check(obj)
+    check_exporter(obj)
 
 
 #: The default check of each plugin kind (:data:`reachplan.plugins.registry.KINDS`).
 DEFAULT_CHECKS: Mapping[str, Callable[[Any], None]] = MappingProxyType({
-    "rod_models": check_rod_model,
+    "rod_models": _rod_model,
     "insertion_models": check_insertion_model,
-    "templates": check_template_factory,
-    "sources": check_source_factory,
-    "exporters": check_exporter,
+    "templates": _template_factory,
+    "sources": _source_factory,
+    "exporters": _exporter,
 })
