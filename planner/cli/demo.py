@@ -80,9 +80,9 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.files import atomic_write_json
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.cli.kernels import start as start_kernels
     from reachplan.planner.cli.phantom import write_case
     from reachplan.planner.cli.plan import run_plan
+    from reachplan.planner.kernels import start as start_kernels
     from reachplan.planner.pipeline import DEFAULT_OARS, PlanConfig
 
     t0 = time.perf_counter()

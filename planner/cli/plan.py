@@ -231,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.cli.kernels import start as start_kernels
+    from reachplan.planner.kernels import start as start_kernels
     from reachplan.planner.pipeline import PlanConfig
 
     inputs = [p for p in (args.ct, args.rtstruct) if p is not None]
@@ -314,7 +314,7 @@ def run_plan(structures: StructureSet, volume: Volume | None, names: list[str], 
                                  "--target-roi or plan with --no-export")
     final = out if final_out is None else Path(final_out)
     timings: dict[str, float] = {}
-    from reachplan.planner.cli.kernels import start
+    from reachplan.planner.kernels import start
 
     start(quiet)  # first run after an install: the rod and dose kernels compile on the other core meanwhile
     t = time.perf_counter()
