@@ -3,15 +3,14 @@
 Groups (entry-point group ``reachplan.<kind>``) and the Protocol each plugin is checked against:
 
 ``rod_models``       objects implementing :class:`reachplan.rod_model.protocol.RodModel`
-                     (check: ``reachplan.rod_model.protocol.check_rod_model``)
-``insertion_models`` objects implementing the planner's insertion-model Protocol
-                     (check: ``reachplan.planner.steering.insertion.check_insertion_model``)
+``insertion_models`` objects with a ``str`` ``name`` and ``insert(design, schedules, depth_mm)`` (the planner's
+                     insertion-model Protocol, checked structurally)
 ``templates``        zero-argument callables returning a :class:`reachplan.plugins.templates.Template`
 ``sources``          zero-argument callables returning a :class:`reachplan.plugins.sources.SourceData`
 ``exporters``        objects implementing :class:`reachplan.plugins.exporters.base.Exporter`
-                     (check: ``reachplan.plugins.exporters.base.check_exporter``)
 ``applicators``      objects implementing :class:`reachplan.plugins.applicators.ApplicatorKind`
-                     (check: ``reachplan.plugins.applicators.base.check_applicator_kind``)
+
+The checks are the functions of :mod:`reachplan.plugins.checks` (:data:`DEFAULT_CHECKS`).
 
 Built-ins register through the same entry points as third-party plugins (see ``pyproject.toml``).
 Entry points are loaded lazily, on first use of their group; a plugin that fails to import, or does not
@@ -23,15 +22,14 @@ unavailable. Call :func:`refresh` after installing a distribution at run time.
 
 from __future__ import annotations
 
-import importlib
 import inspect
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from importlib.metadata import EntryPoint, entry_points
-from types import MappingProxyType
 from typing import Any
 
+from reachplan.plugins.checks import DEFAULT_CHECKS
 from reachplan.plugins.errors import PluginError
 
 KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators")
@@ -40,46 +38,6 @@ BUILTIN_DISTRIBUTION = "reachplan"
 
 #: Checks registered at run time with :func:`set_check`; they replace the default check of their kind.
 _CHECKS: dict[str, Callable[[Any], None]] = {}
-
-
-def _zero_argument_factory(obj: Any, kind: str) -> Any:
-    if not callable(obj):
-        raise TypeError(f"a {kind} plugin must be a zero-argument callable, got {type(obj).__name__}")
-    try:
-        sig = inspect.signature(obj)
-    except (TypeError, ValueError):  # builtins without a signature: try the call
-        sig = None
-    if sig is not None and any(p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
-                               for p in sig.parameters.values()):
-        raise TypeError(f"a {kind} plugin must be callable without arguments; {obj!r} requires {sig}")
-    return obj()
-
-
-def _factory_check(kind: str, module: str, class_name: str) -> Callable[[Any], None]:
-    def check(obj: Any) -> None:
-        made_class = getattr(importlib.import_module(module), class_name)
-        made = _zero_argument_factory(obj, kind)
-        if not isinstance(made, made_class):
-            raise TypeError(f"a {kind} plugin must return {module}.{class_name}, got {type(made).__name__}")
-
-    check.__doc__ = (f"Check that ``obj()`` returns a :class:`{module}.{class_name}` (the {kind} check).\n\n"
-                     "Raises ``TypeError`` when ``obj`` is not a zero-argument callable, or returns something else.")
-    return check
-
-
-check_template_factory = _factory_check("templates", "reachplan.plugins.templates", "Template")
-check_source_factory = _factory_check("sources", "reachplan.plugins.sources", "SourceData")
-
-
-#: The default check of each kind, as ``"module:function"`` (imported when the group is first loaded).
-DEFAULT_CHECKS: Mapping[str, str] = MappingProxyType({
-    "rod_models": "reachplan.rod_model.protocol:check_rod_model",
-    "insertion_models": "reachplan.planner.steering.insertion:check_insertion_model",
-    "templates": "reachplan.plugins.registry:check_template_factory",
-    "sources": "reachplan.plugins.registry:check_source_factory",
-    "exporters": "reachplan.plugins.exporters.base:check_exporter",
-    "applicators": "reachplan.plugins.applicators.base:check_applicator_kind",
-})
 
 
 @dataclass(frozen=True)
@@ -120,19 +78,7 @@ def _group(kind: str) -> str:
 
 
 def _check_for(kind: str) -> Callable[[Any], None]:
-    if kind in _CHECKS:
-        return _CHECKS[kind]
-    module, _, attr = DEFAULT_CHECKS[kind].partition(":")
-    try:
-        check = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        msg = f"cannot check it against its Protocol: {DEFAULT_CHECKS[kind]} is missing ({exc})"
-
-        def unavailable(obj: Any) -> None:
-            raise TypeError(msg)
-
-        return unavailable
-    return check
+    return _CHECKS.get(kind, DEFAULT_CHECKS[kind])
 
 
 def _describe(obj: Any) -> str:

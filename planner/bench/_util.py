@@ -1,11 +1,13 @@
-"""Small helpers shared by the speed benchmarks (startup, firstrun, dosekernel, distance): CSV and load."""
+"""Small helpers shared by the speed benchmarks (startup, firstrun, dosekernel, distance, demo): CSV, load, command."""
 
 from __future__ import annotations
 
 import csv
 import io
 import os
+import sys
 from collections.abc import Sequence
+from importlib.metadata import entry_points
 from pathlib import Path
 
 from reachplan.imaging.files import atomic_write_bytes
@@ -40,3 +42,45 @@ def load_avg() -> float:
         return os.getloadavg()[0]
     except OSError:  # pragma: no cover - not on Linux
         return float("nan")
+
+
+#: the console script the benchmarks time (``[project.scripts]`` of ``pyproject.toml``)
+COMMAND = "reachplan"
+
+
+def command_module() -> str:
+    """Return the package that runs the installed ``reachplan`` command as ``python -m PACKAGE``.
+
+    The package of the function the distribution's console script calls, read from the installed metadata: the
+    benchmarks time the command as it is installed, without naming (or importing) the command line, a room above
+    them.
+
+    Returns
+    -------
+    str
+        A dotted module name (its ``__main__`` runs the command).
+
+    Raises
+    ------
+    LookupError
+        No ``reachplan`` console script is installed.
+    """
+    for ep in entry_points(group="console_scripts", name=COMMAND):
+        return ep.module
+    raise LookupError(f"no {COMMAND!r} console script installed: pip install the package first")
+
+
+def command_argv(*args: str) -> list[str]:
+    """Return the argv of ``reachplan ARGS...`` in this interpreter: ``python -m`` :func:`command_module`.
+
+    Parameters
+    ----------
+    *args : str
+        The command's arguments.
+
+    Returns
+    -------
+    list of str
+        ``[sys.executable, "-m", module, *args]``.
+    """
+    return [sys.executable, "-m", command_module(), *args]

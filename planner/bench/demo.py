@@ -19,7 +19,6 @@ import os
 import resource
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 
+from reachplan.planner.bench._util import command_argv
 from reachplan.planner.bench.common import settings, write_csv, write_png
 
 INSTALLS = {"demo_stages.csv": "docs/demo_stages.csv", "demo_stages.png": "docs/demo_stages.png"}
@@ -89,8 +89,8 @@ def _one_run(case: str, folder: Path) -> tuple[float, float, dict[str, object]]:
     """(wall s, CPU s, plan.json) of one ``reachplan demo --quiet`` in a child interpreter."""
     t = time.perf_counter()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    subprocess.run([sys.executable, "-m", "reachplan.planner.cli", "demo", "--quiet", "--case", case,
-                    "--out", str(folder)], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(command_argv("demo", "--quiet", "--case", case, "--out", str(folder)), check=True,
+                   stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)

@@ -2,13 +2,13 @@
 
 For every design of ``--designs`` (default: every preset) and each tissue modulus of the tip-following range, the
 factor that makes the kinematic model's tips best match the in-tissue Cosserat insertion
-(:func:`reachplan.planner.steering.tissue_rod.fit_curvature_factor`: 20 mm ramps from 0-60 mm onsets to 60 / 100 %
+(:func:`reachplan.planner.steering.factors.fit_curvature_factor`: 20 mm ramps from 0-60 mm onsets to 60 / 100 %
 of the maximum tension, tips at 60-150 mm), with the fit's RMS tip error. The fits run on every core (one process
 per design and modulus, about 10 s each). A modulus held out of the table (0.5 MPa) is fitted too, and the
 table's interpolation there is compared with it.
 
 Run: ``reachplan bench factors --out DIR [--quick] [--install]``. Writes ``curvature_factors.json`` (the planner's
-package data, read by :func:`reachplan.planner.steering.insertion.curvature_factor`), ``curvature_factors.csv``
+package data, read by :func:`reachplan.planner.steering.factors.curvature_factor`), ``curvature_factors.csv``
 (one row per design and modulus) and ``curvature_factors.png``; ``--install`` copies the JSON into
 ``planner/steering/`` and the CSV and PNG into ``docs/``.
 """
@@ -27,7 +27,7 @@ from matplotlib.figure import Figure
 
 from reachplan.planner.bench._util import load_avg, write_csv
 from reachplan.planner.bench.common import settings, write_json, write_png
-from reachplan.planner.steering.insertion import TIP_FOLLOWING_MIN_PA, FactorCurve, design_key
+from reachplan.planner.steering.factors import TIP_FOLLOWING_MIN_PA, FactorCurve, design_key
 from reachplan.rod_model.design import PRESET_NAMES, preset
 
 INSTALLS = {"curvature_factors.json": "planner/steering/curvature_factors.json",
@@ -59,7 +59,7 @@ QUICK = FactorSettings(designs=("15ga-30j-tip",), moduli_pa=(1.9e5,), held_out_p
 
 def _fit(job: tuple[str, float]) -> tuple[str, float, float, float, int, float]:
     """One fit in a worker: (design, modulus_pa, factor, rms_mm, tips, seconds)."""
-    from reachplan.planner.steering.tissue_rod import fit_curvature_factor
+    from reachplan.planner.steering.factors import fit_curvature_factor
 
     name, modulus = job
     t0 = time.perf_counter()

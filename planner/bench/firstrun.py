@@ -3,7 +3,7 @@
 Every numba kernel of reachplan is compiled with ``cache=True``: the machine code goes to ``__pycache__`` beside
 the installed module, or, where that folder is not writable (a system-wide site-packages), to the user's cache
 folder (numba's ``_UserWideCacheLocator``, ``~/.cache/numba``), or to ``NUMBA_CACHE_DIR`` when that is set. The
-first run after an install therefore compiles once (:mod:`reachplan.planner.cli.kernels` moves the rod and dose
+first run after an install therefore compiles once (:mod:`reachplan.planner.kernels` moves the rod and dose
 kernels to a background process on the other core), and every later run loads the machine code.
 
 Run: ``reachplan bench firstrun --out DIR [--quick] [--repeat N]``. Two measurements, each in child interpreters
@@ -17,7 +17,8 @@ times (3; 1 with ``--quick``):
   wall times swing with the load (recorded); the main process's CPU penalty plus its wait is what a quiet 2-core
   machine shows as wall time.
 * ``kernels``: the work that touches every kernel once on tiny inputs, in one process (no background): the
-  compile cost itself, which the demo hides partly behind its own work.
+  compile cost itself, which the demo hides partly behind its own work (``python -m reachplan.planner.kernels
+  warm``, :func:`reachplan.planner.kernels.warm_up`).
 
 Writes ``firstrun.csv`` and ``firstrun.png``.
 """
@@ -35,31 +36,28 @@ import tempfile
 import time
 from pathlib import Path
 
-from reachplan.planner.bench._util import load_avg, write_csv
+from reachplan.planner import kernels
+from reachplan.planner.bench._util import command_module, load_avg, write_csv
 
 LIMIT_S = 10.0
 
-#: the kernels-only work: every compiled kernel once, on tiny inputs, in one process
-WORK = """
-from reachplan.imaging._sweep_kernel import warm_up
-from reachplan.planner.cli.kernels import BACKGROUND, _warm
-from reachplan.planner.geometry.distance_field import _warm_up
-warm_up()
-_warm_up()
-for group in BACKGROUND:  # the rod and dose kernels, as the background process of a first run compiles them
-    _warm(group)
-"""
+#: the kernels-only work: every compiled kernel once, on tiny inputs, in one process (the rod and dose kernels as
+#: the background process of a first run compiles them)
+WORK = ("-m", kernels.__name__, "warm", *kernels.GROUPS)
 
-
-#: ``reachplan demo`` through the command line's own entry point (``reachplan = reachplan.planner.cli:main``), then
-#: the main process's own CPU seconds and how long it waited for the background compile, as JSON on the last line
-DEMO = """
-import json, resource, sys
-from reachplan.planner.cli import kernels, main
-code = main(sys.argv[1:])
+#: ``reachplan demo`` as ``python -m MODULE ARGS...`` runs it (the installed command, argv[1] the module), then the
+#: main process's own CPU seconds and how long it waited for the background compile, as JSON on the last line
+DEMO = f"""
+import json, resource, runpy, sys
+from {kernels.__name__} import waited_s
+sys.argv = sys.argv[1:]
+try:
+    runpy.run_module(sys.argv[0], run_name="__main__", alter_sys=True)
+    code = 0
+except SystemExit as exc:
+    code = exc.code
 ru = resource.getrusage(resource.RUSAGE_SELF)
-waited = sum(kernels._child.waited_s.values()) if kernels._child is not None else 0.0
-print(json.dumps({"main_cpu_s": ru.ru_utime + ru.ru_stime, "waited_s": waited}))
+print(json.dumps({{"main_cpu_s": ru.ru_utime + ru.ru_stime, "waited_s": waited_s()}}))
 sys.exit(code)
 """
 
@@ -98,8 +96,9 @@ def run(args: argparse.Namespace) -> int:
         for name in what:
             with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache, \
                     tempfile.TemporaryDirectory(prefix="firstrun-") as work:
-                runs = [[sys.executable, "-c", DEMO, "demo", "--quiet", "--case", case, "--out", str(Path(work) / tag)]
-                        if name == "demo" else [sys.executable, "-c", WORK] for tag in ("cold", "warm")]
+                runs = [[sys.executable, "-c", DEMO, command_module(), "demo", "--quiet", "--case", case, "--out",
+                         str(Path(work) / tag)] if name == "demo" else [sys.executable, *WORK]
+                        for tag in ("cold", "warm")]
                 cold = _child(runs[0], cache)
                 warm = _child(runs[1], cache)
             row: dict[str, object] = {"what": name, "run": i}

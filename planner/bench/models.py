@@ -24,7 +24,7 @@ In tissue
     The in-tissue Cosserat insertion (:mod:`reachplan.planner.steering.tissue_rod`) of 15ga-30j-tip under the
     planner's ramps (20 mm from 0 / 20 / 40 / 60 mm onset to 60 / 100 % of the maximum tension), tip deflection
     against the tissue modulus (1 kPa - 10 MPa) and depth; the kinematic model's curvature factor fitted per
-    modulus beside :func:`~reachplan.planner.steering.insertion.curvature_factor`
+    modulus beside :func:`~reachplan.planner.steering.factors.curvature_factor`
     (``rod_models_tissue.csv`` / ``.png``); the kinematic model with that function and the rod itself enter the
     speed/accuracy chart (time per insertion; tip error against the rod, and the rod's 2 mm step against 1 mm).
 Stability map
@@ -54,8 +54,15 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from reachplan.planner.bench.common import BenchError, settings, write_csv, write_json, write_png
-from reachplan.planner.steering.insertion import TIP_FOLLOWING_MIN_PA, KinematicInsertion, curvature_factor
-from reachplan.planner.steering.tissue_rod import FACTOR_FRACTIONS, TissueRodInsertion, factor_schedules, fit_factor
+from reachplan.planner.steering.factors import (
+    FACTOR_FRACTIONS,
+    TIP_FOLLOWING_MIN_PA,
+    curvature_factor,
+    factor_schedules,
+    fit_factor,
+)
+from reachplan.planner.steering.kinematic import KinematicInsertion
+from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 from reachplan.rod_model.beam import PLANAR_BEAM, PlanarBeam
 from reachplan.rod_model.collocation import NS, CollocationCosserat
 from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT, CosseratRod, TwoTubeCosserat

@@ -35,7 +35,7 @@ from reachplan.planner.case.scene import build_scene
 from reachplan.planner.case.search import plan
 from reachplan.planner.ranking import RankWeights
 from reachplan.planner.report.workspace import workspace_figure
-from reachplan.planner.steering.insertion import KinematicInsertion
+from reachplan.planner.steering.kinematic import KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import shape_bank
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion

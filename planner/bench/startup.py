@@ -18,22 +18,23 @@ import sys
 import time
 from pathlib import Path
 
-from reachplan.planner.bench._util import load_avg, write_csv
+from reachplan.planner.bench._util import COMMAND, command_argv, load_avg, write_csv
 
-#: (label, argv after the interpreter, limit in s or None)
+#: (label, argv, limit in s or None): argv after the interpreter, or the installed command's when it starts with
+#: :data:`~reachplan.planner.bench._util.COMMAND`
 COMMANDS: tuple[tuple[str, tuple[str, ...], float | None], ...] = (
     ("python -c pass", ("-c", "pass"), None),
-    ("reachplan --help", ("-m", "reachplan.planner.cli", "--help"), 0.3),
-    ("reachplan rod", ("-m", "reachplan.planner.cli", "rod", "--preset", "15ga-30j-tip", "--tension", "5", "--json"),
-     0.8),
+    ("reachplan --help", (COMMAND, "--help"), 0.3),
+    ("reachplan rod", (COMMAND, "rod", "--preset", "15ga-30j-tip", "--tension", "5", "--json"), 0.8),
 )
 
 
 def _run_once(argv: tuple[str, ...]) -> tuple[float, float]:
-    """(wall s, CPU s of the child) of one run of ``python argv``."""
+    """(wall s, CPU s of the child) of one run of ``python argv`` (or of the installed command, see COMMANDS)."""
+    full = command_argv(*argv[1:]) if argv[0] == COMMAND else [sys.executable, *argv]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, *argv], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(full, check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)

@@ -10,7 +10,7 @@ import numpy as np
 
 from reachplan.planner.lookup import rod_model, rod_model_capabilities
 from reachplan.planner.ranking import RankWeights
-from reachplan.planner.steering.insertion import KINEMATIC, KinematicInsertion
+from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.robustness import Perturbations
 from reachplan.planner.steering.steered import ScheduleFamily
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
@@ -56,7 +56,7 @@ class PlanConfig:
     ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa), e.g. ``(("Uterus", 0.5e6),)``;
     tissue outside the named organs keeps the gel's 0.19 MPa (the reference's only modulus). The organ holding
     a target sets the screening and robustness models' curvature factor
-    (:func:`~reachplan.planner.steering.insertion.curvature_factor`); the reference model takes the modulus
+    (:func:`~reachplan.planner.steering.factors.curvature_factor`); the reference model takes the modulus
     along the path.
     ``screen_tolerance_mm``: the screening uses the cheapest rod model (by batched throughput) whose
     measured free-space tip error (the rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
@@ -105,8 +105,7 @@ class PlanConfig:
 class PlanModels:
     """The insertion models a plan uses, resolved once per plan.
 
-    :meth:`for_config` looks the screening rod model up in the plugin registry; nothing below the pipeline looks
-    plugins up.
+    :meth:`for_config` looks the screening rod model up by name (:mod:`reachplan.planner.lookup`).
 
     ``screening`` screens every schedule of the family; ``reference`` re-solves the shortlist
     (``PlanConfig.refine_top``); ``robustness`` re-evaluates the shortlist under the perturbations.

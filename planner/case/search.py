@@ -20,7 +20,8 @@ from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.template import hole_frames
 from reachplan.planner.ranking import rank
 from reachplan.planner.steering.candidates import Candidate, Target, mark_failed, score_path, straight_candidates
-from reachplan.planner.steering.insertion import KINEMATIC, SIMUGEL_MODULUS_PA, KinematicInsertion
+from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA
+from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.robustness import assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import match_targets, place, refine_with, shape_bank

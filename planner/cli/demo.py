@@ -75,9 +75,9 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     from reachplan.imaging.files import atomic_write_json
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.case.config import PlanConfig
-    from reachplan.planner.cli.kernels import start as start_kernels
     from reachplan.planner.cli.phantom import write_case
     from reachplan.planner.cli.plan import plan_and_write
+    from reachplan.planner.kernels import start as start_kernels
     from reachplan.planner.run.case import CaseConfig, CaseInput
 
     t0 = time.perf_counter()

@@ -288,7 +288,7 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.case.config import PlanConfig
-    from reachplan.planner.cli.kernels import start as start_kernels
+    from reachplan.planner.kernels import start as start_kernels
     from reachplan.planner.run.case import CaseInput
 
     inputs = [p for p in (args.ct, args.rtstruct) if p is not None]
@@ -361,7 +361,7 @@ def plan_and_write(inputs: CaseInput, config: CaseConfig, out: Path, quiet: bool
     dict
         plan.json's content.
     """
-    from reachplan.planner.cli.kernels import start
+    from reachplan.planner.kernels import start
     from reachplan.planner.report.build import format_implant, format_summary
     from reachplan.planner.run.case import run_case
     from reachplan.planner.run.outputs import write_outputs

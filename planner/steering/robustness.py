@@ -18,7 +18,8 @@ import numpy as np
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.geometry.collision import Organ
 from reachplan.planner.steering.candidates import Candidate, Target, score_path
-from reachplan.planner.steering.insertion import KINEMATIC, KinematicInsertion, ModelInfo
+from reachplan.planner.steering.insertion import ModelInfo
+from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
 
 

@@ -15,7 +15,8 @@ import numpy as np
 
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.steering.insertion import KINEMATIC, InsertionPath, KinematicInsertion, ModelInfo
+from reachplan.planner.steering.insertion import InsertionPath, ModelInfo
+from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 from reachplan.rod_model.design import RodDesign

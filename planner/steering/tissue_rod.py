@@ -54,7 +54,7 @@ The trend with modulus (``reachplan bench models``, ``rod_models_tissue.csv``; `
        26.0 mm at 0.1 MPa, 25.0 at 0.19 MPa, 21.9 at 1 MPa, 20.2 at 10 MPa.
 
     What the planner needs is the kinematic model's curvature factor over the tip-following range (>= 0.1 MPa),
-    fitted per design (:func:`fit_curvature_factor`, :func:`~reachplan.planner.steering.insertion.curvature_factor`):
+    fitted per design (:mod:`reachplan.planner.steering.factors`, which imports this module):
     15ga-30j-tip is past its peak there and its factor falls monotonically, from 1.33 at 0.1 MPa (1.28 in the gel)
     toward 1 in rigid tissue; a shorter or stiffer joint section peaks in stiffer tissue, so its factor rises
     through the gel (15ga-15j-tip: below 1 there).
@@ -75,7 +75,6 @@ from reachplan.planner.steering.insertion import (
     TISSUE_POISSON,
     FailedInsertion,
     InsertionPath,
-    KinematicInsertion,
     NamedInsertion,
     winkler_modulus_pa,
 )
@@ -306,88 +305,3 @@ TISSUE_ROD = TissueRodInsertion()
 #: 10 N, tip at 120 mm in the gel: 29.70 / 29.80 / 29.85 mm at 4 / 2 / 1 mm steps (extrapolated 29.90, from 1 and
 #: 2 mm 29.91); 2 RK4 steps per mm change it by 0.001 mm.
 PLANNER_REFERENCE = TissueRodInsertion(rod_model=TwoTubeCosserat(steps_per_mm=1.0), richardson=True)
-
-
-#: The schedules and depths a curvature factor is fitted over (:func:`fit_curvature_factor`): 20 mm ramps from these
-#: onsets (mm) to these fractions of the design's maximum tension (the planner's schedule family), tips at these
-#: depths (mm; those beyond the design's length dropped).
-FACTOR_ONSETS_MM: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0)
-FACTOR_FRACTIONS: tuple[float, ...] = (0.6, 1.0)
-FACTOR_DEPTHS_MM: tuple[float, ...] = (60.0, 90.0, 120.0, 150.0)
-
-
-@dataclass(frozen=True)
-class FactorFit:
-    """The kinematic curvature factor fitted to the in-tissue rod at one modulus.
-
-    ``factor``: least squares over every schedule and depth; ``rms_mm``: the kinematic model's tip error with it,
-    root mean square (mm); ``tips``: how many rod tips were fitted (a failed insertion step loses its depths).
-    """
-
-    factor: float
-    rms_mm: float
-    tips: int
-
-
-def factor_schedules(design: RodDesign, onsets_mm: Sequence[float] = FACTOR_ONSETS_MM,
-                     fractions: Sequence[float] = FACTOR_FRACTIONS) -> list[TensionSchedule]:
-    """Return the ramps a curvature factor is fitted over: 20 mm from each onset (mm) to each fraction of the limit."""
-    return [TensionSchedule.ramp(float(o), 20.0, f * design.max_tension_n) for o in onsets_mm for f in fractions]
-
-
-def fit_factor(design: RodDesign, schedules: Sequence[TensionSchedule], depths_mm: np.ndarray,
-               tips_mm: np.ndarray) -> FactorFit:
-    """Fit the kinematic curvature factor of ``design`` to rod tips (least squares over the finite ones).
-
-    ``tips_mm``: (S, D, 3) float, mm, template frame: the rod's tip for each of ``schedules`` at each of
-    ``depths_mm`` (D,), NaN past a failed insertion step.
-
-    Raises
-    ------
-    PlanInputError
-        Fewer than two finite tips.
-    """
-    from scipy.optimize import minimize_scalar
-
-    depths = np.asarray(depths_mm, dtype=float)
-    ok = np.all(np.isfinite(tips_mm), axis=-1)
-    if ok.sum() < 2:
-        raise PlanInputError(f"the in-tissue rod failed for {design.name}: fewer than two tips, no curvature factor")
-    rows = np.round(depths).astype(int)  # rows of a kinematic path at 1 mm steps
-
-    def misfit(f: float) -> float:
-        kin = KinematicInsertion(tissue_factor=f).insert_array(design, schedules, float(depths[-1]))[:, rows]
-        return float(np.sum(np.sum((kin - tips_mm) ** 2, axis=-1)[ok]))
-
-    best = minimize_scalar(misfit, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-4})
-    return FactorFit(float(best.x), float(np.sqrt(misfit(float(best.x)) / ok.sum())), int(ok.sum()))
-
-
-def fit_curvature_factor(design: RodDesign, modulus_pa: float, onsets_mm: Sequence[float] = FACTOR_ONSETS_MM,
-                         fractions: Sequence[float] = FACTOR_FRACTIONS,
-                         depths_mm: Sequence[float] = FACTOR_DEPTHS_MM) -> FactorFit:
-    """Fit the kinematic model's curvature factor of ``design`` to the in-tissue rod in tissue of ``modulus_pa``.
-
-    The rod is the planner's reference (:data:`PLANNER_REFERENCE`: 1 RK4 step per mm) with 2 mm insertion steps
-    and no extrapolation (the tips at every depth come from one insertion; the step moves a 150 mm tip by 0.2-0.4
-    mm, a fifth of the fit's residual). The factor minimises the squared tip distance between the kinematic model
-    and the rod over :func:`factor_schedules`, tips at each depth (:func:`fit_factor`). About 10 s for the
-    default 8 schedules × 4 depths.
-
-    Raises
-    ------
-    PlanInputError
-        Fewer than two rod tips (every insertion failed early), or no depth within the design's length.
-    """
-    depths = np.array([d for d in depths_mm if 0 < d <= design.length_mm], dtype=float)
-    if len(depths) == 0:
-        raise PlanInputError(f"no fitting depth within {design.name}'s length {design.length_mm:.0f} mm")
-    schedules = factor_schedules(design, onsets_mm, fractions)
-    rod = replace(PLANNER_REFERENCE, richardson=False, tissue_modulus_pa=float(modulus_pa))
-    tips = np.full((len(schedules), len(depths), 3), np.nan)
-    for i, sch in enumerate(schedules):
-        _, steps = rod.insert_steps(design, sch, float(depths[-1]))
-        got = {round(d, 6): tip for d, tip in steps}
-        for j, d in enumerate(depths):
-            tips[i, j] = got.get(round(float(d), 6), np.full(3, np.nan))
-    return fit_factor(design, schedules, depths, tips)

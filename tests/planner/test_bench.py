@@ -73,7 +73,7 @@ def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.
 def test_factors_quick_writes_a_table_the_planner_reads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import json
 
-    from reachplan.planner.steering.insertion import FactorCurve, design_key, factor_table
+    from reachplan.planner.steering.factors import FactorCurve, design_key, factor_table
     from reachplan.rod_model.design import preset
 
     out = tmp_path / "out"

@@ -21,7 +21,8 @@ from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import make_organ
 from reachplan.planner.lookup import load_template
 from reachplan.planner.steering.candidates import Candidate, Target
-from reachplan.planner.steering.insertion import FailedInsertion, KinematicInsertion
+from reachplan.planner.steering.insertion import FailedInsertion
+from reachplan.planner.steering.kinematic import KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.cosserat import TwoTubeCosserat

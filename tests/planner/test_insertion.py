@@ -8,17 +8,17 @@ import numpy as np
 import pytest
 
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.steering.insertion import (
-    SIMUGEL_MODULUS_PA,
+from reachplan.planner.steering.factors import (
     TIP_FOLLOWING_MIN_PA,
-    KinematicInsertion,
     curvature_factor,
-    curvature_table,
     design_key,
     factor_table,
+    fit_curvature_factor,
 )
+from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA, curvature_table
+from reachplan.planner.steering.kinematic import KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.planner.steering.tissue_rod import TissueRodInsertion, fit_curvature_factor
+from reachplan.planner.steering.tissue_rod import TissueRodInsertion
 from reachplan.rod_model.beam import PLANAR_BEAM
 from reachplan.rod_model.design import PRESET_NAMES, preset
 
@@ -71,23 +71,22 @@ def test_every_preset_has_a_fitted_curvature_factor_and_they_differ() -> None:
 
 
 def test_a_design_not_in_the_table_is_fitted_once(monkeypatch: pytest.MonkeyPatch) -> None:
-    import reachplan.planner.steering.insertion as insertion
-    import reachplan.planner.steering.tissue_rod as tissue_rod
+    import reachplan.planner.steering.factors as factors
 
     calls: list[tuple[str, float]] = []
 
     def fake_fit(design, modulus_pa):  # type: ignore[no-untyped-def]
         calls.append((design.name, modulus_pa))
-        return tissue_rod.FactorFit(0.9, 0.5, 32)
+        return factors.FactorFit(0.9, 0.5, 32)
 
-    monkeypatch.setattr(tissue_rod, "fit_curvature_factor", fake_fit)
-    insertion._fitted_factor.cache_clear()
+    monkeypatch.setattr(factors, "fit_curvature_factor", fake_fit)
+    factors._fitted_factor.cache_clear()
     other = dataclasses.replace(preset("15ga-30j-tip"), name="stiffer tendon limit", max_tension_n=9.0)
     assert design_key(other) not in factor_table()
     model = KinematicInsertion(tissue_modulus_pa=3e5)
     assert model.factor_for(other) == 0.9 and model.factor_for(other) == 0.9
     assert calls == [("stiffer tendon limit", 3e5)]  # memoised
-    insertion._fitted_factor.cache_clear()
+    factors._fitted_factor.cache_clear()
 
 
 @pytest.mark.parametrize("name", ["15ga-30j-tip", "15ga-15j-tip"])

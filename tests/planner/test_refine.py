@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from reachplan._arrays import arc_length_mm
-from reachplan.planner.steering.insertion import KINEMATIC
+from reachplan.planner.steering.kinematic import KINEMATIC
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import refine_with
 from reachplan.planner.steering.tissue_rod import TissueRodInsertion

@@ -99,7 +99,7 @@ def test_speed_accuracy_chart_marks_the_models_used() -> None:
 
 
 def test_models_used_names_each_rod_models_role() -> None:
-    from reachplan.planner.steering.insertion import KINEMATIC
+    from reachplan.planner.steering.kinematic import KINEMATIC
     from reachplan.planner.steering.tissue_rod import TISSUE_ROD
 
     cands = [SimpleNamespace(model=m) for m in [STRAIGHT, KINEMATIC.info, KINEMATIC.info, TISSUE_ROD.info]]

@@ -17,7 +17,8 @@ from reachplan.planner.case.result import PlanResult
 from reachplan.planner.cli import COMMAND_MODULES, build_parser, main
 from reachplan.planner.report.build import format_summary
 from reachplan.planner.steering.candidates import Candidate
-from reachplan.planner.steering.insertion import KINEMATIC, STRAIGHT
+from reachplan.planner.steering.insertion import STRAIGHT
+from reachplan.planner.steering.kinematic import KINEMATIC
 from reachplan.rod_model.design import preset
 
 

@@ -156,7 +156,7 @@ def _tip_at(design_name: str, modulus_pa: float, depth_mm: float = 120.0) -> flo
 
 def _tip_following(design_name: str, depth_mm: float = 120.0) -> float:
     """The rigid-tissue limit: pure tip following at the joint section's free-space curvature (mm)."""
-    from reachplan.planner.steering.insertion import KinematicInsertion
+    from reachplan.planner.steering.kinematic import KinematicInsertion
 
     path = KinematicInsertion(tissue_factor=1.0).insert_array(preset(design_name), [PULL], depth_mm)[0]
     return float(np.hypot(*path[-1, :2]))

@@ -242,7 +242,7 @@ def demo_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.mark.slow
 def test_third_party_distribution_is_listed_by_the_cli(demo_site: Path) -> None:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(demo_site), os.environ.get("PYTHONPATH", "")])}
-    code = "import sys; from planner.cli import main; sys.exit(main(['plugins', '--json']))"
+    code = "import sys; from reachplan.planner.cli import main; sys.exit(main(['plugins', '--json']))"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stderr
     doc = {(d["kind"], d["name"]): d for d in json.loads(done.stdout)}

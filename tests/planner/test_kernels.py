@@ -1,4 +1,4 @@
-"""The first run's background compile (reachplan.planner.cli.kernels), each case in a fresh interpreter."""
+"""The first run's background compile (reachplan.planner.kernels), each case in a fresh interpreter."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 # one rod solve after start(): the solve must load the kernel the child compiled, not compile it again
 SCRIPT = """
 import json, sys
-from reachplan.planner.cli import kernels
+from reachplan.planner import kernels
 kernels.BACKGROUND = ("rod",)  # the dose group goes the same way; the rod alone keeps the test short
 was_cold = kernels.cold("rod")
 started = kernels.start(quiet=False)
@@ -51,10 +51,22 @@ def test_a_cold_cache_is_compiled_by_the_child_and_loaded_by_the_main_process(tm
 
 
 def test_a_warm_cache_starts_nothing(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    from reachplan.planner.cli import kernels
+    from reachplan.planner import kernels
 
     monkeypatch.setattr(kernels, "_child", None)
     monkeypatch.setattr(kernels, "cold", lambda group: False)
     assert not kernels.start(quiet=False)
     assert kernels._child is None
     assert capsys.readouterr().err == ""
+
+
+def test_the_program_and_the_wait_without_a_child(monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    from reachplan.planner import kernels
+
+    monkeypatch.setattr(kernels, "_child", None)
+    assert kernels.waited_s() == 0.0
+    assert kernels.main(["warm", "no-such-group"]) == 2 and kernels.main([]) == 2
+    assert "usage: python -m reachplan.planner.kernels warm" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="unknown kernel group"):
+        kernels.warm_up(["no-such-group"])

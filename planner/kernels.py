@@ -1,4 +1,4 @@
-"""First run after an install: the numba kernels a plan needs, compiled once in a background process.
+"""The numba kernels: compiled once after an install, in a background process while a plan starts.
 
 Every numba kernel is compiled with ``cache=True``, so only the first run after an install (or after numba's cache
 was emptied) compiles; that costs about 10 s of CPU, mostly the two-tube rod kernel. A plan spends its first
@@ -6,7 +6,7 @@ seconds on work that needs no rod or dose kernel (the case write, the scene: org
 one core; :func:`start` compiles the rod and dose kernels meanwhile in a child interpreter on the other core, into
 the same on-disk cache, in the order a plan needs them. The main process compiles the kernels it needs first (the
 case's sweep field, the organ distance field) itself, and the first time it calls a rod or dose kernel it waits
-for the child to have compiled that group (:func:`_wait`), then loads the machine code from the cache.
+for the child to have compiled that group (:meth:`_Child.wait`), then loads the machine code from the cache.
 
 Races: numba writes each cache file (index and data) to a temporary name and renames it into place
 (``numba.core.caching.IndexDataCacheFile._open_for_write``, ``os.replace``), so a reader sees a whole file or none.
@@ -14,8 +14,15 @@ Two processes saving *different* signatures of one function could still lose an 
 never compiles a kernel of a group while the child works on it: it waits, and compiles only what the child did not
 (a signature the child's work did not use), after the child has finished that group.
 
-Run as ``python -m reachplan.planner.cli.kernels DIR GROUP...`` it is that child: for each group it compiles the
-kernels, then creates ``DIR/GROUP.done``.
+Kernel groups (:data:`GROUPS`): ``sweep`` (the applicator sweep field, :mod:`reachplan.imaging`), ``distance`` (the
+organ distance field), ``rod`` (the two-tube rod) and ``dose`` (TG-43); :func:`warm_up` compiles groups in this
+process (the first-run benchmark's kernels-only work). Run as a program (:func:`main`)::
+
+    python -m reachplan.planner.kernels warm [GROUP...]       compile the groups here (default: all); errors raise
+    python -m reachplan.planner.kernels child DIR GROUP...    the background child: for each group compile its
+                                                             kernels, then create DIR/GROUP.done
+
+The command line starts the background compile (:func:`start`); the benchmarks read :func:`waited_s`.
 """
 
 from __future__ import annotations
@@ -28,11 +35,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+#: every kernel group, in the order a plan needs them
+GROUPS: tuple[str, ...] = ("sweep", "distance", "rod", "dose")
 #: the groups the child compiles, in the order a plan needs them (planning: rod, delivery: dose)
 BACKGROUND: tuple[str, ...] = ("rod", "dose")
 #: longest wait for one group (s): a child that hangs must not hang the plan (the main process then compiles)
@@ -41,6 +50,14 @@ _MAX_WAIT_S = 600.0
 
 def _modules(group: str) -> list[ModuleType]:
     """Import and return the kernel modules of ``group``."""
+    if group == "sweep":
+        from reachplan.imaging import _sweep_kernel
+
+        return [_sweep_kernel]
+    if group == "distance":
+        from reachplan.planner.geometry import distance_field
+
+        return [distance_field]
     if group == "rod":
         from reachplan.rod_model import _kernel
 
@@ -61,16 +78,42 @@ def _dispatchers(group: str) -> list[Any]:
     return [v for m in _modules(group) for v in vars(m).values() if isinstance(v, Dispatcher)]
 
 
+def warm_up(groups: Sequence[str] = GROUPS) -> None:
+    """Compile (or load from numba's cache) the kernels of ``groups`` in this process, one group after the other.
+
+    Each group's kernels are called with the argument types a plan uses: the public calls, on tiny inputs.
+
+    Parameters
+    ----------
+    groups : sequence of str
+        Kernel groups, each one of :data:`GROUPS` (default: all).
+
+    Raises
+    ------
+    ValueError
+        An unknown group.
+    """
+    for group in groups:
+        _warm(group)
+
+
 def _warm(group: str) -> None:
     """Compile (or load) ``group``'s kernels with the argument types a plan uses: the public calls, on tiny inputs."""
     import numpy as np
 
-    if group == "rod":
-        from reachplan.planner.lookup import rod_model
+    if group == "sweep":
+        from reachplan.imaging._sweep_kernel import warm_up as warm_sweep
+
+        warm_sweep()
+    elif group == "distance":
+        from reachplan.planner.geometry.distance_field import warm_up as warm_distance
+
+        warm_distance()
+    elif group == "rod":
+        from reachplan.rod_model.cosserat import TWO_TUBE_COSSERAT as model  # the registered built-in
         from reachplan.rod_model.design import preset
 
         d = preset("15ga-30j-tip")
-        model = rod_model("two_tube_cosserat")
         model.solve(d, d.loads(5.0))
         model.solve_batch(d, np.array([1.0, 2.0]))
     elif group == "dose":
@@ -121,6 +164,17 @@ class _Child:
 _child: _Child | None = None
 
 
+def waited_s() -> float:
+    """Return how long this process has waited for the background compile, s (0 when none was started).
+
+    Returns
+    -------
+    float
+        The sum over kernel groups of the main process's waits (:func:`start`), s.
+    """
+    return sum(_child.waited_s.values()) if _child is not None else 0.0
+
+
 def _hook(group: str, dispatcher: Any) -> Callable[[], None]:
     """Return ``dispatcher``'s compile hook, which first waits for the child's work on ``group``."""
     numba_hook = dispatcher._compilation_chain_init_hook  # numba's own (it initialises extension entry points)
@@ -150,7 +204,7 @@ def start(quiet: bool = False) -> bool:
         return False
     folder = Path(tempfile.mkdtemp(prefix="reachplan-kernels-"))
     atexit.register(shutil.rmtree, folder, ignore_errors=True)  # a child still compiling then fails only its marker
-    proc = subprocess.Popen([sys.executable, "-m", "reachplan.planner.cli.kernels", str(folder), *groups],
+    proc = subprocess.Popen([sys.executable, "-m", __spec__.name, "child", str(folder), *groups],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     atexit.register(proc.poll)  # reap a child that has finished: its CPU time is then counted as this process's
     _child = _Child(proc, folder)
@@ -165,10 +219,33 @@ def start(quiet: bool = False) -> bool:
     return True
 
 
-def _main(argv: list[str]) -> int:
-    """Run the child: compile each group of ``argv[1:]`` in turn, then create ``argv[0]/GROUP.done``."""
-    folder = Path(argv[0])
-    for group in argv[1:]:
+def main(argv: Sequence[str]) -> int:
+    """Run ``python -m reachplan.planner.kernels`` (see the module docstring) on ``argv``; return the exit code.
+
+    Parameters
+    ----------
+    argv : sequence of str
+        ``["warm", GROUP, ...]``: compile the groups in this process (none named: every group), errors raise;
+        ``["child", DIR, GROUP, ...]``: the background child of :func:`start`.
+
+    Returns
+    -------
+    int
+        0; 2 for arguments of neither form.
+    """
+    if argv[:1] == ["warm"] and set(argv[1:]) <= set(GROUPS):
+        warm_up(argv[1:] or GROUPS)
+        return 0
+    if argv[:1] == ["child"] and len(argv) >= 2:
+        return _background(Path(argv[1]), argv[2:])
+    print(f"usage: python -m {__spec__.name} warm [GROUP...] | child DIR GROUP... (groups: {', '.join(GROUPS)})",
+          file=sys.stderr)
+    return 2
+
+
+def _background(folder: Path, groups: Sequence[str]) -> int:
+    """Run the child: compile each group in turn, then create ``folder/GROUP.done``."""
+    for group in groups:
         try:
             _warm(group)
         except Exception as exc:  # the main process compiles what is missing and reports any real error itself
@@ -182,4 +259,4 @@ def _main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))
+    sys.exit(main(sys.argv[1:]))
