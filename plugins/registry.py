@@ -10,6 +10,8 @@ Groups (entry-point group ``reachplan.<kind>``) and the Protocol each plugin is 
 ``sources``          zero-argument callables returning a :class:`reachplan.plugins.sources.SourceData`
 ``exporters``        objects implementing :class:`reachplan.plugins.exporters.base.Exporter`
                      (check: ``reachplan.plugins.exporters.base.check_exporter``)
+``optimisers``       dwell optimisers: objects with a str ``name`` and a callable ``optimise``, the implant
+                     planner's optimiser Protocol (check: :func:`check_optimiser`, structural)
 
 Built-ins register through the same entry points as third-party plugins (see ``pyproject.toml``).
 Entry points are loaded lazily, on first use of their group; a plugin that fails to import, or does not
@@ -32,7 +34,7 @@ from typing import Any
 
 from reachplan.plugins.errors import PluginError
 
-KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters")
+KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "optimisers")
 
 BUILTIN_DISTRIBUTION = "reachplan"
 
@@ -69,6 +71,26 @@ check_template_factory = _factory_check("templates", "reachplan.plugins.template
 check_source_factory = _factory_check("sources", "reachplan.plugins.sources", "SourceData")
 
 
+def check_optimiser(obj: Any) -> None:
+    """Check that ``obj`` has the shape of a dwell optimiser (the optimisers check, structural).
+
+    Parameters
+    ----------
+    obj : object
+        The loaded entry point.
+
+    Raises
+    ------
+    TypeError
+        ``obj`` has no str ``name`` or no callable ``optimise``.
+    """
+    name = getattr(obj, "name", None)
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"an optimisers plugin needs a non-empty str 'name', got {name!r}")
+    if not callable(getattr(obj, "optimise", None)):
+        raise TypeError(f"an optimisers plugin needs a callable 'optimise', {type(obj).__name__} has none")
+
+
 #: The default check of each kind, as ``"module:function"`` (imported when the group is first loaded).
 DEFAULT_CHECKS: Mapping[str, str] = MappingProxyType({
     "rod_models": "reachplan.rod_model.protocol:check_rod_model",
@@ -76,6 +98,7 @@ DEFAULT_CHECKS: Mapping[str, str] = MappingProxyType({
     "templates": "reachplan.plugins.registry:check_template_factory",
     "sources": "reachplan.plugins.registry:check_source_factory",
     "exporters": "reachplan.plugins.exporters.base:check_exporter",
+    "optimisers": "reachplan.plugins.registry:check_optimiser",
 })
 
 

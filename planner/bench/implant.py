@@ -27,8 +27,9 @@ from matplotlib.figure import Figure
 from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
 from reachplan.imaging.meshing import fit_grid, roi_mask
 from reachplan.planner.bench.common import settings, write_csv, write_png
-from reachplan.planner.dose.implant import ImplantSettings, recompute_target
 from reachplan.planner.dose.tg43 import Tg43Kernel
+from reachplan.planner.implant.arms import recompute_target
+from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.pipeline import (
     DEFAULT_AIR_KERMA_U,
     DEFAULT_OARS,

@@ -536,7 +536,7 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
     Parameters
     ----------
     dvhs : sequence of (structure name, :class:`reachplan.planner.dose.coverage.Dvh`)
-    aims : :class:`reachplan.planner.dose.optimize.Aims`
+    aims : :class:`reachplan.planner.dose.aims.Aims`
         Its D90 aim becomes a diamond at (prescription, 90 % of the target volume) that the target's curve must
         pass to the right of; each organ limit a cross at (D2cm³ limit per fraction, 2 cm³) that the organ's
         curve must pass to the left of.
@@ -552,10 +552,10 @@ def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -
 
     Parameters
     ----------
-    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
+    arms : sequence of :class:`reachplan.planner.implant.arms.ImplantArm`
         Each arm with a chosen plan contributes its ``plan.dvhs`` (Gy per fraction, cm³); curves carry the gid
         ``dvh:ARM:NAME``.
-    aims : :class:`reachplan.planner.dose.optimize.Aims`
+    aims : :class:`reachplan.planner.dose.aims.Aims`
         Marked as in :func:`dvh_aims_figure` (once: the marks do not depend on the arm).
     target : the target's structure name (drawn thicker, its D90 aim marked)
     """
@@ -577,7 +577,7 @@ def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
 
     Parameters
     ----------
-    arms : sequence of :class:`reachplan.planner.dose.implant.ImplantArm`
+    arms : sequence of :class:`reachplan.planner.implant.arms.ImplantArm`
         Each arm's ``pareto`` points are one curve (gid ``pareto:ARM``), the points that meet every aim filled
         (gid ``met:ARM``) and the others hollow (``unmet:ARM``); the chosen plan (``plan.n_needles``,
         ``plan.target.d90_eqd2_gy``) is circled (gid ``chosen:ARM``).
@@ -617,5 +617,5 @@ def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
 
 
 def dvh_png(comparison: Any) -> bytes:
-    """Render the DVH figure of a :class:`reachplan.planner.dose.optimize.Comparison` as PNG bytes."""
+    """Render the DVH figure of a :class:`reachplan.planner.implant.compare.Comparison` as PNG bytes."""
     return png_bytes(comparison.figure(), dpi=90)

@@ -43,7 +43,7 @@ from reachplan.planner.errors import StudyError
 from reachplan.planner.pipeline import DEFAULT_AIR_KERMA_U, DEFAULT_OARS, PlanConfig
 
 if TYPE_CHECKING:
-    from reachplan.planner.dose.implant import ImplantSettings
+    from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.planner.pipeline import ImplantComparison
 
 ARMS = ("straight", "steered")
