@@ -73,8 +73,8 @@ def test_every_package_folder_is_listed_in_pyproject() -> None:
     assert found == listed
 
 
-#: The only modules that may look plugins up: the pipeline and the command line (everything else is passed
-#: what it needs).
+#: The only modules that may look plugins up: the pipeline, the planner's look-up module and the command line
+#: (everything else is passed what it needs, or asks ``reachplan.planner.lookup``).
 REGISTRY = "reachplan.plugins.registry"
 
 
@@ -93,7 +93,8 @@ def _registry_importers(pythonpath: Path | None, cwd: Path) -> list[str]:
 
 
 def _may_look_up_plugins(module: str) -> bool:
-    return module == "reachplan.planner.pipeline" or module.startswith("reachplan.planner.cli.")
+    return module in ("reachplan.planner.pipeline", "reachplan.planner.lookup") or module.startswith(
+        "reachplan.planner.cli.")
 
 
 def test_only_the_pipeline_and_the_cli_import_the_plugin_registry(tmp_path: Path) -> None:

@@ -28,6 +28,31 @@ class ImplantPlan:
     scaled down so that every organ D2cm³ meets its limit. ``mip_gap`` is the relative gap between the selection of the
     budget that gave this plan and that budget's LP relaxation (None when there is none); ``mip_status`` says
     which budget and how the selection was made.
+
+    Parameters
+    ----------
+    channels : tuple of Channel
+        The loaded channels (needles and intracavitary), paths mm, LPS.
+    dwells : DwellSet
+        Loaded dwells (positions mm, LPS; times s per fraction); ``channels`` 1-based into ``channels``.
+    target : StructureMetrics
+        HR-CTV metrics on sub-voxels (Gy per fraction; EQD2 totals).
+    v200_pct : float, %
+        HR-CTV volume receiving twice the prescription.
+    oars : tuple of StructureMetrics
+        Each organ's metrics on its voxels near the implant.
+    aims_met : bool
+        Every aim met (HR-CTV D90 and D98, GTV D98, organ D2cm³).
+    gtv : StructureMetrics or None
+        GTV metrics when a GTV was given.
+    scale : float
+        Factor (<= 1) applied to the optimiser's times so that every organ limit holds.
+    mip_gap : float or None
+        Relative gap of the selection that gave this plan.
+    mip_status : str
+        Which budget and how the selection was made.
+    dvhs : tuple of (name, Dvh)
+        Cumulative DVH of each structure (Gy per fraction).
     """
 
     channels: tuple[Channel, ...]
@@ -74,7 +99,17 @@ class ImplantPlan:
 
 @dataclass(frozen=True)
 class ParetoPoint:
-    """One needle budget: needles loaded, HR-CTV D90 (EQD2) with the organ limits held, and the aims."""
+    """One needle budget: needles loaded, HR-CTV D90 (EQD2) with the organ limits held, and the aims.
+
+    Parameters
+    ----------
+    n_needles : int
+        Needles of the plan (intracavitary channels not counted).
+    hrctv_d90_eqd2_gy : float, Gy EQD2
+        HR-CTV D90 (total with the external beam).
+    aims_met : bool
+        Every aim met.
+    """
 
     n_needles: int
     hrctv_d90_eqd2_gy: float
@@ -87,6 +122,27 @@ class ImplantArm:
 
     ``budgets``: the needle selection at each budget tried; ``selection``: how the selection was made and the
     bound of every candidate loaded (plan.json ``selection``); ``plans``: the implant of each Pareto point.
+
+    Parameters
+    ----------
+    name : str
+        The arm's name.
+    n_candidates : int
+        Candidate needles offered to the arm.
+    pareto : tuple of ParetoPoint
+        The Pareto curve, needle count rising.
+    plan : ImplantPlan or None
+        The chosen plan (None with ``reason`` when there is none).
+    seconds : float, s
+        Wall time of the arm's planning.
+    reason : str
+        Why there is no plan, or why it does not meet every aim.
+    budgets : tuple of BudgetResult
+        The selection at each budget tried.
+    selection : dict
+        plan.json's ``selection`` record (the optimiser's description, the all-candidates bound, the budgets).
+    plans : tuple of ImplantPlan
+        The plan of each Pareto point.
     """
 
     name: str
@@ -152,6 +208,29 @@ class BudgetResult:
     lower bound of every selection of ``budget`` needles), ``mip_gap``: the relative gap between the two (None when
     the relaxation failed); ``n_needles``: the
     needles selected; ``new``: False when the selection equals a smaller budget's (no new Pareto point).
+
+    Parameters
+    ----------
+    budget : int
+        At most this many needles.
+    n_needles : int
+        Needles selected (and loaded).
+    objective : float
+        The optimiser's objective at the selection (inf when it found none).
+    dual_bound : float or None
+        The optimiser's lower bound at this budget (the built-in's: its LP relaxation's).
+    mip_gap : float or None
+        ``(objective - dual_bound) / |objective|``.
+    status : str
+        How the optimiser made the selection.
+    seconds : float, s
+        Wall time of the budget (selection and final plan).
+    new : bool
+        The selection differs from every smaller budget's.
+    selected : tuple of Channel
+        The selected channels (with the intracavitary ones).
+    plan : ImplantPlan or None
+        The new selection's plan.
     """
 
     budget: int
@@ -175,7 +254,7 @@ class BudgetResult:
 
 def _arm(name: str, n_candidates: int, plans: Sequence[ImplantPlan], seconds: float,
          budgets: tuple[BudgetResult, ...], record: dict[str, object]) -> ImplantArm:
-    """Return an arm from its plans: the Pareto curve and the plan chosen from it (:func:`plan_implant`)."""
+    """Return an arm from its plans: the Pareto curve and the plan chosen from it (``plan.plan_implant``)."""
     pareto_plans = _pareto(plans)
     pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
     if not pareto_plans:
@@ -193,6 +272,17 @@ def with_subset(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
 
     Every implant of the subset arm is one of this arm's too, so the result is never worse than ``subset``: its
     Pareto curve and chosen plan are taken over both arms' plans (two arms planned independently, e.g. at once).
+
+    Parameters
+    ----------
+    arm : ImplantArm
+        The arm (its name, candidates, budgets and selection record are kept).
+    subset : ImplantArm
+        An arm planned on a subset of ``arm``'s candidates.
+
+    Returns
+    -------
+    ImplantArm
     """
     return _arm(arm.name, arm.n_candidates, [*arm.plans, *subset.plans], arm.seconds, arm.budgets, arm.selection)
 
@@ -221,7 +311,22 @@ def recompute_target(plan: ImplantPlan, grid: Grid, target_mask: np.ndarray, ker
                      air_kerma_strength_u: float, aims: Aims | None = None) -> StructureMetrics:
     """Recompute a plan's HR-CTV metrics independently with :func:`dose_on_grid` on another (finer) ``grid``.
 
-    ``target_mask`` ((nk, nj, ni) bool) holds the target; physical per fraction and EQD2 totals.
+    Parameters
+    ----------
+    plan : ImplantPlan
+    grid : Grid
+        The grid to compute on (voxel centres mm, LPS).
+    target_mask : (nk, nj, ni) bool
+        The target on ``grid``.
+    kernel : Tg43Kernel
+    air_kerma_strength_u : float, U
+    aims : Aims, optional
+        EMBRACE II by default (the prescription and α/β of the metrics).
+
+    Returns
+    -------
+    StructureMetrics
+        Physical per fraction and EQD2 totals.
     """
     aims = aims or Aims()
     dose = dose_on_grid(grid, plan.dwells, kernel, air_kerma_strength_u)[np.asarray(target_mask, bool)]

@@ -41,16 +41,25 @@ class Channel:
 
     Parameters
     ----------
-    name : hole id (needles) or applicator channel name.
-    kind : ``"straight"``, ``"steered"`` or ``"intracavitary"``.
-    path_mm : (k, 3) float, mm, LPS, from the template (base) to the tip.
-    dwell_positions_mm : (d, 3) float, mm, LPS, deepest first.
-    hole_distance_mm : distance of the hole from the template centre (0 for intracavitary channels).
-    tissue_length_mm : needle length beyond the template plane.
-    clearance_mm : smallest surface distance to an organ at risk (FCL within the margin plus
-        :data:`CONFIRM_BAND_MM`; beyond, the organs' distance-field estimate, within its error bound).
-    design : stylet preset ("" for a straight needle).
-    schedule : tension and roll along the insertion (None for a straight needle).
+    name : str
+        Hole id (needles) or applicator channel name.
+    kind : str
+        ``"straight"``, ``"steered"`` or ``"intracavitary"``.
+    path_mm : (k, 3) float, mm, LPS
+        From the template (base) to the tip.
+    dwell_positions_mm : (d, 3) float, mm, LPS
+        Deepest first.
+    hole_distance_mm : float, mm
+        Distance of the hole from the template centre (0 for intracavitary channels).
+    tissue_length_mm : float, mm
+        Needle length beyond the template plane.
+    clearance_mm : float, mm
+        Smallest surface distance to an organ at risk (FCL within the margin plus :data:`CONFIRM_BAND_MM`; beyond,
+        the organs' distance-field estimate, within its error bound).
+    design : str
+        Stylet preset ("" for a straight needle).
+    schedule : TensionSchedule or None
+        Tension and roll along the insertion (None for a straight needle).
     """
 
     name: str
@@ -165,18 +174,32 @@ def needle_candidates(
 
     Parameters
     ----------
-    hole_ids : the template's needle holes.
-    hole_xy_mm : (H, 2) float, mm, template frame.
-    hole_distance_mm : (H,) float, mm from the template centre.
-    patient_from_template : (4, 4) float, template frame to LPS mm.
-    planning : the target and organ masks (the organ masks give the screening distance map).
-    organs : organ meshes for the exact (FCL) clearance of the kept candidates.
-    banks : steered shape banks (one per stylet design; none: straight needles only).
-    straight : include straight needles.
+    hole_ids : sequence of str
+        The template's needle holes (H of them).
+    hole_xy_mm : (H, 2) float, mm, template frame
+        Each hole's position on the template.
+    hole_distance_mm : (H,) float, mm
+        Each hole's distance from the template centre.
+    patient_from_template : (4, 4) float
+        Template frame to LPS mm (the template's z axis is the insertion direction).
+    planning : PlanningStructures
+        The target and organ masks (the organ masks give the screening distance map).
+    organs : sequence of Organ
+        Organ meshes (LPS mm) for the exact (FCL) clearance of the kept candidates.
+    needle_radius_mm : float, mm
+    settings : ImplantSettings, optional
+        Dwell step and margin, clearance margin, minimum dwells, rolls and steered candidates per hole.
+    banks : sequence of ShapeBank
+        Steered shape banks (one per stylet design; none: straight needles only).
+    max_depth_mm : float, mm
+        Deepest straight needle screened.
+    straight : bool
+        Include straight needles.
 
     Returns
     -------
-    Channels of kind ``"straight"`` and ``"steered"``, each with at least ``settings.min_dwells`` dwells.
+    tuple of Channel
+        Channels of kind ``"straight"`` and ``"steered"``, each with at least ``settings.min_dwells`` dwells.
     """
     settings = settings or ImplantSettings()
     grid = planning.grid
@@ -316,8 +339,21 @@ def intracavitary_channel(name: str, path_mm: np.ndarray, planning: PlanningStru
                           settings: ImplantSettings | None = None) -> Channel | None:
     """Return an applicator channel with dwells where it lies in the target grown by the dwell margin.
 
-    ``path_mm``: tandem, ring or ovoid, (k, 3) mm LPS, base to tip. None when it has fewer than ``min_dwells``
-    there.
+    Parameters
+    ----------
+    name : str
+        The channel's name (e.g. ``"Tandem"``).
+    path_mm : (k, 3) float, mm, LPS
+        Tandem, ring or ovoid, base to tip.
+    planning : PlanningStructures
+        The target mask gives the dwell region.
+    settings : ImplantSettings, optional
+        Dwell step, dwell margin and minimum dwells.
+
+    Returns
+    -------
+    Channel or None
+        Of kind ``"intracavitary"``; None when it has fewer than ``settings.min_dwells`` dwells in the region.
     """
     settings = settings or ImplantSettings()
     p = np.asarray(path_mm, dtype=float)

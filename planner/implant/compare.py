@@ -32,6 +32,17 @@ class ArmResult:
     optimised plan reaches the D90 aim within the organ limits, found by bisection (adding a needle adds
     dwells, so the optimum cannot get worse; the post-LP scaling makes this hold only approximately);
     None when all of them do not.
+
+    Parameters
+    ----------
+    name : str
+        The arm's name.
+    n_needles : int
+        Needles offered.
+    plan : OptimisationResult
+        The plan with every needle loaded.
+    needles_needed : int or None
+        Needles needed to reach the aim (a prefix of the given order).
     """
 
     name: str
@@ -42,7 +53,23 @@ class ArmResult:
 
 @dataclass(frozen=True)
 class ComparisonRow:
-    """One row of the comparison table (per-fraction physical and total EQD2 values)."""
+    """One row of the comparison table (per-fraction physical and total EQD2 values).
+
+    Parameters
+    ----------
+    arm : str
+    n_needles, needles_needed : int, int or None
+        As in :class:`ArmResult`.
+    d90_gy, d98_gy : float, Gy per fraction
+        HR-CTV D90 and D98, physical.
+    v100_pct : float, %
+    d90_eqd2_gy, d98_eqd2_gy : float, Gy EQD2
+        Totals with the external beam.
+    oar_d2cc_eqd2_gy : tuple of (organ, Gy EQD2)
+    aim_met : bool
+    note : str
+        The plan's reason (solved, scaled, or why not).
+    """
 
     arm: str
     n_needles: int
@@ -59,7 +86,14 @@ class ComparisonRow:
 
 @dataclass(frozen=True, eq=False)
 class Comparison:
-    """Result of :func:`compare_arms`."""
+    """Result of :func:`compare_arms`.
+
+    Parameters
+    ----------
+    arms : tuple of ArmResult
+    aims : Aims
+        The aims every arm was planned to.
+    """
 
     arms: tuple[ArmResult, ...]
     aims: Aims
@@ -137,7 +171,12 @@ def compare_arms(arms: Sequence[tuple[str, Sequence[np.ndarray]]], structures: P
         ``needles``: sequence of (k, 3) float, mm, LPS, ordered base → tip, in the order they would be
         inserted (the needle count uses prefixes of this order).
     structures, kernel, air_kerma_strength_u, aims, settings
-        As for :func:`optimise_dwell_times`.
+        As for :func:`reachplan.planner.implant.dwells.optimise_dwell_times`.
+
+    Returns
+    -------
+    Comparison
+        One :class:`ArmResult` per arm, in the given order.
     """
     aims = Aims() if aims is None else aims
     settings = OptimizerSettings() if settings is None else settings

@@ -122,6 +122,21 @@ class OptimisationResult:
     ``success`` is False with a ``reason`` when the LP did not solve; ``scaled`` tells that the times
     were scaled down by ``scale`` after the LP so that every organ limit holds on all its voxels;
     ``aim_met`` that HR-CTV D90 (EQD2) reached its aim.
+
+    Parameters
+    ----------
+    dwells : DwellSet
+        Dwell positions (mm, LPS) and times (s per fraction); channel = needle index + 1.
+    target : StructureMetrics
+    oars : tuple of StructureMetrics
+    success : bool
+    reason : str
+    scaled : bool
+    scale : float
+        Factor (<= 1) applied to the LP's times.
+    dvhs : tuple of (name, Dvh)
+        Cumulative DVH of each structure (Gy per fraction).
+    aim_met : bool
     """
 
     dwells: DwellSet
@@ -142,6 +157,16 @@ def candidate_dwells(needles: Sequence[np.ndarray], settings: OptimizerSettings)
     ----------
     needles : sequence of (k, 3) float, mm, LPS, ordered base → tip
     settings : OptimizerSettings
+
+    Returns
+    -------
+    DwellSet
+        Dwell positions (mm, LPS), directions toward each tip, zero times, channels 1-based.
+
+    Raises
+    ------
+    ValueError
+        A path that is not a finite (k >= 2, 3) array.
     """
     parts = []
     for i, path in enumerate(needles):

@@ -78,6 +78,11 @@ class NeedleChoice:
         Template hole of each needle (a hole takes one needle).
     cost : (n,) float, unitless
         Invasiveness of each needle (normalised hole distance and tissue length).
+
+    Raises
+    ------
+    ValueError
+        Channels, holes and costs of different lengths.
     """
 
     channels: tuple[int, ...]
@@ -186,7 +191,18 @@ class DwellSolution:
 
 @runtime_checkable
 class DwellOptimiser(Protocol):
-    """A dwell optimiser (registered under ``reachplan.optimisers``, chosen by ``ImplantSettings.optimiser``)."""
+    """A dwell optimiser (registered under ``reachplan.optimisers``, chosen by ``ImplantSettings.optimiser``).
+
+    Attributes
+    ----------
+    name : str
+        The name it is registered and chosen by.
+
+    Notes
+    -----
+    The registry checks the shape only (a str ``name``, a callable ``optimise``); an optional str ``description``
+    is what plan.json's ``selection.model`` says of it.
+    """
 
     name: str
 

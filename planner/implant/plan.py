@@ -211,6 +211,20 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
     HiGHS and the compiled dose kernels release the GIL, so two arms run on two cores. Threads only when the
     compiled kernels' threading layer allows calls from several threads at once (``omp`` or ``tbb``; numba's
     ``workqueue`` does not); else one after the other, with the same result (the arms do not share state).
+
+    Parameters
+    ----------
+    arms : sequence of (name, channels)
+        Each arm's candidate channels (paths mm, LPS).
+    planning, kernel, air_kerma_strength_u, aims, settings, gtv
+        As for :func:`plan_implant`.
+    workers : int
+        Threads at most.
+
+    Returns
+    -------
+    tuple of ImplantArm
+        In the order of ``arms``.
     """
     def one(arm: tuple[str, Sequence[Channel]]) -> ImplantArm:
         return plan_implant(arm[0], arm[1], planning, kernel, air_kerma_strength_u, aims, settings, gtv=gtv)

@@ -127,22 +127,16 @@ class LinearProgramme:
 
     def optimise(self, problem: DwellProblem, *, budget: int | None = None, limit_factor: np.ndarray | None = None,
                  start: Sequence[int] = ()) -> DwellSolution:
-        """Solve the LP (no budget) or select at most ``budget`` needles (:class:`DwellOptimiser`).
+        """Solve the LP (no budget) or select at most ``budget`` needles (:meth:`DwellOptimiser.optimise`).
 
-        Parameters
-        ----------
-        problem : DwellProblem
-        budget : int, optional
-            At most this many needles: the rounded LP relaxation (with and without ``start``), ``start`` itself,
-            then swaps; the bound is the relaxation's. None: one LP (needle binaries relaxed), its own bound.
-        limit_factor : (n_organs,) float, optional
-            The organ rows' calibration ``κ`` (None: 1).
-        start : sequence of int
-            A previous selection (indices into the needles).
+        With a budget: the rounded LP relaxation (with and without ``start``), ``start`` itself, then swaps; the
+        bound is the relaxation's. Without: one LP (needle binaries relaxed to [0, 1]), its own bound.
+        ``limit_factor`` is the organ rows' calibration ``κ`` (None: 1).
 
         Returns
         -------
         DwellSolution
+            Times per column (s), status, objective, bound and the needles used.
         """
         model = self.model(problem)
         kappa = np.ones(len(problem.organs)) if limit_factor is None else np.asarray(limit_factor, dtype=float)

@@ -11,38 +11,59 @@ class ImplantSettings:
 
     Parameters
     ----------
-    dwell_step_mm : distance between dwell positions along a channel.
-    dwell_margin_mm : dwells lie on the part of a channel inside the HR-CTV grown by this margin.
-    tip_offset_mm : distance from the needle tip to its deepest dwell (the tip lies this far beyond the last
-        dwell position).
-    clearance_margin_mm : smallest surface distance from a needle to any organ at risk.
-    min_dwells : a needle needs at least this many dwell positions to be a candidate.
-    neighbour_ratio : neighbouring dwell times on a channel differ by at most this factor (>= 1).
-    max_dwell_share : no single dwell carries more than this share of the plan's total time.
-    steered_per_hole : steered candidates kept per hole and design (the most dwells, spread apart).
-    rolls : roll angles screened per hole (evenly over 360°).
-    max_needles : largest needle budget on the Pareto curve.
-    extra_after_aims : Pareto points computed beyond the first budget that meets every aim.
-    coverage_margin : the LP aims target points at (1 + this) × the D90 prescription.
-    swap_pool, swap_passes : the selection's local search at each needle budget: swaps with the needles of the
-        largest relaxed ``y`` (this many), for at most this many passes (0: the rounded LP relaxation alone).
-    selection_target_points, final_target_points : target points of the selection model and of the dwell-time
-        LP on the chosen needles.
-    selection_oar_pitch_mm, final_oar_pitch_mm : lattice pitch of the organs' representative points in each.
-    oar_sample_cc : organ volume nearest to the dwells that the representative points cover.
-    segments_per_channel : dwell blocks per channel in the selection model.
-    invasiveness_weight : weight of the needles' invasiveness in the selection objective (a tie-break).
-    time_weight : weight of the mean target dose (shorter plans) in both objectives.
-    optimiser : name of the dwell optimiser (entry-point group ``reachplan.optimisers``) that selects the needles
-        and loads the chosen ones (:mod:`reachplan.planner.implant.optimiser`); ``"lp"``: the built-in linear
+    dwell_step_mm : float, mm
+        Distance between dwell positions along a channel.
+    dwell_margin_mm : float, mm
+        Dwells lie on the part of a channel inside the HR-CTV grown by this margin.
+    tip_offset_mm : float, mm
+        Distance from the needle tip to its deepest dwell (the tip lies this far beyond the last dwell
+        position).
+    clearance_margin_mm : float, mm
+        Smallest surface distance from a needle to any organ at risk.
+    min_dwells : int
+        A needle needs at least this many dwell positions to be a candidate.
+    neighbour_ratio : float
+        Neighbouring dwell times on a channel differ by at most this factor (>= 1).
+    max_dwell_share : float
+        No single dwell carries more than this share of the plan's total time.
+    steered_per_hole : int
+        Steered candidates kept per hole and design (the most dwells, spread apart).
+    rolls : int
+        Roll angles screened per hole (evenly over 360°).
+    max_needles : int
+        Largest needle budget on the Pareto curve.
+    extra_after_aims : int
+        Pareto points computed beyond the first budget that meets every aim.
+    coverage_margin : float
+        The LP aims target points at (1 + this) × the D90 prescription.
+    swap_pool, swap_passes : int
+        The selection's local search at each needle budget: swaps with the needles of the largest relaxed ``y``
+        (this many), for at most this many passes (0: the rounded LP relaxation alone).
+    selection_target_points, final_target_points : int
+        Target points of the selection model and of the dwell-time LP on the chosen needles.
+    selection_oar_pitch_mm, final_oar_pitch_mm : float, mm
+        Lattice pitch of the organs' representative points in each.
+    oar_sample_cc : float, cm³
+        Organ volume nearest to the dwells that the representative points cover.
+    segments_per_channel : int
+        Dwell blocks per channel in the selection model.
+    invasiveness_weight : float
+        Weight of the needles' invasiveness in the selection objective (a tie-break).
+    time_weight : float
+        Weight of the mean target dose (shorter plans) in both objectives.
+    min_dwell_time_s : float, s
+        Dwell times below this are set to zero (afterloaders do not deliver shorter dwells).
+    oar_eval_radius_mm : float, mm
+        Organ voxels within this distance of a loaded dwell are evaluated for D2cm³.
+    optimiser : str
+        Name of the dwell optimiser (entry-point group ``reachplan.optimisers``) that selects the needles and loads
+        the chosen ones (:mod:`reachplan.planner.implant.optimiser`); ``"lp"``: the built-in linear
         programmes (:mod:`reachplan.planner.implant.selection`).
 
     Raises
     ------
     ValueError
         A setting out of its range.
-    min_dwell_time_s : dwell times below this are set to zero (afterloaders do not deliver shorter dwells).
-    oar_eval_radius_mm : organ voxels within this distance of a loaded dwell are evaluated for D2cm³.
     """
 
     dwell_step_mm: float = 2.5
