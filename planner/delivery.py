@@ -28,9 +28,13 @@ from reachplan.plugins.applicators import Applicator, applicators_from_structure
 from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
-    from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantPlan, ImplantSettings
-    from reachplan.planner.dose.optimize import Aims, OptimisationResult, PlanningStructures, Structure
+    from reachplan.planner.dose.aims import Aims
+    from reachplan.planner.dose.structures import PlanningStructures, Structure
     from reachplan.planner.dose.tg43 import Tg43Kernel
+    from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
+    from reachplan.planner.implant.candidates import Channel
+    from reachplan.planner.implant.dwells import OptimisationResult
+    from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.plugins.exporters import ExportPlan, NeedleExport
 
 
@@ -65,7 +69,7 @@ def planning_structures(structures: StructureSet, grid: Grid | None, target_roi:
         ``target_roi`` is not in the structure set.
     """
     from reachplan.imaging.meshing import fit_grid, roi_mask
-    from reachplan.planner.dose.optimize import PlanningStructures, Structure
+    from reachplan.planner.dose.structures import PlanningStructures, Structure
 
     if target_roi not in structures.names:
         raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
@@ -182,7 +186,7 @@ def plan_delivery(
     PlanInputError
         No feasible needle, no target structure to optimise on, or a bad named point.
     """
-    from reachplan.planner.dose.optimize import Aims
+    from reachplan.planner.dose.aims import Aims
     from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, rate_matrix
     from reachplan.planner.geometry.reference_points import place_reference_points
     from reachplan.plugins.exporters import ExportPlan, SourceSpec
@@ -253,7 +257,7 @@ def _delivered_implant(
     Each channel's role is ``target_name`` for a needle, :data:`INTRACAVITARY` for an applicator channel.
     Channel ``ch`` of the exported plan is the plan's channel ``ch`` (its dwells are ``dwells.channels == ch``).
     """
-    from reachplan.planner.dose.optimize import OptimisationResult
+    from reachplan.planner.implant.dwells import OptimisationResult
 
     if implant is None:
         return None
@@ -281,8 +285,8 @@ def _per_target(
 
     The dwells are renumbered so that channel ``ch`` of the result is the ``ch``-th exported needle.
     """
-    from reachplan.planner.dose.optimize import optimise_dwell_times
     from reachplan.planner.dose.tg43 import DwellSet
+    from reachplan.planner.implant.dwells import optimise_dwell_times
     from reachplan.plugins.exporters import NeedleExport
 
     needles = choose_needles(result)
@@ -325,7 +329,7 @@ def applicator_channels(applicators: Sequence[Applicator], planning: PlanningStr
     tuple of Channel
         One per loaded applicator channel, named after the applicator (``name k`` when it has several).
     """
-    from reachplan.planner.dose.implant import intracavitary_channel
+    from reachplan.planner.implant.candidates import intracavitary_channel
 
     out = []
     for a in applicators:
@@ -380,7 +384,7 @@ def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
 class ImplantComparison:
     """The two implant arms on the same anatomy and template.
 
-    Straight needles only, and straight + steered (see :mod:`reachplan.planner.dose.implant`); ``candidates`` every
+    Straight needles only, and straight + steered (see :mod:`reachplan.planner.implant`); ``candidates`` every
     candidate channel of the steered arm (the straight arm's are its straight ones and the intracavitary channels).
     """
 
@@ -421,11 +425,14 @@ def plan_implants(
     """Candidate needles for the target volume and both implant arms (Pareto curve and chosen plan each).
 
     ``intracavitary``: applicator channels (tandem, ring, ovoids) available to both arms
-    (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
+    (:func:`reachplan.planner.implant.candidates.intracavitary_channel`). The steered arm screens every stylet design
     of ``config`` with the screening model of ``models``.
     """
-    from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_arms, with_subset
     from reachplan.planner.dose.tg43 import Tg43Kernel
+    from reachplan.planner.implant.arms import with_subset
+    from reachplan.planner.implant.candidates import needle_candidates
+    from reachplan.planner.implant.plan import plan_arms
+    from reachplan.planner.implant.settings import ImplantSettings
 
     t0 = time.perf_counter()
     settings = settings or ImplantSettings()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from types import MappingProxyType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from reachplan.planner.errors import PlanInputError
 from reachplan.plugins import registry
@@ -190,3 +190,25 @@ def applicator_kinds() -> Mapping[str, ApplicatorKind]:
         Kind name -> kind, sorted by name; unavailable plugins are left out (``reachplan plugins`` says why).
     """
     return MappingProxyType({name: registry.get("applicators", name) for name in registry.names("applicators")})
+
+
+def optimiser(name: str) -> Any:
+    """Return the dwell optimiser registered as ``name`` (entry-point group ``reachplan.optimisers``).
+
+    Parameters
+    ----------
+    name : str
+        Its entry-point name (e.g. ``"lp"``).
+
+    Returns
+    -------
+    object
+        An object with a str ``name`` and a callable ``optimise`` (the registry's structural check); the implant
+        room types it (:func:`reachplan.planner.implant.optimiser.resolve`).
+
+    Raises
+    ------
+    PluginError
+        No optimiser of that name is installed (the message lists the available ones), or it is unavailable.
+    """
+    return registry.get("optimisers", name)

@@ -9,6 +9,7 @@ the reason otherwise:
 ``sources``          ``obj()`` (no arguments) returns a :class:`reachplan.plugins.sources.SourceData`
 ``exporters``        :func:`reachplan.plugins.exporters.base.check_exporter`
 ``applicators``      :func:`reachplan.plugins.applicators.base.check_applicator_kind`
+``optimisers``       :func:`check_optimiser` (structural: the implant planner types them)
 
 A kind whose Protocol is defined in another module imports it when a plugin of that kind is first checked, so
 importing the registry stays cheap.
@@ -115,6 +116,26 @@ def _applicator_kind(obj: object) -> None:
     check_applicator_kind(obj)
 
 
+def check_optimiser(obj: Any) -> None:
+    """Check that ``obj`` has the shape of a dwell optimiser (the optimisers check, structural).
+
+    Parameters
+    ----------
+    obj : object
+        The loaded entry point.
+
+    Raises
+    ------
+    TypeError
+        ``obj`` has no str ``name`` or no callable ``optimise``.
+    """
+    name = getattr(obj, "name", None)
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"an optimisers plugin needs a non-empty str 'name', got {name!r}")
+    if not callable(getattr(obj, "optimise", None)):
+        raise TypeError(f"an optimisers plugin needs a callable 'optimise', {type(obj).__name__} has none")
+
+
 #: The default check of each plugin kind (:data:`reachplan.plugins.registry.KINDS`).
 DEFAULT_CHECKS: Mapping[str, Callable[[Any], None]] = MappingProxyType({
     "rod_models": _rod_model,
@@ -123,4 +144,5 @@ DEFAULT_CHECKS: Mapping[str, Callable[[Any], None]] = MappingProxyType({
     "sources": _source_factory,
     "exporters": _exporter,
     "applicators": _applicator_kind,
+    "optimisers": check_optimiser,
 })

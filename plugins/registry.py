@@ -9,6 +9,8 @@ Groups (entry-point group ``reachplan.<kind>``) and the Protocol each plugin is 
 ``sources``          zero-argument callables returning a :class:`reachplan.plugins.sources.SourceData`
 ``exporters``        objects implementing :class:`reachplan.plugins.exporters.base.Exporter`
 ``applicators``      objects implementing :class:`reachplan.plugins.applicators.ApplicatorKind`
+``optimisers``       dwell optimisers: objects with a str ``name`` and a callable ``optimise`` (the implant
+                     planner's optimiser Protocol, checked structurally)
 
 The checks are the functions of :mod:`reachplan.plugins.checks` (:data:`DEFAULT_CHECKS`).
 
@@ -32,7 +34,8 @@ from typing import Any
 from reachplan.plugins.checks import DEFAULT_CHECKS
 from reachplan.plugins.errors import PluginError
 
-KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators")
+KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators",
+                          "optimisers")
 
 BUILTIN_DISTRIBUTION = "reachplan"
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Literal
 
@@ -401,10 +401,6 @@ class RodDesign:
     def n_tendons(self) -> int:
         """Number of tendons."""
         return len(self.stylet.tendon_angles_deg)
-
-    def with_calibration(self, calibration: Calibration) -> RodDesign:
-        """Return the same design with other calibrated parameters."""
-        return replace(self, stylet=replace(self.stylet, calibration=calibration))
 
     def tendon_unit_offsets(self, roll_deg: float = 0.0) -> np.ndarray:
         """Return the unit direction of each tendon's offset from the axis, rolled by ``roll_deg`` degrees.

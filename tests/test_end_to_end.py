@@ -127,7 +127,7 @@ def test_demo_exports_a_plan_with_prescription_points_and_its_dose(demo: Path, d
 def test_demo_plans_the_implant_straight_against_steered(demo: Path) -> None:
     """Both implant arms in plan.json: the keys tools read, every needle with time on at least three dwells, no
     dwell over the configured share, and device files for exactly the loaded needles of each arm."""
-    from reachplan.planner.dose.implant import ImplantSettings
+    from reachplan.planner.implant.settings import ImplantSettings
 
     plan = json.loads((demo / "plan.json").read_text())
     keys = {"needles", "aims_met", "hrctv_d90_eqd2_gy", "hrctv_d98_eqd2_gy", "hrctv_v100_percent",

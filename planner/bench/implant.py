@@ -30,8 +30,9 @@ from reachplan.planner.bench.common import settings, write_csv, write_png
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.case.scene import build_scene
 from reachplan.planner.delivery import applicator_channels, plan_implants, planning_structures
-from reachplan.planner.dose.implant import ImplantSettings, recompute_target
 from reachplan.planner.dose.tg43 import Tg43Kernel
+from reachplan.planner.implant.arms import recompute_target
+from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.lookup import get_source
 
 INSTALLS = {"implant_benchmark.csv": "docs/implant_benchmark.csv",

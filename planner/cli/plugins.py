@@ -8,13 +8,14 @@ import dataclasses
 from reachplan.planner.cli.edges import print_json
 
 NAME = "plugins"
-HELP = ("list installed plugins (rod models, insertion models, templates, sources, exporters, applicators) and "
-        "whether they load")
+HELP = ("list installed plugins (rod models, insertion models, templates, sources, exporters, applicators, "
+        "optimisers) and whether they load")
 
 
 #: the registry's ``KINDS``, spelled out: importing the registry (importlib.metadata) would cost every command's
 #: start-up about 70 ms (tests/planner/test_cli_startup.py checks the two agree)
-KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators")
+KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators",
+                          "optimisers")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

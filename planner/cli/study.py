@@ -120,7 +120,7 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
         raise StudyError(f"--max-needles must be at least 1, got {args.max_needles}")
     output_folder(args.out)
     from reachplan.planner.case.config import PlanConfig
-    from reachplan.planner.dose.implant import ImplantSettings
+    from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.planner.steering.steered import ScheduleFamily
     from reachplan.planner.study.implant import ImplantStudySpec, format_summary, run_implant_study, summary_json
 

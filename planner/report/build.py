@@ -15,7 +15,9 @@ from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.delivery import Delivery, planning_structures
-from reachplan.planner.dose.optimize import Comparison, OptimizerSettings, PlanningStructures, compare_arms
+from reachplan.planner.dose.structures import PlanningStructures
+from reachplan.planner.implant.compare import Comparison, compare_arms
+from reachplan.planner.implant.dwells import OptimizerSettings
 from reachplan.planner.report import figures
 from reachplan.planner.report.html import (
     Block,
@@ -34,7 +36,7 @@ from reachplan.rod_model.select import ErrorRow
 
 if TYPE_CHECKING:
     from reachplan.planner.delivery import ImplantComparison
-    from reachplan.planner.dose.implant import ImplantArm, ImplantPlan
+    from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
@@ -135,7 +137,7 @@ def plain_model(c: Candidate) -> str:
 
 def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list[str]:
     """One line per arm: needles, HR-CTV D90 (EQD2) and whether the aims are met (and the organs over)."""
-    from reachplan.planner.dose.optimize import Aims
+    from reachplan.planner.dose.aims import Aims
 
     aims = comparison.aims if comparison is not None else Aims()
     limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
@@ -304,7 +306,7 @@ def _implant_section(implant: ImplantComparison | None) -> Section | None:
     """Return the implant section: Pareto curves, both arms' DVHs and the side-by-side table (None without)."""
     if implant is None:
         return None
-    from reachplan.planner.dose.optimize import Aims
+    from reachplan.planner.dose.aims import Aims
 
     aims = Aims()
     rows = implant_rows(implant)
@@ -333,7 +335,7 @@ def _implant_section(implant: ImplantComparison | None) -> Section | None:
 
 
 #: Faster LP settings for the straight-versus-steered comparison in the report (the delivered plan keeps the
-#: full :class:`~reachplan.planner.dose.optimize.OptimizerSettings`); about 5 s for 4 + 12 needles on the demo phantom.
+#: full :class:`~reachplan.planner.implant.dwells.OptimizerSettings`); about 5 s for 4 + 12 needles on the demo phantom.
 COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500, relax_iterations=1)
 
 
@@ -386,7 +388,7 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
     """Compare straight and steered dose with the per-target best needle of each kind.
 
     Each arm gets the per-target best needle of its kind (:func:`~reachplan.planner.case.result.choose_needles`),
-    optimised the same way (:func:`~reachplan.planner.dose.optimize.compare_arms`). An arm with no feasible needle
+    optimised the same way (:func:`~reachplan.planner.implant.compare.compare_arms`). An arm with no feasible needle
     is left out.
 
     Parameters
@@ -609,7 +611,7 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                   numeric=(1, 2, 3, 4, 5, 6)),
         ]
         if opt.success and opt.dvhs:
-            from reachplan.planner.dose.optimize import Aims
+            from reachplan.planner.dose.aims import Aims
 
             png = figures.png_bytes(figures.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
             blocks.append(Figure(png, "Delivered plan: cumulative DVHs per fraction with the EMBRACE II aim "
@@ -693,7 +695,7 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
     """
     if delivery is None or not delivery.optimisation.success:
         return None
-    from reachplan.planner.dose.optimize import Aims
+    from reachplan.planner.dose.aims import Aims
     from reachplan.planner.dose.tg43 import Tg43Kernel, dose_at_points
 
     dwells = delivery.optimisation.dwells

@@ -715,7 +715,7 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
     dvhs : sequence of (str, Dvh)
         Structure name and its :class:`reachplan.planner.dose.coverage.Dvh` (Gy per fraction, cm³).
     aims : Aims
-        :class:`reachplan.planner.dose.optimize.Aims`: its D90 aim becomes a diamond at (prescription, 90 % of the
+        :class:`reachplan.planner.dose.aims.Aims`: its D90 aim becomes a diamond at (prescription, 90 % of the
         target volume) that the target's curve must pass to the right of; each organ limit a cross at (D2cm³ limit
         per fraction, 2 cm³) that the organ's curve must pass to the left of.
     target : str
@@ -739,10 +739,10 @@ def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -
     Parameters
     ----------
     arms : sequence of ImplantArm
-        :class:`reachplan.planner.dose.implant.ImplantArm`: each arm with a chosen plan contributes its ``plan.dvhs``
+        :class:`reachplan.planner.implant.arms.ImplantArm`: each arm with a chosen plan contributes its ``plan.dvhs``
         (Gy per fraction, cm³); curves carry the gid ``dvh:ARM:NAME``.
     aims : Aims
-        :class:`reachplan.planner.dose.optimize.Aims`, marked as in :func:`dvh_aims_figure` (once: the marks do not
+        :class:`reachplan.planner.dose.aims.Aims`, marked as in :func:`dvh_aims_figure` (once: the marks do not
         depend on the arm).
     target : str
         The target's structure name (drawn thicker, its D90 aim marked).
@@ -770,7 +770,7 @@ def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
     Parameters
     ----------
     arms : sequence of ImplantArm
-        :class:`reachplan.planner.dose.implant.ImplantArm`: each arm's ``pareto`` points are one curve (gid
+        :class:`reachplan.planner.implant.arms.ImplantArm`: each arm's ``pareto`` points are one curve (gid
         ``pareto:ARM``), the points that meet every aim filled (gid ``met:ARM``) and the others hollow
         (``unmet:ARM``); the chosen plan (``plan.n_needles``, ``plan.target.d90_eqd2_gy``) is circled (gid
         ``chosen:ARM``).
@@ -814,7 +814,7 @@ def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
 
 
 def dvh_png(comparison: Any) -> bytes:
-    """Render the DVH figure of a :class:`reachplan.planner.dose.optimize.Comparison` as PNG bytes.
+    """Render the DVH figure of a :class:`reachplan.planner.implant.compare.Comparison` as PNG bytes.
 
     Parameters
     ----------

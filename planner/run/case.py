@@ -28,7 +28,7 @@ from reachplan.rod_model.errors import RodModelError
 from reachplan.rod_model.select import ErrorRow, error_table
 
 if TYPE_CHECKING:
-    from reachplan.planner.dose.optimize import Comparison
+    from reachplan.planner.implant.compare import Comparison
 
 
 @dataclass(frozen=True, eq=False)

@@ -44,7 +44,7 @@ from reachplan.planner.errors import StudyError
 
 if TYPE_CHECKING:
     from reachplan.planner.delivery import ImplantComparison
-    from reachplan.planner.dose.implant import ImplantSettings
+    from reachplan.planner.implant.settings import ImplantSettings
 
 ARMS = ("straight", "steered")
 PARTS = "parts"

@@ -123,8 +123,8 @@ def test_interactive_figures_embed_plotly_once_and_escape_their_data() -> None:
 
 
 def test_delivered_dvh_marks_each_aim_where_the_aims_put_it() -> None:
+    from reachplan.planner.dose.aims import Aims
     from reachplan.planner.dose.coverage import Dvh
-    from reachplan.planner.dose.optimize import Aims
 
     aims = Aims()
     dose = np.linspace(0.0, 30.0, 301)

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import cumulative_dvh
-from reachplan.planner.dose.implant import ImplantArm, ParetoPoint
-from reachplan.planner.dose.optimize import Aims
+from reachplan.planner.implant.arms import ImplantArm, ParetoPoint
 from reachplan.planner.report import figures
 
 ORGANS = ("Bladder", "Rectum", "Sigmoid")

@@ -41,7 +41,7 @@ def _result() -> tuple[PlanResult, float]:
 
 
 def _comparison() -> SimpleNamespace:
-    from reachplan.planner.dose.optimize import Aims
+    from reachplan.planner.dose.aims import Aims
 
     aims = Aims()
     rectum = dict((k.casefold(), v) for k, v in aims.oar_d2cc_eqd2_gy)["rectum"]

@@ -197,7 +197,7 @@ def test_cli_refuses_mixed_studies(tmp_path: Path, capsys: pytest.CaptureFixture
 @pytest.mark.slow
 def test_clinical_case_end_to_end(tmp_path: Path) -> None:
     """One clinical case planned for real in a reduced configuration (coarse schedules, 2 needles at most)."""
-    from reachplan.planner.dose.implant import ImplantSettings
+    from reachplan.planner.implant.settings import ImplantSettings
 
     config = PlanConfig(family=ScheduleFamily(**COARSE_FAMILY), oar_names=(*DEFAULT_OARS, "Tandem"))
     settings = ImplantSettings(max_needles=2, rolls=2, steered_per_hole=1, selection_target_points=150,

@@ -240,7 +240,7 @@ def test_a_stand_in_kind_is_one_file_and_its_registration() -> None:
     assert kind_of_name("Interstitial_Ring", BUILTIN_KINDS) is None
     # and carried through to the planner: no organ at risk for dose, a loadable channel of the implant
     from reachplan.planner.delivery import applicator_channels, planning_structures
-    from reachplan.planner.dose.implant import ImplantSettings
+    from reachplan.planner.implant.settings import ImplantSettings
 
     hrctv = tube_roi(4, "HR-CTV", np.array([0.0, 0.0, -30.0]), np.array([0.0, 0.0, 60.0]), 25.0)
     ss = StructureSet((*rois, hrctv), "1.2.3")

@@ -1,6 +1,13 @@
-"""Dwell-time optimisation for a set of needle paths, and the straight-versus-steered comparison.
+"""Dwell times of a chosen set of channels: the implant's final LP, and the per-target plan of given needles.
 
-Formulation (linear programme, scipy HiGHS, deterministic)::
+**Dwell times on the chosen channels of an implant** (:func:`_final`): the optimiser without a budget over every
+dwell (no blocks), its organ rows calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under
+``min_dwell_time_s`` are dropped; a needle left with fewer than ``min_dwells`` loaded dwells is not part of the
+implant: it is dropped and the rest re-solved. The plan is checked on every organ voxel near the implant and all
+times scaled down when a D2cm³ still exceeds its limit.
+
+**Dwell times on given needles** (:func:`optimise_dwell_times`, the per-target delivery), a linear programme (scipy
+HiGHS, deterministic)::
 
     minimise   (1/m) Σ_i u_i + ε Σ_j t_j / t_ref
     subject to A_T t + u >= P          (target points: dose plus underdose slack reaches the prescription)
@@ -13,12 +20,7 @@ D2cm³ limit of each organ (α/β 3). D2cm³ ≤ L is not linear; it is handled 
 candidate OAR point at first (max dose ≤ L, which implies D2cm³ ≤ L), then releasing the points in the
 hottest 2 cm³ of each organ and solving again (twice). The final plan is checked on every voxel of every
 organ; if a D2cm³ still exceeds its limit all times are scaled down until none does, and the result
-says so. Organ limits are therefore always respected.
-
-Default aims are the EMBRACE II planning aims (Pötter et al., Clin. Transl. Radiat. Oncol. 9:48, 2018;
-``reference/oncoreach.md``): HR-CTV D90 >= 85 Gy, D98 >= 75 Gy EQD2 (α/β 10); D2cm³ bladder < 80 Gy,
-rectum < 65 Gy, sigmoid < 70 Gy, bowel < 70 Gy EQD2 (α/β 3); 45 Gy / 25 fractions external beam plus
-4 brachytherapy fractions.
+says so. Organ limits are therefore always respected. Aims: :class:`reachplan.planner.dose.aims.Aims`.
 
 Needle paths are ``(k, 3)`` polylines in mm, LPS, ordered from the template (base) to the tip.
 """
@@ -27,17 +29,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import optimize as sopt
 from scipy import sparse
 
-from reachplan.imaging.types import Grid
+from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import (
     Dvh,
-    Fractionation,
     StructureMetrics,
     cumulative_dvh,
     dose_to_fraction,
@@ -45,94 +45,41 @@ from reachplan.planner.dose.coverage import (
     structure_metrics,
     voxel_volume_cc,
 )
+from reachplan.planner.dose.structures import PlanningStructures
 from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dwells_along_path, grid_points_mm
-
-
-@dataclass(frozen=True, eq=False)
-class Structure:
-    """A structure as a mask on the planning grid.
-
-    Parameters
-    ----------
-    name : str
-    mask : (nk, nj, ni) bool
-        True inside, on :attr:`PlanningStructures.grid`.
-    """
-
-    name: str
-    mask: np.ndarray
-
-    def __post_init__(self) -> None:
-        m = np.asarray(self.mask, dtype=bool)
-        if m.ndim != 3:
-            raise ValueError(f"structure {self.name}: mask must be 3-D (nk, nj, ni), got {m.shape}")
-        m.setflags(write=False)
-        object.__setattr__(self, "mask", m)
-
-
-@dataclass(frozen=True, eq=False)
-class PlanningStructures:
-    """The target (HR-CTV) and organs at risk on one grid."""
-
-    grid: Grid
-    target: Structure
-    oars: tuple[Structure, ...] = ()
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "oars", tuple(self.oars))
-        for s in (self.target, *self.oars):
-            if s.mask.shape != self.grid.shape:
-                raise ValueError(f"structure {s.name}: mask {s.mask.shape} is not on the grid {self.grid.shape}")
-        if not self.target.mask.any():
-            raise ValueError(f"target {self.target.name} is empty")
-
-
-#: EMBRACE II D2cm³ planning aims, EQD2 Gy (α/β 3), matched case-insensitively to organ names.
-EMBRACE_II_OAR_D2CC: tuple[tuple[str, float], ...] = (
-    ("bladder", 80.0),
-    ("rectum", 65.0),
-    ("sigmoid", 70.0),
-    ("bowel", 70.0),
+from reachplan.planner.implant.arms import ImplantPlan
+from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem
+from reachplan.planner.implant.problem import (
+    _aims_met,
+    _calibrate,
+    _d2cc,
+    _metrics,
+    _modulation,
+    _organ_rows,
+    _Problem,
+    _rates,
+    _stride,
 )
+from reachplan.planner.implant.settings import ImplantSettings
 
 
-@dataclass(frozen=True)
-class Aims:
-    """Coverage aim and organ limits (EQD2, totals with the external-beam course).
+def _clip_share(t: np.ndarray, share: float) -> np.ndarray:
+    """Clip times to ``min(t, c)`` with the largest ``c`` such that no time exceeds ``share`` of the total.
 
-    Defaults: EMBRACE II (see the module docstring). The prescription (V100) and ``aim_met`` use the D90
-    aim; the D98 aim is carried for reports. Organ limits match organ names case-insensitively, also as
-    a substring (``"Bladder_P"`` gets the bladder limit); organs without a limit are reported only.
+    Exact: with the m largest clipped, ``c = share · R_m / (1 - share · m)``, R_m the sum of the others.
     """
-
-    target_d90_eqd2_gy: float = 85.0
-    target_d98_eqd2_gy: float = 75.0
-    #: GTV_res D98 > 90 Gy EQD2 (ESGO/ESTRO quality indicators 2023, reached in 90 % of patients); used by implant
-    #: planning when a GTV is given.
-    gtv_d98_eqd2_gy: float = 90.0
-    oar_d2cc_eqd2_gy: tuple[tuple[str, float], ...] = EMBRACE_II_OAR_D2CC
-    alpha_beta_target_gy: float = 10.0
-    alpha_beta_oar_gy: float = 3.0
-    fractionation: Fractionation = field(default_factory=Fractionation)
-
-    def __post_init__(self) -> None:
-        if not (self.target_d90_eqd2_gy > 0 and self.alpha_beta_target_gy > 0 and self.alpha_beta_oar_gy > 0):
-            raise ValueError("aims: the D90 aim and both α/β must be > 0 Gy")
-        if any(limit <= 0 for _, limit in self.oar_d2cc_eqd2_gy):
-            raise ValueError("aims: organ limits must be > 0 Gy")
-
-    @property
-    def prescription_gy(self) -> float:
-        """Per-fraction physical dose whose D90 meets the aim, Gy."""
-        return self.fractionation.per_fraction_for(self.target_d90_eqd2_gy, self.alpha_beta_target_gy)
-
-    def oar_limit_gy(self, name: str) -> float | None:
-        """Per-fraction physical D2cm³ limit of organ ``name`` (None when it has none)."""
-        key = name.casefold()
-        for organ, limit in self.oar_d2cc_eqd2_gy:
-            if organ.casefold() == key or organ.casefold() in key:
-                return self.fractionation.per_fraction_for(limit, self.alpha_beta_oar_gy)
-        return None
+    order = np.sort(t)[::-1]
+    if order[0] <= share * order.sum():
+        return t
+    rest = order.sum()
+    for m in range(1, len(order) + 1):
+        rest -= order[m - 1]
+        if share * m >= 1:
+            break
+        c = share * rest / (1 - share * m)
+        if m == len(order) or order[m] <= c:
+            return np.minimum(t, c * (1 - 1e-12))
+    return t
 
 
 @dataclass(frozen=True)
@@ -175,6 +122,21 @@ class OptimisationResult:
     ``success`` is False with a ``reason`` when the LP did not solve; ``scaled`` tells that the times
     were scaled down by ``scale`` after the LP so that every organ limit holds on all its voxels;
     ``aim_met`` that HR-CTV D90 (EQD2) reached its aim.
+
+    Parameters
+    ----------
+    dwells : DwellSet
+        Dwell positions (mm, LPS) and times (s per fraction); channel = needle index + 1.
+    target : StructureMetrics
+    oars : tuple of StructureMetrics
+    success : bool
+    reason : str
+    scaled : bool
+    scale : float
+        Factor (<= 1) applied to the LP's times.
+    dvhs : tuple of (name, Dvh)
+        Cumulative DVH of each structure (Gy per fraction).
+    aim_met : bool
     """
 
     dwells: DwellSet
@@ -195,6 +157,16 @@ def candidate_dwells(needles: Sequence[np.ndarray], settings: OptimizerSettings)
     ----------
     needles : sequence of (k, 3) float, mm, LPS, ordered base → tip
     settings : OptimizerSettings
+
+    Returns
+    -------
+    DwellSet
+        Dwell positions (mm, LPS), directions toward each tip, zero times, channels 1-based.
+
+    Raises
+    ------
+    ValueError
+        A path that is not a finite (k >= 2, 3) array.
     """
     parts = []
     for i, path in enumerate(needles):
@@ -211,14 +183,8 @@ def candidate_dwells(needles: Sequence[np.ndarray], settings: OptimizerSettings)
     return DwellSet.concatenate(parts)
 
 
-def _stride(idx: np.ndarray, n: int) -> np.ndarray:
-    if len(idx) <= n:
-        return idx
-    return idx[np.linspace(0, len(idx) - 1, n).round().astype(int)]
-
-
 @dataclass(frozen=True, eq=False)
-class _Problem:
+class _NeedleProblem:
     """Dose-rate matrices (Gy per second of dwell, per fraction) of one arm's candidate dwells."""
 
     dwells: DwellSet
@@ -232,7 +198,7 @@ class _Problem:
 
 def _build(
     dwells: DwellSet, structures: PlanningStructures, kernel: Tg43Kernel, sk: float, settings: OptimizerSettings
-) -> _Problem:
+) -> _NeedleProblem:
     to_gy_per_s = sk / 360000.0
 
     def rates(idx: np.ndarray) -> np.ndarray:
@@ -245,17 +211,17 @@ def _build(
     a_t = rates(t_idx)
     o_idx = tuple(np.flatnonzero(o.mask.ravel()) for o in structures.oars)
     a_o = tuple(rates(i) for i in o_idx)
-    lp_t = _stride(np.arange(len(t_idx)), settings.max_target_points)
+    lp_t = _stride(len(t_idx), settings.max_target_points)
     lp_o = []
     for a in a_o:
         k = min(len(a), settings.max_oar_points)
         near = np.argsort(-a.sum(axis=1), kind="stable")[:k] if len(a) else np.zeros(0, dtype=int)
         lp_o.append(np.sort(near))
-    return _Problem(dwells, t_idx, a_t, o_idx, a_o, lp_t, tuple(lp_o))
+    return _NeedleProblem(dwells, t_idx, a_t, o_idx, a_o, lp_t, tuple(lp_o))
 
 
 def _solve_lp(
-    prob: _Problem, cols: np.ndarray, limits: Sequence[float | None], released: Sequence[np.ndarray],
+    prob: _NeedleProblem, cols: np.ndarray, limits: Sequence[float | None], released: Sequence[np.ndarray],
     prescription: float, settings: OptimizerSettings,
 ) -> tuple[np.ndarray | None, str]:
     n = len(cols)
@@ -282,7 +248,7 @@ def _solve_lp(
 
 
 def _evaluate(
-    prob: _Problem, cols: np.ndarray, times: np.ndarray, structures: PlanningStructures, aims: Aims,
+    prob: _NeedleProblem, cols: np.ndarray, times: np.ndarray, structures: PlanningStructures, aims: Aims,
 ) -> tuple[StructureMetrics, tuple[StructureMetrics, ...], tuple[tuple[str, Dvh], ...]]:
     vox = voxel_volume_cc(structures.grid)
     rx = aims.prescription_gy
@@ -300,7 +266,7 @@ def _evaluate(
 
 
 def _optimise_columns(
-    prob: _Problem, cols: np.ndarray, structures: PlanningStructures, aims: Aims, settings: OptimizerSettings,
+    prob: _NeedleProblem, cols: np.ndarray, structures: PlanningStructures, aims: Aims, settings: OptimizerSettings,
 ) -> OptimisationResult:
     vox = voxel_volume_cc(structures.grid)
     limits = [aims.oar_limit_gy(o.name) for o in structures.oars]
@@ -337,7 +303,7 @@ def _optimise_columns(
 
 
 def _limit_scale(
-    prob: _Problem, cols: np.ndarray, times: np.ndarray, limits: Sequence[float | None], vox: float
+    prob: _NeedleProblem, cols: np.ndarray, times: np.ndarray, limits: Sequence[float | None], vox: float
 ) -> float:
     """Largest factor <= 1 that keeps every organ's D2cm³ (all its voxels) within its limit."""
     scale = 1.0
@@ -382,141 +348,86 @@ def optimise_dwell_times(
     return _optimise_columns(prob, np.arange(len(dwells)), structures, aims, settings)
 
 
-# --- straight versus steered --------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class ArmResult:
-    """One arm of a comparison: its optimised plan with all needles, and how many it needs.
-
-    ``needles_needed`` is the smallest number of the arm's needles (taken in the given order) whose
-    optimised plan reaches the D90 aim within the organ limits, found by bisection (adding a needle adds
-    dwells, so the optimum cannot get worse; the post-LP scaling makes this hold only approximately);
-    None when all of them do not.
-    """
-
-    name: str
-    n_needles: int
-    plan: OptimisationResult
-    needles_needed: int | None
-
-
-@dataclass(frozen=True)
-class ComparisonRow:
-    """One row of the comparison table (per-fraction physical and total EQD2 values)."""
-
-    arm: str
-    n_needles: int
-    needles_needed: int | None
-    d90_gy: float
-    d98_gy: float
-    v100_pct: float
-    d90_eqd2_gy: float
-    d98_eqd2_gy: float
-    oar_d2cc_eqd2_gy: tuple[tuple[str, float], ...]
-    aim_met: bool
-    note: str
-
-
-@dataclass(frozen=True, eq=False)
-class Comparison:
-    """Result of :func:`compare_arms`."""
-
-    arms: tuple[ArmResult, ...]
-    aims: Aims
-
-    def rows(self) -> tuple[ComparisonRow, ...]:
-        """Return one :class:`ComparisonRow` per arm, in the arms' order."""
-        out = []
-        for a in self.arms:
-            t = a.plan.target
-            out.append(ComparisonRow(
-                arm=a.name,
-                n_needles=a.n_needles,
-                needles_needed=a.needles_needed,
-                d90_gy=t.d90_gy,
-                d98_gy=t.d98_gy,
-                v100_pct=t.v100_pct,
-                d90_eqd2_gy=t.d90_eqd2_gy,
-                d98_eqd2_gy=t.d98_eqd2_gy,
-                oar_d2cc_eqd2_gy=tuple((o.name, o.d2cc_eqd2_gy) for o in a.plan.oars),
-                aim_met=a.plan.aim_met,
-                note=a.plan.reason,
-            ))
-        return tuple(out)
-
-    def format_table(self) -> str:
-        """Return the table as aligned text (EQD2 totals)."""
-        rows = self.rows()
-        organs = [n for n, _ in rows[0].oar_d2cc_eqd2_gy] if rows else []
-        head = ["arm", "needles", "needed", "D90 EQD2", "D98 EQD2", "V100 %", *[f"{o} D2cc" for o in organs]]
-        lines = [head]
-        for r in rows:
-            lines.append([
-                r.arm, str(r.n_needles), "-" if r.needles_needed is None else str(r.needles_needed),
-                f"{r.d90_eqd2_gy:.1f}", f"{r.d98_eqd2_gy:.1f}", f"{r.v100_pct:.1f}",
-                *[f"{v:.1f}" for _, v in r.oar_d2cc_eqd2_gy],
-            ])
-        widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
-        return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths, strict=True)) for line in lines)
-
-    def figure(self) -> Any:
-        """Cumulative DVHs (% volume against Gy per fraction) of every structure, one line style per arm.
-
-        Returns a :class:`matplotlib.figure.Figure` (not attached to pyplot; save it with ``savefig``).
-        """
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(7.0, 4.5))
-        ax = fig.add_subplot()
-        styles = ["-", "--", ":", "-."]
-        names = [n for n, _ in self.arms[0].plan.dvhs] if self.arms else []
-        colours = {n: f"C{i}" for i, n in enumerate(names)}
-        for k, arm in enumerate(self.arms):
-            for n, dvh in arm.plan.dvhs:
-                ax.plot(dvh.dose_gy, dvh.volume_percent, styles[k % len(styles)], color=colours.get(n, "k"),
-                        label=f"{n} ({arm.name})")
-        ax.axvline(self.aims.prescription_gy, color="grey", lw=0.8)
-        ax.set_xlabel("dose per fraction (Gy)")
-        ax.set_ylabel("volume (%)")
-        ax.set_ylim(0, 102)
-        ax.set_xlim(0, 3 * self.aims.prescription_gy)
-        ax.legend(fontsize=7, ncol=2)
-        ax.set_title("cumulative DVH")
-        fig.tight_layout()
-        return fig
-
-
-def compare_arms(arms: Sequence[tuple[str, Sequence[np.ndarray]]], structures: PlanningStructures,
-                 kernel: Tg43Kernel, air_kerma_strength_u: float, *, aims: Aims | None = None,
-                 settings: OptimizerSettings | None = None) -> Comparison:
-    """Optimise each arm's needles the same way and count the needles each needs to reach the aim.
+def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims,
+           settings: ImplantSettings, vox_cc: float, kappa: np.ndarray, status: str, gap: float | None,
+           optimiser: DwellOptimiser) -> ImplantPlan | None:
+    """Return the implant of the chosen channels: their dwell times (the empty-needle rule) and the plan's metrics.
 
     Parameters
     ----------
-    arms : sequence of (name, needles)
-        ``needles``: sequence of (k, 3) float, mm, LPS, ordered base → tip, in the order they would be
-        inserted (the needle count uses prefixes of this order).
-    structures, kernel, air_kerma_strength_u, aims, settings
-        As for :func:`optimise_dwell_times`.
+    prob : _Problem
+        The arm's sampled problem.
+    chosen : (c,) int
+        The chosen channels (indices into ``prob.channels``), ascending.
+    fin_pts, fin_p : (m, 3) float, mm, LPS; (m,) float, Gy per fraction
+        The final model's target points and the dose each should reach.
+    aims, settings : Aims, ImplantSettings
+    vox_cc : float, cm³
+        Voxel volume of the planning grid.
+    kappa : (n_organs,) float
+        The selection's calibration of the organ rows (the start of this one's).
+    status : str
+        How the selection was made (the plan's ``mip_status``).
+    gap : float or None
+        The selection's relative gap (the plan's ``mip_gap``).
+    optimiser : DwellOptimiser
+        Loads the chosen channels (without a budget).
+
+    Returns
+    -------
+    ImplantPlan or None
+        None when the optimiser finds no loading, or no channel keeps enough loaded dwells.
     """
-    aims = Aims() if aims is None else aims
-    settings = OptimizerSettings() if settings is None else settings
-    results = []
-    for name, needles in arms:
-        dwells = candidate_dwells(needles, settings)
-        prob = _build(dwells, structures, kernel, air_kerma_strength_u, settings)
-        full = _optimise_columns(prob, np.arange(len(dwells)), structures, aims, settings)
-        needed: int | None = None
-        if full.aim_met:  # bisection over prefixes: more needles never make the optimum worse
-            lo, hi = 0, len(needles)  # the aim fails with lo needles (or lo = 0) and is met with hi
-            while hi - lo > 1:
-                mid = (lo + hi) // 2
-                cols = np.flatnonzero(dwells.channels <= mid)
-                if _optimise_columns(prob, cols, structures, aims, settings).aim_met:
-                    hi = mid
-                else:
-                    lo = mid
-            needed = hi
-        results.append(ArmResult(name, len(needles), full, needed))
-    return Comparison(tuple(results), aims)
+    t = np.zeros(0)
+    cols = np.zeros(0, dtype=int)
+    for _ in range(3):
+        cols = np.flatnonzero(np.isin(prob.channel_of, chosen))
+        loaded = _calibrated_times(prob, cols, fin_pts, fin_p, aims, settings, vox_cc, kappa, optimiser)
+        if loaded is None:
+            return None
+        t = np.where(loaded >= settings.min_dwell_time_s, loaded, 0.0)
+        n_loaded = np.bincount(prob.channel_of[cols], weights=(t > 0).astype(float), minlength=len(prob.channels))
+        need = np.array([settings.min_dwells if prob.channels[c].is_needle else 1 for c in range(len(prob.channels))])
+        loaded_ch = np.array([c for c in chosen if n_loaded[c] >= need[c]], dtype=int)
+        if len(loaded_ch) == 0:
+            return None
+        t = np.where(np.isin(prob.channel_of[cols], loaded_ch), t, 0.0)
+        t = _clip_share(t, settings.max_dwell_share)  # the dropped short dwells raised the others' shares
+        if len(loaded_ch) == len(chosen):
+            break
+        chosen = loaded_ch  # a needle the optimum leaves (almost) empty is not part of the implant: re-solve
+    target, v200, gtv, oars, dvhs, scale = _metrics(prob, cols, t, aims, vox_cc)
+    keep = t > 0
+    new_index = {int(c): i + 1 for i, c in enumerate(chosen)}
+    dwells = DwellSet(prob.positions[cols][keep], prob.directions[cols][keep], t[keep] * scale,
+                      np.array([new_index[int(c)] for c in prob.channel_of[cols][keep]], dtype=int))
+    return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars,
+                       _aims_met(target, gtv, oars, aims), gtv, scale, gap, status, dvhs)
+
+
+def _calibrated_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims,
+                      settings: ImplantSettings, vox_cc: float, kappa: np.ndarray,
+                      optimiser: DwellOptimiser) -> np.ndarray | None:
+    """Return the dwell times ((len(cols),) s) of the dwell columns ``cols``, organ rows calibrated to D2cm³.
+
+    Solved until the calibration ``κ`` of every organ row changes by less than 1 % (at most four solves); None when
+    the optimiser finds no loading at all.
+    """
+    pos, dirs = prob.positions[cols], prob.directions[cols]
+    problem = DwellProblem(
+        _rates(fin_pts, pos, dirs, prob), fin_p, aims.prescription_gy * (1.0 + settings.coverage_margin),
+        tuple(_organ_rows(prob, pos, dirs, settings.final_oar_pitch_mm, settings.oar_sample_cc, vox_cc)),
+        prob.channel_of[cols], _modulation(settings))
+    kap = kappa.copy()
+    times = None
+    for _ in range(4):  # until the organ rows are calibrated to D2cm³ within 1 %
+        solution = optimiser.optimise(problem, limit_factor=kap)
+        if solution.times_s is None:
+            break
+        times = solution.times_s
+        new = _calibrate(kap, _d2cc(prob, pos, dirs, times, vox_cc), problem.tail_means(times), problem.limits_gy)
+        if np.all(np.abs(new / kap - 1) < 0.01):
+            break
+        kap = new
+    return times
+

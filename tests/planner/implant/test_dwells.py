@@ -6,17 +6,12 @@ import numpy as np
 import pytest
 
 from reachplan.imaging.types import Grid
+from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import Fractionation, eqd2, voxel_volume_cc
-from reachplan.planner.dose.optimize import (
-    Aims,
-    OptimizerSettings,
-    PlanningStructures,
-    Structure,
-    candidate_dwells,
-    compare_arms,
-    optimise_dwell_times,
-)
+from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid
+from reachplan.planner.implant.compare import compare_arms
+from reachplan.planner.implant.dwells import OptimizerSettings, candidate_dwells, optimise_dwell_times
 from reachplan.planner.lookup import get_source
 
 SK = 40000.0

@@ -13,19 +13,14 @@ import trimesh
 from reachplan.imaging.types import Grid
 from reachplan.planner.case.config import PlanConfig, PlanModels
 from reachplan.planner.delivery import implant_needles
-from reachplan.planner.dose.implant import (
-    Channel,
-    ImplantArm,
-    ImplantSettings,
-    needle_candidates,
-    plan_arms,
-    plan_implant,
-    recompute_target,
-    with_subset,
-)
-from reachplan.planner.dose.optimize import Aims, PlanningStructures, Structure
+from reachplan.planner.dose.aims import Aims
+from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.geometry.collision import Organ, check_path, make_organ
+from reachplan.planner.implant.arms import ImplantArm, recompute_target, with_subset
+from reachplan.planner.implant.candidates import Channel, needle_candidates
+from reachplan.planner.implant.plan import plan_arms, plan_implant
+from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.lookup import get_source
 from reachplan.planner.steering.steered import shape_bank
 
@@ -251,7 +246,7 @@ def test_organ_limit_holds(open_case: tuple, kernel: Tg43Kernel) -> None:
 def test_tandem_is_a_channel_not_a_needle(open_case: tuple, kernel: Tg43Kernel) -> None:
     """A tandem through the target's centre is used by both arms and never counted as a needle; with it the
     implant needs no more needles than without."""
-    from reachplan.planner.dose.implant import intracavitary_channel
+    from reachplan.planner.implant.candidates import intracavitary_channel
 
     case, cands, straight, _ = open_case
     tandem = intracavitary_channel("Tandem", np.array([[5.0, 0.0, 0.0], [5.0, 0.0, 75.0]]), case.planning, SETTINGS)

@@ -1,0 +1,367 @@
+"""Candidate channels for a volume: needles through the HR-CTV that keep clear of the organs, and applicator channels.
+
+Candidates (:func:`needle_candidates`): every template hole × (straight, and every stylet design × tension
+schedule of the shape bank × roll) whose path passes through the HR-CTV and keeps ``clearance_margin_mm``
+from every organ at risk. Paths are screened on Euclidean distance maps of the planning grid (target grown by
+the dwell margin; organs at risk), and the kept ones are confirmed with the organs' distance fields (bounds on the
+clearance) and, for a path they cannot prove farther than the margin plus :data:`CONFIRM_BAND_MM` from every organ,
+with the FCL clearance of :func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels
+(tandem, ring, ovoids) are passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are always
+available and not counted as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel
+inside the HR-CTV grown by ``dwell_margin_mm``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from reachplan._arrays import arc_length_mm
+from reachplan.imaging.types import Grid
+from reachplan.planner.dose.structures import PlanningStructures
+from reachplan.planner.dose.tg43 import dwell_directions
+from reachplan.planner.geometry.collision import Organ, check_path
+from reachplan.planner.geometry.distance_field import distance_transform
+from reachplan.planner.implant.settings import ImplantSettings
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.planner.steering.steered import ShapeBank, place
+
+NEEDLE_KINDS = ("straight", "steered")
+#: a candidate's clearance is confirmed with FCL when an organ's distance field cannot prove it beyond the
+#: clearance margin plus this (mm); beyond, the candidate is clear and its clearance is the field's estimate
+CONFIRM_BAND_MM = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class Channel:
+    """A candidate source channel: a needle (straight or steered) or an intracavitary channel.
+
+    Parameters
+    ----------
+    name : str
+        Hole id (needles) or applicator channel name.
+    kind : str
+        ``"straight"``, ``"steered"`` or ``"intracavitary"``.
+    path_mm : (k, 3) float, mm, LPS
+        From the template (base) to the tip.
+    dwell_positions_mm : (d, 3) float, mm, LPS
+        Deepest first.
+    hole_distance_mm : float, mm
+        Distance of the hole from the template centre (0 for intracavitary channels).
+    tissue_length_mm : float, mm
+        Needle length beyond the template plane.
+    clearance_mm : float, mm
+        Smallest surface distance to an organ at risk (FCL within the margin plus :data:`CONFIRM_BAND_MM`; beyond,
+        the organs' distance-field estimate, within its error bound).
+    design : str
+        Stylet preset ("" for a straight needle).
+    schedule : TensionSchedule or None
+        Tension and roll along the insertion (None for a straight needle).
+    """
+
+    name: str
+    kind: str
+    path_mm: np.ndarray = field(repr=False)
+    dwell_positions_mm: np.ndarray = field(repr=False)
+    hole_distance_mm: float = 0.0
+    tissue_length_mm: float = 0.0
+    clearance_mm: float = float("inf")
+    design: str = ""
+    schedule: TensionSchedule | None = field(default=None, repr=False)
+
+    @property
+    def is_needle(self) -> bool:
+        """True for a template needle (not an intracavitary channel)."""
+        return self.kind in NEEDLE_KINDS
+
+    @property
+    def steered(self) -> bool:
+        """True for a steered needle."""
+        return self.kind == "steered"
+
+    @property
+    def dwell_directions(self) -> np.ndarray:
+        """(d, 3) unit vectors toward the tip at each dwell."""
+        return dwell_directions(self.path_mm, self.dwell_positions_mm)
+
+
+# --- candidates ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _Field:
+    """A distance map (mm) on a crop of the planning grid; points outside the crop read ``outside``."""
+
+    index_from_patient: np.ndarray
+    offset: np.ndarray  # (3,) int, (k, j, i) of the crop's first voxel
+    values: np.ndarray  # (nk, nj, ni) float
+    outside: float
+
+    def index(self, points_mm: np.ndarray) -> np.ndarray:
+        """(..., 3) int (k, j, i) voxel of each point on the full grid (shared by fields of one grid)."""
+        p = np.asarray(points_mm, dtype=np.float32)
+        a = self.index_from_patient.astype(np.float32)
+        return np.rint(p @ a[:3, :3].T + a[:3, 3]).astype(np.int32)[..., ::-1]
+
+    def at(self, points_mm: np.ndarray, kji: np.ndarray | None = None) -> np.ndarray:
+        """Distance (mm) at each point ((..., 3) mm, LPS; or its voxel ``kji`` from :meth:`index`)."""
+        kji = (self.index(points_mm) if kji is None else kji) - self.offset
+        shape = np.array(self.values.shape)
+        ok = np.all((kji >= 0) & (kji < shape), axis=-1)
+        kc = np.where(ok[..., None], kji, 0)
+        out: np.ndarray = np.where(ok, self.values[kc[..., 0], kc[..., 1], kc[..., 2]], self.outside)
+        return out
+
+
+def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.ndarray | None = None) -> _Field:
+    """Return the distance (mm) from each voxel centre to the nearest voxel of ``mask`` (0 inside).
+
+    On the crop holding ``box_mask`` (default ``mask``) padded by ``pad_mm``.
+    """
+    spacing = grid.spacing_mm[::-1]  # (k, j, i)
+    box = mask if box_mask is None else box_mask
+    idx = np.argwhere(box)
+    if len(idx) == 0:
+        return _Field(grid.index_from_patient, np.zeros(3, int), np.full((1, 1, 1), np.inf), np.inf)
+    pad = np.ceil(pad_mm / spacing).astype(int) + 1
+    lo = np.maximum(idx.min(axis=0) - pad, 0)
+    hi = np.minimum(idx.max(axis=0) + pad + 1, np.array(grid.shape))
+    crop = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    values = distance_transform(crop, spacing)  # infinite without a seed
+    return _Field(grid.index_from_patient, lo, np.asarray(values, dtype=float), np.inf)
+
+
+def _dwell_arclengths(inside: np.ndarray, s_mm: np.ndarray, settings: ImplantSettings) -> tuple[float, np.ndarray]:
+    """Return the tip depth and the dwell arc lengths (mm, deepest first) of a path in a region.
+
+    The path is sampled at ``s_mm`` with region membership ``inside``; (nan, empty) when it never enters the
+    region.
+    """
+    hit = np.flatnonzero(inside)
+    if len(hit) == 0:
+        return float("nan"), np.zeros(0)
+    last = float(s_mm[hit[-1]])
+    tip = min(last + settings.tip_offset_mm, float(s_mm[-1]))
+    s = last - settings.dwell_step_mm * np.arange(int(last // settings.dwell_step_mm) + 1)
+    ok = np.interp(s, s_mm, inside.astype(float)) > 0.5
+    first = float(s_mm[hit[0]])
+    s = s[ok & (s >= first - 1e-9)]
+    return tip, s
+
+
+def _points_at(path_mm: np.ndarray, s_query: np.ndarray) -> np.ndarray:
+    s = arc_length_mm(path_mm)
+    return np.column_stack([np.interp(s_query, s, path_mm[:, a]) for a in range(3)])
+
+
+def needle_candidates(
+    hole_ids: Sequence[str],
+    hole_xy_mm: np.ndarray,
+    hole_distance_mm: np.ndarray,
+    patient_from_template: np.ndarray,
+    planning: PlanningStructures,
+    organs: Sequence[Organ],
+    needle_radius_mm: float,
+    settings: ImplantSettings | None = None,
+    banks: Sequence[ShapeBank] = (),
+    max_depth_mm: float = 200.0,
+    straight: bool = True,
+) -> tuple[Channel, ...]:
+    """Candidate needles through the HR-CTV that keep the clearance margin to every organ at risk.
+
+    Parameters
+    ----------
+    hole_ids : sequence of str
+        The template's needle holes (H of them).
+    hole_xy_mm : (H, 2) float, mm, template frame
+        Each hole's position on the template.
+    hole_distance_mm : (H,) float, mm
+        Each hole's distance from the template centre.
+    patient_from_template : (4, 4) float
+        Template frame to LPS mm (the template's z axis is the insertion direction).
+    planning : PlanningStructures
+        The target and organ masks (the organ masks give the screening distance map).
+    organs : sequence of Organ
+        Organ meshes (LPS mm) for the exact (FCL) clearance of the kept candidates.
+    needle_radius_mm : float, mm
+    settings : ImplantSettings, optional
+        Dwell step and margin, clearance margin, minimum dwells, rolls and steered candidates per hole.
+    banks : sequence of ShapeBank
+        Steered shape banks (one per stylet design; none: straight needles only).
+    max_depth_mm : float, mm
+        Deepest straight needle screened.
+    straight : bool
+        Include straight needles.
+
+    Returns
+    -------
+    tuple of Channel
+        Channels of kind ``"straight"`` and ``"steered"``, each with at least ``settings.min_dwells`` dwells.
+    """
+    settings = settings or ImplantSettings()
+    grid = planning.grid
+    m = np.asarray(patient_from_template, dtype=float)
+    xy = np.asarray(hole_xy_mm, dtype=float).reshape(-1, 2)
+    region = _distance_field(grid, planning.target.mask, settings.dwell_margin_mm + 5.0)
+    in_region = settings.dwell_margin_mm + 1e-6
+    oar_mask = np.zeros(grid.shape, dtype=bool)
+    for o in planning.oars:
+        oar_mask |= o.mask
+    # the organ map covers everything between the template and the target: the crop holds the target and
+    # the holes' entries, padded by the steering reach
+    entries = np.column_stack([xy, np.zeros(len(xy))]) @ m[:3, :3].T + m[:3, 3]
+    box = planning.target.mask.copy()
+    ijk = np.rint(grid.to_index(entries)).astype(int)[:, ::-1]
+    ijk = np.clip(ijk, 0, np.array(grid.shape) - 1)
+    box[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    oar = _distance_field(grid, oar_mask, 30.0, box)
+    # screening threshold: the margin plus the needle radius, less half a voxel diagonal (the map is voxel-
+    # centred); the FCL check then holds the exact margin
+    slack = 0.5 * float(np.linalg.norm(grid.spacing_mm))
+    oar_min = settings.clearance_margin_mm + needle_radius_mm - slack
+    out: list[Channel] = []
+    s_axis = np.arange(0.0, max_depth_mm + 1e-9, 1.0)
+    axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+
+    band_mm = settings.clearance_margin_mm + CONFIRM_BAND_MM
+
+    def confirm(path: np.ndarray) -> float | None:
+        # an organ's distance field bounds the clearance: a path it proves too close fails FCL too; one it proves
+        # farther than the band from every organ (and not inside one) is clear, its clearance the fields' estimate
+        bounds = [None if o.field is None else o.field.path_clearance(path, needle_radius_mm) for o in organs]
+        if any(b is not None and b[2] < settings.clearance_margin_mm for b in bounds):
+            return None
+        if all(b is not None and b[1] > band_mm for b in bounds):
+            if any(o.contains(path[0]) for o in organs):
+                return None
+            return min((b[0] for b in bounds if b is not None), default=float("inf"))
+        checks = check_path(path, needle_radius_mm, tuple(organs)) if organs else ()  # containment cached per organ
+        clearance = min((c.clearance_mm for c in checks), default=float("inf"))
+        if any(c.collides for c in checks) or clearance < settings.clearance_margin_mm:
+            return None
+        return clearance
+
+    for h, hole in enumerate(hole_ids):
+        if not straight:
+            break
+        pts = entries[h] + np.outer(s_axis, axis)
+        inside = region.at(pts) <= in_region
+        tip, s_dw = _dwell_arclengths(inside, s_axis, settings)
+        if len(s_dw) < settings.min_dwells:
+            continue
+        if np.min(oar.at(pts[s_axis <= tip])) < oar_min:
+            continue
+        path = entries[h] + np.outer([0.0, tip], axis)
+        clearance = confirm(path)
+        if clearance is None:
+            continue
+        out.append(Channel(hole, "straight", path, entries[h] + np.outer(s_dw, axis), float(hole_distance_mm[h]),
+                           tip, clearance))
+    for bank in banks:
+        out += _steered(bank, hole_ids, xy, hole_distance_mm, m, region, in_region, oar, oar_min, settings,
+                        confirm, straight_channels=[c for c in out if c.kind == "straight"])
+    return tuple(out)
+
+
+def _steered(bank: ShapeBank, hole_ids: Sequence[str], xy: np.ndarray, hole_distance_mm: np.ndarray,
+             m: np.ndarray, region: _Field, in_region: float, oar: _Field, oar_min: float,
+             settings: ImplantSettings, confirm: object, straight_channels: list[Channel]) -> list[Channel]:
+    """Steered candidates of one design.
+
+    Per hole, the schedules × rolls that pass through the target region and clear the organs on the distance map, up
+    to ``steered_per_hole`` of them, spread apart; each confirmed with FCL.
+    """
+    assert callable(confirm)
+    shapes = bank.shapes_mm  # (S, n, 3), template frame, roll 0, hole at the origin
+    lateral = np.hypot(shapes[:, -1, 0], shapes[:, -1, 1])
+    bent = np.flatnonzero(lateral > 3.0)  # shapes within 3 mm of the axis are straight needles in all but name
+    every = max(1, round(2.0 / bank.step_mm))  # screen on points about 2 mm apart
+    coarse = shapes[bent][:, ::every]
+    s_coarse = np.arange(coarse.shape[1]) * bank.step_mm * every
+    per_dwell = settings.dwell_step_mm / (bank.step_mm * every)
+    rolls = np.arange(settings.rolls) * 360.0 / settings.rolls
+    by_hole = {c.name: c for c in straight_channels}
+    out: list[Channel] = []
+    for h, hole in enumerate(hole_ids):
+        found = []  # (approximate dwell count, peak tension, shape index, roll, centroid)
+        for roll in rolls:
+            c, s = math.cos(math.radians(roll)), math.sin(math.radians(roll))
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            local = coarse @ rot.T + np.array([xy[h, 0], xy[h, 1], 0.0])
+            pts = local @ m[:3, :3].T + m[:3, 3]  # (S', n, 3) LPS
+            kji = region.index(pts)
+            inside = region.at(pts, kji) <= in_region
+            n_in = inside.sum(axis=1)
+            rows = np.flatnonzero(n_in / per_dwell >= settings.min_dwells)
+            if len(rows) == 0:
+                continue
+            last = inside.shape[1] - 1 - np.argmax(inside[rows, ::-1], axis=1)
+            tip_idx = np.minimum(last + math.ceil(settings.tip_offset_mm / (bank.step_mm * every)),
+                                 inside.shape[1] - 1)
+            clear = np.minimum.accumulate(oar.at(pts[rows], kji[rows]), axis=1)[np.arange(len(rows)), tip_idx]
+            ok = clear >= oar_min
+            centroids = (inside[rows][..., None] * pts[rows]).sum(axis=1) / n_in[rows][:, None]
+            for r in np.flatnonzero(ok):
+                k = int(bent[rows[r]])
+                found.append((float(n_in[rows[r]]), bank.schedules[k].peak_tension_n, k, float(roll), centroids[r]))
+        found.sort(key=lambda f: (-f[0], f[1], f[2], f[3]))
+        kept: list[np.ndarray] = []
+        if hole in by_hole:
+            kept.append(by_hole[hole].dwell_positions_mm.mean(axis=0))
+        n_kept = 0
+        for _, _, k, roll, centroid in found:
+            if n_kept >= settings.steered_per_hole:
+                break
+            if any(np.linalg.norm(centroid - q) < 4 * settings.dwell_step_mm for q in kept):
+                continue
+            full = place(shapes[k], bank.step_mm, float(s_coarse[-1]), roll, xy[h], m, sample_mm=bank.step_mm)
+            s_full = arc_length_mm(full)
+            tip, s_dw = _dwell_arclengths(region.at(full) <= in_region, s_full, settings)
+            if len(s_dw) < settings.min_dwells:
+                continue
+            path = place(shapes[k], bank.step_mm, tip, roll, xy[h], m)
+            clearance = confirm(path)
+            if clearance is None:
+                continue
+            base = bank.schedules[k]
+            sched = TensionSchedule(base.depth_mm, base.tension_n, np.full(len(base.depth_mm), roll))
+            out.append(Channel(hole, "steered", path, _points_at(full, s_dw), float(hole_distance_mm[h]), tip,
+                               clearance, bank.design.name, sched))
+            kept.append(centroid)
+            n_kept += 1
+    return out
+
+
+def intracavitary_channel(name: str, path_mm: np.ndarray, planning: PlanningStructures,
+                          settings: ImplantSettings | None = None) -> Channel | None:
+    """Return an applicator channel with dwells where it lies in the target grown by the dwell margin.
+
+    Parameters
+    ----------
+    name : str
+        The channel's name (e.g. ``"Tandem"``).
+    path_mm : (k, 3) float, mm, LPS
+        Tandem, ring or ovoid, base to tip.
+    planning : PlanningStructures
+        The target mask gives the dwell region.
+    settings : ImplantSettings, optional
+        Dwell step, dwell margin and minimum dwells.
+
+    Returns
+    -------
+    Channel or None
+        Of kind ``"intracavitary"``; None when it has fewer than ``settings.min_dwells`` dwells in the region.
+    """
+    settings = settings or ImplantSettings()
+    p = np.asarray(path_mm, dtype=float)
+    s_path = arc_length_mm(p)
+    s = np.arange(0.0, s_path[-1] + 1e-9, 0.5)
+    pts = _points_at(p, s)
+    region = _distance_field(planning.grid, planning.target.mask, settings.dwell_margin_mm + 5.0)
+    _, s_dw = _dwell_arclengths(region.at(pts) <= settings.dwell_margin_mm + 1e-6, s, settings)
+    if len(s_dw) < settings.min_dwells:
+        return None
+    return Channel(name, "intracavitary", p, _points_at(p, s_dw))

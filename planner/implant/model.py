@@ -1,0 +1,266 @@
+"""The linear model of a loading, as an LP or, with needle binaries, a MIP (solved by HiGHS through scipy).
+
+**The model** (:class:`_Model`), linear in the dwell times ``t``: target points ``A t + u >= P`` (``u``
+underdose, ``P`` the per-fraction dose that brings D90 to its aim, plus ``coverage_margin``; GTV points at the
+GTV D98 aim); for each organ a **mean-tail-dose row**: the mean dose over its hottest 2 cm³ within ``κ`` × its
+D2cm³ limit, written linearly as ``ζ + Σ w_i s_i / 2 cm³ <= κ L``, ``s_i >= (A t)_i - ζ``, ``s, ζ >= 0``
+(Rockafellar & Uryasev, J Risk 2(3):21, 2000; as mean-tail-dose in radiotherapy planning, Romeijn et al.,
+Oper Res 54(2):201, 2006). The mean over the hottest 2 cm³ is at least D2cm³, so with ``κ`` = 1 the row implies
+D2cm³ <= L; ``κ`` is then calibrated to the exact D2cm³ on the organ's 20 cm³ nearest the loaded dwells
+(:func:`reachplan.planner.implant.problem._calibrate`), which puts D2cm³ on the limit instead of below it.
+Neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time deviation constraint / HIPO's
+dwell-time gradient restriction, Mosleh-Shirazi et al., J Contemp Brachytherapy 11(3), 2019): a channel is loaded
+on all its dwells or on none. No dwell over ``max_dwell_share`` of the total. Objective: mean underdose (in units
+of the prescription) + ``time_weight`` × mean target dose (shorter plans) + ``invasiveness_weight`` × each used
+needle's normalised hole distance and tissue length ("least invasive").
+
+With needle binaries (the selection model): binary ``y_n`` per needle with each unit's time ``<= M y_n`` (``M``: the
+time at which the unit alone brings every target point to ``P``, or fills an organ's row), one needle per template
+hole, ``Σ y_n <= K``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import optimize as sopt
+from scipy import sparse
+
+from reachplan.planner.implant.optimiser import DwellProblem, OrganRows, tail_mean
+
+
+class _Rows:
+    """The constraint rows of a model with ``n`` variables, block by block, with their lower and upper bounds."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.blocks: list[sparse.spmatrix] = []
+        self.lb: list[np.ndarray] = []
+        self.ub: list[np.ndarray] = []
+
+    @property
+    def count(self) -> int:
+        """Rows added so far."""
+        return sum(len(x) for x in self.lb)
+
+    def add(self, rows: sparse.spmatrix, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
+        """Add ``lo <= rows x <= hi``."""
+        self.blocks.append(sparse.csr_matrix(rows))
+        self.lb.append(np.broadcast_to(lo, rows.shape[0]).astype(float))
+        self.ub.append(np.broadcast_to(hi, rows.shape[0]).astype(float))
+
+    def cols(self, parts: Sequence[tuple[int, sparse.spmatrix]], n_rows: int) -> sparse.spmatrix:
+        """Return a row block holding each ``(first column, matrix)`` part, zeros elsewhere."""
+        mats = []
+        at_col = 0
+        for start, mat in parts:
+            if start > at_col:
+                mats.append(sparse.csr_matrix((n_rows, start - at_col)))
+            mats.append(sparse.csr_matrix(mat))
+            at_col = start + mat.shape[1]
+        if at_col < self.n:
+            mats.append(sparse.csr_matrix((n_rows, self.n - at_col)))
+        return sparse.hstack(mats, format="csr")
+
+
+class _Model:
+    """The linear model of a loading (module docstring), as an LP or, with needle binaries, a MIP.
+
+    Variables ``[t (units), y (needles), u (target points), T, ζ (organs), s (organ points)]``. A unit is a run
+    of consecutive dwells of one channel with a common time (a block in the selection model, one dwell in the
+    final one); ``t`` is its time per dwell (s).
+
+    Parameters
+    ----------
+    problem : DwellProblem
+        Its ``units`` (None: one unit per column), rates, organ rows, needle binaries and modulation.
+    """
+
+    def __init__(self, problem: DwellProblem) -> None:
+        units = problem.units if problem.units is not None else tuple(
+            np.array([j]) for j in range(problem.n_columns))
+        unit_ch = np.array([int(problem.channel[u[0]]) for u in units], dtype=int)
+        choice = problem.needles
+        needles = [] if choice is None else list(choice.channels)
+        a_t, p, organs = problem.target_rates, problem.target_dose_gy, problem.organs
+        n_u, n_y, m = len(units), len(needles), len(a_t)
+        sizes = np.array([len(u) for u in units], dtype=float)
+        member = sparse.csr_matrix((np.ones(int(sizes.sum())), (np.concatenate(units),
+                                                                np.repeat(np.arange(n_u), sizes.astype(int)))),
+                                   shape=(a_t.shape[1], n_u))
+        at = np.asarray((member.T @ a_t.T).T)
+        ao = [np.asarray((member.T @ o.rates.T).T) for o in organs]
+        n_p = sum(len(o.weight_cc) for o in organs)
+        i_y, i_u, i_T, i_z, i_s = n_u, n_u + n_y, n_u + n_y + m, n_u + n_y + m + 1, n_u + n_y + m + 1 + len(organs)
+        n = i_s + n_p
+        mod = problem.modulation
+        c = np.zeros(n)
+        c[:n_u] = mod.time_weight * sizes * at.mean(axis=0) / (problem.reference_dose_gy * max(sizes.sum(), 1.0))
+        c[i_y:i_u] = mod.invasiveness_weight * (np.zeros(0) if choice is None else choice.cost)
+        c[i_u:i_T] = 1.0 / (m * problem.reference_dose_gy)
+        rows = _Rows(n)
+        rows.add(rows.cols([(0, at), (i_u, sparse.identity(m))], m), p, np.inf)  # target: A t + u >= p
+        _modulation_rows(rows, sizes, unit_ch, i_T, mod.max_dwell_share, mod.neighbour_ratio)
+        limit_rows = _organ_tail_rows(rows, organs, ao, i_z, i_s)
+        self.big_m = _big_m(p, at, organs, ao)
+        if n_y and choice is not None:
+            _needle_rows(rows, unit_ch, needles, list(choice.holes), self.big_m, i_y)
+        self.a = sparse.vstack(rows.blocks, format="csr")
+        self.a_csc = self.a.tocsc()
+        y_index = {ch: i for i, ch in enumerate(needles)}
+        self.unit_y = np.array([y_index.get(int(ch), -1) for ch in unit_ch], dtype=int)  # -1: not a needle
+        self.lb, self.ub = np.concatenate(rows.lb), np.concatenate(rows.ub)
+        self.limit_rows = np.array(limit_rows, dtype=int)
+        self.limits = np.array([o.limit_gy for o in organs])
+        self.c, self.n, self.n_u, self.n_y, self.i_y, self.i_u = c, n, n_u, n_y, i_y, i_u
+        self.member = member
+        self.hole_of = [] if choice is None else list(choice.holes)
+
+    def solve(self, budget: int | None = None, kappa: np.ndarray | None = None,
+              only: Sequence[int] | None = None) -> sopt.OptimizeResult:
+        """Solve the LP (the needle binaries relaxed to [0, 1]) with at most ``budget`` needles (None: no budget).
+
+        Parameters
+        ----------
+        budget : int, optional
+            The budget row's bound (None: no budget).
+        kappa : (n_organs,) float, optional
+            Each organ's mean-tail-dose row may reach ``kappa`` × its limit (the calibration of that row to D2cm³).
+        only : sequence of int, optional
+            The needles (indices into the needles) used (``y`` = 1), the others held empty: the LP is then solved on
+            their columns alone (and the intracavitary channels').
+
+        Returns
+        -------
+        scipy.optimize.OptimizeResult
+            HiGHS's result; ``x`` (None when it failed) in the full model's columns.
+        """
+        ub = self.ub.copy()
+        if kappa is not None and len(self.limit_rows):
+            ub[self.limit_rows] = self.limits * kappa
+        if self.n_y and budget is not None:
+            ub[-1] = float(budget)
+        lo = np.zeros(self.n)
+        hi = np.full(self.n, np.inf)
+        hi[self.i_y:self.i_u] = 1.0
+        cols = np.arange(self.n)
+        if only is not None:
+            on = np.zeros(self.n_y, dtype=bool)
+            on[np.asarray(only, dtype=int)] = True
+            lo[self.i_y:self.i_u] = on
+            keep = np.ones(self.n, dtype=bool)
+            keep[:self.n_u] = self.unit_y < 0
+            keep[:self.n_u][self.unit_y >= 0] = on[self.unit_y[self.unit_y >= 0]]
+            keep[self.i_y:self.i_u] = on
+            cols = np.flatnonzero(keep)
+        a = self.a if only is None else self.a_csc[:, cols]
+        res = sopt.milp(self.c[cols], constraints=[sopt.LinearConstraint(a, self.lb, ub)],
+                        bounds=sopt.Bounds(lo[cols], hi[cols]), options={"disp": False})
+        if only is not None and res.x is not None:
+            x = np.zeros(self.n)
+            x[cols] = res.x
+            res.x = x
+        return res
+
+    def dwell_times(self, x: np.ndarray) -> np.ndarray:
+        """Return the dwell times of a solution.
+
+        Parameters
+        ----------
+        x : (n,) float
+            A solution in the model's columns.
+
+        Returns
+        -------
+        (D,) float, s
+        """
+        out: np.ndarray = self.member @ np.maximum(x[:self.n_u], 0.0)
+        return out
+
+    def selected(self, x: np.ndarray) -> tuple[int, ...]:
+        """Return the needles of a solution ``x`` with ``y`` > 0.5 (indices into the needles, ascending)."""
+        return tuple(int(i) for i in np.flatnonzero(x[self.i_y:self.i_u] > 0.5))
+
+
+def _modulation_rows(rows: _Rows, sizes: np.ndarray, unit_ch: np.ndarray, i_T: int, share: float,
+                     ratio: float) -> None:
+    """Add the total time ``T = Σ sizes·t``, no unit over ``share`` of it, and the neighbour rows of each channel."""
+    n_u = len(sizes)
+    rows.add(rows.cols([(0, sizes[None, :]), (i_T, -np.ones((1, 1)))], 1), 0.0, 0.0)
+    share = share * (1 - 1e-3)
+    rows.add(rows.cols([(0, sparse.identity(n_u)), (i_T, -share * np.ones((n_u, 1)))], n_u), -np.inf, 0.0)
+    groups = [np.flatnonzero(unit_ch == ch) for ch in np.unique(unit_ch)]
+    for rowset in _neighbour_rows(groups, n_u, ratio):
+        rows.add(rows.cols([(0, rowset)], rowset.shape[0]), -np.inf, 0.0)
+
+
+def _organ_tail_rows(rows: _Rows, organs: Sequence[OrganRows], ao: Sequence[np.ndarray], i_z: int,
+                     i_s: int) -> list[int]:
+    """Add each organ's mean-tail-dose rows; return the index of each organ's limit row.
+
+    Each organ's mean dose over its hottest 2 cm³ within its limit (it implies D2cm³ <= limit):
+    ``ζ + Σ w_i s_i / 2 cm³ <= limit``, ``s_i >= (A t)_i - ζ``, ``s >= 0``, ``ζ >= 0``.
+    """
+    start = 0
+    limit_rows = []
+    for k, (o, a) in enumerate(zip(organs, ao, strict=True)):
+        q = len(o.weight_cc)
+        rows.add(rows.cols([(0, a), (i_z + k, -np.ones((q, 1))), (i_s + start, -sparse.identity(q))], q),
+                 -np.inf, 0.0)
+        limit_rows.append(rows.count)
+        rows.add(rows.cols([(i_z + k, np.ones((1, 1))), (i_s + start, o.weight_cc[None, :] / 2.0)], 1), -np.inf,
+                 o.limit_gy)
+        start += q
+    return limit_rows
+
+
+def _big_m(p: np.ndarray, at: np.ndarray, organs: Sequence[OrganRows], ao: Sequence[np.ndarray]) -> np.ndarray:
+    """Return each unit's big-M (s).
+
+    A unit's time is at most what brings every target point to its dose alone (more only adds time; scaling the
+    whole loading down keeps every row) and at most what alone fills an organ's limit.
+    """
+    big_m = p.max() / np.maximum(at.min(axis=0), 1e-30)
+    for o, a in zip(organs, ao, strict=True):
+        big_m = np.minimum(big_m, o.limit_gy / np.maximum(tail_mean(a, o.weight_cc, 2.0), 1e-30))
+    out: np.ndarray = big_m
+    return out
+
+
+def _needle_rows(rows: _Rows, unit_ch: np.ndarray, needles: Sequence[int], hole_of: Sequence[str],
+                 big_m: np.ndarray, i_y: int) -> None:
+    """Add ``t <= M y`` for every needle unit, one needle per hole, and the budget row (last)."""
+    n_y = len(needles)
+    y_of = {ch: i for i, ch in enumerate(needles)}
+    r_i, c_i, v = [], [], []
+    r = 0
+    for u_i, ch in enumerate(unit_ch):
+        if int(ch) in y_of:
+            r_i += [r, r]
+            c_i += [u_i, i_y + y_of[int(ch)]]
+            v += [1.0, -float(big_m[u_i])]
+            r += 1
+    rows.add(sparse.csr_matrix((v, (r_i, c_i)), shape=(r, rows.n)), -np.inf, 0.0)
+    holes = sorted(set(hole_of))
+    h_of = {h: i for i, h in enumerate(holes)}
+    per_hole = sparse.csr_matrix((np.ones(n_y), ([h_of[h] for h in hole_of], np.arange(n_y))),
+                                 shape=(len(holes), n_y))
+    rows.add(rows.cols([(i_y, per_hole)], len(holes)), -np.inf, 1.0)
+    rows.add(rows.cols([(i_y, np.ones((1, n_y)))], 1), -np.inf, np.inf)  # the budget row (last)
+
+
+def _neighbour_rows(groups: Sequence[np.ndarray], n_cols: int, ratio: float) -> list[sparse.csr_matrix]:
+    """Rows ``x_a - r x_b <= 0`` and ``x_b - r x_a <= 0`` for consecutive columns a, b of each group."""
+    rows, cols, vals = [], [], []
+    r = 0
+    for g in groups:
+        for a, b in itertools.pairwise(g):
+            rows += [r, r, r + 1, r + 1]
+            cols += [a, b, b, a]
+            vals += [1.0, -ratio, 1.0, -ratio]
+            r += 2
+    if r == 0:
+        return []
+    return [sparse.csr_matrix((vals, (rows, cols)), shape=(r, n_cols))]

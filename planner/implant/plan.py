@@ -1,0 +1,248 @@
+"""Implant planning: the needle set and the dwell times that cover the HR-CTV, chosen together (one arm, or several).
+
+Candidates come from :mod:`reachplan.planner.implant.candidates`. Choice of needles and dwell times
+(:func:`plan_implant`), for each needle budget K = 1, 2, ... (K = 0 too when an intracavitary channel is given),
+meaning "at most K needles", by the dwell optimiser named in ``ImplantSettings.optimiser``
+(:mod:`reachplan.planner.implant.optimiser`; the built-in ``"lp"``: :mod:`reachplan.planner.implant.selection`
+on the model of :mod:`reachplan.planner.implant.model`):
+
+1. **Needle selection** at budget K, on the selection problem: each channel's dwells in ``segments_per_channel``
+   blocks of equal time, ``selection_target_points`` sampled target points, organ rows on a lattice of
+   ``selection_oar_pitch_mm``, one binary per needle, one needle per template hole. The bound reported per budget
+   is the optimiser's (the built-in's: the LP relaxation's) and the relative gap to the selection kept
+   (:class:`reachplan.planner.implant.arms.BudgetResult`; plan.json ``selection``). The LP with every candidate
+   loaded, its organ rows calibrated once, bounds every budget (``selection.all_candidates_objective``); every
+   budget's model has those rows.
+2. **Dwell times on the chosen channels** (:func:`reachplan.planner.implant.dwells._final`): the optimiser without
+   a budget over every dwell of the selection, the empty-needle rule, the check on every organ voxel.
+
+Each new selection's plan is a point of the arm's Pareto curve (:mod:`reachplan.planner.implant.arms`). The budgets
+stop ``extra_after_aims`` after the first that meets the aims, after two budgets without a new selection, or when
+the selection reaches the all-candidates bound.
+
+Aims (EQD2, α/β 10 tumour / 3 organs, 45 Gy / 25 fractions external beam + 4 fractions): EMBRACE II
+(Pötter et al., Clin Transl Radiat Oncol 9:48, 2018) and the ESGO/ESTRO achievability table (90 % of
+patients: HR-CTV D90 > 85, D98 > 75, GTV D98 > 90 Gy), as :class:`reachplan.planner.dose.aims.Aims`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from reachplan.planner.dose.aims import Aims
+from reachplan.planner.dose.coverage import voxel_volume_cc
+from reachplan.planner.dose.structures import PlanningStructures, Structure
+from reachplan.planner.dose.tg43 import Tg43Kernel
+from reachplan.planner.implant.arms import BudgetResult, ImplantArm, ImplantPlan, _arm
+from reachplan.planner.implant.candidates import Channel
+from reachplan.planner.implant.dwells import _final
+from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, NeedleChoice, resolve
+from reachplan.planner.implant.problem import (
+    _calibrate,
+    _d2cc,
+    _modulation,
+    _organ_rows,
+    _Problem,
+    _rates,
+    _sampled_problem,
+    _target_rows,
+)
+from reachplan.planner.implant.settings import ImplantSettings
+
+
+def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
+                 air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
+                 gtv: Structure | None = None) -> ImplantArm:
+    """Return the Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
+
+    Parameters
+    ----------
+    name : str
+        The arm's name (e.g. ``"straight"``, ``"steered"``).
+    channels : sequence of Channel
+        Candidate needles and intracavitary channels (:func:`reachplan.planner.implant.candidates.needle_candidates`,
+        :func:`reachplan.planner.implant.candidates.intracavitary_channel`); paths mm, LPS.
+    planning : PlanningStructures
+        Target and organ masks on the planning grid.
+    kernel : Tg43Kernel
+        TG-43 dose kernel of the source.
+    air_kerma_strength_u : float, U
+        Source strength.
+    aims : Aims, optional
+        EMBRACE II by default.
+    settings : ImplantSettings, optional
+        Its ``optimiser`` names the dwell optimiser.
+    gtv : Structure, optional
+        The GTV mask on the planning grid, when there is one (its D98 is then an aim).
+
+    Returns
+    -------
+    ImplantArm
+        ``plan`` None (with ``reason``) when there is no candidate or no budget gives a plan.
+
+    Raises
+    ------
+    reachplan.plugins.errors.PluginError
+        No dwell optimiser is registered under ``settings.optimiser`` (the message lists the available ones).
+    """
+    t0 = time.perf_counter()
+    aims = aims or Aims()
+    settings = settings or ImplantSettings()
+    optimiser = resolve(settings.optimiser)
+    channels = tuple(c for c in channels if len(c.dwell_positions_mm) >= 1)
+    needles = [i for i, c in enumerate(channels) if c.is_needle]
+    if not channels:
+        return ImplantArm(name, 0, (), None, time.perf_counter() - t0, "no candidate channel")
+    vox_cc = voxel_volume_cc(planning.grid)
+    prob = _sampled_problem(channels, planning, kernel, air_kerma_strength_u, aims, settings, gtv)
+    p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
+    p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
+        1.0 + settings.coverage_margin)
+    selection = _selection_problem(prob, needles, settings, _target_rows(prob, settings.selection_target_points,
+                                                                         p_t, p_g), p_t, vox_cc)
+    # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows
+    kappa = np.ones(len(selection.organs))
+    free = optimiser.optimise(selection, limit_factor=kappa)
+    if free.times_s is not None:
+        kappa = _calibrate(kappa, _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
+                           selection.tail_means(free.times_s), selection.limits_gy)
+        free = optimiser.optimise(selection, limit_factor=kappa)
+    bound = free.objective if free.times_s is not None else float("nan")
+    final = _Final(prob, *_target_rows(prob, settings.final_target_points, p_t, p_g), aims, settings, vox_cc,
+                   optimiser)
+    budgets, plans = _budgets(selection, needles, optimiser, kappa, bound, final)
+    record: dict[str, object] = {
+        "model": getattr(optimiser, "description", "") or optimiser.name,
+        "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
+        "budgets": [b.to_json() for b in budgets]}
+    return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record)
+
+
+def _selection_problem(prob: _Problem, needles: Sequence[int], settings: ImplantSettings,
+                       target: tuple[np.ndarray, np.ndarray], p_t: float, vox_cc: float) -> DwellProblem:
+    """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness."""
+    channels = prob.channels
+    cost = np.zeros(len(needles))
+    if needles:
+        dmax = max(max(channels[i].hole_distance_mm for i in needles), 1e-9)
+        lmax = max(max(channels[i].tissue_length_mm for i in needles), 1e-9)
+        cost = np.array([0.5 * channels[i].hole_distance_mm / dmax + 0.5 * channels[i].tissue_length_mm / lmax
+                         for i in needles])
+    units = []
+    for c in range(len(channels)):
+        on_c = np.flatnonzero(prob.channel_of == c)
+        units += np.array_split(on_c, min(settings.segments_per_channel, len(on_c)))
+    organs = _organ_rows(prob, prob.positions, prob.directions, settings.selection_oar_pitch_mm,
+                         settings.oar_sample_cc, vox_cc)
+    return DwellProblem(
+        _rates(target[0], prob.positions, prob.directions, prob), target[1], p_t, tuple(organs), prob.channel_of,
+        _modulation(settings), tuple(units),
+        NeedleChoice(tuple(needles), tuple(channels[i].name for i in needles), cost),
+        settings.swap_pool, settings.swap_passes)
+
+
+class _Final:
+    """The final dwell-time step of one arm (:func:`reachplan.planner.implant.dwells._final`), its inputs bound."""
+
+    def __init__(self, prob: _Problem, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims, settings: ImplantSettings,
+                 vox_cc: float, optimiser: DwellOptimiser) -> None:
+        self.prob, self.fin_pts, self.fin_p, self.aims, self.settings = prob, fin_pts, fin_p, aims, settings
+        self.vox_cc, self.optimiser = vox_cc, optimiser
+
+    def __call__(self, chosen: np.ndarray, kappa: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
+        """Return the plan of the channels ``chosen`` (or None), its selection's ``status`` and ``gap`` recorded."""
+        return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc, kappa,
+                      status, gap, self.optimiser)
+
+
+def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,
+             bound: float, final: _Final) -> tuple[list[BudgetResult], list[ImplantPlan]]:
+    """Select at budgets K = 1, 2, ... (0 with an intracavitary channel); return every budget and the new plans."""
+    prob, settings = final.prob, final.settings
+    channels = prob.channels
+    intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
+    budgets: list[BudgetResult] = []
+    plans: list[ImplantPlan] = []
+    seen: dict[tuple[int, ...], ImplantPlan | None] = {}
+    keep: list[int] = []  # the last budget's needles (indices into ``needles``): a start for the next
+    met_at: int | None = None
+    stall = 0
+    for k in range(0 if intracavitary else 1, min(settings.max_needles, len(needles)) + 1):
+        t_k = time.perf_counter()
+        sol = optimiser.optimise(selection, budget=k, limit_factor=kappa, start=keep)
+        value, lower, status = sol.objective, sol.bound, sol.status
+        if sol.times_s is None:
+            budgets.append(BudgetResult(k, 0, value, None, None, status, time.perf_counter() - t_k, False))
+            continue
+        ch_time = np.bincount(prob.channel_of, weights=sol.times_s, minlength=len(channels))
+        keep = [i for i in sol.needles if ch_time[needles[i]] > 0]
+        picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
+        gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
+        new = bool(picked) and picked not in seen
+        if new:
+            seen[picked] = final(np.array(picked, dtype=int), kappa.copy(),
+                                 f"budget {k}: selection objective {value:.6g}, {status}", gap)
+        budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
+                                    tuple(channels[c] for c in picked), seen.get(picked) if new else None))
+        if new:
+            stall = 0
+            plan = seen[picked]
+            if plan is not None:
+                plans.append(plan)
+                if plan.aims_met and met_at is None:
+                    met_at = k
+        else:
+            stall += 1
+        if met_at is not None and k >= met_at + settings.extra_after_aims:
+            break
+        if stall >= 2 or value <= bound + 1e-9 * max(1.0, abs(bound)):
+            break  # nothing new twice, or the selection reaches the bound of every candidate loaded
+    return budgets, plans
+
+
+def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningStructures, kernel: Tg43Kernel,
+              air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
+              gtv: Structure | None = None, workers: int = 2) -> tuple[ImplantArm, ...]:
+    """Plan several arms (:func:`plan_implant`, each on its own), in up to ``workers`` threads.
+
+    HiGHS and the compiled dose kernels release the GIL, so two arms run on two cores. Threads only when the
+    compiled kernels' threading layer allows calls from several threads at once (``omp`` or ``tbb``; numba's
+    ``workqueue`` does not); else one after the other, with the same result (the arms do not share state).
+
+    Parameters
+    ----------
+    arms : sequence of (name, channels)
+        Each arm's candidate channels (paths mm, LPS).
+    planning, kernel, air_kerma_strength_u, aims, settings, gtv
+        As for :func:`plan_implant`.
+    workers : int
+        Threads at most.
+
+    Returns
+    -------
+    tuple of ImplantArm
+        In the order of ``arms``.
+    """
+    def one(arm: tuple[str, Sequence[Channel]]) -> ImplantArm:
+        return plan_implant(arm[0], arm[1], planning, kernel, air_kerma_strength_u, aims, settings, gtv=gtv)
+
+    if workers < 2 or len(arms) < 2 or not _threads_safe(kernel):
+        return tuple(one(a) for a in arms)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(workers, len(arms))) as pool:
+        return tuple(pool.map(one, arms))
+
+
+def _threads_safe(kernel: Tg43Kernel) -> bool:
+    """Return True when numba's threading layer runs parallel kernels called from several threads at once."""
+    import numba
+
+    kernel.compiled_dose(np.zeros((1, 3)), np.ones((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.ones(1))  # loads it
+    try:
+        return str(numba.threading_layer()) in ("omp", "tbb")
+    except ValueError:  # no parallel kernel has run
+        return False

@@ -1,0 +1,108 @@
+"""Settings of implant planning: candidates, the selection model, the dwell-time model and the optimiser's name."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ImplantSettings:
+    """Settings of implant planning (lengths mm, times s).
+
+    Parameters
+    ----------
+    dwell_step_mm : float, mm
+        Distance between dwell positions along a channel.
+    dwell_margin_mm : float, mm
+        Dwells lie on the part of a channel inside the HR-CTV grown by this margin.
+    tip_offset_mm : float, mm
+        Distance from the needle tip to its deepest dwell (the tip lies this far beyond the last dwell
+        position).
+    clearance_margin_mm : float, mm
+        Smallest surface distance from a needle to any organ at risk.
+    min_dwells : int
+        A needle needs at least this many dwell positions to be a candidate.
+    neighbour_ratio : float
+        Neighbouring dwell times on a channel differ by at most this factor (>= 1).
+    max_dwell_share : float
+        No single dwell carries more than this share of the plan's total time.
+    steered_per_hole : int
+        Steered candidates kept per hole and design (the most dwells, spread apart).
+    rolls : int
+        Roll angles screened per hole (evenly over 360°).
+    max_needles : int
+        Largest needle budget on the Pareto curve.
+    extra_after_aims : int
+        Pareto points computed beyond the first budget that meets every aim.
+    coverage_margin : float
+        The LP aims target points at (1 + this) × the D90 prescription.
+    swap_pool, swap_passes : int
+        The selection's local search at each needle budget: swaps with the needles of the largest relaxed ``y``
+        (this many), for at most this many passes (0: the rounded LP relaxation alone).
+    selection_target_points, final_target_points : int
+        Target points of the selection model and of the dwell-time LP on the chosen needles.
+    selection_oar_pitch_mm, final_oar_pitch_mm : float, mm
+        Lattice pitch of the organs' representative points in each.
+    oar_sample_cc : float, cm³
+        Organ volume nearest to the dwells that the representative points cover.
+    segments_per_channel : int
+        Dwell blocks per channel in the selection model.
+    invasiveness_weight : float
+        Weight of the needles' invasiveness in the selection objective (a tie-break).
+    time_weight : float
+        Weight of the mean target dose (shorter plans) in both objectives.
+    min_dwell_time_s : float, s
+        Dwell times below this are set to zero (afterloaders do not deliver shorter dwells).
+    oar_eval_radius_mm : float, mm
+        Organ voxels within this distance of a loaded dwell are evaluated for D2cm³.
+    optimiser : str
+        Name of the dwell optimiser (entry-point group ``reachplan.optimisers``) that selects the needles and loads
+        the chosen ones (:mod:`reachplan.planner.implant.optimiser`); ``"lp"``: the built-in linear
+        programmes (:mod:`reachplan.planner.implant.selection`).
+
+    Raises
+    ------
+    ValueError
+        A setting out of its range.
+    """
+
+    dwell_step_mm: float = 2.5
+    dwell_margin_mm: float = 2.5
+    tip_offset_mm: float = 1.0
+    clearance_margin_mm: float = 2.0
+    min_dwells: int = 3
+    neighbour_ratio: float = 2.0
+    max_dwell_share: float = 0.15
+    steered_per_hole: int = 2
+    rolls: int = 8
+    max_needles: int = 16
+    extra_after_aims: int = 1
+    coverage_margin: float = 0.03
+    swap_pool: int = 8
+    swap_passes: int = 3
+    segments_per_channel: int = 2
+    selection_target_points: int = 200
+    final_target_points: int = 800
+    selection_oar_pitch_mm: float = 3.0
+    final_oar_pitch_mm: float = 3.0
+    oar_sample_cc: float = 4.0
+    min_dwell_time_s: float = 0.1
+    oar_eval_radius_mm: float = 40.0
+    invasiveness_weight: float = 1e-3  # tie-breaks in the objective
+    time_weight: float = 1e-3
+    optimiser: str = "lp"
+
+    def __post_init__(self) -> None:
+        if not (self.dwell_step_mm > 0 and self.dwell_margin_mm >= 0 and self.tip_offset_mm >= 0
+                and self.clearance_margin_mm >= 0):
+            raise ValueError("dwell step must be > 0 mm; margins and tip offset >= 0 mm")
+        if self.neighbour_ratio < 1 or not 0 < self.max_dwell_share <= 1:
+            raise ValueError("neighbour_ratio must be >= 1 and max_dwell_share in (0, 1]")
+        if min(self.min_dwells, self.max_needles, self.rolls, self.segments_per_channel,
+               self.selection_target_points, self.final_target_points) < 1 or self.steered_per_hole < 0 \
+                or self.extra_after_aims < 0:
+            raise ValueError("implant settings: counts must be >= 1 (steered_per_hole, extra_after_aims >= 0)")
+        if not (self.selection_oar_pitch_mm > 0 and self.final_oar_pitch_mm > 0 and self.oar_sample_cc >= 2.0):
+            raise ValueError("implant settings: organ pitches must be > 0 mm and oar_sample_cc >= 2 cm³")
+        if not self.optimiser.strip():
+            raise ValueError("implant settings: the optimiser needs a name")
