@@ -7,7 +7,6 @@ The implant of both arms (straight only, straight + steered) is planned here for
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -16,74 +15,25 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from reachplan.imaging.types import Grid, Roi, StructureSet, Volume
-from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig, PlanModels
+from reachplan.imaging.types import Grid, StructureSet, Volume
+from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
+from reachplan.planner.dose.structures import planning_structures
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.lookup import applicator_kinds, get_source, load_template
+from reachplan.planner.implant.case import ImplantComparison, plan_implants
+from reachplan.planner.lookup import get_source, load_template
 from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.planner.steering.steered import shape_bank
-from reachplan.plugins.applicators import Applicator, applicators_from_structures
 from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
     from reachplan.planner.dose.aims import Aims
-    from reachplan.planner.dose.structures import PlanningStructures, Structure
+    from reachplan.planner.dose.structures import PlanningStructures
     from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
-    from reachplan.planner.implant.candidates import Channel
     from reachplan.planner.implant.dwells import OptimisationResult
     from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.plugins.exporters import ExportPlan, NeedleExport
-
-
-def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str, oar_names: Sequence[str],
-                        applicators: Sequence[Applicator] | None = None) -> PlanningStructures:
-    """Return the target and organs at risk (bone and applicators excluded) as masks for dose.
-
-    An applicator (the tandem, ovoids, obturator) may be an obstacle to needles (an organ of the scene) but receives
-    no dose limit and is no organ at risk for dose.
-
-    Parameters
-    ----------
-    structures : StructureSet
-        The case's ROIs (contours mm, LPS).
-    grid : Grid or None
-        The CT's grid; None: a 2 mm grid on the contours' own slices that holds the target and every organ.
-    target_roi : str
-        The ROI the dwell times are optimised on.
-    oar_names : sequence of str
-        Normalised names of the organs at risk (those not in the structure set are skipped).
-    applicators : sequence of Applicator or None
-        The case's applicators (:attr:`Scene.applicators`); None: recognised here with the installed kinds.
-
-    Returns
-    -------
-    PlanningStructures
-        Boolean masks (k, j, i) on the grid.
-
-    Raises
-    ------
-    PlanInputError
-        ``target_roi`` is not in the structure set.
-    """
-    from reachplan.imaging.meshing import fit_grid, roi_mask
-    from reachplan.planner.dose.structures import PlanningStructures, Structure
-
-    if target_roi not in structures.names:
-        raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
-    roi = structures.get(target_roi)
-    if applicators is None:
-        applicators = applicators_from_structures(structures, applicator_kinds())
-    parts = {structures.get(a.roi_name).normalized_name for a in applicators if a.roi_name}
-    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone" and n not in parts]
-    if grid is None:
-        union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
-                                                  if c.geometric_type == "CLOSED_PLANAR"))
-        grid = fit_grid(union, None, 2.0)
-    oars = tuple(Structure(r.normalized_name, roi_mask(r, grid)) for r in oar_rois)
-    return PlanningStructures(grid, Structure(target_roi, roi_mask(roi, grid)), oars)
 
 
 #: What a delivered channel is for when it is an applicator channel (tandem, ring, ovoid), and the delivered plan's
@@ -199,9 +149,7 @@ def plan_delivery(
     aims = Aims()
     implant = None
     if scene is not None:
-        tandem = applicator_channels(scene.applicators, planning, implant_settings)
-        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
-                                intracavitary=tandem)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings)
     delivered = _delivered_implant(implant, planning.target.name)
     if delivered is not None:
         arm, opt, exports, roles = delivered
@@ -310,39 +258,6 @@ def _per_target(
     return opt, tuple(exports), tuple(roles)
 
 
-def applicator_channels(applicators: Sequence[Applicator], planning: PlanningStructures,
-                        settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
-    """Return the intracavitary channels of the loadable applicators (a tandem's), with dwells in the target.
-
-    Parameters
-    ----------
-    applicators : sequence of Applicator
-        The case's applicators (:attr:`Scene.applicators`); their channels are (n, 3) centrelines, mm, LPS, base to
-        tip (a tandem's is the chord of its ROI: see :mod:`reachplan.plugins.applicators.tandem`).
-    planning : PlanningStructures
-        The target whose grown region holds the dwells.
-    settings : ImplantSettings or None
-        Dwell step and margin; channels with fewer than ``settings.min_dwells`` dwells there are left out.
-
-    Returns
-    -------
-    tuple of Channel
-        One per loaded applicator channel, named after the applicator (``name k`` when it has several).
-    """
-    from reachplan.planner.implant.candidates import intracavitary_channel
-
-    out = []
-    for a in applicators:
-        if not a.loadable:
-            continue
-        for k, path in enumerate(a.channels, start=1):
-            name = a.name if len(a.channels) == 1 else f"{a.name} {k}"
-            channel = intracavitary_channel(name, path, planning, settings)
-            if channel is not None:
-                out.append(channel)
-    return tuple(out)
-
-
 def _schedule_rows(schedule: TensionSchedule | None) -> np.ndarray | None:
     """(k, 3) rows (depth mm, tension N, roll deg) of a schedule, or None."""
     return None if schedule is None else np.column_stack([schedule.depth_mm, schedule.tension_n, schedule.roll_deg])
@@ -378,76 +293,3 @@ def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
     affine[:3, 3] = affine[:3, :3] @ np.array([lo[2], lo[1], lo[0]], dtype=float) + affine[:3, 3]
     shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]), int(hi[2] - lo[2]))
     return Grid(shape, affine)
-
-
-@dataclass(frozen=True, eq=False)
-class ImplantComparison:
-    """The two implant arms on the same anatomy and template.
-
-    Straight needles only, and straight + steered (see :mod:`reachplan.planner.implant`); ``candidates`` every
-    candidate channel of the steered arm (the straight arm's are its straight ones and the intracavitary channels).
-    """
-
-    straight: ImplantArm
-    steered: ImplantArm
-    candidates: tuple[Channel, ...]
-    seconds: float = 0.0
-
-    @property
-    def arms(self) -> tuple[ImplantArm, ImplantArm]:
-        """Return the straight and the steered arm."""
-        return self.straight, self.steered
-
-    def to_json(self) -> dict[str, object]:
-        """Return plan.json's ``implant``.
-
-        ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`), the count of candidate channels by kind and the
-        wall time of the whole (candidates and both arms, which run at once), s.
-        """
-        kinds: dict[str, int] = {}
-        for c in self.candidates:
-            kinds[c.kind] = kinds.get(c.kind, 0) + 1
-        return {"straight": self.straight.to_json(), "steered": self.steered.to_json(), "candidates": kinds,
-                "seconds": round(self.seconds, 3)}
-
-
-def plan_implants(
-    scene: Scene,
-    planning: PlanningStructures,
-    config: PlanConfig,
-    source: SourceData,
-    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
-    settings: ImplantSettings | None = None,
-    intracavitary: Sequence[Channel] = (),
-    gtv: Structure | None = None,
-    models: PlanModels | None = None,
-) -> ImplantComparison:
-    """Candidate needles for the target volume and both implant arms (Pareto curve and chosen plan each).
-
-    ``intracavitary``: applicator channels (tandem, ring, ovoids) available to both arms
-    (:func:`reachplan.planner.implant.candidates.intracavitary_channel`). The steered arm screens every stylet design
-    of ``config`` with the screening model of ``models``.
-    """
-    from reachplan.planner.dose.tg43 import Tg43Kernel
-    from reachplan.planner.implant.arms import with_subset
-    from reachplan.planner.implant.candidates import needle_candidates
-    from reachplan.planner.implant.plan import plan_arms
-    from reachplan.planner.implant.settings import ImplantSettings
-
-    t0 = time.perf_counter()
-    settings = settings or ImplantSettings()
-    models = models or PlanModels.for_config(config)
-    holes = scene.template.needle_holes
-    banks = [shape_bank(d, config.family, min(config.max_depth_mm, d.length_mm), models.screening)
-             for d in config.rod_designs]
-    cands = needle_candidates([h.hole_id for h in holes], np.array([h.xy_mm for h in holes]),
-                              np.array([h.distance_mm for h in holes]), scene.patient_from_template, planning,
-                              scene.organs, config.needle_radius_mm, settings, banks, config.max_depth_mm)
-    kernel = Tg43Kernel(source)
-    # the two arms at once, on two cores; the steered arm's candidates include the straight ones, so the straight
-    # arm's implants are its too: never worse
-    straight, steered = plan_arms([("straight", [*[c for c in cands if not c.steered], *intracavitary]),
-                                   ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
-                                  settings=settings, gtv=gtv)
-    steered = with_subset(steered, straight)
-    return ImplantComparison(straight, steered, (*cands, *intracavitary), time.perf_counter() - t0)

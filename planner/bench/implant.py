@@ -2,7 +2,7 @@
 
 Times, on the built-in clinical case (seed 0, CT grid; the tandem an obstacle for needles and an intracavitary
 channel, as in ``reachplan demo``): the candidate needles for the HR-CTV, then each arm's Pareto curve of needle
-count against HR-CTV D90 and its chosen implant (:func:`reachplan.planner.delivery.plan_implants`; the two arms
+count against HR-CTV D90 and its chosen implant (:func:`reachplan.planner.implant.case.plan_implants`; the two arms
 run at once, each on a core, so ``seconds_arm`` overlap); the target is both arms in at most 20 s on a quiet
 2-core machine (the CSV also gives the CPU seconds and the load, since
 the wall time on a shared machine is not that). It also recomputes each chosen implant's dose with
@@ -29,9 +29,10 @@ from reachplan.imaging.meshing import fit_grid, roi_mask
 from reachplan.planner.bench.common import settings, write_csv, write_png
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.case.scene import build_scene
-from reachplan.planner.delivery import applicator_channels, plan_implants, planning_structures
+from reachplan.planner.dose.structures import planning_structures
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import recompute_target
+from reachplan.planner.implant.case import plan_implants
 from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.lookup import get_source
 
@@ -87,11 +88,10 @@ def run(args: argparse.Namespace) -> int:
     planning = planning_structures(structures, grid, "HR-CTV", config.oar_names, scene.applicators)
     source = get_source("gammamed_plus_hdr")
     implant = ImplantSettings(max_needles=s.max_needles)
-    tandem = applicator_channels(scene.applicators, planning, implant)
     runs = []
     for _ in range(max(1, s.repeat)):
         t, cpu = time.perf_counter(), time.process_time()
-        result = plan_implants(scene, planning, config, source, DEFAULT_AIR_KERMA_U, implant, intracavitary=tandem)
+        result = plan_implants(scene, planning, config, source, DEFAULT_AIR_KERMA_U, implant)
         runs.append((time.perf_counter() - t, result, time.process_time() - cpu))
     best_s, best, best_cpu = sorted(runs, key=lambda r: r[0])[len(runs) // 2]  # the median run
     roi = structures.get("HR-CTV")

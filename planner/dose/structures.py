@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from reachplan.imaging.types import Grid
+from reachplan.imaging.types import Grid, Roi, StructureSet
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.lookup import applicator_kinds
+from reachplan.plugins.applicators import Applicator, applicators_from_structures
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,3 +71,50 @@ class PlanningStructures:
                 raise ValueError(f"structure {s.name}: mask {s.mask.shape} is not on the grid {self.grid.shape}")
         if not self.target.mask.any():
             raise ValueError(f"target {self.target.name} is empty")
+
+
+def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str, oar_names: Sequence[str],
+                        applicators: Sequence[Applicator] | None = None) -> PlanningStructures:
+    """Return the target and organs at risk (bone and applicators excluded) as masks for dose.
+
+    An applicator (the tandem, ovoids, obturator) may be an obstacle to needles (an organ of the scene) but receives
+    no dose limit and is no organ at risk for dose.
+
+    Parameters
+    ----------
+    structures : StructureSet
+        The case's ROIs (contours mm, LPS).
+    grid : Grid or None
+        The CT's grid; None: a 2 mm grid on the contours' own slices that holds the target and every organ.
+    target_roi : str
+        The ROI the dwell times are optimised on.
+    oar_names : sequence of str
+        Normalised names of the organs at risk (those not in the structure set are skipped).
+    applicators : sequence of Applicator or None
+        The case's applicators (:attr:`Scene.applicators`); None: recognised here with the installed kinds.
+
+    Returns
+    -------
+    PlanningStructures
+        Boolean masks (k, j, i) on the grid.
+
+    Raises
+    ------
+    PlanInputError
+        ``target_roi`` is not in the structure set.
+    """
+    from reachplan.imaging.meshing import fit_grid, roi_mask
+
+    if target_roi not in structures.names:
+        raise PlanInputError(f"no {target_roi} ROI to compute dose on; name it with --target-roi")
+    roi = structures.get(target_roi)
+    if applicators is None:
+        applicators = applicators_from_structures(structures, applicator_kinds())
+    parts = {structures.get(a.roi_name).normalized_name for a in applicators if a.roi_name}
+    oar_rois = [structures.get(n) for n in oar_names if n in structures.names and n != "Bone" and n not in parts]
+    if grid is None:
+        union = Roi(0, "planning volume", tuple(c for r in (roi, *oar_rois) for c in r.contours
+                                                  if c.geometric_type == "CLOSED_PLANAR"))
+        grid = fit_grid(union, None, 2.0)
+    oars = tuple(Structure(r.normalized_name, roi_mask(r, grid)) for r in oar_rois)
+    return PlanningStructures(grid, Structure(target_roi, roi_mask(roi, grid)), oars)

@@ -28,6 +28,7 @@ from reachplan.planner.geometry.distance_field import distance_transform
 from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ShapeBank, place
+from reachplan.plugins.applicators import Applicator
 
 NEEDLE_KINDS = ("straight", "steered")
 #: a candidate's clearance is confirmed with FCL when an organ's distance field cannot prove it beyond the
@@ -365,3 +366,34 @@ def intracavitary_channel(name: str, path_mm: np.ndarray, planning: PlanningStru
     if len(s_dw) < settings.min_dwells:
         return None
     return Channel(name, "intracavitary", p, _points_at(p, s_dw))
+
+
+def applicator_channels(applicators: Sequence[Applicator], planning: PlanningStructures,
+                        settings: ImplantSettings | None = None) -> tuple[Channel, ...]:
+    """Return the intracavitary channels of the loadable applicators (a tandem's), with dwells in the target.
+
+    Parameters
+    ----------
+    applicators : sequence of Applicator
+        The case's applicators (:attr:`Scene.applicators`); their channels are (n, 3) centrelines, mm, LPS, base to
+        tip (a tandem's is the chord of its ROI: see :mod:`reachplan.plugins.applicators.tandem`).
+    planning : PlanningStructures
+        The target whose grown region holds the dwells.
+    settings : ImplantSettings or None
+        Dwell step and margin; channels with fewer than ``settings.min_dwells`` dwells there are left out.
+
+    Returns
+    -------
+    tuple of Channel
+        One per loaded applicator channel, named after the applicator (``name k`` when it has several).
+    """
+    out = []
+    for a in applicators:
+        if not a.loadable:
+            continue
+        for k, path in enumerate(a.channels, start=1):
+            name = a.name if len(a.channels) == 1 else f"{a.name} {k}"
+            channel = intracavitary_channel(name, path, planning, settings)
+            if channel is not None:
+                out.append(channel)
+    return tuple(out)

@@ -14,8 +14,8 @@ from reachplan.imaging.types import Grid, StructureSet, Volume
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
-from reachplan.planner.delivery import Delivery, planning_structures
-from reachplan.planner.dose.structures import PlanningStructures
+from reachplan.planner.delivery import Delivery
+from reachplan.planner.dose.structures import PlanningStructures, planning_structures
 from reachplan.planner.implant.compare import Comparison, compare_arms
 from reachplan.planner.implant.dwells import OptimizerSettings
 from reachplan.planner.report import figures
@@ -35,8 +35,8 @@ from reachplan.plugins.sources import SourceData
 from reachplan.rod_model.select import ErrorRow
 
 if TYPE_CHECKING:
-    from reachplan.planner.delivery import ImplantComparison
     from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
+    from reachplan.planner.implant.case import ImplantComparison
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
@@ -398,7 +398,7 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
     structures : StructureSet
         The case's structures.
     grid : Grid or None
-        Planning grid; None: the structures' own (see :func:`reachplan.planner.delivery.planning_structures`).
+        Planning grid; None: the structures' own (see :func:`reachplan.planner.dose.structures.planning_structures`).
     source : SourceData
         The TG-43 data set (the delivery's, :attr:`~reachplan.planner.delivery.Delivery.source`).
     target_roi : str
@@ -409,7 +409,7 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
         LP settings of both arms.
     planning : PlanningStructures or None
         The delivery's structures, when already built (else
-        :func:`reachplan.planner.delivery.planning_structures` builds them).
+        :func:`reachplan.planner.dose.structures.planning_structures` builds them).
 
     Returns
     -------

@@ -2,7 +2,7 @@
 
 The cohort is seeds of the built-in clinical case (:func:`reachplan.imaging.clinical.clinical_case`). One task per
 case: the worker builds the case in memory (no DICOM is written), its scene and planning structures on the case's
-image grid, and both implant arms with their Pareto curves (:func:`reachplan.planner.delivery.plan_implants`, as
+image grid, and both implant arms with their Pareto curves (:func:`reachplan.planner.implant.case.plan_implants`, as
 ``reachplan demo`` does: the tandem is an intracavitary channel and an organ to keep needles off). Tasks run on
 Dask as the design study's do (:func:`reachplan.planner.study.run_study`: a loopback ``LocalCluster`` of worker
 processes, a given scheduler, or this process with ``workers=0``).
@@ -43,7 +43,7 @@ from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.errors import StudyError
 
 if TYPE_CHECKING:
-    from reachplan.planner.delivery import ImplantComparison
+    from reachplan.planner.implant.case import ImplantComparison
     from reachplan.planner.implant.settings import ImplantSettings
 
 ARMS = ("straight", "steered")
@@ -437,7 +437,8 @@ def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
     """
     from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
     from reachplan.planner.case.scene import build_scene
-    from reachplan.planner.delivery import applicator_channels, plan_implants, planning_structures
+    from reachplan.planner.dose.structures import planning_structures
+    from reachplan.planner.implant.case import plan_implants
     from reachplan.planner.lookup import get_source
 
     case = clinical_case(seed, modality=spec.modality)
@@ -447,9 +448,7 @@ def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
     scene = build_scene(structures, targets, grid=grid, config=spec.config)
     config = dataclasses.replace(spec.config, oar_names=tuple(o.name for o in scene.organs))
     planning = planning_structures(structures, grid, "HR-CTV", config.oar_names, scene.applicators)
-    tandem = applicator_channels(scene.applicators, planning, spec.settings)
-    return plan_implants(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U, spec.settings,
-                         intracavitary=tandem)
+    return plan_implants(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U, spec.settings)
 
 
 def run_case(task: ImplantCase, spec: ImplantStudySpec) -> dict[str, Any]:

@@ -239,7 +239,8 @@ def test_a_stand_in_kind_is_one_file_and_its_registration() -> None:
     assert kind_of_name("interstitial-ring", kinds) == "interstitial_ring"
     assert kind_of_name("Interstitial_Ring", BUILTIN_KINDS) is None
     # and carried through to the planner: no organ at risk for dose, a loadable channel of the implant
-    from reachplan.planner.delivery import applicator_channels, planning_structures
+    from reachplan.planner.dose.structures import planning_structures
+    from reachplan.planner.implant.candidates import applicator_channels
     from reachplan.planner.implant.settings import ImplantSettings
 
     hrctv = tube_roi(4, "HR-CTV", np.array([0.0, 0.0, -30.0]), np.array([0.0, 0.0, 60.0]), 25.0)
