@@ -14,12 +14,12 @@ from typing import TYPE_CHECKING, Any
 
 from reachplan.planner.errors import PlanInputError
 from reachplan.plugins import registry
-from reachplan.plugins.applicators import ApplicatorKind
 from reachplan.plugins.errors import PluginError
 from reachplan.plugins.sources import BUILTIN, SourceData
 from reachplan.plugins.templates import Template
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # only for the types: `reachplan rod` imports this module and must not pay for pydicom
+    from reachplan.plugins.applicators import ApplicatorKind
     from reachplan.plugins.exporters.base import Exporter
     from reachplan.plugins.registry import PluginInfo
     from reachplan.rod_model.protocol import Capabilities, RodModel

@@ -35,7 +35,7 @@ def check_insertion_model(obj: object) -> None:
     Parameters
     ----------
     obj : object
-        The loaded entry point.
+        What a ``reachplan.insertion_models`` entry point loaded.
 
     Raises
     ------
@@ -119,15 +119,13 @@ def _applicator_kind(obj: object) -> None:
 def check_optimiser(obj: Any) -> None:
     """Check that ``obj`` has the shape of a dwell optimiser (the optimisers check, structural).
 
+    The implant room types optimisers (``DwellOptimiser``); this floor only checks what a caller relies on: a
+    non-empty str ``name`` and a callable ``optimise``, else ``TypeError`` saying which is missing.
+
     Parameters
     ----------
     obj : object
-        The loaded entry point.
-
-    Raises
-    ------
-    TypeError
-        ``obj`` has no str ``name`` or no callable ``optimise``.
+        What a ``reachplan.optimisers`` entry point loaded.
     """
     name = getattr(obj, "name", None)
     if not isinstance(name, str) or not name:

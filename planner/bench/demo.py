@@ -111,8 +111,7 @@ def run(args: argparse.Namespace) -> int:
         0 after the medians are printed and the CSV and PNG written.
     """
     s = settings(args, DemoBenchSettings(), QUICK)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = args.out  # made by the bench command
     runs: list[dict[str, float]] = []
     loads: list[float] = []
     rows: list[dict[str, object]] = []

@@ -39,8 +39,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
     from reachplan.planner.case.config import PlanConfig
 
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = args.out  # made by the bench command
     repeat = 1 if args.quick else 3
     cfg = PlanConfig(refine_top=0, robust_top=0)
     scene, banded, bare, build_s = _scenes(cfg.weights.clearance_cap_mm + 1.0)

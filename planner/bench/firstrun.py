@@ -86,8 +86,7 @@ INSTALLS = {"firstrun.csv": "docs/speed/firstrun.csv", "firstrun.png": "docs/spe
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = args.out  # made by the bench command
     repeat = getattr(args, "repeat", None) or (1 if args.quick else 3)
     case = "pilot" if args.quick else "clinical"
     what = ("demo", "kernels")

@@ -77,8 +77,7 @@ def run(args: argparse.Namespace) -> int:
         0, after printing each arm's Pareto curve.
     """
     s = settings(args, ImplantBenchSettings(), QUICK)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = args.out  # made by the bench command
     case = clinical_case(0)
     structures = structure_set(case.spec)
     grid = image_grid(case.spec)

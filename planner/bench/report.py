@@ -218,8 +218,7 @@ def run(args: argparse.Namespace) -> int:
         0 when the report renders.
     """
     s = settings(args, ReportBenchSettings(), QUICK)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = args.out  # made by the bench command
     with tempfile.TemporaryDirectory() as tmp:
         inputs = demo_inputs(Path(tmp), implant=s.implant)
     rows = measure(inputs, max(1, s.repeat))

@@ -155,9 +155,9 @@ def check_case(inputs: CaseInput, config: CaseConfig) -> None:
     Parameters
     ----------
     inputs : CaseInput
-        The case.
+        The structures whose dose target is checked.
     config : CaseConfig
-        What to plan.
+        Says whether dose is planned (``export``) and on which ROI (``target_roi``).
 
     Raises
     ------
