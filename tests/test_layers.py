@@ -43,6 +43,11 @@ def test_installed_package_keeps_its_floors_and_rooms(tmp_path: Path) -> None:
     ("rod_model/select.py", "import reachplan.plugins.registry"),           # floor 1 -> floor 2
     ("plugins/exporters/device.py", "import reachplan.planner.errors"),     # floor 2 -> floor 3
     ("planner/geometry/collision.py", "import reachplan.planner.dose.tg43"),  # room -> a room above it
+    ("planner/dose/coverage.py", "import reachplan.planner.implant.plan"),  # dose -> the implant room above it
+    ("planner/implant/plan.py", "import reachplan.planner.delivery"),  # implant -> delivery above it
+    ("planner/case/scene.py", "import reachplan.planner.dose.tg43"),  # case and dose are independent
+    ("planner/lookup.py", "import reachplan.planner.geometry.template"),  # lookup sits right above errors
+    ("planner/delivery.py", "import reachplan.planner.run.case"),  # delivery -> run above it
 ])
 def test_an_upward_import_breaks_the_contract(tmp_path: Path, module: str, upward: str) -> None:
     copy = tmp_path / "site" / "reachplan"
