@@ -1,32 +1,19 @@
 """``reachplan dose``: recompute a brachy plan with TG-43 (secondary check) and write an RT Dose.
 
-The source data set is the one named in the plan (Source Model ID, Isotope Name, manufacturer, treatment
-machine) when its isotope, kind and active length agree; for an anonymised plan the only registered one of the
-plan's isotope (named or told by the half-life), treatment type and active length (see
-:func:`reachplan.plugins.sources.identify.identify_source`); else ``--source``. S_K is the plan's Reference Air Kerma
-Rate decayed from its reference date to the treatment date: ``--treatment-date``, else the RT Plan Date (whole
-days; Eclipse dates the strength to the plan day at midnight, rtplan_conventions.md §5). Dwell times follow the
-Eclipse conventions (see :mod:`reachplan.imaging.rtplan`), doses are totals over fractions and pulses.
+The check itself is :func:`reachplan.planner.run.dose_check.check_plan_dose` (how the source is chosen and its
+strength decayed is said there); this module reads the files, calls it, writes the RT Dose and prints.
 """
 
 from __future__ import annotations
 
 import argparse
-from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from reachplan.planner.cli.edges import ArgumentError, finite, finite_float, output_file, print_json, seen_warnings
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
-
-    import numpy as np
-
-    from reachplan.imaging.rtplan import BrachySource, RtPlan
-    from reachplan.imaging.types import Grid
-    from reachplan.planner.dose.tg43 import PointCheck
-    from reachplan.plugins.sources.identify import SourceChoice
+    from reachplan.planner.run.dose_check import DoseCheck
 
 NAME = "dose"
 HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary check of TPS point doses)"
@@ -56,20 +43,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Recompute the plan's dose with TG-43, write the RT Dose and print the point checks; return 0."""
-    import numpy as np
+    """Recompute the plan's dose with TG-43, write the RT Dose and print the point checks.
 
-    from reachplan.imaging.rtplan import channel_paths, read_rtplan
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed ``dose`` arguments.
+
+    Returns
+    -------
+    int
+        The exit status, 0.
+    """
+    from reachplan.imaging.rtplan import read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.dose.tg43 import Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
-    from reachplan.planner.errors import PlanInputError
     from reachplan.planner.lookup import get_source
-    from reachplan.plugins.errors import SourceMatchError
-    from reachplan.plugins.exporters.rtdose import (
-        CEILING_TIMES_PRESCRIPTION,
-        DoseContext,
-        write_rtdose,
-    )
+    from reachplan.planner.run.dose_check import DoseCheckConfig, check_plan_dose
+    from reachplan.plugins.exporters.rtdose import read_rtdose_grid, write_rtdose
 
     # --- arguments and the output place, before any work ---
     output_file(args.out, (args.plan, args.structures, args.like))
@@ -78,168 +68,46 @@ def run(args: argparse.Namespace) -> int:
     for given, option in ((args.plan, "--plan"), (args.structures, "--structures"), (args.like, "--like")):
         if given is not None and not given.is_file():
             raise ArgumentError(f"{option} {given} is not a file; give the path of the DICOM file")
-    chosen = get_source(args.source) if args.source else None  # an unknown name is an error now, not after work
-
+    if args.source:
+        get_source(args.source)  # an unknown name is an error now, not after work
     plan = read_rtplan(args.plan)
-    if not plan.is_brachy or not plan.channels:
-        raise PlanInputError(f"{args.plan} is not a brachytherapy plan with channels; pass a brachy RT Plan")
     structures = read_rtstruct(args.structures)
-    src = plan.source(plan.channels[0].source_number)
-    if src.air_kerma_rate_u <= 0:
-        raise PlanInputError(f"{args.plan}: the source has no Reference Air Kerma Rate; cannot compute dose")
-    try:
-        choice = _choose_source(plan, src, args.source)
-    except (PlanInputError, SourceMatchError) as exc:
-        raise PlanInputError(f"{args.plan}: {exc}") from None
-    data = chosen if chosen is not None and choice.name == args.source else get_source(choice.name)
-    check_isotope(src, data, str(args.plan))
-    sk_u, decay = _decayed_strength(plan, src, args.treatment_date)
-    kernel = Tg43Kernel(data, args.model)
-    dwells = plan_dwells(plan, channel_paths(plan, structures))
-    if not len(dwells):
-        raise PlanInputError(f"{args.plan}: the plan has no dwell positions; there is no dose to compute")
-
-    grid = _dose_grid(args, dwells.positions_mm)
-    for_uid = plan.frame_of_reference_uid or structures.frame_of_reference_uid
-    if not for_uid:
-        raise PlanInputError("neither the plan nor the structure set gives a Frame of Reference UID")
-    dose = dose_on_grid(grid, dwells, kernel, sk_u)
-    if not np.all(np.isfinite(dose)):
-        raise PlanInputError(f"{args.plan}: the dose is not finite on the grid (a dwell time or strength out of "
-                             "range); check the plan's times and source")
-    checks = check_points(plan, dwells, kernel, sk_u) if args.points else ()
-    context = DoseContext(
-        frame_of_reference_uid=for_uid,
-        patient_study=plan.patient_study,
-        referenced_plan_uid=plan.sop_instance_uid,
-    )
-    setup = max((d for _, d in plan.setup_doses_gy), default=0.0) * plan.n_fractions * plan.n_pulses
+    like = read_rtdose_grid(args.like)[1] if args.like is not None else None
+    config = DoseCheckConfig(args.source, args.model, 2.5 if args.spacing is None else args.spacing, args.margin,
+                             like, args.treatment_date, args.points)
+    check = check_plan_dose(plan, structures, config, str(args.plan))
     # the only output, written last and atomically
-    write_rtdose(args.out, dose, grid, context, bits=args.bits,
-                 ceiling_gy=CEILING_TIMES_PRESCRIPTION * setup if setup > 0 else None)
-
-    _report(args, choice, decay, grid, dose, len(dwells), checks, f"{plan.n_fractions} fraction(s) x "
-            f"{plan.n_pulses} pulse(s)", sk_u)
+    write_rtdose(args.out, check.dose_gy, check.grid, check.context, bits=args.bits, ceiling_gy=check.ceiling_gy)
+    _report(args, check)
     return 0
 
 
-def _dose_grid(args: argparse.Namespace, positions_mm: np.ndarray) -> Grid:
-    """Return the dose grid: ``--like``'s, else ``--spacing`` around the dwells with ``--margin`` (mm, LPS)."""
-    import numpy as np
-
-    from reachplan.imaging.types import Grid
-    from reachplan.planner.errors import PlanInputError
-    from reachplan.plugins.exporters.rtdose import read_rtdose_grid
-
-    if args.like is not None:
-        _, grid = read_rtdose_grid(args.like)
-    else:
-        spacing = 2.5 if args.spacing is None else args.spacing
-        lo = positions_mm.min(axis=0) - args.margin
-        hi = positions_mm.max(axis=0) + args.margin
-        n = np.floor((hi - lo) / spacing).astype(int) + 1
-        affine = np.diag([spacing, spacing, spacing, 1.0])
-        affine[:3, 3] = lo
-        grid = Grid((int(n[2]), int(n[1]), int(n[0])), affine)
-    if int(np.prod(grid.shape)) > 60_000_000:
-        raise PlanInputError(f"the dose grid {grid.shape} is too large; use a coarser --spacing")
-    grid_out: Grid = grid
-    return grid_out
-
-
-def _report(args: argparse.Namespace, choice: SourceChoice, decay: dict[str, Any], grid: Grid, dose: np.ndarray,
-            n_dwells: int, checks: Sequence[PointCheck], fractions: str, sk_u: float) -> None:
+def _report(args: argparse.Namespace, check: DoseCheck) -> None:
     """Print what was computed: one JSON document (``--json``) or lines of text."""
+    grid, dose, strength = check.grid, check.dose_gy, check.strength
     if args.json:
         doc: dict[str, object] = {
             "out": str(args.out),
-            "source": choice.name,
-            "source_choice": choice.how,
-            **decay,
+            "source": check.choice.name,
+            "source_choice": check.choice.how,
+            **strength.to_json(),
             "model": args.model,
             "grid_shape": list(grid.shape),
             "spacing_mm": [float(x) for x in grid.spacing_mm],
             "max_dose_gy": float(dose.max()),
-            "n_dwells": n_dwells,
+            "n_dwells": check.n_dwells,
         }
         if args.points:
             doc["points"] = [{"name": c.name, "position_mm": [float(x) for x in c.position_mm], "dose_gy": c.dose_gy,
-                              "tps_gy": c.tps_gy, "diff_percent": c.diff_percent} for c in checks]
+                              "tps_gy": c.tps_gy, "diff_percent": c.diff_percent} for c in check.checks]
         doc["warnings"] = seen_warnings(args)
         print_json(doc, NAME)
         return
-    print(f"source {choice.how} ({args.model} model)")
-    print(f"S_K {decay['air_kerma_reference_u']:.6g} U on {decay['reference_date']}, {sk_u:.6g} U on "
-          f"{decay['treatment_date']} ({decay['elapsed_days']:.3f} d); {n_dwells} dwells, {fractions}")
+    print(f"source {check.choice.how} ({args.model} model)")
+    print(f"S_K {strength.reference_u:.6g} U on {strength.reference_date}, {strength.treatment_u:.6g} U on "
+          f"{strength.treatment_date} ({strength.elapsed_days:.3f} d); {check.n_dwells} dwells, {check.fractions}")
     print(f"wrote {args.out}: grid {grid.shape} (k, j, i), max {float(dose.max()):.3f} Gy")
-    for c in checks:
+    for c in check.checks:
         tps = "-" if c.tps_gy is None else f"{c.tps_gy:.4f}"
         diff = "-" if c.diff_percent is None else f"{c.diff_percent:+.3f} %"
         print(f"  {c.name:<20} ours {c.dose_gy:.4f} Gy  planned {tps} Gy  {diff}")
-
-
-def _choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> SourceChoice:
-    """Return the TG-43 data set: ``--source`` (checked against the plan's isotope) or identified from the plan."""
-    from reachplan.planner.errors import PlanInputError
-    from reachplan.planner.lookup import all_sources, get_source
-    from reachplan.plugins.sources.identify import PlanSource, SourceChoice, identify_source, plan_isotope
-
-    if given:
-        data = get_source(given)
-        isotope = plan_isotope(src.isotope_name, src.half_life_days)
-        if isotope is not None and isotope != data.isotope:
-            raise PlanInputError(f"--source {given} is {data.isotope} but the plan's source is {isotope}; "
-                                 "choose a data set of that isotope")
-        return SourceChoice(given, f"{given}: given with --source")
-    return identify_source(all_sources(), PlanSource(src.model_id, src.isotope_name, src.manufacturer,
-                                                     plan.treatment_type, src.half_life_days, src.active_length_mm,
-                                                     plan.machine_name))
-
-
-def _parse_date(text: str, what: str) -> datetime:
-    from reachplan.planner.errors import PlanInputError
-
-    digits = text.strip().split(".")[0]
-    fmt = {8: "%Y%m%d", 10: "%Y%m%d%H", 12: "%Y%m%d%H%M", 14: "%Y%m%d%H%M%S"}.get(len(digits))
-    if fmt is not None and digits.isdigit():
-        try:
-            return datetime.strptime(digits, fmt)
-        except ValueError:
-            pass
-    raise PlanInputError(f"{what} {text!r} is not a date YYYYMMDD[HHMMSS]")
-
-
-def _decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None) -> tuple[float, dict[str, Any]]:
-    """Return S_K (U) at the treatment date and what was used (reference and treatment dates, elapsed days, S_K)."""
-    from reachplan.planner.errors import PlanInputError
-    from reachplan.plugins.sources.identify import decay_factor
-
-    info: dict[str, Any] = {"air_kerma_reference_u": src.air_kerma_rate_u, "reference_date": src.reference_date,
-                            "treatment_date": "", "elapsed_days": 0.0}
-    if not src.reference_date:
-        info["treatment_date"] = "unknown (no Source Strength Reference Date: not decayed)"
-        info["air_kerma_treatment_u"] = src.air_kerma_rate_u
-        return src.air_kerma_rate_u, info
-    ref = _parse_date(src.reference_date + (src.reference_time or ""), "Source Strength Reference Date")
-    if treatment:
-        when = _parse_date(treatment, "--treatment-date")
-        elapsed = (when - ref).total_seconds() / 86400.0
-        info["treatment_date"] = treatment
-    elif plan.plan_date:
-        day = _parse_date(plan.plan_date, "RT Plan Date")
-        elapsed = float((day.date() - ref.date()).days)
-        info["treatment_date"] = f"{plan.plan_date} (RT Plan Date)"
-    else:
-        elapsed = 0.0
-        info["treatment_date"] = f"{src.reference_date} (no RT Plan Date: not decayed)"
-    if src.half_life_days is None or src.half_life_days <= 0:
-        if elapsed != 0.0:
-            raise PlanInputError("the plan's source has no half-life; cannot decay its strength to the treatment "
-                                 "date (pass --treatment-date equal to the reference date to use it as written)")
-        factor = 1.0
-    else:
-        factor = decay_factor(src.half_life_days, elapsed)
-    info["reference_date"] = f"{src.reference_date} {src.reference_time}".strip()
-    info["elapsed_days"] = elapsed
-    info["air_kerma_treatment_u"] = src.air_kerma_rate_u * factor
-    return src.air_kerma_rate_u * factor, info

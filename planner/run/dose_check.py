@@ -1,0 +1,334 @@
+"""The TG-43 secondary check of a brachy RT Plan: the chain behind ``reachplan dose``.
+
+The source data set is the one named in the plan (Source Model ID, Isotope Name, manufacturer, treatment machine)
+when its isotope, kind and active length agree; for an anonymised plan the only registered one of the plan's isotope
+(named or told by the half-life), treatment type and active length
+(:func:`reachplan.plugins.sources.identify.identify_source`); else the one the caller names. S_K is the plan's
+Reference Air Kerma Rate decayed from its reference date to the treatment date: the one given, else the RT Plan Date
+(whole days; Eclipse dates the strength to the plan day at midnight, rtplan_conventions.md §5). Dwell times follow
+the Eclipse conventions (see :mod:`reachplan.imaging.rtplan`); doses are totals over fractions and pulses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Literal
+
+import numpy as np
+
+from reachplan.imaging.rtplan import BrachySource, RtPlan, channel_paths
+from reachplan.imaging.types import Grid, StructureSet
+from reachplan.planner.dose.tg43 import PointCheck, Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.lookup import all_sources, get_source
+from reachplan.plugins.errors import SourceMatchError
+from reachplan.plugins.exporters.rtdose import CEILING_TIMES_PRESCRIPTION, DoseContext
+from reachplan.plugins.sources.identify import PlanSource, SourceChoice, decay_factor, identify_source, plan_isotope
+
+#: the largest dose grid computed (voxels); a finer one asks for a coarser spacing
+MAX_GRID_VOXELS = 60_000_000
+
+
+@dataclass(frozen=True)
+class DoseCheckConfig:
+    """How to recompute a plan's dose.
+
+    Parameters
+    ----------
+    source : str or None
+        The TG-43 data set to use; None: identified from the plan.
+    model : str
+        ``"line"`` (TG-43 line source) or ``"point"`` (1D point source).
+    spacing_mm : float
+        Grid spacing around the dwells, mm (ignored with ``like``).
+    margin_mm : float
+        Margin of that grid around the dwell positions, mm.
+    like : Grid or None
+        A grid to compute on (an RT Dose's), LPS mm.
+    treatment_date : str or None
+        ``YYYYMMDD[HHMMSS]`` the source strength is decayed to; None: the RT Plan Date.
+    points : bool
+        Also compute the dose at the plan's dose reference points.
+    """
+
+    source: str | None = None
+    model: Literal["line", "point"] = "line"
+    spacing_mm: float = 2.5
+    margin_mm: float = 30.0
+    like: Grid | None = None
+    treatment_date: str | None = None
+    points: bool = False
+
+
+@dataclass(frozen=True)
+class SourceStrength:
+    """The source strength used: as written in the plan and decayed to the treatment date.
+
+    Parameters
+    ----------
+    reference_u : float
+        Reference Air Kerma Rate, U (µGy m² h⁻¹), at the reference date.
+    reference_date : str
+        The reference date and time as written (empty when the plan gives none).
+    treatment_date : str
+        The date decayed to, and where it came from.
+    elapsed_days : float
+        Days from the reference date to the treatment date.
+    treatment_u : float
+        S_K at the treatment date, U.
+    """
+
+    reference_u: float
+    reference_date: str
+    treatment_date: str
+    elapsed_days: float
+    treatment_u: float
+
+    def to_json(self) -> dict[str, object]:
+        """Return the strength as the command's JSON keys.
+
+        Returns
+        -------
+        dict
+            ``air_kerma_reference_u``, ``reference_date``, ``treatment_date``, ``elapsed_days``,
+            ``air_kerma_treatment_u``.
+        """
+        return {"air_kerma_reference_u": self.reference_u, "reference_date": self.reference_date,
+                "treatment_date": self.treatment_date, "elapsed_days": self.elapsed_days,
+                "air_kerma_treatment_u": self.treatment_u}
+
+
+@dataclass(frozen=True, eq=False)
+class DoseCheck:
+    """A plan's dose recomputed with TG-43.
+
+    Parameters
+    ----------
+    choice : SourceChoice
+        The TG-43 data set and how it was chosen.
+    strength : SourceStrength
+        S_K as written and at the treatment date.
+    grid : Grid
+        The dose grid (LPS mm).
+    dose_gy : (nk, nj, ni) float
+        Total dose over fractions and pulses, Gy, on ``grid``.
+    n_dwells : int
+        Dwell positions with time.
+    checks : tuple of PointCheck
+        The dose at the plan's reference points against the plan's own (empty unless asked for).
+    context : DoseContext
+        What the RT Dose refers to (Frame of Reference, patient and study, the plan).
+    ceiling_gy : float or None
+        The largest dose the RT Dose stores (a multiple of the prescription), None when the plan has none.
+    fractions : str
+        ``"N fraction(s) x M pulse(s)"``.
+    """
+
+    choice: SourceChoice
+    strength: SourceStrength
+    grid: Grid
+    dose_gy: np.ndarray
+    n_dwells: int
+    checks: tuple[PointCheck, ...]
+    context: DoseContext
+    ceiling_gy: float | None
+    fractions: str
+
+
+def check_plan_dose(plan: RtPlan, structures: StructureSet, config: DoseCheckConfig, label: str = "plan") -> DoseCheck:
+    """Recompute a brachy plan's dose with TG-43 on a grid around its dwells (or the one given).
+
+    Parameters
+    ----------
+    plan : RtPlan
+        The brachy RT Plan as read.
+    structures : StructureSet
+        The RT Structure Set with its channels' ROIs.
+    config : DoseCheckConfig
+        Source, model, grid, treatment date, points.
+    label : str
+        The plan's name in messages (its file name).
+
+    Returns
+    -------
+    DoseCheck
+        The dose and what it was computed with.
+
+    Raises
+    ------
+    PlanInputError
+        Not a brachy plan with channels, no source strength, no source data that fits, no dwell, no Frame of
+        Reference, a grid too large, or a dose that is not finite.
+    """
+    if not plan.is_brachy or not plan.channels:
+        raise PlanInputError(f"{label} is not a brachytherapy plan with channels; pass a brachy RT Plan")
+    src = plan.source(plan.channels[0].source_number)
+    if src.air_kerma_rate_u <= 0:
+        raise PlanInputError(f"{label}: the source has no Reference Air Kerma Rate; cannot compute dose")
+    try:
+        choice = choose_source(plan, src, config.source)
+    except (PlanInputError, SourceMatchError) as exc:
+        raise PlanInputError(f"{label}: {exc}") from None
+    data = get_source(choice.name)
+    check_isotope(src, data, label)
+    strength = decayed_strength(plan, src, config.treatment_date)
+    kernel = Tg43Kernel(data, config.model)
+    dwells = plan_dwells(plan, channel_paths(plan, structures))
+    if not len(dwells):
+        raise PlanInputError(f"{label}: the plan has no dwell positions; there is no dose to compute")
+    grid = config.like if config.like is not None else dose_grid(dwells.positions_mm, config.spacing_mm,
+                                                                 config.margin_mm)
+    if int(np.prod(grid.shape)) > MAX_GRID_VOXELS:
+        raise PlanInputError(f"the dose grid {grid.shape} is too large; use a coarser --spacing")
+    for_uid = plan.frame_of_reference_uid or structures.frame_of_reference_uid
+    if not for_uid:
+        raise PlanInputError("neither the plan nor the structure set gives a Frame of Reference UID")
+    dose = dose_on_grid(grid, dwells, kernel, strength.treatment_u)
+    if not np.all(np.isfinite(dose)):
+        raise PlanInputError(f"{label}: the dose is not finite on the grid (a dwell time or strength out of "
+                             "range); check the plan's times and source")
+    checks = tuple(check_points(plan, dwells, kernel, strength.treatment_u)) if config.points else ()
+    context = DoseContext(frame_of_reference_uid=for_uid, patient_study=plan.patient_study,
+                          referenced_plan_uid=plan.sop_instance_uid)
+    setup = max((d for _, d in plan.setup_doses_gy), default=0.0) * plan.n_fractions * plan.n_pulses
+    return DoseCheck(choice, strength, grid, dose, len(dwells), checks, context,
+                     CEILING_TIMES_PRESCRIPTION * setup if setup > 0 else None,
+                     f"{plan.n_fractions} fraction(s) x {plan.n_pulses} pulse(s)")
+
+
+def dose_grid(positions_mm: np.ndarray, spacing_mm: float, margin_mm: float) -> Grid:
+    """Return an axis-aligned grid holding the dwells with a margin.
+
+    Parameters
+    ----------
+    positions_mm : (n, 3) float
+        Dwell positions, mm, LPS.
+    spacing_mm : float
+        Voxel size, mm (cubic).
+    margin_mm : float
+        Margin around the dwells on every side, mm.
+
+    Returns
+    -------
+    Grid
+        The grid, LPS mm.
+    """
+    lo = positions_mm.min(axis=0) - margin_mm
+    hi = positions_mm.max(axis=0) + margin_mm
+    n = np.floor((hi - lo) / spacing_mm).astype(int) + 1
+    affine = np.diag([spacing_mm, spacing_mm, spacing_mm, 1.0])
+    affine[:3, 3] = lo
+    return Grid((int(n[2]), int(n[1]), int(n[0])), affine)
+
+
+def choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> SourceChoice:
+    """Return the TG-43 data set: ``given`` (checked against the plan's isotope) or identified from the plan.
+
+    Parameters
+    ----------
+    plan : RtPlan
+        The plan (treatment type, machine name).
+    src : BrachySource
+        Its source.
+    given : str or None
+        The data set the user named (``--source``).
+
+    Returns
+    -------
+    SourceChoice
+        The data set and how it was chosen.
+
+    Raises
+    ------
+    PlanInputError
+        ``given`` is of another isotope than the plan's source.
+    SourceMatchError
+        No data set, or several, fit the plan (:func:`~reachplan.plugins.sources.identify.identify_source`).
+    """
+    if given:
+        data = get_source(given)
+        isotope = plan_isotope(src.isotope_name, src.half_life_days)
+        if isotope is not None and isotope != data.isotope:
+            raise PlanInputError(f"--source {given} is {data.isotope} but the plan's source is {isotope}; "
+                                 "choose a data set of that isotope")
+        return SourceChoice(given, f"{given}: given with --source")
+    return identify_source(all_sources(), PlanSource(src.model_id, src.isotope_name, src.manufacturer,
+                                                     plan.treatment_type, src.half_life_days, src.active_length_mm,
+                                                     plan.machine_name))
+
+
+def parse_date(text: str, what: str) -> datetime:
+    """Parse a DICOM date (and time) ``YYYYMMDD[HH[MM[SS]]]``, fractions of a second ignored.
+
+    Parameters
+    ----------
+    text : str
+        The date as written.
+    what : str
+        What it is, for the message.
+
+    Returns
+    -------
+    datetime
+        Naive (no time zone), as DICOM writes it.
+
+    Raises
+    ------
+    PlanInputError
+        Not such a date.
+    """
+    digits = text.strip().split(".")[0]
+    fmt = {8: "%Y%m%d", 10: "%Y%m%d%H", 12: "%Y%m%d%H%M", 14: "%Y%m%d%H%M%S"}.get(len(digits))
+    if fmt is not None and digits.isdigit():
+        try:
+            return datetime.strptime(digits, fmt)
+        except ValueError:
+            pass
+    raise PlanInputError(f"{what} {text!r} is not a date YYYYMMDD[HHMMSS]")
+
+
+def decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None) -> SourceStrength:
+    """Return S_K at the treatment date: ``treatment``, else the RT Plan Date (whole days), else not decayed.
+
+    Parameters
+    ----------
+    plan : RtPlan
+        The plan (its RT Plan Date).
+    src : BrachySource
+        Its source: strength, reference date and time, half-life.
+    treatment : str or None
+        ``YYYYMMDD[HHMMSS]`` to decay to.
+
+    Returns
+    -------
+    SourceStrength
+        As written and decayed, with the dates and the elapsed days.
+
+    Raises
+    ------
+    PlanInputError
+        A date that is not one, or a source without half-life that would need decaying.
+    """
+    if not src.reference_date:
+        return SourceStrength(src.air_kerma_rate_u, "", "unknown (no Source Strength Reference Date: not decayed)",
+                              0.0, src.air_kerma_rate_u)
+    ref = parse_date(src.reference_date + (src.reference_time or ""), "Source Strength Reference Date")
+    if treatment:
+        elapsed = (parse_date(treatment, "--treatment-date") - ref).total_seconds() / 86400.0
+        when = treatment
+    elif plan.plan_date:
+        elapsed = float((parse_date(plan.plan_date, "RT Plan Date").date() - ref.date()).days)
+        when = f"{plan.plan_date} (RT Plan Date)"
+    else:
+        elapsed = 0.0
+        when = f"{src.reference_date} (no RT Plan Date: not decayed)"
+    if src.half_life_days is None or src.half_life_days <= 0:
+        if elapsed != 0.0:
+            raise PlanInputError("the plan's source has no half-life; cannot decay its strength to the treatment "
+                                 "date (pass --treatment-date equal to the reference date to use it as written)")
+        factor = 1.0
+    else:
+        factor = decay_factor(src.half_life_days, elapsed)
+    return SourceStrength(src.air_kerma_rate_u, f"{src.reference_date} {src.reference_time}".strip(), when, elapsed,
+                          src.air_kerma_rate_u * factor)
