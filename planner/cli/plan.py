@@ -362,7 +362,7 @@ def plan_and_write(inputs: CaseInput, config: CaseConfig, out: Path, quiet: bool
         plan.json's content.
     """
     from reachplan.planner.kernels import start
-    from reachplan.planner.report.build import format_implant, format_summary
+    from reachplan.planner.report.terminal import format_implant, format_summary
     from reachplan.planner.run.case import run_case
     from reachplan.planner.run.outputs import write_outputs
 
