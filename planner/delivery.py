@@ -182,8 +182,9 @@ def plan_delivery(
     PlanInputError
         No feasible needle, no target structure to optimise on, or a bad named point.
     """
+    from reachplan.planner.dose.dwells import dose_on_grid, rate_matrix
     from reachplan.planner.dose.optimize import Aims
-    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, rate_matrix
+    from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.planner.geometry.reference_points import place_reference_points
     from reachplan.plugins.exporters import ExportPlan, SourceSpec
     from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
@@ -281,8 +282,8 @@ def _per_target(
 
     The dwells are renumbered so that channel ``ch`` of the result is the ``ch``-th exported needle.
     """
+    from reachplan.planner.dose.dwells import DwellSet
     from reachplan.planner.dose.optimize import optimise_dwell_times
-    from reachplan.planner.dose.tg43 import DwellSet
     from reachplan.plugins.exporters import NeedleExport
 
     needles = choose_needles(result)

@@ -118,7 +118,8 @@ def _warm(group: str) -> None:
         model.solve_batch(d, np.array([1.0, 2.0]))
     elif group == "dose":
         from reachplan.imaging.types import Grid
-        from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid
+        from reachplan.planner.dose.dwells import DwellSet, dose_on_grid
+        from reachplan.planner.dose.tg43 import Tg43Kernel
         from reachplan.plugins.sources import BUILTIN
 
         k = Tg43Kernel(BUILTIN["gammamed_plus_hdr"]())

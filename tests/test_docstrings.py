@@ -43,6 +43,8 @@ PLANNER_DONE = (
     "planner/steering/schedule.py",
     "planner/steering/steered.py",
     "planner/dose/tg43.py",
+    "planner/dose/dwells.py",
+    "planner/dose/plan_check.py",
     "planner/dose/coverage.py",
 )
 #: Files and folders checked, relative to the repository root.

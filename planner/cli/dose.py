@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
     from reachplan.imaging.rtplan import BrachySource, RtPlan
     from reachplan.imaging.types import Grid
-    from reachplan.planner.dose.tg43 import PointCheck
+    from reachplan.planner.dose.plan_check import PointCheck
     from reachplan.plugins.sources.identify import SourceChoice
 
 NAME = "dose"
@@ -61,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
 
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.dose.tg43 import Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
+    from reachplan.planner.dose.dwells import dose_on_grid, plan_dwells
+    from reachplan.planner.dose.plan_check import check_isotope, check_points
+    from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.planner.errors import PlanInputError
     from reachplan.planner.lookup import get_source
     from reachplan.plugins.errors import SourceMatchError

@@ -87,14 +87,9 @@ from reachplan.planner.dose.coverage import (
     structure_metrics,
     voxel_volume_cc,
 )
+from reachplan.planner.dose.dwells import DwellSet, dose_on_grid, dwell_directions, grid_points_mm
 from reachplan.planner.dose.optimize import Aims, PlanningStructures, Structure
-from reachplan.planner.dose.tg43 import (
-    DwellSet,
-    Tg43Kernel,
-    dose_on_grid,
-    dwell_directions,
-    grid_points_mm,
-)
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.geometry.collision import Organ, check_path
 from reachplan.planner.geometry.distance_field import distance_transform
 from reachplan.planner.steering.schedule import TensionSchedule

@@ -45,7 +45,8 @@ from reachplan.planner.dose.coverage import (
     structure_metrics,
     voxel_volume_cc,
 )
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dwells_along_path, grid_points_mm
+from reachplan.planner.dose.dwells import DwellSet, dwells_along_path, grid_points_mm
+from reachplan.planner.dose.tg43 import Tg43Kernel
 
 
 @dataclass(frozen=True, eq=False)

@@ -345,8 +345,9 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
     """
     if delivery is None or not delivery.optimisation.success:
         return None
+    from reachplan.planner.dose.dwells import dose_at_points
     from reachplan.planner.dose.optimize import Aims
-    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_at_points
+    from reachplan.planner.dose.tg43 import Tg43Kernel
 
     dwells = delivery.optimisation.dwells
     active = dwells.select(dwells.times_s > 0)

@@ -7,6 +7,7 @@ import pytest
 
 from reachplan.imaging.types import Grid
 from reachplan.planner.dose.coverage import Fractionation, eqd2, voxel_volume_cc
+from reachplan.planner.dose.dwells import dose_on_grid
 from reachplan.planner.dose.optimize import (
     Aims,
     OptimizerSettings,
@@ -16,7 +17,7 @@ from reachplan.planner.dose.optimize import (
     compare_arms,
     optimise_dwell_times,
 )
-from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.lookup import get_source
 
 SK = 40000.0
