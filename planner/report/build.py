@@ -18,7 +18,7 @@ from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.delivery import Delivery
 from reachplan.planner.dose.optimize import Comparison, OptimizerSettings
-from reachplan.planner.report import figures
+from reachplan.planner.report import charts, figures
 from reachplan.planner.report.html import (
     Block,
     Figure,
@@ -56,14 +56,14 @@ def _implant_section(implant: ImplantComparison | None) -> Section | None:
                   + ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy) + "."),
         Table(rows[0], tuple(rows[1:]), "Implant arms side by side (EQD2 totals, Gy)",
               numeric=tuple(range(1, len(rows[0])))),
-        Figure(figures.png_bytes(figures.pareto_figure(implant.arms, aims.target_d90_eqd2_gy), dpi=90),
+        Figure(figures.png_bytes(charts.pareto_figure(implant.arms, aims.target_d90_eqd2_gy), dpi=90),
                "Pareto curves: template needles against HR-CTV D90 (EQD2) with the organ limits held; filled: every "
                "aim met, hollow: an aim not met; circled: the chosen implant; dotted red: the 85 Gy aim. Straight: "
                "dashed orange, steered: solid cyan."),
     ]
     if any(a.plan is not None and a.plan.dvhs for a in implant.arms):
         blocks.append(Figure(
-            figures.png_bytes(figures.implant_dvh_figure(implant.arms, aims), dpi=90),
+            figures.png_bytes(charts.implant_dvh_figure(implant.arms, aims), dpi=90),
             "Both arms' cumulative DVHs per fraction (straight dashed, steered solid; HR-CTV thicker) with the "
             "EMBRACE II aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. Organ curves cover "
             "the voxels near the loaded dwells, where D2cm³ is decided."))
@@ -263,7 +263,7 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
         if opt.success and opt.dvhs:
             from reachplan.planner.dose.optimize import Aims
 
-            png = figures.png_bytes(figures.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
+            png = figures.png_bytes(charts.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
             blocks.append(Figure(png, "Delivered plan: cumulative DVHs per fraction with the EMBRACE II aim "
                                       "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
     return Section("Dose and coverage", "dose", tuple(blocks))
@@ -499,11 +499,11 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
             bar.update()
         view = interactive_view(scene, straight, steered, delivery, options.mesh_faces)
         bar.update()
-        dvh = figures.dvh_png(comparison) if comparison is not None else None
+        dvh = charts.dvh_png(comparison) if comparison is not None else None
         bar.update()
         rows: Sequence[ErrorRow] = tuple(model_errors)
         used = models_used(result)
-        chart = figures.speed_accuracy(rows, used) if rows else None
+        chart = charts.speed_accuracy(rows, used) if rows else None
         bar.update()
     finally:
         bar.close()
