@@ -6,7 +6,7 @@ The terminal text is :mod:`reachplan.planner.report.terminal`, the straight-vers
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
@@ -428,6 +428,28 @@ def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered:
     ))
 
 
+def _slice_blocks(scene: Scene, result: PlanResult, volume: Volume | None, dose: figures.DoseOverlay | None,
+                  slice_targets: Sequence[str], done: Callable[[], object]) -> list[Block]:
+    """Return the slices section's blocks: the caption, then each target's slice views (``done`` after each)."""
+    slices: list[Block] = [Paragraph(
+        "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
+        "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane. "
+        f"Axial slices are {figures.RADIOLOGICAL}, like the template map; coronal slices are seen from the "
+        "front (patient left on the right), sagittal slices from the patient's left (anterior on the left); "
+        "the letters on the edges say which side is which."
+        + ("" if dose is None else " Isodose lines of the delivered plan at 50, 100, 150 and 200 % of the "
+           f"prescription ({dose.prescription_gy:.2f} Gy per fraction); black dots are its active dwell "
+           "positions within 2.5 mm of the plane, labelled with their dwell times in seconds."))]
+    for t in slice_targets:
+        s, st = result.best(t, False), result.best(t, True)
+        desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "
+                         f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
+                         for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
+        slices.append(Figure(figures.slice_views(scene, t, s, st, volume, dose=dose), f"{t}: {desc}"))
+        done()
+    return slices
+
+
 def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = None,
                  delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
@@ -480,23 +502,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
         case_sec = Section(case_sec.title, case_sec.anchor, (*case_sec.blocks, *case_figures))
         bar.update()
-        dose = dose_overlay(delivery)
-        slices: list[Block] = [Paragraph(
-            "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
-            "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane. "
-            f"Axial slices are {figures.RADIOLOGICAL}, like the template map; coronal slices are seen from the "
-            "front (patient left on the right), sagittal slices from the patient's left (anterior on the left); "
-            "the letters on the edges say which side is which."
-            + ("" if dose is None else " Isodose lines of the delivered plan at 50, 100, 150 and 200 % of the "
-               f"prescription ({dose.prescription_gy:.2f} Gy per fraction); black dots are its active dwell "
-               "positions within 2.5 mm of the plane, labelled with their dwell times in seconds."))]
-        for t in slice_targets:
-            s, st = result.best(t, False), result.best(t, True)
-            desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "
-                             f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
-                             for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
-            slices.append(Figure(figures.slice_views(scene, t, s, st, volume, dose=dose), f"{t}: {desc}"))
-            bar.update()
+        slices = _slice_blocks(scene, result, volume, dose_overlay(delivery), slice_targets, bar.update)
         view = interactive_view(scene, straight, steered, delivery, options.mesh_faces)
         bar.update()
         dvh = charts.dvh_png(comparison) if comparison is not None else None
