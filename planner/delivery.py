@@ -100,13 +100,27 @@ EXPORT_ARM = "steered"
 class Delivery:
     """The delivered plan: loaded channels with their dwell times, ready for the exporters.
 
-    ``export`` holds only the channels that carry dwell time (a needle the optimum leaves empty is not part of the
-    implant and gets no instructions); ``roles`` says, per exported channel, what it is for (the target a
-    per-target needle was chosen for, the target volume for an implant needle, ``intracavitary`` for an applicator
-    channel); ``kind``: which plan is delivered (``implant, straight + steered``, ``implant, straight`` or
-    ``one needle per target``). ``optimisation``: its dwell times and dose-volume metrics. ``source``: the TG-43
-    data set the dwell times were optimised with. ``implant``: the two implant arms (:func:`plan_implants`) when
-    asked for, and ``implant_exports`` the export of each arm's chosen implant (loaded channels only), by arm name.
+    Parameters
+    ----------
+    optimisation : OptimisationResult
+        The delivered plan's dwell times and dose-volume metrics.
+    export : ExportPlan
+        Only the channels that carry dwell time (a needle the optimum leaves empty is not part of the implant and
+        gets no instructions).
+    planning : PlanningStructures
+        The planning grid and masks the dose was optimised on.
+    source : SourceData
+        The TG-43 data set the dwell times were optimised with.
+    roles : tuple of str
+        Per exported channel, what it is for: the target a per-target needle was chosen for, the target volume for
+        an implant needle, ``intracavitary`` for an applicator channel.
+    kind : str
+        Which plan is delivered: ``implant, straight + steered``, ``implant, straight`` or ``one needle per
+        target``.
+    implant : ImplantComparison or None
+        The two implant arms (:func:`plan_implants`) when asked for.
+    implant_exports : dict of str to ExportPlan
+        By arm name, the export of each arm's chosen implant (loaded channels only).
     """
 
     optimisation: OptimisationResult
@@ -176,6 +190,40 @@ def plan_delivery(
     (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
     planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
     False: no RT Dose, for callers that only need the optimisation).
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    structures : StructureSet
+        The case's structures (target volume, organs at risk, reference-point landmarks).
+    grid : Grid or None
+        The planning grid; None: the structures' own (:func:`planning_structures`).
+    source_name : str
+        The TG-43 data set, by name.
+    air_kerma_u : float, U
+        Source strength (cGy cm² h⁻¹).
+    target_roi : str
+        The target volume's ROI name.
+    label : str
+        RT Plan label of the delivered plan (cut to 16 characters).
+    volume : Volume or None
+        The image series the exports reference.
+    input_paths : sequence of Path
+        The input files, for the exports' provenance.
+    named_points : sequence of (str, (float, float, float))
+        Further reference points, name and position (mm, LPS).
+    planned_dose : bool
+        Compute the planned dose for the RT Dose export.
+    scene : Scene or None
+        With it the implant arms are planned and delivered; None: one needle per target.
+    implant_settings : ImplantSettings or None
+        Settings of the implant planning; None: the defaults.
+
+    Returns
+    -------
+    Delivery
+        The delivered plan, its exports and (with ``scene``) both implant arms.
 
     Raises
     ------
@@ -349,6 +397,16 @@ def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
     """Return the loaded channels of an implant as exporter needles, in the plan's order.
 
     Every one carries time: an empty channel is not in ``plan.channels``.
+
+    Parameters
+    ----------
+    plan : ImplantPlan
+        An arm's chosen implant; channel ``ch`` (from 1) holds the dwells with ``dwells.channels == ch``.
+
+    Returns
+    -------
+    tuple of NeedleExport
+        Path, dwell positions (mm, LPS) and times (s) per channel, applicator channels flagged.
     """
     from reachplan.plugins.exporters import NeedleExport
 
@@ -381,8 +439,19 @@ def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
 class ImplantComparison:
     """The two implant arms on the same anatomy and template.
 
-    Straight needles only, and straight + steered (see :mod:`reachplan.planner.dose.implant`); ``candidates`` every
-    candidate channel of the steered arm (the straight arm's are its straight ones and the intracavitary channels).
+    Straight needles only, and straight + steered (see :mod:`reachplan.planner.dose.implant`).
+
+    Parameters
+    ----------
+    straight : ImplantArm
+        The arm with straight needles only (and the intracavitary channels).
+    steered : ImplantArm
+        The arm with straight and steered needles.
+    candidates : tuple of Channel
+        Every candidate channel of the steered arm (the straight arm's are its straight ones and the intracavitary
+        channels).
+    seconds : float, s
+        Wall time of the whole: candidates and both arms, which run at once.
     """
 
     straight: ImplantArm
@@ -398,8 +467,11 @@ class ImplantComparison:
     def to_json(self) -> dict[str, object]:
         """Return plan.json's ``implant``.
 
-        ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`), the count of candidate channels by kind and the
-        wall time of the whole (candidates and both arms, which run at once), s.
+        Returns
+        -------
+        dict of str to object
+            ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`), ``candidates`` (the count of candidate channels
+            by kind) and ``seconds`` (wall time of the whole, s).
         """
         kinds: dict[str, int] = {}
         for c in self.candidates:
@@ -424,6 +496,34 @@ def plan_implants(
     ``intracavitary``: applicator channels (tandem, ring, ovoids) available to both arms
     (:func:`reachplan.planner.dose.implant.intracavitary_channel`). The steered arm screens every stylet design
     of ``config`` with the screening model of ``models``.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organs, template and its pose.
+    planning : PlanningStructures
+        The planning grid and masks.
+    config : PlanConfig
+        Stylet designs, schedule family, depth limit and needle radius.
+    source : SourceData
+        The TG-43 data set.
+    air_kerma_u : float, U
+        Source strength (cGy cm² h⁻¹).
+    settings : ImplantSettings or None
+        Settings of the implant planning; None: the defaults.
+    intracavitary : sequence of Channel
+        Applicator channels (tandem, ring, ovoids) available to both arms
+        (:func:`reachplan.planner.dose.implant.intracavitary_channel`).
+    gtv : Structure or None
+        The GTV, whose D98 (EQD2) each arm's plan reports; None: not reported.
+    models : PlanModels or None
+        The steered arm screens every stylet design of ``config`` with its screening model; None:
+        :meth:`PlanModels.for_config`.
+
+    Returns
+    -------
+    ImplantComparison
+        Both arms, each with its Pareto curve and chosen plan.
     """
     from reachplan.planner.dose.implant import ImplantSettings, needle_candidates, plan_arms, with_subset
     from reachplan.planner.dose.tg43 import Tg43Kernel
