@@ -142,6 +142,20 @@ class TissueRodInsertion(NamedInsertion):
         """Insert ``design`` to ``depth_mm`` once per schedule (positions mm, template frame).
 
         A step whose rod solve fails gives a :class:`FailedInsertion` with the depth and the reason.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        schedules : sequence of TensionSchedule
+            Tension (N) and roll (degrees) against depth (mm), one insertion each.
+        depth_mm : float, mm
+            Insertion depth, in ``(0, design.length_mm]``.
+
+        Returns
+        -------
+        list of InsertionPath or FailedInsertion
+            One per schedule, in order (:meth:`insert_one`).
         """
         out: list[InsertionPath | FailedInsertion] = []
         for sch in schedules:
@@ -195,12 +209,28 @@ class TissueRodInsertion(NamedInsertion):
                      ) -> tuple[np.ndarray | FailedInsertion, list[tuple[float, np.ndarray]]]:
         """Insert as :meth:`insert_one`, also returning the tip after every insertion step.
 
+        Parameters
+        ----------
+        design : RodDesign
+            The needle.
+        schedule : TensionSchedule
+            Tendon tension and roll against depth.
+        depth_mm : float, mm
+            Insertion depth, in ``(0, design.length_mm]``.
+        modulus_profile : tuple of ((p,) float ndarray, (p,) float ndarray), optional
+            ``(depth_mm, modulus_pa)`` as in :meth:`insert_one`; None = ``tissue_modulus_pa`` everywhere.
+
         Returns
         -------
         path : (n, 3) float ndarray or FailedInsertion
             As :meth:`insert_one` (mm, template frame).
         steps : list of (float, (3,) float ndarray)
             ``[(depth_mm, tip_mm), ...]``: the tip (mm, template frame) after each step, up to the failure if any.
+
+        Raises
+        ------
+        PlanInputError
+            A depth out of range, a schedule above the design's maximum tension, or a malformed ``modulus_profile``.
         """
         steps: list[tuple[float, np.ndarray]] = []
         if not (np.isfinite(depth_mm) and 0 < depth_mm <= design.length_mm):
