@@ -33,7 +33,13 @@ HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary ch
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the plan, structure set, grid, source, model and output options."""
+    """Add the plan, structure set, grid, source, model and output options.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The parser that ``reachplan dose`` options are added to.
+    """
     parser.add_argument("--plan", required=True, type=Path, help="brachy RT Plan (RP) file")
     parser.add_argument("--structures", required=True, type=Path, help="RT Structure Set with the channels")
     parser.add_argument("--points", action="store_true", help="report the dose at the plan's dose reference points")
@@ -56,7 +62,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Recompute the plan's dose with TG-43, write the RT Dose and print the point checks; return 0."""
+    """Recompute the plan's dose with TG-43, write the RT Dose and print the point checks; return 0.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options: plan and structure set files, the grid (``like`` or ``spacing`` and ``margin``), the
+        source, the treatment date and the output.
+
+    Returns
+    -------
+    int
+        0 (an error raises).
+    """
     import numpy as np
 
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
