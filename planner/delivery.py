@@ -28,10 +28,12 @@ from reachplan.plugins.applicators import Applicator, applicators_from_structure
 from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
+    from reachplan.planner.dose.dwells import DwellSet
     from reachplan.planner.dose.implant import Channel, ImplantArm, ImplantPlan, ImplantSettings
     from reachplan.planner.dose.optimize import Aims, OptimisationResult, PlanningStructures, Structure
     from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.plugins.exporters import ExportPlan, NeedleExport
+    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
 
 def planning_structures(structures: StructureSet, grid: Grid | None, target_roi: str, oar_names: Sequence[str],
@@ -230,54 +232,21 @@ def plan_delivery(
     PlanInputError
         No feasible needle, no target structure to optimise on, or a bad named point.
     """
-    from reachplan.planner.dose.dwells import dose_on_grid, rate_matrix
     from reachplan.planner.dose.optimize import Aims
     from reachplan.planner.dose.tg43 import Tg43Kernel
-    from reachplan.planner.geometry.reference_points import place_reference_points
     from reachplan.plugins.exporters import ExportPlan, SourceSpec
-    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names,
                                    None if scene is None else scene.applicators)
     source = get_source(source_name)
     kernel = Tg43Kernel(source)
     aims = Aims()
-    implant = None
-    if scene is not None:
-        tandem = applicator_channels(scene.applicators, planning, implant_settings)
-        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
-                                intracavitary=tandem)
-    delivered = _delivered_implant(implant, planning.target.name)
-    if delivered is not None:
-        arm, opt, exports, roles = delivered
-        kind = "implant, straight + steered" if arm.name == EXPORT_ARM else f"implant, {arm.name}"
-    else:
-        opt, exports, roles = _per_target(result, planning, kernel, air_kerma_u, aims)
-        kind = PER_TARGET
+    implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
+                                                    implant_settings)
     active = opt.dwells.select(opt.dwells.times_s > 0)
-    placed, _ = place_reference_points(structures)
-    wanted = [(p.name, p.position_mm) for p in placed]
-    for name, xyz in named_points:
-        pos = np.asarray(xyz, dtype=float)
-        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
-            raise PlanInputError(f"reference point {name!r}: give three finite coordinates in mm (LPS)")
-        wanted.append((name, pos))
-    gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
-    points = []
-    for name, pos in wanted:
-        rate = rate_matrix(pos[None], opt.dwells.positions_mm, opt.dwells.directions, kernel)[0] * gy_per_s
-        # per exported channel, in its dwell order (exported channel ch holds the dwells with channels == ch)
-        rates = tuple(rate[opt.dwells.channels == ch] for ch in range(1, len(exports) + 1))
-        try:
-            points.append(ReferencePoint(name, pos, rates))
-        except ValueError as exc:
-            raise PlanInputError(str(exc)) from None
+    points = _reference_points(structures, named_points, opt.dwells, len(exports), kernel, air_kerma_u)
     fractions = aims.fractionation.n_fractions
-    dose = None
-    if planned_dose:
-        dose_grid = _dose_region(planning)
-        values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
-        dose = PlannedDose(values * fractions, dose_grid)
+    dose = _planned_dose(planning, active, kernel, air_kerma_u, fractions) if planned_dose else None
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     setup = load_template(result.config.template).application_setup_type
 
@@ -292,6 +261,71 @@ def plan_delivery(
     implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
                        for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
+
+
+def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,
+               kernel: Tg43Kernel, air_kerma_u: float, aims: Aims, implant_settings: ImplantSettings | None,
+               ) -> tuple[ImplantComparison | None, OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...], str]:
+    """Return the implant arms (with ``scene``) and the plan to deliver: optimisation, needles, roles and kind.
+
+    The implant arm :func:`_delivered_implant` picks, else one needle per target (:func:`_per_target`).
+    """
+    implant = None
+    if scene is not None:
+        tandem = applicator_channels(scene.applicators, planning, implant_settings)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings,
+                                intracavitary=tandem)
+    delivered = _delivered_implant(implant, planning.target.name)
+    if delivered is not None:
+        arm, opt, exports, roles = delivered
+        kind = "implant, straight + steered" if arm.name == EXPORT_ARM else f"implant, {arm.name}"
+    else:
+        opt, exports, roles = _per_target(result, planning, kernel, air_kerma_u, aims)
+        kind = PER_TARGET
+    return implant, opt, exports, roles, kind
+
+
+def _planned_dose(planning: PlanningStructures, active: DwellSet, kernel: Tg43Kernel, air_kerma_u: float,
+                  fractions: int) -> PlannedDose:
+    """Return the planned dose of all ``fractions`` (Gy) on the target's and organs' region of the planning grid."""
+    from reachplan.planner.dose.dwells import dose_on_grid
+    from reachplan.plugins.exporters.base import PlannedDose
+
+    dose_grid = _dose_region(planning)
+    values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
+    return PlannedDose(values * fractions, dose_grid)
+
+
+def _reference_points(structures: StructureSet, named_points: Sequence[tuple[str, Sequence[float]]],
+                      dwells: DwellSet, n_channels: int, kernel: Tg43Kernel, air_kerma_u: float
+                      ) -> list[ReferencePoint]:
+    """Return the exported plan's reference points: the placed ones, then ``named_points``, with dose rates.
+
+    Rates in Gy s⁻¹ per dwell, per exported channel in its dwell order (exported channel ``ch`` holds the dwells
+    with ``channels == ch``).
+    """
+    from reachplan.planner.dose.dwells import rate_matrix
+    from reachplan.planner.geometry.reference_points import place_reference_points
+    from reachplan.plugins.exporters.base import ReferencePoint
+
+    placed, _ = place_reference_points(structures)
+    wanted = [(p.name, p.position_mm) for p in placed]
+    for name, xyz in named_points:
+        pos = np.asarray(xyz, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise PlanInputError(f"reference point {name!r}: give three finite coordinates in mm (LPS)")
+        wanted.append((name, pos))
+    gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
+    points = []
+    for name, pos in wanted:
+        rate = rate_matrix(pos[None], dwells.positions_mm, dwells.directions, kernel)[0] * gy_per_s
+        # per exported channel, in its dwell order (exported channel ch holds the dwells with channels == ch)
+        rates = tuple(rate[dwells.channels == ch] for ch in range(1, n_channels + 1))
+        try:
+            points.append(ReferencePoint(name, pos, rates))
+        except ValueError as exc:
+            raise PlanInputError(str(exc)) from None
+    return points
 
 
 def _delivered_implant(

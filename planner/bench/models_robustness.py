@@ -110,7 +110,9 @@ def stability(s: ModelSettings, log: Callable[[str], None]) -> list[StabilityCas
 
 @dataclass(frozen=True)
 class HonestyCase:
-    """One load case of the honesty table.
+    """One load case of the honesty table and what the solver returned for it.
+
+    A row of ``rod_models_honesty.csv``.
 
     Parameters
     ----------

@@ -49,7 +49,7 @@ def tension_flag(c: Candidate) -> bool:
     Parameters
     ----------
     c : Candidate
-        The needle.
+        The needle, steered or straight.
 
     Returns
     -------
