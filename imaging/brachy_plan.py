@@ -53,7 +53,13 @@ class BrachySource:
     model_id: str = ""
 
     def labels(self) -> tuple[str, ...]:
-        """Strings that may identify the source model (for matching TG-43 data sets)."""
+        """Strings that may identify the source model (for matching TG-43 data sets).
+
+        Returns
+        -------
+        tuple of str
+            Model ID, isotope name and manufacturer, the empty ones left out.
+        """
         return tuple(x for x in (self.model_id, self.isotope_name, self.manufacturer) if x)
 
 
@@ -139,7 +145,19 @@ class Channel:
 
 @dataclass(frozen=True)
 class ApplicationSetup:
-    """An item of the Application Setup Sequence: Application Setup Number, Name and Type, and its channels."""
+    """An item of the Application Setup Sequence: Application Setup Number, Name and Type, and its channels.
+
+    Parameters
+    ----------
+    number : int
+        Application Setup Number.
+    name : str
+        Application Setup Name, as written.
+    setup_type : str
+        Application Setup Type (``"FLETCHER"``, ``"NEEDLE"``, ...).
+    channels : tuple of Channel
+        Its channels, in the order of the Channel Sequence.
+    """
 
     number: int
     name: str
@@ -275,6 +293,16 @@ class RtPlan:
 
     def source(self, number: int | None = None) -> BrachySource:
         """Return the source with ``number`` (or the only / first one).
+
+        Parameters
+        ----------
+        number : int, optional
+            Source Number a channel refers to; None takes the first source.
+
+        Returns
+        -------
+        BrachySource
+            The source.
 
         Raises
         ------

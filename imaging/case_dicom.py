@@ -35,7 +35,18 @@ class CaseStructure(Protocol):
         ...
 
     def cross_section(self, z_mm: float) -> list[np.ndarray]:
-        """Return the closed polygons ((n, 2) float, mm, LPS x/y) of the ROI on the plane z = ``z_mm``."""
+        """Return the closed polygons of the ROI on the plane z = ``z_mm``.
+
+        Parameters
+        ----------
+        z_mm : float, mm
+            The plane's LPS z (the slice centre when writing a series).
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            The x, y of each polygon's vertices; empty where the ROI does not reach the plane.
+        """
         ...
 
 
@@ -147,7 +158,17 @@ def _base_dataset(sop_class: str, sop_instance: str, modality: str, series_uid: 
 
 @dataclass(frozen=True)
 class ImageRef:
-    """What the structure set references of one written image."""
+    """What the structure set references of one written image.
+
+    Parameters
+    ----------
+    SOPClassUID, SOPInstanceUID : str
+        The image's SOP Class and SOP Instance UIDs.
+    SeriesInstanceUID, StudyInstanceUID : str
+        Its series and study.
+    FrameOfReferenceUID : str
+        Its Frame of Reference.
+    """
 
     SOPClassUID: str
     SOPInstanceUID: str
@@ -336,7 +357,19 @@ def _raw_ds(tag: int, values: np.ndarray) -> Any:
 
 
 def is_case_file(path: Path) -> bool:
-    """Tell whether ``path`` is a DICOM file of a built-in case written by reachplan (any version)."""
+    """Tell whether ``path`` is a DICOM file of a built-in case written by reachplan (any version).
+
+    Parameters
+    ----------
+    path : Path
+        Any file.
+
+    Returns
+    -------
+    bool
+        True when its Manufacturer and Manufacturer's Model Name are this package's; False for any other or
+        unreadable file.
+    """
     from pydicom import dcmread
 
     try:
@@ -347,7 +380,18 @@ def is_case_file(path: Path) -> bool:
 
 
 def encode(ds: Any) -> bytes:
-    """Return the DICOM file of a dataset as bytes."""
+    """Return the DICOM file of a dataset as bytes.
+
+    Parameters
+    ----------
+    ds : pydicom.Dataset
+        A complete dataset with its file meta information.
+
+    Returns
+    -------
+    bytes
+        The DICOM file (preamble, meta and dataset).
+    """
     import io
 
     buf = io.BytesIO()

@@ -96,12 +96,38 @@ TARGET_COLUMNS: dict[str, tuple[float, float]] = {
 class ClinicalParams:
     """The anatomy of one clinical case (mm, degrees, cm³); defaults are the reference case.
 
-    ``version_deg``: cervix axis tilted anteriorly from the vaginal axis; ``flexion_deg``: uterine body axis
-    from the cervix axis (both ASSUMED, see the module docstring). ``parametria``: ``"L"``, ``"R"`` or
-    ``"LR"`` (sides of parametrial extension); ``param_reach_mm``: its lateral reach from the cervix axis
-    (ASSUMED). ``sigmoid_shift_mm``: displacement of the sigmoid loop (x, y, z). ``bladder_wall_y_mm``: the
-    bladder's posterior wall in the mid-sagittal plane (its base rests on the anterior vaginal wall and the
-    cervix; ASSUMED, as the distances cervix-to-bladder-wall were NOT FOUND).
+    Fields marked ASSUMED are ours where the literature gave no number (see the module docstring).
+
+    Parameters
+    ----------
+    version_deg : float, degrees
+        Cervix axis tilted anteriorly from the vaginal axis (ASSUMED), 0-80.
+    flexion_deg : float, degrees
+        Uterine body axis from the cervix axis (ASSUMED), 0-80.
+    cervix_length_mm, corpus_length_mm : float, mm
+        Lengths of the cervix and of the uterine body along their axes.
+    uterus_width_mm, uterus_thickness_mm : float, mm
+        The uterine body's lateral and antero-posterior size.
+    bladder_volume_cc : float, cm³
+        Bladder filling.
+    rectum_radius_mm, sigmoid_radius_mm : float, mm
+        Radii of the rectum and sigmoid tubes.
+    sigmoid_shift_mm : (float, float, float), mm, LPS
+        Displacement of the sigmoid loop (x, y, z).
+    parametria : str
+        ``"L"``, ``"R"`` or ``"LR"``: the sides of parametrial extension.
+    param_reach_mm : float, mm
+        The extension's lateral reach from the cervix axis (ASSUMED).
+    hrctv_margin_mm : float, mm
+        The HR-CTV's margin grown around the uterus.
+    bladder_wall_y_mm : float, mm, LPS
+        The bladder's posterior wall (y) in the mid-sagittal plane; its base rests on the anterior vaginal wall
+        and the cervix (ASSUMED, as the distances cervix-to-bladder-wall were NOT FOUND).
+
+    Raises
+    ------
+    ValueError
+        ``parametria`` not one of the three, angles out of 0-80 degrees, or a size that is not positive.
     """
 
     version_deg: float = 30.0
@@ -137,6 +163,16 @@ def sample_params(seed: int) -> ClinicalParams:
     Within published ranges: uterine version and flexion, uterine size (Nayab 2022 ± 1
     SD), bladder filling (Jamema 2008 ± 1 SD), sigmoid position and tumour extent (sides and lateral reach of the
     parametrial extension).
+
+    Parameters
+    ----------
+    seed : int
+        The case number; 0 gives the reference case.
+
+    Returns
+    -------
+    ClinicalParams
+        The anatomy, each varied value rounded to 0.01.
     """
     if seed == 0:
         return ClinicalParams()
@@ -156,7 +192,16 @@ def sample_params(seed: int) -> ClinicalParams:
 class ClinicalCase:
     """A clinical case: the phantom description (ROIs, painted tissues, CT geometry) and named target points.
 
-    ``targets``: ``(name, (x, y, z))`` in LPS mm, inside the HR-CTV.
+    Parameters
+    ----------
+    params : ClinicalParams
+        The anatomy.
+    seed : int
+        The seed it was sampled with (0: the reference case).
+    spec : PhantomSpec
+        The phantom built from ``params``.
+    targets : tuple of (str, (float, float, float))
+        Named points, mm, LPS, inside the HR-CTV.
     """
 
     params: ClinicalParams
@@ -165,7 +210,14 @@ class ClinicalCase:
     targets: tuple[tuple[str, tuple[float, float, float]], ...]
 
     def to_json(self) -> dict[str, object]:
-        """Return the case as JSON-ready values (seed, parameters, named target points in mm LPS)."""
+        """Return the case as JSON-ready values (seed, parameters, named target points in mm LPS).
+
+        Returns
+        -------
+        dict
+            ``case``, ``seed``, ``params``, ``modality``, ``targets`` (name to ``[x, y, z]``, mm, LPS, rounded to
+            0.001) and ``patient_from_template`` (4 x 4 nested lists).
+        """
         return {
             "case": "clinical", "seed": self.seed, "params": dataclasses.asdict(self.params),
             "modality": self.spec.modality,
@@ -196,7 +248,22 @@ def _round_ends(s: np.ndarray, length: float, start_mm: float, end_mm: float) ->
 
 
 def tube(points_mm: Sequence[tuple[float, float, float]], radius_mm: float, rounded: bool = True) -> Sweep:
-    """Return a round tube along a smooth curve through ``points_mm``; hemispherical ends when ``rounded``."""
+    """Return a round tube along a smooth curve through ``points_mm``; hemispherical ends when ``rounded``.
+
+    Parameters
+    ----------
+    points_mm : sequence of (float, float, float), mm, LPS
+        Points the centre line passes through (resampled to a smooth curve).
+    radius_mm : float, mm
+        The tube's radius.
+    rounded : bool
+        Close each end with a hemisphere.
+
+    Returns
+    -------
+    Sweep
+        The tube.
+    """
     c = resample_curve(np.array(points_mm, float))
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
     r = radius_mm * (_round_ends(s, s[-1], radius_mm, radius_mm) if rounded else np.ones_like(s))
@@ -540,6 +607,18 @@ def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
     """Write the case as an image series (CT or MR) + RT Structure Set.
 
     Also and ``case.json`` (parameters and named target points) beside them.
+
+    Parameters
+    ----------
+    out_dir : Path
+        The folder to write into.
+    case : ClinicalCase
+        The case.
+
+    Returns
+    -------
+    PhantomFiles
+        The image series folder and the structure set file.
     """
     from reachplan.imaging.files import atomic_write_json
 
@@ -552,6 +631,18 @@ def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> St
     """Return the ROIs of ``spec`` as an in-memory structure set, without writing DICOM (for studies and tests).
 
     The contours are those :func:`write_phantom` would write, names normalised by the default synonym table.
+
+    Parameters
+    ----------
+    spec : PhantomSpec
+        The phantom.
+    names : tuple of str, optional
+        The ROIs to take (by name); None takes all.
+
+    Returns
+    -------
+    StructureSet
+        One ROI per structure, its contours at the slice centres (mm, LPS), Frame of Reference ``"in-memory"``.
     """
     from reachplan.imaging.names import DEFAULT_SYNONYMS
 
@@ -566,7 +657,18 @@ def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> St
 
 
 def image_grid(spec: PhantomSpec) -> Grid:
-    """Return the grid of the image series :func:`write_phantom` writes for ``spec``."""
+    """Return the grid of the image series :func:`write_phantom` writes for ``spec``.
+
+    Parameters
+    ----------
+    spec : PhantomSpec
+        The phantom.
+
+    Returns
+    -------
+    Grid
+        Shape ``(n_slices, matrix, matrix)``, ``pixel_mm`` in-plane and ``slice_thickness_mm`` between slices.
+    """
     m = np.diag([spec.pixel_mm, spec.pixel_mm, spec.slice_thickness_mm, 1.0])
     m[:3, 3] = [spec.first_pixel_xy_mm, spec.first_pixel_xy_mm, float(spec.slice_z_mm[0])]
     return Grid((spec.n_slices, spec.matrix, spec.matrix), m)

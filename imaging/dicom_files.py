@@ -26,6 +26,16 @@ MEDIA_STORAGE_DIRECTORY = "1.2.840.10008.1.3.10"  # DICOMDIR
 def list_files(path: Path) -> list[Path]:
     """List every regular, non-hidden file at ``path`` (itself, or recursively below a folder), sorted.
 
+    Parameters
+    ----------
+    path : Path
+        A file, or a folder walked recursively (hidden files and folders skipped).
+
+    Returns
+    -------
+    list of Path
+        ``[path]`` for a file; the files below a folder, sorted folder by folder.
+
     Raises
     ------
     NoDicomError
@@ -56,12 +66,38 @@ def _looks_like_dicom(path: Path) -> bool:
 
 
 def corrupt_error(path: Path, what: str) -> CorruptFileError:
-    """Build the error for a file that is truncated or damaged: ``what`` is wrong, re-export or remove it."""
+    """Build the error for a file that is truncated or damaged: ``what`` is wrong, re-export or remove it.
+
+    Parameters
+    ----------
+    path : Path
+        The damaged file.
+    what : str
+        What is wrong with it.
+
+    Returns
+    -------
+    CorruptFileError
+        The error to raise, its message telling the user to re-export or remove the file.
+    """
     return CorruptFileError(f"{path}: {what}; the file is truncated or damaged: re-export it or remove it")
 
 
 def invalid_error(path: Path, what: str) -> CorruptFileError:
-    """Build the error for a file that breaks the DICOM standard: ``what`` is wrong, fix or re-export it."""
+    """Build the error for a file that breaks the DICOM standard: ``what`` is wrong, fix or re-export it.
+
+    Parameters
+    ----------
+    path : Path
+        The offending file.
+    what : str
+        Which value breaks the standard.
+
+    Returns
+    -------
+    CorruptFileError
+        The error to raise, its message telling the user to fix or re-export the file.
+    """
     return CorruptFileError(f"{path}: {what}; the file breaks the DICOM standard: fix or re-export it")
 
 
@@ -160,7 +196,18 @@ PARSE_ERRORS: tuple[type[Exception], ...] = (
 
 @contextmanager
 def parsing(path: Path) -> Iterator[None]:
-    """Turn pydicom's errors on damaged values met while using a dataset into :class:`CorruptFileError`."""
+    """Turn pydicom's errors on damaged values met while using a dataset into :class:`CorruptFileError`.
+
+    Parameters
+    ----------
+    path : Path
+        The file the dataset came from (named in the message).
+
+    Yields
+    ------
+    None
+        While the block runs; imaging errors pass through unchanged.
+    """
     try:
         yield
     except ImagingError:
@@ -173,6 +220,18 @@ def one_line(exc: BaseException, limit: int = 160) -> str:
     """Return ``exc``'s message on one line, without the traceback pydicom embeds in nested errors.
 
     The chain of "With tag X got exception:" prefixes is kept as the path of tags to the damaged element.
+
+    Parameters
+    ----------
+    exc : BaseException
+        The exception.
+    limit : int
+        Longest message kept, characters; a longer one is cut and ends in ``...``.
+
+    Returns
+    -------
+    str
+        The message, whitespace collapsed.
     """
     text = " ".join(str(exc).split("Traceback (most recent call last)")[0].split())
     return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -82,7 +82,13 @@ class FolderScan:
     n_non_dicom: int
 
     def series(self) -> tuple[SeriesSummary, ...]:
-        """One summary per SeriesInstanceUID of the image objects, in order of first appearance."""
+        """One summary per SeriesInstanceUID of the image objects, in order of first appearance.
+
+        Returns
+        -------
+        tuple of SeriesSummary
+            One summary per SeriesInstanceUID of the image objects, in order of first appearance.
+        """
         groups: dict[str, list[tuple[Any, Path]]] = {}
         for ds, path in self.images:
             groups.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((ds, path))
@@ -104,6 +110,16 @@ def scan(path: Path) -> FolderScan:
 
     Values over 1 KiB (pixel data, long contour lists) stay on disk until used. Every DICOM file is checked to
     be complete.
+
+    Parameters
+    ----------
+    path : Path
+        A DICOM file, or a folder holding them (searched recursively).
+
+    Returns
+    -------
+    FolderScan
+        The headers of the image objects and of the other DICOM objects, and the count of non-DICOM files.
 
     Raises
     ------
@@ -151,6 +167,11 @@ def select_series(
         SeriesInstanceUID to pick.
     modality : str, optional
         ``"CT"``, ``"MR"``, ... (case-insensitive).
+
+    Returns
+    -------
+    SeriesSummary
+        The one matching series.
 
     Raises
     ------
@@ -303,8 +324,10 @@ def check_reference(volume: Volume, frame_of_reference_uid: str | None, series_u
     ----------
     volume : Volume
         The images at hand.
-    frame_of_reference_uid, series_uid : str or None
-        What the object refers to; empty or None is not checked.
+    frame_of_reference_uid : str or None
+        The Frame of Reference the object refers to; empty or None is not checked.
+    series_uid : str or None
+        The image series the object refers to; empty or None is not checked.
     what : str
         Names the object in the message.
 

@@ -55,6 +55,11 @@ def atomic_write_files(files: Iterable[tuple[Path, bytes]]) -> None:
     threads: the file system commits them together, about one disk flush for a series of slices instead of one per
     file, 0.3 s -> 0.03 s for 94 CT slices here), then each is renamed into place. On failure no temporary file is
     left; files already renamed stay (each is whole).
+
+    Parameters
+    ----------
+    files : iterable of (Path, bytes)
+        Each file's path and its whole content; folders are created when missing.
     """
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
     staged: list[tuple[Path, Path]] = []
@@ -91,7 +96,15 @@ def atomic_write_files(files: Iterable[tuple[Path, bytes]]) -> None:
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (:func:`atomic_write`)."""
+    """Write ``data`` to ``path`` atomically (:func:`atomic_write`).
+
+    Parameters
+    ----------
+    path : Path
+        The file to create or replace.
+    data : bytes
+        Its whole content.
+    """
     atomic_write(path, lambda f: f.write(data))
 
 

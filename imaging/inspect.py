@@ -85,7 +85,21 @@ class StructureInfo:
 
 @dataclass(frozen=True)
 class StructureSetInfo:
-    """An RT Structure Set: its file, label, Frame of Reference, referenced series and ROIs."""
+    """An RT Structure Set: its file, label, Frame of Reference, referenced series and ROIs.
+
+    Parameters
+    ----------
+    path : str
+        The file.
+    label : str
+        Structure Set Label.
+    frame_of_reference_uid : str
+        The Frame of Reference its contours are in.
+    referenced_series_uid : str or None
+        The image series it references; None when it names none.
+    structures : tuple of StructureInfo
+        Its ROIs.
+    """
 
     path: str
     label: str
@@ -96,7 +110,19 @@ class StructureSetInfo:
 
 @dataclass(frozen=True)
 class ChannelInfo:
-    """A channel of a brachy plan: number, dwell count, Channel Total Time (s) and ROI number (None if none)."""
+    """A channel of a brachy plan.
+
+    Parameters
+    ----------
+    channel_number : int
+        Channel Number.
+    n_dwells : int
+        Number of dwell positions (control points with a dwell).
+    total_time_s : float, s
+        Channel Total Time.
+    roi_number : int or None
+        Referenced ROI Number; None when the channel names none.
+    """
 
     channel_number: int
     n_dwells: int
@@ -108,10 +134,31 @@ class ChannelInfo:
 class PlanInfo:
     """A brachy RT Plan: file, treatment type, technique, source label and channels; ``note`` when unread.
 
-    ``machine`` the Treatment Machine Name, ``fractions`` the Number of Fractions Planned, ``prescription_gy`` the
-    Brachy Application Setup Dose (Gy per fraction) and ``target`` the TARGET dose reference's description
-    (None / "" when the plan has none), ``points`` each dose reference point with the plan's dose there over
-    all fractions (Gy, None when the plan carries no coefficients).
+    Parameters
+    ----------
+    path : str
+        The file.
+    type : str
+        Brachy Treatment Type (``HDR``, ``PDR``, ...).
+    technique : str
+        Brachy Treatment Technique.
+    source : str
+        The source's label (isotope and model).
+    channels : tuple of ChannelInfo
+        The channels of every application setup.
+    note : str
+        Why the plan could not be read; empty when it was.
+    machine : str
+        Treatment Machine Name.
+    fractions : int
+        Number of Fractions Planned.
+    prescription_gy : float or None, Gy
+        Brachy Application Setup Dose, per fraction; None when absent.
+    target : str
+        The TARGET dose reference's description; empty when the plan has none.
+    points : tuple of (str, float or None)
+        Each dose reference point with the plan's dose there over all fractions (Gy; None when the plan carries no
+        coefficients).
     """
 
     path: str
@@ -129,7 +176,17 @@ class PlanInfo:
 
 @dataclass(frozen=True)
 class OtherInfo:
-    """A DICOM object that is neither an image, a structure set nor a plan."""
+    """A DICOM object that is neither an image, a structure set nor a plan.
+
+    Parameters
+    ----------
+    path : str
+        The file.
+    modality : str
+        Modality, as written.
+    sop_class_uid : str
+        SOP Class UID.
+    """
 
     path: str
     modality: str
@@ -163,7 +220,14 @@ class Inspection:
     warnings: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
-        """Return a JSON-ready dict: ``series``, ``structure_sets`` with ``structures``, ``plans`` with ``channels``."""
+        """Return a JSON-ready dict: ``series``, ``structure_sets`` with ``structures``, ``plans`` with ``channels``.
+
+        Returns
+        -------
+        dict
+            ``series``, ``structure_sets`` with ``structures``, ``plans`` with ``channels``: the fields as plain
+            dicts, lists and numbers.
+        """
         from dataclasses import asdict
 
         return asdict(self)

@@ -51,7 +51,18 @@ _SEPARATORS = re.compile(r"[\s_\-.]+")
 
 
 def name_key(name: str) -> str:
-    """Return the matching key of a name: case-folded, without spaces, ``_``, ``-`` and ``.``."""
+    """Return the matching key of a name: case-folded, without spaces, ``_``, ``-`` and ``.``.
+
+    Parameters
+    ----------
+    name : str
+        An ROI name.
+
+    Returns
+    -------
+    str
+        The key two names match on.
+    """
     return _SEPARATORS.sub("", name.casefold())
 
 
@@ -88,7 +99,18 @@ class SynonymTable:
         object.__setattr__(self, "_lookup", seen)
 
     def normalize(self, name: str) -> str:
-        """Return the standard name for ``name``; ``name`` itself (stripped) when no synonym matches."""
+        """Return the standard name for ``name``; ``name`` itself (stripped) when no synonym matches.
+
+        Parameters
+        ----------
+        name : str
+            An ROI name as written.
+
+        Returns
+        -------
+        str
+            Its standard name.
+        """
         return self._lookup.get(name_key(name), name.strip())
 
     @property
@@ -97,7 +119,18 @@ class SynonymTable:
         return tuple(standard for standard, _ in self.entries)
 
     def synonyms_of(self, standard: str) -> tuple[str, ...]:
-        """Return the synonyms listed for ``standard`` (empty when it is not in the table)."""
+        """Return the synonyms listed for ``standard`` (empty when it is not in the table).
+
+        Parameters
+        ----------
+        standard : str
+            A standard name.
+
+        Returns
+        -------
+        tuple of str
+            Its synonyms, as the table lists them.
+        """
         return next((syn for std, syn in self.entries if std == standard), ())
 
     def extended(self, entries: tuple[tuple[str, tuple[str, ...]], ...]) -> SynonymTable:

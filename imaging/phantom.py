@@ -105,18 +105,46 @@ class PhantomStructure:
         return float(sum(s.analytic_volume_mm3 for s in self.shapes))
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
+        """Tell which points are inside any of the structure's shapes.
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            The points to test.
+
+        Returns
+        -------
+        (...) bool
+            True where one shape holds the point.
+        """
         inside = np.zeros(p.shape[:-1], dtype=bool)
         for s in self.shapes:
             inside |= s.contains(p)
         return inside
 
     def cross_section(self, z_mm: float) -> list[np.ndarray]:
-        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z_mm``."""
+        """Return the closed polygons of every shape on the axial plane ``z = z_mm``.
+
+        Parameters
+        ----------
+        z_mm : float, mm
+            The plane's LPS z.
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            The x, y outlines, shape by shape.
+        """
         return [poly for s in self.shapes for poly in s.cross_section(z_mm)]
 
     def bounds(self) -> np.ndarray:
-        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
+        """Return the box around all the shapes.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lowest and highest corner over the shapes' bounding boxes.
+        """
         b = np.array([s.bounds() for s in self.shapes])
         return np.array([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
@@ -214,7 +242,23 @@ class PhantomSpec:
         return tuple(s for s in self.structures if s.is_oar)
 
     def get(self, name: str) -> PhantomStructure:
-        """Return the structure called ``name`` (exact match); KeyError when there is none."""
+        """Return the structure called ``name`` (exact match), among the ROIs and the painted tissues.
+
+        Parameters
+        ----------
+        name : str
+            The ROI or tissue name.
+
+        Returns
+        -------
+        PhantomStructure
+            The structure.
+
+        Raises
+        ------
+        KeyError
+            When there is none.
+        """
         for s in (*self.structures, *self.tissues):
             if s.name == name:
                 return s
@@ -252,7 +296,13 @@ def _targets() -> list[PhantomStructure]:
 
 
 def phantom_spec() -> PhantomSpec:
-    """Describe the built-in phantom analytically (see the module docstring for frames and values)."""
+    """Describe the built-in phantom analytically (see the module docstring for frames and values).
+
+    Returns
+    -------
+    PhantomSpec
+        The pilot phantom: its ROIs (the reference target cylinders included), tissues and CT geometry.
+    """
     tilt = rotation_x(45.0)  # uterus long axis: +z tilted 45 degrees toward anterior (-y)
     structures = [
         PhantomStructure("Body", "EXTERNAL", (EllipticCylinder((0.0, 0.0), (95.0, 90.0), -30.0, 180.0),),
@@ -365,7 +415,12 @@ def _paint(hu: np.ndarray, s: PhantomStructure, z: np.ndarray, xy: np.ndarray) -
 class PhantomFiles:
     """Where :func:`write_phantom` put the phantom.
 
-    The image series folder (CT or MR) and the RT Structure Set file.
+    Parameters
+    ----------
+    ct_dir : Path
+        The image series folder (CT or MR).
+    rtstruct_path : Path
+        The RT Structure Set file.
     """
 
     ct_dir: Path

@@ -54,6 +54,13 @@ def check_pixel_length(ds: Any, path: Path) -> None:
     uncompressed pixel data, its length must be Rows x Columns x frames x samples x BitsAllocated / 8 (plus at
     most one padding byte): a BitsAllocated of 8 on 16-bit data would otherwise give a garbled volume.
 
+    Parameters
+    ----------
+    ds : pydicom.Dataset
+        An image object (its pixel data is not decoded).
+    path : Path
+        Its file (named in the message).
+
     Raises
     ------
     InvalidValueError

@@ -74,6 +74,18 @@ def _floats(ds: Any, keyword: str, n: int, path: Path) -> np.ndarray:
 def rescale(ds: Any, path: Path) -> tuple[float, float]:
     """Return the rescale ``(slope, intercept)`` of a dataset or functional group (``(1, 0)`` when absent).
 
+    Parameters
+    ----------
+    ds : pydicom.Dataset
+        A dataset, or one functional group's Pixel Value Transformation item.
+    path : Path
+        Its file (named in the messages).
+
+    Returns
+    -------
+    (float, float)
+        RescaleSlope and RescaleIntercept: output value (HU for CT) = slope * stored + intercept.
+
     Raises
     ------
     InvalidValueError
@@ -92,6 +104,18 @@ def rescale(ds: Any, path: Path) -> tuple[float, float]:
 
 def frames_of(ds: Any, path: Path) -> list[Frame]:
     """Return the image frames of one object with their geometry (one per functional group when multi-frame).
+
+    Parameters
+    ----------
+    ds : pydicom.Dataset
+        The image object's header.
+    path : Path
+        Its file.
+
+    Returns
+    -------
+    list of Frame
+        One frame for a single-frame file; one per item of the Per-Frame Functional Groups Sequence otherwise.
 
     Raises
     ------

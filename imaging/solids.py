@@ -80,19 +80,48 @@ class Cylinder:
         return math.pi * self.radius_mm**2 * (self.z1_mm - self.z0_mm)
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
+        """Tell which points are inside the cylinder.
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points to test against the cylinder (axis along z).
+
+        Returns
+        -------
+        (...) bool
+            True inside: within ``radius_mm`` of the axis and ``z0_mm <= z < z1_mm``.
+        """
         cx, cy = self.center_xy_mm
         r2 = (p[..., 0] - cx) ** 2 + (p[..., 1] - cy) ** 2
         return (r2 <= self.radius_mm**2) & (p[..., 2] >= self.z0_mm) & (p[..., 2] < self.z1_mm)
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
-        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
+        """Return the closed polygons of the axial cut ``z = z0``.
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the plane cutting the cylinder (axis along z).
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            One polygon (x, y) per outline:
+            a circle, none outside ``z0_mm <= z < z1_mm``.
+        """
         if not self.z0_mm <= z0 < self.z1_mm:
             return []
         return [_ellipse(*self.center_xy_mm, self.radius_mm, self.radius_mm)]
 
     def bounds(self) -> np.ndarray:
-        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
+        """Return the bounding box of the cylinder.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lower and upper corner of the cylinder's box.
+        """
         cx, cy = self.center_xy_mm
         r = self.radius_mm
         return np.array([[cx - r, cy - r, self.z0_mm], [cx + r, cy + r, self.z1_mm]])
@@ -131,19 +160,48 @@ class EllipticCylinder:
         return math.pi * a * b * (self.z1_mm - self.z0_mm)
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
+        """Tell which points are inside the elliptic cylinder.
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points to test against the elliptic cylinder.
+
+        Returns
+        -------
+        (...) bool
+            True inside: ``(dx / a)² + (dy / b)² <= 1`` and ``z0_mm <= z < z1_mm``.
+        """
         (cx, cy), (a, b) = self.center_xy_mm, self.semi_axes_xy_mm
         q = ((p[..., 0] - cx) / a) ** 2 + ((p[..., 1] - cy) / b) ** 2
         return (q <= 1.0) & (p[..., 2] >= self.z0_mm) & (p[..., 2] < self.z1_mm)
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
-        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
+        """Return the closed polygons of the axial cut ``z = z0``.
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the plane cutting the elliptic cylinder.
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            One polygon (x, y) per outline:
+            an ellipse, none outside ``z0_mm <= z < z1_mm``.
+        """
         if not self.z0_mm <= z0 < self.z1_mm:
             return []
         return [_ellipse(*self.center_xy_mm, *self.semi_axes_xy_mm)]
 
     def bounds(self) -> np.ndarray:
-        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
+        """Return the bounding box of the elliptic cylinder.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lower and upper corner of the elliptic cylinder's box.
+        """
         (cx, cy), (a, b) = self.center_xy_mm, self.semi_axes_xy_mm
         return np.array([[cx - a, cy - b, self.z0_mm], [cx + a, cy + b, self.z1_mm]])
 
@@ -176,23 +234,63 @@ class Box:
         return float(np.prod(np.subtract(self.hi_mm, self.lo_mm)))
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
+        """Tell which points are inside the box (lower faces included, upper ones not).
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points to test against the box from ``lo_mm`` to ``hi_mm``.
+
+        Returns
+        -------
+        (...) bool
+            True inside: ``lo_mm <= p < hi_mm`` on every axis.
+        """
         return np.all((p >= self.lo_mm) & (p < self.hi_mm), axis=-1)
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
-        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
+        """Return the closed polygons of the axial cut ``z = z0``.
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the plane cutting the box from ``lo_mm`` to ``hi_mm``.
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            One polygon (x, y) per outline:
+            the rectangle, none outside the box.
+        """
         (x0, y0, za), (x1, y1, zb) = self.lo_mm, self.hi_mm
         if not za <= z0 < zb:
             return []
         return [np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)]
 
     def bounds(self) -> np.ndarray:
-        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
+        """Return the bounding box: the box's own corners.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lower and upper corner of the box's box.
+        """
         return np.array([self.lo_mm, self.hi_mm], dtype=float)
 
 
 def rotation_x(angle_deg: float) -> np.ndarray:
-    """Return the (3, 3) rotation about patient x by ``angle_deg`` degrees (right-handed)."""
+    """Return the rotation about patient x by ``angle_deg`` degrees (right-handed).
+
+    Parameters
+    ----------
+    angle_deg : float, degrees
+        The angle.
+
+    Returns
+    -------
+    (3, 3) float
+        The rotation matrix (LPS to LPS).
+    """
     a = math.radians(angle_deg)
     c, s = math.cos(a), math.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
@@ -236,12 +334,35 @@ class Ellipsoid:
         return 4.0 / 3.0 * math.pi * a * b * c
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
+        """Tell which points are inside the ellipsoid.
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points to test against the ellipsoid, its axes the columns of ``rotation``.
+
+        Returns
+        -------
+        (...) bool
+            True inside: the quadric form of the offset from the centre is at most 1.
+        """
         d = p - np.asarray(self.center_mm)
         return np.einsum("...i,ij,...j->...", d, self._quad, d) <= 1.0
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
-        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``."""
+        """Return the closed polygons of the axial cut ``z = z0``.
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the plane cutting the ellipsoid, its axes the columns of ``rotation``.
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            One polygon (x, y) per outline:
+            the ellipse of the cut, none when the plane misses it.
+        """
         q = self._quad
         dz = z0 - self.center_mm[2]
         a2, b = q[:2, :2], q[:2, 2] * dz
@@ -254,7 +375,13 @@ class Ellipsoid:
         return [_ellipse(self.center_mm[0] + m[0], self.center_mm[1] + m[1], semi[0], semi[1], v)]
 
     def bounds(self) -> np.ndarray:
-        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
+        """Return the bounding box (axis-aligned) of the rotated ellipsoid.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lower and upper corner of the ellipsoid's box.
+        """
         half = np.sqrt(np.diag(np.linalg.inv(self._quad)))
         c = np.asarray(self.center_mm)
         return np.array([c - half, c + half])
@@ -329,13 +456,35 @@ class TorusSection:
         return np.maximum(f, out)
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """Tell which of the points ``p``, ``(..., 3)`` float in LPS mm, are inside: ``(...)`` bool."""
+        """Tell which points are inside the torus section (where its distance field is <= 0).
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points to test against the torus section, a tube around an arc.
+
+        Returns
+        -------
+        (...) bool
+            True inside: within ``minor_mm`` of the arc of radius ``major_mm``, inside the arc's angles.
+        """
         return self._field(p) <= 0.0
 
     def cross_section(self, z0: float, step_mm: float = 0.2) -> list[np.ndarray]:
-        """Return the closed polygons, each ``(n, 2)`` float (x, y) in LPS mm, of the axial cut ``z = z0``.
+        """Return the closed polygons of the axial cut ``z = z0``, traced on a grid every ``step_mm`` mm.
 
-        The cut is traced as the zero level of the tube's distance field sampled every ``step_mm`` mm.
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the plane cutting the torus section, a tube around an arc.
+        step_mm : float, mm
+            Sampling step of the distance field the outline is traced on.
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            One polygon (x, y) per outline:
+            the zero level of the tube's distance field, none when the plane misses the tube.
         """
         from skimage.measure import find_contours
 
@@ -359,7 +508,13 @@ class TorusSection:
         return out
 
     def bounds(self) -> np.ndarray:
-        """Return the bounding box, (2, 3) float, LPS mm: lower and upper corner."""
+        """Return the bounding box of the swept arc and its tube.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lower and upper corner of the torus section's box.
+        """
         c = np.asarray(self.center_mm)
         ext = self.major_mm + self.minor_mm
         if self.full:

@@ -37,10 +37,27 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def resample_curve(points_mm: np.ndarray, step_mm: float = SAMPLE_MM, smooth: bool = True) -> np.ndarray:
-    """Return a smooth curve through ``points_mm`` ((k, 3) float, LPS mm), resampled every ``step_mm`` of arc length.
+    """Return a smooth curve through ``points_mm``, resampled every ``step_mm`` of arc length.
 
-    ``smooth``: a cubic spline through the points (parameterised by chord length, natural ends); otherwise
-    the polyline itself. Returns (n, 3) float, mm.
+    Parameters
+    ----------
+    points_mm : (k, 3) float, mm, LPS
+        At least two distinct, finite points.
+    step_mm : float, mm
+        Arc length between the returned samples (the last step evens out).
+    smooth : bool
+        A cubic spline through the points (parameterised by chord length, natural ends); otherwise the polyline
+        itself.
+
+    Returns
+    -------
+    (n, 3) float, mm, LPS
+        The samples, first and last at the ends of the curve.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two finite 3-D points, or two consecutive points that coincide.
     """
     from scipy.interpolate import CubicSpline
 
@@ -64,10 +81,29 @@ def resample_curve(points_mm: np.ndarray, step_mm: float = SAMPLE_MM, smooth: bo
 
 def arc_curve(start_mm: np.ndarray, direction: np.ndarray, bend_toward: np.ndarray, length_mm: float,
               angle_deg: float, straight_mm: float = 0.0, step_mm: float = SAMPLE_MM) -> np.ndarray:
-    """Return a planar centreline.
+    """Return a planar centreline: a straight run, then a circular arc.
 
-    ``straight_mm`` along ``direction``, then a circular arc of ``length_mm`` turning by ``angle_deg`` toward
-    ``bend_toward`` (made perpendicular to ``direction``). (n, 3) float, LPS mm.
+    Parameters
+    ----------
+    start_mm : (3,) float, mm, LPS
+        Where it starts.
+    direction : (3,) float
+        Direction of the straight run (normalised here).
+    bend_toward : (3,) float
+        The arc turns toward it (made perpendicular to ``direction``).
+    length_mm : float, mm
+        Arc length of the circular part.
+    angle_deg : float, degrees
+        The arc's total turn.
+    straight_mm : float, mm
+        Length of the straight run along ``direction``.
+    step_mm : float, mm
+        Arc length between samples.
+
+    Returns
+    -------
+    (n, 3) float, mm, LPS
+        The centreline's samples.
     """
     d0 = _unit(np.asarray(direction, float))
     n0 = np.asarray(bend_toward, float)
@@ -155,18 +191,51 @@ class Sweep:
         return bool(np.all(np.abs(self._frames[:, 0, 2]) > 1 - 1e-9))
 
     def shrunk(self, by_mm: float) -> Sweep:
-        """Return the same sweep with both semi-axes reduced by ``by_mm`` (a wall's lumen), clipped at 0."""
+        """Return the same sweep with both semi-axes reduced by ``by_mm`` (a wall's lumen), clipped at 0.
+
+        Parameters
+        ----------
+        by_mm : float, mm
+            Wall thickness to take off.
+
+        Returns
+        -------
+        Sweep
+            The lumen: same centreline and reference.
+        """
         return Sweep(self.samples_mm, np.maximum(self.semi_a_mm - by_mm, 0.0),
                      np.maximum(self.semi_b_mm - by_mm, 0.0), self.reference)
 
     def grown(self, by_mm: float) -> Sweep:
-        """Return the same centreline with both semi-axes increased by ``by_mm`` where they are positive."""
+        """Return the same centreline with both semi-axes increased by ``by_mm`` where they are positive.
+
+        Parameters
+        ----------
+        by_mm : float, mm
+            Margin to add (zero semi-axes, the closed ends, stay zero).
+
+        Returns
+        -------
+        Sweep
+            The grown sweep: same centreline and reference.
+        """
         a, b = self.semi_a_mm, self.semi_b_mm
         return Sweep(self.samples_mm, np.where(a > 0, a + by_mm, 0.0), np.where(b > 0, b + by_mm, 0.0),
                      self.reference)
 
     def field(self, p: np.ndarray) -> np.ndarray:
-        """Return a signed field (about mm near the surface): negative inside. ``p`` (..., 3) LPS mm -> (...)."""
+        """Return a signed field (about mm near the surface): negative inside.
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Query points.
+
+        Returns
+        -------
+        (...) float, mm
+            The sweep's field at each point, from its nearest centreline sample.
+        """
         from reachplan.imaging._sweep_kernel import axial_samples, field_at, nearest_samples
 
         q = np.asarray(p, dtype=float)
@@ -193,15 +262,43 @@ class Sweep:
         return out.reshape(q.shape[:-1])
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """``(..., 3)`` LPS mm -> ``(...)`` bool."""
+        """Tell which points the sweep holds.
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points, any leading shape.
+
+        Returns
+        -------
+        (...) bool
+            True where the field is <= 0.
+        """
         return self.field(p) <= 0.0
 
     def bounds(self) -> np.ndarray:
-        """(2, 3) float, LPS mm: a box holding the solid."""
+        """Return a box holding the solid.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lower and upper corner: every sample grown by its larger semi-axis.
+        """
         return self._bounds.copy()
 
     def slice_window(self, z0: float) -> np.ndarray | None:
-        """(2, 3) box (LPS mm) holding the cut ``z = z0``, or None when the plane misses the solid."""
+        """Return a box holding the cut ``z = z0``.
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the plane.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS, or None
+            Lower and upper corner around the samples near the plane; None when the plane misses the solid.
+        """
         r = np.maximum(self.semi_a_mm, self.semi_b_mm)
         near = np.abs(self.samples_mm[:, 2] - z0) <= r
         if not near.any():
@@ -210,7 +307,18 @@ class Sweep:
         return np.array([(c - rr).min(axis=0), (c + rr).max(axis=0)])
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
-        """Return the closed polygons ((n, 2) float, x/y LPS mm) of the cut ``z = z0``."""
+        """Return the closed polygons of the cut ``z = z0``.
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the cutting plane (axial sweeps are cut exactly, others traced on the field).
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            x/y outlines; empty when the plane misses the sweep.
+        """
         if self.axial:
             return _axial_section(self, z0)
         win = self.slice_window(z0)
@@ -239,8 +347,21 @@ def _axial_section(sw: Sweep, z0: float) -> list[np.ndarray]:
 def trace_field(fn: object, window: np.ndarray, z0: float, step_mm: float = FIELD_STEP_MM) -> list[np.ndarray]:
     """Trace the zero contours of ``fn`` by marching squares.
 
-    ``fn``: (m, 3) -> (m,), negative inside; on the plane ``z = z0`` inside ``window`` ((2, 3) LPS mm), on a
-    ``step_mm`` grid; returns (n, 2) polygons, x/y mm.
+    Parameters
+    ----------
+    fn : callable
+        ``(..., 3)`` float, mm, LPS -> ``(...)`` float: a field negative inside.
+    window : (2, 3) float, mm, LPS
+        Lower and upper corner of the region to sample (grown by two steps).
+    z0 : float, mm
+        LPS z of the plane.
+    step_mm : float, mm
+        Grid step.
+
+    Returns
+    -------
+    list of (n, 2) float, mm, LPS
+        x/y polygons of 3 or more vertices, thinned to about ``VERTEX_SPACING_MM`` between vertices.
     """
     from skimage.measure import find_contours
 
@@ -270,6 +391,18 @@ class Union:
     Its volume has no closed form and is integrated on a lattice
     (:meth:`lattice_volume_mm3`; cell-centre counting on a 1 mm lattice: its error on a smooth organ is far below
     the 3 % the round-trip test allows, and the test checks it against the mesh).
+
+    Parameters
+    ----------
+    parts : tuple of Sweep
+        At least one.
+    lattice_mm : float, mm
+        Lattice step of the volume integration.
+
+    Raises
+    ------
+    ValueError
+        No parts.
     """
 
     parts: tuple[Sweep, ...]
@@ -280,20 +413,59 @@ class Union:
             raise ValueError("a Union needs at least one part")
 
     def field(self, p: np.ndarray) -> np.ndarray:
-        """Return the union's signed field at ``p`` (..., 3) LPS mm: the minimum of its parts' (negative inside)."""
+        """Return the union's signed field: the minimum of its parts' (negative inside).
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points where the field is wanted.
+
+        Returns
+        -------
+        (...) float, mm
+            The smallest part field at each point.
+        """
         return np.minimum.reduce([s.field(p) for s in self.parts])
 
     def contains(self, p: np.ndarray) -> np.ndarray:
-        """Return True where ``p`` (..., 3) LPS mm lies inside the union."""
+        """Tell where points lie inside the union.
+
+        Parameters
+        ----------
+        p : (..., 3) float, mm, LPS
+            Points to classify.
+
+        Returns
+        -------
+        (...) bool
+            True inside any part.
+        """
         return self.field(p) <= 0.0
 
     def bounds(self) -> np.ndarray:
-        """Return the (2, 3) LPS mm bounding box of the union."""
+        """Return the bounding box of the union.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS
+            Lower and upper corner over its parts' boxes.
+        """
         b = np.array([s.bounds() for s in self.parts])
         return np.array([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
     def slice_window(self, z0: float) -> np.ndarray | None:
-        """(2, 3) box (LPS mm) holding the cut ``z = z0``, or None when the plane misses the solid."""
+        """Return a box holding the union's cut ``z = z0``.
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the plane the parts are cut by.
+
+        Returns
+        -------
+        (2, 3) float, mm, LPS, or None
+            The box around the parts' windows; None when the plane misses every part.
+        """
         wins = [w for w in (s.slice_window(z0) for s in self.parts) if w is not None]
         if not wins:
             return None
@@ -301,17 +473,40 @@ class Union:
         return np.array([w[:, 0].min(axis=0), w[:, 1].max(axis=0)])
 
     def cross_section(self, z0: float) -> list[np.ndarray]:
-        """Return the closed polygons ((n, 2) float, x/y LPS mm) of the cut ``z = z0``."""
+        """Return the closed polygons of the union cut by ``z = z0`` (traced on its field).
+
+        Parameters
+        ----------
+        z0 : float, mm
+            LPS z of the axial plane.
+
+        Returns
+        -------
+        list of (n, 2) float, mm, LPS
+            x/y outlines of the union (overlaps merged).
+        """
         win = self.slice_window(z0)
         return [] if win is None else trace_field(self.field, win, z0)
 
     @cached_property
     def analytic_volume_mm3(self) -> float:
-        """The volume (mm³) integrated on a ``lattice_mm`` lattice (cell-centre count; computed once)."""
+        """The volume integrated on a ``lattice_mm`` lattice (cell-centre count; computed once).
+
+        Returns
+        -------
+        float, mm³
+            :meth:`lattice_volume_mm3`.
+        """
         return self.lattice_volume_mm3()
 
     def lattice_volume_mm3(self) -> float:
-        """Count the ``lattice_mm`` lattice cells whose centre is inside; return their volume (mm³)."""
+        """Count the ``lattice_mm`` lattice cells whose centre is inside; return their volume.
+
+        Returns
+        -------
+        float, mm³
+            Number of cells inside times ``lattice_mm`` cubed.
+        """
         lo, hi = self.bounds()
         h = self.lattice_mm
         axes = [np.arange(a + h / 2, b, h) for a, b in zip(lo, hi, strict=True)]

@@ -56,14 +56,31 @@ class PatientStudy:
 
     @classmethod
     def read(cls, ds: Any) -> PatientStudy:
-        """Read the values from a pydicom ``Dataset`` (missing or empty attributes give ``""``)."""
+        """Read the values from a pydicom ``Dataset`` (missing or empty attributes give ``""``).
+
+        Parameters
+        ----------
+        ds : pydicom.Dataset
+            A dataset holding the patient's and the study's attributes.
+
+        Returns
+        -------
+        PatientStudy
+            The six values as text.
+        """
         def text(keyword: str) -> str:
             return str(ds.get(keyword, "") or "")
         return cls(text("PatientID"), text("PatientName"), text("StudyInstanceUID"), text("StudyDate"),
                    text("StudyTime"), text("StudyID"))
 
     def write(self, ds: Any) -> None:
-        """Set the six attributes on a pydicom ``Dataset`` (the Study Instance UID as given, even empty)."""
+        """Set the six attributes on a pydicom ``Dataset`` (the Study Instance UID as given, even empty).
+
+        Parameters
+        ----------
+        ds : pydicom.Dataset
+            The dataset to set them on (changed in place).
+        """
         ds.PatientID, ds.PatientName = self.patient_id, self.patient_name
         ds.StudyInstanceUID, ds.StudyID = self.study_instance_uid, self.study_id
         ds.StudyDate, ds.StudyTime = self.study_date, self.study_time

@@ -28,12 +28,14 @@ from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
     from reachplan.planner.dose.aims import Aims
+    from reachplan.planner.dose.dwells import DwellSet
     from reachplan.planner.dose.structures import PlanningStructures
     from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
     from reachplan.planner.implant.dwells import OptimisationResult
     from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.plugins.exporters import ExportPlan, NeedleExport
+    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
 
 #: What a delivered channel is for when it is an applicator channel (tandem, ring, ovoid), and the delivered plan's
@@ -54,13 +56,27 @@ EXPORT_ARM = "steered"
 class Delivery:
     """The delivered plan: loaded channels with their dwell times, ready for the exporters.
 
-    ``export`` holds only the channels that carry dwell time (a needle the optimum leaves empty is not part of the
-    implant and gets no instructions); ``roles`` says, per exported channel, what it is for (the target a
-    per-target needle was chosen for, the target volume for an implant needle, ``intracavitary`` for an applicator
-    channel); ``kind``: which plan is delivered (``implant, straight + steered``, ``implant, straight`` or
-    ``one needle per target``). ``optimisation``: its dwell times and dose-volume metrics. ``source``: the TG-43
-    data set the dwell times were optimised with. ``implant``: the two implant arms (:func:`plan_implants`) when
-    asked for, and ``implant_exports`` the export of each arm's chosen implant (loaded channels only), by arm name.
+    Parameters
+    ----------
+    optimisation : OptimisationResult
+        The delivered plan's dwell times and dose-volume metrics.
+    export : ExportPlan
+        Only the channels that carry dwell time (a needle the optimum leaves empty is not part of the implant and
+        gets no instructions).
+    planning : PlanningStructures
+        The planning grid and masks the dose was optimised on.
+    source : SourceData
+        The TG-43 data set the dwell times were optimised with.
+    roles : tuple of str
+        Per exported channel, what it is for: the target a per-target needle was chosen for, the target volume for
+        an implant needle, ``intracavitary`` for an applicator channel.
+    kind : str
+        Which plan is delivered: ``implant, straight + steered``, ``implant, straight`` or ``one needle per
+        target``.
+    implant : ImplantComparison or None
+        The two implant arms (:func:`plan_implants`) when asked for.
+    implant_exports : dict of str to ExportPlan
+        By arm name, the export of each arm's chosen implant (loaded channels only).
     """
 
     optimisation: OptimisationResult
@@ -131,56 +147,60 @@ def plan_delivery(
     planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
     False: no RT Dose, for callers that only need the optimisation).
 
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    structures : StructureSet
+        The case's structures (target volume, organs at risk, reference-point landmarks).
+    grid : Grid or None
+        The planning grid; None: the structures' own (:func:`planning_structures`).
+    source_name : str
+        The TG-43 data set, by name.
+    air_kerma_u : float, U
+        Source strength (cGy cm² h⁻¹).
+    target_roi : str
+        The target volume's ROI name.
+    label : str
+        RT Plan label of the delivered plan (cut to 16 characters).
+    volume : Volume or None
+        The image series the exports reference.
+    input_paths : sequence of Path
+        The input files, for the exports' provenance.
+    named_points : sequence of (str, (float, float, float))
+        Further reference points, name and position (mm, LPS).
+    planned_dose : bool
+        Compute the planned dose for the RT Dose export.
+    scene : Scene or None
+        With it the implant arms are planned and delivered; None: one needle per target.
+    implant_settings : ImplantSettings or None
+        Settings of the implant planning; None: the defaults.
+
+    Returns
+    -------
+    Delivery
+        The delivered plan, its exports and (with ``scene``) both implant arms.
+
     Raises
     ------
     PlanInputError
         No feasible needle, no target structure to optimise on, or a bad named point.
     """
     from reachplan.planner.dose.aims import Aims
-    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid, rate_matrix
-    from reachplan.planner.geometry.reference_points import place_reference_points
+    from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.plugins.exporters import ExportPlan, SourceSpec
-    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
 
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names,
                                    None if scene is None else scene.applicators)
     source = get_source(source_name)
     kernel = Tg43Kernel(source)
     aims = Aims()
-    implant = None
-    if scene is not None:
-        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings)
-    delivered = _delivered_implant(implant, planning.target.name)
-    if delivered is not None:
-        arm, opt, exports, roles = delivered
-        kind = "implant, straight + steered" if arm.name == EXPORT_ARM else f"implant, {arm.name}"
-    else:
-        opt, exports, roles = _per_target(result, planning, kernel, air_kerma_u, aims)
-        kind = PER_TARGET
+    implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
+                                                    implant_settings)
     active = opt.dwells.select(opt.dwells.times_s > 0)
-    placed, _ = place_reference_points(structures)
-    wanted = [(p.name, p.position_mm) for p in placed]
-    for name, xyz in named_points:
-        pos = np.asarray(xyz, dtype=float)
-        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
-            raise PlanInputError(f"reference point {name!r}: give three finite coordinates in mm (LPS)")
-        wanted.append((name, pos))
-    gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
-    points = []
-    for name, pos in wanted:
-        rate = rate_matrix(pos[None], opt.dwells.positions_mm, opt.dwells.directions, kernel)[0] * gy_per_s
-        # per exported channel, in its dwell order (exported channel ch holds the dwells with channels == ch)
-        rates = tuple(rate[opt.dwells.channels == ch] for ch in range(1, len(exports) + 1))
-        try:
-            points.append(ReferencePoint(name, pos, rates))
-        except ValueError as exc:
-            raise PlanInputError(str(exc)) from None
+    points = _reference_points(structures, named_points, opt.dwells, len(exports), kernel, air_kerma_u)
     fractions = aims.fractionation.n_fractions
-    dose = None
-    if planned_dose:
-        dose_grid = _dose_region(planning)
-        values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
-        dose = PlannedDose(values * fractions, dose_grid)
+    dose = _planned_dose(planning, active, kernel, air_kerma_u, fractions) if planned_dose else None
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     setup = load_template(result.config.template).application_setup_type
 
@@ -195,6 +215,69 @@ def plan_delivery(
     implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
                        for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
+
+
+def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,
+               kernel: Tg43Kernel, air_kerma_u: float, aims: Aims, implant_settings: ImplantSettings | None,
+               ) -> tuple[ImplantComparison | None, OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...], str]:
+    """Return the implant arms (with ``scene``) and the plan to deliver: optimisation, needles, roles and kind.
+
+    The implant arm :func:`_delivered_implant` picks, else one needle per target (:func:`_per_target`).
+    """
+    implant = None
+    if scene is not None:
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings)
+    delivered = _delivered_implant(implant, planning.target.name)
+    if delivered is not None:
+        arm, opt, exports, roles = delivered
+        kind = "implant, straight + steered" if arm.name == EXPORT_ARM else f"implant, {arm.name}"
+    else:
+        opt, exports, roles = _per_target(result, planning, kernel, air_kerma_u, aims)
+        kind = PER_TARGET
+    return implant, opt, exports, roles, kind
+
+
+def _planned_dose(planning: PlanningStructures, active: DwellSet, kernel: Tg43Kernel, air_kerma_u: float,
+                  fractions: int) -> PlannedDose:
+    """Return the planned dose of all ``fractions`` (Gy) on the target's and organs' region of the planning grid."""
+    from reachplan.planner.dose.dwells import dose_on_grid
+    from reachplan.plugins.exporters.base import PlannedDose
+
+    dose_grid = _dose_region(planning)
+    values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
+    return PlannedDose(values * fractions, dose_grid)
+
+
+def _reference_points(structures: StructureSet, named_points: Sequence[tuple[str, Sequence[float]]],
+                      dwells: DwellSet, n_channels: int, kernel: Tg43Kernel, air_kerma_u: float
+                      ) -> list[ReferencePoint]:
+    """Return the exported plan's reference points: the placed ones, then ``named_points``, with dose rates.
+
+    Rates in Gy s⁻¹ per dwell, per exported channel in its dwell order (exported channel ``ch`` holds the dwells
+    with ``channels == ch``).
+    """
+    from reachplan.planner.dose.dwells import rate_matrix
+    from reachplan.planner.geometry.reference_points import place_reference_points
+    from reachplan.plugins.exporters.base import ReferencePoint
+
+    placed, _ = place_reference_points(structures)
+    wanted = [(p.name, p.position_mm) for p in placed]
+    for name, xyz in named_points:
+        pos = np.asarray(xyz, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise PlanInputError(f"reference point {name!r}: give three finite coordinates in mm (LPS)")
+        wanted.append((name, pos))
+    gy_per_s = air_kerma_u / 360000.0  # rate_matrix is cGy h⁻¹ U⁻¹: × S_K / 100 / 3600 gives Gy s⁻¹
+    points = []
+    for name, pos in wanted:
+        rate = rate_matrix(pos[None], dwells.positions_mm, dwells.directions, kernel)[0] * gy_per_s
+        # per exported channel, in its dwell order (exported channel ch holds the dwells with channels == ch)
+        rates = tuple(rate[dwells.channels == ch] for ch in range(1, n_channels + 1))
+        try:
+            points.append(ReferencePoint(name, pos, rates))
+        except ValueError as exc:
+            raise PlanInputError(str(exc)) from None
+    return points
 
 
 def _delivered_implant(
@@ -233,7 +316,7 @@ def _per_target(
 
     The dwells are renumbered so that channel ``ch`` of the result is the ``ch``-th exported needle.
     """
-    from reachplan.planner.dose.tg43 import DwellSet
+    from reachplan.planner.dose.dwells import DwellSet
     from reachplan.planner.implant.dwells import optimise_dwell_times
     from reachplan.plugins.exporters import NeedleExport
 
@@ -267,6 +350,16 @@ def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
     """Return the loaded channels of an implant as exporter needles, in the plan's order.
 
     Every one carries time: an empty channel is not in ``plan.channels``.
+
+    Parameters
+    ----------
+    plan : ImplantPlan
+        An arm's chosen implant; channel ``ch`` (from 1) holds the dwells with ``dwells.channels == ch``.
+
+    Returns
+    -------
+    tuple of NeedleExport
+        Path, dwell positions (mm, LPS) and times (s) per channel, applicator channels flagged.
     """
     from reachplan.plugins.exporters import NeedleExport
 

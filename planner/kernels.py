@@ -118,7 +118,8 @@ def _warm(group: str) -> None:
         model.solve_batch(d, np.array([1.0, 2.0]))
     elif group == "dose":
         from reachplan.imaging.types import Grid
-        from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid
+        from reachplan.planner.dose.dwells import DwellSet, dose_on_grid
+        from reachplan.planner.dose.tg43 import Tg43Kernel
         from reachplan.plugins.sources import BUILTIN
 
         k = Tg43Kernel(BUILTIN["gammamed_plus_hdr"]())
@@ -135,6 +136,16 @@ def cold(group: str) -> bool:
 
     Reads numba's cache index (an internal of numba: any surprise there reads as "cold", which costs only a
     child that loads the kernels from the cache). A stale index (the source changed, e.g. a reinstall) is cold.
+
+    Parameters
+    ----------
+    group : str
+        A kernel group of :data:`GROUPS` (``"sweep"``, ``"distance"``, ``"rod"``, ``"dose"``).
+
+    Returns
+    -------
+    bool
+        True when a kernel of the group would compile on its first call.
     """
     try:
         return any(not d._cache._cache_file._load_index() for d in _dispatchers(group))
@@ -152,7 +163,13 @@ class _Child:
         self.waited_s: dict[str, float] = {}  # how long the main process waited for each group
 
     def wait(self, group: str) -> None:
-        """Block until the child has compiled ``group`` (or has exited)."""
+        """Block until the child has compiled ``group`` (or has exited).
+
+        Parameters
+        ----------
+        group : str
+            The kernel group whose ``GROUP.done`` marker is awaited (at most ``_MAX_WAIT_S`` seconds).
+        """
         marker = self.folder / f"{group}.done"
         t0 = time.perf_counter()
         while not marker.exists() and self.proc.poll() is None and time.perf_counter() - t0 < _MAX_WAIT_S:
@@ -192,6 +209,16 @@ def start(quiet: bool = False) -> bool:
 
     Prints one line on stderr unless ``quiet``. Safe to call more than once (the second call does nothing).
     Without numba, with numba's JIT disabled, or when every group is cached, nothing is started.
+
+    Parameters
+    ----------
+    quiet : bool
+        No line on stderr.
+
+    Returns
+    -------
+    bool
+        True when a background process was started.
     """
     global _child
     if _child is not None or os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0"):

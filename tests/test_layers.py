@@ -164,8 +164,8 @@ def test_no_module_names_a_higher_floor_or_room_in_a_string() -> None:
      "reachplan.rod_model.select: reachplan.plugins.registry"),
     ("planner/bench/startup.py", "\nHELP = ('-m', 'reachplan.planner.cli', '--help')\n",
      "reachplan.planner.bench.startup: reachplan.planner.cli"),
-    ("planner/geometry/collision.py", "\nWORK = 'from reachplan.planner.dose.tg43 import dose_on_grid'\n",
-     "reachplan.planner.geometry.collision: reachplan.planner.dose.tg43"),
+    ("planner/geometry/collision.py", "\nWORK = 'from reachplan.planner.dose.dwells import dose_on_grid'\n",
+     "reachplan.planner.geometry.collision: reachplan.planner.dose.dwells"),
 ])
 def test_a_string_naming_a_module_above_is_found(tmp_path: Path, module: str, extra: str, named: str) -> None:
     site = _copy_with(tmp_path, module, extra)

@@ -36,7 +36,18 @@ INSTALLS = {"distance.csv": "docs/speed/distance.csv", "distance.png": "docs/spe
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
+    """Run ``reachplan bench distance`` into ``args.out``: ``distance.csv`` and ``distance.png``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``out`` and ``quick`` (one repeat, fewer paths).
+
+    Returns
+    -------
+    int
+        0 (the rankings' agreement and the rates are in the table).
+    """
     from reachplan.planner.case.config import PlanConfig
 
     out: Path = args.out  # made by the bench command

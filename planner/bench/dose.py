@@ -23,7 +23,8 @@ from matplotlib.figure import Figure
 
 from reachplan.imaging.types import Grid
 from reachplan.planner.bench.common import settings, write_csv, write_png
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid, grid_points_mm, rate_matrix
+from reachplan.planner.dose.dwells import DwellSet, dose_on_grid, grid_points_mm, rate_matrix
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.lookup import get_source
 
 INSTALLS = {"dose_benchmark.csv": "docs/dose_benchmark.csv", "dose_benchmark.png": "docs/dose_benchmark.png"}

@@ -22,7 +22,8 @@ import numpy as np
 
 from reachplan.imaging.types import Grid
 from reachplan.planner.bench._util import load_avg, write_csv
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid, grid_points_mm, rate_matrix
+from reachplan.planner.dose.dwells import DwellSet, dose_on_grid, grid_points_mm, rate_matrix
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.plugins.sources import BUILTIN
 
 LIMIT_MPAIRS = 100.0

@@ -85,7 +85,18 @@ INSTALLS = {"firstrun.csv": "docs/speed/firstrun.csv", "firstrun.png": "docs/spe
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark into ``args.out`` (CSV + PNG); return 0."""
+    """Run ``reachplan bench firstrun`` into ``args.out`` (CSV + PNG).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``out``, ``quick`` (the pilot case, one repeat) and ``repeat``.
+
+    Returns
+    -------
+    int
+        0; the cold, warm and penalty seconds per measurement are in ``firstrun.csv``.
+    """
     out: Path = args.out  # made by the bench command
     repeat = getattr(args, "repeat", None) or (1 if args.quick else 3)
     case = "pilot" if args.quick else "clinical"

@@ -4,7 +4,7 @@ Runs the demo's pipeline once (the built-in clinical case written as DICOM and r
 with both implant arms), then renders the report ``--repeat`` times as ``reachplan demo`` does
 (:func:`reachplan.planner.report.build.report_html`: figures, 3-D view, HTML) and records the wall and CPU time of
 each run, the time of the straight-versus-steered dose comparison the demo runs with the delivery before it
-(:func:`reachplan.planner.report.build.straight_vs_steered`, not part of the report), and the size of the
+(:func:`reachplan.planner.report.comparison.straight_vs_steered`, not part of the report), and the size of the
 document split into plotly.js, the embedded images, the 3-D view's data and the rest. Limit (issue 19, quiet 2-core
 machine): the report of the demo in at most 3 s.
 
@@ -79,7 +79,7 @@ def demo_inputs(folder: Path, implant: bool = True) -> dict[str, Any]:
     from reachplan.planner.case.search import plan
     from reachplan.planner.delivery import plan_delivery
     from reachplan.planner.report import figures
-    from reachplan.planner.report.build import top_candidates
+    from reachplan.planner.report.terminal import top_candidates
     from reachplan.planner.report.workspace import workspace_figure
     from reachplan.planner.run.case import rod_model_errors
 
@@ -136,7 +136,8 @@ def measure(inputs: dict[str, Any], repeat: int) -> list[dict[str, object]]:
     list of dict of str to object
         One row per run.
     """
-    from reachplan.planner.report.build import report_html, straight_vs_steered
+    from reachplan.planner.report.build import report_html
+    from reachplan.planner.report.comparison import straight_vs_steered
 
     kw = {k: v for k, v in inputs.items() if k not in ("scene", "result", "structures")}
     rows: list[dict[str, object]] = []

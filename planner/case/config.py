@@ -41,27 +41,50 @@ DEFAULT_AIR_KERMA_U = 40_700.0
 class PlanConfig:
     """Settings of a plan (all lengths in mm).
 
-    ``reach_tolerance_mm``: a candidate reaches its target when its tip is within this distance of the
-    target point. ``max_depth_mm``: free length of the needle beyond the template (reference: about 200 mm).
-    ``obturator_depth_mm``: how far the obturator tip lies beyond the template plane, used to place the
-    template from an ``Obturator`` ROI when no pose is given.
-    ``designs``: stylet presets to steer with (empty: straight needles only; the pilot study used
-    15ga-30j-tip). ``family``: the schedules screened per design. ``alternatives``: reaching schedules tried
-    per hole before a steered candidate is declared colliding. ``refine_top``: feasible steered candidates
-    per target re-solved with the reference insertion model (the two-tube Cosserat rod inserted in tissue,
-    :mod:`~reachplan.planner.steering.tissue_rod`); the others keep the screening model's numbers, and every
-    candidate names its model.
-    ``robust_top``: feasible straight and steered candidates per target assessed under ``perturbations``
-    (tension, roll and entry-angle errors); the ranking prefers robust ones among them.
-    ``tissue_moduli_pa``: Young's modulus per organ (normalised ROI name, Pa), e.g. ``(("Uterus", 0.5e6),)``;
-    tissue outside the named organs keeps the gel's 0.19 MPa (the reference's only modulus). The organ holding
-    a target sets the screening and robustness models' curvature factor
-    (:func:`~reachplan.planner.steering.factors.curvature_factor`); the reference model takes the modulus
-    along the path.
-    ``screen_tolerance_mm``: the screening uses the cheapest rod model (by batched throughput) whose
-    measured free-space tip error (the rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
-    ``applicators``: (ROI name, applicator kind) pairs from ``--applicator KIND=ROI``; they override the recognition
-    of applicator ROIs by name (:func:`reachplan.plugins.applicators.applicators_from_structures`).
+    Parameters
+    ----------
+    template : str
+        Name of the needle template (a plugin, :func:`reachplan.planner.lookup.load_template`).
+    needle_radius_mm : float, mm
+        Outer radius of the needle, for the collision checks.
+    reach_tolerance_mm : float, mm
+        A candidate reaches its target when its tip is within this distance of the target point.
+    max_depth_mm : float, mm
+        Free length of the needle beyond the template (reference: about 200 mm).
+    oar_names : tuple of str
+        Organs at risk (normalised ROI names) a needle must not touch.
+    obturator_depth_mm : float, mm
+        How far the obturator tip lies beyond the template plane, used to place the template from an ``Obturator``
+        ROI when no pose is given.
+    designs : tuple of str
+        Stylet presets to steer with (empty: straight needles only; the pilot study used 15ga-30j-tip).
+    family : ScheduleFamily
+        The tension schedules screened per design.
+    alternatives : int
+        Reaching schedules tried per hole before a steered candidate is declared colliding.
+    refine_top : int
+        Feasible steered candidates per target re-solved with the reference insertion model (the two-tube
+        Cosserat rod inserted in tissue, :mod:`~reachplan.planner.steering.tissue_rod`); the others keep the
+        screening model's numbers, and every candidate names its model.
+    weights : RankWeights
+        Weights of the ranking's score.
+    robust_top : int
+        Feasible straight and steered candidates per target assessed under ``perturbations``; the ranking prefers
+        robust ones among them.
+    perturbations : Perturbations
+        Tension, roll and entry-angle errors of the robustness check.
+    tissue_moduli_pa : tuple of (str, float), Pa
+        Young's modulus per organ (normalised ROI name), e.g. ``(("Uterus", 0.5e6),)``; tissue outside the named
+        organs keeps the gel's 0.19 MPa (the reference's only modulus). The organ holding a target sets the
+        screening and robustness models' curvature factor
+        (:func:`~reachplan.planner.steering.factors.curvature_factor`); the reference model takes the modulus
+        along the path.
+    screen_tolerance_mm : float, mm
+        The screening uses the cheapest rod model (by batched throughput) whose measured free-space tip error (the
+        rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
+    applicators : tuple of (str, str)
+        (ROI name, applicator kind) pairs from ``--applicator KIND=ROI``; they override the recognition of
+        applicator ROIs by name (:func:`reachplan.plugins.applicators.applicators_from_structures`).
     """
 
     template: str = "needlefinder_syed_63"
@@ -93,6 +116,11 @@ class PlanConfig:
 
         The candidates carry these objects.
 
+        Returns
+        -------
+        tuple of RodDesign
+            One per name of ``designs``, in that order.
+
         Raises
         ------
         UnknownPresetError
@@ -107,8 +135,14 @@ class PlanModels:
 
     :meth:`for_config` looks the screening rod model up by name (:mod:`reachplan.planner.lookup`).
 
-    ``screening`` screens every schedule of the family; ``reference`` re-solves the shortlist
-    (``PlanConfig.refine_top``); ``robustness`` re-evaluates the shortlist under the perturbations.
+    Parameters
+    ----------
+    screening : KinematicInsertion
+        Screens every schedule of the family.
+    reference : TissueRodInsertion
+        Re-solves the shortlist (``PlanConfig.refine_top``).
+    robustness : KinematicInsertion
+        Re-evaluates the shortlist under the perturbations.
     """
 
     screening: KinematicInsertion = KINEMATIC
@@ -117,7 +151,18 @@ class PlanModels:
 
     @classmethod
     def for_config(cls, config: PlanConfig) -> PlanModels:
-        """Return the default models, with the screening model of ``config`` (:func:`screening_model`)."""
+        """Return the default models, with the screening model of ``config`` (:func:`screening_model`).
+
+        Parameters
+        ----------
+        config : PlanConfig
+            Its ``screen_tolerance_mm`` picks the screening rod model.
+
+        Returns
+        -------
+        PlanModels
+            The reference and robustness defaults, and that screening model.
+        """
         return cls(screening=screening_model(config))
 
 
@@ -125,6 +170,16 @@ def screening_model(config: PlanConfig) -> KinematicInsertion:
     """Return the kinematic insertion model on the cheapest rod model within ``config.screen_tolerance_mm``.
 
     The rod model is looked up in the plugin registry.
+
+    Parameters
+    ----------
+    config : PlanConfig
+        The plan's settings (``screen_tolerance_mm``, mm).
+
+    Returns
+    -------
+    KinematicInsertion
+        The kinematic insertion on the selected rod model.
     """
     from reachplan.rod_model.select import Scene as RodScene
     from reachplan.rod_model.select import select_model

@@ -50,19 +50,53 @@ class BlockedNeedle:
 
 @dataclass(frozen=True, eq=False)
 class PlanResult:
-    """All scored candidates and their ranking per target."""
+    """All scored candidates and their ranking per target.
+
+    Parameters
+    ----------
+    candidates : tuple of Candidate
+        Every candidate scored, straight and steered.
+    ranking : dict of str to tuple of Candidate
+        Per target name, its candidates best first.
+    config : PlanConfig
+        The settings the plan was made with.
+    """
 
     candidates: tuple[Candidate, ...]
     ranking: dict[str, tuple[Candidate, ...]]
     config: PlanConfig
 
     def rerank(self, weights: RankWeights) -> PlanResult:
-        """Return the same candidates in the order of other weights (nothing is re-solved)."""
+        """Return the same candidates in the order of other weights (nothing is re-solved).
+
+        Parameters
+        ----------
+        weights : RankWeights
+            The new score weights.
+
+        Returns
+        -------
+        PlanResult
+            The same candidates ranked anew; the config carries ``weights``.
+        """
         return PlanResult(self.candidates, rank(self.candidates, weights), dataclasses.replace(self.config,
                                                                                               weights=weights))
 
     def best(self, target: str, steered: bool) -> Candidate | None:
-        """Return the best-ranked feasible straight (or steered) candidate of a target, if any."""
+        """Return the best-ranked feasible straight (or steered) candidate of a target, if any.
+
+        Parameters
+        ----------
+        target : str
+            The target's name.
+        steered : bool
+            True for a steered needle, False for a straight one.
+
+        Returns
+        -------
+        Candidate or None
+            None when no candidate of that kind is feasible.
+        """
         return next((c for c in self.ranking[target] if c.feasible and c.steered == steered), None)
 
     def blocked_straight(self) -> tuple[BlockedNeedle, ...]:
@@ -95,7 +129,14 @@ class PlanResult:
         return out
 
     def to_json(self) -> dict[str, object]:
-        """Return the configuration and, per target, the ranked candidates as JSON-ready values (mm, N, LPS)."""
+        """Return the configuration and, per target, the ranked candidates as JSON-ready values (mm, N, LPS).
+
+        Returns
+        -------
+        dict of str to object
+            ``config`` and, per target, the most medial straight and steered hole distances (mm), the medial gain,
+            the best of each kind and every ranked candidate.
+        """
         targets: dict[str, object] = {}
         ranked = self.ranking_json()
         for t, cands in self.ranking.items():
@@ -120,6 +161,20 @@ def choose_needles(result: PlanResult, targets: Sequence[str] | None = None,
 
     ``steered``: True takes steered candidates only, False straight ones only, None either. Targets without a
     feasible candidate (of that kind) on a free hole get none (their ranking says why).
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    targets : sequence of str or None
+        Targets in the order they pick their hole; None: the ranking's order.
+    steered : bool or None
+        True: steered candidates only; False: straight ones only; None: either.
+
+    Returns
+    -------
+    tuple of Candidate
+        At most one per target, in the order of ``targets``.
     """
     used: set[str] = set()
     out: list[Candidate] = []

@@ -25,10 +25,25 @@ from reachplan.plugins.templates import Template
 class Scene:
     """What a plan needs: organs to avoid, targets, the template and its pose.
 
-    ``meshes`` holds every meshed ROI by normalised name (for figures and exports);
-    ``patient_from_template`` is (4, 4), LPS mm; ``pose`` says how it was found; ``notes`` are warnings about
-    the input (organs at risk not found or skipped, targets planned to points); ``applicators`` the applicators
-    recognised in the structure set (or assigned with ``--applicator``), channels oriented along the template axis.
+    Parameters
+    ----------
+    organs : tuple of Organ
+        The organs at risk a needle must not touch (meshes, LPS mm).
+    targets : tuple of Target
+        The points to reach.
+    template : Template
+        The needle template.
+    patient_from_template : (4, 4) float, template frame -> LPS mm
+        The template's pose (rigid).
+    meshes : dict of str to trimesh.Trimesh
+        Every meshed ROI by normalised name, LPS mm (for figures and exports).
+    pose : TemplatePose or None
+        How the pose was found.
+    notes : tuple of str
+        Warnings about the input (organs at risk not found or skipped, targets planned to points).
+    applicators : tuple of Applicator
+        The applicators recognised in the structure set (or assigned with ``--applicator``), channels oriented
+        along the template axis.
     """
 
     organs: tuple[Organ, ...]
@@ -44,7 +59,24 @@ class Scene:
 def mesh_structures(
     structures: StructureSet, names: Iterable[str], grid: Grid | None = None, quiet: bool = True
 ) -> dict[str, trimesh.Trimesh]:
-    """Watertight meshes (LPS mm) of the named ROIs that exist in ``structures``, by normalised name."""
+    """Watertight meshes of the named ROIs that exist in ``structures``, by normalised name.
+
+    Parameters
+    ----------
+    structures : StructureSet
+        The structure set.
+    names : iterable of str
+        ROI names to mesh (case-insensitive); absent ones and ROIs without closed contours are skipped.
+    grid : Grid or None
+        The image grid the contours were drawn on (meshing resolution); None: chosen from the contours.
+    quiet : bool
+        No progress bar.
+
+    Returns
+    -------
+    dict of str to trimesh.Trimesh
+        Normalised ROI name -> mesh, LPS mm.
+    """
     from reachplan.imaging.meshing import roi_mesh
 
     wanted = [n for n in names if n.casefold() in {s.casefold() for s in structures.names}]

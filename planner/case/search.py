@@ -37,9 +37,24 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
          models: PlanModels | None = None) -> PlanResult:
     """Score every hole x target candidate, straight and steered, and rank them.
 
-    ``models``: the insertion models to use (default :meth:`PlanModels.for_config`). A model that fails for
-    one candidate (no convergence, a shape out of range) marks that candidate (``failed``, with the reason);
-    the plan goes on.
+    A model that fails for one candidate (no convergence, a shape out of range) marks that candidate (``failed``,
+    with the reason); the plan goes on.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organs, targets, template and its pose.
+    config : PlanConfig or None
+        The plan's settings; None: the defaults.
+    quiet : bool
+        No progress bar.
+    models : PlanModels or None
+        The insertion models to use; None: :meth:`PlanModels.for_config` of ``config``.
+
+    Returns
+    -------
+    PlanResult
+        Every candidate and the ranking per target.
     """
     config = config or PlanConfig()
     models = models or PlanModels.for_config(config)
@@ -69,6 +84,20 @@ def target_modulus_pa(scene: Scene, target: Target, config: PlanConfig) -> float
     The first organ of ``config.tissue_moduli_pa`` whose mesh contains the target, else the phantom's gel
     (SimuGel #3, 0.19 MPa, reference ``oncoreach.md``: the only tissue modulus the reference gives).
 
+    Parameters
+    ----------
+    scene : Scene
+        Its meshes hold the named organs.
+    target : Target
+        The target point (LPS mm).
+    config : PlanConfig
+        Its ``tissue_moduli_pa`` (Pa per organ).
+
+    Returns
+    -------
+    float, Pa
+        The modulus at the target.
+
     Raises
     ------
     PlanInputError
@@ -85,6 +114,24 @@ def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, 
 
     The modulus of the organ each point lies in (the first of ``moduli`` that contains it), ``default_pa``
     elsewhere.
+
+    Parameters
+    ----------
+    scene : Scene
+        Its meshes hold the named organs.
+    path_mm : (n, 3) float, mm, LPS
+        The needle's centre line, hub first.
+    moduli : tuple of (str, float), Pa
+        Organ name and its Young's modulus, first match wins.
+    default_pa : float, Pa
+        The modulus outside the named organs.
+
+    Returns
+    -------
+    depth_mm : (n,) float, mm
+        Arc length along the path from its first point.
+    modulus_pa : (n,) float, Pa
+        The modulus at each point.
 
     Raises
     ------
@@ -114,6 +161,22 @@ def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig,
     """Assess the robustness of the ``config.robust_top`` best feasible straight and steered candidates per target.
 
     With ``model``; a candidate whose assessment fails is marked failed with the reason.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organs, targets and the template's pose.
+    cands : list of Candidate
+        Every candidate of the plan.
+    config : PlanConfig
+        ``robust_top``, ``perturbations``, ``weights`` and the tolerances.
+    model : KinematicInsertion
+        The insertion model of the perturbed solves (its tissue modulus set per target).
+
+    Returns
+    -------
+    list of Candidate
+        ``cands`` in the same order, the assessed ones carrying their robustness (or marked failed).
     """
     if config.robust_top <= 0:
         return cands
@@ -152,6 +215,26 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
     Among the bank's schedules that reach the target, the gentlest (lowest peak tension, then smallest
     reach error) that clears every organ is kept, trying at most ``config.alternatives``; when none is
     clear, the gentlest reaching one (colliding); when none reaches, the closest approach, unchecked.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organs, template and its pose.
+    target : Target
+        The target point.
+    design : RodDesign
+        The stylet.
+    config : PlanConfig
+        Schedule family, tolerances, depth limit and ``alternatives``.
+    skip : set of str
+        Hole ids left out (a straight needle from them already reaches).
+    model : KinematicInsertion or None
+        The screening model.
+
+    Returns
+    -------
+    list of Candidate
+        One per hole not skipped, in the template's hole order.
     """
     model = model or screening_model(config)
     bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm), model)
@@ -196,6 +279,26 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
     It stops when the top ``config.refine_top`` feasible ones all carry the reference's numbers (at most
     ``refine_top + 4`` solves: a refined candidate that no longer reaches, or that the reference fails to solve
     (marked failed, with the reason), drops down and the next one is refined).
+
+    Parameters
+    ----------
+    scene : Scene
+        Organs, template and its pose (and the meshes the moduli name).
+    target : Target
+        The target whose candidates these are.
+    design : RodDesign
+        Their stylet.
+    cands : list of Candidate
+        The target's steered candidates of ``design`` from the screening.
+    config : PlanConfig
+        ``refine_top``, ``weights``, ``tissue_moduli_pa`` and the reach tolerance.
+    reference : TissueRodInsertion
+        The reference insertion model.
+
+    Returns
+    -------
+    list of Candidate
+        ``cands`` in the same order, the re-solved ones replaced by the reference's candidates.
     """
     rel_all = _template_offsets(scene, target)
     index = {h.hole_id: i for i, h in enumerate(scene.template.needle_holes)}

@@ -43,7 +43,13 @@ INTERNAL_ERROR_EXIT = 70
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Return the ``reachplan`` parser with one sub-command per module of :data:`COMMAND_MODULES`."""
+    """Return the ``reachplan`` parser with one sub-command per module of :data:`COMMAND_MODULES`.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        ``--version`` and the sub-commands, each with ``--quiet`` where it had none.
+    """
     parser = argparse.ArgumentParser(
         prog="reachplan",
         description="Pre-plan steered needle paths for interstitial gynecologic brachytherapy.",
@@ -84,6 +90,11 @@ def console() -> int:
     (``REACHPLAN_JIT=0``, see :mod:`reachplan.rod_model._kernel`): the solve takes about 50 ms so, while importing
     numba and loading the kernel's cached machine code take about 0.8 s. Only here, where the process is the
     command's own: a caller of :func:`main` keeps the compiled kernel.
+
+    Returns
+    -------
+    int
+        The exit code of :func:`main`.
     """
     argv = sys.argv[1:]
     if argv[:1] == ["rod"] and not any(a.startswith("--tensions") for a in argv):
@@ -95,6 +106,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command in ``argv`` (default: the process's) and return its exit code.
 
     A :class:`ReachplanError` becomes one line on stderr and its ``exit_code`` (2); Ctrl-C gives 130.
+
+    Parameters
+    ----------
+    argv : sequence of str or None
+        The arguments after the program name; None: ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        The command's exit code; its error's ``exit_code`` (2) for a reachplan error, 130 on Ctrl-C,
+        :data:`INTERNAL_ERROR_EXIT` for a bug.
     """
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -43,7 +43,19 @@ class Option:
 
 @dataclass(frozen=True)
 class Target:
-    """A ``reachplan bench`` sub-command and the module under :mod:`reachplan.planner.bench` that runs it."""
+    """A ``reachplan bench`` sub-command and the module under :mod:`reachplan.planner.bench` that runs it.
+
+    Parameters
+    ----------
+    name : str
+        The sub-command's name.
+    module : str
+        The module's name under :mod:`reachplan.planner.bench` (it has ``run(args)`` and ``INSTALLS``).
+    help : str
+        One line for ``--help``.
+    options : tuple of Option
+        The target's own options.
+    """
 
     name: str
     module: str
@@ -94,7 +106,14 @@ def _load(module: str) -> ModuleType:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add one sub-command per target, each with the common options and its own."""
+    """Add one sub-command per target, each with the common options and its own.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        ``reachplan bench``'s parser: one sub-parser per target is added (``--out``, ``--quick``, ``--install``,
+        ``--repo`` and its own options).
+    """
     sub = parser.add_subparsers(dest="bench_target", metavar="TARGET", required=True)
     for target in TARGETS:
         p = sub.add_parser(target.name, help=target.help, description=target.help)
@@ -111,7 +130,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Check ``--install`` and the output folder first, run the target, then copy the results it owns."""
+    """Check ``--install`` and the output folder first, run the target, then copy the results it owns.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The target's parsed options (``out``, ``quick``, ``install``, ``repo``, ...).
+
+    Returns
+    -------
+    int
+        The target's exit code (0 when it succeeded).
+    """
     from reachplan.planner.cli.edges import output_folder
 
     output_folder(args.out)  # not a file, writable: checked before the benchmark runs

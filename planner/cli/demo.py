@@ -20,7 +20,13 @@ HELP = ("write a built-in case as DICOM (the clinical case by default), read it 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--out``, the case options, ``--quiet`` and ``--json``."""
+    """Add ``--out``, the case options, ``--quiet`` and ``--json``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        ``reachplan demo``'s parser.
+    """
     from reachplan.planner.cli.phantom import add_case_arguments
 
     parser.add_argument("--out", type=Path, required=True, help="output folder (created; case in OUT/phantom)")
@@ -58,7 +64,18 @@ def format_blocked(rows: Sequence[BlockedNeedle]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Write the phantom, read it back and plan it into ``--out``; return the exit code (0)."""
+    """Write the phantom, read it back and plan it into ``--out``; return the exit code (0).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``reachplan demo`` options: ``out``, the case, ``quiet`` and ``json``.
+
+    Returns
+    -------
+    int
+        0: nothing appears in ``--out`` unless the whole demo succeeds (a failure raises).
+    """
     output_folder(args.out)
     quiet = args.quiet or args.json
     with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole demo succeeds

@@ -20,7 +20,13 @@ HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary ch
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the plan, structure set, grid, source, model and output options."""
+    """Add the plan, structure set, grid, source, model and output options.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The parser that ``reachplan dose`` options are added to.
+    """
     parser.add_argument("--plan", required=True, type=Path, help="brachy RT Plan (RP) file")
     parser.add_argument("--structures", required=True, type=Path, help="RT Structure Set with the channels")
     parser.add_argument("--points", action="store_true", help="report the dose at the plan's dose reference points")

@@ -39,6 +39,24 @@ def finite(value: float | None, option: str, *, lo: float | None = None, hi: flo
            lo_open: bool = False) -> float | None:
     """``value`` when it is a finite number within [lo, hi] (or (lo, hi] with ``lo_open``); None stays None.
 
+    Parameters
+    ----------
+    value : float or None
+        The option's value.
+    option : str
+        The option's name, for the message (e.g. ``"--margin"``).
+    lo : float or None
+        The lowest value allowed; None: no lower bound.
+    hi : float or None
+        The highest value allowed; None: no upper bound.
+    lo_open : bool
+        Exclude ``lo`` itself.
+
+    Returns
+    -------
+    float or None
+        ``value`` unchanged.
+
     Raises
     ------
     ArgumentError
@@ -55,7 +73,18 @@ def finite(value: float | None, option: str, *, lo: float | None = None, hi: flo
 
 
 def finite_float(text: str) -> float:
-    """Argparse ``type=`` for a finite float (``nan``, ``inf`` are refused by argparse with exit code 2)."""
+    """Argparse ``type=`` for a finite float (``nan``, ``inf`` are refused by argparse with exit code 2).
+
+    Parameters
+    ----------
+    text : str
+        The argument as given.
+
+    Returns
+    -------
+    float
+        Its value.
+    """
     import argparse
 
     try:
@@ -153,6 +182,20 @@ def output_folder(out: Path, inputs: Iterable[Path | None] = (), option: str = "
     Not an existing file, not an input folder (nor inside one, nor holding an input file directly), and
     writable.
 
+    Parameters
+    ----------
+    out : Path
+        The output folder (new or existing).
+    inputs : iterable of Path or None
+        The command's input files and folders (None entries are skipped).
+    option : str
+        The option's name, for the messages.
+
+    Returns
+    -------
+    Path
+        ``out`` resolved.
+
     Raises
     ------
     ArgumentError
@@ -170,6 +213,20 @@ def output_folder(out: Path, inputs: Iterable[Path | None] = (), option: str = "
 
 def output_file(out: Path, inputs: Iterable[Path | None] = (), option: str = "--out") -> Path:
     """Check an output file before any work: not an input, not a folder, and in a writable place.
+
+    Parameters
+    ----------
+    out : Path
+        The file to write.
+    inputs : iterable of Path or None
+        The command's inputs, which ``out`` must not be.
+    option : str
+        Named in the messages.
+
+    Returns
+    -------
+    Path
+        ``out``, resolved.
 
     Raises
     ------
@@ -191,6 +248,11 @@ def staged_folder(out: Path) -> Iterator[Path]:
 
     On success its entries move into ``out`` (created when missing, entries of the same name replaced); on any
     failure it is removed and ``out`` is left as it was.
+
+    Parameters
+    ----------
+    out : Path
+        The folder the results end up in.
 
     Yields
     ------
@@ -250,6 +312,13 @@ def print_json(doc: Any, command: str = "") -> None:
 
     When values had to be set to null, a dict document says which under ``"not_computable"`` (JSON paths), and
     stderr says so too.
+
+    Parameters
+    ----------
+    doc : object
+        Dicts, lists, strings, numbers (NumPy ones too), None.
+    command : str
+        The sub-command's name, for the warning on stderr.
     """
     nulled: list[str] = []
     safe = json_safe(doc, "", nulled)
@@ -262,10 +331,32 @@ def print_json(doc: Any, command: str = "") -> None:
 
 
 def warning_lines(caught: Iterable[warnings.WarningMessage]) -> list[str]:
-    """``"Category: message"`` of recorded warnings, in order, without repeats (for stderr and the JSON)."""
+    """``"Category: message"`` of recorded warnings, in order, without repeats (for stderr and the JSON).
+
+    Parameters
+    ----------
+    caught : iterable of warnings.WarningMessage
+        Warnings recorded by :func:`warnings.catch_warnings`.
+
+    Returns
+    -------
+    list of str
+        One line per distinct warning.
+    """
     return list(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))
 
 
 def seen_warnings(args: Any) -> list[str]:
-    """Return the warnings the running command has met so far (recorded by :func:`reachplan.planner.cli.main`)."""
+    """Return the warnings the running command has met so far (recorded by :func:`reachplan.planner.cli.main`).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments (they carry the record as ``_warnings``).
+
+    Returns
+    -------
+    list of str
+        ``"Category: message"`` lines (:func:`warning_lines`).
+    """
     return warning_lines(getattr(args, "_warnings", []))

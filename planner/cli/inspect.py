@@ -12,7 +12,13 @@ HELP = "list the image series, structure sets (with volumes) and brachy plans in
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the path, ``--json`` and ``--synonyms``."""
+    """Add the path, ``--json`` and ``--synonyms``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        Parser of the ``reachplan inspect`` sub-command.
+    """
     parser.add_argument("path", type=Path, help="a DICOM file or a folder (searched recursively)")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     parser.add_argument("--synonyms", type=Path, default=None,
@@ -20,7 +26,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Print what the DICOM file or folder holds (text or JSON); return 0."""
+    """Print what the DICOM file or folder holds (text or JSON); return 0.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``path``, ``json`` and ``synonyms`` (a CSV of extra ROI names).
+
+    Returns
+    -------
+    int
+        Always 0; a file that cannot be read raises.
+    """
     from reachplan.imaging.inspect import inspect_path
     from reachplan.imaging.names import SynonymTable
 

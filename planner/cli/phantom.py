@@ -13,7 +13,13 @@ HELP = "write a built-in case (clinical by default, or the pilot phantom) as DIC
 
 
 def add_case_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--case``, ``--seed`` and ``--modality`` (shared with ``demo``)."""
+    """Add ``--case``, ``--seed`` and ``--modality`` (shared with ``demo``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The ``phantom`` or ``demo`` parser.
+    """
     parser.add_argument("--case", choices=("clinical", "pilot"), default="clinical",
                         help="clinical: a cervix-cancer pelvis where organs stand in the way (default); pilot: the "
                              "OncoReach pilot phantom (SimuGel, target cylinders)")
@@ -24,7 +30,13 @@ def add_case_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--out`` and ``--json``."""
+    """Add ``--out`` and ``--json``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        Parser of ``reachplan phantom`` (the case options join them).
+    """
     parser.add_argument("--out", type=Path, required=True,
                         help="output folder (images in OUT/CT or OUT/MR, structures in OUT/RS.phantom.dcm)")
     add_case_arguments(parser)
@@ -32,7 +44,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def write_case(args: argparse.Namespace, out: Path) -> tuple[Any, Any, dict[str, object]]:
-    """Write the case the arguments ask for to ``out``: (files, spec, description for JSON)."""
+    """Write the case the arguments ask for to ``out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``case`` (``clinical`` or ``pilot``), ``seed`` and ``modality``.
+    out : Path
+        The folder to write the image series and structure set into.
+
+    Returns
+    -------
+    files : PhantomFiles
+        The image series folder and the structure set file.
+    spec : PhantomSpec
+        The phantom written (structures, geometry in LPS mm).
+    about : dict of str to object
+        The case's description for JSON (the clinical case's parameters and targets).
+
+    Raises
+    ------
+    PlanInputError
+        ``--seed`` or ``--modality`` given for the pilot phantom, or a negative seed.
+    """
     from reachplan.planner.errors import PlanInputError
 
     if args.case == "pilot":
@@ -51,7 +85,18 @@ def write_case(args: argparse.Namespace, out: Path) -> tuple[Any, Any, dict[str,
 
 
 def run(args: argparse.Namespace) -> int:
-    """Write the built-in case as DICOM and print what was written; return 0."""
+    """Write the built-in case as DICOM and print what was written; return 0.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``out``, the case options and ``json``.
+
+    Returns
+    -------
+    int
+        0 once the files are written.
+    """
     output_folder(args.out)
     files, spec, about = write_case(args, args.out)
     if args.json:

@@ -38,7 +38,14 @@ HELP = "rank template holes, stylet designs and tension schedules for targets; w
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``plan`` options to ``parser``."""
+    """Add the ``plan`` options to ``parser``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The ``plan`` sub-command's parser: inputs, targets, template pose, organs, applicators, designs, dose and
+        output options.
+    """
     parser.add_argument("--ct", type=Path, help="CT/MR series folder (optional: organs from contours suffice)")
     parser.add_argument("--rtstruct", type=Path, required=True, help="RT Structure Set file")
     parser.add_argument("--targets", nargs="+", required=True, metavar="ROI_OR_POINT",
@@ -133,6 +140,21 @@ def read_pose_file(path: Path) -> np.ndarray:
 
     The file holds JSON (a 4x4 list, or an object holding 'patient_from_template' at any depth) or text (4 rows
     of 4 numbers separated by spaces or commas). Rigidity is checked by the caller.
+
+    Parameters
+    ----------
+    path : Path
+        The ``--template-pose`` file.
+
+    Returns
+    -------
+    (4, 4) float, template frame -> LPS mm
+        ``patient_from_template`` as written.
+
+    Raises
+    ------
+    PlanInputError
+        An unreadable file, or no finite 4x4 matrix in it.
     """
     import numpy as np
     try:
@@ -164,6 +186,27 @@ def template_pose(args: argparse.Namespace, structures: StructureSet, config: Pl
     """Return the pose asked for on the command line (None: fit it to the Obturator ROI).
 
     ``applicators``: ROI name -> applicator kind from ``--applicator`` (for an RT Plan's channels).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``template_origin`` and ``template_axis`` (mm, LPS), ``template_pose`` or ``rtplan``: one of them at most.
+    structures : StructureSet
+        The case's structures (an RT Plan's channels are found in them).
+    config : PlanConfig
+        Its ``obturator_depth_mm`` places the template behind an RT Plan's channel.
+    applicators : mapping of str to str or None
+        ROI name -> applicator kind from ``--applicator`` (for an RT Plan's channels).
+
+    Returns
+    -------
+    TemplatePose or None
+        The pose and a line saying where it came from; None when none was given.
+
+    Raises
+    ------
+    PlanInputError
+        The pose given two ways, an origin without an axis (or the reverse), or a bad pose file.
     """
     from reachplan.planner.geometry.template import TemplatePose, pose_from_axis, pose_from_rtplan
     from reachplan.planner.lookup import applicator_kinds
@@ -222,6 +265,13 @@ def _names(args: argparse.Namespace, config: PlanConfig) -> tuple[SynonymTable, 
 
 def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
     """Check what can be checked before any work: the output folder, template, designs, source and targets.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The ``plan`` options.
+    inputs : list of Path
+        The input files (the output folder must not be one of them, nor hold them).
 
     Raises
     ------
@@ -283,7 +333,18 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
 
 
 def run(args: argparse.Namespace) -> int:
-    """Plan a case from the command line; returns the exit code."""
+    """Plan a case from the command line; returns the exit code.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The ``plan`` options.
+
+    Returns
+    -------
+    int
+        0; nothing appears in ``--out`` unless the whole plan succeeds (a failure raises).
+    """
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.names import rename
     from reachplan.imaging.rtstruct import read_rtstruct
@@ -362,7 +423,7 @@ def plan_and_write(inputs: CaseInput, config: CaseConfig, out: Path, quiet: bool
         plan.json's content.
     """
     from reachplan.planner.kernels import start
-    from reachplan.planner.report.build import format_implant, format_summary
+    from reachplan.planner.report.terminal import format_implant, format_summary
     from reachplan.planner.run.case import run_case
     from reachplan.planner.run.outputs import write_outputs
 

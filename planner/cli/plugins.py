@@ -19,13 +19,30 @@ KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "source
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--kind`` and ``--json``."""
+    """Add ``--kind`` and ``--json``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        Sub-parser of ``reachplan plugins``.
+    """
     parser.add_argument("--kind", choices=KINDS, help="only this kind of plugin")
     parser.add_argument("--json", action="store_true", help="print one JSON document (a list of plugins)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Print the installed plugins and whether they load; return 0."""
+    """Print the installed plugins and whether they load; return 0.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``kind`` (None: every kind) and ``json``.
+
+    Returns
+    -------
+    int
+        0, also when a plugin does not load (its line says why).
+    """
     from reachplan.planner.lookup import plugin_info
 
     infos = plugin_info(args.kind)

@@ -20,7 +20,13 @@ class RodArgumentError(ReachplanError):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the preset, tension, model, roll and ``--json`` options."""
+    """Add the preset, tension, model, roll and ``--json`` options.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        Where the ``reachplan rod`` options go.
+    """
     parser.add_argument("--preset", required=True,
                         help="design preset {13|15}ga-{joints}j-{tip|mid|base|asym}, e.g. 15ga-30j-tip "
                              "(an unknown name lists the usual ones)")
@@ -66,7 +72,18 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Solve the preset at each tension and print the shapes; return 0, or 1 when a solve did not converge."""
+    """Solve the preset at each tension and print the shapes; return 0, or 1 when a solve did not converge.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Preset, tension or tensions (N), friction coefficients, model, roll and ``json``.
+
+    Returns
+    -------
+    int
+        0 when every solve converged, else 1.
+    """
     # imported here, not at the top: ``reachplan --help`` and the other commands must not pay for them
     from reachplan.planner.lookup import rod_model, rod_model_capabilities
     from reachplan.rod_model.design import preset

@@ -22,7 +22,13 @@ COARSE_FAMILY = {"onsets_mm": (0.0, 40.0, 80.0), "ramps_mm": (10.0,), "plateau_f
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the cohort, design, cluster, resume and output options."""
+    """Add the cohort, design, cluster, resume and output options.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The parser ``reachplan study`` builds its options on.
+    """
     parser.add_argument("--cases", nargs="+", type=Path, metavar="DIR",
                         help="case folders (each holding an RS*.dcm), or folders of case folders")
     parser.add_argument("--designs", nargs="+", default=["15ga-30j-tip"], metavar="PRESET",
@@ -55,7 +61,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Write a phantom cohort (``--make-cohort``) or run the study and print its summary; return 0."""
+    """Write a phantom cohort (``--make-cohort``) or run the study and print its summary; return 0.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The cohort (``cases`` or ``make_cohort``), designs, targets, template, family, dose, cluster, resume and
+        output options.
+
+    Returns
+    -------
+    int
+        0 (a failing study raises :class:`StudyError`).
+    """
     from reachplan.planner.errors import StudyError
 
     quiet = args.quiet or args.json

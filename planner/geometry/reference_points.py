@@ -40,7 +40,17 @@ _FOLEY_NAMES = ("foley", "balloon", "foley balloon")
 
 @dataclass(frozen=True, eq=False)
 class PlacedPoint:
-    """A reference point: ``name``, ``position_mm`` (3,) mm LPS, and how it was placed (``how``)."""
+    """A reference point and how it was placed.
+
+    Parameters
+    ----------
+    name : str
+        The point's name (``Point A left``, ``ICRU bladder``, ...).
+    position_mm : (3,) float, mm, LPS
+        Where it is.
+    how : str
+        How it was placed, in words.
+    """
 
     name: str
     position_mm: np.ndarray
@@ -118,7 +128,18 @@ def _posterior_on_ap_line(contour: np.ndarray, x_mm: float) -> float:
 
 
 def icru_bladder_point(foley: Roi) -> np.ndarray | None:
-    """ICRU 38 bladder point: posterior surface of the Foley balloon on the AP line through its centre."""
+    """ICRU 38 bladder point: posterior surface of the Foley balloon on the AP line through its centre.
+
+    Parameters
+    ----------
+    foley : Roi
+        The Foley balloon's ROI, closed contours in LPS mm.
+
+    Returns
+    -------
+    (3,) float, mm, LPS, or None
+        The point; None when the balloon has too few contour points.
+    """
     pts = _points(foley)
     if len(pts) < 3:
         return None
@@ -133,6 +154,16 @@ def icru_rectum_point(obturator: Roi) -> np.ndarray | None:
     """ICRU 38 rectum point: 5 mm posterior to the vaginal cylinder's posterior surface at its cranial end.
 
     The level is the last closed contour below the cranial end (the cylinder's wall, not its dome).
+
+    Parameters
+    ----------
+    obturator : Roi
+        The vaginal cylinder's (obturator's) ROI, closed contours in LPS mm.
+
+    Returns
+    -------
+    (3,) float, mm, LPS, or None
+        The point; None without a closed contour.
     """
     closed = [c.points_mm for c in obturator.contours if c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3]
     if not closed:

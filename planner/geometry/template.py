@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reachplan.imaging.rtplan import RtPlan
+from reachplan.imaging.brachy_plan import RtPlan
 from reachplan.imaging.types import Roi, StructureSet
 from reachplan.planner.errors import PlanInputError
 from reachplan.plugins.applicators import BUILTIN_KINDS, ApplicatorKind, applicators_from_rtplan, channel_label
@@ -26,10 +26,21 @@ def hole_frames(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Entry points and insertion directions of holes in the patient.
 
+    Parameters
+    ----------
+    template : Template
+        The needle template.
+    patient_from_template : (4, 4) float, template frame -> LPS mm
+        The template's pose.
+    holes : tuple of Hole or None
+        The holes (``xy_mm`` in the template plane, mm); None: the template's needle holes.
+
     Returns
     -------
     entry_mm : (n, 3) float, mm, LPS
-    direction : (n, 3) float, unit vectors, LPS (the template's +z)
+        Each hole's centre on the template plane.
+    direction : (n, 3) float, unit vectors, LPS
+        The template's +z, the same for every hole.
     """
     holes = template.needle_holes if holes is None else holes
     m = np.asarray(patient_from_template, dtype=float)
@@ -41,7 +52,23 @@ def hole_frames(
 
 
 def check_rigid(patient_from_template: np.ndarray) -> np.ndarray:
-    """Validate a rigid 4x4 transform (orthonormal rotation, det +1); returns it as float array."""
+    """Validate a rigid 4x4 transform (orthonormal rotation, det +1, last row 0 0 0 1).
+
+    Parameters
+    ----------
+    patient_from_template : (4, 4) array-like
+        The transform to check.
+
+    Returns
+    -------
+    (4, 4) float
+        The same transform as a float array.
+
+    Raises
+    ------
+    PlanInputError
+        Not a finite 4x4 matrix, or not rigid.
+    """
     m = np.asarray(patient_from_template, dtype=float)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise PlanInputError("patient_from_template must be a finite 4x4 matrix")
@@ -70,7 +97,13 @@ class TemplatePose:
         object.__setattr__(self, "patient_from_template", m)
 
     def to_json(self) -> dict[str, object]:
-        """Return the pose as JSON-ready values (method, 4x4 ``patient_from_template``, mm, LPS)."""
+        """Return the pose as JSON-ready values.
+
+        Returns
+        -------
+        dict of str to object
+            ``method`` and ``patient_from_template`` (4 x 4 nested lists, template frame -> LPS mm, 6 decimals).
+        """
         return {"method": self.method,
                 "patient_from_template": [[round(float(v), 6) for v in row] for row in self.patient_from_template]}
 
@@ -131,6 +164,13 @@ def pose_from_obturator(obturator: Roi, depth_mm: float = 60.0) -> np.ndarray:
     vaginal length of the phantom); template ``+z`` points along the axis into the patient; the in-plane
     orientation is that of :func:`pose_from_axis`.
 
+    Parameters
+    ----------
+    obturator : Roi
+        The obturator (or vaginal cylinder) ROI, closed contours in LPS mm.
+    depth_mm : float, mm
+        How far the obturator tip lies beyond the template plane.
+
     Returns
     -------
     patient_from_template : (4, 4) float
@@ -172,9 +212,24 @@ def pose_from_channel(path_mm: np.ndarray, dwell_positions_mm: np.ndarray, tande
 
     Parameters
     ----------
-    path_mm : (k, 3) float, mm, LPS, tip first
-    dwell_positions_mm : (n, 3) float, mm, LPS (may be empty)
-    tandem : whether the channel is a tandem (else an obturator or cylinder)
+    path_mm : (k, 3) float, mm, LPS
+        The channel's centre line, tip first.
+    dwell_positions_mm : (n, 3) float, mm, LPS
+        The channel's dwell positions (may be empty).
+    tandem : bool
+        Whether the channel is a tandem (else an obturator or cylinder).
+    depth_mm : float, mm
+        The obturator depth: the template plane lies this far behind the reference point.
+
+    Returns
+    -------
+    (4, 4) float, template frame -> LPS mm
+        ``patient_from_template``.
+
+    Raises
+    ------
+    PlanInputError
+        A centre line shorter than 1 mm.
     """
     path = np.asarray(path_mm, dtype=float).reshape(-1, 3)
     if len(path) < 2 or float(np.linalg.norm(path[-1] - path[0])) < 1.0:

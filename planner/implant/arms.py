@@ -16,7 +16,8 @@ import numpy as np
 from reachplan.imaging.types import Grid
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import Dvh, StructureMetrics, structure_metrics, voxel_volume_cc
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dose_on_grid
+from reachplan.planner.dose.dwells import DwellSet, dose_on_grid
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.candidates import Channel
 
 

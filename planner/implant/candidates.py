@@ -21,8 +21,8 @@ import numpy as np
 
 from reachplan._arrays import arc_length_mm
 from reachplan.imaging.types import Grid
+from reachplan.planner.dose.dwells import dwell_directions
 from reachplan.planner.dose.structures import PlanningStructures
-from reachplan.planner.dose.tg43 import dwell_directions
 from reachplan.planner.geometry.collision import Organ, check_path
 from reachplan.planner.geometry.distance_field import distance_transform
 from reachplan.planner.implant.settings import ImplantSettings

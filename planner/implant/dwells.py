@@ -45,8 +45,9 @@ from reachplan.planner.dose.coverage import (
     structure_metrics,
     voxel_volume_cc,
 )
+from reachplan.planner.dose.dwells import DwellSet, dwells_along_path, grid_points_mm
 from reachplan.planner.dose.structures import PlanningStructures
-from reachplan.planner.dose.tg43 import DwellSet, Tg43Kernel, dwells_along_path, grid_points_mm
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import ImplantPlan
 from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem
 from reachplan.planner.implant.problem import (

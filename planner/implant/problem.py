@@ -26,8 +26,9 @@ from reachplan.planner.dose.coverage import (
     dose_to_volume,
     structure_metrics,
 )
+from reachplan.planner.dose.dwells import grid_points_mm
 from reachplan.planner.dose.structures import PlanningStructures, Structure
-from reachplan.planner.dose.tg43 import Tg43Kernel, grid_points_mm
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.candidates import Channel
 from reachplan.planner.implant.optimiser import Modulation, OrganRows
 from reachplan.planner.implant.settings import ImplantSettings

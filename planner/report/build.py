@@ -1,24 +1,25 @@
-"""Tables and the HTML report of a plan, built in memory (the caller writes the files)."""
+"""The HTML report of a plan, built in memory (the caller writes the files): its sections and figures.
+
+The terminal text is :mod:`reachplan.planner.report.terminal`, the straight-versus-steered dose comparison
+:mod:`reachplan.planner.report.comparison` and the options :mod:`reachplan.planner.report.options`.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
 
-from reachplan.imaging.types import Grid, StructureSet, Volume
-from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
+from reachplan.imaging.types import Volume
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.delivery import Delivery
-from reachplan.planner.dose.structures import PlanningStructures, planning_structures
-from reachplan.planner.implant.compare import Comparison, compare_arms
+from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.implant.dwells import OptimizerSettings
-from reachplan.planner.report import figures
+from reachplan.planner.report import charts, figures
 from reachplan.planner.report.html import (
     Block,
     Figure,
@@ -29,277 +30,14 @@ from reachplan.planner.report.html import (
     Table,
     render_html,
 )
+from reachplan.planner.report.options import ReportOptions
+from reachplan.planner.report.terminal import TENSION_MARGIN, implant_rows, miss_flag, plain_model, tension_flag
 from reachplan.planner.report.view3d import Needle3d, scene_figure
 from reachplan.planner.steering.candidates import Candidate
-from reachplan.plugins.sources import SourceData
 from reachplan.rod_model.select import ErrorRow
 
 if TYPE_CHECKING:
-    from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
-    from reachplan.planner.implant.case import ImplantComparison
-
-
-def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
-    """Return the best ``n_per_target`` feasible candidates of every target.
-
-    Parameters
-    ----------
-    result : PlanResult
-        The ranked plan.
-    n_per_target : int
-        Feasible candidates kept per target.
-
-    Returns
-    -------
-    list of Candidate
-        Target by target in ranking order, best first.
-    """
-    return [c for cs in result.ranking.values() for c in [c for c in cs if c.feasible][:n_per_target]]
-
-
-def _cell(v: float, digits: int = 1) -> str:
-    return f"{v:.{digits}f}" if np.isfinite(v) else "-"
-
-
-def tension_flag(c: Candidate) -> bool:
-    """Return True when a needle's peak tension is within :data:`TENSION_MARGIN` of its stylet's design limit.
-
-    Parameters
-    ----------
-    c : Candidate
-        The needle.
-
-    Returns
-    -------
-    bool
-        False for a plain straight needle (no design).
-    """
-    return c.design is not None and c.peak_tension_n >= (1 - TENSION_MARGIN) * c.design.max_tension_n
-
-
-def miss_flag(c: Candidate, tolerance_mm: float) -> bool:
-    """Return True when the worst-case reach error under the perturbations exceeds the reach tolerance.
-
-    Parameters
-    ----------
-    c : Candidate
-        The needle (not assessed: False).
-    tolerance_mm : float, mm
-        The plan's reach tolerance.
-
-    Returns
-    -------
-    bool
-    """
-    return bool(np.isfinite(c.worst_reach_mm) and c.worst_reach_mm > tolerance_mm)
-
-
-#: A peak tension within this fraction of the stylet's limit is flagged.
-TENSION_MARGIN = 0.05
-
-#: Rod and insertion models in plain words.
-PLAIN_MODELS = {
-    "straight": "a straight line from the hole (exact geometry)",
-    "kinematic": "fast screening: the shaft follows the tip (kinematic insertion)",
-    "tissue_rod": "reference: the needle as an exact rod pushed into the tissue, held on the track its tip cut",
-    "planar_beam": "a planar beam model of the stylet",
-    "two_tube_cosserat": "the two-tube Cosserat model of stylet inside needle",
-    "cosserat_rod": "a single-rod Cosserat model",
-    "constant_curvature": "a constant-curvature arc",
-}
-
-
-#: The models in a few words, for the terminal.
-SHORT_MODELS = {"straight": "exact straight line", "kinematic": "fast screening model",
-                "tissue_rod": "reference model (rod in tissue)"}
-
-
-def plain_model(c: Candidate) -> str:
-    """Return the model behind a candidate's numbers in plain words.
-
-    E.g. ``fast screening: ... bending from a planar beam model of the stylet``.
-
-    Parameters
-    ----------
-    c : Candidate
-        The candidate.
-
-    Returns
-    -------
-    str
-        Its insertion model, and rod model when there is one, in words.
-    """
-    words = PLAIN_MODELS.get(c.model.insertion, c.model.insertion)
-    if c.model.rod_model:
-        words += f", bending from {PLAIN_MODELS.get(c.model.rod_model, c.model.rod_model)}"
-    return words
-
-
-def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list[str]:
-    """One line per arm: needles, HR-CTV D90 (EQD2) and whether the aims are met (and the organs over)."""
-    from reachplan.planner.dose.aims import Aims
-
-    aims = comparison.aims if comparison is not None else Aims()
-    limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
-    lines = [f"dose aims (EMBRACE II, EQD2): HR-CTV D90 >= {aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}"]
-
-    limit = {k.casefold(): v for k, v in aims.oar_d2cc_eqd2_gy}
-
-    def over(organs: Sequence[tuple[str, float]]) -> str:
-        bad = [f"{o} {v:.1f} Gy" for o, v in organs if o.casefold() in limit and v > limit[o.casefold()]]
-        return f"; over the limit: {', '.join(bad)}" if bad else ""
-
-    arms: list[tuple[str, int, float, bool, str]] = []
-    if delivery is not None and delivery.implant is not None:  # the whole HR-CTV: what the aims are about
-        for arm, label in zip(delivery.implant.arms, ("implant, straight", "implant, straight + steered"), strict=True):
-            pl = arm.plan
-            arms.append((label, 0, np.nan, False, f"; no implant: {arm.reason}") if pl is None else
-                        (label, pl.n_needles, pl.target.d90_eqd2_gy, pl.aims_met,
-                         over([(o.name, o.d2cc_eqd2_gy) for o in pl.oars])))
-    per_target = " (one needle per target)" if arms else ""
-    if comparison is not None:
-        arms += [(f"{r.arm} arm{per_target}", r.n_needles, r.d90_eqd2_gy, r.aim_met, over(r.oar_d2cc_eqd2_gy))
-                 for r in comparison.rows()]
-    if delivery is not None:
-        opt = delivery.optimisation
-        arms.append((f"exported plan ({delivery.kind})", delivery.n_needles,
-                     opt.target.d90_eqd2_gy if opt.success else np.nan,
-                     opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]) if opt.success
-                     else f"; not solved: {opt.reason}"))
-    if not arms:
-        return ["dose: not computed (--no-export)"]
-    width = max(len(a[0]) for a in arms)
-    for name, n, d90, met, why in arms:
-        low = "" if met or not d90 < aims.target_d90_eqd2_gy else f"; D90 below {aims.target_d90_eqd2_gy:g} Gy"
-        why = f"{low}{why}".removeprefix("; ")
-        lines.append(f"  {name:<{width}}  {n:>3} needle{'s' if n != 1 else ' '}  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
-                     f"{'aims met' if met else 'aims NOT met'}{f' ({why})' if why else ''}")
-    return lines
-
-
-def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, delivery: Delivery | None = None,
-                   comparison: Comparison | None = None, files: Sequence[tuple[str, str]] = ()) -> str:
-    """Return the terminal summary of a plan.
-
-    Per target (in ``targets``' order, the user's; default the ranking's) its best straight and best steered
-    needle with units in every header, then one line per arm with the dose aims met or not, then the files
-    written.
-
-    Parameters
-    ----------
-    result : PlanResult
-        The ranked plan.
-    targets : sequence of str or None
-        Target names in the user's order; None: the ranking's.
-    delivery : Delivery or None
-        The delivered plan (its dose line); None: ranked only.
-    comparison : Comparison or None
-        Straight versus steered dose (one line per arm).
-    files : sequence of (str, str)
-        (what, path) of the files written.
-
-    Returns
-    -------
-    str
-        Lines of text (mm, N, Gy EQD2).
-    """
-    tol = result.config.reach_tolerance_mm
-    head = (f"{'target':<15} {'needle':<9} {'hole':<5} {'from centre (mm)':>16} {'reach error (mm)':>16} "
-            f"{'clearance (mm)':>14} {'worst miss (mm)':>17} {'peak tension (N)':>16}  model")
-    lines = [head, ""]
-    order = [t for t in (targets or result.ranking) if t in result.ranking]
-    for t in order:
-        cands = result.ranking[t]
-        top = cands[0] if cands and cands[0].feasible else None
-        for i, steered in enumerate((False, True)):
-            c = result.best(t, steered)
-            kind = ("steered" if steered else "straight") + ("*" if c is not None and c is top else "")
-            name = t if i == 0 else ""
-            if c is None:
-                lines.append(f"{name:<15} {kind:<9} none feasible")
-                continue
-            miss = _cell(c.worst_reach_mm) + (" !" if miss_flag(c, tol) else "  ")
-            tension = "-" if not steered else (f"{c.peak_tension_n:.1f}" + (
-                f" of {c.design.max_tension_n:g} !" if c.design is not None and tension_flag(c) else ""))
-            lines.append(f"{name:<15} {kind:<9} {c.hole_id:<5} {c.hole_distance_mm:>16.1f} {c.reach_error_mm:>16.1f} "
-                         f"{_cell(c.clearance_mm):>14} {miss:>17} {tension:>16}  "
-                         f"{SHORT_MODELS.get(c.model.insertion, c.model.label)}")
-    lines[1] = "-" * max(len(ln) for ln in lines)
-    lines += [f"* ranked first for its target.  ! worst case over the {tol:g} mm reach tolerance, or peak tension "
-              f"within {TENSION_MARGIN:.0%} of the stylet's limit.", ""]
-    lines += _arm_lines(delivery, comparison)
-    if files:
-        width = max(len(w) for w, _ in files)
-        lines += ["", *(f"{w:<{width}}  {p}" for w, p in files)]
-    return "\n".join(lines)
-
-
-def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
-    """Return the implant arms side by side as rows of text cells, the first row naming the arms.
-
-    Needles (candidates), aims, HR-CTV D90/D98/V100/V150/V200 (EQD2 totals, Gy), organ D2cm³, the needles' share of
-    the dwell weight, the largest single dwell's share, loaded dwells per needle and the Pareto curve
-    (needles:D90). The terminal (:func:`format_implant`) and the report print the same rows.
-
-    Parameters
-    ----------
-    comparison : ImplantComparison
-        Both implant arms.
-
-    Returns
-    -------
-    list of tuple of str
-        Label then one cell per arm ("-" for an arm without an implant).
-    """
-    arms = comparison.arms
-    rows: list[tuple[str, ...]] = [("implant", *(a.name for a in arms))]
-
-    def cell(a: ImplantArm, f: Callable[[ImplantPlan], str]) -> str:
-        return "-" if a.plan is None else f(a.plan)
-
-    rows.append(("needles (candidates)", *(f"{cell(a, lambda p: str(p.n_needles))} ({a.n_candidates})"
-                                           for a in arms)))
-    rows.append(("aims met", *(cell(a, lambda p: "yes" if p.aims_met else "no") for a in arms)))
-    for label, get in (("HR-CTV D90 Gy", lambda p: f"{p.target.d90_eqd2_gy:.1f}"),
-                       ("HR-CTV D98 Gy", lambda p: f"{p.target.d98_eqd2_gy:.1f}"),
-                       ("V100 %", lambda p: f"{p.target.v100_pct:.1f}"),
-                       ("V150 %", lambda p: f"{p.target.v150_pct:.1f}"),
-                       ("V200 %", lambda p: f"{p.v200_pct:.1f}")):
-        rows.append((label, *(cell(a, get) for a in arms)))
-    organs = list(dict.fromkeys(o.name for a in arms if a.plan for o in a.plan.oars))
-    for organ in organs:
-        def d2cc(p: ImplantPlan, organ: str = organ) -> str:
-            return next((f"{o.d2cc_eqd2_gy:.1f}" for o in p.oars if o.name == organ), "-")
-
-        rows.append((f"{organ} D2cc Gy", *(cell(a, d2cc) for a in arms)))
-    rows.append(("needle dwell weight %", *(cell(a, lambda p: f"{100 * p.needle_time_share:.0f}") for a in arms)))
-    rows.append(("largest dwell share %", *(cell(a, lambda p: f"{100 * p.max_dwell_share:.1f}") for a in arms)))
-    rows.append(("loaded dwells/needle", *(cell(a, lambda p: " ".join(
-        str(n) for c, n in zip(p.channels, p.loaded_dwells, strict=True) if c.is_needle)) for a in arms)))
-    rows.append(("Pareto (needles:D90)", *(" ".join(f"{q.n_needles}:{q.hrctv_d90_eqd2_gy:.0f}" for q in a.pareto)
-                                           or "-" for a in arms)))
-    return rows
-
-
-def format_implant(comparison: ImplantComparison) -> str:
-    """Return the two implant arms side by side (:func:`implant_rows`) for the terminal, then each arm's note.
-
-    Parameters
-    ----------
-    comparison : ImplantComparison
-        The straight and the steered arm, each with its chosen implant or reason.
-
-    Returns
-    -------
-    str
-        The aligned table and the notes.
-    """
-    rows = implant_rows(comparison)
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
-             for r in rows]
-    notes = [f"{a.name}: {a.reason}" for a in comparison.arms if a.reason]
-    return "\n".join([*lines, *notes])
+    from reachplan.planner.delivery import ImplantComparison
 
 
 def _implant_section(implant: ImplantComparison | None) -> Section | None:
@@ -319,24 +57,19 @@ def _implant_section(implant: ImplantComparison | None) -> Section | None:
                   + ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy) + "."),
         Table(rows[0], tuple(rows[1:]), "Implant arms side by side (EQD2 totals, Gy)",
               numeric=tuple(range(1, len(rows[0])))),
-        Figure(figures.png_bytes(figures.pareto_figure(implant.arms, aims.target_d90_eqd2_gy), dpi=90),
+        Figure(figures.png_bytes(charts.pareto_figure(implant.arms, aims.target_d90_eqd2_gy), dpi=90),
                "Pareto curves: template needles against HR-CTV D90 (EQD2) with the organ limits held; filled: every "
                "aim met, hollow: an aim not met; circled: the chosen implant; dotted red: the 85 Gy aim. Straight: "
                "dashed orange, steered: solid cyan."),
     ]
     if any(a.plan is not None and a.plan.dvhs for a in implant.arms):
         blocks.append(Figure(
-            figures.png_bytes(figures.implant_dvh_figure(implant.arms, aims), dpi=90),
+            figures.png_bytes(charts.implant_dvh_figure(implant.arms, aims), dpi=90),
             "Both arms' cumulative DVHs per fraction (straight dashed, steered solid; HR-CTV thicker) with the "
             "EMBRACE II aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. Organ curves cover "
             "the voxels near the loaded dwells, where D2cm³ is decided."))
     blocks += [Paragraph(f"{a.name}: {a.reason}") for a in implant.arms if a.reason]
     return Section("Implant: straight against steered", "implant", tuple(blocks))
-
-
-#: Faster LP settings for the straight-versus-steered comparison in the report (the delivered plan keeps the
-#: full :class:`~reachplan.planner.implant.dwells.OptimizerSettings`); about 5 s for 4 + 12 needles on the demo phantom.
-COMPARISON_SETTINGS = OptimizerSettings(max_target_points=1000, max_oar_points=500, relax_iterations=1)
 
 
 #: Captions of the overview and workspace figures in the case section.
@@ -345,88 +78,6 @@ OVERVIEW_CAPTION = ("Overview: axial slice at the targets' mean height and the m
 WORKSPACE_CAPTION = ("Reachable workspace: where each hole's steered needle can put its tip at the targets' depth "
                      "(template frame, seen from the patient's feet like the template map), with the targets and the "
                      "organ outlines at that depth.")
-
-
-@dataclass(frozen=True)
-class ReportOptions:
-    """What the report computes and draws.
-
-    Parameters
-    ----------
-    max_slice_targets : int
-        Targets that get slice overlays (in ranking order), >= 0.
-    comparison : bool
-        Run the straight-versus-steered dose comparison.
-    comparison_settings : OptimizerSettings
-        Its LP settings.
-    mesh_faces : int
-        Faces per organ in the 3-D view (quadric decimation), >= 4.
-
-    Raises
-    ------
-    ValueError
-        ``max_slice_targets`` < 0 or ``mesh_faces`` < 4.
-    """
-
-    max_slice_targets: int = 12
-    comparison: bool = True
-    comparison_settings: OptimizerSettings = COMPARISON_SETTINGS
-    mesh_faces: int = figures.VIEW_FACES
-
-    def __post_init__(self) -> None:
-        if self.max_slice_targets < 0:
-            raise ValueError("max_slice_targets must be >= 0")
-        if self.mesh_faces < 4:
-            raise ValueError("mesh_faces must be at least 4 (a tetrahedron)")
-
-
-def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | None,
-                   source: SourceData, target_roi: str = "HR-CTV",
-                   air_kerma_u: float = DEFAULT_AIR_KERMA_U,
-                   settings: OptimizerSettings = COMPARISON_SETTINGS,
-                   planning: PlanningStructures | None = None) -> Comparison | None:
-    """Compare straight and steered dose with the per-target best needle of each kind.
-
-    Each arm gets the per-target best needle of its kind (:func:`~reachplan.planner.case.result.choose_needles`),
-    optimised the same way (:func:`~reachplan.planner.implant.compare.compare_arms`). An arm with no feasible needle
-    is left out.
-
-    Parameters
-    ----------
-    result : PlanResult
-        The ranked plan.
-    structures : StructureSet
-        The case's structures.
-    grid : Grid or None
-        Planning grid; None: the structures' own (see :func:`reachplan.planner.dose.structures.planning_structures`).
-    source : SourceData
-        The TG-43 data set (the delivery's, :attr:`~reachplan.planner.delivery.Delivery.source`).
-    target_roi : str
-        The target volume's ROI name.
-    air_kerma_u : float, U
-        Source strength (cGy cm² h⁻¹).
-    settings : OptimizerSettings
-        LP settings of both arms.
-    planning : PlanningStructures or None
-        The delivery's structures, when already built (else
-        :func:`reachplan.planner.dose.structures.planning_structures` builds them).
-
-    Returns
-    -------
-    Comparison or None
-        Both arms' coverage; None when both are empty.
-    """
-    from reachplan.planner.dose.tg43 import Tg43Kernel
-
-    arms = [(name, [c.path_mm for c in choose_needles(result, steered=steered)])
-            for name, steered in (("straight", False), ("steered", True))]
-    arms = [a for a in arms if a[1]]
-    if not arms:
-        return None
-    if planning is None:
-        planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
-    kernel = Tg43Kernel(source)
-    return compare_arms(arms, planning, kernel, air_kerma_u, settings=settings)
 
 
 def _f(v: float, digits: int = 1) -> str:
@@ -613,7 +264,7 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
         if opt.success and opt.dvhs:
             from reachplan.planner.dose.aims import Aims
 
-            png = figures.png_bytes(figures.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
+            png = figures.png_bytes(charts.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
             blocks.append(Figure(png, "Delivered plan: cumulative DVHs per fraction with the EMBRACE II aim "
                                       "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
     return Section("Dose and coverage", "dose", tuple(blocks))
@@ -696,7 +347,8 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
     if delivery is None or not delivery.optimisation.success:
         return None
     from reachplan.planner.dose.aims import Aims
-    from reachplan.planner.dose.tg43 import Tg43Kernel, dose_at_points
+    from reachplan.planner.dose.dwells import dose_at_points
+    from reachplan.planner.dose.tg43 import Tg43Kernel
 
     dwells = delivery.optimisation.dwells
     active = dwells.select(dwells.times_s > 0)
@@ -777,6 +429,28 @@ def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered:
     ))
 
 
+def _slice_blocks(scene: Scene, result: PlanResult, volume: Volume | None, dose: figures.DoseOverlay | None,
+                  slice_targets: Sequence[str], done: Callable[[], object]) -> list[Block]:
+    """Return the slices section's blocks: the caption, then each target's slice views (``done`` after each)."""
+    slices: list[Block] = [Paragraph(
+        "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
+        "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane. "
+        f"Axial slices are {figures.RADIOLOGICAL}, like the template map; coronal slices are seen from the "
+        "front (patient left on the right), sagittal slices from the patient's left (anterior on the left); "
+        "the letters on the edges say which side is which."
+        + ("" if dose is None else " Isodose lines of the delivered plan at 50, 100, 150 and 200 % of the "
+           f"prescription ({dose.prescription_gy:.2f} Gy per fraction); black dots are its active dwell "
+           "positions within 2.5 mm of the plane, labelled with their dwell times in seconds."))]
+    for t in slice_targets:
+        s, st = result.best(t, False), result.best(t, True)
+        desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "
+                         f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
+                         for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
+        slices.append(Figure(figures.slice_views(scene, t, s, st, volume, dose=dose), f"{t}: {desc}"))
+        done()
+    return slices
+
+
 def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = None,
                  delivery: Delivery | None = None, comparison: Comparison | None = None, case: str = "case",
                  timings: Mapping[str, float] | None = None, source_name: str = "gammamed_plus_hdr",
@@ -795,7 +469,8 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     delivery : Delivery or None
         The delivered plan (:func:`reachplan.planner.delivery.plan_delivery`), or None (ranked only).
     comparison : Comparison or None
-        Straight versus steered (:func:`compare_chosen`), or None (``comparison_note`` says why).
+        Straight versus steered (:func:`reachplan.planner.report.comparison.compare_chosen`), or None
+        (``comparison_note`` says why).
     case : str
         One line naming the case.
     timings : mapping of str to float, s, or None
@@ -828,30 +503,14 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
         case_sec = Section(case_sec.title, case_sec.anchor, (*case_sec.blocks, *case_figures))
         bar.update()
-        dose = dose_overlay(delivery)
-        slices: list[Block] = [Paragraph(
-            "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
-            "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane. "
-            f"Axial slices are {figures.RADIOLOGICAL}, like the template map; coronal slices are seen from the "
-            "front (patient left on the right), sagittal slices from the patient's left (anterior on the left); "
-            "the letters on the edges say which side is which."
-            + ("" if dose is None else " Isodose lines of the delivered plan at 50, 100, 150 and 200 % of the "
-               f"prescription ({dose.prescription_gy:.2f} Gy per fraction); black dots are its active dwell "
-               "positions within 2.5 mm of the plane, labelled with their dwell times in seconds."))]
-        for t in slice_targets:
-            s, st = result.best(t, False), result.best(t, True)
-            desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "
-                             f"{c.clearance_mm:.1f} mm to {c.closest_organ})"
-                             for k, c in (("straight", s), ("steered", st)) if c is not None) or "no feasible needle"
-            slices.append(Figure(figures.slice_views(scene, t, s, st, volume, dose=dose), f"{t}: {desc}"))
-            bar.update()
+        slices = _slice_blocks(scene, result, volume, dose_overlay(delivery), slice_targets, bar.update)
         view = interactive_view(scene, straight, steered, delivery, options.mesh_faces)
         bar.update()
-        dvh = figures.dvh_png(comparison) if comparison is not None else None
+        dvh = charts.dvh_png(comparison) if comparison is not None else None
         bar.update()
         rows: Sequence[ErrorRow] = tuple(model_errors)
         used = models_used(result)
-        chart = figures.speed_accuracy(rows, used) if rows else None
+        chart = charts.speed_accuracy(rows, used) if rows else None
         bar.update()
     finally:
         bar.close()
@@ -885,55 +544,6 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                                            for k, v in timings.items()),
                                                      "Wall time per stage", numeric=(1,)),)))
     return Report(f"reachplan report: {case}", subtitle, tuple(s for s in sections if s is not None))
-
-
-def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: Delivery | None,
-                        grid: Grid | None = None, target_roi: str = "HR-CTV", options: ReportOptions | None = None,
-                        quiet: bool = True) -> tuple[Comparison | None, str]:
-    """Run the straight-versus-steered dose comparison the report shows (:func:`compare_chosen`).
-
-    A dose computation, run with the delivery (the report only draws).
-
-    Parameters
-    ----------
-    result : PlanResult
-        The ranked plan whose chosen needles are compared.
-    structures : StructureSet
-        The case's structures (HR-CTV and organs at risk).
-    delivery : Delivery or None
-        The delivered plan; None: ranked only.
-    grid : Grid or None
-        Planning grid (None: the structures').
-    target_roi : str
-        The target volume's ROI name.
-    options : ReportOptions or None
-        Whether and how to compare (None: the defaults).
-    quiet : bool
-        No progress bar.
-
-    Returns
-    -------
-    comparison : Comparison or None
-        The comparison, or None.
-    note : str
-        The sentence the report prints instead: no delivery (ranked only), comparison turned off, implant arms
-        compared instead, or no feasible needle; "" with a comparison.
-    """
-    options = options or ReportOptions()
-    if delivery is None:
-        return None, "No dose: the plan was ranked only (--no-export)."
-    if not options.comparison:
-        return None, ""
-    if delivery.implant is not None:  # the implant arms are the comparison (whole target volume, chosen sets)
-        return None, ("Straight versus steered is compared as whole implants, each arm's needle set and dwell "
-                      "times chosen together: see the section 'Implant'.")
-    bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
-    comparison = compare_chosen(result, structures, grid, delivery.source, target_roi,
-                                delivery.export.source.air_kerma_rate_u, options.comparison_settings,
-                                planning=delivery.planning)
-    bar.update()
-    bar.close()
-    return comparison, "" if comparison is not None else "No feasible needle of either kind: nothing to compare."
 
 
 def report_html(scene: Scene, result: PlanResult, *, volume: Volume | None = None, delivery: Delivery | None = None,

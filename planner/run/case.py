@@ -22,7 +22,7 @@ from reachplan.planner.delivery import Delivery, plan_delivery
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.organs import has_closed
 from reachplan.planner.geometry.template import TemplatePose
-from reachplan.planner.report.build import straight_vs_steered
+from reachplan.planner.report.comparison import straight_vs_steered
 from reachplan.planner.steering.candidates import Target
 from reachplan.rod_model.errors import RodModelError
 from reachplan.rod_model.select import ErrorRow, error_table

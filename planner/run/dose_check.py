@@ -17,9 +17,12 @@ from typing import Literal
 
 import numpy as np
 
-from reachplan.imaging.rtplan import BrachySource, RtPlan, channel_paths
+from reachplan.imaging.brachy_plan import BrachySource, RtPlan
+from reachplan.imaging.rtplan import channel_paths
 from reachplan.imaging.types import Grid, StructureSet
-from reachplan.planner.dose.tg43 import PointCheck, Tg43Kernel, check_isotope, check_points, dose_on_grid, plan_dwells
+from reachplan.planner.dose.dwells import dose_on_grid, plan_dwells
+from reachplan.planner.dose.plan_check import PointCheck, check_isotope, check_points
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.lookup import all_sources, get_source
 from reachplan.plugins.errors import SourceMatchError

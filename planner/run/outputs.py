@@ -14,7 +14,8 @@ from pathlib import Path
 from reachplan.imaging.files import atomic_write_bytes, atomic_write_json, json_safe
 from reachplan.planner.lookup import exporter
 from reachplan.planner.report import figures
-from reachplan.planner.report.build import report_html, top_candidates
+from reachplan.planner.report.build import report_html
+from reachplan.planner.report.terminal import top_candidates
 from reachplan.planner.report.workspace import workspace_figure
 from reachplan.planner.run.case import CaseResult, rod_model_errors
 from reachplan.plugins.exporters import ExportOptions

@@ -44,6 +44,16 @@ def design_key(design: RodDesign) -> str:
 
     Of the design's ``repr``: frozen dataclasses of numbers and tuples, so the same design gives the same key in
     every process; a calibrated preset keeps its name but not its key.
+
+    Parameters
+    ----------
+    design : RodDesign
+        The design.
+
+    Returns
+    -------
+    str
+        16 hex digits.
     """
     return hashlib.sha256(repr(dataclasses.replace(design, name="")).encode()).hexdigest()[:16]
 
@@ -101,14 +111,26 @@ class FactorCurve:
                            bc_type="natural")
 
     def to_json(self) -> dict[str, object]:
-        """Return the curve as plain JSON data (the package table's entry)."""
+        """Return the curve as plain JSON data (the package table's entry).
+
+        Returns
+        -------
+        dict of str to object
+            ``design``, ``key``, ``moduli_pa`` (Pa), ``factors`` and ``rms_mm`` (mm).
+        """
         return {"design": self.design, "key": self.key, "moduli_pa": list(self.moduli_pa),
                 "factors": list(self.factors), "rms_mm": list(self.rms_mm)}
 
 
 @lru_cache(maxsize=1)
 def factor_table() -> dict[str, FactorCurve]:
-    """Return the packaged curvature factors by :func:`design_key` (empty when the package has no table)."""
+    """Return the packaged curvature factors by :func:`design_key` (empty when the package has no table).
+
+    Returns
+    -------
+    dict of str to FactorCurve
+        :func:`design_key` -> the design's factor against modulus.
+    """
     import json
     from importlib import resources
 
@@ -139,6 +161,18 @@ def curvature_factor(modulus_pa: float, design: RodDesign | None = None) -> floa
 
     ``design``: default :data:`REFERENCE_DESIGN`. A design not in the packaged table (a calibrated or new one,
     told apart by :func:`design_key`) is fitted here, at this modulus, once per process (about 10 s).
+
+    Parameters
+    ----------
+    modulus_pa : float, Pa
+        Young's modulus of the tissue, at least :data:`TIP_FOLLOWING_MIN_PA`.
+    design : RodDesign or None
+        The stylet design; None: :data:`REFERENCE_DESIGN`.
+
+    Returns
+    -------
+    float
+        The factor (dimensionless) on the joint section's free-space curvature.
 
     Raises
     ------
@@ -191,8 +225,14 @@ FACTOR_DEPTHS_MM: tuple[float, ...] = (60.0, 90.0, 120.0, 150.0)
 class FactorFit:
     """The kinematic curvature factor fitted to the in-tissue rod at one modulus.
 
-    ``factor``: least squares over every schedule and depth; ``rms_mm``: the kinematic model's tip error with it,
-    root mean square (mm); ``tips``: how many rod tips were fitted (a failed insertion step loses its depths).
+    Parameters
+    ----------
+    factor : float
+        Least squares over every schedule and depth (dimensionless).
+    rms_mm : float, mm
+        The kinematic model's tip error with it, root mean square.
+    tips : int
+        How many rod tips were fitted (a failed insertion step loses its depths).
     """
 
     factor: float
@@ -202,7 +242,22 @@ class FactorFit:
 
 def factor_schedules(design: RodDesign, onsets_mm: Sequence[float] = FACTOR_ONSETS_MM,
                      fractions: Sequence[float] = FACTOR_FRACTIONS) -> list[TensionSchedule]:
-    """Return the ramps a curvature factor is fitted over: 20 mm from each onset (mm) to each fraction of the limit."""
+    """Return the ramps a curvature factor is fitted over: 20 mm from each onset (mm) to each fraction of the limit.
+
+    Parameters
+    ----------
+    design : RodDesign
+        Its maximum tension (N) scales the fractions.
+    onsets_mm : sequence of float, mm
+        Depths where a ramp starts.
+    fractions : sequence of float
+        Fractions of the maximum tension a ramp ends at.
+
+    Returns
+    -------
+    list of TensionSchedule
+        One per onset and fraction, onsets outer.
+    """
     return [TensionSchedule.ramp(float(o), 20.0, f * design.max_tension_n) for o in onsets_mm for f in fractions]
 
 
@@ -210,8 +265,21 @@ def fit_factor(design: RodDesign, schedules: Sequence[TensionSchedule], depths_m
                tips_mm: np.ndarray) -> FactorFit:
     """Fit the kinematic curvature factor of ``design`` to rod tips (least squares over the finite ones).
 
-    ``tips_mm``: (S, D, 3) float, mm, template frame: the rod's tip for each of ``schedules`` at each of
-    ``depths_mm`` (D,), NaN past a failed insertion step.
+    Parameters
+    ----------
+    design : RodDesign
+        The stylet in its needle.
+    schedules : sequence of TensionSchedule
+        The S schedules the rod was inserted with.
+    depths_mm : (D,) float, mm
+        Depths the tips were taken at (whole mm: rows of a kinematic path at 1 mm steps).
+    tips_mm : (S, D, 3) float, mm, template frame
+        The rod's tip for each schedule at each depth, NaN past a failed insertion step.
+
+    Returns
+    -------
+    FactorFit
+        The factor in [0, 3], its RMS tip error (mm) and the number of tips used.
 
     Raises
     ------
@@ -244,6 +312,24 @@ def fit_curvature_factor(design: RodDesign, modulus_pa: float, onsets_mm: Sequen
     mm, a fifth of the fit's residual). The factor minimises the squared tip distance between the kinematic model
     and the rod over :func:`factor_schedules`, tips at each depth (:func:`fit_factor`). About 10 s for the
     default 8 schedules × 4 depths.
+
+    Parameters
+    ----------
+    design : RodDesign
+        The stylet in its needle.
+    modulus_pa : float, Pa
+        Young's modulus of the tissue.
+    onsets_mm : sequence of float, mm
+        Ramp onsets of :func:`factor_schedules`.
+    fractions : sequence of float
+        Ramp ends, as fractions of the maximum tension.
+    depths_mm : sequence of float, mm
+        Depths the tips are compared at (those beyond the design's length are dropped).
+
+    Returns
+    -------
+    FactorFit
+        The fitted factor.
 
     Raises
     ------

@@ -79,7 +79,13 @@ class ModelInfo:
         return f"{self.insertion}+{self.rod_model}" if self.rod_model else self.insertion
 
     def to_json(self) -> dict[str, Any]:
-        """Return ``{"insertion", "rod_model", "settings": {name: value}}``."""
+        """Return the info as JSON-ready values.
+
+        Returns
+        -------
+        dict of str to object
+            ``{"insertion", "rod_model", "settings": {name: value}}``.
+        """
         return {"insertion": self.insertion, "rod_model": self.rod_model, "settings": dict(self.settings)}
 
     @staticmethod
@@ -87,6 +93,20 @@ class ModelInfo:
         """Return the info of an insertion model ``model`` (a dataclass) named ``insertion`` on ``rod_model``.
 
         The settings are ``model``'s scalar fields, then the rod model's prefixed ``rod_model.``.
+
+        Parameters
+        ----------
+        insertion : str
+            The insertion model's name.
+        model : object
+            The insertion model (a dataclass).
+        rod_model : RodModel or None
+            The rod model it bends with; None for a model without one.
+
+        Returns
+        -------
+        ModelInfo
+            Names and settings.
         """
         settings = _scalar_fields(model)
         if rod_model is None:
@@ -127,7 +147,17 @@ class InsertionPath:
 
 @dataclass(frozen=True)
 class FailedInsertion:
-    """An insertion the model could not predict, with the reason."""
+    """An insertion the model could not predict, with the reason.
+
+    It is falsy, so ``if path:`` tells a path from a failure.
+
+    Parameters
+    ----------
+    model : ModelInfo
+        The model that failed.
+    reason : str
+        Why, in words.
+    """
 
     model: ModelInfo
     reason: str
@@ -151,7 +181,22 @@ class InsertionModel(Protocol):
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
-        """Insert ``design`` to ``depth_mm`` once per schedule: one path or failure per schedule, in order."""
+        """Insert ``design`` to ``depth_mm`` once per schedule.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        schedules : sequence of TensionSchedule
+            Tendon tension (N) and roll (degrees) against inserted depth (mm).
+        depth_mm : float, mm
+            Inserted arc length.
+
+        Returns
+        -------
+        list of InsertionPath or FailedInsertion
+            One path (template frame, mm) or failure per schedule, in order.
+        """
         ...
 
 
@@ -176,7 +221,20 @@ class NamedInsertion:
 class CurvatureTable:
     """Free-space section curvatures of a design against tendon tension, from one rod model.
 
-    ``section_curvature_per_mm`` is (n_tensions, k); exact at the tabulated tensions, linear between.
+    Exact at the tabulated tensions, linear between.
+
+    Parameters
+    ----------
+    rod_model : str
+        Name of the rod model the table came from.
+    tensions_n : (t,) float, N
+        The tabulated tensions, increasing from 0.
+    section_bounds_mm : (k + 1,) float, mm
+        Arc-length boundaries of the design's sections, from the base.
+    section_curvature_per_mm : (t, k) float, 1/mm
+        Each section's curvature at each tension.
+    joint_section : int
+        Index of the distal (joint) section.
     """
 
     rod_model: str  # name of the rod model the table came from
@@ -186,11 +244,33 @@ class CurvatureTable:
     joint_section: int
 
     def joint(self, tension_n: np.ndarray) -> np.ndarray:
-        """Joint-section curvature (1/mm) at the given tensions (N)."""
+        """Joint-section curvature at the given tensions.
+
+        Parameters
+        ----------
+        tension_n : array, N
+            Tendon tensions (any shape).
+
+        Returns
+        -------
+        array, 1/mm
+            The joint section's curvature, the shape of ``tension_n``.
+        """
         return np.interp(tension_n, self.tensions_n, self.section_curvature_per_mm[:, self.joint_section])
 
     def sections(self, tension_n: float) -> np.ndarray:
-        """(k,) curvature (1/mm) of every section at one tension."""
+        """Every section's curvature at one tension.
+
+        Parameters
+        ----------
+        tension_n : float, N
+            The tendon tension.
+
+        Returns
+        -------
+        (k,) float, 1/mm
+            Curvature per section, base to tip.
+        """
         return np.array([np.interp(tension_n, self.tensions_n, c) for c in self.section_curvature_per_mm.T])
 
 
@@ -199,6 +279,20 @@ def curvature_table(design: RodDesign, rod_model: RodModel = PLANAR_BEAM, n: int
 
     Cached per (design, rod model, n): the rod model must be hashable (a frozen dataclass, as the built-in
     ones are).
+
+    Parameters
+    ----------
+    design : RodDesign
+        The stylet in its needle.
+    rod_model : RodModel
+        The rod model solving the free-space shapes (batched).
+    n : int
+        Number of tensions, evenly spaced.
+
+    Returns
+    -------
+    CurvatureTable
+        The section curvatures (1/mm) at the ``n`` tensions (N).
 
     Raises
     ------
@@ -316,6 +410,25 @@ def winkler_modulus_pa(design: RodDesign, tissue_modulus_pa: float = SIMUGEL_MOD
     """Return the subgrade modulus (N/m per m of needle) of a beam of the needle's diameter in an elastic medium.
 
     Vesic 1961, using the bending stiffness of the stylet-in-needle tube section.
+
+    Parameters
+    ----------
+    design : RodDesign
+        Its needle's outer diameter and tube section's bending stiffness.
+    tissue_modulus_pa : float, Pa
+        Young's modulus of the tissue.
+    poisson : float
+        Poisson's ratio of the tissue, in [0, 0.5).
+
+    Returns
+    -------
+    float, Pa
+        The subgrade modulus (N/m per m of needle).
+
+    Raises
+    ------
+    PlanInputError
+        A modulus that is not positive or a Poisson's ratio out of range.
     """
     if tissue_modulus_pa <= 0 or not (0 <= poisson < 0.5):
         raise PlanInputError("tissue modulus must be > 0 Pa and Poisson's ratio in [0, 0.5)")

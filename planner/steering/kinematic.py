@@ -76,19 +76,58 @@ class KinematicInsertion(NamedInsertion):
         """Return the curvature factor in use for ``design``: ``tissue_factor``, or the design's fitted one.
 
         The fitted one is :func:`curvature_factor` at ``tissue_modulus_pa``.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+
+        Returns
+        -------
+        float
+            The factor (dimensionless) the free-space curvature is multiplied by.
         """
         return curvature_factor(self.tissue_modulus_pa, design) if self.tissue_factor is None else self.tissue_factor
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:
-        """Insert ``design`` to ``depth_mm`` once per schedule (positions mm, template frame)."""
+        """Insert ``design`` to ``depth_mm`` once per schedule by tip following.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        schedules : sequence of TensionSchedule
+            Tension (N) and roll (degrees) against depth (mm).
+        depth_mm : float, mm
+            Inserted arc length.
+
+        Returns
+        -------
+        list of InsertionPath or FailedInsertion
+            One path per schedule (positions mm, template frame); tip following does not fail.
+        """
         paths = self.insert_array(design, schedules, depth_mm)
         return [InsertionPath(p, depth_mm, self.info) for p in paths]
 
     def insert_array(self, design: RodDesign, schedules: Sequence[TensionSchedule], depth_mm: float) -> np.ndarray:
-        """Return all paths at once: (S, n + 1, 3) float, mm, template frame.
+        """Return all paths at once.
 
         :func:`~reachplan.planner.steering.insertion.tip_following_paths` at :meth:`factor_for` ``design``.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        schedules : sequence of TensionSchedule
+            S schedules, tension (N) and roll (degrees) against depth (mm).
+        depth_mm : float, mm
+            Inserted arc length, in ``n`` steps of ``step_mm``.
+
+        Returns
+        -------
+        (S, n + 1, 3) float, mm, template frame
+            Row 0 of each path at the template (origin), the last the tip.
         """
         return tip_following_paths(design, schedules, depth_mm, self.factor_for(design), self.rod_model, self.step_mm)
 

@@ -142,6 +142,20 @@ class TissueRodInsertion(NamedInsertion):
         """Insert ``design`` to ``depth_mm`` once per schedule (positions mm, template frame).
 
         A step whose rod solve fails gives a :class:`FailedInsertion` with the depth and the reason.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        schedules : sequence of TensionSchedule
+            Tension (N) and roll (degrees) against depth (mm), one insertion each.
+        depth_mm : float, mm
+            Insertion depth, in ``(0, design.length_mm]``.
+
+        Returns
+        -------
+        list of InsertionPath or FailedInsertion
+            One per schedule, in order (:meth:`insert_one`).
         """
         out: list[InsertionPath | FailedInsertion] = []
         for sch in schedules:
@@ -190,10 +204,30 @@ class TissueRodInsertion(NamedInsertion):
                               for p, a in ((path, arc_length_mm(path)), (coarse, arc_length_mm(coarse))))
         return 2.0 * fine_at - coarse_at
 
+    def _moduli_at(self, nodes: np.ndarray, modulus_profile: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """Return the medium's modulus (Pa) at ``nodes`` (mm of inserted arc): the profile's or the default."""
+        if modulus_profile is None:
+            return np.full(len(nodes), float(self.tissue_modulus_pa))
+        at, values = (np.asarray(a, dtype=float) for a in modulus_profile)
+        if at.shape != values.shape or at.ndim != 1 or len(at) == 0 or np.any(np.diff(at) <= 0):
+            raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
+        return values[np.clip(np.searchsorted(at, nodes, side="right") - 1, 0, len(at) - 1)]
+
     def insert_steps(self, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
                      modulus_profile: tuple[np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray | FailedInsertion, list[tuple[float, np.ndarray]]]:
         """Insert as :meth:`insert_one`, also returning the tip after every insertion step.
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet in its needle.
+        schedule : TensionSchedule
+            Tendon tension (N) and roll (degrees) against inserted depth (mm).
+        depth_mm : float, mm
+            Insertion depth, in ``(0, design.length_mm]``.
+        modulus_profile : tuple of ((p,) float ndarray, (p,) float ndarray), optional
+            ``(depth_mm, modulus_pa)`` as in :meth:`insert_one`; None = ``tissue_modulus_pa`` everywhere.
 
         Returns
         -------
@@ -201,6 +235,11 @@ class TissueRodInsertion(NamedInsertion):
             As :meth:`insert_one` (mm, template frame).
         steps : list of (float, (3,) float ndarray)
             ``[(depth_mm, tip_mm), ...]``: the tip (mm, template frame) after each step, up to the failure if any.
+
+        Raises
+        ------
+        PlanInputError
+            A depth out of range, a schedule above the design's maximum tension, or a malformed ``modulus_profile``.
         """
         steps: list[tuple[float, np.ndarray]] = []
         if not (np.isfinite(depth_mm) and 0 < depth_mm <= design.length_mm):
@@ -210,14 +249,7 @@ class TissueRodInsertion(NamedInsertion):
         n_steps = max(1, int(np.ceil(depth_mm / self.step_mm - 1e-9)))
         ends = np.linspace(0.0, depth_mm, n_steps + 1)[1:]
         nodes = np.union1d(np.linspace(0.0, depth_mm, max(2, round(depth_mm / self.node_mm)) + 1), ends)
-        if modulus_profile is None:
-            moduli = np.full(len(nodes), float(self.tissue_modulus_pa))
-        else:
-            at, values = (np.asarray(a, dtype=float) for a in modulus_profile)
-            if at.shape != values.shape or at.ndim != 1 or len(at) == 0 or np.any(np.diff(at) <= 0):
-                raise PlanInputError("modulus_profile must be two 1-D arrays (depth_mm increasing, modulus_pa)")
-            moduli = values[np.clip(np.searchsorted(at, nodes, side="right") - 1, 0, len(at) - 1)]
-        stiffness = self._stiffness(design, moduli)
+        stiffness = self._stiffness(design, self._moduli_at(nodes, modulus_profile))
         tube_ei = next(s.ei1 + s.ei2 for s in design.sections() if s.kind == "tube") * 1e6  # N mm²
         distal_mm = design.length_mm - next(s.start_m for s in design.sections() if s.kind == "joints") * 1e3
         track = np.zeros((len(nodes), 3))
@@ -270,12 +302,7 @@ class TissueRodInsertion(NamedInsertion):
             shape = (s_new, pos_new, frames_new)
             # the tissue gives way where the needle left its track by more than the slip offset
             pos = np.column_stack([np.interp(nodes[inside], s_new, pos_new[:, i]) for i in range(3)])
-            off = pos - track[inside]
-            dist = np.linalg.norm(off, axis=1)
-            far = dist > self.slip_mm
-            if np.any(far):
-                idx = np.nonzero(inside)[0][far]
-                track[idx] += off[far] * (1.0 - self.slip_mm / dist[far])[:, None]
+            _give_way(track, inside, pos, self.slip_mm)
             h = depth - (steps[-1][0] if steps else 0.0)
             new_tangent = frames_new[-1][:, 2]
             turn = new_tangent - tangent
@@ -284,6 +311,19 @@ class TissueRodInsertion(NamedInsertion):
             steps.append((float(depth), tip.copy()))
         assert shape is not None
         return shape[1], steps
+
+
+def _give_way(track: np.ndarray, inside: np.ndarray, pos: np.ndarray, slip_mm: float) -> None:
+    """Move the track (in place) where the needle left it by more than ``slip_mm``: to ``slip_mm`` from the needle.
+
+    ``track`` (n, 3) mm; ``inside`` (n,) bool, the nodes in the tissue; ``pos`` the needle at those nodes, mm.
+    """
+    off = pos - track[inside]
+    dist = np.linalg.norm(off, axis=1)
+    far = dist > slip_mm
+    if np.any(far):
+        idx = np.nonzero(inside)[0][far]
+        track[idx] += off[far] * (1.0 - slip_mm / dist[far])[:, None]
 
 
 def _pose_at(s_mm: np.ndarray, positions_mm: np.ndarray, frames: np.ndarray,

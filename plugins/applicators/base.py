@@ -16,8 +16,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from reachplan._arrays import frozen_floats
+from reachplan.imaging.brachy_plan import Channel
 from reachplan.imaging.names import name_key
-from reachplan.imaging.rtplan import Channel
 from reachplan.imaging.types import Roi
 
 #: Direction a channel is oriented along when no template axis is given: patient cranial (+z, LPS).

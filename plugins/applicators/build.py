@@ -13,8 +13,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from reachplan.imaging.brachy_plan import Channel, RtPlan
 from reachplan.imaging.names import SynonymTable
-from reachplan.imaging.rtplan import Channel, RtPlan, channel_paths
+from reachplan.imaging.rtplan import channel_paths
 from reachplan.imaging.types import Roi, StructureSet
 from reachplan.plugins.applicators.base import Applicator, ApplicatorKind
 from reachplan.plugins.errors import ApplicatorError

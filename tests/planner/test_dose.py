@@ -9,18 +9,15 @@ import pytest
 from scipy import integrate
 
 from reachplan.imaging.types import Grid
-from reachplan.planner.dose.tg43 import (
+from reachplan.planner.dose.dwells import (
     DwellSet,
-    Tg43Kernel,
-    anisotropy,
     dose_at_points,
     dose_on_grid,
     dwell_directions,
     dwells_along_path,
-    geometry_factor_line,
     grid_points_mm,
-    radial_dose,
 )
+from reachplan.planner.dose.tg43 import Tg43Kernel, anisotropy, geometry_factor_line, radial_dose
 from reachplan.planner.lookup import all_sources, get_source
 from reachplan.plugins.errors import PluginError
 from reachplan.plugins.sources import BUILTIN

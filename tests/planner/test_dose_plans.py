@@ -18,14 +18,9 @@ from reachplan.imaging.rtplan import channel_paths, read_rtplan
 from reachplan.imaging.rtstruct import read_rtstruct
 from reachplan.imaging.types import Grid
 from reachplan.planner.cli import main
-from reachplan.planner.dose.tg43 import (
-    DwellSet,
-    Tg43Kernel,
-    check_points,
-    dose_on_grid,
-    grid_points_mm,
-    plan_dwells,
-)
+from reachplan.planner.dose.dwells import DwellSet, dose_on_grid, grid_points_mm, plan_dwells
+from reachplan.planner.dose.plan_check import check_points
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.lookup import all_sources, get_source
 from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, write_rtdose
 from reachplan.plugins.sources.identify import recognise_source

@@ -13,7 +13,7 @@ import pytest
 from matplotlib.figure import Figure as MplFigure
 
 from reachplan.planner.case.result import choose_needles
-from reachplan.planner.report import figures
+from reachplan.planner.report import charts, figures
 from reachplan.planner.report.build import _runs, models_used
 from reachplan.planner.report.html import Figure, Paragraph, Report, Section, Table, render_html
 from reachplan.planner.steering.candidates import Candidate
@@ -92,8 +92,8 @@ def test_speed_accuracy_chart_marks_the_models_used() -> None:
     from reachplan.rod_model.select import error_table
 
     rows = error_table()
-    plain = mpimg.imread(io.BytesIO(figures.speed_accuracy(rows, {})), format="png")
-    marked = mpimg.imread(io.BytesIO(figures.speed_accuracy(rows, {"planar_beam": "screening"})), format="png")
+    plain = mpimg.imread(io.BytesIO(charts.speed_accuracy(rows, {})), format="png")
+    marked = mpimg.imread(io.BytesIO(charts.speed_accuracy(rows, {"planar_beam": "screening"})), format="png")
     assert plain.shape == marked.shape and plain.std() > 0.05
     assert np.abs(plain - marked).sum() > 100  # the ring and the label are drawn
 
@@ -130,7 +130,7 @@ def test_delivered_dvh_marks_each_aim_where_the_aims_put_it() -> None:
     dose = np.linspace(0.0, 30.0, 301)
     dvhs = [("HR-CTV", Dvh(dose, 60.0 * np.exp(-dose / 10))), ("Rectum", Dvh(dose, 50.0 * np.exp(-dose / 2))),
             ("Uterus", Dvh(dose, 70.0 * np.exp(-dose / 5)))]
-    ax = figures.dvh_aims_figure(dvhs, aims).axes[0]
+    ax = charts.dvh_aims_figure(dvhs, aims).axes[0]
     marks = {ln.get_gid(): ln.get_xydata()[0] for ln in ax.lines if (ln.get_gid() or "").startswith(("aim", "limit"))}
     assert np.allclose(marks["aim:D90"], (aims.prescription_gy, 0.9 * 60.0))
     assert np.allclose(marks["limit:Rectum"], (aims.oar_limit_gy("Rectum"), 2.0))

@@ -10,7 +10,7 @@ import pytest
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import cumulative_dvh
 from reachplan.planner.implant.arms import ImplantArm, ParetoPoint
-from reachplan.planner.report import figures
+from reachplan.planner.report import charts
 
 ORGANS = ("Bladder", "Rectum", "Sigmoid")
 
@@ -42,7 +42,7 @@ def _lines(fig: object) -> dict[str, object]:
 
 
 def test_pareto_figure_has_both_curves_the_aims_and_each_chosen_plan(arms: tuple[ImplantArm, ImplantArm]) -> None:
-    lines = _lines(figures.pareto_figure(arms, Aims().target_d90_eqd2_gy))
+    lines = _lines(charts.pareto_figure(arms, Aims().target_d90_eqd2_gy))
     for arm in arms:
         xy = lines[f"pareto:{arm.name}"].get_xydata()  # type: ignore[attr-defined]
         assert len(xy) == len(arm.pareto)
@@ -62,16 +62,16 @@ def test_pareto_figure_has_both_curves_the_aims_and_each_chosen_plan(arms: tuple
 
 def test_an_arm_without_a_plan_has_its_curve_and_no_circle(arms: tuple[ImplantArm, ImplantArm]) -> None:
     empty = _arm("straight", [(0, 60.0, False)], None, 3)
-    lines = _lines(figures.pareto_figure((empty, arms[1]), 85.0))
+    lines = _lines(charts.pareto_figure((empty, arms[1]), 85.0))
     assert "chosen:straight" not in lines and "chosen:steered" in lines
     assert len(lines["pareto:straight"].get_xydata()) == 1  # type: ignore[attr-defined]
-    dvh = _lines(figures.implant_dvh_figure((empty, arms[1]), Aims()))
+    dvh = _lines(charts.implant_dvh_figure((empty, arms[1]), Aims()))
     assert not any(str(g).startswith("dvh:straight:") for g in dvh)
 
 
 def test_implant_dvhs_both_arms_by_line_style_monotone_with_the_aims(arms: tuple[ImplantArm, ImplantArm]) -> None:
     aims = Aims()
-    lines = _lines(figures.implant_dvh_figure(arms, aims))
+    lines = _lines(charts.implant_dvh_figure(arms, aims))
     for arm in arms:
         assert arm.plan is not None
         for name, dvh in arm.plan.dvhs:

@@ -15,7 +15,7 @@ from reachplan import ReachplanError, __version__
 from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.case.result import PlanResult
 from reachplan.planner.cli import COMMAND_MODULES, build_parser, main
-from reachplan.planner.report.build import format_summary
+from reachplan.planner.report.terminal import format_summary
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.planner.steering.insertion import STRAIGHT
 from reachplan.planner.steering.kinematic import KINEMATIC

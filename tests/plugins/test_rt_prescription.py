@@ -19,7 +19,8 @@ import pytest
 from scipy.interpolate import RegularGridInterpolator
 
 from reachplan.imaging.types import Contour, Grid, PatientStudy, Roi, StructureSet, Volume
-from reachplan.planner.dose.tg43 import Tg43Kernel, dwell_directions, rate_matrix
+from reachplan.planner.dose.dwells import dwell_directions, rate_matrix
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.plugins.exporters import base as exporters_base
 from reachplan.plugins.exporters.base import Afterloader, ExportPlan, PlannedDose, ReferencePoint
 from reachplan.plugins.exporters.dicom_rt import export_plan, planned_point_doses_gy

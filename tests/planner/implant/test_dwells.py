@@ -8,8 +8,9 @@ import pytest
 from reachplan.imaging.types import Grid
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import Fractionation, eqd2, voxel_volume_cc
+from reachplan.planner.dose.dwells import dose_on_grid
 from reachplan.planner.dose.structures import PlanningStructures, Structure
-from reachplan.planner.dose.tg43 import Tg43Kernel, dose_on_grid
+from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.compare import compare_arms
 from reachplan.planner.implant.dwells import OptimizerSettings, candidate_dwells, optimise_dwell_times
 from reachplan.planner.lookup import get_source

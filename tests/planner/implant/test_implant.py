@@ -231,7 +231,7 @@ def test_final_dose_on_a_finer_grid_agrees(which: str, request: pytest.FixtureRe
 def test_organ_limit_holds(open_case: tuple, kernel: Tg43Kernel) -> None:
     """A strict rectum limit is met on every rectum voxel (recomputed independently)."""
     from reachplan.planner.dose.coverage import dose_to_volume, voxel_volume_cc
-    from reachplan.planner.dose.tg43 import dose_on_grid
+    from reachplan.planner.dose.dwells import dose_on_grid
 
     case, cands, _, _ = open_case
     aims = Aims(oar_d2cc_eqd2_gy=(("rectum", 62.0),))

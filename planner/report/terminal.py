@@ -1,0 +1,285 @@
+"""The plan's summary as text, for the terminal.
+
+The best needles per target with their flags, the models in plain words and the implant arms side by side; the
+HTML report reuses the flags, the model words and the rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from reachplan.planner.case.result import PlanResult
+from reachplan.planner.delivery import Delivery
+from reachplan.planner.implant.compare import Comparison
+from reachplan.planner.steering.candidates import Candidate
+
+if TYPE_CHECKING:
+    from reachplan.planner.delivery import ImplantComparison
+    from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
+
+
+def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
+    """Return the best ``n_per_target`` feasible candidates of every target.
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    n_per_target : int
+        Feasible candidates kept per target.
+
+    Returns
+    -------
+    list of Candidate
+        Target by target in ranking order, best first.
+    """
+    return [c for cs in result.ranking.values() for c in [c for c in cs if c.feasible][:n_per_target]]
+
+
+def _cell(v: float, digits: int = 1) -> str:
+    return f"{v:.{digits}f}" if np.isfinite(v) else "-"
+
+
+def tension_flag(c: Candidate) -> bool:
+    """Return True when a needle's peak tension is within :data:`TENSION_MARGIN` of its stylet's design limit.
+
+    Parameters
+    ----------
+    c : Candidate
+        The needle, steered or straight.
+
+    Returns
+    -------
+    bool
+        False for a plain straight needle (no design).
+    """
+    return c.design is not None and c.peak_tension_n >= (1 - TENSION_MARGIN) * c.design.max_tension_n
+
+
+def miss_flag(c: Candidate, tolerance_mm: float) -> bool:
+    """Return True when the worst-case reach error under the perturbations exceeds the reach tolerance.
+
+    Parameters
+    ----------
+    c : Candidate
+        The needle (not assessed: False).
+    tolerance_mm : float, mm
+        The plan's reach tolerance.
+
+    Returns
+    -------
+    bool
+    """
+    return bool(np.isfinite(c.worst_reach_mm) and c.worst_reach_mm > tolerance_mm)
+
+
+#: A peak tension within this fraction of the stylet's limit is flagged.
+TENSION_MARGIN = 0.05
+
+
+#: Rod and insertion models in plain words.
+PLAIN_MODELS = {
+    "straight": "a straight line from the hole (exact geometry)",
+    "kinematic": "fast screening: the shaft follows the tip (kinematic insertion)",
+    "tissue_rod": "reference: the needle as an exact rod pushed into the tissue, held on the track its tip cut",
+    "planar_beam": "a planar beam model of the stylet",
+    "two_tube_cosserat": "the two-tube Cosserat model of stylet inside needle",
+    "cosserat_rod": "a single-rod Cosserat model",
+    "constant_curvature": "a constant-curvature arc",
+}
+
+
+#: The models in a few words, for the terminal.
+SHORT_MODELS = {"straight": "exact straight line", "kinematic": "fast screening model",
+                "tissue_rod": "reference model (rod in tissue)"}
+
+
+def plain_model(c: Candidate) -> str:
+    """Return the model behind a candidate's numbers in plain words.
+
+    E.g. ``fast screening: ... bending from a planar beam model of the stylet``.
+
+    Parameters
+    ----------
+    c : Candidate
+        The candidate.
+
+    Returns
+    -------
+    str
+        Its insertion model, and rod model when there is one, in words.
+    """
+    words = PLAIN_MODELS.get(c.model.insertion, c.model.insertion)
+    if c.model.rod_model:
+        words += f", bending from {PLAIN_MODELS.get(c.model.rod_model, c.model.rod_model)}"
+    return words
+
+
+def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list[str]:
+    """One line per arm: needles, HR-CTV D90 (EQD2) and whether the aims are met (and the organs over)."""
+    from reachplan.planner.dose.aims import Aims
+
+    aims = comparison.aims if comparison is not None else Aims()
+    limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
+    lines = [f"dose aims (EMBRACE II, EQD2): HR-CTV D90 >= {aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}"]
+
+    limit = {k.casefold(): v for k, v in aims.oar_d2cc_eqd2_gy}
+
+    def over(organs: Sequence[tuple[str, float]]) -> str:
+        bad = [f"{o} {v:.1f} Gy" for o, v in organs if o.casefold() in limit and v > limit[o.casefold()]]
+        return f"; over the limit: {', '.join(bad)}" if bad else ""
+
+    arms: list[tuple[str, int, float, bool, str]] = []
+    if delivery is not None and delivery.implant is not None:  # the whole HR-CTV: what the aims are about
+        for arm, label in zip(delivery.implant.arms, ("implant, straight", "implant, straight + steered"), strict=True):
+            pl = arm.plan
+            arms.append((label, 0, np.nan, False, f"; no implant: {arm.reason}") if pl is None else
+                        (label, pl.n_needles, pl.target.d90_eqd2_gy, pl.aims_met,
+                         over([(o.name, o.d2cc_eqd2_gy) for o in pl.oars])))
+    per_target = " (one needle per target)" if arms else ""
+    if comparison is not None:
+        arms += [(f"{r.arm} arm{per_target}", r.n_needles, r.d90_eqd2_gy, r.aim_met, over(r.oar_d2cc_eqd2_gy))
+                 for r in comparison.rows()]
+    if delivery is not None:
+        opt = delivery.optimisation
+        arms.append((f"exported plan ({delivery.kind})", delivery.n_needles,
+                     opt.target.d90_eqd2_gy if opt.success else np.nan,
+                     opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]) if opt.success
+                     else f"; not solved: {opt.reason}"))
+    if not arms:
+        return ["dose: not computed (--no-export)"]
+    width = max(len(a[0]) for a in arms)
+    for name, n, d90, met, why in arms:
+        low = "" if met or not d90 < aims.target_d90_eqd2_gy else f"; D90 below {aims.target_d90_eqd2_gy:g} Gy"
+        why = f"{low}{why}".removeprefix("; ")
+        lines.append(f"  {name:<{width}}  {n:>3} needle{'s' if n != 1 else ' '}  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
+                     f"{'aims met' if met else 'aims NOT met'}{f' ({why})' if why else ''}")
+    return lines
+
+
+def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, delivery: Delivery | None = None,
+                   comparison: Comparison | None = None, files: Sequence[tuple[str, str]] = ()) -> str:
+    """Return the terminal summary of a plan.
+
+    Per target (in ``targets``' order, the user's; default the ranking's) its best straight and best steered
+    needle with units in every header, then one line per arm with the dose aims met or not, then the files
+    written.
+
+    Parameters
+    ----------
+    result : PlanResult
+        The ranked plan.
+    targets : sequence of str or None
+        Target names in the user's order; None: the ranking's.
+    delivery : Delivery or None
+        The delivered plan (its dose line); None: ranked only.
+    comparison : Comparison or None
+        Straight versus steered dose (one line per arm).
+    files : sequence of (str, str)
+        (what, path) of the files written.
+
+    Returns
+    -------
+    str
+        Lines of text (mm, N, Gy EQD2).
+    """
+    tol = result.config.reach_tolerance_mm
+    head = (f"{'target':<15} {'needle':<9} {'hole':<5} {'from centre (mm)':>16} {'reach error (mm)':>16} "
+            f"{'clearance (mm)':>14} {'worst miss (mm)':>17} {'peak tension (N)':>16}  model")
+    lines = [head, ""]
+    order = [t for t in (targets or result.ranking) if t in result.ranking]
+    for t in order:
+        cands = result.ranking[t]
+        top = cands[0] if cands and cands[0].feasible else None
+        for i, steered in enumerate((False, True)):
+            c = result.best(t, steered)
+            kind = ("steered" if steered else "straight") + ("*" if c is not None and c is top else "")
+            name = t if i == 0 else ""
+            if c is None:
+                lines.append(f"{name:<15} {kind:<9} none feasible")
+                continue
+            miss = _cell(c.worst_reach_mm) + (" !" if miss_flag(c, tol) else "  ")
+            tension = "-" if not steered else (f"{c.peak_tension_n:.1f}" + (
+                f" of {c.design.max_tension_n:g} !" if c.design is not None and tension_flag(c) else ""))
+            lines.append(f"{name:<15} {kind:<9} {c.hole_id:<5} {c.hole_distance_mm:>16.1f} {c.reach_error_mm:>16.1f} "
+                         f"{_cell(c.clearance_mm):>14} {miss:>17} {tension:>16}  "
+                         f"{SHORT_MODELS.get(c.model.insertion, c.model.label)}")
+    lines[1] = "-" * max(len(ln) for ln in lines)
+    lines += [f"* ranked first for its target.  ! worst case over the {tol:g} mm reach tolerance, or peak tension "
+              f"within {TENSION_MARGIN:.0%} of the stylet's limit.", ""]
+    lines += _arm_lines(delivery, comparison)
+    if files:
+        width = max(len(w) for w, _ in files)
+        lines += ["", *(f"{w:<{width}}  {p}" for w, p in files)]
+    return "\n".join(lines)
+
+
+def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
+    """Return the implant arms side by side as rows of text cells, the first row naming the arms.
+
+    Needles (candidates), aims, HR-CTV D90/D98/V100/V150/V200 (EQD2 totals, Gy), organ D2cm³, the needles' share of
+    the dwell weight, the largest single dwell's share, loaded dwells per needle and the Pareto curve
+    (needles:D90). The terminal (:func:`format_implant`) and the report print the same rows.
+
+    Parameters
+    ----------
+    comparison : ImplantComparison
+        Both implant arms.
+
+    Returns
+    -------
+    list of tuple of str
+        Label then one cell per arm ("-" for an arm without an implant).
+    """
+    arms = comparison.arms
+    rows: list[tuple[str, ...]] = [("implant", *(a.name for a in arms))]
+
+    def cell(a: ImplantArm, f: Callable[[ImplantPlan], str]) -> str:
+        return "-" if a.plan is None else f(a.plan)
+
+    rows.append(("needles (candidates)", *(f"{cell(a, lambda p: str(p.n_needles))} ({a.n_candidates})"
+                                           for a in arms)))
+    rows.append(("aims met", *(cell(a, lambda p: "yes" if p.aims_met else "no") for a in arms)))
+    for label, get in (("HR-CTV D90 Gy", lambda p: f"{p.target.d90_eqd2_gy:.1f}"),
+                       ("HR-CTV D98 Gy", lambda p: f"{p.target.d98_eqd2_gy:.1f}"),
+                       ("V100 %", lambda p: f"{p.target.v100_pct:.1f}"),
+                       ("V150 %", lambda p: f"{p.target.v150_pct:.1f}"),
+                       ("V200 %", lambda p: f"{p.v200_pct:.1f}")):
+        rows.append((label, *(cell(a, get) for a in arms)))
+    organs = list(dict.fromkeys(o.name for a in arms if a.plan for o in a.plan.oars))
+    for organ in organs:
+        def d2cc(p: ImplantPlan, organ: str = organ) -> str:
+            return next((f"{o.d2cc_eqd2_gy:.1f}" for o in p.oars if o.name == organ), "-")
+
+        rows.append((f"{organ} D2cc Gy", *(cell(a, d2cc) for a in arms)))
+    rows.append(("needle dwell weight %", *(cell(a, lambda p: f"{100 * p.needle_time_share:.0f}") for a in arms)))
+    rows.append(("largest dwell share %", *(cell(a, lambda p: f"{100 * p.max_dwell_share:.1f}") for a in arms)))
+    rows.append(("loaded dwells/needle", *(cell(a, lambda p: " ".join(
+        str(n) for c, n in zip(p.channels, p.loaded_dwells, strict=True) if c.is_needle)) for a in arms)))
+    rows.append(("Pareto (needles:D90)", *(" ".join(f"{q.n_needles}:{q.hrctv_d90_eqd2_gy:.0f}" for q in a.pareto)
+                                           or "-" for a in arms)))
+    return rows
+
+
+def format_implant(comparison: ImplantComparison) -> str:
+    """Return the two implant arms side by side (:func:`implant_rows`) for the terminal, then each arm's note.
+
+    Parameters
+    ----------
+    comparison : ImplantComparison
+        The straight and the steered arm, each with its chosen implant or reason.
+
+    Returns
+    -------
+    str
+        The aligned table and the notes.
+    """
+    rows = implant_rows(comparison)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
+             for r in rows]
+    notes = [f"{a.name}: {a.reason}" for a in comparison.arms if a.reason]
+    return "\n".join([*lines, *notes])
