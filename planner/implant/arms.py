@@ -157,7 +157,16 @@ class ImplantArm:
     plans: tuple[ImplantPlan, ...] = ()
 
     def to_json(self) -> dict[str, object]:
-        """Return the arm for plan.json (EQD2 totals in Gy; dwell positions mm LPS; times s per fraction)."""
+        """Return the arm for plan.json.
+
+        Returns
+        -------
+        dict
+            The candidates, wall time (s), reason and Pareto curve; with a plan, also its needles (hole, kind,
+            design, tension schedule as [depth mm, tension N, roll °] rows, dwell positions mm, LPS, dwell times
+            s per fraction), its metrics (EQD2 totals, Gy; volumes %), total time (s per fraction) and the
+            ``selection`` record with the chosen plan's status.
+        """
         doc: dict[str, object] = {
             "candidates": self.n_candidates, "seconds": round(self.seconds, 3), "reason": self.reason,
             "pareto": [{"n_needles": p.n_needles, "hrctv_d90_eqd2_gy": round(p.hrctv_d90_eqd2_gy, 3),
@@ -246,7 +255,14 @@ class BudgetResult:
     plan: ImplantPlan | None = field(default=None, repr=False, compare=False)  # the new selection's plan
 
     def to_json(self) -> dict[str, object]:
-        """Return the record for plan.json ``selection.budgets``."""
+        """Return the record for plan.json ``selection.budgets``.
+
+        Returns
+        -------
+        dict
+            The fields, rounded (``seconds`` in s); ``selected`` and ``plan`` left out, ``new`` as
+            ``new_selection``.
+        """
         return {"budget": self.budget, "n_needles": self.n_needles, "objective": round(self.objective, 6),
                 "dual_bound": None if self.dual_bound is None else round(self.dual_bound, 6),
                 "mip_gap": None if self.mip_gap is None else round(self.mip_gap, 5), "status": self.status,
@@ -315,12 +331,15 @@ def recompute_target(plan: ImplantPlan, grid: Grid, target_mask: np.ndarray, ker
     Parameters
     ----------
     plan : ImplantPlan
+        Its dwells (positions mm, LPS; times s per fraction) give the dose.
     grid : Grid
         The grid to compute on (voxel centres mm, LPS).
     target_mask : (nk, nj, ni) bool
         The target on ``grid``.
     kernel : Tg43Kernel
+        TG-43 dose kernel of the plan's source.
     air_kerma_strength_u : float, U
+        Source strength S_K.
     aims : Aims, optional
         EMBRACE II by default (the prescription and α/β of the metrics).
 

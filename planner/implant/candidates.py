@@ -85,7 +85,7 @@ class Channel:
 
     @property
     def dwell_directions(self) -> np.ndarray:
-        """(d, 3) unit vectors toward the tip at each dwell."""
+        """(d, 3) float, unit vectors, LPS: the source axis at each dwell, toward the tip."""
         return dwell_directions(self.path_mm, self.dwell_positions_mm)
 
 
@@ -102,13 +102,37 @@ class _Field:
     outside: float
 
     def index(self, points_mm: np.ndarray) -> np.ndarray:
-        """(..., 3) int (k, j, i) voxel of each point on the full grid (shared by fields of one grid)."""
+        """Return the voxel of each point on the full planning grid (the same for every field of one grid).
+
+        Parameters
+        ----------
+        points_mm : (..., 3) float, mm, LPS
+            Points in the patient frame.
+
+        Returns
+        -------
+        (..., 3) int32, voxel index (k, j, i)
+            The nearest voxel centre, on the full grid (not the crop); may lie outside it.
+        """
         p = np.asarray(points_mm, dtype=np.float32)
         a = self.index_from_patient.astype(np.float32)
         return np.rint(p @ a[:3, :3].T + a[:3, 3]).astype(np.int32)[..., ::-1]
 
     def at(self, points_mm: np.ndarray, kji: np.ndarray | None = None) -> np.ndarray:
-        """Distance (mm) at each point ((..., 3) mm, LPS; or its voxel ``kji`` from :meth:`index`)."""
+        """Return the distance map's value at each point (its nearest voxel centre).
+
+        Parameters
+        ----------
+        points_mm : (..., 3) float, mm, LPS
+            The points (not read when ``kji`` is given).
+        kji : (..., 3) int, voxel index (k, j, i), optional
+            The points' voxels on the full grid (:meth:`index`), when already known.
+
+        Returns
+        -------
+        (...,) float, mm
+            Distance to the mask (0 inside); ``outside`` for a point beyond the crop.
+        """
         kji = (self.index(points_mm) if kji is None else kji) - self.offset
         shape = np.array(self.values.shape)
         ok = np.all((kji >= 0) & (kji < shape), axis=-1)
@@ -158,19 +182,11 @@ def _points_at(path_mm: np.ndarray, s_query: np.ndarray) -> np.ndarray:
     return np.column_stack([np.interp(s_query, s, path_mm[:, a]) for a in range(3)])
 
 
-def needle_candidates(
-    hole_ids: Sequence[str],
-    hole_xy_mm: np.ndarray,
-    hole_distance_mm: np.ndarray,
-    patient_from_template: np.ndarray,
-    planning: PlanningStructures,
-    organs: Sequence[Organ],
-    needle_radius_mm: float,
-    settings: ImplantSettings | None = None,
-    banks: Sequence[ShapeBank] = (),
-    max_depth_mm: float = 200.0,
-    straight: bool = True,
-) -> tuple[Channel, ...]:
+def needle_candidates(hole_ids: Sequence[str], hole_xy_mm: np.ndarray, hole_distance_mm: np.ndarray,
+                      patient_from_template: np.ndarray, planning: PlanningStructures, organs: Sequence[Organ],
+                      needle_radius_mm: float, settings: ImplantSettings | None = None,
+                      banks: Sequence[ShapeBank] = (), max_depth_mm: float = 200.0,
+                      straight: bool = True) -> tuple[Channel, ...]:
     """Candidate needles through the HR-CTV that keep the clearance margin to every organ at risk.
 
     Parameters
@@ -181,8 +197,8 @@ def needle_candidates(
         Each hole's position on the template.
     hole_distance_mm : (H,) float, mm
         Each hole's distance from the template centre.
-    patient_from_template : (4, 4) float
-        Template frame to LPS mm (the template's z axis is the insertion direction).
+    patient_from_template : (4, 4) float, homogeneous, template frame mm -> LPS mm
+        The template's pose (its z axis is the insertion direction).
     planning : PlanningStructures
         The target and organ masks (the organ masks give the screening distance map).
     organs : sequence of Organ

@@ -28,8 +28,19 @@ from reachplan.plugins.sources import SourceData
 class ImplantComparison:
     """The two implant arms on the same anatomy and template.
 
-    Straight needles only, and straight + steered (see :mod:`reachplan.planner.implant`); ``candidates`` every
-    candidate channel of the steered arm (the straight arm's are its straight ones and the intracavitary channels).
+    Straight needles only, and straight + steered (see :mod:`reachplan.planner.implant`).
+
+    Parameters
+    ----------
+    straight : ImplantArm
+        The arm of straight needles (and the intracavitary channels).
+    steered : ImplantArm
+        The arm of straight and steered needles, the straight arm's implants taken in (never worse).
+    candidates : tuple of Channel
+        Every candidate channel of the steered arm, paths mm, LPS (the straight arm's are its straight ones and
+        the intracavitary channels).
+    seconds : float, s
+        Wall time of the whole (candidates and both arms).
     """
 
     straight: ImplantArm
@@ -45,8 +56,12 @@ class ImplantComparison:
     def to_json(self) -> dict[str, object]:
         """Return plan.json's ``implant``.
 
-        ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`), the count of candidate channels by kind and the
-        wall time of the whole (candidates and both arms, which run at once), s.
+        Returns
+        -------
+        dict
+            ``straight`` and ``steered`` (:meth:`ImplantArm.to_json`), ``candidates``: the count of candidate
+            channels by kind, ``seconds``: the wall time of the whole (candidates and both arms, which run at
+            once), s.
         """
         kinds: dict[str, int] = {}
         for c in self.candidates:
@@ -78,8 +93,8 @@ def plan_implants(
         Stylet designs, schedule family, needle radius and depth; the steered arm screens every design.
     source : SourceData
         The TG-43 data set.
-    air_kerma_u : float
-        Source strength S_K, U.
+    air_kerma_u : float, U
+        Source strength S_K.
     settings : ImplantSettings or None
         Candidate, selection and dwell settings (defaults when None).
     gtv : Structure or None

@@ -58,15 +58,19 @@ class ComparisonRow:
     Parameters
     ----------
     arm : str
+        The arm's name.
     n_needles, needles_needed : int, int or None
         As in :class:`ArmResult`.
     d90_gy, d98_gy : float, Gy per fraction
         HR-CTV D90 and D98, physical.
     v100_pct : float, %
+        HR-CTV volume receiving at least the prescription.
     d90_eqd2_gy, d98_eqd2_gy : float, Gy EQD2
         Totals with the external beam.
     oar_d2cc_eqd2_gy : tuple of (organ, Gy EQD2)
+        Each organ's D2cm³, total with the external beam.
     aim_met : bool
+        HR-CTV D90 reached its aim within the organ limits.
     note : str
         The plan's reason (solved, scaled, or why not).
     """
@@ -91,6 +95,7 @@ class Comparison:
     Parameters
     ----------
     arms : tuple of ArmResult
+        One per arm, in the order given.
     aims : Aims
         The aims every arm was planned to.
     """
@@ -99,7 +104,13 @@ class Comparison:
     aims: Aims
 
     def rows(self) -> tuple[ComparisonRow, ...]:
-        """Return one :class:`ComparisonRow` per arm, in the arms' order."""
+        """Return the table's rows.
+
+        Returns
+        -------
+        tuple of ComparisonRow
+            One per arm, in the arms' order.
+        """
         out = []
         for a in self.arms:
             t = a.plan.target
@@ -119,7 +130,14 @@ class Comparison:
         return tuple(out)
 
     def format_table(self) -> str:
-        """Return the table as aligned text (EQD2 totals)."""
+        """Return the table as aligned text.
+
+        Returns
+        -------
+        str
+            A header line, then one line per arm: needles offered and needed, HR-CTV D90 and D98 (Gy EQD2 totals),
+            V100 (%) and each organ's D2cm³ (Gy EQD2 total), one decimal.
+        """
         rows = self.rows()
         organs = [n for n, _ in rows[0].oar_d2cc_eqd2_gy] if rows else []
         head = ["arm", "needles", "needed", "D90 EQD2", "D98 EQD2", "V100 %", *[f"{o} D2cc" for o in organs]]
@@ -134,9 +152,13 @@ class Comparison:
         return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths, strict=True)) for line in lines)
 
     def figure(self) -> Any:
-        """Cumulative DVHs (% volume against Gy per fraction) of every structure, one line style per arm.
+        """Plot the cumulative DVH of every structure, one line style per arm.
 
-        Returns a :class:`matplotlib.figure.Figure` (not attached to pyplot; save it with ``savefig``).
+        Returns
+        -------
+        matplotlib.figure.Figure
+            % volume against dose, Gy per fraction (physical), the prescription marked; not attached to pyplot
+            (save it with ``savefig``).
         """
         from matplotlib.figure import Figure
 
@@ -170,8 +192,16 @@ def compare_arms(arms: Sequence[tuple[str, Sequence[np.ndarray]]], structures: P
     arms : sequence of (name, needles)
         ``needles``: sequence of (k, 3) float, mm, LPS, ordered base → tip, in the order they would be
         inserted (the needle count uses prefixes of this order).
-    structures, kernel, air_kerma_strength_u, aims, settings
-        As for :func:`reachplan.planner.implant.dwells.optimise_dwell_times`.
+    structures : PlanningStructures
+        HR-CTV and organ masks on the planning grid, the same for every arm.
+    kernel : Tg43Kernel
+        TG-43 kernel of the source.
+    air_kerma_strength_u : float, U
+        Source strength S_K.
+    aims : Aims, optional
+        The aims every arm is planned to (EMBRACE II when None).
+    settings : OptimizerSettings, optional
+        Dwell placement and LP size, as for :func:`reachplan.planner.implant.dwells.optimise_dwell_times`.
 
     Returns
     -------

@@ -89,14 +89,15 @@ class OptimizerSettings:
 
     Parameters
     ----------
-    dwell_step_mm, tip_offset_mm, active_length_mm : float
+    dwell_step_mm, tip_offset_mm, active_length_mm : float, mm
         Distance between candidate dwells along a needle; of the first dwell from the needle tip; length along
         each needle (from the first dwell) where dwells may be placed.
     max_target_points, max_oar_points : int
         Target voxels used in the LP (an even stride through them) and candidate voxels per organ (those
         with the highest dose for equal dwell times, i.e. nearest to the needles).
-    time_weight : float
-        ε: weight of the total time (breaks ties toward shorter plans).
+    time_weight : float, unitless
+        ε: weight of the mean target dose against the mean underdose (both Gy); breaks ties toward shorter
+        plans.
     relax_iterations : int
         Re-solves that release each organ's hottest 2 cm³ from the point constraints.
     """
@@ -129,15 +130,21 @@ class OptimisationResult:
     dwells : DwellSet
         Dwell positions (mm, LPS) and times (s per fraction); channel = needle index + 1.
     target : StructureMetrics
+        HR-CTV metrics on its voxels (Gy per fraction; EQD2 totals).
     oars : tuple of StructureMetrics
+        Each organ's metrics on all its voxels (organs without voxels left out).
     success : bool
+        The LP solved (else the times are zero).
     reason : str
+        ``"solved"``, the scaling note, or why the LP did not solve.
     scaled : bool
+        ``scale`` < 1.
     scale : float
         Factor (<= 1) applied to the LP's times.
     dvhs : tuple of (name, Dvh)
         Cumulative DVH of each structure (Gy per fraction).
     aim_met : bool
+        HR-CTV D90 (EQD2) reached its aim.
     """
 
     dwells: DwellSet
@@ -157,7 +164,9 @@ def candidate_dwells(needles: Sequence[np.ndarray], settings: OptimizerSettings)
     Parameters
     ----------
     needles : sequence of (k, 3) float, mm, LPS, ordered base → tip
+        Each needle's path.
     settings : OptimizerSettings
+        Dwell step, tip offset and active length.
 
     Returns
     -------
@@ -330,11 +339,17 @@ def optimise_dwell_times(
     Parameters
     ----------
     needles : sequence of (k, 3) float, mm, LPS, ordered base → tip
+        Every needle is offered (channel = needle index + 1).
     structures : PlanningStructures
+        Target and organ masks; the organs' limits hold on all their voxels.
     kernel : Tg43Kernel
+        TG-43 dose-rate kernel of the source, cGy h⁻¹ U⁻¹.
     air_kerma_strength_u : float, U
-    aims : Aims, optional (EMBRACE II)
+        Source strength S_K (converts the kernel's cGy h⁻¹ U⁻¹ to Gy s⁻¹).
+    aims : Aims, optional
+        EMBRACE II when None; the prescription and organ limits per fraction follow from it.
     settings : OptimizerSettings, optional
+        Defaults when None.
 
     Returns
     -------

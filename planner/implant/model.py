@@ -32,7 +32,13 @@ from reachplan.planner.implant.optimiser import DwellProblem, OrganRows, tail_me
 
 
 class _Rows:
-    """The constraint rows of a model with ``n`` variables, block by block, with their lower and upper bounds."""
+    """The constraint rows of a model with ``n`` variables, block by block, with their lower and upper bounds.
+
+    Parameters
+    ----------
+    n : int
+        Number of variables (columns) of the model.
+    """
 
     def __init__(self, n: int) -> None:
         self.n = n
@@ -46,13 +52,36 @@ class _Rows:
         return sum(len(x) for x in self.lb)
 
     def add(self, rows: sparse.spmatrix, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
-        """Add ``lo <= rows x <= hi``."""
+        """Add the block ``lo <= rows x <= hi``.
+
+        Parameters
+        ----------
+        rows : (r, n) sparse matrix
+            The block's coefficients, in the unit of its bounds per unit of each variable.
+        lo : float or (r,) float
+            Lower bound of each row (``-inf``: none), broadcast to the block's rows.
+        hi : float or (r,) float
+            Upper bound of each row (``inf``: none).
+        """
         self.blocks.append(sparse.csr_matrix(rows))
         self.lb.append(np.broadcast_to(lo, rows.shape[0]).astype(float))
         self.ub.append(np.broadcast_to(hi, rows.shape[0]).astype(float))
 
     def cols(self, parts: Sequence[tuple[int, sparse.spmatrix]], n_rows: int) -> sparse.spmatrix:
-        """Return a row block holding each ``(first column, matrix)`` part, zeros elsewhere."""
+        """Return a row block holding each ``(first column, matrix)`` part, zeros elsewhere.
+
+        Parameters
+        ----------
+        parts : sequence of (int, (r, c) matrix)
+            The first column of each part and its coefficients (sparse or dense), in ascending column order,
+            not overlapping.
+        n_rows : int
+            ``r``, the rows of the block.
+
+        Returns
+        -------
+        (r, n) scipy.sparse CSR matrix
+        """
         mats = []
         at_col = 0
         for start, mat in parts:
@@ -126,7 +155,7 @@ class _Model:
         ----------
         budget : int, optional
             The budget row's bound (None: no budget).
-        kappa : (n_organs,) float, optional
+        kappa : (n_organs,) float, unitless, optional
             Each organ's mean-tail-dose row may reach ``kappa`` × its limit (the calibration of that row to D2cm³).
         only : sequence of int, optional
             The needles (indices into the needles) used (``y`` = 1), the others held empty: the LP is then solved on
@@ -180,7 +209,18 @@ class _Model:
         return out
 
     def selected(self, x: np.ndarray) -> tuple[int, ...]:
-        """Return the needles of a solution ``x`` with ``y`` > 0.5 (indices into the needles, ascending)."""
+        """Return the needles a solution uses.
+
+        Parameters
+        ----------
+        x : (n,) float
+            :meth:`solve`'s ``x``; only its needle binaries ``y`` are read.
+
+        Returns
+        -------
+        tuple of int
+            The needles with ``y`` > 0.5, as indices into the problem's needles (ascending).
+        """
         return tuple(int(i) for i in np.flatnonzero(x[self.i_y:self.i_u] > 0.5))
 
 

@@ -34,8 +34,8 @@ class OrganRows:
         Dose per second of dwell at each representative point from each dwell column.
     weight_cc : (p,) float, cm³
         Volume each point stands for.
-    limit_gy : float
-        D2cm³ limit, Gy per fraction (physical).
+    limit_gy : float, Gy per fraction
+        D2cm³ limit (physical).
     """
 
     rates: np.ndarray
@@ -107,8 +107,8 @@ class DwellProblem:
         Dose per second of dwell at the target (and GTV) sample points.
     target_dose_gy : (m,) float, Gy per fraction
         The dose each target point should reach.
-    reference_dose_gy : float
-        The prescription the objective is normalised by (Gy per fraction).
+    reference_dose_gy : float, Gy per fraction
+        The prescription the objective is normalised by.
     organs : tuple of OrganRows
         The D2cm³ rows of each organ with a limit.
     channel : (D,) int
@@ -174,7 +174,8 @@ class DwellSolution:
     status : str
         How the optimiser ended (reported in plan.json).
     objective : float
-        The optimiser's objective at ``times_s`` (inf when there is none).
+        The optimiser's objective at ``times_s`` (inf when there is none); the built-in ``"lp"``'s is unitless
+        (doses in units of :attr:`DwellProblem.reference_dose_gy`).
     bound : float or None
         A lower bound of the objective over every loading the problem allows (e.g. an LP relaxation's optimum);
         None when the optimiser has none.
@@ -213,9 +214,10 @@ class DwellOptimiser(Protocol):
         Parameters
         ----------
         problem : DwellProblem
+            The rows, rules and (optionally) needle binaries to load.
         budget : int, optional
             At most this many needles (of ``problem.needles``) used; None: no budget (every needle may be used).
-        limit_factor : (n_organs,) float, optional
+        limit_factor : (n_organs,) float, unitless, optional
             Each organ's D2cm³ rows may reach this factor × its limit (the planner calibrates it to the exact
             D2cm³); None: 1.
         start : sequence of int
@@ -236,11 +238,12 @@ def tail_mean(rates: np.ndarray, weight_cc: np.ndarray, volume_cc: float) -> np.
 
     Parameters
     ----------
-    rates : (p, k) float
+    rates : (p, k) float, Gy or Gy s⁻¹
         Dose (or dose rate) of each row in each column.
     weight_cc : (p,) float, cm³
         Volume each row stands for.
     volume_cc : float, cm³
+        The hottest volume averaged over (2 for D2cm³).
 
     Returns
     -------

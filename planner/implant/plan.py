@@ -145,7 +145,25 @@ def _selection_problem(prob: _Problem, needles: Sequence[int], settings: Implant
 
 
 class _Final:
-    """The final dwell-time step of one arm (:func:`reachplan.planner.implant.dwells._final`), its inputs bound."""
+    """The final dwell-time step of one arm (:func:`reachplan.planner.implant.dwells._final`), its inputs bound.
+
+    Parameters
+    ----------
+    prob : _Problem
+        The arm's sampled problem.
+    fin_pts : (m, 3) float, mm, LPS
+        Target (and GTV) sample points of the final model.
+    fin_p : (m,) float, Gy per fraction
+        The dose each of them should reach.
+    aims : Aims
+        The aims the plan's metrics are checked against.
+    settings : ImplantSettings
+        The arm's settings (final model, empty-needle rule).
+    vox_cc : float, cm³
+        Voxel volume of the planning grid.
+    optimiser : DwellOptimiser
+        Loads each chosen set (without a budget).
+    """
 
     def __init__(self, prob: _Problem, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims, settings: ImplantSettings,
                  vox_cc: float, optimiser: DwellOptimiser) -> None:
@@ -153,7 +171,24 @@ class _Final:
         self.vox_cc, self.optimiser = vox_cc, optimiser
 
     def __call__(self, chosen: np.ndarray, kappa: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
-        """Return the plan of the channels ``chosen`` (or None), its selection's ``status`` and ``gap`` recorded."""
+        """Return the plan of the channels ``chosen``, its selection's ``status`` and ``gap`` recorded.
+
+        Parameters
+        ----------
+        chosen : (c,) int
+            Indices into ``prob.channels``, ascending.
+        kappa : (n_organs,) float, unitless
+            The organ rows' calibration at the selection.
+        status : str
+            How the selection was made.
+        gap : float or None
+            The selection's relative gap.
+
+        Returns
+        -------
+        ImplantPlan or None
+            None when the chosen channels give no plan.
+        """
         return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc, kappa,
                       status, gap, self.optimiser)
 
@@ -216,8 +251,18 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
     ----------
     arms : sequence of (name, channels)
         Each arm's candidate channels (paths mm, LPS).
-    planning, kernel, air_kerma_strength_u, aims, settings, gtv
-        As for :func:`plan_implant`.
+    planning : PlanningStructures
+        Target and organ masks, shared by the arms.
+    kernel : Tg43Kernel
+        The source's TG-43 kernel, shared by the arms (numba's threading layer decides whether they run at once).
+    air_kerma_strength_u : float, U
+        Source strength S_K.
+    aims : Aims, optional
+        EMBRACE II when None.
+    settings : ImplantSettings, optional
+        Defaults when None; the same for every arm.
+    gtv : Structure, optional
+        As in :func:`plan_implant`.
     workers : int
         Threads at most.
 

@@ -64,6 +64,24 @@ class _Problem:
 
         Read from ``oar_near`` when that provably holds the answer (every voxel of the organ outside it is farther
         than ``eval_radius_mm`` from every candidate dwell), else from all the organ's voxels.
+
+        Parameters
+        ----------
+        o : int
+            The organ (index into ``oar_pts``, the planning structures' organs).
+        pos : (d, 3) float, mm, LPS
+            The dwells.
+        radius_mm : float, mm
+            Voxels within this distance of a dwell are kept.
+        vox_cc : float, cm³
+            Voxel volume of the planning grid.
+        times_2cc : int
+            At least the organ's nearest ``times_2cc`` × 2 cm³ are kept (all of it when smaller).
+
+        Returns
+        -------
+        (n, 3) float, mm, LPS
+            The organ's voxel centres kept.
         """
         if self.oar_near and radius_mm <= self.eval_radius_mm:
             near = self.oar_near[o]
@@ -75,7 +93,24 @@ class _Problem:
         return _near_organ(self.oar_pts[o], pos, radius_mm, vox_cc, times_2cc)
 
     def lattice(self, o: int, pitch_mm: float, vox_cc: float) -> tuple[np.ndarray, np.ndarray]:
-        """Organ ``o``'s voxels binned on a lattice of ``pitch_mm``: one point per bin and its volume (cm³)."""
+        """Return organ ``o``'s voxels binned on a lattice of ``pitch_mm`` (cached per organ and pitch).
+
+        Parameters
+        ----------
+        o : int
+            The organ (index into ``oar_pts``).
+        pitch_mm : float, mm
+            Edge of the lattice's cubic bins (LPS axes).
+        vox_cc : float, cm³
+            Voxel volume of the planning grid.
+
+        Returns
+        -------
+        points : (b, 3) float, mm, LPS
+            One voxel centre per occupied bin (the first in the organ's voxel order).
+        volume_cc : (b,) float, cm³
+            Volume of the organ's voxels in each bin.
+        """
         key = (o, float(pitch_mm))
         if key not in self.lattices:
             pts = self.oar_pts[o]

@@ -115,10 +115,12 @@ class LinearProgramme:
         Parameters
         ----------
         problem : DwellProblem
+            The problem to model.
 
         Returns
         -------
         _Model
+            The LP (or, with needle binaries, the MIP) of the problem.
         """
         model = problem.cache.get(self.name)
         if not isinstance(model, _Model):
@@ -131,7 +133,17 @@ class LinearProgramme:
 
         With a budget: the rounded LP relaxation (with and without ``start``), ``start`` itself, then swaps; the
         bound is the relaxation's. Without: one LP (needle binaries relaxed to [0, 1]), its own bound.
-        ``limit_factor`` is the organ rows' calibration ``κ`` (None: 1).
+
+        Parameters
+        ----------
+        problem : DwellProblem
+            Its model is built on the first call and kept in ``problem.cache``.
+        budget : int, optional
+            The most needles the selection may use; None: the LP alone.
+        limit_factor : (n_organs,) float, unitless, optional
+            The organ rows' calibration ``κ`` (None: 1 for every organ).
+        start : sequence of int
+            The previous budget's needles (indices into ``problem.needles.channels``); read with a budget only.
 
         Returns
         -------
