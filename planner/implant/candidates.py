@@ -159,6 +159,46 @@ def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.nd
     return _Field(grid.index_from_patient, lo, np.asarray(values, dtype=float), np.inf)
 
 
+def confirmed_clearance(path_mm: np.ndarray, organs: Sequence[Organ], needle_radius_mm: float, margin_mm: float,
+                        band_mm: float) -> float | None:
+    """Return a candidate path's clearance from the organs, or None when it comes closer than ``margin_mm``.
+
+    An organ's distance field bounds the clearance: a path it proves too close fails FCL too; one it proves farther
+    than ``band_mm`` from every organ (and not starting inside one) is clear, its clearance the fields' estimate.
+    Otherwise FCL decides (:func:`reachplan.planner.geometry.collision.check_path`).
+
+    Parameters
+    ----------
+    path_mm : (k, 3) float
+        The needle's centreline, mm, LPS, base to tip.
+    organs : sequence of Organ
+        The organs to keep off (meshes, with distance fields where built).
+    needle_radius_mm : float
+        The needle's outer radius, mm.
+    margin_mm : float
+        The clearance a candidate must keep, mm.
+    band_mm : float
+        Beyond this clearance (mm) the distance fields' estimate is taken without FCL.
+
+    Returns
+    -------
+    float or None
+        The smallest surface distance to an organ, mm (inf without organs); None for a path too close or colliding.
+    """
+    bounds = [None if o.field is None else o.field.path_clearance(path_mm, needle_radius_mm) for o in organs]
+    if any(b is not None and b[2] < margin_mm for b in bounds):
+        return None
+    if all(b is not None and b[1] > band_mm for b in bounds):
+        if any(o.contains(path_mm[0]) for o in organs):
+            return None
+        return min((b[0] for b in bounds if b is not None), default=float("inf"))
+    checks = check_path(path_mm, needle_radius_mm, tuple(organs)) if organs else ()  # containment cached per organ
+    clearance = min((c.clearance_mm for c in checks), default=float("inf"))
+    if any(c.collides for c in checks) or clearance < margin_mm:
+        return None
+    return clearance
+
+
 def _dwell_arclengths(inside: np.ndarray, s_mm: np.ndarray, settings: ImplantSettings) -> tuple[float, np.ndarray]:
     """Return the tip depth and the dwell arc lengths (mm, deepest first) of a path in a region.
 
@@ -246,20 +286,7 @@ def needle_candidates(hole_ids: Sequence[str], hole_xy_mm: np.ndarray, hole_dist
     band_mm = settings.clearance_margin_mm + CONFIRM_BAND_MM
 
     def confirm(path: np.ndarray) -> float | None:
-        # an organ's distance field bounds the clearance: a path it proves too close fails FCL too; one it proves
-        # farther than the band from every organ (and not inside one) is clear, its clearance the fields' estimate
-        bounds = [None if o.field is None else o.field.path_clearance(path, needle_radius_mm) for o in organs]
-        if any(b is not None and b[2] < settings.clearance_margin_mm for b in bounds):
-            return None
-        if all(b is not None and b[1] > band_mm for b in bounds):
-            if any(o.contains(path[0]) for o in organs):
-                return None
-            return min((b[0] for b in bounds if b is not None), default=float("inf"))
-        checks = check_path(path, needle_radius_mm, tuple(organs)) if organs else ()  # containment cached per organ
-        clearance = min((c.clearance_mm for c in checks), default=float("inf"))
-        if any(c.collides for c in checks) or clearance < settings.clearance_margin_mm:
-            return None
-        return clearance
+        return confirmed_clearance(path, organs, needle_radius_mm, settings.clearance_margin_mm, band_mm)
 
     for h, hole in enumerate(hole_ids):
         if not straight:
