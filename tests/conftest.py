@@ -63,3 +63,13 @@ def dciodvfy() -> Callable[[Path], list[str]]:
         return (out.stdout + out.stderr).splitlines()
 
     return run
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Put the files that hold a test marked ``slow`` first, each file's tests kept together and in order.
+
+    With ``--dist loadfile`` (pyproject.toml) xdist hands out whole files in this order, so the long ones start at
+    once instead of leaving one worker busy at the end while the other idles.
+    """
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)

@@ -211,6 +211,7 @@ def _mutant_file(folder: Path, name: str, data: bytes) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
     rng = random.Random(SEED)
     tally = Tally()
