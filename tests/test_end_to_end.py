@@ -9,6 +9,8 @@ import pytest
 
 from reachplan.planner.cli import main
 
+pytestmark = pytest.mark.slow  # two demo runs
+
 FIELDS = {"target", "hole_id", "hole_distance_mm", "reach_error_mm", "clearance_mm", "closest_organ",
           "insertion_depth_mm", "steered", "peak_tension_n", "model"}
 

@@ -63,24 +63,24 @@ class Seeds:
 
 
 @pytest.fixture(scope="module")
-def seeds(tmp_path_factory: pytest.TempPathFactory, reference_dir: Path) -> Seeds:
+def seeds(tmp_path_factory: pytest.TempPathFactory, reference_file: Callable[[str], Path]) -> Seeds:
     root = tmp_path_factory.mktemp("fuzz_seeds")
     files = write_phantom(root / "phantom")
     ct = sorted(files.ct_dir.iterdir())[len(list(files.ct_dir.iterdir())) // 2]
-    tps = reference_dir / "tps_examples"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out = {}
-        for name, src, keep in [("rs_phantom", files.rtstruct_path, 2), ("rs_hdr", tps / "hdr" / "RS.HDR.dcm", 2),
-                                ("rs_pdr", tps / "pdr" / "RS.PDR.dcm", 2),
-                                ("rs_prostate", tps / "eclipse_prostate_phantom" / "RS.dcm", 2)]:
+        for name, src, keep in [("rs_phantom", files.rtstruct_path, 2),
+                                ("rs_hdr", reference_file("tps_examples/hdr/RS.HDR.dcm"), 2),
+                                ("rs_pdr", reference_file("tps_examples/pdr/RS.PDR.dcm"), 2),
+                                ("rs_prostate", reference_file("tps_examples/eclipse_prostate_phantom/RS.dcm"), 2)]:
             path = root / f"{name}.dcm"
             _thin(pydicom.dcmread(src), keep).save_as(path)
             out[name] = path
-        rp_hdr = tps / "hdr" / "RP.HDR.dcm"
+        rp_hdr = reference_file("tps_examples/hdr/RP.HDR.dcm")
         assert main(["dose", "--plan", str(rp_hdr), "--structures", str(out["rs_hdr"]), "--spacing", "8",
                      "--out", str(root / "RD.dcm")]) == 0
-    return Seeds(ct=ct, rp_hdr=rp_hdr, rp_pdr=tps / "pdr" / "RP.PDR.dcm", rd=root / "RD.dcm", **out)
+    return Seeds(ct=ct, rp_hdr=rp_hdr, rp_pdr=reference_file("tps_examples/pdr/RP.PDR.dcm"), rd=root / "RD.dcm", **out)
 
 
 # --- mutations ---------------------------------------------------------------------------------------------------
@@ -211,6 +211,7 @@ def _mutant_file(folder: Path, name: str, data: bytes) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
     rng = random.Random(SEED)
     tally = Tally()

@@ -13,7 +13,7 @@ HELP = ("list installed plugins (rod models, insertion models, templates, source
 
 
 #: the registry's ``KINDS``, spelled out: importing the registry (importlib.metadata) would cost every command's
-#: start-up about 70 ms (tests/planner/test_cli_startup.py checks the two agree)
+#: start-up about 70 ms (tests/planner/cli/test_cli_startup.py checks the two agree)
 KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators",
                           "optimisers")
 

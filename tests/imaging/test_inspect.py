@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,9 +65,11 @@ def test_inspect_synonym_file(tmp_path: Path, dicom: Any, capsys: pytest.Capture
     ("hdr", [15, 5, 5], [271.4, 101.0, 100.7], [18, 16, 17], "HDR"),
     ("pdr", [12, 5, 4], [276.3, 69.0, 54.6], [6, 5, 4], "PDR"),
 ])
-def test_inspect_real_tps_exports(reference_dir: Path, capsys: pytest.CaptureFixture[str], case: str,
-                                  dwells: list[int], times: list[float], rois: list[int], kind: str) -> None:
-    doc = _inspect_json(reference_dir / "tps_examples" / case, capsys)
+def test_inspect_real_tps_exports(reference_file: Callable[[str], Path], capsys: pytest.CaptureFixture[str],
+                                  case: str, dwells: list[int], times: list[float], rois: list[int], kind: str) -> None:
+    rp = reference_file(f"tps_examples/{case}/RP.{kind}.dcm")
+    reference_file(f"tps_examples/{case}/RS.{kind}.dcm")  # the folder holds both
+    doc = _inspect_json(rp.parent, capsys)
     (plan,) = doc["plans"]
     assert plan["type"] == kind and plan["technique"] == "INTRACAVITARY"
     assert "GammaMed" in plan["source"]

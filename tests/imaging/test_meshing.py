@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -179,8 +180,9 @@ def test_phantom_volumes_agree_with_independent_computation(phantom_structures: 
 
 
 @pytest.mark.parametrize("rel_path", ["eclipse_prostate_phantom/RS.dcm", "hdr/RS.HDR.dcm", "pdr/RS.PDR.dcm"])
-def test_real_structure_set_volumes_agree_with_independent_computation(reference_dir: Path, rel_path: str) -> None:
-    ss = read_rtstruct(reference_dir / "tps_examples" / rel_path)
+def test_real_structure_set_volumes_agree_with_independent_computation(reference_file: Callable[[str], Path],
+                                                                      rel_path: str) -> None:
+    ss = read_rtstruct(reference_file(f"tps_examples/{rel_path}"))
     checked = 0
     for roi in ss.rois:
         closed = [c for c in roi.contours if c.geometric_type == "CLOSED_PLANAR"]

@@ -34,8 +34,8 @@ def _read_quiet(path: Path):  # type: ignore[no-untyped-def]
         return read_rtplan(path)
 
 
-def test_eclipse_hdr(reference_dir: Path) -> None:
-    rp = reference_dir / "tps_examples" / "hdr" / "RP.HDR.dcm"
+def test_eclipse_hdr(reference_file: Callable[[str], Path]) -> None:
+    rp = reference_file("tps_examples/hdr/RP.HDR.dcm")
     before = _sha(rp)
     plan = _read_quiet(rp)
     assert _sha(rp) == before
@@ -59,8 +59,8 @@ def test_eclipse_hdr(reference_dir: Path) -> None:
     assert refs["PtA_left"].position_mm == pytest.approx([19.0747446756398, -12.5, 22.7609705458502])
 
 
-def test_eclipse_pdr(reference_dir: Path) -> None:
-    plan = _read_quiet(reference_dir / "tps_examples" / "pdr" / "RP.PDR.dcm")
+def test_eclipse_pdr(reference_file: Callable[[str], Path]) -> None:
+    plan = _read_quiet(reference_file("tps_examples/pdr/RP.PDR.dcm"))
     assert plan.treatment_type == "PDR" and plan.n_pulses == 43 and plan.quirks == ()
     assert [c.n_dwells for c in plan.channels] == [12, 5, 4]
     assert [c.roi_number for c in plan.channels] == [6, 5, 4]
@@ -74,12 +74,11 @@ def test_eclipse_pdr(reference_dir: Path) -> None:
     assert refs["ctv"].position_mm is None
 
 
-def test_channel_paths_from_structure_set(reference_dir: Path) -> None:
-    folder = reference_dir / "tps_examples" / "hdr"
-    plan = _read_quiet(folder / "RP.HDR.dcm")
+def test_channel_paths_from_structure_set(reference_file: Callable[[str], Path]) -> None:
+    plan = _read_quiet(reference_file("tps_examples/hdr/RP.HDR.dcm"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DicomQuirkWarning)
-        ss = read_rtstruct(folder / "RS.HDR.dcm")
+        ss = read_rtstruct(reference_file("tps_examples/hdr/RS.HDR.dcm"))
     paths = channel_paths(plan, ss)
     assert sorted(paths) == [1, 2, 3]
     assert paths[1].shape == (23, 3)  # tandem, written tip first

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -120,20 +121,19 @@ def test_pydicom_test_files() -> None:
     assert np.allclose(ct.grid.spacing_mm[:2], 0.661468)
 
 
-def test_eclipse_structure_sets(reference_dir: Path) -> None:
-    base = reference_dir / "tps_examples"
-    pros = read_rtstruct(base / "eclipse_prostate_phantom" / "RS.dcm")
+def test_eclipse_structure_sets(reference_file: Callable[[str], Path]) -> None:
+    pros = read_rtstruct(reference_file("tps_examples/eclipse_prostate_phantom/RS.dcm"))
     assert len(pros.rois) == 16
     assert {"Body", "Bladder", "Rectum", "Femur_Head_L", "Femur_Head_R", "Prostate"} <= set(pros.names)
     counts = {r.name: len(r.contours) for r in pros.rois}
     assert counts["Bladder"] == 21 and counts["Rectum"] == 40 and counts["BODY"] == 92
-    hdr = read_rtstruct(base / "hdr" / "RS.HDR.dcm")
+    hdr = read_rtstruct(reference_file("tps_examples/hdr/RS.HDR.dcm"))
     channels = [r for r in hdr.rois if r.interpreted_type == "BRACHY_CHANNEL"]
     assert len(channels) == 13 and all(r.contours[0].geometric_type == "OPEN_NONPLANAR" for r in channels)
     tandem = hdr.get("tandem")
     assert tandem.contours[0].points_mm.shape == (23, 3)
     assert hdr.get("HR-CTV").name == "HRCTV" and len(hdr.get("HR-CTV").contours) == 27
-    pdr = read_rtstruct(base / "pdr" / "RS.PDR.dcm")
+    pdr = read_rtstruct(reference_file("tps_examples/pdr/RS.PDR.dcm"))
     assert [r.name for r in pdr.rois if r.interpreted_type == "BRACHY_CHANNEL"] == \
         ["right ovoid", "left ovoid", "tandem"]
     assert pdr.frame_of_reference_uid.startswith("1.3.12.2.1107")

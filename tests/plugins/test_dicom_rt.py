@@ -191,9 +191,9 @@ def test_organs_carried_over_unchanged(make_plan: Callable[..., ExportPlan], tmp
 
 
 def test_mirrors_the_brachyvision_channel_layout(make_plan: Callable[..., ExportPlan], tmp_path: Path,
-                                                 reference_dir: Path) -> None:
+                                                 reference_file: Callable[[str], Path]) -> None:
     """Every attribute BrachyVision writes in a Channel and a Source item is written by us too."""
-    ref = pydicom.dcmread(reference_dir / "tps_examples" / "hdr" / "RP.HDR.dcm")
+    ref = pydicom.dcmread(reference_file("tps_examples/hdr/RP.HDR.dcm"))
     ours = pydicom.dcmread(export_plan(make_plan(), tmp_path).path("rtplan"))
 
     def keys(item: pydicom.Dataset) -> set[str]:
@@ -209,8 +209,8 @@ def test_mirrors_the_brachyvision_channel_layout(make_plan: Callable[..., Export
     # the independent reader also reads the real BrachyVision export; there too the channel ROI is written tip
     # first, dwells are ordered from the tip, and Control Point Relative Position is the arc distance from the
     # tip along the channel ROI (to 0.006 mm): the convention we write
-    for ch in read_independently(reference_dir / "tps_examples" / "hdr" / "RP.HDR.dcm",
-                                 reference_dir / "tps_examples" / "hdr" / "RS.HDR.dcm"):
+    for ch in read_independently(reference_file("tps_examples/hdr/RP.HDR.dcm"),
+                                 reference_file("tps_examples/hdr/RS.HDR.dcm")):
         assert len(ch.positions) >= 5 and sum(ch.times) > 0
         np.testing.assert_allclose(ch.relative_mm, arc_from_tip(ch.path_tip_first, ch.positions), atol=0.02)
         assert np.all(np.diff(ch.relative_mm) > 0)
@@ -391,7 +391,7 @@ def test_uid_prefix(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> Non
             ExportOptions(uid_prefix=bad)
 
 
-def test_real_eclipse_structure_set_carried_over(reference_dir: Path, tmp_path: Path,
+def test_real_eclipse_structure_set_carried_over(reference_file: Callable[[str], Path], tmp_path: Path,
                                                  dciodvfy: Callable[[Path], list[str]]) -> None:
     """Organs read by imaging.rtstruct from a real Eclipse export (16 ROIs, some empty, 47848-point BODY)."""
     from datetime import datetime
@@ -400,7 +400,7 @@ def test_real_eclipse_structure_set_carried_over(reference_dir: Path, tmp_path: 
     from reachplan.plugins.exporters.base import NeedleExport
     from reachplan.plugins.sources import gammamed_plus_hdr
 
-    ss = read_rtstruct(reference_dir / "tps_examples" / "eclipse_prostate_phantom" / "RS.dcm")
+    ss = read_rtstruct(reference_file("tps_examples/eclipse_prostate_phantom/RS.dcm"))
     c = np.concatenate([k.points_mm for k in ss.get("PTV").contours]).mean(axis=0)
     z = np.array([0.0, 0.0, 1.0])
     needle = NeedleExport("A1", np.array([c - 60 * z, c + 10 * z]), np.array([c - 5 * z, c, c + 5 * z]),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +13,8 @@ from reachplan.rod_model.calibrate import CALIBRATION_ROWS, calibrate, predict
 from reachplan.rod_model.design import Calibration
 
 
-def test_rows_are_the_reference_calibration_subset(reference_dir: Path) -> None:
-    text = (reference_dir / "oncoreach.md").read_text(encoding="utf-8")
+def test_rows_are_the_reference_calibration_subset(reference_file: Callable[[str], Path]) -> None:
+    text = reference_file("oncoreach.md").read_text(encoding="utf-8")
     table = text.split("(calibration subset)")[1].split("\n\n")[0]
     rows = re.findall(r"\|\s*(\d+) ga, (\d+) joints, (\w+)\s*\|\s*([\d.]+)\s*\|\s*([\d.]+)\s*\|", table)
     expected = {(f"{g}ga-{j}j-{p}", float(t), float(d)) for g, j, p, t, d in rows}

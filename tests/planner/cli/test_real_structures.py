@@ -164,29 +164,29 @@ def test_one_way_to_give_the_pose(phantom_rs: Path, tmp_path: Path, capsys: pyte
     assert code == 2 and "one way" in one_line(err)
 
 
-def test_pose_from_the_tandem_of_an_eclipse_plan(reference_dir: Path, tmp_path: Path,
+def test_pose_from_the_tandem_of_an_eclipse_plan(reference_file: Callable[[str], Path], tmp_path: Path,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
 
-    hdr = reference_dir / "tps_examples" / "hdr"
-    code, doc, err = plan(capsys, hdr / "RS.HDR.dcm", tmp_path / "o", "--rtplan", str(hdr / "RP.HDR.dcm"),
+    rp_hdr, rs_hdr = reference_file("tps_examples/hdr/RP.HDR.dcm"), reference_file("tps_examples/hdr/RS.HDR.dcm")
+    code, doc, err = plan(capsys, rs_hdr, tmp_path / "o", "--rtplan", str(rp_hdr),
                           "--allow-no-oars", targets=("HRCTV",))
     assert code == 0, err
     assert doc is not None
     assert "channel 1 'tandem'" in doc["template_pose"]["method"]
     m = np.array(doc["template_pose"]["patient_from_template"])
     with pytest.warns(UserWarning):
-        rp = read_rtplan(hdr / "RP.HDR.dcm")
-    tandem = channel_paths(rp, read_rtstruct(hdr / "RS.HDR.dcm"))[1]
+        rp = read_rtplan(rp_hdr)
+    tandem = channel_paths(rp, read_rtstruct(rs_hdr))[1]
     # the template looks along the tandem's extra-uterine part toward its tip, 60 mm before its last dwell
     proximal = tandem[-1] - tandem[len(tandem) // 2]
     assert float(np.dot(m[:3, 2], -proximal / np.linalg.norm(proximal))) > 0.99
     last_dwell = rp.channels[0].dwell_positions_mm[np.argmax(rp.channels[0].dwell_relative_mm)]
     assert float(np.linalg.norm(m[:3, 3] + 60.0 * m[:3, 2] - last_dwell)) < 0.5
     # a plan of another Frame of Reference is refused
-    pdr = reference_dir / "tps_examples" / "pdr" / "RP.PDR.dcm"
-    code, _, err = plan(capsys, hdr / "RS.HDR.dcm", tmp_path / "p", "--rtplan", str(pdr), "--allow-no-oars",
+    pdr = reference_file("tps_examples/pdr/RP.PDR.dcm")
+    code, _, err = plan(capsys, rs_hdr, tmp_path / "p", "--rtplan", str(pdr), "--allow-no-oars",
                         targets=("HRCTV",))
     assert code == 2 and "Frame of Reference" in one_line(err)
 
@@ -326,9 +326,9 @@ def test_roi_numbers_from_zero_plan_and_export(phantom_rs: Path, tmp_path: Path,
 # --- the Eclipse pelvic phantom (bladder, rectum, prostate, femoral heads; no obturator) ------------------
 
 
-def test_eclipse_pelvic_phantom_plans_and_reports_the_bladder(reference_dir: Path, tmp_path: Path,
+def test_eclipse_pelvic_phantom_plans_and_reports_the_bladder(reference_file: Callable[[str], Path], tmp_path: Path,
                                                              capsys: pytest.CaptureFixture[str]) -> None:
-    rs = reference_dir / "tps_examples" / "eclipse_prostate_phantom" / "RS.dcm"
+    rs = reference_file("tps_examples/eclipse_prostate_phantom/RS.dcm")
     # template 130 mm below the origin, needles cranial along +z; hole Bd (0, -20) enters at (0, -15, -130)
     code, doc, err = plan(capsys, rs, tmp_path / "a", "--template-origin", "0,5,-130", "--template-axis", "0,0,1",
                           targets=("PTV", "0,-15,0"))

@@ -83,18 +83,19 @@ PLAN_FAMILIES: list[tuple[str, Callable[[Any], None], str]] = [
 
 @pytest.mark.parametrize(("label", "edit", "match"), PLAN_FAMILIES, ids=[f[0] for f in PLAN_FAMILIES])
 def test_broken_plan_is_a_typed_error_and_writes_nothing(
-    reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], label: str,
+    reference_file: Callable[[str], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], label: str,
     edit: Callable[[Any], None], match: str
 ) -> None:
-    hdr = reference_dir / "tps_examples" / "hdr"
+    rp, rs = reference_file("tps_examples/hdr/RP.HDR.dcm"), reference_file("tps_examples/hdr/RS.HDR.dcm")
+    hdr = rp.parent  # nothing may be written there either
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ds = pydicom.dcmread(hdr / "RP.HDR.dcm")
+        ds = pydicom.dcmread(rp)
         edit(ds)
         ds.save_as(tmp_path / "RP.dcm")
     before = _hashes(tmp_path / "RP.dcm", hdr)
     out = tmp_path / "out" / "RD.dcm"
-    code, stdout, err = _run(["dose", "--plan", str(tmp_path / "RP.dcm"), "--structures", str(hdr / "RS.HDR.dcm"),
+    code, stdout, err = _run(["dose", "--plan", str(tmp_path / "RP.dcm"), "--structures", str(rs),
                               "--points", "--json", "--spacing", "6", "--out", str(out)], capsys)
     assert code == 2 and stdout == ""
     line = _one_error_line(err, "dose")
@@ -107,15 +108,15 @@ def test_broken_plan_is_a_typed_error_and_writes_nothing(
 
 
 def test_1950_calibration_date_is_a_named_warning_in_the_json(
-    reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    reference_file: Callable[[str], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    hdr = reference_dir / "tps_examples" / "hdr"
+    rs = reference_file("tps_examples/hdr/RS.HDR.dcm")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ds = pydicom.dcmread(hdr / "RP.HDR.dcm")
+        ds = pydicom.dcmread(reference_file("tps_examples/hdr/RP.HDR.dcm"))
         ds.SourceSequence[0].SourceStrengthReferenceDate = "19500101"
         ds.save_as(tmp_path / "RP.dcm")
-    code, stdout, err = _run(["dose", "--plan", str(tmp_path / "RP.dcm"), "--structures", str(hdr / "RS.HDR.dcm"),
+    code, stdout, err = _run(["dose", "--plan", str(tmp_path / "RP.dcm"), "--structures", str(rs),
                               "--json", "--spacing", "6", "--out", str(tmp_path / "RD.dcm")], capsys)
     assert code == 0
     doc = json.loads(stdout)
@@ -125,10 +126,10 @@ def test_1950_calibration_date_is_a_named_warning_in_the_json(
 
 
 def test_dose_checks_source_and_output_before_reading(
-    reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    reference_file: Callable[[str], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    hdr = reference_dir / "tps_examples" / "hdr"
-    base = ["dose", "--plan", str(hdr / "RP.HDR.dcm"), "--structures", str(hdr / "RS.HDR.dcm")]
+    base = ["dose", "--plan", str(reference_file("tps_examples/hdr/RP.HDR.dcm")),
+            "--structures", str(reference_file("tps_examples/hdr/RS.HDR.dcm"))]
     (tmp_path / "folder").mkdir()
     for extra, match in [
         (["--source", "nope", "--out", str(tmp_path / "a.dcm")], "no TG-43 source named 'nope'"),

@@ -16,7 +16,7 @@ from reachplan.planner.bench import dose, models, planning
 from reachplan.planner.bench.common import BenchError, install, source_checkout, write_csv, write_png
 from reachplan.planner.cli import bench, main
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 

@@ -26,9 +26,14 @@ from reachplan.plugins.exporters.rtdose import DoseContext, read_rtdose_grid, wr
 from reachplan.plugins.sources.identify import recognise_source
 
 
-def _load(folder: Path):  # type: ignore[no-untyped-def]
-    rp = next(folder.glob("RP*.dcm"))
-    rs = next(folder.glob("RS*.dcm"))
+def _files(reference_file: Callable[[str], Path], kind: str) -> tuple[Path, Path]:
+    """The Eclipse example plan and structure set of ``kind`` (``"hdr"`` or ``"pdr"``)."""
+    return (reference_file(f"tps_examples/{kind}/RP.{kind.upper()}.dcm"),
+            reference_file(f"tps_examples/{kind}/RS.{kind.upper()}.dcm"))
+
+
+def _load(reference_file: Callable[[str], Path], kind: str):  # type: ignore[no-untyped-def]
+    rp, rs = _files(reference_file, kind)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DicomQuirkWarning)
         plan = read_rtplan(rp)
@@ -37,8 +42,8 @@ def _load(folder: Path):  # type: ignore[no-untyped-def]
 
 
 @pytest.mark.parametrize(("case", "source"), [("hdr", "gammamed_plus_hdr"), ("pdr", "gammamed_plus_pdr")])
-def test_tps_point_doses_within_0_2_percent(reference_dir: Path, case: str, source: str) -> None:
-    _, _, plan, ss = _load(reference_dir / "tps_examples" / case)
+def test_tps_point_doses_within_0_2_percent(reference_file: Callable[[str], Path], case: str, source: str) -> None:
+    _, _, plan, ss = _load(reference_file, case)
     src = plan.source()
     assert recognise_source(all_sources(), *src.labels(), plan.machine_name) == source
     dwells = plan_dwells(plan, channel_paths(plan, ss))
@@ -53,9 +58,9 @@ def test_tps_point_doses_within_0_2_percent(reference_dir: Path, case: str, sour
     assert max(abs(c.diff_percent or 0.0) for c in wrong) > 0.5
 
 
-def test_source_direction_matters(reference_dir: Path) -> None:
+def test_source_direction_matters(reference_file: Callable[[str], Path]) -> None:
     """Reversed channel paths (θ = 0 toward the base) change the Point A dose: the convention is tested."""
-    _, _, plan, ss = _load(reference_dir / "tps_examples" / "pdr")
+    _, _, plan, ss = _load(reference_file, "pdr")
     paths = channel_paths(plan, ss)
     kernel = Tg43Kernel(get_source("gammamed_plus_pdr"))
     sk = plan.source().air_kerma_rate_u
@@ -122,8 +127,9 @@ def _sha(p: Path) -> str:
     return hashlib.sha256(p.read_bytes()).hexdigest()
 
 
-def test_cli_points_json_and_like(reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    rp, rs, plan, ss = _load(reference_dir / "tps_examples" / "hdr")
+def test_cli_points_json_and_like(reference_file: Callable[[str], Path], tmp_path: Path,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    rp, rs, plan, ss = _load(reference_file, "hdr")
     hashes = (_sha(rp), _sha(rs))
     out = tmp_path / "RD.dcm"
     with warnings.catch_warnings():
@@ -169,12 +175,13 @@ def _run_error(args: list[str], capsys: pytest.CaptureFixture[str]) -> str:
     return err
 
 
-def test_cli_errors(reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    hdr = reference_dir / "tps_examples" / "hdr"
+def test_cli_errors(reference_file: Callable[[str], Path], tmp_path: Path,
+                    capsys: pytest.CaptureFixture[str]) -> None:
+    rp_hdr, rs_hdr = _files(reference_file, "hdr")
     rp = tmp_path / "RP.dcm"
     rs = tmp_path / "RS.dcm"
-    shutil.copy(hdr / "RP.HDR.dcm", rp)
-    shutil.copy(hdr / "RS.HDR.dcm", rs)
+    shutil.copy(rp_hdr, rp)
+    shutil.copy(rs_hdr, rs)
     before = (_sha(rp), _sha(rs))
     assert "one of the inputs" in _run_error(
         ["dose", "--plan", str(rp), "--structures", str(rs), "--out", str(rp)], capsys)
@@ -205,12 +212,11 @@ def _anonymised(src: Path, dst: Path, **source_attrs: object) -> Path:
 
 
 def test_cli_unidentifiable_source_needs_option(
-    reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    reference_file: Callable[[str], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    hdr = reference_dir / "tps_examples" / "hdr"
+    rp_hdr, rs = _files(reference_file, "hdr")
     # HDR, 3.5 mm, Ir-192 by half-life, placeholder manufacturer: three registered sources fit
-    rp, rs = _anonymised(hdr / "RP.HDR.dcm", tmp_path / "RP.dcm", SourceManufacturer="manufacturer"), \
-        hdr / "RS.HDR.dcm"
+    rp = _anonymised(rp_hdr, tmp_path / "RP.dcm", SourceManufacturer="manufacturer")
     err = _run_error(["dose", "--plan", str(rp), "--structures", str(rs), "--out", str(tmp_path / "a.dcm")], capsys)
     assert "--source" in err and "flexisource_hdr" in err and "spec_m19_hdr" in err
     assert "no TG-43 source named" in _run_error(
@@ -223,14 +229,14 @@ def test_cli_unidentifiable_source_needs_option(
     doc = json.loads(capsys.readouterr().out)
     assert all(abs(d["diff_percent"]) < 0.2 for d in doc["points"])
     # an isotope without registered data is an error, whatever the names say (no Ir-192 data for Cs-137)
-    cs = _anonymised(hdr / "RP.HDR.dcm", tmp_path / "cs.dcm", SourceIsotopeName="Cs-137",
+    cs = _anonymised(rp_hdr, tmp_path / "cs.dcm", SourceIsotopeName="Cs-137",
                      SourceIsotopeHalfLife="10987")
     assert "no TG-43 data is registered for Cs-137" in _run_error(
         ["dose", "--plan", str(cs), "--structures", str(rs), "--out", str(tmp_path / "c.dcm")], capsys)
     assert "Cs-137" in _run_error(["dose", "--plan", str(cs), "--structures", str(rs), "--source",
                                    "gammamed_plus_hdr", "--out", str(tmp_path / "c.dcm")], capsys)
     # a named source that contradicts the plan's active length
-    bad = _anonymised(hdr / "RP.HDR.dcm", tmp_path / "bad.dcm", SourceIsotopeName="GammaMed Plus HDR",
+    bad = _anonymised(rp_hdr, tmp_path / "bad.dcm", SourceIsotopeName="GammaMed Plus HDR",
                       ActiveSourceLength="5")
     assert "active length" in _run_error(
         ["dose", "--plan", str(bad), "--structures", str(rs), "--out", str(tmp_path / "d.dcm")], capsys)
@@ -238,12 +244,11 @@ def test_cli_unidentifiable_source_needs_option(
 
 @pytest.mark.parametrize("kind", ["hdr", "pdr"])
 def test_cli_infers_the_source_of_anonymised_eclipse_plans(
-    kind: str, reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    kind: str, reference_file: Callable[[str], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """The shared Eclipse examples, anonymised: the source is inferred and the TPS point doses recomputed to 0.1 %."""
-    folder = reference_dir / "tps_examples" / kind
-    rp = _anonymised(folder / f"RP.{kind.upper()}.dcm", tmp_path / "RP.dcm")
-    rs = folder / f"RS.{kind.upper()}.dcm"
+    rp_tps, rs = _files(reference_file, kind)
+    rp = _anonymised(rp_tps, tmp_path / "RP.dcm")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DicomQuirkWarning)
         assert main(["dose", "--plan", str(rp), "--structures", str(rs), "--spacing", "10",
@@ -257,10 +262,10 @@ def test_cli_infers_the_source_of_anonymised_eclipse_plans(
 
 
 def test_cli_decays_the_strength_to_the_treatment_date(
-    reference_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    reference_file: Callable[[str], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    hdr = reference_dir / "tps_examples" / "hdr"
-    args = ["dose", "--plan", str(hdr / "RP.HDR.dcm"), "--structures", str(hdr / "RS.HDR.dcm"), "--spacing", "10",
+    rp, rs = _files(reference_file, "hdr")
+    args = ["dose", "--plan", str(rp), "--structures", str(rs), "--spacing", "10",
             "--points", "--json"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DicomQuirkWarning)
@@ -269,7 +274,7 @@ def test_cli_decays_the_strength_to_the_treatment_date(
         # one half-life (73.83 d, the plan's) after the reference date 2018-03-20 00:00: half the dose
         assert main([*args, "--treatment-date", "20180601195512", "--out", str(tmp_path / "b.dcm")]) == 0
         later = json.loads(capsys.readouterr().out)
-        assert main(["dose", "--plan", str(hdr / "RP.HDR.dcm"), "--structures", str(hdr / "RS.HDR.dcm"),
+        assert main(["dose", "--plan", str(rp), "--structures", str(rs),
                      "--spacing", "10", "--json", "--treatment-date", "20180601195512",
                      "--out", str(tmp_path / "c.dcm")]) == 0
         summary = json.loads(capsys.readouterr().out)

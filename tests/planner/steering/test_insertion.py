@@ -89,6 +89,7 @@ def test_a_design_not_in_the_table_is_fitted_once(monkeypatch: pytest.MonkeyPatc
     factors._fitted_factor.cache_clear()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["15ga-30j-tip", "15ga-15j-tip"])
 def test_curvature_factor_matches_the_in_tissue_rod_where_it_was_not_fitted(name: str) -> None:
     # 0.5 MPa is not among the tabulated moduli: the factor fitted to the rod there against the table's
