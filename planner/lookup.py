@@ -57,7 +57,7 @@ def rod_model(name: str) -> RodModel:
     Parameters
     ----------
     name : str
-        Entry-point name in ``reachplan.rod_models`` (e.g. ``"planar_beam"``).
+        The model's entry-point name in ``reachplan.rod_models``, e.g. ``"planar_beam"``.
 
     Returns
     -------

@@ -203,6 +203,8 @@ def write_results(out: Path, rows: list[DoseRow], n_vox: int, dwells: int) -> No
 def run(args: argparse.Namespace) -> int:
     """Run ``reachplan bench dose`` (``--quick``, ``--voxels``, ``--dwells``, ``--repeat``) into ``args.out``.
 
+    Writes ``dose_benchmark.csv`` and ``dose_benchmark.png``; prints one line per variant.
+
     Parameters
     ----------
     args : argparse.Namespace

@@ -58,7 +58,7 @@ class ComparisonRow:
     Parameters
     ----------
     arm : str
-        The arm's name.
+        The arm's name, as in :class:`ArmResult`.
     n_needles, needles_needed : int, int or None
         As in :class:`ArmResult`.
     d90_gy, d98_gy : float, Gy per fraction

@@ -267,7 +267,7 @@ def parse_date(text: str, what: str) -> datetime:
     Parameters
     ----------
     text : str
-        The date as written.
+        The value of a DICOM DA element (with TM appended), as written.
     what : str
         What it is, for the message.
 

@@ -96,7 +96,7 @@ class KinematicInsertion(NamedInsertion):
         Parameters
         ----------
         design : RodDesign
-            The stylet in its needle.
+            The stylet in its needle; its curvature factor is :meth:`factor_for` of it.
         schedules : sequence of TensionSchedule
             Tension (N) and roll (degrees) against depth (mm).
         depth_mm : float, mm
