@@ -144,7 +144,7 @@ def exporter(name: str) -> Exporter:
     Parameters
     ----------
     name : str
-        Entry-point name in ``reachplan.exporters`` (e.g. ``"dicom_rt"``).
+        Entry-point name of the exporter (group ``reachplan.exporters``), e.g. ``"dicom_rt"``.
 
     Returns
     -------

@@ -40,8 +40,8 @@ class DoseSettings:
 
     Parameters
     ----------
-    voxels : int
-        Grid size, about (a cube of 2.5 mm voxels).
+    voxels : int, approximate count
+        Grid size (a cube of 2.5 mm voxels).
     dwells : int
         Number of random dwells.
     repeat : int

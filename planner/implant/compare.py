@@ -55,6 +55,8 @@ class ArmResult:
 class ComparisonRow:
     """One row of the comparison table (per-fraction physical and total EQD2 values).
 
+    Built by :meth:`Comparison.rows`, one per arm.
+
     Parameters
     ----------
     arm : str
@@ -91,6 +93,8 @@ class ComparisonRow:
 @dataclass(frozen=True, eq=False)
 class Comparison:
     """Result of :func:`compare_arms`.
+
+    Its :meth:`rows` make the comparison table.
 
     Parameters
     ----------

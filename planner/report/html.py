@@ -28,7 +28,7 @@ class Paragraph:
     Parameters
     ----------
     text : str
-        The text.
+        The text, without markup.
     """
 
     text: str

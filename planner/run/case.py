@@ -57,6 +57,8 @@ class CaseInput:
 class CaseConfig:
     """What to plan on a case, and how.
 
+    :func:`run_case` takes it with the :class:`CaseInput`.
+
     Parameters
     ----------
     plan : PlanConfig

@@ -64,7 +64,7 @@ class StudyTask:
     Parameters
     ----------
     case : Case
-        The case.
+        The case: its id and structure set.
     design : str
         Stylet preset name, or :data:`STRAIGHT` for straight needles only.
     targets : tuple of str or None

@@ -517,6 +517,8 @@ class ExportedFile:
 class ExportedFiles:
     """What an export wrote, and anything the user must know.
 
+    An exporter's ``export`` returns it; :meth:`path` finds a file by its role.
+
     Parameters
     ----------
     exporter : str

@@ -32,6 +32,8 @@ ACTIVE_LENGTH_TOLERANCE_MM = 0.05
 class SourceChoice:
     """The TG-43 data set chosen for a plan's source.
 
+    What :func:`identify_source` returns.
+
     Parameters
     ----------
     name : str
@@ -47,6 +49,8 @@ class SourceChoice:
 @dataclass(frozen=True)
 class PlanSource:
     """What a brachy RT Plan says of its source (DICOM Source Sequence and the machine).
+
+    A field the plan does not give stays empty (or None).
 
     Parameters
     ----------
