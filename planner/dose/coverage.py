@@ -269,7 +269,7 @@ class Fractionation:
 
     Parameters
     ----------
-    n_fractions : int
+    n_fractions : int, >= 1
         Brachytherapy fractions (the plan's dose is per fraction).
     ebrt_dose_gy : float, Gy
         External-beam dose added to every structure (EMBRACE II: 45 Gy); 0 for none.

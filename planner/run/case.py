@@ -105,7 +105,7 @@ class CaseResult:
     Parameters
     ----------
     inputs : CaseInput
-        What was planned.
+        What was planned: structures, volume and paths.
     config : CaseConfig
         How; its ``plan.oar_names`` are the organs at risk the scene found.
     scene : Scene

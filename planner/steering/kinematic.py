@@ -36,9 +36,11 @@ from reachplan.rod_model.protocol import RodModel
 class KinematicInsertion(NamedInsertion):
     """Tip-following insertion (see the module docstring), vectorised over schedules.
 
+    Tip following cannot fail: every schedule gives a path.
+
     Parameters
     ----------
-    tissue_modulus_pa : float
+    tissue_modulus_pa : float, Pa
         Young's modulus of the tissue the needle steers in (default the phantom's SimuGel, 0.19 MPa); with the
         design it sets the curvature factor by
         :func:`~reachplan.planner.steering.factors.curvature_factor` (the per-organ modulus in a plan).

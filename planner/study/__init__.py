@@ -280,7 +280,7 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
     Parameters
     ----------
     spec : StudySpec
-        What to plan.
+        The cases, designs, targets and plan configuration.
     out : Path
         The study's folder (new, empty, or holding this study to resume).
     scheduler : str or None

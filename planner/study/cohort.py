@@ -78,7 +78,7 @@ def perturbation(seed: int, index: int) -> Perturbation:
     Parameters
     ----------
     seed : int
-        The cohort's seed.
+        Seed of the cohort, shared by every variant.
     index : int
         The variant's index; its generator is seeded by ``(seed, index)``.
 

@@ -38,8 +38,8 @@ class Case:
 
     Parameters
     ----------
-    case_id : str
-        Names the case in the results (a plain folder name).
+    case_id : str, a plain folder name
+        Names the case in the results.
     rtstruct : Path
         Its RT Structure Set.
 
