@@ -662,7 +662,7 @@ def image_grid(spec: PhantomSpec) -> Grid:
     Parameters
     ----------
     spec : PhantomSpec
-        The phantom whose series is meant.
+        The phantom the series is written for.
 
     Returns
     -------

@@ -269,7 +269,7 @@ def parse_date(text: str, what: str) -> datetime:
     Parameters
     ----------
     text : str
-        The value of a DICOM DA element (with TM appended), as written.
+        A DICOM DA value, optionally followed by a TM value, as written.
     what : str
         What it is, for the message.
 
