@@ -172,7 +172,7 @@ class DoseReference:
     Parameters
     ----------
     number : int
-        Dose Reference Number.
+        Dose Reference Number (300A,0012).
     description, structure_type, reference_type : str
         Dose Reference Description, Structure Type (``"POINT"``, ``"VOLUME"``, ...) and Type
         (``"TARGET"``, ``"ORGAN_AT_RISK"``).

@@ -362,7 +362,7 @@ def is_case_file(path: Path) -> bool:
     Parameters
     ----------
     path : Path
-        Any file.
+        Any file (DICOM or not).
 
     Returns
     -------

@@ -662,7 +662,7 @@ def image_grid(spec: PhantomSpec) -> Grid:
     Parameters
     ----------
     spec : PhantomSpec
-        The phantom.
+        The phantom the series is written for.
 
     Returns
     -------

@@ -89,9 +89,9 @@ def invalid_error(path: Path, what: str) -> CorruptFileError:
     Parameters
     ----------
     path : Path
-        The offending file.
+        The offending file: it breaks the standard.
     what : str
-        Which value breaks the standard.
+        Which value breaks it.
 
     Returns
     -------

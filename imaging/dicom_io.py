@@ -208,6 +208,8 @@ def read_series(
 ) -> Volume:
     """Read one CT/MR image series into a :class:`~reachplan.imaging.types.Volume`.
 
+    :func:`scan`, :func:`select_series` and :func:`load_series` in turn.
+
     Parameters
     ----------
     folder : Path

@@ -90,7 +90,7 @@ class StructureSetInfo:
     Parameters
     ----------
     path : str
-        The file.
+        The RTSTRUCT file's path, as found.
     label : str
         Structure Set Label.
     frame_of_reference_uid : str
@@ -115,7 +115,7 @@ class ChannelInfo:
     Parameters
     ----------
     channel_number : int
-        Channel Number.
+        Channel Number (300A,0282).
     n_dwells : int
         Number of dwell positions (control points with a dwell).
     total_time_s : float, s
@@ -137,7 +137,7 @@ class PlanInfo:
     Parameters
     ----------
     path : str
-        The file.
+        The RT Plan file's path, as found.
     type : str
         Brachy Treatment Type (``HDR``, ``PDR``, ...).
     technique : str
@@ -181,7 +181,7 @@ class OtherInfo:
     Parameters
     ----------
     path : str
-        The file.
+        The file's path, as found.
     modality : str
         Modality, as written.
     sop_class_uid : str

@@ -247,7 +247,7 @@ class PhantomSpec:
         Parameters
         ----------
         name : str
-            The ROI or tissue name.
+            The ROI or tissue name, exactly as in the spec.
 
         Returns
         -------

@@ -107,8 +107,7 @@ class Cylinder:
         Returns
         -------
         list of (n, 2) float, mm, LPS
-            One polygon (x, y) per outline:
-            a circle, none outside ``z0_mm <= z < z1_mm``.
+            The cut's circle as one (x, y) polygon; none outside ``z0_mm <= z < z1_mm``.
         """
         if not self.z0_mm <= z0 < self.z1_mm:
             return []

@@ -239,7 +239,7 @@ class Roi:
     Parameters
     ----------
     number : int
-        ROI Number in the file.
+        ROI Number (3006,0022) in the file.
     name : str
         The name as written in the file.
     contours : tuple of Contour
@@ -309,7 +309,7 @@ class StructureSet:
         Parameters
         ----------
         name : str
-            Normalised or original ROI name.
+            The ROI name, normalised or original (any case).
 
         Returns
         -------

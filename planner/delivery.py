@@ -56,6 +56,8 @@ EXPORT_ARM = "steered"
 class Delivery:
     """The delivered plan: loaded channels with their dwell times, ready for the exporters.
 
+    What :func:`plan_delivery` returns.
+
     Parameters
     ----------
     optimisation : OptimisationResult

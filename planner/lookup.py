@@ -57,7 +57,7 @@ def rod_model(name: str) -> RodModel:
     Parameters
     ----------
     name : str
-        Entry-point name in ``reachplan.rod_models`` (e.g. ``"planar_beam"``).
+        The model's entry-point name in ``reachplan.rod_models``, e.g. ``"planar_beam"``.
 
     Returns
     -------
@@ -144,7 +144,7 @@ def exporter(name: str) -> Exporter:
     Parameters
     ----------
     name : str
-        Entry-point name in ``reachplan.exporters`` (e.g. ``"dicom_rt"``).
+        Entry-point name of the exporter (group ``reachplan.exporters``), e.g. ``"dicom_rt"``.
 
     Returns
     -------

@@ -157,7 +157,7 @@ def write_json(path: Path, obj: Any) -> None:
     Parameters
     ----------
     path : Path
-        The file to write.
+        The file to create or replace (``.json``).
     obj : object
         JSON-ready value.
     """

@@ -40,8 +40,8 @@ class DoseSettings:
 
     Parameters
     ----------
-    voxels : int
-        Grid size, about (a cube of 2.5 mm voxels).
+    voxels : int, approximate count
+        Grid size (a cube of 2.5 mm voxels).
     dwells : int
         Number of random dwells.
     repeat : int
@@ -202,6 +202,8 @@ def write_results(out: Path, rows: list[DoseRow], n_vox: int, dwells: int) -> No
 
 def run(args: argparse.Namespace) -> int:
     """Run ``reachplan bench dose`` (``--quick``, ``--voxels``, ``--dwells``, ``--repeat``) into ``args.out``.
+
+    Writes ``dose_benchmark.csv`` and ``dose_benchmark.png``; prints one line per variant.
 
     Parameters
     ----------

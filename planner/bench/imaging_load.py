@@ -38,7 +38,7 @@ class ImagingSettings:
     Parameters
     ----------
     slices : int
-        Slices of the series.
+        Images in the series, one per slice.
     size : int
         Rows and columns of each slice (int16 pixels).
     repeat : int
@@ -125,7 +125,7 @@ def run_child(folder: Path, which: str) -> dict[str, float]:
     Parameters
     ----------
     folder : Path
-        The series.
+        The folder holding the series.
     which : str
         ``reachplan`` or ``simpleitk``.
 

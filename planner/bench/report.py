@@ -40,6 +40,8 @@ LIMIT_S = 3.0
 class ReportBenchSettings:
     """Timed renderings of the report (the median is reported) and whether the implant arms are planned.
 
+    The command line's ``--repeat`` overrides ``repeat``; ``--quick`` starts from :data:`QUICK`.
+
     Parameters
     ----------
     repeat : int

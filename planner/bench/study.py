@@ -46,6 +46,8 @@ RUNS_HEADER = ("engine", "workers", "tasks", "rows", "wall_s", "cluster_start_s"
 class StudySettings:
     """What the study benchmark measures and estimates.
 
+    Every field but ``draws`` has a command-line option of its name (``--est-cases`` for ``est_cases``).
+
     Parameters
     ----------
     cases : int

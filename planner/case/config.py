@@ -43,7 +43,7 @@ class PlanConfig:
 
     Parameters
     ----------
-    template : str
+    template : str, entry-point name
         Name of the needle template (a plugin, :func:`reachplan.planner.lookup.load_template`).
     needle_radius_mm : float, mm
         Outer radius of the needle, for the collision checks.

@@ -18,6 +18,8 @@ CLEAN_CLEARANCE_MM = 2.0
 class BlockedNeedle:
     """A straight needle that reaches its target but collides, and the target's clean steered alternative.
 
+    :meth:`PlanResult.blocked_straight` lists them.
+
     Parameters
     ----------
     straight : Candidate
@@ -72,7 +74,7 @@ class PlanResult:
         Parameters
         ----------
         weights : RankWeights
-            The new score weights.
+            The score weights to order by (:class:`RankWeights`).
 
         Returns
         -------

@@ -45,6 +45,8 @@ class Option:
 class Target:
     """A ``reachplan bench`` sub-command and the module under :mod:`reachplan.planner.bench` that runs it.
 
+    One entry of :data:`TARGETS`.
+
     Parameters
     ----------
     name : str

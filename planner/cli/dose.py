@@ -22,6 +22,8 @@ HELP = "recompute a brachy RT Plan with TG-43 and write an RT Dose (secondary ch
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the plan, structure set, grid, source, model and output options.
 
+    ``--plan``, ``--structures`` and ``--out`` are required.
+
     Parameters
     ----------
     parser : argparse.ArgumentParser

@@ -73,7 +73,9 @@ def finite(value: float | None, option: str, *, lo: float | None = None, hi: flo
 
 
 def finite_float(text: str) -> float:
-    """Argparse ``type=`` for a finite float (``nan``, ``inf`` are refused by argparse with exit code 2).
+    """Argparse ``type=`` for a finite float.
+
+    ``nan`` and ``inf`` are refused: argparse then exits with code 2.
 
     Parameters
     ----------

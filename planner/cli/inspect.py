@@ -14,6 +14,8 @@ HELP = "list the image series, structure sets (with volumes) and brachy plans in
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the path, ``--json`` and ``--synonyms``.
 
+    Only the path is required.
+
     Parameters
     ----------
     parser : argparse.ArgumentParser

@@ -40,6 +40,8 @@ HELP = "rank template holes, stylet designs and tension schedules for targets; w
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``plan`` options to ``parser``.
 
+    ``--rtstruct`` and ``--targets`` are required; ``--ct`` is optional (contours suffice).
+
     Parameters
     ----------
     parser : argparse.ArgumentParser

@@ -53,6 +53,12 @@ def _check_voxel(voxel_cc: float) -> None:
         raise ValueError(f"voxel volume must be positive (cm³), got {voxel_cc}")
 
 
+def _hottest_minimum(d: np.ndarray, voxels: float) -> float:
+    """Minimum of the ``voxels`` largest values of ``d`` (Gy); ``voxels`` rounded up and kept within 1..len(d)."""
+    k = min(len(d), max(1, math.ceil(voxels - 1e-9)))
+    return float(np.partition(d, len(d) - k)[len(d) - k])
+
+
 def dose_to_volume(doses_gy: np.ndarray, voxel_cc: float, volume_cc: float) -> float:
     """``D_V``: minimum dose to the hottest ``volume_cc`` of the structure, Gy.
 
@@ -79,8 +85,7 @@ def dose_to_volume(doses_gy: np.ndarray, voxel_cc: float, volume_cc: float) -> f
     _check_voxel(voxel_cc)
     if not volume_cc > 0:
         raise ValueError(f"volume must be > 0 cm³, got {volume_cc}")
-    k = min(len(d), max(1, math.ceil(volume_cc / voxel_cc - 1e-9)))
-    return float(np.partition(d, len(d) - k)[len(d) - k])
+    return _hottest_minimum(d, volume_cc / voxel_cc)
 
 
 def dose_to_fraction(doses_gy: np.ndarray, fraction: float) -> float:
@@ -105,8 +110,7 @@ def dose_to_fraction(doses_gy: np.ndarray, fraction: float) -> float:
     d = _doses(doses_gy)
     if not 0 < fraction <= 1:
         raise ValueError(f"volume fraction must be in (0, 1], got {fraction}")
-    k = min(len(d), max(1, math.ceil(fraction * len(d) - 1e-9)))
-    return float(np.partition(d, len(d) - k)[len(d) - k])
+    return _hottest_minimum(d, fraction * len(d))
 
 
 def volume_receiving(doses_gy: np.ndarray, threshold_gy: float) -> float:
@@ -172,9 +176,9 @@ def cumulative_dvh(
     Parameters
     ----------
     doses_gy : (n,) float, Gy
-        Dose at each voxel of the structure.
+        Dose at each voxel of the structure, in any order.
     voxel_cc : float, cm³
-        Volume of one voxel.
+        Volume of one voxel (every voxel the same size).
     dose_axis_gy : (m,) float, Gy, optional
         Increasing axis starting at 0; default 0 to the maximum dose in 1001 points.
 
@@ -265,7 +269,7 @@ class Fractionation:
 
     Parameters
     ----------
-    n_fractions : int
+    n_fractions : int, >= 1
         Brachytherapy fractions (the plan's dose is per fraction).
     ebrt_dose_gy : float, Gy
         External-beam dose added to every structure (EMBRACE II: 45 Gy); 0 for none.

@@ -45,6 +45,8 @@ class Structure:
 class PlanningStructures:
     """The target (HR-CTV) and organs at risk on one grid.
 
+    Built by :func:`planning_structures` from a structure set.
+
     Parameters
     ----------
     grid : Grid

@@ -95,7 +95,7 @@ class Tg43Kernel:
     Parameters
     ----------
     source : SourceData
-        Consensus data.
+        Consensus TG-43 data of the source model.
     model : {"line", "point"}
         2D line-source formalism (default) or the 1D point-source approximation.
 

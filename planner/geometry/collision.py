@@ -189,7 +189,7 @@ class Clearance:
     Parameters
     ----------
     organ : str
-        The organ's name.
+        The name of the organ checked against.
     clearance_mm : float, mm
         Surface-to-surface distance from the needle to the organ (0.0 when touching or inside).
     collides : bool

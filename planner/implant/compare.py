@@ -55,10 +55,12 @@ class ArmResult:
 class ComparisonRow:
     """One row of the comparison table (per-fraction physical and total EQD2 values).
 
+    Built by :meth:`Comparison.rows`, one per arm.
+
     Parameters
     ----------
     arm : str
-        The arm's name.
+        The arm's name, as in :class:`ArmResult`.
     n_needles, needles_needed : int, int or None
         As in :class:`ArmResult`.
     d90_gy, d98_gy : float, Gy per fraction
@@ -91,6 +93,8 @@ class ComparisonRow:
 @dataclass(frozen=True, eq=False)
 class Comparison:
     """Result of :func:`compare_arms`.
+
+    Its :meth:`rows` make the comparison table.
 
     Parameters
     ----------

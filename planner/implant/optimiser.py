@@ -49,8 +49,8 @@ class Modulation:
 
     Parameters
     ----------
-    max_dwell_share : float
-        No dwell carries more than this share of the total time (in (0, 1]).
+    max_dwell_share : float, in (0, 1]
+        No dwell carries more than this share of the total time.
     neighbour_ratio : float
         Neighbouring dwell times on a channel differ by at most this factor (>= 1).
     time_weight : float

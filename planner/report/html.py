@@ -28,7 +28,7 @@ class Paragraph:
     Parameters
     ----------
     text : str
-        The text.
+        The text, without markup.
     """
 
     text: str
@@ -80,7 +80,7 @@ class Figure:
     Parameters
     ----------
     png : bytes
-        The PNG file.
+        The image, PNG-encoded.
     caption : str
         Its caption.
     alt : str
@@ -167,7 +167,7 @@ class Report:
     Parameters
     ----------
     title : str
-        The document's title.
+        The page's ``<title>`` and its ``<h1>`` heading (escaped).
     subtitle : str
         A one-line subtitle.
     sections : tuple of Section

@@ -52,7 +52,7 @@ class Needle3d:
     Parameters
     ----------
     label : str
-        Legend entry.
+        Its entry in the legend.
     path_mm : (n, 3) float, mm, LPS
         Centreline from base to tip.
     steered : bool

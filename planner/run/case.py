@@ -57,6 +57,8 @@ class CaseInput:
 class CaseConfig:
     """What to plan on a case, and how.
 
+    :func:`run_case` takes it with the :class:`CaseInput`.
+
     Parameters
     ----------
     plan : PlanConfig
@@ -103,7 +105,7 @@ class CaseResult:
     Parameters
     ----------
     inputs : CaseInput
-        What was planned.
+        What was planned: structures, volume and paths.
     config : CaseConfig
         How; its ``plan.oar_names`` are the organs at risk the scene found.
     scene : Scene

@@ -256,9 +256,11 @@ def choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> SourceC
             raise PlanInputError(f"--source {given} is {data.isotope} but the plan's source is {isotope}; "
                                  "choose a data set of that isotope")
         return SourceChoice(given, f"{given}: given with --source")
-    return identify_source(all_sources(), PlanSource(src.model_id, src.isotope_name, src.manufacturer,
-                                                     plan.treatment_type, src.half_life_days, src.active_length_mm,
-                                                     plan.machine_name))
+    plan_source = PlanSource(isotope_name=src.isotope_name, half_life_days=src.half_life_days,
+                             model_id=src.model_id, manufacturer=src.manufacturer,
+                             active_length_mm=src.active_length_mm,
+                             treatment_type=plan.treatment_type, machine_name=plan.machine_name)
+    return identify_source(all_sources(), plan_source)
 
 
 def parse_date(text: str, what: str) -> datetime:
@@ -267,7 +269,7 @@ def parse_date(text: str, what: str) -> datetime:
     Parameters
     ----------
     text : str
-        The date as written.
+        A DICOM DA value, optionally followed by a TM value, as written.
     what : str
         What it is, for the message.
 

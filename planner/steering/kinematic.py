@@ -36,9 +36,11 @@ from reachplan.rod_model.protocol import RodModel
 class KinematicInsertion(NamedInsertion):
     """Tip-following insertion (see the module docstring), vectorised over schedules.
 
+    Tip following cannot fail: every schedule gives a path.
+
     Parameters
     ----------
-    tissue_modulus_pa : float
+    tissue_modulus_pa : float, Pa
         Young's modulus of the tissue the needle steers in (default the phantom's SimuGel, 0.19 MPa); with the
         design it sets the curvature factor by
         :func:`~reachplan.planner.steering.factors.curvature_factor` (the per-organ modulus in a plan).
@@ -96,7 +98,7 @@ class KinematicInsertion(NamedInsertion):
         Parameters
         ----------
         design : RodDesign
-            The stylet in its needle.
+            The stylet in its needle; its curvature factor is :meth:`factor_for` of it.
         schedules : sequence of TensionSchedule
             Tension (N) and roll (degrees) against depth (mm).
         depth_mm : float, mm

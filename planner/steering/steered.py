@@ -80,7 +80,7 @@ class ShapeBank:
     Parameters
     ----------
     design : RodDesign
-        The stylet design.
+        The stylet design (all shapes are of it).
     schedules : tuple of TensionSchedule
         The S schedules, at roll 0.
     shapes_mm : (S, n, 3) float, mm, template frame

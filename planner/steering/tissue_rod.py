@@ -90,7 +90,7 @@ class TissueRodInsertion(NamedInsertion):
 
     Parameters
     ----------
-    tissue_modulus_pa : float
+    tissue_modulus_pa : float, Pa, >= 0
         Young's modulus of the medium (default SimuGel #3, 0.19 MPa); 0 gives free space.
     rod_model : TwoTubeCosserat
         The rod model solving each step (its ``inserted_mm`` and foundation support); 2 RK4 steps per mm by

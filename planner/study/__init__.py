@@ -69,10 +69,12 @@ MANIFEST_VERSION = 1
 class StudySpec:
     """What a study plans: every case x design x target with one plan configuration.
 
+    Its :meth:`manifest` identifies the study's results: a resumed study must match it.
+
     Parameters
     ----------
-    cases : tuple of Case
-        The cases (at least one).
+    cases : tuple of Case, at least one
+        The cases, each planned with every design.
     designs : tuple of str
         Stylet presets or ``straight`` (straight needles only), each once.
     targets : tuple of str or None
@@ -134,7 +136,7 @@ class StudyResult:
     Parameters
     ----------
     out : Path
-        The study's folder.
+        The study's folder, as given to :func:`run_study`.
     table : pyarrow.Table
         The consolidated rows: one per case x design x target, or per failed task whose targets were not known.
     summaries : tuple of DesignSummary
@@ -278,7 +280,7 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
     Parameters
     ----------
     spec : StudySpec
-        What to plan.
+        The cases, designs, targets and plan configuration.
     out : Path
         The study's folder (new, empty, or holding this study to resume).
     scheduler : str or None

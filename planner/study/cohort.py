@@ -33,7 +33,7 @@ class Perturbation:
     Parameters
     ----------
     seed : int
-        The cohort's seed.
+        The cohort's seed, shared by all its variants.
     index : int
         The variant's index (0 = the reference phantom).
     shift_xy_mm : tuple of (str, float, float)
@@ -78,7 +78,7 @@ def perturbation(seed: int, index: int) -> Perturbation:
     Parameters
     ----------
     seed : int
-        The cohort's seed.
+        Seed of the cohort, shared by every variant.
     index : int
         The variant's index; its generator is seeded by ``(seed, index)``.
 

@@ -62,7 +62,7 @@ class PairedStat:
 
     Parameters
     ----------
-    mean : float or None
+    mean : float or None, same unit as the differences
         Mean difference; None when no case gives one.
     low, high : float or None
         Interval bounds; None when fewer than two cases give a difference (no spread to estimate).
@@ -426,7 +426,7 @@ def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
     Parameters
     ----------
     seed : int
-        Seed of the clinical case.
+        Seed of :func:`~reachplan.imaging.clinical.clinical_case`.
     spec : ImplantStudySpec
         Configuration, settings, source and modality.
 
@@ -487,7 +487,7 @@ class ImplantStudyResult:
     Parameters
     ----------
     out : Path
-        The study's folder.
+        The folder holding ``cases.csv``, ``summary.json``, ``summary.png`` and ``parts/``.
     rows : tuple of ImplantRow
         One per case, in seed order.
     summary : ImplantCohortSummary
@@ -516,9 +516,9 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
     Parameters
     ----------
     spec : ImplantStudySpec
-        What to plan.
+        Seeds, plan configuration, implant settings, source and modality.
     out : Path
-        The study's folder (new, empty, or holding this study to resume).
+        The study's folder: new, empty, or holding this study (then it resumes).
     scheduler : str or None
         A Dask scheduler's address; None starts a loopback cluster of worker processes.
     workers : int or None

@@ -56,7 +56,7 @@ def to_table(rows: Sequence[StudyRow]) -> pa.Table:
     Parameters
     ----------
     rows : sequence of StudyRow
-        The rows.
+        The rows, in table order.
 
     Returns
     -------
@@ -84,7 +84,7 @@ def part_path(out: Path, key: str) -> Path:
     Parameters
     ----------
     out : Path
-        The study's folder.
+        The study folder (holding ``parts/``).
     key : str
         The task's key.
 

@@ -38,8 +38,8 @@ class Case:
 
     Parameters
     ----------
-    case_id : str
-        Names the case in the results (a plain folder name).
+    case_id : str, a plain folder name
+        Names the case in the results.
     rtstruct : Path
         Its RT Structure Set.
 
@@ -64,7 +64,7 @@ class StudyTask:
     Parameters
     ----------
     case : Case
-        The case.
+        The case: its id and structure set.
     design : str
         Stylet preset name, or :data:`STRAIGHT` for straight needles only.
     targets : tuple of str or None

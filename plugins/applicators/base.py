@@ -325,7 +325,7 @@ class PlanOnlyKind(KindSpec):
         Parameters
         ----------
         roi : Roi
-            The applicator's ROI.
+            The applicator ROI; only its name is used (in the note).
         axis : (3,) float, LPS, or None
             Unused.
 

@@ -38,6 +38,8 @@ class Tandem(KindSpec):
     def channels_from_roi(self, roi: Roi, axis: np.ndarray | None) -> tuple[tuple[np.ndarray, ...], tuple[str, ...]]:
         """Return the channel of :func:`tandem_channel` and the assumption made.
 
+        The tandem is assumed straight: its channel is the chord of the ROI along its principal axis.
+
         Parameters
         ----------
         roi : Roi

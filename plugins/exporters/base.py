@@ -303,8 +303,8 @@ class ReferencePoint:
 
     Parameters
     ----------
-    name : str
-        Dose Reference Description, e.g. ``"Point A left"`` (1-64 characters).
+    name : str, 1-64 characters
+        Dose Reference Description, e.g. ``"Point A left"``.
     position_mm : (3,) float, mm, LPS
         Where the point is.
     rate_gy_per_s : tuple of (m_i,) float, Gy s⁻¹
@@ -366,8 +366,8 @@ class ExportPlan:
 
     Parameters
     ----------
-    label : str
-        RT Plan Label (1-16 characters); also the default file-name stem.
+    label : str, 1-16 characters
+        RT Plan Label; also the default file-name stem.
     needles : tuple of NeedleExport
         One channel per needle, in channel order; hole ids unique.
     source : SourceSpec
@@ -516,6 +516,8 @@ class ExportedFile:
 @dataclass(frozen=True)
 class ExportedFiles:
     """What an export wrote, and anything the user must know.
+
+    An exporter's ``export`` returns it; :meth:`path` finds a file by its role.
 
     Parameters
     ----------

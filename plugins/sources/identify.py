@@ -32,6 +32,8 @@ ACTIVE_LENGTH_TOLERANCE_MM = 0.05
 class SourceChoice:
     """The TG-43 data set chosen for a plan's source.
 
+    What :func:`identify_source` returns.
+
     Parameters
     ----------
     name : str
@@ -48,30 +50,33 @@ class SourceChoice:
 class PlanSource:
     """What a brachy RT Plan says of its source (DICOM Source Sequence and the machine).
 
+    A field the plan does not give stays empty (or None). The fields come in three groups: the isotope, the
+    source model, the treatment.
+
     Parameters
     ----------
-    model_id : str
-        Source Model ID (300A,021B).
     isotope_name : str
         Source Isotope Name (300A,0226).
-    manufacturer : str
-        Source Manufacturer (300A,0216).
-    treatment_type : str
-        Brachy Treatment Type (300A,0202): ``HDR``, ``PDR``, ``LDR`` or other.
     half_life_days : float or None
         Source Isotope Half Life (300A,0228), days.
+    model_id : str
+        Source Model ID (300A,021B).
+    manufacturer : str
+        Source Manufacturer (300A,0216).
     active_length_mm : float or None
         Active Source Length (300A,021E), mm.
+    treatment_type : str
+        Brachy Treatment Type (300A,0202): ``HDR``, ``PDR``, ``LDR`` or other.
     machine_name : str
         Treatment Machine Name (300A,00B2).
     """
 
-    model_id: str = ""
     isotope_name: str = ""
-    manufacturer: str = ""
-    treatment_type: str = ""
     half_life_days: float | None = None
+    model_id: str = ""
+    manufacturer: str = ""
     active_length_mm: float | None = None
+    treatment_type: str = ""
     machine_name: str = ""
 
 
