@@ -1,7 +1,8 @@
 """The delivered plan: the implant (or one needle per target) with its dwell times, assembled for the exporters.
 
-The implant of both arms (straight only, straight + steered) is planned here for a case's scene
-(:func:`plan_implants`); the delivered plan is the straight + steered arm's chosen implant.
+Both implant arms (straight only, straight + steered) are planned for a case's scene
+(:func:`reachplan.planner.implant.case.plan_implants`); the delivered plan is the straight + steered arm's chosen
+implant, with the reference points, the prescription and the planned dose the exporters write.
 """
 
 from __future__ import annotations
@@ -41,15 +42,10 @@ if TYPE_CHECKING:
 #: What a delivered channel is for when it is an applicator channel (tandem, ring, ovoid), and the delivered plan's
 #: kind when every target got its own top-ranked needle (see :class:`Delivery`).
 INTRACAVITARY = "intracavitary"
-
-
 PER_TARGET = "one needle per target"
-
 
 #: The implant arm exported as the delivered plan: straight + steered (never worse than straight only).
 EXPORT_ARM = "steered"
-
-
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,7 +72,7 @@ class Delivery:
         Which plan is delivered: ``implant, straight + steered``, ``implant, straight`` or ``one needle per
         target``.
     implant : ImplantComparison or None
-        The two implant arms (:func:`plan_implants`) when asked for.
+        The two implant arms (:func:`~reachplan.planner.implant.case.plan_implants`) when asked for.
     implant_exports : dict of str to ExportPlan
         By arm name, the export of each arm's chosen implant (loaded channels only).
     """

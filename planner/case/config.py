@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -15,10 +14,6 @@ from reachplan.planner.steering.robustness import Perturbations
 from reachplan.planner.steering.steered import ScheduleFamily
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.design import RodDesign, preset
-
-if TYPE_CHECKING:
-    pass
-
 
 #: Organs at risk (and bone) a needle must not touch, by normalised ROI name.
 DEFAULT_OARS: tuple[str, ...] = ("Bladder", "Rectum", "Sigmoid", "Bowel", "Bone")

@@ -7,7 +7,6 @@ Screening with the cheap kinematic model over the shape bank, the shortlist re-s
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
@@ -28,9 +27,6 @@ from reachplan.planner.steering.steered import match_targets, place, refine_with
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.design import RodDesign
 from reachplan.rod_model.errors import RodModelError
-
-if TYPE_CHECKING:
-    pass
 
 
 def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
