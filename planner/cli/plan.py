@@ -358,7 +358,7 @@ def run(args: argparse.Namespace) -> int:
     check_plan_arguments(args, inputs)
     quiet = args.quiet or args.json
     start_kernels(quiet)  # before reading the series: the first run's compile overlaps it
-    _reference_points(args.reference_point)
+    _reference_points(args.reference_point)  # a bad point is an error before the series is read
     config = PlanConfig(template=args.template, designs=tuple(args.design))
     table, overrides, config = _names(args, config)
     volume = read_series(args.ct) if args.ct else None
