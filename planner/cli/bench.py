@@ -147,10 +147,10 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.planner.cli.edges import output_folder
 
     output_folder(args.out)  # not a file, writable: checked before the benchmark runs
-    args.out.mkdir(parents=True, exist_ok=True)  # every target writes into it
     from reachplan.planner.bench.common import check_install, install
 
     checkout = check_install(args.repo, args.quick) if args.install else None  # before the long run
+    args.out.mkdir(parents=True, exist_ok=True)  # every target writes into it
     module = _load(args._bench_module)
     status = int(module.run(args))
     if checkout is not None and status == 0:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import textwrap
 import tomllib
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
@@ -103,15 +103,14 @@ def test_obturator_channel_uses_its_closed_contours_and_ring_and_ovoid_say_why_n
     assert ov.channels == () and ov.obstacle and "handle" in ov.notes[0]
 
 
-def test_channels_from_an_eclipse_plan(reference_dir: Path) -> None:
+def test_channels_from_an_eclipse_plan(reference_file: Callable[[str], Path]) -> None:
     from reachplan.imaging.rtplan import channel_paths, read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
 
-    hdr = reference_dir / "tps_examples" / "hdr"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        plan = read_rtplan(hdr / "RP.HDR.dcm")
-    rs = read_rtstruct(hdr / "RS.HDR.dcm")
+        plan = read_rtplan(reference_file("tps_examples/hdr/RP.HDR.dcm"))
+    rs = read_rtstruct(reference_file("tps_examples/hdr/RS.HDR.dcm"))
     found = applicators_from_rtplan(plan, BUILTIN_KINDS, rs)
     assert [(a.kind, a.name, a.roi_name, a.plan_channels) for a in found] == [
         ("tandem", "tandem", "tandem", (1,)), ("ovoid", "right ovoid", "right ovoid", (2,)),
