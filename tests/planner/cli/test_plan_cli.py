@@ -19,16 +19,16 @@ def rtstruct(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_plan_from_structures_alone_with_roi_and_point_targets(rtstruct: Path, tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str],
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    import reachplan.imaging.files as files
+    import reachplan.planner.run.outputs as outputs  # the writer of a case's files
 
     written: list[str] = []
-    write_json = files.atomic_write_json
+    write_json = outputs.atomic_write_json
 
     def counting(path: Path, obj: object) -> None:
         written.append(Path(path).name)
         write_json(path, obj)
 
-    monkeypatch.setattr(files, "atomic_write_json", counting)
+    monkeypatch.setattr(outputs, "atomic_write_json", counting)
     code = main(["plan", "--rtstruct", str(rtstruct), "--targets", "Target_80_030", "35,10,80",
                  "--out", str(tmp_path), "--no-export", "--json"])
     assert code == 0
