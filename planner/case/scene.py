@@ -147,7 +147,8 @@ def build_scene(
     found = applicators_from_structures(structures, kinds, dict(config.applicators))
     check_unique(structures, [*target_names, *([] if patient_from_template is not None or _cylinder(found)
                                                 else ["Obturator"])])
-    obstacles = [structures.get(a.roi_name).normalized_name for a in found if a.obstacle and a.roi_name]
+    parts = {structures.get(a.roi_name).normalized_name: a for a in found if a.roi_name}
+    obstacles = [n for n, a in parts.items() if a.obstacle]
     oar_names = (*config.oar_names, *[n for n in obstacles if n not in config.oar_names])
     selection = select_oars(structures, oar_names, standard_names, exclude=target_names)
     oars = list(selection.found)
@@ -159,7 +160,8 @@ def build_scene(
             "one with --oar ORGAN=ROI_NAME or --synonyms FILE, or plan anyway with --allow-no-oars"
         )
     rois = [structures.get(n) for n in target_names]
-    context = [n for n in ("HR-CTV", "Uterus", "Cervix", "Obturator") if n in structures.names]
+    context = [*[n for n in ("HR-CTV", "Uterus", "Cervix") if n in structures.names],
+               *[n for n in parts if n not in oars]]  # for the figures: the target volume and the applicators
     meshes = mesh_structures(structures, [*oars, *[r.normalized_name for r in rois if has_closed(r)], *context],
                              grid, quiet)
     targets = [*_targets(rois, meshes, notes), *target_points]
