@@ -8,98 +8,14 @@ cross-sections, each referencing the slice it is drawn on.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-
-class CaseStructure(Protocol):
-    """One ROI of a built-in case as this module writes it (:class:`reachplan.imaging.phantom.PhantomStructure`)."""
-
-    @property
-    def name(self) -> str:
-        """ROI Name."""
-        ...
-
-    @property
-    def interpreted_type(self) -> str:
-        """RT ROI Interpreted Type (``ORGAN``, ``PTV``, ...)."""
-        ...
-
-    @property
-    def color(self) -> tuple[int, int, int]:
-        """ROI Display Color, RGB 0-255."""
-        ...
-
-    def cross_section(self, z_mm: float) -> list[np.ndarray]:
-        """Return the closed polygons of the ROI on the plane z = ``z_mm``.
-
-        Parameters
-        ----------
-        z_mm : float, mm
-            The plane's LPS z (the slice centre when writing a series).
-
-        Returns
-        -------
-        list of (n, 2) float, mm, LPS
-            The x, y of each polygon's vertices; empty where the ROI does not reach the plane.
-        """
-        ...
-
-
-class PhantomSpec(Protocol):
-    """What the DICOM encoding reads of a built-in case (:class:`reachplan.imaging.phantom.PhantomSpec`).
-
-    A Protocol, so that this module does not import the phantom module that imports it.
-    """
-
-    @property
-    def case_id(self) -> str:
-        """The variant's id (empty for the reference phantom)."""
-        ...
-
-    @property
-    def description(self) -> str:
-        """The case's one-line description (Study Description)."""
-        ...
-
-    @property
-    def modality(self) -> str:
-        """``"CT"`` or ``"MR"``."""
-        ...
-
-    @property
-    def matrix(self) -> int:
-        """Rows = columns of the image."""
-        ...
-
-    @property
-    def pixel_mm(self) -> float:
-        """In-plane pixel size, mm."""
-        ...
-
-    @property
-    def slice_thickness_mm(self) -> float:
-        """Slice spacing, mm."""
-        ...
-
-    @property
-    def first_pixel_xy_mm(self) -> float:
-        """LPS x (= y) of the first pixel's centre, mm."""
-        ...
-
-    @property
-    def slice_z_mm(self) -> np.ndarray:
-        """(k,) LPS z of the slice centres, mm."""
-        ...
-
-    @property
-    def structures(self) -> Sequence[CaseStructure]:
-        """Every ROI written, in order."""
-        ...
+from reachplan.imaging.case_spec import PhantomSpec
 
 #: Identity of the phantom's files; changing the geometry must change PHANTOM_VERSION (new UIDs).
 PHANTOM_VERSION = "2"

@@ -46,7 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from reachplan.imaging.phantom import PhantomFiles, PhantomSpec, PhantomStructure, write_phantom
+from reachplan.imaging.case_spec import PhantomSpec, PhantomStructure
+from reachplan.imaging.phantom import PhantomFiles, write_phantom
 from reachplan.imaging.sweep import SAMPLE_MM, Sweep, Union, arc_curve, resample_curve
 from reachplan.imaging.types import Contour, Grid, Roi, StructureSet
 

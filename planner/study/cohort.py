@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from reachplan.imaging.phantom import PhantomSpec, PhantomStructure, phantom_spec, write_phantom
+from reachplan.imaging.case_spec import PhantomSpec, PhantomStructure
+from reachplan.imaging.phantom import phantom_spec, write_phantom
 from reachplan.imaging.solids import Box, Cylinder, Ellipsoid, EllipticCylinder, Shape, TorusSection
 
 

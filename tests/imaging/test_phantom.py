@@ -12,10 +12,11 @@ import numpy as np
 import pydicom
 import pytest
 
+from reachplan.imaging.case_spec import PhantomStructure
 from reachplan.imaging.dicom_io import read_series
 from reachplan.imaging.errors import OutputExistsError
 from reachplan.imaging.meshing import roi_mask, roi_mesh
-from reachplan.imaging.phantom import PhantomFiles, PhantomStructure, phantom_spec, write_phantom
+from reachplan.imaging.phantom import PhantomFiles, phantom_spec, write_phantom
 from reachplan.imaging.rtstruct import read_rtstruct
 from reachplan.imaging.types import StructureSet, Volume
 from reachplan.planner.cli import main
