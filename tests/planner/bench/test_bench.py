@@ -90,10 +90,16 @@ def test_factors_quick_writes_a_table_the_planner_reads(tmp_path: Path, capsys: 
     assert (out / "curvature_factors.png").stat().st_size > 10_000
 
 
-def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def _quick(target: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Path:
+    """Run ``reachplan bench TARGET --quick`` into a fresh folder (exit status 0, output swallowed); return it."""
     out = tmp_path / "out"
-    assert main(["bench", "models", "--quick", "--out", str(out)]) == 0
+    assert main(["bench", target, "--quick", "--out", str(out)]) == 0
     capsys.readouterr()
+    return out
+
+
+def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = _quick("models", tmp_path, capsys)
     header, rows = _read_csv(out / "rod_models.csv")
     assert header == list(models.ROW_COLUMNS)
     default = {r["model"]: r for r in rows if r["resolution"].endswith("(default)")}
@@ -139,9 +145,7 @@ def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pyt
 
 
 def test_dose_quick_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    out = tmp_path / "out"
-    assert main(["bench", "dose", "--quick", "--out", str(out)]) == 0
-    capsys.readouterr()
+    out = _quick("dose", tmp_path, capsys)
     header, rows = _read_csv(out / "dose_benchmark.csv")
     assert header == list(dose.COLUMNS)
     assert rows[0]["variant"] == "float64 dense" and rows[0]["max_rel_err"] == ""
