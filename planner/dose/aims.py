@@ -1,10 +1,15 @@
-"""Planning aims as data: the HR-CTV coverage aim, the GTV aim and the organs' D2cm³ limits, with the fractionation.
+"""Planning aims as data: each aim with its planning value and its hard limit, the headroom and the fractionation.
 
-Default aims are the EMBRACE II planning aims (Pötter et al., Clin. Transl. Radiat. Oncol. 9:48, 2018;
-``reference/oncoreach.md``): HR-CTV D90 >= 85 Gy, D98 >= 75 Gy EQD2 (α/β 10); D2cm³ bladder < 80 Gy,
-rectum < 65 Gy, sigmoid < 70 Gy, bowel < 70 Gy EQD2 (α/β 3); 45 Gy / 25 fractions external beam plus
-4 brachytherapy fractions. The GTV D98 aim (> 90 Gy EQD2) is from the ESGO/ESTRO achievability table (reached in
-90 % of patients).
+Default aims are the EMBRACE II protocol's (Pötter et al., Clin. Transl. Radiat. Oncol. 9:48, 2018;
+``reference/gyn_anatomy.md``, dose aims), totals of EBRT and brachytherapy in EQD2: HR-CTV D90 planning aim
+> 90 and < 95 Gy, hard limit > 85 Gy; HR-CTV D98 > 75 Gy; GTV_res D98 > 95 Gy (limit > 90 Gy) (α/β 10); D2cm³
+bladder < 80 (limit 90), rectum < 65 (limit 75), sigmoid < 70 (limit 75), bowel < 70 (limit 75) Gy (α/β 3);
+45 Gy / 25 fractions external beam plus 4 brachytherapy fractions.
+
+Two levels, as the protocol has them: the *planning aim* is what a plan is made for, the *hard limit* is what no
+delivered plan may break. A plan meets its aims with ``headroom_eqd2_gy`` to spare on every organ (an independent
+recomputation of the same plan lands within a fraction of a Gy on either side); robust planning holds the hard
+limits when a needle is off its planned path.
 """
 
 from __future__ import annotations
@@ -20,25 +25,55 @@ EMBRACE_II_OAR_D2CC: tuple[tuple[str, float], ...] = (
     ("sigmoid", 70.0),
     ("bowel", 70.0),
 )
+#: EMBRACE II D2cm³ hard limits, EQD2 Gy (α/β 3).
+EMBRACE_II_OAR_D2CC_LIMIT: tuple[tuple[str, float], ...] = (
+    ("bladder", 90.0),
+    ("rectum", 75.0),
+    ("sigmoid", 75.0),
+    ("bowel", 75.0),
+)
+
+
+def _lookup(table: tuple[tuple[str, float], ...], name: str) -> float | None:
+    """Return the value of the first organ of ``table`` that ``name`` matches (case-insensitively, or contains)."""
+    key = name.casefold()
+    for organ, value in table:
+        if organ.casefold() == key or organ.casefold() in key:
+            return value
+    return None
 
 
 @dataclass(frozen=True)
 class Aims:
-    """Coverage aim and organ limits (EQD2, totals with the external-beam course).
+    """Coverage aims and organ limits of one protocol (EQD2, totals with the external-beam course).
 
-    Defaults: EMBRACE II (see the module docstring). The prescription (V100) and ``aim_met`` use the D90
-    aim; the D98 aim is carried for reports. Organ limits match organ names case-insensitively, also as
-    a substring (``"Bladder_P"`` gets the bladder limit); organs without a limit are reported only.
+    Defaults: EMBRACE II (see the module docstring). The prescription (V100) is the D90 planning aim. Organ
+    aims and limits match organ names case-insensitively, also as a substring (``"Bladder_P"`` gets the bladder's);
+    organs without an aim are reported only.
 
     Parameters
     ----------
-    target_d90_eqd2_gy, target_d98_eqd2_gy : float
-        HR-CTV D90 and D98 aims, Gy EQD2 (α/β ``alpha_beta_target_gy``), totals with the external beam.
+    name : str
+        The protocol's name, as reports show it.
+    target_d90_eqd2_gy : float
+        HR-CTV D90 planning aim (lower end), Gy EQD2 (α/β ``alpha_beta_target_gy``).
+    target_d90_max_eqd2_gy : float or None
+        HR-CTV D90 planning aim, upper end, Gy EQD2; None for none.
+    target_d90_limit_eqd2_gy : float
+        HR-CTV D90 hard limit (lower), Gy EQD2: kept in every robustness scenario.
+    target_d98_eqd2_gy : float
+        HR-CTV D98 planning aim, Gy EQD2.
     gtv_d98_eqd2_gy : float
-        GTV_res D98 aim, Gy EQD2 (ESGO/ESTRO quality indicators 2023, reached in 90 % of patients); used by implant
-        planning when a GTV is given.
+        GTV_res D98 planning aim, Gy EQD2 (used when a GTV is given).
+    gtv_d98_limit_eqd2_gy : float
+        GTV_res D98 hard limit, Gy EQD2.
     oar_d2cc_eqd2_gy : tuple of (organ name, Gy EQD2)
-        D2cm³ limit of each organ (α/β ``alpha_beta_oar_gy``).
+        D2cm³ planning aim of each organ (α/β ``alpha_beta_oar_gy``).
+    oar_d2cc_limit_eqd2_gy : tuple of (organ name, Gy EQD2)
+        D2cm³ hard limit of each organ; an organ's limit is never below its aim (an organ with an aim and no limit
+        here, or a lower one, has its aim as its limit).
+    headroom_eqd2_gy : float
+        Margin below each organ's planning aim that the nominal plan keeps, Gy EQD2 (>= 0).
     alpha_beta_target_gy, alpha_beta_oar_gy : float
         α/β of the tumour and of the organs, Gy.
     fractionation : Fractionation
@@ -47,13 +82,20 @@ class Aims:
     Raises
     ------
     ValueError
-        A non-positive aim, limit or α/β.
+        A non-positive aim, limit or α/β, a negative headroom, a target's hard limit above its planning aim, or a
+        D90 upper aim below the lower one.
     """
 
-    target_d90_eqd2_gy: float = 85.0
+    name: str = "EMBRACE II"
+    target_d90_eqd2_gy: float = 90.0
+    target_d90_max_eqd2_gy: float | None = 95.0
+    target_d90_limit_eqd2_gy: float = 85.0
     target_d98_eqd2_gy: float = 75.0
-    gtv_d98_eqd2_gy: float = 90.0
+    gtv_d98_eqd2_gy: float = 95.0
+    gtv_d98_limit_eqd2_gy: float = 90.0
     oar_d2cc_eqd2_gy: tuple[tuple[str, float], ...] = EMBRACE_II_OAR_D2CC
+    oar_d2cc_limit_eqd2_gy: tuple[tuple[str, float], ...] = EMBRACE_II_OAR_D2CC_LIMIT
+    headroom_eqd2_gy: float = 1.0
     alpha_beta_target_gy: float = 10.0
     alpha_beta_oar_gy: float = 3.0
     fractionation: Fractionation = field(default_factory=Fractionation)
@@ -61,16 +103,37 @@ class Aims:
     def __post_init__(self) -> None:
         if not (self.target_d90_eqd2_gy > 0 and self.alpha_beta_target_gy > 0 and self.alpha_beta_oar_gy > 0):
             raise ValueError("aims: the D90 aim and both α/β must be > 0 Gy")
-        if any(limit <= 0 for _, limit in self.oar_d2cc_eqd2_gy):
-            raise ValueError("aims: organ limits must be > 0 Gy")
+        if any(v <= 0 for _, v in self.oar_d2cc_eqd2_gy + self.oar_d2cc_limit_eqd2_gy):
+            raise ValueError("aims: organ aims and limits must be > 0 Gy")
+        if self.headroom_eqd2_gy < 0:
+            raise ValueError("aims: the headroom must be >= 0 Gy")
+        if self.target_d90_limit_eqd2_gy > self.target_d90_eqd2_gy or self.gtv_d98_limit_eqd2_gy > self.gtv_d98_eqd2_gy:
+            raise ValueError("aims: a target's hard limit must not exceed its planning aim")
+        if self.target_d90_max_eqd2_gy is not None and self.target_d90_max_eqd2_gy < self.target_d90_eqd2_gy:
+            raise ValueError("aims: the D90 upper aim must be >= the lower aim")
 
     @property
     def prescription_gy(self) -> float:
-        """Per-fraction physical dose whose D90 meets the aim, Gy."""
+        """Per-fraction physical dose whose D90 meets the planning aim, Gy."""
         return self.fractionation.per_fraction_for(self.target_d90_eqd2_gy, self.alpha_beta_target_gy)
 
-    def oar_limit_gy(self, name: str) -> float | None:
-        """Return the per-fraction physical D2cm³ limit of organ ``name``.
+    def per_fraction_target_gy(self, total_eqd2_gy: float) -> float:
+        """Return the per-fraction physical dose (Gy) that brings a target's total to ``total_eqd2_gy`` (α/β tumour).
+
+        Parameters
+        ----------
+        total_eqd2_gy : float, Gy EQD2
+            Total with the external beam.
+
+        Returns
+        -------
+        float, Gy per fraction
+            Brachytherapy dose per fraction.
+        """
+        return self.fractionation.per_fraction_for(total_eqd2_gy, self.alpha_beta_target_gy)
+
+    def oar_aim_eqd2_gy(self, name: str) -> float | None:
+        """Return organ ``name``'s D2cm³ planning aim, Gy EQD2 (None when it has none).
 
         Parameters
         ----------
@@ -80,10 +143,75 @@ class Aims:
         Returns
         -------
         float or None
-            Gy per fraction; None when the organ has no limit.
+            Gy EQD2.
         """
-        key = name.casefold()
-        for organ, limit in self.oar_d2cc_eqd2_gy:
-            if organ.casefold() == key or organ.casefold() in key:
-                return self.fractionation.per_fraction_for(limit, self.alpha_beta_oar_gy)
-        return None
+        return _lookup(self.oar_d2cc_eqd2_gy, name)
+
+    def oar_hard_limit_eqd2_gy(self, name: str) -> float | None:
+        """Return organ ``name``'s D2cm³ hard limit, Gy EQD2 (never below its aim; None without aim or limit).
+
+        Parameters
+        ----------
+        name : str
+            The organ's name (matched case-insensitively, also as a substring).
+
+        Returns
+        -------
+        float or None
+            Gy EQD2.
+        """
+        aim = self.oar_aim_eqd2_gy(name)
+        limit = _lookup(self.oar_d2cc_limit_eqd2_gy, name)
+        if aim is None or limit is None:
+            return aim if limit is None else limit
+        return max(aim, limit)
+
+    def oar_limit_gy(self, name: str) -> float | None:
+        """Return organ ``name``'s per-fraction physical D2cm³ planning aim (no headroom).
+
+        Parameters
+        ----------
+        name : str
+            The organ's name (matched case-insensitively, also as a substring).
+
+        Returns
+        -------
+        float or None
+            Gy per fraction; None when the organ has no aim.
+        """
+        aim = self.oar_aim_eqd2_gy(name)
+        return None if aim is None else self.fractionation.per_fraction_for(aim, self.alpha_beta_oar_gy)
+
+    def oar_planning_gy(self, name: str) -> float | None:
+        """Return the per-fraction physical D2cm³ a nominal plan may reach: the planning aim less the headroom.
+
+        Parameters
+        ----------
+        name : str
+            The organ's name (matched case-insensitively, also as a substring).
+
+        Returns
+        -------
+        float or None
+            Gy per fraction; None when the organ has no aim.
+        """
+        aim = self.oar_aim_eqd2_gy(name)
+        if aim is None:
+            return None
+        return self.fractionation.per_fraction_for(max(aim - self.headroom_eqd2_gy, 1e-3), self.alpha_beta_oar_gy)
+
+    def oar_hard_limit_gy(self, name: str) -> float | None:
+        """Return organ ``name``'s per-fraction physical D2cm³ hard limit.
+
+        Parameters
+        ----------
+        name : str
+            The organ's name (matched case-insensitively, also as a substring).
+
+        Returns
+        -------
+        float or None
+            Gy per fraction; None when the organ has neither aim nor limit.
+        """
+        limit = self.oar_hard_limit_eqd2_gy(name)
+        return None if limit is None else self.fractionation.per_fraction_for(limit, self.alpha_beta_oar_gy)

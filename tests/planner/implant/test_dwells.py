@@ -68,9 +68,17 @@ def _d2cc_independent(ps: PlanningStructures, dose: np.ndarray, name: str) -> fl
 
 def test_prescription_from_embrace_ii() -> None:
     aims = Aims()
-    rx = aims.prescription_gy  # 4 fractions + 45 Gy / 25 → 85 Gy EQD2 (α/β 10)
-    assert float(eqd2(rx, 4, 10.0) + eqd2(1.8, 25, 10.0)) == pytest.approx(85.0)
-    assert 7.0 < rx < 7.3
+    rx = aims.prescription_gy  # 4 fractions + 45 Gy / 25 → 90 Gy EQD2 (α/β 10), the planning aim
+    assert float(eqd2(rx, 4, 10.0) + eqd2(1.8, 25, 10.0)) == pytest.approx(90.0)
+    assert 7.6 < rx < 7.9  # d² + 10 d = 137.25 → 7.74 Gy
+    # two levels: the nominal plan keeps 1 Gy EQD2 below the aim, the hard limit is EMBRACE II's
+    assert float(eqd2(aims.oar_planning_gy("Bladder"), 4, 3.0) + eqd2(1.8, 25, 3.0)) == pytest.approx(79.0)
+    assert float(eqd2(aims.oar_hard_limit_gy("sigmoid_colon"), 4, 3.0) + eqd2(1.8, 25, 3.0)) == pytest.approx(75.0)
+    assert aims.oar_hard_limit_gy("femur") is None
+    # a limit is never below its aim: overriding only the aims keeps them consistent
+    assert Aims(oar_d2cc_eqd2_gy=(("bowel", 400.0),)).oar_hard_limit_eqd2_gy("bowel") == 400.0
+    with pytest.raises(ValueError, match="hard limit"):
+        Aims(target_d90_limit_eqd2_gy=92.0)
     assert aims.oar_limit_gy("Bladder_P") == pytest.approx(Fractionation().per_fraction_for(80.0, 3.0))
     assert aims.oar_limit_gy("Femur") is None
     with pytest.raises(ValueError, match="limits"):

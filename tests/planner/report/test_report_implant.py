@@ -56,7 +56,7 @@ def test_pareto_figure_has_both_curves_the_aims_and_each_chosen_plan(arms: tuple
         assert arm.plan is not None
         assert np.allclose(chosen, [(arm.plan.n_needles, arm.plan.target.d90_eqd2_gy)])
     aim = lines["aim:D90"].get_ydata()  # type: ignore[attr-defined]
-    assert np.allclose(aim, 85.0)
+    assert np.allclose(aim, Aims().target_d90_eqd2_gy)
     assert lines["pareto:straight"].get_linestyle() != lines["pareto:steered"].get_linestyle()  # type: ignore[attr-defined]
 
 
