@@ -61,6 +61,12 @@ class Channel:
         Stylet preset ("" for a straight needle).
     schedule : TensionSchedule or None
         Tension and roll along the insertion (None for a straight needle).
+    scenario_paths_mm : tuple of (k, 3) float, mm, LPS
+        Where the needle may really go: paths of the planner's own uncertainty model (for a steered needle the
+        robustness room's worst-case paths), base to tip; empty when not computed. Robust planning adds its own
+        sideways shifts of ``path_mm`` to these.
+    model : str
+        The rod model that predicted ``path_mm`` ("" for a straight needle or an intracavitary channel).
     """
 
     name: str
@@ -72,6 +78,8 @@ class Channel:
     clearance_mm: float = float("inf")
     design: str = ""
     schedule: TensionSchedule | None = field(default=None, repr=False)
+    scenario_paths_mm: tuple[np.ndarray, ...] = field(default=(), repr=False)
+    model: str = ""
 
     @property
     def is_needle(self) -> bool:
