@@ -20,6 +20,8 @@ from reachplan.imaging.types import Grid, StructureSet, Volume
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
+from reachplan.planner.dose.aims import Aims
+from reachplan.planner.dose.evaluation import AimsTable, emit, evaluate_aims, site_warning
 from reachplan.planner.dose.structures import planning_structures
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.implant.case import ImplantComparison, plan_implants
@@ -28,7 +30,6 @@ from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
-    from reachplan.planner.dose.aims import Aims
     from reachplan.planner.dose.dwells import DwellSet
     from reachplan.planner.dose.structures import PlanningStructures
     from reachplan.planner.dose.tg43 import Tg43Kernel
@@ -75,6 +76,14 @@ class Delivery:
         The two implant arms (:func:`~reachplan.planner.implant.case.plan_implants`) when asked for.
     implant_exports : dict of str to ExportPlan
         By arm name, the export of each arm's chosen implant (loaded channels only).
+    aims : Aims
+        The protocol the plan was made for and is reported against.
+    aims_tables : dict of str to AimsTable
+        Each plan's dose against every aim: ``straight`` and ``steered`` (the implant arms' chosen plans) and
+        ``delivered`` (the exported plan; the same table as its arm's).
+    warnings : tuple of str
+        ``"Category: message"`` of the protocol's named warnings: the dose target is not the protocol's site's
+        (which aims were used), an organ smaller than 2 cm³.
     """
 
     optimisation: OptimisationResult
@@ -85,6 +94,9 @@ class Delivery:
     kind: str = PER_TARGET
     implant: ImplantComparison | None = None
     implant_exports: dict[str, ExportPlan] = field(default_factory=dict)
+    aims: Aims = field(default_factory=Aims)
+    aims_tables: dict[str, AimsTable] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
 
     @property
     def n_needles(self) -> int:
@@ -111,7 +123,34 @@ class Delivery:
                                  for p in ex.reference_points],
             "optimisation": {"success": opt.success, "reason": opt.reason, "aim_met": opt.aim_met,
                              "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
+            "aims": self.aims_tables["delivered"].to_json() if "delivered" in self.aims_tables else None,
         }
+
+    def implant_json(self) -> dict[str, object] | None:
+        """Return plan.json's ``implant`` with each arm's aims (None without implant arms).
+
+        Returns
+        -------
+        dict or None
+            :meth:`ImplantComparison.to_json` with ``<arm>.aims`` (:meth:`AimsTable.to_json`), ``<arm>.aims_met``
+            the table's verdict (every planning aim met with the protocol's headroom), and each organ's D2cm³
+            None where it is not applicable (an organ under 2 cm³).
+        """
+        if self.implant is None:
+            return None
+        doc = self.implant.to_json()
+        for name, table in self.aims_tables.items():
+            arm = doc.get(name)
+            if not isinstance(arm, dict):
+                continue
+            arm["aims"] = table.to_json()
+            arm["aims_met"] = table.aims_met
+            d2cc = arm.get("oar_d2cc_eqd2_gy")
+            if isinstance(d2cc, dict):
+                for r in table.results:
+                    if r.metric == "D2cm³" and r.value_eqd2_gy is None and r.structure in d2cc:
+                        d2cc[r.structure] = None
+        return doc
 
 
 def plan_delivery(
@@ -128,6 +167,7 @@ def plan_delivery(
     planned_dose: bool = True,
     scene: Scene | None = None,
     implant_settings: ImplantSettings | None = None,
+    aims: Aims | None = None,
 ) -> Delivery:
     """Plan the dwell times on the target and assemble the export plan (RT Plan + Structure Set + Dose + device).
 
@@ -136,9 +176,11 @@ def plan_delivery(
     and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
     other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
     a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
-    Dose by TG-43 against the EMBRACE II aims.
+    Dose by TG-43 against the protocol's aims (``aims``; EMBRACE II by default): each implant arm's and the
+    delivered plan's dose against every aim (:func:`~reachplan.planner.dose.evaluation.evaluate_aims`), with the
+    protocol's named warnings issued once (the dose target is not the site's; an organ under 2 cm³).
 
-    The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
+    The export carries the prescription (the per-fraction dose whose D90 meets the protocol's planning aim, in as many
     fractions as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where
     the structures allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``,
     (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
@@ -173,6 +215,8 @@ def plan_delivery(
         With it the implant arms are planned and delivered; None: one needle per target.
     implant_settings : ImplantSettings or None
         Settings of the implant planning; None: the defaults.
+    aims : Aims or None
+        The protocol's aims (:func:`reachplan.planner.dose.protocol.load_protocol`); None: EMBRACE II.
 
     Returns
     -------
@@ -192,7 +236,7 @@ def plan_delivery(
                                    None if scene is None else scene.applicators)
     source = get_source(source_name)
     kernel = Tg43Kernel(source)
-    aims = Aims()
+    aims = Aims() if aims is None else aims
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
                                                     implant_settings)
     active = opt.dwells.select(opt.dwells.times_s > 0)
@@ -212,7 +256,44 @@ def plan_delivery(
     export = export_plan(label, exports, points, dose)
     implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
                        for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
-    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
+    tables = _aims_tables(aims, planning, implant, opt, kind, points, kernel, air_kerma_u)
+    notes = [w for w in (site_warning(aims, target_roi),) if w]
+    notes += [w for t in tables.values() for w in t.warnings]
+    emit(notes)
+    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports, aims, tables,
+                    tuple(dict.fromkeys(notes)))
+
+
+def _aims_tables(aims: Aims, planning: PlanningStructures, implant: ImplantComparison | None,
+                 opt: OptimisationResult, kind: str, points: Sequence[ReferencePoint], kernel: Tg43Kernel,
+                 air_kerma_u: float) -> dict[str, AimsTable]:
+    """Each implant arm's chosen plan and the delivered plan against every aim (points: the delivered plan's)."""
+    from reachplan.planner.dose.coverage import voxel_volume_cc
+    from reachplan.planner.dose.dwells import dose_at_points
+
+    vox = voxel_volume_cc(planning.grid)
+    volumes = {o.name: float(o.mask.sum()) * vox for o in planning.oars}
+    where = np.array([p.position_mm for p in points]).reshape(-1, 3)
+
+    def at_points(dwells: DwellSet) -> list[tuple[str, float]]:
+        if not len(where) or not len(dwells):
+            return []
+        doses = dose_at_points(where, dwells, kernel, air_kerma_u)
+        return [(p.name, float(d)) for p, d in zip(points, doses, strict=True)]
+
+    tables: dict[str, AimsTable] = {}
+    for arm in implant.arms if implant is not None else ():
+        if arm.plan is not None:
+            pl = arm.plan
+            tables[arm.name] = evaluate_aims(aims, pl.target, pl.oars, organ_volumes_cc=volumes, gtv=pl.gtv,
+                                             points=at_points(pl.dwells))
+    delivered = EXPORT_ARM if kind == "implant, straight + steered" else kind.removeprefix("implant, ")
+    if delivered in tables:
+        tables["delivered"] = tables[delivered]
+    elif opt.success:
+        tables["delivered"] = evaluate_aims(aims, opt.target, opt.oars, organ_volumes_cc=volumes,
+                                            points=at_points(opt.dwells.select(opt.dwells.times_s > 0)))
+    return tables
 
 
 def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,
@@ -224,7 +305,7 @@ def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStruct
     """
     implant = None
     if scene is not None:
-        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings, aims=aims)
     delivered = _delivered_implant(implant, planning.target.name)
     if delivered is not None:
         arm, opt, exports, roles = delivered

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from reachplan.planner.errors import PlanInputError
 from reachplan.plugins import registry
 from reachplan.plugins.errors import PluginError
+from reachplan.plugins.protocols import ProtocolFile
 from reachplan.plugins.sources import BUILTIN, SourceData
 from reachplan.plugins.templates import Template
 
@@ -212,3 +213,38 @@ def optimiser(name: str) -> Any:
         No optimiser of that name is installed (the message lists the available ones), or it is unavailable.
     """
     return registry.get("optimisers", name)
+
+
+def protocol_names() -> tuple[str, ...]:
+    """Return the names of the installed protocols (entry-point group ``reachplan.protocols``), sorted.
+
+    Returns
+    -------
+    tuple of str
+        E.g. ``("embrace_ii",)``.
+    """
+    return registry.names("protocols")
+
+
+def protocol_file(name: str) -> ProtocolFile:
+    """Return the protocol file registered as ``name``.
+
+    Parameters
+    ----------
+    name : str
+        Its entry-point name in ``reachplan.protocols`` (e.g. ``"embrace_ii"``).
+
+    Returns
+    -------
+    ProtocolFile
+        The file's name, text and origin.
+
+    Raises
+    ------
+    PluginError
+        Unknown or unavailable protocol, or a plugin that does not return a ProtocolFile.
+    """
+    made = registry.get("protocols", name)()
+    if not isinstance(made, ProtocolFile):
+        raise PluginError(f"protocols plugin {name!r} did not return a ProtocolFile (got {type(made).__name__})")
+    return made

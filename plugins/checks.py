@@ -10,6 +10,7 @@ the reason otherwise:
 ``exporters``        :func:`reachplan.plugins.exporters.base.check_exporter`
 ``applicators``      :func:`reachplan.plugins.applicators.base.check_applicator_kind`
 ``optimisers``       :func:`check_optimiser` (structural: the implant planner types them)
+``protocols``        ``obj()`` (no arguments) returns a :class:`reachplan.plugins.protocols.ProtocolFile`
 
 A kind whose Protocol is defined in another module imports it when a plugin of that kind is first checked, so
 importing the registry stays cheap.
@@ -102,6 +103,13 @@ def _source_factory(obj: object) -> None:
     _check_made(obj, "sources", SourceData)
 
 
+def _protocol_factory(obj: object) -> None:
+    """Check that ``obj()`` returns a :class:`reachplan.plugins.protocols.ProtocolFile`."""
+    from reachplan.plugins.protocols import ProtocolFile
+
+    _check_made(obj, "protocols", ProtocolFile)
+
+
 def _exporter(obj: object) -> None:
     """Apply the exporter Protocol's own check (:func:`reachplan.plugins.exporters.base.check_exporter`)."""
     from reachplan.plugins.exporters.base import check_exporter
@@ -143,4 +151,5 @@ DEFAULT_CHECKS: Mapping[str, Callable[[Any], None]] = MappingProxyType({
     "exporters": _exporter,
     "applicators": _applicator_kind,
     "optimisers": check_optimiser,
+    "protocols": _protocol_factory,
 })

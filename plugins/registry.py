@@ -11,6 +11,7 @@ Groups (entry-point group ``reachplan.<kind>``) and the Protocol each plugin is 
 ``applicators``      objects implementing :class:`reachplan.plugins.applicators.ApplicatorKind`
 ``optimisers``       dwell optimisers: objects with a str ``name`` and a callable ``optimise`` (the implant
                      planner's optimiser Protocol, checked structurally)
+``protocols``        zero-argument callables returning a :class:`reachplan.plugins.protocols.ProtocolFile`
 
 The checks are the functions of :mod:`reachplan.plugins.checks` (:data:`DEFAULT_CHECKS`).
 
@@ -35,7 +36,7 @@ from reachplan.plugins.checks import DEFAULT_CHECKS
 from reachplan.plugins.errors import PluginError
 
 KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators",
-                          "optimisers")
+                          "optimisers", "protocols")
 
 BUILTIN_DISTRIBUTION = "reachplan"
 

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from reachplan.planner.cli.edges import output_folder, print_json, staged_folder
+from reachplan.planner.cli.edges import PROTOCOL_HELP, output_folder, print_json, staged_folder
 
 if TYPE_CHECKING:
     from reachplan.planner.case.result import BlockedNeedle
@@ -31,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--out", type=Path, required=True, help="output folder (created; case in OUT/phantom)")
     add_case_arguments(parser)
+    parser.add_argument("--protocol", metavar="FILE_OR_NAME", help=PROTOCOL_HELP)
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print the ranking as JSON on stdout")
 
@@ -76,7 +77,10 @@ def run(args: argparse.Namespace) -> int:
     int
         0: nothing appears in ``--out`` unless the whole demo succeeds (a failure raises).
     """
+    from reachplan.planner.dose.protocol import load_protocol
+
     output_folder(args.out)
+    args.aims = load_protocol(args.protocol)  # a bad file or name is an error before any work
     quiet = args.quiet or args.json
     with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole demo succeeds
         doc = _demo(args, stage, quiet)
@@ -118,7 +122,8 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label)
-    case, doc = plan_and_write(inputs, CaseConfig(plan=config, target_names=targets), out, quiet, final_out=args.out,
+    case, doc = plan_and_write(inputs, CaseConfig(plan=config, target_names=targets, aims=args.aims), out, quiet,
+                               final_out=args.out,
                                extra={"case": label, "case_about": about,
                                       "phantom_s": {"write": t_write, "read": t_read}})
     atomic_write_json(out / "ranking.json", case.result.ranking_json())

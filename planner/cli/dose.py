@@ -10,9 +10,20 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from reachplan.planner.cli.edges import ArgumentError, finite, finite_float, output_file, print_json, seen_warnings
+from reachplan.planner.cli.edges import (
+    PROTOCOL_HELP,
+    ArgumentError,
+    finite,
+    finite_float,
+    output_file,
+    print_json,
+    seen_warnings,
+)
 
 if TYPE_CHECKING:
+    from reachplan.imaging.brachy_plan import RtPlan
+    from reachplan.imaging.types import StructureSet
+    from reachplan.planner.dose.aims import Aims
     from reachplan.planner.run.dose_check import DoseCheck
 
 NAME = "dose"
@@ -44,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="TG-43 line-source (default) or 1D point-source formalism")
     parser.add_argument("--bits", type=int, choices=(16, 32), default=16,
                         help="RT Dose pixel depth (default 16; dciodvfy cannot read 32-bit RT Dose)")
+    parser.add_argument("--protocol", metavar="FILE_OR_NAME",
+                        help="also report the plan's dose against each aim of a protocol (target, organs, points; "
+                             "implies --points): " + PROTOCOL_HELP.removeprefix("the dose aims: "))
     parser.add_argument("--out", required=True, type=Path, help="RT Dose file to write")
     parser.add_argument("--json", action="store_true",
                         help="print JSON on stdout (with --points the points are under 'points'; warnings met are "
@@ -78,6 +92,12 @@ def run(args: argparse.Namespace) -> int:
             raise ArgumentError(f"{option} {given} is not a file; give the path of the DICOM file")
     if args.source:
         get_source(args.source)  # an unknown name is an error now, not after work
+    aims = None
+    if args.protocol:
+        from reachplan.planner.dose.protocol import load_protocol
+
+        aims = load_protocol(args.protocol)  # a bad file or name is an error now, not after work
+        args.points = True
     plan = read_rtplan(args.plan)
     structures = read_rtstruct(args.structures)
     like = read_rtdose_grid(args.like)[1] if args.like is not None else None
@@ -86,11 +106,29 @@ def run(args: argparse.Namespace) -> int:
     check = check_plan_dose(plan, structures, config, str(args.plan))
     # the only output, written last and atomically
     write_rtdose(args.out, check.dose_gy, check.grid, check.context, bits=args.bits, ceiling_gy=check.ceiling_gy)
-    _report(args, check)
+    aims_doc, aims_text = _aims(plan, structures, check, aims) if aims is not None else (None, "")
+    _report(args, check, aims_doc)
+    if aims_text and not args.json:
+        print(aims_text)
     return 0
 
 
-def _report(args: argparse.Namespace, check: DoseCheck) -> None:
+def _aims(plan: RtPlan, structures: StructureSet, check: DoseCheck, aims: Aims) -> tuple[dict[str, object], str]:
+    """Return ``protocol`` and ``aims`` for the JSON and the aims table as text; the warnings are issued."""
+    from reachplan.planner.dose.evaluation import emit, protocol_json
+    from reachplan.planner.report.terminal import AIMS_LEGEND, aims_rows, format_rows
+    from reachplan.planner.run.dose_aims import plan_dose_aims
+
+    table, notes = plan_dose_aims(plan, structures, check.grid, check.dose_gy, check.checks, aims)
+    emit(notes)
+    text = "\n".join([f"dose aims: {aims.name} ({aims.site}; {aims.origin}), Gy EQD2 totals with "
+                      f"{aims.fractionation.n_fractions} fractions of this plan's fraction dose ({plan.n_fractions} "
+                      "planned) and the protocol's external beam", format_rows(aims_rows({"delivered": table})),
+                      AIMS_LEGEND.format(headroom=aims.headroom_eqd2_gy)])
+    return {"protocol": protocol_json(aims), "aims": table.to_json()}, text
+
+
+def _report(args: argparse.Namespace, check: DoseCheck, aims_doc: dict[str, object] | None = None) -> None:
     """Print what was computed: one JSON document (``--json``) or lines of text."""
     grid, dose, strength = check.grid, check.dose_gy, check.strength
     if args.json:
@@ -108,6 +146,7 @@ def _report(args: argparse.Namespace, check: DoseCheck) -> None:
         if args.points:
             doc["points"] = [{"name": c.name, "position_mm": [float(x) for x in c.position_mm], "dose_gy": c.dose_gy,
                               "tps_gy": c.tps_gy, "diff_percent": c.diff_percent} for c in check.checks]
+        doc.update(aims_doc or {})
         doc["warnings"] = seen_warnings(args)
         print_json(doc, NAME)
         return

@@ -32,6 +32,11 @@ class ArgumentError(ReachplanError):
     """A command-line argument is invalid (not finite, out of range, unknown name, unusable output place)."""
 
 
+#: ``--protocol``'s help, the same on ``plan``, ``demo`` and ``dose``.
+PROTOCOL_HELP = ("the dose aims: a protocol file (TOML, format in docs/commands.md) or an installed protocol's name "
+                 "(default: embrace_ii, EMBRACE II cervix; `reachplan plugins --kind protocols` lists them)")
+
+
 # --- numbers ---------------------------------------------------------------------------------------------
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from reachplan.planner.cli.edges import (
+    PROTOCOL_HELP,
     applicator_assignments,
     output_folder,
     print_json,
@@ -81,6 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stylet presets to steer with (none: straight needles only)")
     parser.add_argument("--target-roi", default="HR-CTV", help="ROI the dwell times are optimised on")
     parser.add_argument("--source", default="gammamed_plus_hdr", help="TG-43 source plugin for the dose")
+    parser.add_argument("--protocol", metavar="FILE_OR_NAME", help=PROTOCOL_HELP)
     parser.add_argument("--reference-point", action="append", default=[], metavar="NAME=X,Y,Z",
                         help="a dose reference point of the exported plan (mm, LPS), with its planned dose; "
                              "repeatable (Point A and the ICRU bladder/rectum points are added when the "
@@ -266,7 +268,9 @@ def _names(args: argparse.Namespace, config: PlanConfig) -> tuple[SynonymTable, 
 
 
 def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
-    """Check what can be checked before any work: the output folder, template, designs, source and targets.
+    """Check what can be checked before any work: the output folder, template, designs, source, protocol, targets.
+
+    The protocol's aims are kept as ``args.aims``.
 
     Parameters
     ----------
@@ -280,6 +284,7 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
     ReachplanError
         The first argument found wrong (one line saying what to do).
     """
+    from reachplan.planner.dose.protocol import load_protocol
     from reachplan.planner.lookup import get_source, load_template
     from reachplan.rod_model.design import preset
 
@@ -289,6 +294,7 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
         preset(name)
     if not args.no_export:
         get_source(args.source)
+    args.aims = load_protocol(args.protocol)  # a bad file or name is an error before any work
     _targets(args.targets)
 
 
@@ -299,7 +305,7 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
     Parameters
     ----------
     args : argparse.Namespace
-        The parsed ``plan`` arguments.
+        The parsed ``plan`` arguments, with ``aims`` (:func:`check_plan_arguments`).
     structures : StructureSet
         The case's ROIs (for the template pose from an RT Plan and the target checks).
     config : PlanConfig
@@ -331,7 +337,7 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
                       allow_no_oars=args.allow_no_oars,
                       standard_names=tuple(standard_names), export=not args.no_export, implant=not args.no_implant,
                       source=args.source, target_roi=args.target_roi,
-                      named_points=tuple(_reference_points(args.reference_point)))
+                      named_points=tuple(_reference_points(args.reference_point)), aims=args.aims)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -378,7 +384,7 @@ def run(args: argparse.Namespace) -> int:
 def _add_warnings(doc: dict[str, object], args: argparse.Namespace) -> None:
     """Add the named warnings met on the way (readers, planning) to the scene's notes in ``doc["warnings"]``."""
     notes = doc.get("warnings")
-    doc["warnings"] = [*(notes if isinstance(notes, list) else []), *seen_warnings(args)]
+    doc["warnings"] = list(dict.fromkeys([*(notes if isinstance(notes, list) else []), *seen_warnings(args)]))
 
 
 def _print_scene(scene: Scene, quiet: bool) -> None:
@@ -438,5 +444,5 @@ def plan_and_write(inputs: CaseInput, config: CaseConfig, out: Path, quiet: bool
         print(format_summary(case.result, targets=[t.name for t in case.scene.targets], delivery=case.delivery,
                              comparison=case.comparison, files=written))
         if case.delivery is not None and case.delivery.implant is not None:
-            print("\n" + format_implant(case.delivery.implant))
+            print("\n" + format_implant(case.delivery.implant, case.delivery.aims_tables))
     return case, files.doc

@@ -9,13 +9,13 @@ from reachplan.planner.cli.edges import print_json
 
 NAME = "plugins"
 HELP = ("list installed plugins (rod models, insertion models, templates, sources, exporters, applicators, "
-        "optimisers) and whether they load")
+        "optimisers, protocols) and whether they load")
 
 
 #: the registry's ``KINDS``, spelled out: importing the registry (importlib.metadata) would cost every command's
 #: start-up about 70 ms (tests/planner/cli/test_cli_startup.py checks the two agree)
 KINDS: tuple[str, ...] = ("rod_models", "insertion_models", "templates", "sources", "exporters", "applicators",
-                          "optimisers")
+                          "optimisers", "protocols")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -4,7 +4,10 @@ Default aims are the EMBRACE II protocol's (Pötter et al., Clin. Transl. Radiat
 ``reference/gyn_anatomy.md``, dose aims), totals of EBRT and brachytherapy in EQD2: HR-CTV D90 planning aim
 > 90 and < 95 Gy, hard limit > 85 Gy; HR-CTV D98 > 75 Gy; GTV_res D98 > 95 Gy (limit > 90 Gy) (α/β 10); D2cm³
 bladder < 80 (limit 90), rectum < 65 (limit 75), sigmoid < 70 (limit 75), bowel < 70 (limit 75) Gy (α/β 3);
-45 Gy / 25 fractions external beam plus 4 brachytherapy fractions.
+45 Gy / 25 fractions external beam plus 4 brachytherapy fractions; the ICRU recto-vaginal point < 65 Gy (limit
+75 Gy, α/β 3) and Point A reported (ICRU Report 89). The same numbers are the built-in protocol file
+``reachplan/plugins/protocols/embrace_ii.toml``, which :func:`reachplan.planner.dose.protocol.load_protocol` reads
+into these aims (a test checks that the two agree); other protocols are files in that format.
 
 Two levels, as the protocol has them: the *planning aim* is what a plan is made for, the *hard limit* is what no
 delivered plan may break. A plan meets its aims with ``headroom_eqd2_gy`` to spare on every organ (an independent
@@ -34,6 +37,86 @@ EMBRACE_II_OAR_D2CC_LIMIT: tuple[tuple[str, float], ...] = (
 )
 
 
+#: EMBRACE II's target ROI names: what a cervix HR-CTV is called (ICRU 89 ``CTV_HR``; clinical variants).
+EMBRACE_II_TARGET_NAMES: tuple[str, ...] = ("HR-CTV", "CTV_HR", "CTV-HR", "HRCTV", "CTVHR")
+
+#: Where EMBRACE II's numbers come from.
+EMBRACE_II_SOURCE = ("Pötter R et al., The EMBRACE II study: the outcome and prospect of two decades of evolution "
+                     "within the GEC-ESTRO GYN working group and the EMBRACE studies, Clin Transl Radiat Oncol "
+                     "9:48-60, 2018, doi:10.1016/j.ctro.2018.01.001")
+
+
+@dataclass(frozen=True)
+class PointAim:
+    """A dose point of the protocol (ICRU 89 reporting points): reported, with a planning aim and limit if any.
+
+    Parameters
+    ----------
+    name : str
+        The point's name in reports (``"ICRU recto-vaginal"``, ``"Point A"``).
+    match : tuple of str
+        Names of the plan's reference points it stands for, matched as a substring with case, spaces and
+        punctuation ignored (``"Point A"`` matches ``"Point A left"`` and ``"POINT_A_RIGHT"``, each reported;
+        ``"PtA"`` matches Eclipse's ``"PtA_left"`` and ``"PT A RIGHT"``).
+    aim_max_eqd2_gy : float or None
+        Planning aim, upper, Gy EQD2 (None: reported only).
+    limit_max_eqd2_gy : float or None
+        Hard limit, upper, Gy EQD2 (None: none); never below the aim.
+    tissue : str
+        ``"organ"`` or ``"target"``: which α/β gives its EQD2.
+
+    Raises
+    ------
+    ValueError
+        No match name, a non-positive aim or limit, a limit below the aim, or another tissue.
+    """
+
+    name: str
+    match: tuple[str, ...]
+    aim_max_eqd2_gy: float | None = None
+    limit_max_eqd2_gy: float | None = None
+    tissue: str = "organ"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "match", tuple(self.match))
+        if not self.match or not all(m.strip() for m in self.match):
+            raise ValueError(f"point {self.name!r}: give the reference point names it matches")
+        if any(v is not None and not v > 0 for v in (self.aim_max_eqd2_gy, self.limit_max_eqd2_gy)):
+            raise ValueError(f"point {self.name!r}: its aim and limit must be > 0 Gy")
+        if (self.aim_max_eqd2_gy is not None and self.limit_max_eqd2_gy is not None
+                and self.limit_max_eqd2_gy < self.aim_max_eqd2_gy):
+            raise ValueError(f"point {self.name!r}: its hard limit must not be below its planning aim")
+        if self.tissue not in ("organ", "target"):
+            raise ValueError(f"point {self.name!r}: tissue must be 'organ' or 'target', got {self.tissue!r}")
+
+    def matches(self, point_name: str) -> bool:
+        """Return True when the plan's reference point ``point_name`` is this point.
+
+        Parameters
+        ----------
+        point_name : str
+            A reference point's name.
+
+        Returns
+        -------
+        bool
+            One of :attr:`match` is in ``point_name``, both with case, spaces and punctuation ignored.
+        """
+        def key(text: str) -> str:
+            return "".join(ch for ch in text.casefold() if ch.isalnum())
+
+        return any(key(m) in key(point_name) for m in self.match)
+
+
+#: EMBRACE II's points: the ICRU recto-vaginal point (placed as the ICRU 38 rectum point) < 65 Gy, limit 75 Gy;
+#: Point A (left and right) and the ICRU bladder point reported only.
+EMBRACE_II_POINTS: tuple[PointAim, ...] = (
+    PointAim("ICRU recto-vaginal", ("ICRU rectum", "recto-vaginal"), 65.0, 75.0),
+    PointAim("ICRU bladder", ("ICRU bladder",)),
+    PointAim("Point A", ("Point A", "PtA"), tissue="target"),
+)
+
+
 def _lookup(table: tuple[tuple[str, float], ...], name: str) -> float | None:
     """Return the value of the first organ of ``table`` that ``name`` matches (case-insensitively, or contains)."""
     key = name.casefold()
@@ -55,6 +138,13 @@ class Aims:
     ----------
     name : str
         The protocol's name, as reports show it.
+    site : str
+        The site it is for (``"cervix"``).
+    target_names : tuple of str
+        What the site's target volume is called (a dose target named otherwise gets a warning that these aims were
+        used all the same).
+    source : str
+        Where the numbers come from (a citation).
     target_d90_eqd2_gy : float
         HR-CTV D90 planning aim (lower end), Gy EQD2 (α/β ``alpha_beta_target_gy``).
     target_d90_max_eqd2_gy : float or None
@@ -78,6 +168,10 @@ class Aims:
         α/β of the tumour and of the organs, Gy.
     fractionation : Fractionation
         The external-beam course and the number of brachytherapy fractions.
+    points : tuple of PointAim
+        The dose points reported, with their aims and limits if any.
+    origin : str
+        Where the aims were read from (a built-in protocol's name or a file), for reports; not compared.
 
     Raises
     ------
@@ -99,6 +193,11 @@ class Aims:
     alpha_beta_target_gy: float = 10.0
     alpha_beta_oar_gy: float = 3.0
     fractionation: Fractionation = field(default_factory=Fractionation)
+    site: str = "cervix"
+    target_names: tuple[str, ...] = EMBRACE_II_TARGET_NAMES
+    source: str = EMBRACE_II_SOURCE
+    points: tuple[PointAim, ...] = EMBRACE_II_POINTS
+    origin: str = field(default="built-in protocol embrace_ii", compare=False)
 
     def __post_init__(self) -> None:
         if not (self.target_d90_eqd2_gy > 0 and self.alpha_beta_target_gy > 0 and self.alpha_beta_oar_gy > 0):

@@ -351,6 +351,9 @@ class StructureMetrics:
         The same doses as total EQD2.
     alpha_beta_gy : float, Gy
         The α/β used.
+    d0_1cc_gy, d0_1cc_eqd2_gy : float, Gy
+        Minimum dose to the hottest 0.1 cm³, per fraction and as total EQD2 (what is reported for an organ smaller
+        than 2 cm³, whose D2cm³ is not applicable); NaN when not computed.
     """
 
     name: str
@@ -364,6 +367,8 @@ class StructureMetrics:
     d98_eqd2_gy: float
     d2cc_eqd2_gy: float
     alpha_beta_gy: float
+    d0_1cc_gy: float = math.nan
+    d0_1cc_eqd2_gy: float = math.nan
 
 
 def structure_metrics(
@@ -394,7 +399,7 @@ def structure_metrics(
     Returns
     -------
     StructureMetrics
-        D90, D98, D2cc, V100, V150, physical and EQD2.
+        D90, D98, D2cc, D0.1cc, V100, V150, physical and EQD2.
 
     Raises
     ------
@@ -408,6 +413,7 @@ def structure_metrics(
     d90 = dose_to_fraction(d, 0.90)
     d98 = dose_to_fraction(d, 0.98)
     d2cc = dose_to_volume(d, voxel_cc, 2.0)
+    d0_1cc = dose_to_volume(d, voxel_cc, 0.1)
     return StructureMetrics(
         name=name,
         volume_cc=len(d) * voxel_cc,
@@ -420,4 +426,6 @@ def structure_metrics(
         d98_eqd2_gy=fr.total_eqd2(d98, alpha_beta_gy),
         d2cc_eqd2_gy=fr.total_eqd2(d2cc, alpha_beta_gy),
         alpha_beta_gy=alpha_beta_gy,
+        d0_1cc_gy=d0_1cc,
+        d0_1cc_eqd2_gy=fr.total_eqd2(d0_1cc, alpha_beta_gy),
     )

@@ -14,6 +14,7 @@ import numpy as np
 
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig, PlanModels
 from reachplan.planner.case.scene import Scene
+from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import ImplantArm, with_subset
@@ -79,6 +80,7 @@ def plan_implants(
     settings: ImplantSettings | None = None,
     gtv: Structure | None = None,
     models: PlanModels | None = None,
+    aims: Aims | None = None,
 ) -> ImplantComparison:
     """Plan both implant arms of a case: candidates for its target volume, each arm's Pareto curve and chosen plan.
 
@@ -101,6 +103,8 @@ def plan_implants(
         The GTV mask on the planning grid (its D98 is then an aim).
     models : PlanModels or None
         The insertion models (the screening model builds the shape banks); :meth:`PlanModels.for_config` when None.
+    aims : Aims or None
+        The protocol's aims both arms are planned to; None: EMBRACE II.
 
     Returns
     -------
@@ -123,6 +127,6 @@ def plan_implants(
     # arm's implants are its too: never worse
     straight, steered = plan_arms([("straight", [*[c for c in cands if not c.steered], *intracavitary]),
                                    ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
-                                  settings=settings, gtv=gtv)
+                                  aims=aims, settings=settings, gtv=gtv)
     steered = with_subset(steered, straight)
     return ImplantComparison(straight, steered, (*cands, *intracavitary), time.perf_counter() - t0)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -31,29 +31,33 @@ from reachplan.planner.report.html import (
     render_html,
 )
 from reachplan.planner.report.options import ReportOptions
-from reachplan.planner.report.terminal import TENSION_MARGIN, implant_rows, miss_flag, plain_model, tension_flag
+from reachplan.planner.report.terminal import (
+    AIMS_LEGEND,
+    TENSION_MARGIN,
+    aims_rows,
+    implant_rows,
+    miss_flag,
+    plain_model,
+    tension_flag,
+)
 from reachplan.planner.report.view3d import Needle3d, scene_figure
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.rod_model.select import ErrorRow
 
-if TYPE_CHECKING:
-    from reachplan.planner.delivery import ImplantComparison
 
-
-def _implant_section(implant: ImplantComparison | None) -> Section | None:
+def _implant_section(delivery: Delivery | None) -> Section | None:
     """Return the implant section: Pareto curves, both arms' DVHs and the side-by-side table (None without)."""
-    if implant is None:
+    implant = delivery.implant if delivery is not None else None
+    if delivery is None or implant is None:
         return None
-    from reachplan.planner.dose.aims import Aims
-
-    aims = Aims()
-    rows = implant_rows(implant)
+    aims = delivery.aims
+    rows = implant_rows(implant, delivery.aims_tables)
     blocks: list[Block] = [
         Paragraph("The implant for the whole HR-CTV, planned twice on the same anatomy and template: with straight "
                   "needles only, and with straight and steered needles (the intracavitary channels are available "
                   "to both). For each number of template needles the Pareto curve gives the best HR-CTV D90 "
-                  "(EQD2) with every organ's D2cm³ held within its EMBRACE II limit; the chosen implant of each "
-                  f"arm is circled. Aims (EMBRACE II, EQD2): HR-CTV D90 ≥ {aims.target_d90_eqd2_gy:g} Gy; D2cm³ "
+                  "(EQD2) with every organ's D2cm³ held within its limit; the chosen implant of each "
+                  f"arm is circled. Aims ({aims.name}, EQD2): HR-CTV D90 ≥ {aims.target_d90_eqd2_gy:g} Gy; D2cm³ "
                   + ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy) + "."),
         Table(rows[0], tuple(rows[1:]), "Implant arms side by side (EQD2 totals, Gy)",
               numeric=tuple(range(1, len(rows[0])))),
@@ -66,7 +70,7 @@ def _implant_section(implant: ImplantComparison | None) -> Section | None:
         blocks.append(Figure(
             figures.png_bytes(charts.implant_dvh_figure(implant.arms, aims), dpi=90),
             "Both arms' cumulative DVHs per fraction (straight dashed, steered solid; HR-CTV thicker) with the "
-            "EMBRACE II aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. Organ curves cover "
+            f"{aims.name} aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. Organ curves cover "
             "the voxels near the loaded dwells, where D2cm³ is decided."))
     blocks += [Paragraph(f"{a.name}: {a.reason}") for a in implant.arms if a.reason]
     return Section("Implant: straight against steered", "implant", tuple(blocks))
@@ -235,8 +239,9 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                       f"{settings.max_oar_points} points per organ, fewer than the delivered plan's: on the "
                       "demo phantom, D90 moves by up to about 2 Gy EQD2 with the point sampling, so smaller "
                       "differences between the arms are not significant). 'needed' is the smallest number of "
-                      "the arm's needles, in target order, that reaches the aim. Aims (EMBRACE II, EQD2 with "
-                      f"45 Gy / 25 fx external beam, {aims.fractionation.n_fractions} fractions): HR-CTV D90 ≥ "
+                      "the arm's needles, in target order, that reaches the aim. Aims ({aims.name}, EQD2 with "
+                      f"{aims.fractionation.ebrt_dose_gy:g} Gy / {aims.fractionation.ebrt_fractions} fx external "
+                      f"beam, {aims.fractionation.n_fractions} fractions): HR-CTV D90 ≥ "
                       f"{aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}."),
             Table(("arm", "needles", "needed", "D90 (Gy/fx)", "D90 EQD2 (Gy)", "D98 EQD2 (Gy)", "V100 (%)",
                    *(f"{o} D2cm³ EQD2 (Gy)" for o in organs), "aim met", "note"), table_rows,
@@ -262,12 +267,34 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                   numeric=(1, 2, 3, 4, 5, 6)),
         ]
         if opt.success and opt.dvhs:
-            from reachplan.planner.dose.aims import Aims
-
-            png = figures.png_bytes(charts.dvh_aims_figure(opt.dvhs, Aims(), opt.target.name), dpi=90)
-            blocks.append(Figure(png, "Delivered plan: cumulative DVHs per fraction with the EMBRACE II aim "
+            png = figures.png_bytes(charts.dvh_aims_figure(opt.dvhs, delivery.aims, opt.target.name), dpi=90)
+            blocks.append(Figure(png, f"Delivered plan: cumulative DVHs per fraction with the {delivery.aims.name} aim "
                                       "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
     return Section("Dose and coverage", "dose", tuple(blocks))
+
+
+def _aims_section(delivery: Delivery | None) -> Section | None:
+    """Return the protocol's section: which aims, each aim against each plan (the terminal's table), warnings."""
+    if delivery is None or not delivery.aims_tables:
+        return None
+    from reachplan.planner.dose.evaluation import DVH_METHOD
+
+    aims = delivery.aims
+    rows = aims_rows(delivery.aims_tables)
+    fr = aims.fractionation
+    blocks: list[Block] = [
+        Paragraph(f"Protocol: {aims.name} ({aims.site}; {aims.origin}). Source: {aims.source}. Totals of "
+                  f"{fr.ebrt_dose_gy:g} Gy / {fr.ebrt_fractions} fractions external beam and {fr.n_fractions} "
+                  f"brachytherapy fractions in EQD2 (α/β {aims.alpha_beta_target_gy:g} Gy targets, "
+                  f"{aims.alpha_beta_oar_gy:g} Gy organs). The planning aim is what a plan is made for, the hard "
+                  "limit what no delivered plan may break; both are judged separately. Aims met only when every "
+                  f"planning aim holds, organs and points with {aims.headroom_eqd2_gy:g} Gy headroom."),
+        Table(rows[0], tuple(rows[1:]), "Each aim against each plan (Gy EQD2): " + AIMS_LEGEND.format(
+            headroom=aims.headroom_eqd2_gy), numeric=tuple(range(3, len(rows[0])))),
+        Paragraph(f"Dose-volume method: {DVH_METHOD}"),
+    ]
+    blocks += [Paragraph(f"Warning: {w}") for w in delivery.warnings]
+    return Section(f"Dose aims: {aims.name}", "aims", tuple(blocks))
 
 
 def _intracavitary(delivery: Delivery) -> str:
@@ -346,7 +373,6 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
     """
     if delivery is None or not delivery.optimisation.success:
         return None
-    from reachplan.planner.dose.aims import Aims
     from reachplan.planner.dose.dwells import dose_at_points
     from reachplan.planner.dose.tg43 import Tg43Kernel
 
@@ -354,7 +380,7 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
     active = dwells.select(dwells.times_s > 0)
     kernel = Tg43Kernel(delivery.source)
     sk = delivery.export.source.air_kerma_rate_u
-    return figures.DoseOverlay(lambda p: dose_at_points(p, active, kernel, sk), Aims().prescription_gy,
+    return figures.DoseOverlay(lambda p: dose_at_points(p, active, kernel, sk), delivery.aims.prescription_gy,
                                active.positions_mm, active.times_s)
 
 
@@ -534,7 +560,8 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         )),
         _needles_section(result, straight, steered, order),
         _dose_section(delivery, comparison, dvh, source_name, comparison_note, options.comparison_settings),
-        _implant_section(delivery.implant if delivery is not None else None),
+        _aims_section(delivery),
+        _implant_section(delivery),
         _device_section(delivery),
         _models_section(result, chart, rows, used),
     ]

@@ -12,6 +12,7 @@ from reachplan.imaging.types import Grid, StructureSet
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.delivery import Delivery, planning_structures
+from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.structures import PlanningStructures
 from reachplan.planner.implant.compare import Comparison, compare_arms
 from reachplan.planner.implant.dwells import OptimizerSettings
@@ -23,7 +24,7 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
                    source: SourceData, target_roi: str = "HR-CTV",
                    air_kerma_u: float = DEFAULT_AIR_KERMA_U,
                    settings: OptimizerSettings = COMPARISON_SETTINGS,
-                   planning: PlanningStructures | None = None) -> Comparison | None:
+                   planning: PlanningStructures | None = None, aims: Aims | None = None) -> Comparison | None:
     """Compare straight and steered dose with the per-target best needle of each kind.
 
     Each arm gets the per-target best needle of its kind (:func:`~reachplan.planner.case.result.choose_needles`),
@@ -49,6 +50,8 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
     planning : PlanningStructures or None
         The delivery's structures, when already built (else
         :func:`reachplan.planner.delivery.planning_structures` builds them).
+    aims : Aims or None
+        The protocol's aims (the delivery's); None: EMBRACE II.
 
     Returns
     -------
@@ -65,7 +68,7 @@ def compare_chosen(result: PlanResult, structures: StructureSet, grid: Grid | No
     if planning is None:
         planning = planning_structures(structures, grid, target_roi, result.config.oar_names)
     kernel = Tg43Kernel(source)
-    return compare_arms(arms, planning, kernel, air_kerma_u, settings=settings)
+    return compare_arms(arms, planning, kernel, air_kerma_u, aims=aims, settings=settings)
 
 
 def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: Delivery | None,
@@ -111,7 +114,7 @@ def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: 
     bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
     comparison = compare_chosen(result, structures, grid, delivery.source, target_roi,
                                 delivery.export.source.air_kerma_rate_u, options.comparison_settings,
-                                planning=delivery.planning)
+                                planning=delivery.planning, aims=delivery.aims)
     bar.update()
     bar.close()
     return comparison, "" if comparison is not None else "No feasible needle of either kind: nothing to compare."

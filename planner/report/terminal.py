@@ -6,13 +6,14 @@ HTML report reuses the flags, the model words and the rows.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from reachplan.planner.case.result import PlanResult
 from reachplan.planner.delivery import Delivery
+from reachplan.planner.dose.evaluation import AimsTable, bounds_text
 from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.steering.candidates import Candidate
 
@@ -118,15 +119,25 @@ def plain_model(c: Candidate) -> str:
     return words
 
 
+def _verdict(table: AimsTable | None, met: bool, over: str) -> tuple[bool, str]:
+    """Return the protocol table's verdict and the aims it misses, else the optimiser's (``met``, ``over``)."""
+    if table is None:
+        return met, over
+    return table.aims_met, f"; not met: {', '.join(table.not_met)}" if table.not_met else ""
+
+
 def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list[str]:
-    """One line per arm: needles, HR-CTV D90 (EQD2) and whether the aims are met (and the organs over)."""
+    """Return the protocol used, its warnings, one line per arm (needles, HR-CTV D90, aims met), then the aims table."""
     from reachplan.planner.dose.aims import Aims
 
-    aims = comparison.aims if comparison is not None else Aims()
+    aims = delivery.aims if delivery is not None else comparison.aims if comparison is not None else Aims()
     limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
-    lines = [f"dose aims (EMBRACE II, EQD2): HR-CTV D90 >= {aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}"]
-
+    lines = [f"dose aims: {aims.name} ({aims.site}; {aims.origin}), EQD2: HR-CTV D90 >= "
+             f"{aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}; {aims.headroom_eqd2_gy:g} Gy headroom below each "
+             "organ and point aim"]
+    lines += [f"  warning: {w}" for w in (delivery.warnings if delivery is not None else ())]
     limit = {k.casefold(): v for k, v in aims.oar_d2cc_eqd2_gy}
+    tables = delivery.aims_tables if delivery is not None else {}
 
     def over(organs: Sequence[tuple[str, float]]) -> str:
         bad = [f"{o} {v:.1f} Gy" for o, v in organs if o.casefold() in limit and v > limit[o.casefold()]]
@@ -136,19 +147,21 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
     if delivery is not None and delivery.implant is not None:  # the whole HR-CTV: what the aims are about
         for arm, label in zip(delivery.implant.arms, ("implant, straight", "implant, straight + steered"), strict=True):
             pl = arm.plan
-            arms.append((label, 0, np.nan, False, f"; no implant: {arm.reason}") if pl is None else
-                        (label, pl.n_needles, pl.target.d90_eqd2_gy, pl.aims_met,
-                         over([(o.name, o.d2cc_eqd2_gy) for o in pl.oars])))
+            if pl is None:
+                arms.append((label, 0, np.nan, False, f"; no implant: {arm.reason}"))
+                continue
+            met, why = _verdict(tables.get(arm.name), pl.aims_met, over([(o.name, o.d2cc_eqd2_gy) for o in pl.oars]))
+            arms.append((label, pl.n_needles, pl.target.d90_eqd2_gy, met, why))
     per_target = " (one needle per target)" if arms else ""
     if comparison is not None:
         arms += [(f"{r.arm} arm{per_target}", r.n_needles, r.d90_eqd2_gy, r.aim_met, over(r.oar_d2cc_eqd2_gy))
                  for r in comparison.rows()]
     if delivery is not None:
         opt = delivery.optimisation
+        met, why = (_verdict(tables.get("delivered"), opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]))
+                    if opt.success else (False, f"; not solved: {opt.reason}"))
         arms.append((f"exported plan ({delivery.kind})", delivery.n_needles,
-                     opt.target.d90_eqd2_gy if opt.success else np.nan,
-                     opt.aim_met, over([(o.name, o.d2cc_eqd2_gy) for o in opt.oars]) if opt.success
-                     else f"; not solved: {opt.reason}"))
+                     opt.target.d90_eqd2_gy if opt.success else np.nan, met, why))
     if not arms:
         return ["dose: not computed (--no-export)"]
     width = max(len(a[0]) for a in arms)
@@ -157,7 +170,86 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
         why = f"{low}{why}".removeprefix("; ")
         lines.append(f"  {name:<{width}}  {n:>3} needle{'s' if n != 1 else ' '}  HR-CTV D90 {_cell(d90):>5} Gy EQD2  "
                      f"{'aims met' if met else 'aims NOT met'}{f' ({why})' if why else ''}")
+    if delivery is not None and delivery.aims_tables:
+        rows = aims_rows(delivery.aims_tables)
+        lines += ["", *_aligned(rows), AIMS_LEGEND.format(headroom=aims.headroom_eqd2_gy)]
     return lines
+
+
+#: What an aims-table cell says (the terminal and the report).
+AIMS_LEGEND = ("value (headroom: distance from the planning aim, + on the safe side) planning aim met / hard limit "
+               "kept; organs and points need {headroom:g} Gy headroom, targets 0; n/a: not applicable (organ < 2 cm³, "
+               "not counted); -: no aim or limit")
+
+
+def _flag(v: bool | None) -> str:
+    return "-" if v is None else "yes" if v else "NO"
+
+
+def aims_rows(tables: Mapping[str, AimsTable]) -> list[tuple[str, ...]]:
+    """Return every aim of the protocol against each plan as rows of text cells, the first row the header.
+
+    Columns: the aim, its planning aim, its hard limit (Gy EQD2), then per plan (the implant arms' chosen plans, or
+    the exported plan when there are no arms: ``delivered``) the value, its headroom and the two verdicts
+    (:data:`AIMS_LEGEND`); the last rows: every planning aim met, every hard limit kept.
+
+    Parameters
+    ----------
+    tables : mapping of str to AimsTable
+        By plan (:attr:`~reachplan.planner.delivery.Delivery.aims_tables`): ``straight``, ``steered``,
+        ``delivered`` (the last shown only without the others, and named after its arm otherwise).
+
+    Returns
+    -------
+    list of tuple of str
+        Header, one row per aim, the two verdict rows.
+    """
+    names: list[str] = [n for n in ("straight", "steered", "delivered") if n in tables]
+    names = [n for n in names if n != "delivered"] or names
+    exported = tables.get("delivered")
+    head = ("aim (Gy EQD2)", "planning aim", "hard limit",
+            *(f"{n}{' (exported)' if tables[n] is exported and n != 'delivered' else ''}" for n in names))
+    labels = list(dict.fromkeys(r.label for n in names for r in tables[n].results))
+    rows: list[tuple[str, ...]] = [head]
+    for label in labels:
+        found = [next((r for r in tables[n].results if r.label == label), None) for n in names]
+        first = next(r for r in found if r is not None)
+        cells = []
+        for r in found:
+            if r is None or r.value_eqd2_gy is None:
+                cells.append("-" if r is None else "n/a" if r.metric == "D2cm³" else "not placed")
+                continue
+            h = r.headroom_eqd2_gy
+            cells.append(f"{r.value_eqd2_gy:.1f} ({'-' if h is None else f'{h:+.1f}'}) "
+                         f"{_flag(r.aim_met)}/{_flag(r.limit_met)}")
+        rows.append((label, bounds_text(first.aim_min_eqd2_gy, first.aim_max_eqd2_gy),
+                     bounds_text(first.limit_min_eqd2_gy, first.limit_max_eqd2_gy), *cells))
+    rows.append(("every planning aim met", "", "", *("yes" if tables[n].aims_met else "NO" for n in names)))
+    rows.append(("every hard limit kept", "", "", *("yes" if tables[n].limits_met else "NO" for n in names)))
+    return rows
+
+
+def format_rows(rows: Sequence[Sequence[str]]) -> str:
+    """Return rows of text cells as aligned lines (:func:`aims_rows`, :func:`implant_rows`).
+
+    Parameters
+    ----------
+    rows : sequence of sequence of str
+        The header row first; every row as long.
+
+    Returns
+    -------
+    str
+        The first column left-aligned, the others right-aligned.
+    """
+    return "\n".join(_aligned(rows))
+
+
+def _aligned(rows: Sequence[Sequence[str]]) -> list[str]:
+    """Return rows as text, the first column left-aligned, the others right-aligned."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
+            for r in rows]
 
 
 def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, delivery: Delivery | None = None,
@@ -217,7 +309,8 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
     return "\n".join(lines)
 
 
-def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
+def implant_rows(comparison: ImplantComparison, tables: Mapping[str, AimsTable] | None = None,
+                 ) -> list[tuple[str, ...]]:
     """Return the implant arms side by side as rows of text cells, the first row naming the arms.
 
     Needles (candidates), aims, HR-CTV D90/D98/V100/V150/V200 (EQD2 totals, Gy), organ D2cm³, the needles' share of
@@ -228,6 +321,9 @@ def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
     ----------
     comparison : ImplantComparison
         Both implant arms.
+    tables : mapping of str to AimsTable or None
+        Each arm's aims against its protocol (:attr:`Delivery.aims_tables`): "aims met" is then the table's
+        verdict (every planning aim with its headroom), else the selection's.
 
     Returns
     -------
@@ -242,7 +338,12 @@ def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
 
     rows.append(("needles (candidates)", *(f"{cell(a, lambda p: str(p.n_needles))} ({a.n_candidates})"
                                            for a in arms)))
-    rows.append(("aims met", *(cell(a, lambda p: "yes" if p.aims_met else "no") for a in arms)))
+    verdicts = {name: t.aims_met for name, t in (tables or {}).items()}
+
+    def met(a: ImplantArm) -> str:
+        return "-" if a.plan is None else "yes" if verdicts.get(a.name, a.plan.aims_met) else "no"
+
+    rows.append(("aims met", *(met(a) for a in arms)))
     for label, get in (("HR-CTV D90 Gy", lambda p: f"{p.target.d90_eqd2_gy:.1f}"),
                        ("HR-CTV D98 Gy", lambda p: f"{p.target.d98_eqd2_gy:.1f}"),
                        ("V100 %", lambda p: f"{p.target.v100_pct:.1f}"),
@@ -264,22 +365,21 @@ def implant_rows(comparison: ImplantComparison) -> list[tuple[str, ...]]:
     return rows
 
 
-def format_implant(comparison: ImplantComparison) -> str:
+def format_implant(comparison: ImplantComparison, tables: Mapping[str, AimsTable] | None = None) -> str:
     """Return the two implant arms side by side (:func:`implant_rows`) for the terminal, then each arm's note.
 
     Parameters
     ----------
     comparison : ImplantComparison
         The straight and the steered arm, each with its chosen implant or reason.
+    tables : mapping of str to AimsTable or None
+        Each arm's aims (:func:`implant_rows`).
 
     Returns
     -------
     str
         The aligned table and the notes.
     """
-    rows = implant_rows(comparison)
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
-             for r in rows]
+    lines = _aligned(implant_rows(comparison, tables))
     notes = [f"{a.name}: {a.reason}" for a in comparison.arms if a.reason]
     return "\n".join([*lines, *notes])

@@ -19,6 +19,8 @@ from reachplan.planner.case.result import PlanResult
 from reachplan.planner.case.scene import Scene, build_scene
 from reachplan.planner.case.search import plan
 from reachplan.planner.delivery import Delivery, plan_delivery
+from reachplan.planner.dose.aims import Aims
+from reachplan.planner.dose.evaluation import protocol_json
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.organs import has_closed
 from reachplan.planner.geometry.template import TemplatePose
@@ -83,6 +85,8 @@ class CaseConfig:
         The ROI the dwell times are optimised on.
     named_points : tuple of (str, (float, float, float))
         Dose reference points (name, mm LPS) the delivered plan carries.
+    aims : Aims
+        The protocol's aims the dose is planned to and reported against (``--protocol``; default EMBRACE II).
     """
 
     plan: PlanConfig = field(default_factory=PlanConfig)
@@ -96,6 +100,7 @@ class CaseConfig:
     source: str = "gammamed_plus_hdr"
     target_roi: str = "HR-CTV"
     named_points: tuple[tuple[str, tuple[float, float, float]], ...] = ()
+    aims: Aims = field(default_factory=Aims)
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,17 +142,22 @@ class CaseResult:
         Returns
         -------
         dict
-            JSON-ready values (mm, N, LPS, Gy); the writer adds the files and the report's place.
+            JSON-ready values (mm, N, LPS, Gy); the writer adds the files and the report's place. With dose:
+            ``protocol`` (which aims were used, :func:`~reachplan.planner.dose.evaluation.protocol_json`), the
+            protocol's warnings added to ``warnings``, ``delivery.aims`` and ``implant.<arm>.aims``.
         """
         doc: dict[str, object] = self.result.to_json()
         if self.scene.pose is not None:
             doc["template_pose"] = self.scene.pose.to_json()
-        doc["warnings"] = list(self.scene.notes)
+        warnings = list(self.scene.notes)
+        doc["warnings"] = warnings
         doc["blocked_straight"] = [b.to_json() for b in self.result.blocked_straight()]
         if self.delivery is not None:
+            doc["protocol"] = protocol_json(self.delivery.aims)
+            warnings += self.delivery.warnings
             doc["delivery"] = self.delivery.to_json()
             if self.delivery.implant is not None:
-                doc["implant"] = self.delivery.implant.to_json()
+                doc["implant"] = self.delivery.implant_json()
         return doc
 
 
@@ -219,7 +229,8 @@ def run_case(inputs: CaseInput, config: CaseConfig, *, quiet: bool = True,
     t = time.perf_counter()
     delivery = plan_delivery(result, inputs.structures, grid, source_name=config.source,
                              target_roi=config.target_roi, volume=inputs.volume, input_paths=inputs.paths,
-                             named_points=config.named_points, scene=scene if config.implant else None)
+                             named_points=config.named_points, scene=scene if config.implant else None,
+                             aims=config.aims)
     comparison, note = straight_vs_steered(result, inputs.structures, delivery, grid, config.target_roi, quiet=quiet)
     timings["delivery_s"] = time.perf_counter() - t
     return CaseResult(inputs, config, scene, result, delivery, comparison, note, timings)

@@ -97,14 +97,15 @@ def test_summary_puts_the_implant_arms_first_and_names_the_per_target_plans() ->
     def metrics(name: str, d90: float = 0.0, d2cc: float = 0.0) -> SimpleNamespace:
         return SimpleNamespace(name=name, d90_eqd2_gy=d90, d2cc_eqd2_gy=d2cc)
 
-    def arm(n: int, d90: float, met: bool, bladder: float) -> SimpleNamespace:
+    def arm(name: str, n: int, d90: float, met: bool, bladder: float) -> SimpleNamespace:
         plan = SimpleNamespace(n_needles=n, target=metrics("HR-CTV", d90), aims_met=met,
                                oars=(metrics("Bladder", d2cc=bladder),))
-        return SimpleNamespace(plan=plan, reason="")
+        return SimpleNamespace(name=name, plan=plan, reason="")
 
-    implant = SimpleNamespace(arms=(arm(5, 84.0, False, 95.0), arm(3, 90.0, True, 79.0)))
+    implant = SimpleNamespace(arms=(arm("straight", 5, 84.0, False, 95.0), arm("steered", 3, 90.0, True, 79.0)))
     opt = SimpleNamespace(success=True, target=metrics("HR-CTV", 90.0), aim_met=True, oars=(), reason="")
-    delivery = SimpleNamespace(implant=implant, optimisation=opt, kind="implant, straight + steered", n_needles=3)
+    delivery = SimpleNamespace(implant=implant, optimisation=opt, kind="implant, straight + steered", n_needles=3,
+                               aims=Aims(), aims_tables={}, warnings=())
     text = format_summary(result, delivery=delivery, comparison=_comparison())  # type: ignore[arg-type]
     lines = [ln.strip() for ln in text.splitlines()]
     first = next(i for i, ln in enumerate(lines) if ln.startswith("implant, straight "))
