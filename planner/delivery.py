@@ -176,16 +176,13 @@ def plan_delivery(
     and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
     other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
     a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
-    Dose by TG-43 against the protocol's aims (``aims``; EMBRACE II by default): each implant arm's and the
-    delivered plan's dose against every aim (:func:`~reachplan.planner.dose.evaluation.evaluate_aims`), with the
-    protocol's named warnings issued once (the dose target is not the site's; an organ under 2 cm³).
+    Dose by TG-43 against ``aims``: every plan's aims table and the protocol's named warnings (:func:`_aims_tables`).
 
-    The export carries the prescription (the per-fraction dose whose D90 meets the protocol's planning aim, in as many
-    fractions as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where
-    the structures allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``,
-    (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
-    planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
-    False: no RT Dose, for callers that only need the optimisation).
+    The export carries the prescription (the per-fraction dose whose D90 meets the planning aim, in as many fractions
+    as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where the structures
+    allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``, (name, (x, y, z) mm LPS))
+    with each dwell's dose rate there, the template's application setup type and the planned dose of all fractions
+    on the target's and organs' region of the planning grid (``planned_dose`` False: no RT Dose).
 
     Parameters
     ----------
@@ -216,7 +213,7 @@ def plan_delivery(
     implant_settings : ImplantSettings or None
         Settings of the implant planning; None: the defaults.
     aims : Aims or None
-        The protocol's aims (:func:`reachplan.planner.dose.protocol.load_protocol`); None: EMBRACE II.
+        The protocol's aims (``load_protocol``); None: EMBRACE II.
 
     Returns
     -------
@@ -228,28 +225,25 @@ def plan_delivery(
     PlanInputError
         No feasible needle, no target structure to optimise on, or a bad named point.
     """
-    from reachplan.planner.dose.aims import Aims
     from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.plugins.exporters import ExportPlan, SourceSpec
 
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names,
                                    None if scene is None else scene.applicators)
-    source = get_source(source_name)
+    source, aims = get_source(source_name), Aims() if aims is None else aims
     kernel = Tg43Kernel(source)
-    aims = Aims() if aims is None else aims
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
                                                     implant_settings)
-    active = opt.dwells.select(opt.dwells.times_s > 0)
     points = _reference_points(structures, named_points, opt.dwells, len(exports), kernel, air_kerma_u)
-    fractions = aims.fractionation.n_fractions
-    dose = _planned_dose(planning, active, kernel, air_kerma_u, fractions) if planned_dose else None
+    dose = (_planned_dose(planning, opt.dwells.select(opt.dwells.times_s > 0), kernel, air_kerma_u,
+                          aims.fractionation.n_fractions) if planned_dose else None)
     spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
     setup = load_template(result.config.template).application_setup_type
 
     def export_plan(name: str, needles: Sequence[NeedleExport], points: Sequence[ReferencePoint] = (),
                     dose: PlannedDose | None = None) -> ExportPlan:
         return ExportPlan(name[:16], tuple(needles), spec, structure_set=structures, volume=volume,
-                          input_paths=tuple(input_paths), fractions_planned=fractions,
+                          input_paths=tuple(input_paths), fractions_planned=aims.fractionation.n_fractions,
                           prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
                           reference_points=tuple(points), application_setup_type=setup, dose=dose)
 
@@ -257,11 +251,16 @@ def plan_delivery(
     implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
                        for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
     tables = _aims_tables(aims, planning, implant, opt, kind, points, kernel, air_kerma_u)
+    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports, aims, tables,
+                    _protocol_warnings(aims, target_roi, tables))
+
+
+def _protocol_warnings(aims: Aims, target_roi: str, tables: dict[str, AimsTable]) -> tuple[str, ...]:
+    """Return the protocol's warnings (site, organs under 2 cm³) once each, having issued them as named warnings."""
     notes = [w for w in (site_warning(aims, target_roi),) if w]
     notes += [w for t in tables.values() for w in t.warnings]
     emit(notes)
-    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports, aims, tables,
-                    tuple(dict.fromkeys(notes)))
+    return tuple(dict.fromkeys(notes))
 
 
 def _aims_tables(aims: Aims, planning: PlanningStructures, implant: ImplantComparison | None,

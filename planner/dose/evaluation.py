@@ -129,8 +129,10 @@ def bounds_text(low: float | None, high: float | None) -> str:
 
     Parameters
     ----------
-    low, high : float or None, Gy
-        At least / at most.
+    low : float or None, Gy
+        At least (None: no lower side).
+    high : float or None, Gy
+        At most (None: no upper side).
 
     Returns
     -------

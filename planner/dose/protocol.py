@@ -43,7 +43,7 @@ def _leaf(key: str) -> str:
 
 
 def _child(key: str, name: str) -> str:
-    return f'{key}."{name}"' if "." in name or '"' in name else f"{key}.{name}"
+    return f"{key}.{name}" if re.fullmatch(r"[A-Za-z0-9_\-]+", name) else f'{key}."{name}"'
 
 
 def _key(text: str) -> str:
@@ -110,7 +110,7 @@ class _Reader:
 
     def bounds(self, parent: Mapping[str, Any], key: str, sense: str, *, limit: bool = True,
                ) -> tuple[float, float | None]:
-        """Return (aim, limit) of a ``sense`` ("min" or "max") aim table at ``key``; the limit no stricter."""
+        # (aim, limit) of a ``sense`` ("min" or "max") aim table at ``key``; the limit no stricter than the aim
         allowed = {f"aim_{sense}", *((f"limit_{sense}",) if limit else ())}
         if key.endswith("d90"):
             allowed.add("aim_max")
