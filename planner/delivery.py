@@ -109,10 +109,13 @@ class Delivery:
         Returns
         -------
         dict
-            JSON-ready values (mm LPS, Gy); the writer adds the exported ``files``.
+            JSON-ready values (mm LPS, Gy); the writer adds the exported ``files``. ``optimisation.aim_met`` is
+            the protocol's verdict (``aims``, every planning aim with its headroom), ``optimiser_aim_met`` the
+            optimiser's own.
         """
         opt = self.optimisation
         ex = self.export
+        table = self.aims_tables.get("delivered")
         return {
             "plan": self.kind,
             "needles": [n.hole_id for n in ex.needles],
@@ -121,9 +124,11 @@ class Delivery:
                              "fractions": ex.fractions_planned},
             "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}
                                  for p in ex.reference_points],
-            "optimisation": {"success": opt.success, "reason": opt.reason, "aim_met": opt.aim_met,
+            "optimisation": {"success": opt.success, "reason": opt.reason,
+                             "aim_met": opt.aim_met if table is None else table.aims_met,
+                             "optimiser_aim_met": opt.aim_met,
                              "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
-            "aims": self.aims_tables["delivered"].to_json() if "delivered" in self.aims_tables else None,
+            "aims": None if table is None else table.to_json(),
         }
 
     def implant_json(self) -> dict[str, object] | None:
@@ -133,8 +138,8 @@ class Delivery:
         -------
         dict or None
             :meth:`ImplantComparison.to_json` with ``<arm>.aims`` (:meth:`AimsTable.to_json`), ``<arm>.aims_met``
-            the table's verdict (every planning aim met with the protocol's headroom), and each organ's D2cm³
-            None where it is not applicable (an organ under 2 cm³).
+            the table's verdict (every planning aim met with the protocol's headroom; the selection's own in
+            ``selection_aims_met``), and each organ's D2cm³ None where it is not applicable (under 2 cm³).
         """
         if self.implant is None:
             return None
@@ -144,7 +149,7 @@ class Delivery:
             if not isinstance(arm, dict):
                 continue
             arm["aims"] = table.to_json()
-            arm["aims_met"] = table.aims_met
+            arm["selection_aims_met"], arm["aims_met"] = arm.get("aims_met"), table.aims_met
             d2cc = arm.get("oar_d2cc_eqd2_gy")
             if isinstance(d2cc, dict):
                 for r in table.results:

@@ -132,7 +132,7 @@ def _arm_lines(delivery: Delivery | None, comparison: Comparison | None) -> list
 
     aims = delivery.aims if delivery is not None else comparison.aims if comparison is not None else Aims()
     limits = ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy)
-    lines = [f"dose aims: {aims.name} ({aims.site}; {aims.origin}), EQD2: HR-CTV D90 >= "
+    lines = [f"dose aims: {aims.name} ({aims.site}; {aims.origin}), EQD2: {aims.target_names[0]} D90 >= "
              f"{aims.target_d90_eqd2_gy:g} Gy; D2cm³ {limits}; {aims.headroom_eqd2_gy:g} Gy headroom below each "
              "organ and point aim"]
     lines += [f"  warning: {w}" for w in (delivery.warnings if delivery is not None else ())]

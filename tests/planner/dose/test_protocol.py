@@ -230,6 +230,7 @@ def test_an_organ_of_1_cm3_gets_the_warning_and_its_d2cc_is_not_applicable(case:
                         aims_tables={"steered": table})
     arm = delivery.implant_json()["steered"]  # type: ignore[index]
     assert arm["oar_d2cc_eqd2_gy"] == {"Rectum": None, "Bladder": 70.0} and arm["aims_met"] is table.aims_met
+    assert arm["selection_aims_met"] is True  # the selection's own verdict is kept beside it
 
 
 def test_each_aim_carries_value_aim_limit_headroom_and_both_verdicts(case: SimpleNamespace) -> None:
