@@ -258,7 +258,8 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                   _f(opt.target.d98_eqd2_gy), _f(opt.target.v100_pct), "-")]
         rows2 += [(o.name, _f(o.volume_cc), _f(o.d90_gy, 2), _f(o.d90_eqd2_gy), _f(o.d98_eqd2_gy), _f(o.v100_pct),
                    _f(o.d2cc_eqd2_gy)) for o in opt.oars]
-        status = ("aim met" if opt.aim_met else "aim NOT met") if opt.success else f"not solved: {opt.reason}"
+        status = ((f"{delivery.aims.name} aims met" if _aims_met(delivery) else f"{delivery.aims.name} aims NOT met")
+                  if opt.success else f"not solved: {opt.reason}")
         blocks += [
             Paragraph(f"Delivered plan, the one exported as the RT Plan ({delivery.kind}, {delivery.n_needles} "
                       f"needles{_intracavitary(delivery)}): {status}; {opt.reason}."),
@@ -271,6 +272,12 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
             blocks.append(Figure(png, f"Delivered plan: cumulative DVHs per fraction with the {delivery.aims.name} aim "
                                       "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
     return Section("Dose and coverage", "dose", tuple(blocks))
+
+
+def _aims_met(delivery: Delivery) -> bool:
+    """Return the delivered plan's verdict: the protocol's (every planning aim with headroom), else the optimiser's."""
+    table = delivery.aims_tables.get("delivered")
+    return delivery.optimisation.aim_met if table is None else table.aims_met
 
 
 def _aims_section(delivery: Delivery | None) -> Section | None:
@@ -544,7 +551,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     subtitle = (f"{case}: {len(result.ranking)} targets; a straight needle reaches {n_reach[False]}, a steered one "
                 f"{n_reach[True]}" + ("" if delivery is None else
                                       f"; delivered plan HR-CTV D90 {delivery.optimisation.target.d90_eqd2_gy:.1f} Gy "
-                                      f"EQD2 ({'aim met' if delivery.optimisation.aim_met else 'aim not met'})"))
+                                      f"EQD2 ({'aims met' if _aims_met(delivery) else 'aims not met'})"))
     sections: list[Section | None] = [
         case_sec,
         _ranking_section(result, order),
