@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import warnings
 from pathlib import Path
 from types import SimpleNamespace
@@ -280,3 +281,35 @@ def test_dose_reports_a_genuine_plan_against_the_protocol(reference_file, tmp_pa
         assert rec["planning_aim_met"] is None and rec["hard_limit"] == "-"
     assert rows["ICRU recto-vaginal"]["value_eqd2_gy"] is None  # the plan has no such point: not placed
     assert not any(w.startswith("ProtocolSiteWarning") for w in doc["warnings"])
+
+
+def test_a_dose_target_of_another_site_says_which_aims_were_used() -> None:
+    """The chain (run_case) on the clinical case's contours, the dose planned on the uterus with a user protocol."""
+    import dataclasses
+
+    from reachplan.imaging.clinical import clinical_case, structure_set
+    from reachplan.planner.case.config import PlanConfig
+    from reachplan.planner.report.terminal import format_summary
+    from reachplan.planner.run.case import CaseConfig, CaseInput, run_case
+    from reachplan.planner.steering.candidates import Target
+
+    clinical = clinical_case(0)
+    spec = dataclasses.replace(clinical.spec, z_range_mm=(-20.0, 140.0))
+    rois = ("Bladder", "Rectum", "Tandem", "Obturator", "Uterus")
+    aims = dataclasses.replace(Aims(), name="Test protocol", headroom_eqd2_gy=0.5)
+    config = CaseConfig(plan=PlanConfig(designs=(), refine_top=0, robust_top=0), target_names=(),
+                        target_points=(Target("corpus_L", dict(clinical.targets)["corpus_L"]),),
+                        implant=False, target_roi="Uterus", aims=aims)
+    with pytest.warns(ProtocolSiteWarning, match="'Uterus' is not a cervix target of Test protocol"):
+        case = run_case(CaseInput(structure_set(spec, rois), None, (), "seed 0"), config)
+    assert case.delivery is not None and case.delivery.aims is aims
+    doc = case.to_json()
+    assert doc["protocol"]["name"] == "Test protocol" and doc["protocol"]["headroom_eqd2_gy"] == 0.5
+    assert any(w.startswith("ProtocolSiteWarning") and "Test protocol (cervix) aims were used" in w
+               for w in doc["warnings"])
+    table = doc["delivery"]["aims"]
+    assert table["protocol"] == "Test protocol" and table["aims"][0]["aim"] == "Uterus D90"
+    assert doc["delivery"]["optimisation"]["aim_met"] is table["aims_met"]
+    text = format_summary(case.result, delivery=case.delivery)
+    assert "dose aims: Test protocol (cervix;" in text and "warning: ProtocolSiteWarning" in text
+    assert re.search(r"^Uterus D90\s+> 90, < 95\s+> 85\s+\d+\.\d \([+-]\d+\.\d\) (yes|NO)/(yes|NO)$", text, re.M)
