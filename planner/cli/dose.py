@@ -69,8 +69,8 @@ def run(args: argparse.Namespace) -> int:
         The exit status, 0.
     """
     from reachplan.imaging.rtplan import read_rtplan
-    from reachplan.imaging.source_strength import DecayWindow
     from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.imaging.source_strength import DecayWindow
     from reachplan.planner.lookup import get_source
     from reachplan.planner.run.dose_check import DoseCheckConfig, check_plan_dose
     from reachplan.plugins.exporters.rtdose import read_rtdose_grid, write_rtdose

@@ -12,7 +12,7 @@ Eclipse conventions (see :mod:`reachplan.imaging.rtplan`); doses are totals over
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Literal
 
@@ -67,7 +67,7 @@ class DoseCheckConfig:
     like: Grid | None = None
     treatment_date: str | None = None
     points: bool = False
-    decay: DecayWindow = DecayWindow()
+    decay: DecayWindow = field(default_factory=DecayWindow)
 
 
 @dataclass(frozen=True, eq=False)

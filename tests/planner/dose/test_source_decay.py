@@ -1,4 +1,4 @@
-"""Source decay: one rule (imaging.source_strength) for ``dose`` and ``inspect``; genuine plans with placeholder dates."""
+"""Source decay: one rule (imaging.source_strength) for dose and inspect; genuine plans with placeholder dates."""
 
 from __future__ import annotations
 
