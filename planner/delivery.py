@@ -107,7 +107,9 @@ class Delivery:
             "roles": list(self.roles),
             "prescription": {"target": ex.target_name, "dose_per_fraction_gy": ex.prescription_dose_gy,
                              "fractions": ex.fractions_planned},
-            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}
+            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm],
+                                  "planned_dose_per_fraction_gy": round(p.planned_dose_gy(ex.needles), 4),
+                                  "specification_point": p.name == ex.specification_point}
                                  for p in ex.reference_points],
             "optimisation": {"success": opt.success, "reason": opt.reason, "aim_met": opt.aim_met,
                              "hrctv_d90_gy": round(float(opt.target.d90_gy), 3) if opt.success else None},
@@ -196,20 +198,24 @@ def plan_delivery(
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
                                                     implant_settings)
     active = opt.dwells.select(opt.dwells.times_s > 0)
-    points = _reference_points(structures, named_points, opt.dwells, len(exports), kernel, air_kerma_u)
+    rx = _rx_point(planning, active, kernel, air_kerma_u, aims.prescription_gy, target_roi, named_points)
+    points = _reference_points(structures, [*rx, *named_points], opt.dwells, len(exports), kernel, air_kerma_u)
     fractions = aims.fractionation.n_fractions
     dose = _planned_dose(planning, active, kernel, air_kerma_u, fractions) if planned_dose else None
-    spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
+    # the planning strength is the strength on the plan day, dated to its midnight as Eclipse dates it
+    now = datetime.now().replace(microsecond=0)
+    spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.combine(now.date(), datetime.min.time()))
     setup = load_template(result.config.template).application_setup_type
 
     def export_plan(name: str, needles: Sequence[NeedleExport], points: Sequence[ReferencePoint] = (),
-                    dose: PlannedDose | None = None) -> ExportPlan:
+                    dose: PlannedDose | None = None, spec_point: str = "") -> ExportPlan:
         return ExportPlan(name[:16], tuple(needles), spec, structure_set=structures, volume=volume,
                           input_paths=tuple(input_paths), fractions_planned=fractions,
                           prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
-                          reference_points=tuple(points), application_setup_type=setup, dose=dose)
+                          reference_points=tuple(points), application_setup_type=setup, dose=dose,
+                          plan_datetime=now, specification_point=spec_point)
 
-    export = export_plan(label, exports, points, dose)
+    export = export_plan(label, exports, points, dose, rx[0][0] if rx else "")
     implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
                        for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
@@ -244,6 +250,25 @@ def _planned_dose(planning: PlanningStructures, active: DwellSet, kernel: Tg43Ke
     dose_grid = _dose_region(planning)
     values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
     return PlannedDose(values * fractions, dose_grid)
+
+
+def _rx_point(planning: PlanningStructures, active: DwellSet, kernel: Tg43Kernel, air_kerma_u: float, dose_gy: float,
+              target_roi: str, named_points: Sequence[tuple[str, Sequence[float]]],
+              ) -> list[tuple[str, Sequence[float]]]:
+    """Return the prescription's specification point ``[(name, position mm LPS)]``, or ``[]`` when there is none.
+
+    A point of the target where the planned dose per fraction is the prescription
+    (:func:`~reachplan.planner.dose.rx_point.prescription_point`).
+    """
+    from reachplan.planner.dose.dwells import grid_points_mm
+    from reachplan.planner.dose.rx_point import prescription_point
+
+    name = f"{target_roi} Rx point"[:64]
+    if any(n == name for n, _ in named_points):
+        return []
+    pts = grid_points_mm(planning.grid, np.flatnonzero(planning.target.mask.ravel()))
+    where = prescription_point(pts, active, kernel, air_kerma_u, dose_gy)
+    return [] if where is None else [(name, tuple(float(x) for x in where))]
 
 
 def _reference_points(structures: StructureSet, named_points: Sequence[tuple[str, Sequence[float]]],
