@@ -137,13 +137,13 @@ def plan_delivery(
     (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported as device instructions,
     and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
     other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
-    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
-    Dose by TG-43 against the EMBRACE II aims.
+    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those (TG-43).
 
     The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
-    fractions as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where
-    the structures allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``,
-    (name, (x, y, z) mm LPS)) with each dwell's dose rate there, the template's application setup type and the
+    fractions as the EQD2 figures assume; specified at a target point that receives it), the reference points (that
+    one, Point A, ICRU bladder and rectum points where the structures allow, see
+    :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``, (name, (x, y, z) mm LPS)) with each
+    dwell's dose rate there, the template's application setup type and the
     planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
     False: no RT Dose, for callers that only need the optimisation).
 
@@ -192,9 +192,8 @@ def plan_delivery(
 
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names,
                                    None if scene is None else scene.applicators)
-    source = get_source(source_name)
+    source, aims = get_source(source_name), Aims()
     kernel = Tg43Kernel(source)
-    aims = Aims()
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
                                                     implant_settings)
     active = opt.dwells.select(opt.dwells.times_s > 0)
@@ -202,10 +201,8 @@ def plan_delivery(
     points = _reference_points(structures, [*rx, *named_points], opt.dwells, len(exports), kernel, air_kerma_u)
     fractions = aims.fractionation.n_fractions
     dose = _planned_dose(planning, active, kernel, air_kerma_u, fractions) if planned_dose else None
-    # the planning strength is the strength on the plan day, dated to its midnight as Eclipse dates it
-    now = datetime.now().replace(microsecond=0)
-    spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.combine(now.date(), datetime.min.time()))
-    setup = load_template(result.config.template).application_setup_type
+    now, setup = datetime.now().replace(microsecond=0), load_template(result.config.template).application_setup_type
+    spec = SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0))  # Eclipse
 
     def export_plan(name: str, needles: Sequence[NeedleExport], points: Sequence[ReferencePoint] = (),
                     dose: PlannedDose | None = None, spec_point: str = "") -> ExportPlan:

@@ -277,7 +277,7 @@ def decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None, win
     Returns
     -------
     SourceStrength
-        As written and as used, with the dates, the elapsed days and whether it was decayed.
+        What :func:`~reachplan.imaging.source_strength.source_strength` returns.
 
     Raises
     ------

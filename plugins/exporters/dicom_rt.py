@@ -559,6 +559,28 @@ def _dose_references(plan: ExportPlan, style: str, uid_prefix: str | None) -> _D
     return _DoseReferences(items, numbers, target_number, link)
 
 
+def _source_item(src: base.SourceSpec) -> Dataset:
+    """Build the Source Sequence item: the model, its dimensions, the strength and the date it is given at (§5)."""
+    s = Dataset()
+    s.SourceNumber = 1
+    if src.model_id:
+        s.SourceModelID = src.model_id
+    s.SourceDescription = (src.title or src.name)[:64]
+    s.SourceType = src.source_type
+    if src.manufacturer:
+        s.SourceManufacturer = src.manufacturer
+    if src.active_diameter_mm is not None:
+        s.ActiveSourceDiameter = _ds(src.active_diameter_mm, 3)
+    if src.active_length_mm is not None:
+        s.ActiveSourceLength = _ds(src.active_length_mm, 3)
+    s.SourceIsotopeName = src.isotope
+    s.SourceIsotopeHalfLife = _ds(float(src.half_life_days or 0.0), 4)
+    s.ReferenceAirKermaRate = _ds(src.air_kerma_rate_u, 4)
+    s.SourceStrengthReferenceDate = _date(src.reference_datetime)
+    s.SourceStrengthReferenceTime = _time(src.reference_datetime)
+    return s
+
+
 def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: str, now: datetime,
                  time_resolution_s: float = 0.001, uid_prefix: str | None = None,
                  style: str = "eclipse") -> Dataset:
@@ -621,24 +643,7 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     ds.TreatmentMachineSequence = Sequence([machine])
 
     src = plan.source
-    s = Dataset()
-    s.SourceNumber = 1
-    if src.model_id:
-        s.SourceModelID = src.model_id
-    s.SourceDescription = (src.title or src.name)[:64]
-    s.SourceType = src.source_type
-    if src.manufacturer:
-        s.SourceManufacturer = src.manufacturer
-    if src.active_diameter_mm is not None:
-        s.ActiveSourceDiameter = _ds(src.active_diameter_mm, 3)
-    if src.active_length_mm is not None:
-        s.ActiveSourceLength = _ds(src.active_length_mm, 3)
-    s.SourceIsotopeName = src.isotope
-    s.SourceIsotopeHalfLife = _ds(float(src.half_life_days or 0.0), 4)
-    s.ReferenceAirKermaRate = _ds(src.air_kerma_rate_u, 4)
-    s.SourceStrengthReferenceDate = _date(src.reference_datetime)
-    s.SourceStrengthReferenceTime = _time(src.reference_datetime)
-    ds.SourceSequence = Sequence([s])
+    ds.SourceSequence = Sequence([_source_item(src)])
 
     setup = Dataset()
     setup.ApplicationSetupType = plan.application_setup_type

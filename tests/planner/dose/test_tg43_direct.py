@@ -54,7 +54,8 @@ def _direct(t: dict, points_mm: np.ndarray) -> np.ndarray:
     on_axis = y < 1e-7
     tip, tail = 0.5 * length, -0.5 * length  # β = the angle the source subtends: atan2 from each end
     beta = np.arctan2(y, z - tip) - np.arctan2(y, z - tail)
-    g_geom = np.where(on_axis, 1.0 / np.maximum(r**2 - length**2 / 4, 1e-12), np.abs(beta) / (length * np.maximum(y, 1e-12)))
+    g_geom = np.where(on_axis, 1.0 / np.maximum(r**2 - length**2 / 4, 1e-12),
+                      np.abs(beta) / (length * np.maximum(y, 1e-12)))
     g0 = 2.0 * math.atan(length / 2.0) / length
     rg, g = t["rg"], t["g"]
     gl = np.interp(r, rg, g)  # linear inside, the first value below (np.interp holds the end values)
