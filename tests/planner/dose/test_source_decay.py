@@ -133,6 +133,12 @@ def test_a_1950_calibration_date_warns_in_the_words_of_the_dose_computed(
     a, _ = read_rtdose_grid(tmp_path / "a.dcm")
     b, _ = read_rtdose_grid(tmp_path / "b.dcm")
     assert b.max() > 0 and np.allclose(a, b)
+    # decaying 68 years on purpose is a typed error, and no RT Dose is written
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        code = main(["dose", "--plan", str(tmp_path / "RP1950.dcm"), "--structures", str(rs), "--treatment-date",
+                     "20180320", "--out", str(tmp_path / "c.dcm")])
+    assert code == 2 and "give a date within" in capsys.readouterr().err and not (tmp_path / "c.dcm").exists()
 
 
 def test_inspect_states_the_same_rule(reference_file: Callable[[str], Path], tmp_path: Path,
