@@ -69,6 +69,10 @@ class CalibrationDateWarning(QuestionableValueWarning):
     """A source's strength reference (calibration) date is far from the plan's date, or cannot be read."""
 
 
+class DuplicateRoiNameWarning(QuestionableValueWarning):
+    """Two or more ROIs have the same name, or names that differ only in case; they are told apart by ROI number."""
+
+
 class SparseContourWarning(QuestionableValueWarning):
     """A closed contour has fewer than 3 points (1 or 2): it encloses nothing and is left out of masks and volumes."""
 

@@ -17,6 +17,7 @@ from reachplan.imaging.errors import ImagingError, ImagingWarning, NoDicomError,
 from reachplan.imaging.meshing import structure_volume_cc
 from reachplan.imaging.names import SynonymTable
 from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.imaging.source_strength import source_strength
 from reachplan.imaging.types import Volume
 
 
@@ -159,6 +160,9 @@ class PlanInfo:
     points : tuple of (str, float or None)
         Each dose reference point with the plan's dose there over all fractions (Gy; None when the plan carries no
         coefficients).
+    strength : str
+        The source strength ``reachplan dose`` computes with, by the rule of
+        :func:`~reachplan.imaging.source_strength.source_strength` at the RT Plan Date; empty without a source.
     """
 
     path: str
@@ -172,6 +176,7 @@ class PlanInfo:
     prescription_gy: float | None = None
     target: str = ""
     points: tuple[tuple[str, float | None], ...] = ()
+    strength: str = ""
 
 
 @dataclass(frozen=True)
@@ -287,13 +292,22 @@ def _plan_info(path: Path) -> PlanInfo:
         channels.append(ChannelInfo(int(_first(c, "channel_number", "number")), int(c.n_dwells),
                                     float(_first(c, "total_time_s") or 0.0), None if roi is None else int(roi)))
     refs = tuple(getattr(plan, "dose_references", ()))
+    strength = ""
+    sources = tuple(getattr(plan, "sources", ()))
+    if sources:  # the strength `reachplan dose` computes with, by the same rule (it warns when used as written)
+        number = plan.channels[0].source_number if plan.channels else sources[0].number
+        src = next((x for x in sources if x.number == number), sources[0])
+        got = source_strength(src, str(getattr(plan, "plan_date", "")), label=path.name)
+        strength = f"S_K {got.reference_u:.6g} U on {got.reference_date or 'no date'}, " + (
+            f"{got.treatment_u:.6g} U on {got.treatment_date}" if got.decayed else "used as written (not decayed)")
     setup_doses = [d for _, d in getattr(plan, "setup_doses_gy", ()) if d > 0]
     return PlanInfo(str(path), str(_first(plan, "plan_type", "treatment_type") or ""),
                     str(_first(plan, "technique") or ""), _source_label(plan), tuple(channels),
                     machine=str(getattr(plan, "machine_name", "")), fractions=int(getattr(plan, "n_fractions", 1)),
                     prescription_gy=setup_doses[0] if setup_doses else None,
                     target=next((r.description for r in refs if r.reference_type == "TARGET"), ""),
-                    points=tuple((r.description, r.tps_dose_gy) for r in refs if r.position_mm is not None))
+                    points=tuple((r.description, r.tps_dose_gy) for r in refs if r.position_mm is not None),
+                    strength=strength)
 
 
 def _structure_sets(

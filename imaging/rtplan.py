@@ -53,7 +53,6 @@ from reachplan.imaging.brachy_plan import (
 )
 from reachplan.imaging.dicom_files import parsing, read_dataset
 from reachplan.imaging.errors import (
-    CalibrationDateWarning,
     CorruptFileError,
     DicomQuirkWarning,
     InvalidValueError,
@@ -62,7 +61,6 @@ from reachplan.imaging.errors import (
 from reachplan.imaging.types import PatientStudy, StructureSet
 
 __all__ = [
-    "MAX_CALIBRATION_AGE_DAYS",
     "MAX_CHANNEL_TOTAL_TIME_S",
     "ONCENTRA_CATHETER_TAG",
     "ONCENTRA_CHANNEL_ROI_TAG",
@@ -88,9 +86,6 @@ _SAME_POSITION_MM = 1e-3
 #: Largest Channel Total Time accepted, s (about 116 days): far above any HDR/PDR channel (minutes) and above a
 #: temporary LDR implant (days); a larger value is a damaged or mis-scaled file, not a treatment.
 MAX_CHANNEL_TOTAL_TIME_S = 1e7
-#: A source calibrated more than this many days before (or after) the plan's date is questionable: Ir-192
-#: (half-life 73.8 d, NUDAT) sources are exchanged about every 3 months, so a year-old calibration is not current.
-MAX_CALIBRATION_AGE_DAYS = 365.0
 
 
 class PlanQuirkWarning(DicomQuirkWarning):
@@ -189,10 +184,8 @@ def read_rtplan(path: str | os.PathLike[str]) -> RtPlan:
     Warns
     -----
     PlanQuirkWarning
-        Once per distinct quirk met (see the module docstring).
-    CalibrationDateWarning
-        A source's Source Strength Reference Date is not a date, or is more than :data:`MAX_CALIBRATION_AGE_DAYS`
-        from the plan's date (a 1950 date, say): the Reference Air Kerma Rate is used as written.
+        Once per distinct quirk met (see the module docstring). Whether the source strength is decayed is not
+        the reader's business: :func:`reachplan.imaging.source_strength.source_strength` decides it (and warns).
     """
     p = str(path)
     found: list[str] = []
@@ -205,38 +198,7 @@ def read_rtplan(path: str | os.PathLike[str]) -> RtPlan:
         with parsing(Path(p)):  # pydicom errors met while values are used become typed errors
             plan = _plan_from_dataset(ds, p, found)
     quirks = _emit(p, found)
-    _check_calibration_dates(plan, _str(ds, "RTPlanDate"))
     return replace(plan, quirks=quirks)
-
-
-def _check_calibration_dates(plan: RtPlan, plan_date: str) -> None:
-    """Warn (:class:`CalibrationDateWarning`) about a source calibration date that is unreadable or far off.
-
-    Far off: more than :data:`MAX_CALIBRATION_AGE_DAYS` from the plan's date (today when the plan has none).
-    """
-    import datetime as dt
-
-    def parse(text: str) -> dt.date | None:
-        try:
-            return dt.datetime.strptime(text.strip()[:8], "%Y%m%d").date()
-        except ValueError:
-            return None
-
-    when = parse(plan_date) or dt.date.today()
-    for src in plan.sources:
-        if not src.reference_date:
-            continue
-        ref = parse(src.reference_date)
-        name = Path(plan.path).name
-        if ref is None:
-            warnings.warn(CalibrationDateWarning(
-                f"{name}: source {src.number}: Source Strength Reference Date {src.reference_date!r} is not a date; "
-                "check the Reference Air Kerma Rate against the source certificate"), stacklevel=3)
-        elif abs((when - ref).days) > MAX_CALIBRATION_AGE_DAYS:
-            warnings.warn(CalibrationDateWarning(
-                f"{name}: source {src.number}: Source Strength Reference Date {ref.isoformat()} is "
-                f"{abs((when - ref).days)} days from the plan's date {when.isoformat()}; the Reference Air Kerma Rate "
-                "is used as written (no decay): check it against the source certificate"), stacklevel=3)
 
 
 def _emit(path: str, found: list[str]) -> tuple[str, ...]:

@@ -19,6 +19,7 @@ from reachplan.imaging.dicom_io import check_reference
 from reachplan.imaging.errors import (
     CorruptFileError,
     DicomQuirkWarning,
+    DuplicateRoiNameWarning,
     NoDicomError,
     OutsideImageWarning,
     SparseContourWarning,
@@ -106,6 +107,23 @@ def _warn_outside(path: Path, rois: list[Roi], volume: Volume) -> None:
                 f"{path}: ROI {roi.number} ({roi.name}): {share} contour points lie outside the images (up to "
                 f"{far + OUTSIDE_MARGIN_MM:.0f} mm beyond); check that the structure set belongs to these images"),
                 stacklevel=4)
+
+
+def _warn_same_names(path: Path, rois: list[Roi]) -> None:
+    """Warn (:class:`DuplicateRoiNameWarning`) about ROIs whose names are equal but for case (or equal).
+
+    Such ROIs are kept and told apart by ROI number (an Oncentra/Vitesse set has channels ``B5.5`` and ``b5.5``);
+    only a name used as a target or organ must be unique (the planner refuses it then).
+    """
+    groups: dict[str, list[Roi]] = {}
+    for r in rois:
+        groups.setdefault(r.name.strip().casefold(), []).append(r)
+    for same in (g for g in groups.values() if len(g) > 1):
+        listed = ", ".join(f"{r.name!r} (ROI {r.number})" for r in same)
+        how = "the same name" if len({r.name.strip() for r in same}) == 1 else "names that differ only in case"
+        warnings.warn(DuplicateRoiNameWarning(
+            f"{path.name}: ROIs {listed} have {how}; they are told apart by ROI number (a name used as a target "
+            "or organ must be unique: rename one in the TPS)"), stacklevel=4)
 
 
 def _image_ref(item: Any) -> tuple[str, str]:
@@ -214,6 +232,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
         rois.append(Roi(number=number, name=name, contours=tuple(contours[number]),
                         normalized_name=table.normalize(name), interpreted_type=types.get(number, ""),
                         color=colors.get(number)))
+    _warn_same_names(path, rois)
     for_uid, series_uid, images = _referenced(ds)
     if volume is not None:
         check_reference(volume, for_uid, series_uid, f"RT Structure Set {path}")

@@ -306,6 +306,8 @@ class StructureSet:
     def get(self, name: str) -> Roi:
         """Return the ROI whose normalised (or original) name is ``name``, case-insensitively.
 
+        Of ROIs whose names differ only in case (``B5.5`` and ``b5.5``) the one spelt as asked.
+
         Parameters
         ----------
         name : str
@@ -322,10 +324,8 @@ class StructureSet:
             With the list of available names.
         """
         key = name.casefold()
-        for roi in self.rois:
-            if roi.normalized_name.casefold() == key:
-                return roi
-        for roi in self.rois:
-            if roi.name.casefold() == key:
-                return roi
+        for same in ([r for r in self.rois if r.normalized_name.casefold() == key],
+                     [r for r in self.rois if r.name.casefold() == key]):
+            if same:  # several only when names differ in case: the one spelt as asked, else the first
+                return next((r for r in same if name in (r.normalized_name, r.name)), same[0])
         raise StructureError(f"no ROI named {name!r}; available: {', '.join(self.names) or 'none'}")

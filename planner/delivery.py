@@ -122,7 +122,9 @@ class Delivery:
             "roles": list(self.roles),
             "prescription": {"target": ex.target_name, "dose_per_fraction_gy": ex.prescription_dose_gy,
                              "fractions": ex.fractions_planned},
-            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm]}
+            "reference_points": [{"name": p.name, "position_mm": [round(float(x), 2) for x in p.position_mm],
+                                  "planned_dose_per_fraction_gy": round(p.planned_dose_gy(ex.needles), 4),
+                                  "specification_point": p.name == ex.specification_point}
                                  for p in ex.reference_points],
             "optimisation": {"success": opt.success, "reason": opt.reason,
                              "aim_met": opt.aim_met if table is None else table.aims_met,
@@ -180,14 +182,16 @@ def plan_delivery(
     (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported as device instructions,
     and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
     other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
-    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
+    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those (TG-43).
     Dose by TG-43 against ``aims``: every plan's aims table and the protocol's named warnings (:func:`_aims_tables`).
 
-    The export carries the prescription (the per-fraction dose whose D90 meets the planning aim, in as many fractions
-    as the EQD2 figures assume), the reference points (Point A, ICRU bladder and rectum points where the structures
-    allow, see :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``, (name, (x, y, z) mm LPS))
-    with each dwell's dose rate there, the template's application setup type and the planned dose of all fractions
-    on the target's and organs' region of the planning grid (``planned_dose`` False: no RT Dose).
+    The export carries the prescription (the per-fraction dose whose D90 meets the planning aim, in as many
+    fractions as the EQD2 figures assume; specified at a target point that receives it), the reference points (that
+    one, Point A, ICRU bladder and rectum points where the structures allow, see
+    :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``, (name, (x, y, z) mm LPS)) with each
+    dwell's dose rate there, the template's application setup type and the
+    planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
+    False: no RT Dose, for callers that only need the optimisation).
 
     Parameters
     ----------
@@ -239,20 +243,23 @@ def plan_delivery(
     kernel = Tg43Kernel(source)
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
                                                     implant_settings)
-    points = _reference_points(structures, named_points, opt.dwells, len(exports), kernel, air_kerma_u)
-    dose = (_planned_dose(planning, opt.dwells.select(opt.dwells.times_s > 0), kernel, air_kerma_u,
-                          aims.fractionation.n_fractions) if planned_dose else None)
-    spec = SourceSpec.from_source_data(source, air_kerma_u, datetime.now().replace(microsecond=0))
-    setup = load_template(result.config.template).application_setup_type
+    active = opt.dwells.select(opt.dwells.times_s > 0)
+    rx = _rx_point(planning, active, kernel, air_kerma_u, aims.prescription_gy, target_roi, named_points)
+    points = _reference_points(structures, [*rx, *named_points], opt.dwells, len(exports), kernel, air_kerma_u)
+    fractions = aims.fractionation.n_fractions
+    dose = _planned_dose(planning, active, kernel, air_kerma_u, fractions) if planned_dose else None
+    now, setup = datetime.now().replace(microsecond=0), load_template(result.config.template).application_setup_type
+    spec = SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0))  # Eclipse
 
     def export_plan(name: str, needles: Sequence[NeedleExport], points: Sequence[ReferencePoint] = (),
-                    dose: PlannedDose | None = None) -> ExportPlan:
+                    dose: PlannedDose | None = None, spec_point: str = "") -> ExportPlan:
         return ExportPlan(name[:16], tuple(needles), spec, structure_set=structures, volume=volume,
-                          input_paths=tuple(input_paths), fractions_planned=aims.fractionation.n_fractions,
+                          input_paths=tuple(input_paths), fractions_planned=fractions,
                           prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
-                          reference_points=tuple(points), application_setup_type=setup, dose=dose)
+                          reference_points=tuple(points), application_setup_type=setup, dose=dose,
+                          plan_datetime=now, specification_point=spec_point)
 
-    export = export_plan(label, exports, points, dose)
+    export = export_plan(label, exports, points, dose, rx[0][0] if rx else "")
     implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
                        for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
     tables = _aims_tables(aims, planning, implant, opt, kind, points, kernel, air_kerma_u)
@@ -329,6 +336,25 @@ def _planned_dose(planning: PlanningStructures, active: DwellSet, kernel: Tg43Ke
     dose_grid = _dose_region(planning)
     values = dose_on_grid(dose_grid, active, kernel, air_kerma_u) if len(active) else np.zeros(dose_grid.shape)
     return PlannedDose(values * fractions, dose_grid)
+
+
+def _rx_point(planning: PlanningStructures, active: DwellSet, kernel: Tg43Kernel, air_kerma_u: float, dose_gy: float,
+              target_roi: str, named_points: Sequence[tuple[str, Sequence[float]]],
+              ) -> list[tuple[str, Sequence[float]]]:
+    """Return the prescription's specification point ``[(name, position mm LPS)]``, or ``[]`` when there is none.
+
+    A point of the target where the planned dose per fraction is the prescription
+    (:func:`~reachplan.planner.dose.rx_point.prescription_point`).
+    """
+    from reachplan.planner.dose.dwells import grid_points_mm
+    from reachplan.planner.dose.rx_point import prescription_point
+
+    name = f"{target_roi} Rx point"[:64]
+    if any(n == name for n, _ in named_points):
+        return []
+    pts = grid_points_mm(planning.grid, np.flatnonzero(planning.target.mask.ravel()))
+    where = prescription_point(pts, active, kernel, air_kerma_u, dose_gy)
+    return [] if where is None else [(name, tuple(float(x) for x in where))]
 
 
 def _reference_points(structures: StructureSet, named_points: Sequence[tuple[str, Sequence[float]]],

@@ -28,10 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         ``reachplan demo``'s parser.
     """
     from reachplan.planner.cli.phantom import add_case_arguments
+    from reachplan.planner.cli.plan import add_rtplan_style
 
     parser.add_argument("--out", type=Path, required=True, help="output folder (created; case in OUT/phantom)")
     add_case_arguments(parser)
     parser.add_argument("--protocol", metavar="FILE_OR_NAME", help=PROTOCOL_HELP)
+    add_rtplan_style(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print the ranking as JSON on stdout")
 
@@ -121,9 +123,10 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     config = PlanConfig()  # the clinical case's tandem (an applicator) is an obstacle: a needle must not cross it
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
-    inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label)
-    case, doc = plan_and_write(inputs, CaseConfig(plan=config, target_names=targets, aims=args.aims), out, quiet,
-                               final_out=args.out,
+    inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label, builtin=True)
+    case, doc = plan_and_write(inputs, CaseConfig(plan=config, target_names=targets, aims=args.aims,
+                                                  rtplan_style=args.rtplan_style),
+                               out, quiet, final_out=args.out,
                                extra={"case": label, "case_about": about,
                                       "phantom_s": {"write": t_write, "read": t_read}})
     atomic_write_json(out / "ranking.json", case.result.ranking_json())

@@ -50,7 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --spacing: margin around the dwell positions, mm (default 30)")
     parser.add_argument("--source", help="TG-43 data set when the plan's source is not recognised")
     parser.add_argument("--treatment-date", metavar="YYYYMMDD[HHMMSS]",
-                        help="date (and time) of treatment the source strength is decayed to (default: RT Plan Date)")
+                        help="date (and time) of treatment the source strength is decayed to (default: the RT Plan "
+                             "Date when it lies within --decay-half-lives after the calibration; otherwise the "
+                             "strength is used as written, with a warning)")
+    parser.add_argument("--decay-half-lives", type=finite_float, default=2.0, metavar="N",
+                        help="decay the strength to the RT Plan Date only up to N half-lives after its reference "
+                             "date (default 2; never before it)")
     parser.add_argument("--model", choices=("line", "point"), default="line",
                         help="TG-43 line-source (default) or 1D point-source formalism")
     parser.add_argument("--bits", type=int, choices=(16, 32), default=16,
@@ -79,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
     """
     from reachplan.imaging.rtplan import read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.imaging.source_strength import DecayWindow
     from reachplan.planner.lookup import get_source
     from reachplan.planner.run.dose_check import DoseCheckConfig, check_plan_dose
     from reachplan.plugins.exporters.rtdose import read_rtdose_grid, write_rtdose
@@ -87,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     output_file(args.out, (args.plan, args.structures, args.like))
     finite(args.spacing, "--spacing", lo=0.1, hi=50.0)
     finite(args.margin, "--margin", lo=0.0, hi=500.0)
+    finite(args.decay_half_lives, "--decay-half-lives", lo=0.0, hi=50.0)
     for given, option in ((args.plan, "--plan"), (args.structures, "--structures"), (args.like, "--like")):
         if given is not None and not given.is_file():
             raise ArgumentError(f"{option} {given} is not a file; give the path of the DICOM file")
@@ -102,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     structures = read_rtstruct(args.structures)
     like = read_rtdose_grid(args.like)[1] if args.like is not None else None
     config = DoseCheckConfig(args.source, args.model, 2.5 if args.spacing is None else args.spacing, args.margin,
-                             like, args.treatment_date, args.points)
+                             like, args.treatment_date, args.points, DecayWindow(args.decay_half_lives))
     check = check_plan_dose(plan, structures, config, str(args.plan))
     # the only output, written last and atomically
     write_rtdose(args.out, check.dose_gy, check.grid, check.context, bits=args.bits, ceiling_gy=check.ceiling_gy)
@@ -151,8 +158,10 @@ def _report(args: argparse.Namespace, check: DoseCheck, aims_doc: dict[str, obje
         print_json(doc, NAME)
         return
     print(f"source {check.choice.how} ({args.model} model)")
-    print(f"S_K {strength.reference_u:.6g} U on {strength.reference_date}, {strength.treatment_u:.6g} U on "
-          f"{strength.treatment_date} ({strength.elapsed_days:.3f} d); {check.n_dwells} dwells, {check.fractions}")
+    used = (f"{strength.treatment_u:.6g} U on {strength.treatment_date} ({strength.elapsed_days:.3f} d)"
+            if strength.decayed else f"used as written (not decayed to {strength.treatment_date}: see the warning)")
+    print(f"S_K {strength.reference_u:.6g} U on {strength.reference_date or 'no date'}, {used}; {check.n_dwells} "
+          f"dwells, {check.fractions}")
     print(f"wrote {args.out}: grid {grid.shape} (k, j, i), max {float(dose.max()):.3f} Gy")
     for c in check.checks:
         tps = "-" if c.tps_gy is None else f"{c.tps_gy:.4f}"

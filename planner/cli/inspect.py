@@ -67,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         out.append(f"  machine {p.machine or '-'}; {rx}{' to ' + p.target if p.target else ''}; "
                    f"{p.fractions} fraction(s); {len(p.channels)} channels, {sum(c.n_dwells for c in p.channels)} "
                    "dwells")
+        if p.strength:
+            out.append(f"  {p.strength}")
         for name, dose in p.points:
             out.append(f"  point {name}: {'-' if dose is None else f'{dose:.3f} Gy'} (plan, all fractions)")
         for c in p.channels:

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 from reachplan.planner.cli.edges import (
     PROTOCOL_HELP,
     applicator_assignments,
+    finite,
+    finite_float,
     output_folder,
     print_json,
     seen_warnings,
@@ -87,6 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a dose reference point of the exported plan (mm, LPS), with its planned dose; "
                              "repeatable (Point A and the ICRU bladder/rectum points are added when the "
                              "structures allow)")
+    parser.add_argument("--dwell-margin", type=finite_float, default=None, metavar="MM",
+                        help="dwells lie in the --target-roi grown by this margin (default 0: the target as drawn)")
+    add_rtplan_style(parser)
     parser.add_argument("--no-export", action="store_true", help="rank only; skip dose optimisation and export")
     parser.add_argument("--no-implant", action="store_true",
                         help="skip implant planning (the needle set and dwell times for the whole target, straight "
@@ -94,6 +99,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
+
+
+def add_rtplan_style(parser: argparse.ArgumentParser) -> None:
+    """Add ``--rtplan-style`` (the exported RT Plan's layout; ``plan`` and ``demo``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser.
+    """
+    parser.add_argument("--rtplan-style", choices=("eclipse", "vitesse"), default="eclipse",
+                        help="layout of the exported RT Plan's prescription: eclipse (default; no Target "
+                             "Prescription Dose, the points as COORDINATES) or vitesse (adds the target as a SITE "
+                             "item with Target Prescription Dose)")
 
 
 def _triple(spec: str, what: str) -> tuple[float, float, float]:
@@ -295,6 +314,8 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
     if not args.no_export:
         get_source(args.source)
     args.aims = load_protocol(args.protocol)  # a bad file or name is an error before any work
+    if args.dwell_margin is not None:
+        finite(args.dwell_margin, "--dwell-margin", lo=0.0, hi=20.0)
     _targets(args.targets)
 
 
@@ -337,7 +358,8 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
                       allow_no_oars=args.allow_no_oars,
                       standard_names=tuple(standard_names), export=not args.no_export, implant=not args.no_implant,
                       source=args.source, target_roi=args.target_roi,
-                      named_points=tuple(_reference_points(args.reference_point)), aims=args.aims)
+                      named_points=tuple(_reference_points(args.reference_point)), aims=args.aims,
+                      dwell_margin_mm=args.dwell_margin, rtplan_style=args.rtplan_style)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -72,28 +72,33 @@ def _ambiguous(structures: StructureSet, name: str) -> list[Roi]:
 
 
 def check_unique(structures: StructureSet, names: Collection[str] = ()) -> None:
-    """Refuse ROI names that occur twice, and standard names in ``names`` that several ROIs map to.
+    """Refuse a name in ``names`` (a target or organ) that several ROIs have, or that several ROIs map to.
+
+    ROIs whose names are equal but for case (or equal) and are not used are told apart by ROI number: the reader
+    warns about them (:class:`~reachplan.imaging.errors.DuplicateRoiNameWarning`), planning goes on.
 
     Parameters
     ----------
     structures : StructureSet
         The structure set.
     names : collection of str
-        Standard (normalised) names that must map to one ROI at most.
+        Original or standard (normalised) names used as targets or organs: each must name one ROI at most.
 
     Raises
     ------
     PlanInputError
         Naming the duplicates.
     """
+    used = {n.strip().casefold() for n in names}
     seen: dict[str, list[Roi]] = {}
     for r in structures.rois:
         seen.setdefault(r.name.strip().casefold(), []).append(r)
-    dups = [rs for rs in seen.values() if len(rs) > 1]
+    dups = [rs for key, rs in seen.items() if len(rs) > 1 and (key in used or any(
+        r.normalized_name.casefold() in used for r in rs))]
     if dups:
         listed = "; ".join(f"{rs[0].name!r} (ROI numbers {', '.join(str(r.number) for r in rs)})" for rs in dups)
-        raise PlanInputError(f"duplicate ROI names in the structure set: {listed}; rename them in the TPS and "
-                             "export again")
+        raise PlanInputError(f"duplicate ROI names in the structure set, used as a target or organ: {listed}; "
+                             "rename them in the TPS and export again")
     for name in names:
         rois = _ambiguous(structures, name)
         if len(rois) > 1:

@@ -93,8 +93,12 @@ class Channel:
 
     @property
     def dwell_directions(self) -> np.ndarray:
-        """(d, 3) float, unit vectors, LPS: the source axis at each dwell, toward the tip."""
-        return dwell_directions(self.path_mm, self.dwell_positions_mm)
+        """(d, 3) float, unit vectors, LPS: the source axis at each dwell, toward the tip.
+
+        ``path_mm`` runs base to tip; :func:`dwell_directions` takes it tip first (as the exported channel ROI and
+        ``reachplan dose`` read it), so the planned dose and the dose recomputed from the export are one.
+        """
+        return dwell_directions(self.path_mm[::-1], self.dwell_positions_mm)
 
 
 # --- candidates ---------------------------------------------------------------------------------------

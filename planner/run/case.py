@@ -22,8 +22,9 @@ from reachplan.planner.delivery import Delivery, plan_delivery
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.evaluation import protocol_json
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.geometry.organs import has_closed
+from reachplan.planner.geometry.organs import check_unique, has_closed
 from reachplan.planner.geometry.template import TemplatePose
+from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.report.comparison import straight_vs_steered
 from reachplan.planner.steering.candidates import Target
 from reachplan.rod_model.errors import RodModelError
@@ -47,12 +48,15 @@ class CaseInput:
         The files or folders the case was read from (the exports refuse to overwrite them).
     label : str
         The case's name in the report.
+    builtin : bool
+        A built-in case (``demo``): its analytic structures keep the implant's default dwell margin.
     """
 
     structures: StructureSet
     volume: Volume | None = None
     paths: tuple[Path, ...] = ()
     label: str = "case"
+    builtin: bool = False
 
 
 @dataclass(frozen=True)
@@ -87,6 +91,12 @@ class CaseConfig:
         Dose reference points (name, mm LPS) the delivered plan carries.
     aims : Aims
         The protocol's aims the dose is planned to and reported against (``--protocol``; default EMBRACE II).
+    dwell_margin_mm : float or None, mm
+        Dwells lie in the target grown by this; None: 0 on a real structure set (the target as drawn), the
+        implant's default (:class:`~reachplan.planner.implant.settings.ImplantSettings`) on a built-in case.
+    rtplan_style : str
+        Layout of the exported RT Plan's prescription: ``"eclipse"`` or ``"vitesse"``
+        (:class:`~reachplan.plugins.exporters.base.ExportOptions`).
     """
 
     plan: PlanConfig = field(default_factory=PlanConfig)
@@ -101,6 +111,8 @@ class CaseConfig:
     target_roi: str = "HR-CTV"
     named_points: tuple[tuple[str, tuple[float, float, float]], ...] = ()
     aims: Aims = field(default_factory=Aims)
+    dwell_margin_mm: float | None = None
+    rtplan_style: str = "eclipse"
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,6 +189,7 @@ def check_case(inputs: CaseInput, config: CaseConfig) -> None:
         The dose target ROI is missing or has no closed contours.
     """
     if config.export:
+        check_unique(inputs.structures, [config.target_roi])
         roi = inputs.structures.get(config.target_roi)
         if not has_closed(roi):
             raise PlanInputError(f"the dose target ROI {roi.name!r} has no closed contours; name another with "
@@ -230,10 +243,31 @@ def run_case(inputs: CaseInput, config: CaseConfig, *, quiet: bool = True,
     delivery = plan_delivery(result, inputs.structures, grid, source_name=config.source,
                              target_roi=config.target_roi, volume=inputs.volume, input_paths=inputs.paths,
                              named_points=config.named_points, scene=scene if config.implant else None,
-                             aims=config.aims)
+                             aims=config.aims, implant_settings=implant_settings(inputs, config))
     comparison, note = straight_vs_steered(result, inputs.structures, delivery, grid, config.target_roi, quiet=quiet)
     timings["delivery_s"] = time.perf_counter() - t
     return CaseResult(inputs, config, scene, result, delivery, comparison, note, timings)
+
+
+def implant_settings(inputs: CaseInput, config: CaseConfig) -> ImplantSettings:
+    """Return the implant settings of a case: dwells in the target as drawn on a real structure set.
+
+    Parameters
+    ----------
+    inputs : CaseInput
+        Whether the case is built in (its analytic structures keep the default dwell margin).
+    config : CaseConfig
+        ``dwell_margin_mm`` when given.
+
+    Returns
+    -------
+    ImplantSettings
+        The defaults with ``dwell_margin_mm`` = the one given, else 0 on a real structure set, else the default.
+    """
+    margin = config.dwell_margin_mm
+    if margin is None:
+        margin = ImplantSettings().dwell_margin_mm if inputs.builtin else 0.0
+    return ImplantSettings(dwell_margin_mm=margin)
 
 
 def rod_model_errors() -> tuple[ErrorRow, ...]:

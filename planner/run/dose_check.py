@@ -4,21 +4,24 @@ The source data set is the one named in the plan (Source Model ID, Isotope Name,
 when its isotope, kind and active length agree; for an anonymised plan the only registered one of the plan's isotope
 (named or told by the half-life), treatment type and active length
 (:func:`reachplan.plugins.sources.identify.identify_source`); else the one the caller names. S_K is the plan's
-Reference Air Kerma Rate decayed from its reference date to the treatment date: the one given, else the RT Plan Date
-(whole days; Eclipse dates the strength to the plan day at midnight, rtplan_conventions.md §5). Dwell times follow
-the Eclipse conventions (see :mod:`reachplan.imaging.rtplan`); doses are totals over fractions and pulses.
+Reference Air Kerma Rate decayed to the treatment date (the one given, else the RT Plan Date) across a plausible
+interval only, else used as written with a warning that says so: the rule of
+:func:`reachplan.imaging.source_strength.source_strength`, which ``inspect`` applies too. Dwell times follow the
+Eclipse conventions (see :mod:`reachplan.imaging.rtplan`); doses are totals over fractions and pulses.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Literal
 
 import numpy as np
 
 from reachplan.imaging.brachy_plan import BrachySource, RtPlan
+from reachplan.imaging.errors import InvalidValueError
 from reachplan.imaging.rtplan import channel_paths
+from reachplan.imaging.source_strength import DecayWindow, SourceStrength, dicom_datetime, source_strength
 from reachplan.imaging.types import Grid, StructureSet
 from reachplan.planner.dose.dwells import dose_on_grid, plan_dwells
 from reachplan.planner.dose.plan_check import PointCheck, check_isotope, check_points
@@ -27,7 +30,7 @@ from reachplan.planner.errors import PlanInputError
 from reachplan.planner.lookup import all_sources, get_source
 from reachplan.plugins.errors import SourceMatchError
 from reachplan.plugins.exporters.rtdose import CEILING_TIMES_PRESCRIPTION, DoseContext
-from reachplan.plugins.sources.identify import PlanSource, SourceChoice, decay_factor, identify_source, plan_isotope
+from reachplan.plugins.sources.identify import PlanSource, SourceChoice, identify_source, plan_isotope
 
 #: the largest dose grid computed (voxels); a finer one asks for a coarser spacing
 MAX_GRID_VOXELS = 60_000_000
@@ -50,9 +53,11 @@ class DoseCheckConfig:
     like : Grid or None
         A grid to compute on (an RT Dose's), LPS mm.
     treatment_date : str or None
-        ``YYYYMMDD[HHMMSS]`` the source strength is decayed to; None: the RT Plan Date.
+        ``YYYYMMDD[HHMMSS]`` the source strength is decayed to; None: the RT Plan Date, within ``decay``.
     points : bool
         Also compute the dose at the plan's dose reference points.
+    decay : DecayWindow
+        Across which interval after the calibration the strength is decayed to the RT Plan Date.
     """
 
     source: str | None = None
@@ -62,44 +67,7 @@ class DoseCheckConfig:
     like: Grid | None = None
     treatment_date: str | None = None
     points: bool = False
-
-
-@dataclass(frozen=True)
-class SourceStrength:
-    """The source strength used: as written in the plan and decayed to the treatment date.
-
-    Parameters
-    ----------
-    reference_u : float
-        Reference Air Kerma Rate, U (µGy m² h⁻¹), at the reference date.
-    reference_date : str
-        The reference date and time as written (empty when the plan gives none).
-    treatment_date : str
-        The date decayed to, and where it came from.
-    elapsed_days : float
-        Days from the reference date to the treatment date.
-    treatment_u : float
-        S_K at the treatment date, U.
-    """
-
-    reference_u: float
-    reference_date: str
-    treatment_date: str
-    elapsed_days: float
-    treatment_u: float
-
-    def to_json(self) -> dict[str, object]:
-        """Return the strength as the command's JSON keys.
-
-        Returns
-        -------
-        dict
-            ``air_kerma_reference_u``, ``reference_date``, ``treatment_date``, ``elapsed_days``,
-            ``air_kerma_treatment_u``.
-        """
-        return {"air_kerma_reference_u": self.reference_u, "reference_date": self.reference_date,
-                "treatment_date": self.treatment_date, "elapsed_days": self.elapsed_days,
-                "air_kerma_treatment_u": self.treatment_u}
+    decay: DecayWindow = field(default_factory=DecayWindow)
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,7 +143,7 @@ def check_plan_dose(plan: RtPlan, structures: StructureSet, config: DoseCheckCon
         raise PlanInputError(f"{label}: {exc}") from None
     data = get_source(choice.name)
     check_isotope(src, data, label)
-    strength = decayed_strength(plan, src, config.treatment_date)
+    strength = decayed_strength(plan, src, config.treatment_date, config.decay, label)
     kernel = Tg43Kernel(data, config.model)
     dwells = plan_dwells(plan, channel_paths(plan, structures))
     if not len(dwells):
@@ -283,18 +251,15 @@ def parse_date(text: str, what: str) -> datetime:
     PlanInputError
         Not such a date.
     """
-    digits = text.strip().split(".")[0]
-    fmt = {8: "%Y%m%d", 10: "%Y%m%d%H", 12: "%Y%m%d%H%M", 14: "%Y%m%d%H%M%S"}.get(len(digits))
-    if fmt is not None and digits.isdigit():
-        try:
-            return datetime.strptime(digits, fmt)
-        except ValueError:
-            pass
-    raise PlanInputError(f"{what} {text!r} is not a date YYYYMMDD[HHMMSS]")
+    when = dicom_datetime(text)
+    if when is None:
+        raise PlanInputError(f"{what} {text!r} is not a date YYYYMMDD[HHMMSS]")
+    return when
 
 
-def decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None) -> SourceStrength:
-    """Return S_K at the treatment date: ``treatment``, else the RT Plan Date (whole days), else not decayed.
+def decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None, window: DecayWindow | None = None,
+                     label: str = "plan") -> SourceStrength:
+    """Return S_K at the treatment date by the one rule of :func:`~reachplan.imaging.source_strength.source_strength`.
 
     Parameters
     ----------
@@ -303,37 +268,29 @@ def decayed_strength(plan: RtPlan, src: BrachySource, treatment: str | None) -> 
     src : BrachySource
         Its source: strength, reference date and time, half-life.
     treatment : str or None
-        ``YYYYMMDD[HHMMSS]`` to decay to.
+        ``YYYYMMDD[HHMMSS]`` to decay to (``--treatment-date``); None: the RT Plan Date within ``window``.
+    window : DecayWindow or None
+        The plausible interval; None: the default (up to 2 half-lives after the calibration, none before).
+    label : str
+        The plan's name in messages.
 
     Returns
     -------
     SourceStrength
-        As written and decayed, with the dates and the elapsed days.
+        What :func:`~reachplan.imaging.source_strength.source_strength` returns.
 
     Raises
     ------
     PlanInputError
-        A date that is not one, or a source without half-life that would need decaying.
+        ``treatment`` is not a date, or the strength cannot be decayed to it.
+
+    Warns
+    -----
+    CalibrationDateWarning
+        S_K used as written (see :func:`~reachplan.imaging.source_strength.source_strength`).
     """
-    if not src.reference_date:
-        return SourceStrength(src.air_kerma_rate_u, "", "unknown (no Source Strength Reference Date: not decayed)",
-                              0.0, src.air_kerma_rate_u)
-    ref = parse_date(src.reference_date + (src.reference_time or ""), "Source Strength Reference Date")
-    if treatment:
-        elapsed = (parse_date(treatment, "--treatment-date") - ref).total_seconds() / 86400.0
-        when = treatment
-    elif plan.plan_date:
-        elapsed = float((parse_date(plan.plan_date, "RT Plan Date").date() - ref.date()).days)
-        when = f"{plan.plan_date} (RT Plan Date)"
-    else:
-        elapsed = 0.0
-        when = f"{src.reference_date} (no RT Plan Date: not decayed)"
-    if src.half_life_days is None or src.half_life_days <= 0:
-        if elapsed != 0.0:
-            raise PlanInputError("the plan's source has no half-life; cannot decay its strength to the treatment "
-                                 "date (pass --treatment-date equal to the reference date to use it as written)")
-        factor = 1.0
-    else:
-        factor = decay_factor(src.half_life_days, elapsed)
-    return SourceStrength(src.air_kerma_rate_u, f"{src.reference_date} {src.reference_time}".strip(), when, elapsed,
-                          src.air_kerma_rate_u * factor)
+    when = parse_date(treatment, "--treatment-date") if treatment else None
+    try:
+        return source_strength(src, plan.plan_date, when, window, label=label)
+    except InvalidValueError as exc:
+        raise PlanInputError(str(exc)) from None

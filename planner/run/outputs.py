@@ -59,11 +59,12 @@ class CaseFiles:
         return tuple(f for f in self.exports if "device" in f.name and f.suffix == ".json")
 
 
-def _export(plan: ExportPlan, names: tuple[str, ...], folder: Path, out: Path, final: Path) -> list[Path]:
+def _export(plan: ExportPlan, names: tuple[str, ...], folder: Path, out: Path, final: Path,
+            style: str = "eclipse") -> list[Path]:
     """Run the exporters ``names`` on ``plan`` into ``folder``; return the written files as paths inside ``final``."""
     files: list[Path] = []
     for name in names:
-        written = exporter(name).export(plan, folder, ExportOptions(overwrite=True))
+        written = exporter(name).export(plan, folder, ExportOptions(overwrite=True, rtplan_style=style))
         files += [final / Path(f.path).relative_to(out) for f in written.files]
     return files
 
@@ -102,7 +103,7 @@ def write_outputs(case: CaseResult, out: Path, final: Path | None = None, *, ext
     files: list[Path] = []
     delivery = case.delivery
     if delivery is not None:
-        files += _export(delivery.export, PLAN_EXPORTERS, out / "export", out, final)
+        files += _export(delivery.export, PLAN_EXPORTERS, out / "export", out, final, case.config.rtplan_style)
         for arm_name, arm_export in delivery.implant_exports.items():
             files += _export(arm_export, ARM_EXPORTERS, out / "export" / f"implant_{arm_name}", out, final)
         section = doc["delivery"]

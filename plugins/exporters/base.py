@@ -16,7 +16,7 @@ import math
 import os
 import re
 import unicodedata
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
@@ -41,6 +41,8 @@ MIN_DWELL_SPACING_MM = 0.1
 HALF_LIFE_DAYS: Mapping[str, float] = MappingProxyType({"Ir-192": 73.83, "Co-60": 1925.28})
 
 _SOURCE_TYPES = ("POINT", "LINE", "CYLINDER", "SPHERE")
+#: RT Plan layouts of the prescription (:class:`ExportOptions` ``rtplan_style``; rtplan_conventions.md §2-3).
+RTPLAN_STYLES = ("eclipse", "vitesse")
 
 
 def _check_short_text(value: str, what: str, max_len: int) -> None:
@@ -338,6 +340,21 @@ class ReferencePoint:
         object.__setattr__(self, "position_mm", pos)
         object.__setattr__(self, "rate_gy_per_s", rates)
 
+    def planned_dose_gy(self, needles: Sequence[NeedleExport]) -> float:
+        """Return the planned dose per fraction at the point with the needles' dwell times (as planned, unrounded).
+
+        Parameters
+        ----------
+        needles : sequence of NeedleExport
+            The plan's needles, in the order of ``rate_gy_per_s``.
+
+        Returns
+        -------
+        float, Gy
+            Σ over needles and dwells of the rate × the dwell time.
+        """
+        return float(sum(float(r @ n.dwell_times_s) for r, n in zip(self.rate_gy_per_s, needles, strict=True)))
+
 
 @dataclass(frozen=True, eq=False)
 class PlannedDose:
@@ -401,6 +418,9 @@ class ExportPlan:
         The planned dose on a grid, written as an RT Dose that references the plan; None: no RT Dose.
     input_paths : tuple of Path
         Files (or series folders) the plan was made from: never written, nor written into, by an export.
+    specification_point : str
+        The reference point at which the prescription (Brachy Application Setup Dose) is specified, by name: its
+        planned dose per fraction is the prescription. "" when there is none.
 
     Raises
     ------
@@ -425,6 +445,7 @@ class ExportPlan:
     channel_effective_length_mm: float | None = None
     dose: PlannedDose | None = None
     input_paths: tuple[Path, ...] = field(default=())
+    specification_point: str = ""
 
     def __post_init__(self) -> None:
         _check_short_text(self.label, "plan label", 16)
@@ -456,6 +477,8 @@ class ExportPlan:
         for p in self.reference_points:
             if [len(r) for r in p.rate_gy_per_s] != [len(n.dwell_times_s) for n in self.needles]:
                 raise ValueError(f"reference point {p.name}: give one dose rate per dwell of every needle")
+        if self.specification_point and self.specification_point not in names:
+            raise ValueError(f"specification point {self.specification_point!r} is not one of the reference points")
         if self.source.treatment_type != "HDR":
             raise ValueError(f"only HDR plans are exported, the source is {self.source.treatment_type}")
         _check_short_text(self.target_name, "target name", 64)
@@ -476,23 +499,31 @@ class ExportOptions:
     step_mm : float
         Depth step of device-instruction rows, mm.
     time_resolution_s : float
-        Dwell times are rounded to this (0.1 s: afterloader resolution; the BrachyVision example's
-        times are multiples of it). Cumulative weights are then exact decimals.
+        Dwell times are written to this (default 0.001 s: the plan's times are kept, a planned 0.187 s stays
+        0.187 s; the afterloader rounds to its own step, 0.1 s for the GammaMed Plus, on delivery).
+        Cumulative weights are then exact decimals.
     uid_prefix : str or None
         Root of new DICOM UIDs (digits and dots, ending with a dot); None: pydicom's registered root.
+    rtplan_style : str
+        Layout of the RT Plan's prescription (:data:`RTPLAN_STYLES`): ``"eclipse"`` (default) as Varian
+        Eclipse/BrachyVision writes it, no Target Prescription Dose (300A,0026) in the Dose Reference Sequence;
+        ``"vitesse"`` adds the target as a SITE/TARGET item with Target Prescription Dose, as Oncentra/Vitesse
+        writes it.
 
     Raises
     ------
     ValueError
-        A malformed ``uid_prefix``, a non-positive ``step_mm`` or ``time_resolution_s`` outside 1e-6 .. 10 s.
+        A malformed ``uid_prefix``, a non-positive ``step_mm``, ``time_resolution_s`` outside 1e-6 .. 10 s, or an
+        unknown ``rtplan_style``.
     """
 
     overwrite: bool = False
     stem: str = ""
     include_patient_name: bool = False
     step_mm: float = 5.0
-    time_resolution_s: float = 0.1
+    time_resolution_s: float = 0.001
     uid_prefix: str | None = None
+    rtplan_style: str = "eclipse"
 
     def __post_init__(self) -> None:
         prefix = self.uid_prefix
@@ -503,6 +534,8 @@ class ExportOptions:
             raise ValueError("step_mm must be > 0")
         if not (math.isfinite(self.time_resolution_s) and 1e-6 <= self.time_resolution_s <= 10):
             raise ValueError("time_resolution_s must be within 1e-6 .. 10 s")
+        if self.rtplan_style not in RTPLAN_STYLES:
+            raise ValueError(f"rtplan_style must be one of {', '.join(RTPLAN_STYLES)}, got {self.rtplan_style!r}")
 
 
 @dataclass(frozen=True)

@@ -7,17 +7,21 @@ types and the genuine exports it was read from):
   needle of interpreted type ``BRACHY_CHANNEL`` holding one ``OPEN_NONPLANAR`` contour, the needle path
   written tip first. With the input CT the reference chain Frame of Reference → study → series → every slice,
   and each planar contour references its slice (§8).
-* RT Plan: the prescription (Dose Reference Sequence: the target as SITE/TARGET with Target Prescription Dose,
-  each reference point as COORDINATES; Brachy Application Setup Dose = dose per fraction; Number of Fractions
-  Planned) (§2-3); one Application Setup of the template's type with one Channel per needle, linked to its ROI
-  by Referenced ROI Number; Brachy Control Points in pairs per dwell (same position; the cumulative time weight
-  rises across the pair by the dwell time), ordered from the tip, each with every dose reference's Cumulative
+* RT Plan: the prescription in Eclipse's layout by default (Brachy Application Setup Dose = dose per fraction,
+  specified at the plan's specification point; each reference point a COORDINATES item; no Target Prescription
+  Dose (300A,0026) in the Dose Reference Sequence; ``rtplan_style="vitesse"`` adds the target as SITE/TARGET with
+  it, as Oncentra/Vitesse writes; Number of Fractions Planned) (§2-3); one Application Setup of the template's
+  type with one Channel per needle, linked to its ROI by Referenced ROI Number; Brachy Control Points in pairs
+  per dwell (same position; the cumulative time weight rises across the pair by the dwell time), ordered from the
+  tip, each with every dose reference's Cumulative
   Dose Reference Coefficient (the channel's share of the setup dose so far: planned dose per fraction at a point
   = Σ over channels of the last coefficient × setup dose, §4) and, on curved needles, Control Point Orientation
-  toward the tip (§7); Control Point Relative Position = arc distance from the tip; Channel Length, Channel
+  toward the tip (§7); Control Point Relative Position = arc distance from the tip (the channel's end: the first
+  dwell is written at the source-tip offset it is given at); dwell times to 1 ms; Channel Length, Channel
   Effective Length and Source Applicator Length = the afterloader's length, Treatment Machine Name from
   :class:`~reachplan.plugins.exporters.base.Afterloader` (§5-6); one Source from the plan's
-  :class:`SourceSpec`.
+  :class:`SourceSpec`, its strength dated as the spec says (the planner dates it to the plan day at midnight, as
+  Eclipse does, §5).
 * RT Dose (when the plan carries its dose): the planned dose of all fractions, referencing the plan (§9).
 * All files share one Study (the input CT's, with its date, time and ID) and Frame of Reference, carry the input
   patient identity, get new SOP Instance and Series UIDs, and the plan references the structure set. Approval
@@ -481,58 +485,114 @@ def _channel(needle: NeedleExport, number: int, roi_number: int, plan: ExportPla
     return ch, total
 
 
-def planned_point_doses_gy(plan: ExportPlan, time_resolution_s: float = 0.1) -> dict[str, float]:
+def planned_point_doses_gy(plan: ExportPlan, time_resolution_s: float | None = None) -> dict[str, float]:
     """Dose per fraction (Gy) at each reference point of ``plan`` with the dwell times as the export writes them.
+
+    Parameters
+    ----------
+    plan : ExportPlan
+        The plan with its reference points.
+    time_resolution_s : float or None
+        The step dwell times are written to; None: :class:`ExportOptions`'s default.
 
     Returns
     -------
     dict name -> Gy
         Σ over dwells of the point's dose rate × the dwell time rounded to ``time_resolution_s``.
     """
+    res = ExportOptions().time_resolution_s if time_resolution_s is None else time_resolution_s
     out = {}
     for p in plan.reference_points:
         out[p.name] = float(sum(
-            float(rate @ (dwell_ticks(n.dwell_times_s, time_resolution_s) * time_resolution_s))
+            float(rate @ (dwell_ticks(n.dwell_times_s, res) * res))
             for rate, n in zip(p.rate_gy_per_s, plan.needles, strict=True)))
     return out
 
 
-def _dose_references(plan: ExportPlan, uid_prefix: str | None) -> list[Dataset]:
-    """Build the Dose Reference Sequence: the prescription target (SITE, TARGET) and one COORDINATES item per point."""
-    items = []
-    target = Dataset()
-    target.DoseReferenceNumber = 1
-    target.DoseReferenceUID = new_uid(uid_prefix)
-    target.DoseReferenceStructureType = "SITE"
-    target.DoseReferenceDescription = plan.target_name
-    target.DoseReferenceType = "TARGET"
-    if plan.prescription_dose_gy is not None:
-        # the whole course: per-fraction prescription x fractions (the plan's total, as the coefficients give it)
-        target.TargetPrescriptionDose = _ds(plan.prescription_dose_gy * plan.fractions_planned, 4)
-    items.append(target)
-    for k, p in enumerate(plan.reference_points, start=2):
+@dataclass(frozen=True)
+class _DoseReferences:
+    """The Dose Reference Sequence items, the number of each point's item, and the prescription's links."""
+
+    items: list[Dataset]
+    point_numbers: list[int]  # per reference point of the plan, its Dose Reference Number
+    target_number: int | None  # the SITE/TARGET item (vitesse style), whose coefficients are bookkeeping
+    setup_uid: str | None  # the item the setup dose refers to: the target (vitesse), else the specification point
+
+
+def _dose_references(plan: ExportPlan, style: str, uid_prefix: str | None) -> _DoseReferences:
+    """Build the Dose Reference Sequence in the layout ``style`` (rtplan_conventions.md §2).
+
+    ``"eclipse"``: one COORDINATES item per reference point, typed ORGAN_AT_RISK as Eclipse types even its Point A
+    (the plan's own type otherwise), no Target Prescription Dose (300A,0026) anywhere: Eclipse never writes it, and a
+    checker written for Eclipse plans (pyTG43) then reads every point's planned dose from the coefficients.
+    ``"vitesse"``: first the target as SITE/TARGET with Target Prescription Dose = the course's prescription (per
+    fraction × fractions), then the points, as Oncentra/Vitesse writes it.
+    """
+    items: list[Dataset] = []
+    target_number = None
+    if style == "vitesse":
+        target = Dataset()
+        target.DoseReferenceNumber = 1
+        target.DoseReferenceUID = new_uid(uid_prefix)
+        target.DoseReferenceStructureType = "SITE"
+        target.DoseReferenceDescription = plan.target_name
+        target.DoseReferenceType = "TARGET"
+        if plan.prescription_dose_gy is not None:
+            target.TargetPrescriptionDose = _ds(plan.prescription_dose_gy * plan.fractions_planned, 4)
+        items.append(target)
+        target_number = 1
+    numbers = []
+    for p in plan.reference_points:
         item = Dataset()
-        item.DoseReferenceNumber = k
+        item.DoseReferenceNumber = len(items) + 1
         item.DoseReferenceUID = new_uid(uid_prefix)
         item.DoseReferenceStructureType = "COORDINATES"
         item.DoseReferenceDescription = p.name
         item.DoseReferencePointCoordinates = [_ds(x) for x in p.position_mm]
         item.DoseReferenceType = p.reference_type
+        numbers.append(int(item.DoseReferenceNumber))
         items.append(item)
-    return items
+    link: str | None = str(items[0].DoseReferenceUID) if target_number is not None else None
+    if target_number is None:
+        link = next((str(it.DoseReferenceUID) for it, p in zip(items, plan.reference_points, strict=True)
+                     if p.name == plan.specification_point), None)
+    return _DoseReferences(items, numbers, target_number, link)
+
+
+def _source_item(src: base.SourceSpec) -> Dataset:
+    """Build the Source Sequence item: the model, its dimensions, the strength and the date it is given at (§5)."""
+    s = Dataset()
+    s.SourceNumber = 1
+    if src.model_id:
+        s.SourceModelID = src.model_id
+    s.SourceDescription = (src.title or src.name)[:64]
+    s.SourceType = src.source_type
+    if src.manufacturer:
+        s.SourceManufacturer = src.manufacturer
+    if src.active_diameter_mm is not None:
+        s.ActiveSourceDiameter = _ds(src.active_diameter_mm, 3)
+    if src.active_length_mm is not None:
+        s.ActiveSourceLength = _ds(src.active_length_mm, 3)
+    s.SourceIsotopeName = src.isotope
+    s.SourceIsotopeHalfLife = _ds(float(src.half_life_days or 0.0), 4)
+    s.ReferenceAirKermaRate = _ds(src.air_kerma_rate_u, 4)
+    s.SourceStrengthReferenceDate = _date(src.reference_datetime)
+    s.SourceStrengthReferenceTime = _time(src.reference_datetime)
+    return s
 
 
 def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: str, now: datetime,
-                 time_resolution_s: float = 0.1, uid_prefix: str | None = None) -> Dataset:
+                 time_resolution_s: float = 0.001, uid_prefix: str | None = None,
+                 style: str = "eclipse") -> Dataset:
     """Build the RT Plan dataset (no file meta): brachy, HDR, interstitial, one channel per needle.
 
-    Dwell times are rounded to ``time_resolution_s`` s and written as cumulative time weights; control point
-    positions are the dwell positions in LPS mm. With a prescription, the Dose Reference Sequence holds the
-    target (SITE, TARGET, Target Prescription Dose = per-fraction prescription × fractions) and every reference
-    point (COORDINATES); Brachy Application Setup Dose is the per-fraction prescription, and every control
-    point carries each reference's Cumulative Dose Reference Coefficient, so that a reader recovers the planned
-    dose per fraction at a point as Σ over channels of the last coefficient × the setup dose
-    (rtplan_conventions.md §4; PS3.3 C.8.8.14.7).
+    Dwell times are written to ``time_resolution_s`` s as cumulative time weights; control point positions are the
+    dwell positions in LPS mm. The Dose Reference Sequence is laid out as ``style`` says (:func:`_dose_references`:
+    by default Eclipse's, every reference point a COORDINATES item and no Target Prescription Dose); Brachy
+    Application Setup Dose is the per-fraction prescription, specified (300A,00A2) at the plan's specification point
+    (where the planned dose per fraction is the prescription), and every control point carries each reference's
+    Cumulative Dose Reference Coefficient, so that a reader recovers the planned dose per fraction at a point as
+    Σ over channels of the last coefficient × the setup dose (rtplan_conventions.md §3-4; PS3.3 C.8.8.14.7).
     """
     when = plan.plan_datetime or now
     res = Decimal(repr(time_resolution_s))
@@ -551,8 +611,9 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     ref_ss.ReferencedSOPInstanceUID = rtstruct_uid
     ds.ReferencedStructureSetSequence = Sequence([ref_ss])
     setup_dose = None if plan.prescription_dose_gy is None else float(_ds(plan.prescription_dose_gy, 4))
-    dose_refs = _dose_references(plan, uid_prefix)
-    ds.DoseReferenceSequence = Sequence(dose_refs)
+    dose_refs = _dose_references(plan, style, uid_prefix)
+    if dose_refs.items:
+        ds.DoseReferenceSequence = Sequence(dose_refs.items)
 
     fg = Dataset()
     fg.FractionGroupNumber = 1
@@ -562,8 +623,12 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     ref_setup = Dataset()
     ref_setup.ReferencedBrachyApplicationSetupNumber = 1
     if setup_dose is not None:
+        spec = next((p for p in plan.reference_points if p.name == plan.specification_point), None)
+        if spec is not None:
+            ref_setup.BrachyApplicationSetupDoseSpecificationPoint = [_ds(x) for x in spec.position_mm]
         ref_setup.BrachyApplicationSetupDose = _ds(setup_dose, 4)
-        ref_setup.ReferencedDoseReferenceUID = dose_refs[0].DoseReferenceUID
+        if dose_refs.setup_uid is not None:
+            ref_setup.ReferencedDoseReferenceUID = dose_refs.setup_uid
     fg.ReferencedBrachyApplicationSetupSequence = Sequence([ref_setup])
     ds.FractionGroupSequence = Sequence([fg])
 
@@ -578,24 +643,7 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
     ds.TreatmentMachineSequence = Sequence([machine])
 
     src = plan.source
-    s = Dataset()
-    s.SourceNumber = 1
-    if src.model_id:
-        s.SourceModelID = src.model_id
-    s.SourceDescription = (src.title or src.name)[:64]
-    s.SourceType = src.source_type
-    if src.manufacturer:
-        s.SourceManufacturer = src.manufacturer
-    if src.active_diameter_mm is not None:
-        s.ActiveSourceDiameter = _ds(src.active_diameter_mm, 3)
-    if src.active_length_mm is not None:
-        s.ActiveSourceLength = _ds(src.active_length_mm, 3)
-    s.SourceIsotopeName = src.isotope
-    s.SourceIsotopeHalfLife = _ds(float(src.half_life_days or 0.0), 4)
-    s.ReferenceAirKermaRate = _ds(src.air_kerma_rate_u, 4)
-    s.SourceStrengthReferenceDate = _date(src.reference_datetime)
-    s.SourceStrengthReferenceTime = _time(src.reference_datetime)
-    ds.SourceSequence = Sequence([s])
+    ds.SourceSequence = Sequence([_source_item(src)])
 
     setup = Dataset()
     setup.ApplicationSetupType = plan.application_setup_type
@@ -606,8 +654,10 @@ def build_rtplan(plan: ExportPlan, ident: Identity, sop_uid: str, rtstruct_uid: 
                      Decimal(0))
     channels, total_s = [], Decimal(0)
     for k, (needle, roi_number) in enumerate(zip(plan.needles, channel_roi_numbers(plan), strict=True), start=1):
-        refs: list[tuple[int, np.ndarray | None]] = [(1, None)]
-        refs += [(i, p.rate_gy_per_s[k - 1]) for i, p in enumerate(plan.reference_points, start=2)]
+        refs: list[tuple[int, np.ndarray | None]] = [] if dose_refs.target_number is None else [
+            (dose_refs.target_number, None)]
+        refs += [(i, p.rate_gy_per_s[k - 1]) for i, p in zip(dose_refs.point_numbers, plan.reference_points,
+                                                                strict=True)]
         ch, t = _channel(needle, k, roi_number, plan, res, refs, setup_dose, plan_total)
         channels.append(ch)
         total_s += t
@@ -683,7 +733,7 @@ def export_plan(plan: ExportPlan, out_dir: Path, options: ExportOptions | None =
     now = datetime.now().replace(microsecond=0)
     rs_uid, rp_uid = new_uid(uid_prefix), new_uid(uid_prefix)
     rs = build_rtstruct(plan, ident, rs_uid, now, uid_prefix)
-    rp = build_rtplan(plan, ident, rp_uid, rs_uid, now, opts.time_resolution_s, uid_prefix)
+    rp = build_rtplan(plan, ident, rp_uid, rs_uid, now, opts.time_resolution_s, uid_prefix, opts.rtplan_style)
     rs_bytes, rp_bytes = _file_bytes(rs), _file_bytes(rp)
     rd_bytes = b""
     if plan.dose is not None:

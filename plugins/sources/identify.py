@@ -12,8 +12,6 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import numpy as np
-
 from reachplan.plugins.errors import SourceMatchError
 from reachplan.plugins.sources import SourceData, normalise_label
 
@@ -197,28 +195,3 @@ def identify_source(sources: Mapping[str, SourceData], plan: PlanSource) -> Sour
                                "(see `reachplan plugins`)")
     raise SourceMatchError(f"the plan's source ({told}) fits {len(fits)} registered sources ({', '.join(fits)}); "
                            "pass --source NAME")
-
-
-def decay_factor(half_life_days: float, elapsed_days: float) -> float:
-    """Return the fraction of the source strength left after ``elapsed_days``, 2^(-t/T½).
-
-    Parameters
-    ----------
-    half_life_days : float
-        Half-life, days (> 0).
-    elapsed_days : float
-        Time since calibration, days (negative: before calibration).
-
-    Returns
-    -------
-    float
-        The decay factor (> 0).
-
-    Raises
-    ------
-    SourceMatchError
-        A half-life that is not a positive number, or a non-finite elapsed time.
-    """
-    if not (np.isfinite(half_life_days) and half_life_days > 0 and np.isfinite(elapsed_days)):
-        raise SourceMatchError(f"cannot decay the source: half-life {half_life_days} d, elapsed {elapsed_days} d")
-    return float(2.0 ** (-elapsed_days / half_life_days))

@@ -48,3 +48,10 @@ def test_rename_by_hand_takes_the_name_from_the_others() -> None:
     assert [r.name for r in out.rois] == ["Bladder", "BL_2", "Rect_PRV"]
     with pytest.raises(StructureError, match="no ROI named 'Nope'"):
         rename(ss, {"Nope": "Bladder"})
+
+
+def test_names_that_differ_only_in_case_are_found_as_spelt() -> None:
+    """Issue 27: Vitesse channels ``B5.5`` and ``b5.5`` are told apart (by ROI number, and by spelling when asked)."""
+    c = (Contour(np.zeros((1, 3)), "POINT"),)
+    ss = StructureSet((Roi(7, "B5.5", c), Roi(8, "b5.5", c), Roi(9, "Rectum", c)), "1.2")
+    assert ss.get("b5.5").number == 8 and ss.get("B5.5").number == 7 and ss.get("RECTUM").number == 9

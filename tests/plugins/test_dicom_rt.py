@@ -281,11 +281,20 @@ def test_safe_file_names(make_plan: Callable[..., ExportPlan], tmp_path: Path) -
 def test_dwell_times_rounded_to_resolution_and_noted(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:
     plan = make_plan()
     n0 = plan.needles[0]
+    # issue 27: a planned 0.187 s is written as 0.187 s (not 0.2 s): dwell times are kept to 1 ms by default
+    ms = type(n0)(n0.hole_id, n0.path_mm, n0.dwell_positions_mm, n0.dwell_times_s + 0.187)
+    out = export_plan(make_plan(needles=(ms,)), tmp_path / "ms")
+    assert not any("rounded" in n for n in out.notes)
+    (ch,) = read_independently(out.path("rtplan"), out.path("rtstruct"))
+    assert sorted(ch.times) == sorted(Decimal(str(t)) + Decimal("0.187") for t in n0.dwell_times_s)
     odd = type(n0)(n0.hole_id, n0.path_mm, n0.dwell_positions_mm, n0.dwell_times_s + 0.04)
-    out = export_plan(make_plan(needles=(odd,)), tmp_path)
+    out = export_plan(make_plan(needles=(odd,)), tmp_path, ExportOptions(time_resolution_s=0.1))
     assert any("rounded to 0.1 s" in n for n in out.notes)
     (ch,) = read_independently(out.path("rtplan"), out.path("rtstruct"))
     assert sorted(ch.times) == sorted(Decimal(str(t)) for t in n0.dwell_times_s)
+    fine = type(n0)(n0.hole_id, n0.path_mm, n0.dwell_positions_mm, n0.dwell_times_s + 0.18734)
+    out = export_plan(make_plan(needles=(fine,)), tmp_path / "fine")
+    assert any("rounded to 0.001 s (largest change 0.00034 s)" in n for n in out.notes)
 
 
 def test_exporter_plugin_passes_its_protocol_check(make_plan: Callable[..., ExportPlan], tmp_path: Path) -> None:

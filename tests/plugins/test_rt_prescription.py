@@ -139,23 +139,36 @@ def test_independent_checker_reproduces_the_stated_point_doses(make_plan: PlanFa
         assert stated == pytest.approx(planned[name], rel=1e-8)
 
 
-def test_prescription_fractions_and_coefficients(make_plan: PlanFactory, tmp_path: Path) -> None:
-    plan = with_points(make_plan(), rx_gy=7.0, fractions=4)
-    rp = pydicom.dcmread(export_plan(plan, tmp_path).path("rtplan"))
+@pytest.mark.parametrize("style", ["eclipse", "vitesse"])
+def test_prescription_fractions_and_coefficients(make_plan: PlanFactory, tmp_path: Path, style: str) -> None:
+    """Eclipse's layout by default (no (300A,0026) anywhere, every point a COORDINATES item, the setup dose specified
+    at a point); ``vitesse`` adds the SITE/TARGET item with Target Prescription Dose (rtplan_conventions.md §2-3)."""
+    plan = with_points(make_plan(), rx_gy=7.0, fractions=4, specification_point="p mid")
+    options = exporters_base.ExportOptions() if style == "eclipse" else exporters_base.ExportOptions(rtplan_style=style)
+    rp = pydicom.dcmread(export_plan(plan, tmp_path, options).path("rtplan"))
     fg = rp.FractionGroupSequence[0]
     assert int(fg.NumberOfFractionsPlanned) == 4
     ref_setup = fg.ReferencedBrachyApplicationSetupSequence[0]
     assert float(ref_setup.BrachyApplicationSetupDose) == 7.0
-    target = rp.DoseReferenceSequence[0]
-    assert (target.DoseReferenceType, target.DoseReferenceStructureType) == ("TARGET", "SITE")
-    assert target.DoseReferenceDescription == "HR-CTV" and float(target.TargetPrescriptionDose) == 28.0
-    assert ref_setup.ReferencedDoseReferenceUID == target.DoseReferenceUID
-    numbers = [int(d.DoseReferenceNumber) for d in rp.DoseReferenceSequence]
-    assert len(set(numbers)) == len(numbers) == 1 + len(POINTS)
+    assert np.allclose(np.array(ref_setup.BrachyApplicationSetupDoseSpecificationPoint, float), POINTS["p mid"])
+    refs = rp.DoseReferenceSequence
+    by_name = {str(d.DoseReferenceDescription): d for d in refs}
+    if style == "eclipse":
+        assert not [d for d in refs if (0x300A, 0x0026) in d]  # what stops pyTG43 (KeyError) on our plans
+        assert {(d.DoseReferenceStructureType, d.DoseReferenceType) for d in refs} == {("COORDINATES",
+                                                                                         "ORGAN_AT_RISK")}
+        assert ref_setup.ReferencedDoseReferenceUID == by_name["p mid"].DoseReferenceUID
+    else:
+        target = refs[0]
+        assert (target.DoseReferenceType, target.DoseReferenceStructureType) == ("TARGET", "SITE")
+        assert target.DoseReferenceDescription == "HR-CTV" and float(target.TargetPrescriptionDose) == 28.0
+        assert ref_setup.ReferencedDoseReferenceUID == target.DoseReferenceUID
+    numbers = [int(d.DoseReferenceNumber) for d in refs]
+    assert len(set(numbers)) == len(numbers) == (style == "vitesse") + len(POINTS)
     site_sum = 0.0
     for ch in rp.ApplicationSetupSequence[0].ChannelSequence:
         cps = ch.BrachyControlPointSequence
-        series = {n: [] for n in numbers}
+        series: dict[int, list[float]] = {n: [] for n in numbers}
         for cp in cps:
             got = {int(i.ReferencedDoseReferenceNumber): float(i.CumulativeDoseReferenceCoefficient)
                    for i in cp.BrachyReferencedDoseReferenceSequence}
@@ -167,7 +180,8 @@ def test_prescription_fractions_and_coefficients(make_plan: PlanFactory, tmp_pat
             # constant while the source moves between dwells (from a pair's end to the next pair's start)
             assert all(values[k] == values[k + 1] for k in range(1, len(values) - 1, 2))
         site_sum += series[1][-1]
-    assert site_sum == pytest.approx(1.0, abs=1e-8)
+    if style == "vitesse":
+        assert site_sum == pytest.approx(1.0, abs=1e-8)
 
 
 def test_reachplan_reader_and_dose_command_list_every_point(make_plan: PlanFactory, tmp_path: Path,
@@ -318,7 +332,11 @@ def test_reference_points_are_checked(make_plan: PlanFactory) -> None:
         ReferencePoint("x", np.array([0.0, np.nan, 0.0]), ())
     with pytest.raises(ValueError, match="treatment machine name"):
         Afterloader("a name that is far too long")
-    assert exporters_base.ExportOptions().time_resolution_s == 0.1
+    assert exporters_base.ExportOptions().time_resolution_s == 0.001
+    with pytest.raises(ValueError, match="rtplan_style"):
+        exporters_base.ExportOptions(rtplan_style="monaco")
+    with pytest.raises(ValueError, match="specification point"):
+        dataclasses.replace(plan, specification_point="nowhere")
 
 
 def test_rt_dose_keeps_the_clinical_range_resolved(make_plan: PlanFactory, tmp_path: Path) -> None:

@@ -237,11 +237,31 @@ def test_no_organ_at_risk_refused_unless_allowed(phantom_rs: Path, tmp_path: Pat
     assert "Bladder, Rectum, Sigmoid, Bowel, Bone" in doc["warnings"][0] and "'A1'" in doc["warnings"][0]
 
 
+def test_names_that_differ_only_in_case_are_told_apart_by_number(phantom_rs: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 27: a Vitesse set has channels ``B5.5`` and ``b5.5``; unused, they are a warning, not a refusal; used as a
+    target they are refused; ``inspect`` gives the same warning."""
+    rs = mutate(phantom_rs, tmp_path / "rs.dcm", rename(Target_65_000="B5.5", Target_65_060="b5.5"))
+    code, doc, err = plan(capsys, rs, tmp_path / "a")
+    assert code == 0 and doc is not None, err
+    (named,) = [w for w in doc["warnings"] if "DuplicateRoiNameWarning" in w]
+    assert "'B5.5' (ROI 11)" in named and "'b5.5' (ROI 12)" in named and "differ only in case" in named
+    code, _, err = plan(capsys, rs, tmp_path / "b", targets=("b5.5",))
+    assert code == 2 and "used as a target or organ" in one_line(err.splitlines()[-1]) and "'b5.5'" in err
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        assert main(["inspect", "--json", str(rs)]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert [w for w in shown["warnings"] if "DuplicateRoiNameWarning" in w] == [named]
+
+
 def test_duplicate_roi_names_are_an_error_that_lists_them(phantom_rs: Path, tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
     rs = mutate(phantom_rs, tmp_path / "rs.dcm", rename(Sigmoid="Bladder"))
     code, _, err = plan(capsys, rs, tmp_path / "a")
-    assert code == 2 and "duplicate ROI names" in one_line(err) and "'Bladder' (ROI numbers 4, 6)" in err
+    # the reader's warning first, then the one-line error
+    assert code == 2 and "duplicate ROI names" in one_line(err.splitlines()[-1])
+    assert "'Bladder' (ROI numbers 4, 6)" in err
     # two names that both mean the bladder: ambiguous until one is chosen
     rs = mutate(phantom_rs, tmp_path / "rs2.dcm", rename(Sigmoid="Blase"))
     code, _, err = plan(capsys, rs, tmp_path / "b")

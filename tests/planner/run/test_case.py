@@ -68,3 +68,18 @@ def test_run_case_refuses_a_dose_target_without_closed_contours(case: tuple[Case
     with pytest.raises(PlanInputError, match="no closed contours"):
         run_case(dataclasses.replace(inputs, structures=StructureSet((*inputs.structures.rois, point), "1.2.3")),
                  dataclasses.replace(config, export=True))
+
+
+
+@pytest.mark.parametrize(("builtin", "given", "expect"), [(False, None, 0.0), (True, None, 2.5), (False, 1.5, 1.5)])
+def test_dwell_margin_is_zero_on_real_structure_sets(case: tuple[CaseInput, CaseConfig], builtin: bool,
+                                                     given: float | None, expect: float) -> None:
+    """Issue 27: dwells in the target as drawn on a real structure set; the built-in case keeps its margin."""
+    from reachplan.planner.implant.settings import ImplantSettings
+    from reachplan.planner.run.case import implant_settings
+
+    inputs, config = case
+    got = implant_settings(dataclasses.replace(inputs, builtin=builtin),
+                           dataclasses.replace(config, dwell_margin_mm=given))
+    assert got.dwell_margin_mm == expect
+    assert dataclasses.replace(got, dwell_margin_mm=ImplantSettings().dwell_margin_mm) == ImplantSettings()
