@@ -185,13 +185,10 @@ def plan_delivery(
     a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those (TG-43).
     Dose by TG-43 against ``aims``: every plan's aims table and the protocol's named warnings (:func:`_aims_tables`).
 
-    The export carries the prescription (the per-fraction dose whose D90 meets the planning aim, in as many
-    fractions as the EQD2 figures assume; specified at a target point that receives it), the reference points (that
-    one, Point A, ICRU bladder and rectum points where the structures allow, see
-    :mod:`reachplan.planner.geometry.reference_points`, and ``named_points``, (name, (x, y, z) mm LPS)) with each
-    dwell's dose rate there, the template's application setup type and the
-    planned dose of all fractions on the target's and organs' region of the planning grid (``planned_dose``
-    False: no RT Dose, for callers that only need the optimisation).
+    The export carries the prescription (per-fraction dose whose D90 meets the planning aim, specified at a target
+    point that receives it), the reference points (that one, Point A, ICRU points, ``named_points``: see
+    :mod:`reachplan.planner.geometry.reference_points`) with each dwell's dose rate there, the application setup type
+    and the planned dose of all fractions near the target and organs (``planned_dose`` False: no RT Dose).
 
     Parameters
     ----------
