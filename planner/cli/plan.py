@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--series-uid", metavar="UID",
                         help="with --ct: the SeriesInstanceUID to read when the folder holds several series")
     parser.add_argument("--rtstruct", type=Path, required=True, help="RT Structure Set file")
-    parser.add_argument("--targets", nargs="+", required=True, metavar="ROI_OR_POINT",
+    parser.add_argument("--targets", "--target", nargs="+", required=True, metavar="ROI_OR_POINT",
                         help="target ROI names, or points 'x,y,z' in mm (DICOM patient coordinates, LPS; a point "
                              "may start with a minus sign: --targets -20,0,90); an ROI of POINT contours is planned "
                              "to its points; a point must lie inside the images and the body contour")

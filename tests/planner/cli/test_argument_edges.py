@@ -82,6 +82,12 @@ def test_a_point_starting_with_a_minus_sign_is_a_value_with_or_without_equals(op
     assert value == getattr(joined, dest) and value in ("-20,0,90", ["-20,0,90"])
 
 
+@pytest.mark.parametrize("spelling", [["--target", "-20,0,90"], ["--target=-20,0,90"], ["--targets", "-20,0,90"]])
+def test_target_and_targets_both_take_a_negative_point(spelling: list[str]) -> None:
+    args = _parser().parse_args(["plan", "--rtstruct", "RS.dcm", *spelling, "--out", "o"])
+    assert args.targets == ["-20,0,90"]
+
+
 def test_several_negative_points_after_targets() -> None:
     args = build_parser().parse_args(["plan", "--rtstruct", "RS.dcm", "--targets", "-20,0,90", "-1.5e1,-3,80",
                                       "HR-CTV", "--out", "o"])
@@ -106,15 +112,16 @@ def test_an_unknown_option_is_still_an_option() -> None:
 # --- targets outside the patient ----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("point", "where"), [("-2000,0,90", "outside the image volume"),
-                                              ("0,0,1790", "outside the image volume"),
-                                              ("-110,0,90", "outside the body contour")])
+@pytest.mark.parametrize(("point", "where", "images"), [("-2000,0,90", "outside the image volume", True),
+                                                        ("0,0,1790", "outside the body contour", False),
+                                                        ("-110,0,90", "outside the body contour", False)])
 def test_a_target_outside_the_images_or_body_stops_plan_before_any_work(
-    phantom: PhantomFiles, tmp_path: Path, point: str, where: str, capsys: pytest.CaptureFixture[str]
+    phantom: PhantomFiles, tmp_path: Path, point: str, where: str, images: bool, capsys: pytest.CaptureFixture[str]
 ) -> None:
     start = time.perf_counter()
-    code, err = _run(["plan", "--ct", str(phantom.ct_dir), "--rtstruct", str(phantom.rtstruct_path),
-                      "--targets", point, "--out", str(tmp_path / "out"), "--quiet"], capsys)
+    ct = ["--ct", str(phantom.ct_dir)] if images else []
+    code, err = _run(["plan", *ct, "--rtstruct", str(phantom.rtstruct_path), "--targets", point,
+                      "--out", str(tmp_path / "out"), "--quiet"], capsys)
     assert code == 2 and where in err and "--allow-outside-body" in err and "point_1" in err
     assert not (tmp_path / "out").exists() and [p.name for p in tmp_path.iterdir()] == []
     assert time.perf_counter() - start < 60  # reading the series only: no planning
