@@ -9,13 +9,16 @@ import functools
 import time
 from pathlib import Path
 
+import numpy as np
 import pydicom
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from reachplan.imaging.meshing import roi_contains
 from reachplan.imaging.phantom import PhantomFiles, write_phantom
 from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.imaging.types import Roi
 from reachplan.planner.cli import build_parser, main
 from reachplan.planner.cli.points import NEGATIVE_VALUE, TargetOutsideError, check_targets_inside, comma_items
 from reachplan.planner.errors import PlanInputError
@@ -134,6 +137,23 @@ def test_target_points_are_checked_against_the_body_without_images(phantom: Phan
     with pytest.raises(TargetOutsideError, match=r"point_2 \(0,400,90 mm\) lies outside the body contour"):
         check_targets_inside([inside, outside], None, structures)
     check_targets_inside([outside], None, structures, allow_outside_body=True)
+
+
+@pytest.fixture(scope="module")
+def body(phantom: PhantomFiles) -> Roi:
+    return read_rtstruct(phantom.rtstruct_path).get("Body")
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.tuples(st.floats(-130, 130), st.floats(-130, 130), st.floats(-25, 175)), min_size=1,
+                max_size=40))
+def test_inside_the_body_contour_agrees_with_the_phantoms_analytic_ellipse(
+    body: Roi, points: list[tuple[float, float, float]]
+) -> None:
+    p = np.array(points)
+    r = (p[:, 0] / 95.0) ** 2 + (p[:, 1] / 90.0) ** 2  # the pilot phantom's body: elliptic cylinder, z -30 to 180 mm
+    clear = np.abs(r - 1.0) >= 0.03  # within about 1.5 mm of the outline a polygon of the ellipse may go either way
+    assert np.array_equal(roi_contains(body, p)[clear], (r < 1.0)[clear])
 
 
 def test_without_images_or_body_a_target_far_from_every_contour_is_refused(phantom: PhantomFiles) -> None:
