@@ -271,6 +271,16 @@ def test_self_crossings_count_every_proper_crossing_in_any_plane(pts: list[tuple
     assert self_crossings(xyz) == _brute_crossings(uv)
 
 
+def test_a_crossing_through_a_vertex_counts_and_a_keyhole_does_not() -> None:
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)  # t = pi is a vertex: the eight crosses there
+    eight = np.round(np.column_stack([20 * np.sin(2 * t), 30 * np.sin(t), np.zeros_like(t)]), 9)
+    keyhole = [(0, 0), (10, 0), (10, 10), (0, 10), (0, 5), (3, 5), (3, 3), (7, 3), (7, 7), (3, 7), (3, 5), (0, 5)]
+    touching = [(0, 0), (5, 5), (10, 0), (10, 10), (5, 5), (0, 10)]  # two lobes meeting at (5, 5) without crossing
+    assert self_crossings(eight) == 1
+    assert self_crossings(np.array([(x, y, 2.0) for x, y in keyhole], dtype=float)) == 0
+    assert self_crossings(np.array([(x, y, 2.0) for x, y in touching], dtype=float)) == 0
+
+
 # --- truncated files ----------------------------------------------------------------------------------------------
 
 
