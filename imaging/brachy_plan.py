@@ -105,6 +105,8 @@ class Channel:
         Source Applicator Step Size.
     dose_coefficients : tuple of (int, float)
         (dose reference number, cumulative dose reference coefficient at the last control point).
+    n_control_points : int or None
+        Items of the Brachy Control Point Sequence; None when not known (a channel built in code).
 
     Raises
     ------
@@ -128,6 +130,7 @@ class Channel:
     dwell_relative_mm: np.ndarray
     dwell_times_s: np.ndarray
     dose_coefficients: tuple[tuple[int, float], ...] = ()
+    n_control_points: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dwell_positions_mm", frozen_floats(np.reshape(self.dwell_positions_mm, (-1, 3))))
@@ -317,3 +320,66 @@ class RtPlan:
             if number is None or s.number == number:
                 return s
         raise CorruptFileError(f"{self.path}: a channel refers to source {number}, which the plan lacks")
+
+
+@dataclass(frozen=True)
+class PlanProblem:
+    """Why a brachy plan cannot be planned on or recomputed (``plan`` and ``dose`` refuse it; ``inspect`` warns).
+
+    Parameters
+    ----------
+    kind : str
+        ``"geometry"`` (no application setups or channels, a channel whose dwells are unknown) or ``"source"`` (no
+        source, no strength, no TG-43 data for its isotope).
+    message : str
+        What is wrong and what to do, one line (the file is not named: the caller names it).
+    """
+
+    kind: str
+    message: str
+
+
+def plan_problems(plan: RtPlan) -> tuple[PlanProblem, ...]:
+    """Find what makes a brachy plan unusable, as far as the plan alone tells.
+
+    The one list of these checks: ``dose`` and ``plan --rtplan`` refuse a plan with a problem (the planner adds the
+    check that TG-43 data exist for the source), ``inspect`` lists each as a warning.
+
+    Parameters
+    ----------
+    plan : RtPlan
+        The plan as read.
+
+    Returns
+    -------
+    tuple of PlanProblem
+        Empty for a usable plan. Geometry: no Application Setup Sequence or no channels; a channel with a Channel
+        Total Time but no control points (its dwells unknown: it would be dropped with its time). Source: no
+        Source Sequence; a channel referring to a source the plan lacks; a Reference Air Kerma Rate of 0 or missing.
+    """
+    out: list[PlanProblem] = []
+    if not plan.setups or not plan.channels:
+        what = "no Application Setup Sequence" if not plan.setups else "no channels in its application setups"
+        out.append(PlanProblem("geometry", f"the plan has {what}; it is not a brachytherapy plan that "
+                                           "can be used: pass a brachy RT Plan with its channels"))
+    empty = [c for c in plan.channels if c.n_control_points == 0 and c.total_time_s > 0]
+    if empty:
+        out.append(PlanProblem("geometry", f"channel(s) {', '.join(str(c.number) for c in empty)} have no "
+                                           f"control points but {sum(c.total_time_s for c in empty):.1f} s of "
+                                           "Channel Total Time: their dwells are unknown; re-export the plan with "
+                                           "the control points of every channel"))
+    if not plan.sources:
+        out.append(PlanProblem("source", "the plan has no Source Sequence; the source and its strength are "
+                                         "unknown: re-export the brachy plan with its source"))
+        return tuple(out)
+    numbers = {s.number for s in plan.sources}
+    missing = sorted({c.source_number for c in plan.channels if c.source_number is not None} - numbers)
+    if missing:
+        out.append(PlanProblem("source", f"channels refer to source(s) {missing}, which the plan lacks"))
+    used = [s for s in plan.sources if s.number in {c.source_number for c in plan.channels}] or [plan.sources[0]]
+    weak = [s for s in used if s.air_kerma_rate_u <= 0]
+    if weak:
+        out.append(PlanProblem("source", f"source {weak[0].number} has no Reference Air Kerma Rate (0 or "
+                                         "missing); the dose cannot be computed: re-export the plan with the "
+                                         "source strength"))
+    return tuple(out)

@@ -101,6 +101,15 @@ def invalid_error(path: Path, what: str) -> CorruptFileError:
     return CorruptFileError(f"{path}: {what}; the file breaks the DICOM standard: fix or re-export it")
 
 
+#: SOP classes read by reachplan whose objects must carry a Modality (General or RT Series module, type 1); one
+#: without it was cut short (at an element boundary, where no length check sees it) or mis-edited.
+NEEDS_MODALITY = {
+    "1.2.840.10008.5.1.4.1.1.2": "CT Image", "1.2.840.10008.5.1.4.1.1.2.1": "Enhanced CT Image",
+    "1.2.840.10008.5.1.4.1.1.4": "MR Image", "1.2.840.10008.5.1.4.1.1.4.1": "Enhanced MR Image",
+    "1.2.840.10008.5.1.4.1.1.481.2": "RT Dose", "1.2.840.10008.5.1.4.1.1.481.3": "RT Structure Set",
+    "1.2.840.10008.5.1.4.1.1.481.5": "RT Plan", "1.2.840.10008.5.1.4.1.1.481.8": "RT Ion Plan",
+}
+
 DEFLATED = frozenset({"1.2.840.10008.1.2.1.99", "1.2.840.10008.1.2.8.1"})  # Deflated Explicit VR LE, Deflated Image
 
 
@@ -121,6 +130,11 @@ def _check_complete(ds: Any, path: Path) -> None:
     length = getattr(elem, "length", None)
     if tell is not None and length is not None and length != 0xFFFFFFFF and tell + length > size:
         raise corrupt_error(path, f"element {elem.tag} needs {tell + length} bytes but the file has {size}")
+    if tell is not None and length is not None and length != 0xFFFFFFFF and tell + length < size:
+        # bytes after the last element that pydicom skipped (fewer than an element header): bytes were inserted
+        # into a value (pixel data shifted) or appended
+        raise corrupt_error(path, f"{size - tell - length} byte(s) follow the last element {elem.tag}, which ends "
+                                  f"at byte {tell + length} of {size}; bytes were inserted or appended")
     if length == 0xFFFFFFFF and getattr(ds, "is_little_endian", True):
         with path.open("rb") as fh:  # an undefined-length sequence must end with its delimiter
             fh.seek(max(0, size - 8))
@@ -184,6 +198,11 @@ def read_dataset(
         if "SOPClassUID" not in ds and "Modality" not in ds and media_class != MEDIA_STORAGE_DIRECTORY:
             raise corrupt_error(path, "has neither SOP Class UID nor Modality")
         _ = ds.get("Modality"), ds.get("SOPClassUID")  # the values every caller looks at first
+        kind = NEEDS_MODALITY.get(str(ds.get("SOPClassUID", "") or media_class))
+        if kind is not None and not str(ds.get("Modality", "") or "").strip():
+            last = list(ds.keys())[-1]
+            raise corrupt_error(path, f"an {kind} object without Modality (0008,0060), which every {kind} has (its "
+                                      f"last element is {last})")
     return ds
 
 

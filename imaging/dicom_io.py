@@ -12,14 +12,22 @@ This module finds the series (:func:`scan`, :func:`select_series`) and assembles
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from reachplan.imaging.ct_numbers import CT_MAX_HU, CT_MIN_HU, Reading, ct_stored_values
 from reachplan.imaging.dicom_files import corrupt_error, list_files, parsing, read_dataset
-from reachplan.imaging.errors import NoDicomError, ReferenceMismatchError, SeriesError, UnsupportedDataError
+from reachplan.imaging.errors import (
+    NoDicomError,
+    ReferenceMismatchError,
+    SeriesError,
+    SignednessWarning,
+    UnsupportedDataError,
+)
 from reachplan.imaging.pixels import check_pixel_length, read_pixels
 from reachplan.imaging.series_geometry import Frame, SeriesTolerance, assemble_geometry, frames_of
 from reachplan.imaging.types import PatientStudy, Volume
@@ -196,7 +204,8 @@ def select_series(
         )
     if len(chosen) > 1:
         have = "; ".join(_describe(s) for s in chosen)
-        raise SeriesError(f"{folder} holds {len(chosen)} image series: {have}; choose one with series_uid")
+        raise SeriesError(f"{folder} holds {len(chosen)} image series: {have}; choose one by its SeriesInstanceUID "
+                          "(reachplan plan --series-uid UID; series_uid= in read_series)")
     return chosen[0]
 
 
@@ -294,6 +303,7 @@ def load_series(
     by_path: dict[Path, list[Frame]] = {}
     for f in frames:
         by_path.setdefault(f.path, []).append(f)
+    flipped: list[tuple[Path, tuple[Reading, Reading]]] = []
     for ds, path in headers:
         with parsing(path):
             arr = read_pixels(ds, path)
@@ -302,11 +312,16 @@ def load_series(
             arr = arr[None]
         if arr.shape[0] != len(mine) or arr.shape[1:] != grid.shape[1:]:
             raise corrupt_error(path, f"pixel data has shape {arr.shape}, expected {len(mine)} x {grid.shape[1:]}")
+        arr, readings = ct_stored_values(arr, ds, path, [(f.slope, f.intercept) for f in mine])
+        if readings is not None:
+            flipped.append((path, readings))
         for f in mine:
             k = slot[(f.path, f.frame)]
             np.multiply(arr[f.frame or 0], np.float32(f.slope), out=out[k], casting="unsafe")
             if f.intercept:
                 out[k] += np.float32(f.intercept)
+    if flipped:
+        _warn_signedness(label, flipped, len(headers))
     sop = {p: (str(ds.get("SOPClassUID", "")), str(ds.get("SOPInstanceUID", ""))) for ds, p in headers}
     slice_uids = [("", "")] * len(order)
     for (path, frame), k in slot.items():
@@ -317,6 +332,16 @@ def load_series(
         patient_study=PatientStudy.read(headers[0][0]),
         slice_uids=tuple(slice_uids) if all(all(u) for u in slice_uids) else (),
     )
+
+
+def _warn_signedness(label: str, flipped: list[tuple[Path, tuple[Reading, Reading]]], n_files: int) -> None:
+    """One :class:`SignednessWarning` for the files of a series read with the other Pixel Representation."""
+    declared, used = flipped[0][1]
+    warnings.warn(SignednessWarning(
+        f"{label}: {len(flipped)} of {n_files} file(s) (first {flipped[0][0].name}) give impossible CT numbers read "
+        f"as declared (Pixel Representation {int(declared.signed)}, {declared.describe()}); read "
+        f"{used.describe()} instead, within {CT_MIN_HU:g} to {CT_MAX_HU:g} HU where a CT holds air (-1000 HU) and "
+        "water (0 HU): check the series' Pixel Representation"), stacklevel=3)
 
 
 def check_reference(volume: Volume, frame_of_reference_uid: str | None, series_uid: str | None, what: str) -> None:

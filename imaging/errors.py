@@ -79,3 +79,26 @@ class SparseContourWarning(QuestionableValueWarning):
 
 class OutsideImageWarning(QuestionableValueWarning):
     """A ROI's contours lie wholly or partly outside the images they are said to be drawn on."""
+
+
+class SignednessWarning(QuestionableValueWarning):
+    """A CT's Pixel Representation (signed or unsigned) gives impossible CT numbers and the other reading does not.
+
+    E.g. a signed CT declared unsigned, whose air reads about 64,536 HU: it was read the other way (the message says
+    which slices and what air and water read as).
+    """
+
+
+class SelfIntersectingContourWarning(QuestionableValueWarning):
+    """A closed contour crosses itself; masks and volumes fill it by the even-odd rule (each lobe once)."""
+
+
+class ZeroAreaContourWarning(QuestionableValueWarning):
+    """A closed contour of 3 or more points encloses no area (its points on a line); it is left out of masks."""
+
+
+class UnusablePlanWarning(QuestionableValueWarning):
+    """A brachy plan that ``plan`` and ``dose`` refuse (no channels, dwells unknown, no source, no strength, ...).
+
+    ``inspect`` lists it with this warning; the message is the one ``plan`` and ``dose`` stop with.
+    """

@@ -8,12 +8,21 @@ from __future__ import annotations
 
 import importlib
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from reachplan.imaging.brachy_plan import PlanProblem, RtPlan, plan_problems
 from reachplan.imaging.dicom_io import FolderScan, load_series, scan
-from reachplan.imaging.errors import ImagingError, ImagingWarning, NoDicomError, ReferenceMismatchError, StructureError
+from reachplan.imaging.errors import (
+    ImagingError,
+    ImagingWarning,
+    NoDicomError,
+    ReferenceMismatchError,
+    StructureError,
+    UnusablePlanWarning,
+)
 from reachplan.imaging.meshing import structure_volume_cc
 from reachplan.imaging.names import SynonymTable
 from reachplan.imaging.rtstruct import read_rtstruct
@@ -277,8 +286,12 @@ def _source_label(plan: Any) -> str:
     return " / ".join(str(x) for x in parts) or str(source)
 
 
-def _plan_info(path: Path) -> PlanInfo:
-    """Summarise a brachy RT Plan through :func:`reachplan.imaging.rtplan.read_rtplan` (loaded lazily)."""
+def _plan_info(path: Path, plan_check: PlanCheck | None) -> PlanInfo:
+    """Summarise a brachy RT Plan through :func:`reachplan.imaging.rtplan.read_rtplan` (loaded lazily).
+
+    Each problem ``plan_check`` (default :func:`~reachplan.imaging.brachy_plan.plan_problems`) finds is an
+    :class:`UnusablePlanWarning`.
+    """
     try:
         rtplan = importlib.import_module("reachplan.imaging.rtplan")
     except ModuleNotFoundError as exc:
@@ -286,6 +299,8 @@ def _plan_info(path: Path) -> PlanInfo:
             raise
         return PlanInfo(str(path), "", "", "", (), note="RT Plan reader not available")
     plan = rtplan.read_rtplan(path)
+    for problem in (plan_check or plan_problems)(plan):
+        warnings.warn(UnusablePlanWarning(f"{path}: {problem.message}"), stacklevel=2)
     channels = []
     for c in plan.channels:
         roi = _first(c, "roi_number")
@@ -352,7 +367,11 @@ def _structure_sets(
     return out
 
 
-def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection:
+#: A plan check: the problems that make a brachy plan unusable (``plan_problems`` or the planner's fuller one).
+PlanCheck = Callable[[RtPlan], Sequence[PlanProblem]]
+
+
+def inspect_path(path: Path, synonyms: SynonymTable | None = None, plan_check: PlanCheck | None = None) -> Inspection:
     """Read everything at ``path`` (a DICOM file or a folder, recursively) and summarise it.
 
     Warnings about quirks the readers worked around (:class:`~reachplan.imaging.errors.ImagingWarning`) are collected
@@ -364,6 +383,9 @@ def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection
         A DICOM file or folder.
     synonyms : SynonymTable, optional
         ROI name table (default :data:`reachplan.imaging.names.DEFAULT_SYNONYMS`).
+    plan_check : callable, optional
+        ``plan_check(plan) -> problems`` for each brachy plan found (default
+        :func:`~reachplan.imaging.brachy_plan.plan_problems`); each problem is an :class:`UnusablePlanWarning`.
 
     Returns
     -------
@@ -380,7 +402,7 @@ def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection
     path = Path(path)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ImagingWarning)
-        result = _inspect(path, synonyms)
+        result = _inspect(path, synonyms, plan_check)
     notes = tuple(dict.fromkeys(f"{type(w.message).__name__}: {w.message}" for w in caught
                                 if isinstance(w.message, ImagingWarning)))
     for w in caught:  # anything that is not ours goes on as a warning
@@ -389,7 +411,7 @@ def inspect_path(path: Path, synonyms: SynonymTable | None = None) -> Inspection
     return replace(result, warnings=notes)
 
 
-def _inspect(path: Path, synonyms: SynonymTable | None) -> Inspection:
+def _inspect(path: Path, synonyms: SynonymTable | None, plan_check: PlanCheck | None) -> Inspection:
     found = scan(path)
     if not found.images and not found.others:
         raise NoDicomError(f"no DICOM files in {path} ({found.n_non_dicom} other files); "
@@ -406,7 +428,7 @@ def _inspect(path: Path, synonyms: SynonymTable | None) -> Inspection:
             spacing_mm=(round(float(sp[0]), 4), round(float(sp[1]), 4), round(float(sp[2]), 4)),
             n_files=len(s.paths), folder=sorted(folders)[0]))
     structure_sets = _structure_sets(found, path, volumes, synonyms)
-    plans = [_plan_info(p) for ds, p in found.others if str(ds.get("Modality", "")).upper() == "RTPLAN"]
+    plans = [_plan_info(p, plan_check) for ds, p in found.others if str(ds.get("Modality", "")).upper() == "RTPLAN"]
     others = [OtherInfo(str(p), str(ds.get("Modality", "")), str(ds.get("SOPClassUID", "")))
               for ds, p in found.others if str(ds.get("Modality", "")).upper() not in ("RTSTRUCT", "RTPLAN")]
     return Inspection(str(path), tuple(series), tuple(structure_sets), tuple(plans), tuple(others),

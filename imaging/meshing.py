@@ -21,6 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
+from reachplan.imaging.contour_checks import encloses_no_area
 from reachplan.imaging.errors import MeshDecimationWarning, StructureError
 from reachplan.imaging.types import Grid, Roi
 
@@ -35,10 +36,11 @@ MAX_VOXELS = 100_000_000
 
 
 def _closed_contours(roi: Roi) -> list[np.ndarray]:
-    polys = [c.points_mm for c in roi.contours if c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3]
+    polys = [c.points_mm for c in roi.contours if c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3
+             and not encloses_no_area(c.points_mm)]  # the reader warned about those enclosing no area
     if not polys:
-        raise StructureError(f"ROI {roi.name!r} has no closed planar contour with at least 3 points; "
-                             "it cannot be filled or meshed")
+        raise StructureError(f"ROI {roi.name!r} has no closed planar contour of at least 3 points that encloses an "
+                             "area; it cannot be filled or meshed")
     return polys
 
 
@@ -293,6 +295,50 @@ def contour_plane_frame(roi: Roi, slice_spacing_mm: float | None = None) -> tupl
     u /= np.linalg.norm(u)
     v = np.cross(n, u)
     return np.column_stack([u, v, n]), distinct, h
+
+
+def roi_contains(roi: Roi, points_mm: np.ndarray, slice_spacing_mm: float | None = None) -> np.ndarray:
+    """Tell which points lie inside a ROI's closed contours (even-odd rule; each contour covers its slice's slab).
+
+    Parameters
+    ----------
+    roi : Roi
+        Its CLOSED_PLANAR contours are used (LPS mm).
+    points_mm : (n, 3) float, mm, LPS
+        The points.
+    slice_spacing_mm : float, optional
+        The slice spacing, mm (the image grid's); needed when all contours lie on one plane.
+
+    Returns
+    -------
+    (n,) bool
+        Inside: within half a slice of a contour plane and inside that plane's contours.
+
+    Raises
+    ------
+    StructureError
+        Contours that do not stack into slices (see :func:`contour_plane_frame`).
+    """
+    axes, planes, h = contour_plane_frame(roi, slice_spacing_mm)
+    local = np.atleast_2d(np.asarray(points_mm, dtype=float)) @ axes
+    polys = [p @ axes for p in _closed_contours(roi)]
+    plane_of = [int(np.abs(planes - float(np.mean(p[:, 2]))).argmin()) for p in polys]
+    out = np.zeros(len(local), dtype=bool)
+    for n, (u, v, d) in enumerate(local):
+        k = int(np.abs(planes - d).argmin())
+        if abs(planes[k] - d) > 0.5 * h + 1e-6:
+            continue
+        crossings = 0
+        for poly, plane in zip(polys, plane_of, strict=True):
+            if plane != k:
+                continue
+            a, b = poly[:, :2], np.roll(poly[:, :2], -1, axis=0)
+            spans = (a[:, 1] > v) != (b[:, 1] > v)  # the half-open rule: a vertex on the ray counts once
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x = a[:, 0] + (v - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+            crossings += int(np.count_nonzero(spans & (x > u)))
+        out[n] = crossings % 2 == 1
+    return out
 
 
 def fit_grid(

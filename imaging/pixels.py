@@ -51,8 +51,9 @@ def check_pixel_length(ds: Any, path: Path) -> None:
     """Check that the pixel description is coherent and fits the pixel data.
 
     BitsAllocated 1, 8, 16, 32 or 64; BitsStored <= BitsAllocated; HighBit = BitsStored - 1; and, for
-    uncompressed pixel data, its length must be Rows x Columns x frames x samples x BitsAllocated / 8 (plus at
-    most one padding byte): a BitsAllocated of 8 on 16-bit data would otherwise give a garbled volume.
+    uncompressed pixel data, its length must be exactly Rows x Columns x frames x samples x BitsAllocated / 8 (plus
+    the one padding byte that makes an odd length even): a BitsAllocated of 8 on 16-bit data, or a byte inserted
+    into the pixels, would otherwise give a garbled volume.
 
     Parameters
     ----------
@@ -87,11 +88,11 @@ def check_pixel_length(ds: Any, path: Path) -> None:
         if length is None or (length == 0xFFFFFFFF and getattr(elem, "value", None) is not None):
             length = len(elem.value or b"")
     need = (n * bits + 7) // 8
-    if length != 0xFFFFFFFF and length not in (need, need + 1):
+    if length != 0xFFFFFFFF and length != need and not (need % 2 and length == need + 1):
         raise InvalidValueError(
             f"{path}: pixel data (7FE0,0010) has {length} bytes but Rows {rows} x Columns {cols} x frames x samples at "
-            f"BitsAllocated {bits} need {need}; the header does not describe the pixels (damaged or mis-edited "
-            "BitsAllocated, Rows or Columns): re-export the image")
+            f"BitsAllocated {bits} need {need}{' (+1 padding byte)' if need % 2 else ''}; the header does not describe "
+            "the pixels (damaged or mis-edited BitsAllocated, Rows or Columns, or bytes inserted): re-export the image")
 
 
 def _sitk_pixels(ds: Any, path: Path) -> np.ndarray | None:

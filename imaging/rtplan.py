@@ -355,6 +355,8 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
     total = _value(c, "ChannelTotalTime", where, lo=0, hi=MAX_CHANNEL_TOTAL_TIME_S, unit=" s")
     assert total is not None
     cps = list(c.get("BrachyControlPointSequence", []))
+    if not cps and total == 0:
+        found.append("a channel without control points and with 0 s (nothing to deliver; ignored)")
     rel, pos, ctw = _control_points(cps, where)
     final = _value(c, "FinalCumulativeTimeWeight", where, lo=0)
     restarts = bool(np.any(np.diff(ctw) < 0))
@@ -389,6 +391,7 @@ def _channel(c: Dataset, setup_number: int, path: str, found: list[str]) -> Chan
         dwell_relative_mm=dwell_rel,
         dwell_times_s=times,
         dose_coefficients=coeffs,
+        n_control_points=len(cps),
     )
 
 

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from reachplan.imaging.contour_checks import encloses_no_area, self_crossings
 from reachplan.imaging.dicom_files import parsing, read_dataset
 from reachplan.imaging.dicom_io import check_reference
 from reachplan.imaging.errors import (
@@ -22,8 +23,10 @@ from reachplan.imaging.errors import (
     DuplicateRoiNameWarning,
     NoDicomError,
     OutsideImageWarning,
+    SelfIntersectingContourWarning,
     SparseContourWarning,
     StructureError,
+    ZeroAreaContourWarning,
 )
 from reachplan.imaging.names import DEFAULT_SYNONYMS, SynonymTable
 from reachplan.imaging.types import Contour, PatientStudy, Roi, StructureSet, Volume
@@ -77,6 +80,31 @@ def _warn_sparse(path: Path, label: str, contours: list[Contour]) -> None:
             f"{path}: ROI {label}: {len(sparse)} {'/'.join(kinds)} contour(s) with only "
             f"{' or '.join(str(n) for n in counts)} point(s); they enclose nothing and are left out of masks and "
             "volumes: check the contouring"), stacklevel=4)
+
+
+def _warn_degenerate(path: Path, label: str, contours: list[Contour]) -> None:
+    """Warn about a ROI's closed contours that enclose no area or cross themselves (one warning of each kind).
+
+    A :class:`ZeroAreaContourWarning` for contours of 3 or more points on a line (left out of masks and volumes),
+    a :class:`SelfIntersectingContourWarning` for contours whose edges cross (filled by the even-odd rule).
+    """
+    closed = [c for c in contours if c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3]
+    flat = [c for c in closed if encloses_no_area(c.points_mm)]
+    if flat:
+        warnings.warn(ZeroAreaContourWarning(
+            f"{path}: ROI {label}: {len(flat)} closed contour(s) enclose no area (first on the plane through "
+            f"{_where(flat[0])}); they are left out of masks and volumes: check the contouring"), stacklevel=4)
+    crossed = [(c, n) for c in closed if not encloses_no_area(c.points_mm) and (n := self_crossings(c.points_mm))]
+    if crossed:
+        warnings.warn(SelfIntersectingContourWarning(
+            f"{path}: ROI {label}: {len(crossed)} closed contour(s) cross themselves ({sum(n for _, n in crossed)} "
+            f"crossing(s); first on the plane through {_where(crossed[0][0])}); masks and volumes fill them by the "
+            "even-odd rule (each lobe once, overlaps left out): check the contouring"), stacklevel=4)
+
+
+def _where(contour: Contour) -> str:
+    """Return the first point of a contour as ``(x, y, z) mm``."""
+    return "(" + ", ".join(f"{v:.1f}" for v in contour.points_mm[0]) + ") mm"
 
 
 #: How far outside the image volume (mm) a contour point may lie (contours are drawn on slice centres and may touch
@@ -226,6 +254,7 @@ def _structure_set(ds: Any, path: Path, volume: Volume | None, synonyms: Synonym
             image = _image_ref(refs[0]) if len(refs) == 1 else ("", "")
             contours[number].append(Contour(pts, gtype, image if all(image) else ("", "")))
         _warn_sparse(path, label, contours[number])
+        _warn_degenerate(path, label, contours[number])
     rois = []
     for number, item in declared.items():
         name = str(item.get("ROIName", "") or f"ROI_{number}")

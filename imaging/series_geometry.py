@@ -171,6 +171,13 @@ def frames_of(ds: Any, path: Path) -> list[Frame]:
 
 
 
+#: Smallest pixel and slice spacing accepted, mm: 10 µm, below any CT or MR voxel (micro-CT reaches a few µm, but
+#: not of a patient); a smaller one is a damaged header (a PixelSpacing of 1e-320 would make the affine singular).
+MIN_SPACING_MM = 0.01
+#: Largest pixel and slice spacing accepted, mm.
+MAX_SPACING_MM = 1e3
+
+
 @dataclass(frozen=True)
 class SeriesTolerance:
     """How strictly a series must be regular.
@@ -238,9 +245,10 @@ def assemble_geometry(frames: Sequence[Frame], tol: SeriesTolerance, label: str)
         raise SeriesError(f"{label}: ImageOrientationPatient {ori[0].tolist()} is not two orthogonal unit vectors")
     row, col = row / np.linalg.norm(row), col / np.linalg.norm(col)
     spacing = np.array([f.spacing for f in frames])
-    if np.any(spacing <= 0) or np.any(spacing > 1e3) or np.abs(spacing - spacing[0]).max() > 1e-4 * spacing[0].max():
-        raise SeriesError(f"{label}: PixelSpacing {spacing[0].tolist()} mm is not positive (up to 1000 mm) or differs "
-                          "between slices; fix the header or re-export the series")
+    if np.any(spacing < MIN_SPACING_MM) or np.any(spacing > MAX_SPACING_MM) or \
+            np.abs(spacing - spacing[0]).max() > 1e-4 * spacing[0].max():
+        raise SeriesError(f"{label}: PixelSpacing {spacing[0].tolist()} mm is not between {MIN_SPACING_MM:g} and "
+                          f"{MAX_SPACING_MM:g} mm or differs between slices; fix the header or re-export the series")
     pos = np.array([f.position for f in frames])
     if np.abs(pos).max() > 1e6:
         raise SeriesError(f"{label}: ImagePositionPatient beyond 1 km ({np.abs(pos).max():g} mm); fix the header "
@@ -287,8 +295,8 @@ def assemble_geometry(frames: Sequence[Frame], tol: SeriesTolerance, label: str)
     m[:3, 2] = step
     m[:3, 3] = pos_sorted[0]
     slice_mm = float(np.linalg.norm(step))
-    if not np.all(np.isfinite(m)) or not 1e-3 <= slice_mm <= 1e3:
-        raise SeriesError(f"{label}: the slice spacing is {slice_mm:g} mm (allowed 0.001 to 1000 mm); fix the "
-                          "positions or SliceThickness, or re-export the series")
+    if not np.all(np.isfinite(m)) or not MIN_SPACING_MM <= slice_mm <= MAX_SPACING_MM:
+        raise SeriesError(f"{label}: the slice spacing is {slice_mm:g} mm (allowed {MIN_SPACING_MM:g} to "
+                          f"{MAX_SPACING_MM:g} mm); fix the positions or SliceThickness, or re-export the series")
     rows, columns = frames[0].rows, frames[0].columns
     return Grid((len(frames), rows, columns), m), order

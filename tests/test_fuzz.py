@@ -1,9 +1,11 @@
-"""A seeded mutation fuzz of reachplan's readers and commands (issue 14), run in the suite in well under a minute.
+"""A seeded mutation fuzz of reachplan's readers and commands (issues 14 and 28), run in the suite in about a minute.
 
 Seeds: a CT slice and a (thinned) RT Structure Set of the built-in phantom, and the shared TPS examples (Eclipse HDR
 and PDR RT Plans, their structure sets and the Eclipse prostate structure set, thinned so that each run is short).
-Mutations: byte flips, truncations, inserted bytes, and element mutations (a value set to NaN, infinity, a negative,
-zero or huge number, an empty or odd string, a wrong multiplicity; an element or a sequence item deleted).
+Mutations: byte flips, truncations, inserted bytes, element mutations (a value set to NaN, infinity, a negative,
+zero, tiny or huge number, an empty or odd string, a wrong multiplicity; an element or a sequence item deleted) and
+issue 28's cases (a contour crossing itself or enclosing nothing, a channel without control points, the other Pixel
+Representation, a spacing below 0.01 mm). ``REACHPLAN_FUZZ_SCALE`` multiplies the number of mutants (3 by default).
 Each mutant goes through ``reachplan inspect --json`` (RT Plans also through ``reachplan dose --points --json``; an
 RT Dose written by reachplan is mutated and given to ``dose --like``).
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import random
 import warnings
 from collections.abc import Callable
@@ -33,12 +36,16 @@ from reachplan.imaging.phantom import write_phantom
 from reachplan.planner.cli import main
 
 SEED = 14
-#: Mutants per seed file (the whole fuzz takes about 20-40 s on a shared 2-core machine).
-N_MUTANTS = {"ct": 90, "rs_phantom": 30, "rp_hdr": 70, "rp_pdr": 50, "rs_hdr": 25, "rs_prostate": 25, "rd": 20}
+#: The fuzz's size, 3 times the first one (issue 28): 1,050 runs, about 35 s of CPU (15 s at size 1); set
+#: ``REACHPLAN_FUZZ_SCALE`` to run another size (1 for a quick check, more for a longer hunt).
+SCALE = float(os.environ.get("REACHPLAN_FUZZ_SCALE", "3") or "3")
+#: Mutants per seed file at size 1 (the first fuzz: 351 runs).
+BASE_MUTANTS = {"ct": 90, "rs_phantom": 30, "rp_hdr": 70, "rp_pdr": 50, "rs_hdr": 25, "rs_prostate": 25, "rd": 20}
+N_MUTANTS = {name: max(1, round(n * SCALE)) for name, n in BASE_MUTANTS.items()}
 DOSE_EVERY = 3  # one RT Plan mutant in DOSE_EVERY also goes through `reachplan dose`
 
 VALUES = ["nan", "-nan", "inf", "-inf", "-1", "0", "-0", "1e30", "-1e30", "1e308", "", " ", "x", "1\\2\\3\\4",
-          "19500101", "99999999", "\x00", "3.4e38", "-5", "0.5"]
+          "19500101", "99999999", "\x00", "3.4e38", "-5", "0.5", "1e-320", "1.0\\1e-320", "0.001", "Cs-137"]
 
 
 def _thin(ds: Dataset, keep: int) -> Dataset:
@@ -110,11 +117,40 @@ def _elements(ds: Dataset) -> list[tuple[Dataset, Any]]:
     return found
 
 
+def _case_mutant(ds: Dataset, rng: random.Random) -> None:
+    """One of issue 28's cases, where the dataset has what it needs: a contour made to cross itself or to enclose
+    nothing, a channel's control points removed, a signed CT declared unsigned, a spacing below 0.01 mm."""
+    contours = [c for rc in ds.get("ROIContourSequence", []) for c in rc.get("ContourSequence", [])
+                if len(c.get("ContourData", [])) >= 12]
+    channels = [c for s in ds.get("ApplicationSetupSequence", []) for c in s.get("ChannelSequence", [])]
+    edits: list[Callable[[], None]] = []
+    if contours:
+        c = rng.choice(contours)
+        pts = [float(v) for v in c.ContourData]
+        n = len(pts) // 3
+        a, b = sorted(rng.sample(range(n), 2))
+        swapped = pts[: 3 * a] + pts[3 * b: 3 * b + 3] + pts[3 * a + 3: 3 * b] + pts[3 * a: 3 * a + 3] + pts[3 * b + 3:]
+        edits.append(lambda: setattr(c, "ContourData", swapped))  # crosses itself (mostly)
+        edits.append(lambda: setattr(c, "ContourData", [pts[0], pts[1], pts[2]] * n))  # encloses nothing
+    if channels:
+        ch = rng.choice(channels)
+        edits.append(lambda: delattr(ch, "BrachyControlPointSequence") if "BrachyControlPointSequence" in ch
+                     else None)
+    if "PixelRepresentation" in ds:
+        edits.append(lambda: setattr(ds, "PixelRepresentation", 1 - int(ds.PixelRepresentation)))
+    if "PixelSpacing" in ds:
+        edits.append(lambda: setattr(ds, "PixelSpacing", [1.0, rng.choice([1e-320, 1e-3, 0.0099])]))
+    if edits:
+        rng.choice(edits)()
+
+
 def _element_mutant(src: Path, rng: random.Random) -> bytes | None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ds = pydicom.dcmread(src)
-        for _ in range(rng.randint(1, 3)):
+        if rng.random() < 0.25:
+            _case_mutant(ds, rng)
+        for _ in range(rng.randint(0, 3)):
             parent, elem = rng.choice(_elements(ds))
             action = rng.random()
             try:
@@ -245,6 +281,8 @@ def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
               "--json", "--out", str(folder / "out" / "RD.dcm")], tally, f"rd #{k} dose --like",
              [folder / "RD.dcm", seeds.rp_hdr, seeds.rs_hdr], folder / "out")
     assert tally.codes is not None and tally.failures is not None
+    print(f"mutation fuzz at size {SCALE:g}: {tally.runs} runs, exit codes {dict(sorted(tally.codes.items()))}, "
+          f"{len(tally.failures)} failures")  # shown with -s (the acceptance run reports it)
     assert not tally.failures, f"{len(tally.failures)} of {tally.runs} runs failed:\n" + "\n".join(tally.failures[:20])
     # the fuzz reaches both outcomes: some mutants are still readable, many are refused with a typed error
     assert tally.codes.get(0, 0) >= 20 and tally.codes.get(2, 0) >= 50, tally.codes

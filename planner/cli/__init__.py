@@ -50,7 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
     argparse.ArgumentParser
         ``--version`` and the sub-commands, each with ``--quiet`` where it had none.
     """
-    parser = argparse.ArgumentParser(
+    from reachplan.planner.cli.points import NumbersParser  # reads --targets -20,0,90 as a value
+
+    parser = NumbersParser(
         prog="reachplan",
         description="Pre-plan steered needle paths for interstitial gynecologic brachytherapy.",
     )

@@ -42,9 +42,10 @@ def run(args: argparse.Namespace) -> int:
     """
     from reachplan.imaging.inspect import inspect_path
     from reachplan.imaging.names import SynonymTable
+    from reachplan.planner.dose.plan_usable import usable_problems
 
     synonyms = SynonymTable.from_csv(args.synonyms) if args.synonyms else None
-    result = inspect_path(args.path, synonyms)
+    result = inspect_path(args.path, synonyms, plan_check=usable_problems)  # dose's and plan's check, as warnings
     if args.json:
         print_json(result.to_json(), NAME)
         return 0

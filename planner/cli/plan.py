@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -21,6 +20,7 @@ from reachplan.planner.cli.edges import (
     seen_warnings,
     staged_folder,
 )
+from reachplan.planner.cli.points import check_targets_inside, parse_point
 from reachplan.planner.errors import PlanInputError
 
 if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of every command stays light
@@ -52,10 +52,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         output options.
     """
     parser.add_argument("--ct", type=Path, help="CT/MR series folder (optional: organs from contours suffice)")
+    parser.add_argument("--series-uid", metavar="UID",
+                        help="with --ct: the SeriesInstanceUID to read when the folder holds several series")
     parser.add_argument("--rtstruct", type=Path, required=True, help="RT Structure Set file")
-    parser.add_argument("--targets", nargs="+", required=True, metavar="ROI_OR_POINT",
-                        help="target ROI names, or points 'x,y,z' in mm (DICOM patient coordinates, LPS); an ROI "
-                             "of POINT contours is planned to its points")
+    parser.add_argument("--targets", "--target", nargs="+", required=True, metavar="ROI_OR_POINT",
+                        help="target ROI names, or points 'x,y,z' in mm (DICOM patient coordinates, LPS; a point "
+                             "may start with a minus sign: --targets -20,0,90); an ROI of POINT contours is planned "
+                             "to its points; a point must lie inside the images and the body contour")
+    parser.add_argument("--allow-outside-body", action="store_true",
+                        help="plan target points that lie outside the image volume or the body contour")
     parser.add_argument("--template", default="needlefinder_syed_63", help="template plugin name")
     pose = parser.add_argument_group(
         "template pose", "where the template sits; without these it is fitted to the Obturator (vaginal cylinder) "
@@ -116,15 +121,8 @@ def add_rtplan_style(parser: argparse.ArgumentParser) -> None:
 
 
 def _triple(spec: str, what: str) -> tuple[float, float, float]:
-    """Three finite numbers 'x,y,z'."""
-    parts = spec.split(",")
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise PlanInputError(f"{what} {spec!r}: give three finite numbers 'x,y,z' in mm")
-    return values[0], values[1], values[2]
+    """Three finite numbers 'x,y,z' (no empty item)."""
+    return parse_point(spec, what)
 
 
 def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
@@ -134,6 +132,8 @@ def _targets(specs: list[str]) -> tuple[list[str], list[Target]]:
     names: list[str] = []
     points: list[Target] = []
     for spec in specs:
+        if not spec.strip():
+            raise PlanInputError("--targets: an empty target; give ROI names or points 'x,y,z' (mm, LPS)")
         if len(spec.split(",")) == 3:
             try:
                 x, y, z = _triple(spec, "target")
@@ -258,6 +258,9 @@ def template_pose(args: argparse.Namespace, structures: StructureSet, config: Pl
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PlanQuirkWarning)  # the quirks are printed below
             rtplan = read_rtplan(args.rtplan)
+        from reachplan.planner.dose.plan_usable import require_usable
+
+        require_usable(rtplan, f"--rtplan {args.rtplan}", kinds=("geometry",))  # the channels the pose comes from
         for quirk in rtplan.quirks:
             print(f"reachplan: warning: RT Plan {args.rtplan.name}: {quirk}; read anyway", file=sys.stderr)
         return pose_from_rtplan(rtplan, structures, config.obturator_depth_mm, applicator_kinds(), applicators)
@@ -308,6 +311,8 @@ def check_plan_arguments(args: argparse.Namespace, inputs: list[Path]) -> None:
     from reachplan.rod_model.design import preset
 
     output_folder(args.out, inputs)
+    if args.series_uid is not None and args.ct is None:
+        raise PlanInputError("--series-uid chooses among the series of --ct; give --ct too")
     load_template(args.template)
     for name in args.design:
         preset(name)
@@ -389,11 +394,12 @@ def run(args: argparse.Namespace) -> int:
     _reference_points(args.reference_point)  # a bad point is an error before the series is read
     config = PlanConfig(template=args.template, designs=tuple(args.design))
     table, overrides, config = _names(args, config)
-    volume = read_series(args.ct) if args.ct else None
+    volume = read_series(args.ct, series_uid=args.series_uid) if args.ct else None
     structures = read_rtstruct(args.rtstruct, volume, synonyms=table)
     if overrides:
         structures = rename(structures, overrides)
     case = case_config(args, structures, config, table.standard_names)
+    check_targets_inside(case.target_points, volume, structures, args.allow_outside_body)  # before any planning
     label = inputs[-1].name
     with staged_folder(args.out) as stage:  # nothing appears in --out unless the whole plan succeeds
         _, doc = plan_and_write(CaseInput(structures, volume, tuple(inputs), label), case, stage, quiet,

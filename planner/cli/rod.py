@@ -9,6 +9,7 @@ from typing import Any
 
 from reachplan import ReachplanError
 from reachplan.planner.cli.edges import finite, print_json
+from reachplan.planner.cli.points import comma_items
 from reachplan.rod_model.errors import TensionAboveLimitWarning
 
 NAME = "rod"
@@ -58,7 +59,7 @@ def _tensions(args: argparse.Namespace) -> tuple[list[float], bool]:
         values, sweep = [args.tension], False
     else:
         try:
-            values, sweep = [float(t) for t in args.tensions.split(",") if t.strip()], True
+            values, sweep = [float(t) for t in comma_items(args.tensions, "--tensions", RodArgumentError)], True
         except ValueError:
             raise RodArgumentError(f"--tensions must be comma-separated numbers, got {args.tensions!r}") from None
     if not values or any(not (0.0 <= t < 1e3) for t in values):  # also refuses NaN

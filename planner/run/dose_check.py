@@ -25,12 +25,13 @@ from reachplan.imaging.source_strength import DecayWindow, SourceStrength, dicom
 from reachplan.imaging.types import Grid, StructureSet
 from reachplan.planner.dose.dwells import dose_on_grid, plan_dwells
 from reachplan.planner.dose.plan_check import PointCheck, check_isotope, check_points
+from reachplan.planner.dose.plan_usable import plan_source, require_usable
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.lookup import all_sources, get_source
 from reachplan.plugins.errors import SourceMatchError
 from reachplan.plugins.exporters.rtdose import CEILING_TIMES_PRESCRIPTION, DoseContext
-from reachplan.plugins.sources.identify import PlanSource, SourceChoice, identify_source, plan_isotope
+from reachplan.plugins.sources.identify import SourceChoice, identify_source, plan_isotope
 
 #: the largest dose grid computed (voxels); a finer one asks for a coarser spacing
 MAX_GRID_VOXELS = 60_000_000
@@ -129,14 +130,12 @@ def check_plan_dose(plan: RtPlan, structures: StructureSet, config: DoseCheckCon
     Raises
     ------
     PlanInputError
-        Not a brachy plan with channels, no source strength, no source data that fits, no dwell, no Frame of
-        Reference, a grid too large, or a dose that is not finite.
+        A problem :func:`~reachplan.planner.dose.plan_usable.require_usable` finds (no channels, a channel without
+        control points, no source or strength, no source data that fits), no dwell, no Frame of Reference, a grid
+        too large, or a dose that is not finite.
     """
-    if not plan.is_brachy or not plan.channels:
-        raise PlanInputError(f"{label} is not a brachytherapy plan with channels; pass a brachy RT Plan")
+    require_usable(plan, label, source=config.source)  # the checks inspect warns about (one shared function)
     src = plan.source(plan.channels[0].source_number)
-    if src.air_kerma_rate_u <= 0:
-        raise PlanInputError(f"{label}: the source has no Reference Air Kerma Rate; cannot compute dose")
     try:
         choice = choose_source(plan, src, config.source)
     except (PlanInputError, SourceMatchError) as exc:
@@ -224,11 +223,7 @@ def choose_source(plan: RtPlan, src: BrachySource, given: str | None) -> SourceC
             raise PlanInputError(f"--source {given} is {data.isotope} but the plan's source is {isotope}; "
                                  "choose a data set of that isotope")
         return SourceChoice(given, f"{given}: given with --source")
-    plan_source = PlanSource(isotope_name=src.isotope_name, half_life_days=src.half_life_days,
-                             model_id=src.model_id, manufacturer=src.manufacturer,
-                             active_length_mm=src.active_length_mm,
-                             treatment_type=plan.treatment_type, machine_name=plan.machine_name)
-    return identify_source(all_sources(), plan_source)
+    return identify_source(all_sources(), plan_source(plan, src))
 
 
 def parse_date(text: str, what: str) -> datetime:

@@ -25,6 +25,7 @@ from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
 from reachplan.imaging.errors import OutputExistsError
 from reachplan.imaging.files import atomic_write_bytes
+from reachplan.imaging.series_geometry import MIN_SPACING_MM
 from reachplan.imaging.types import Grid, PatientStudy
 
 RT_DOSE_STORAGE = "1.2.840.10008.5.1.4.1.1.481.2"
@@ -380,10 +381,11 @@ def _dose_and_grid(ds: Any, p: Path) -> tuple[np.ndarray, Grid]:
         raise CorruptFileError(f"{p}: RT Dose frames are not evenly spaced; cannot use it as a grid")
     step = float(steps[0]) if nk > 1 else 1.0
     if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(iop)) and len(iop) == 6 and len(pos) == 3
-            and 0 < row_sp <= 1e3 and 0 < col_sp <= 1e3 and 0 < abs(step) <= 1e3 and rows > 0 and cols > 0
-            and nk > 0 and np.all(np.isfinite(offsets))):
-        raise CorruptFileError(f"{p}: RT Dose geometry is not finite and positive (position, orientation, spacing, "
-                               "frame offsets); re-export it")
+            and MIN_SPACING_MM <= row_sp <= 1e3 and MIN_SPACING_MM <= col_sp <= 1e3
+            and MIN_SPACING_MM <= abs(step) <= 1e3 and rows > 0 and cols > 0 and nk > 0
+            and np.all(np.isfinite(offsets)) and abs(np.linalg.norm(normal) - 1.0) < 1e-3):
+        raise CorruptFileError(f"{p}: RT Dose geometry is not finite and positive (position, orientation, spacing of "
+                               f"{MIN_SPACING_MM:g} to 1000 mm, frame offsets); re-export it")
     affine = np.eye(4)
     affine[:3, 0] = iop[:3] * col_sp
     affine[:3, 1] = iop[3:] * row_sp
