@@ -10,7 +10,15 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from reachplan.planner.cli.edges import ArgumentError, finite, finite_float, output_file, print_json, seen_warnings
+from reachplan.planner.cli.edges import (
+    ArgumentError,
+    finite,
+    finite_float,
+    output_file,
+    print_json,
+    seen_warnings,
+    writing,
+)
 
 if TYPE_CHECKING:
     from reachplan.planner.run.dose_check import DoseCheck
@@ -84,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
     config = DoseCheckConfig(args.source, args.model, 2.5 if args.spacing is None else args.spacing, args.margin,
                              like, args.treatment_date, args.points)
     check = check_plan_dose(plan, structures, config, str(args.plan))
-    # the only output, written last and atomically
-    write_rtdose(args.out, check.dose_gy, check.grid, check.context, bits=args.bits, ceiling_gy=check.ceiling_gy)
+    # the only output, written last and atomically (and recorded as reachplan's)
+    with writing(args.out, file=True):
+        write_rtdose(args.out, check.dose_gy, check.grid, check.context, bits=args.bits, ceiling_gy=check.ceiling_gy)
     _report(args, check)
     return 0
 
