@@ -124,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from tqdm import tqdm
 
     from reachplan.imaging.places import release_places
-    from reachplan.planner.cli.edges import interruptible, warning_lines
+    from reachplan.planner.cli.edges import interruptible, output_failure, warning_lines
 
     quiet = bool(getattr(args, "quiet", False))
     sink = io.StringIO()
@@ -145,9 +145,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: staged outputs are removed on the way here
             signum = int(getattr(exc, "signum", 2))
             code, message = 128 + signum, "reachplan: interrupted" + ("" if signum == 2 else f" (signal {signum})")
-        except Exception as exc:  # the last resort: an exception that escapes is a bug
-            code = INTERNAL_ERROR_EXIT
-            message = (f"reachplan {args.command}: internal error: {type(exc).__name__}: {_one_line(exc, 200)}; "
+        except Exception as exc:  # the last resort: an exception that escapes is a bug (a full disk is not)
+            placed = output_failure(args, exc)
+            code = INTERNAL_ERROR_EXIT if placed is None else placed.exit_code
+            message = (f"reachplan {args.command}: error: {_one_line(placed, 1000)}" if placed is not None else
+                       f"reachplan {args.command}: internal error: {type(exc).__name__}: {_one_line(exc, 200)}; "
                        "this is a bug in reachplan, please report it with the command and its inputs")
         else:
             message = ""

@@ -163,6 +163,9 @@ def _input_folders(inputs: Iterable[Path | None]) -> list[tuple[Path, Path]]:
     return out
 
 
+#: the files a planned case always writes at the top of its folder (``plan`` and ``demo``): one there that reachplan
+#: did not write stops the command before the work (every other file is checked before the staged files move in)
+CASE_FILES = ("plan.json", "report.html", "overview.png", "workspace.png", "ranking.json")
 #: free space an output folder or file needs at least, MB (a demo writes about 35 MB, a plan about 12 MB)
 FOLDER_NEED_MB = 50.0
 FILE_NEED_MB = 10.0
@@ -263,7 +266,8 @@ def staged_folder(out: Path, option: str = "--out") -> AbstractContextManager[Pa
 
     :func:`reachplan.imaging.places.staged_folder`: on success its files move into ``out`` (created when missing;
     a file of the same name is replaced only when reachplan wrote it); on any failure it is removed and ``out`` is
-    left as it was; errors of the place name ``out`` as given.
+    left as it was; errors of the place name ``out`` as given. A file of :data:`CASE_FILES` in ``out`` that
+    reachplan did not write is refused at once.
 
     Parameters
     ----------
@@ -277,9 +281,12 @@ def staged_folder(out: Path, option: str = "--out") -> AbstractContextManager[Pa
     context manager of Path
         Yields the staging folder (same file system as ``out``, so every move is a rename).
     """
+    from reachplan.imaging.files import refuse_foreign
     from reachplan.imaging.places import staged_folder as staged
 
-    return staged(Path(out).resolve(), Path(out), option)
+    resolved = Path(out).resolve()
+    refuse_foreign([resolved / n for n in CASE_FILES], f"{option} {out}")  # the usual clash, before the work
+    return staged(resolved, Path(out), option)
 
 
 def writing(out: Path, option: str = "--out", *, file: bool = False) -> AbstractContextManager[None]:
@@ -303,6 +310,32 @@ def writing(out: Path, option: str = "--out", *, file: bool = False) -> Abstract
     from reachplan.imaging.places import place_errors, written_file
 
     return (written_file if file else place_errors)(Path(out).resolve(), Path(out), option)
+
+
+def output_failure(args: Any, exc: BaseException) -> ReachplanError | None:
+    """Return the typed error for a failure of the output place that escaped a command, or None.
+
+    The commands that write in place without staging (``study``, ``bench``) meet a full disk or a read-only place
+    as an ``OSError``; it becomes an :class:`~reachplan.imaging.errors.OutputPlaceError` naming ``--out`` as given.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's arguments (``out``, when it has one).
+    exc : BaseException
+        What escaped the command.
+
+    Returns
+    -------
+    ReachplanError or None
+        The error to report (exit code 2); None when ``exc`` is not about the output place.
+    """
+    from reachplan.imaging.places import place_error
+
+    out = getattr(args, "out", None)
+    if not isinstance(exc, OSError) or out is None:
+        return None
+    return place_error(exc, Path(out), "--out", (Path(out).resolve(),))
 
 
 # --- interruptions -----------------------------------------------------------------------------------------------

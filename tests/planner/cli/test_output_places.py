@@ -171,6 +171,23 @@ def test_a_failure_of_the_place_while_staging_names_the_users_path(tmp_path: Pat
     assert _tree(tmp_path) == []  # the stage and the folders made for it are gone
 
 
+def test_a_full_disk_under_a_command_that_writes_in_place_is_a_typed_error(tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    import reachplan.planner.cli.bench as bench_cli
+
+    def full(args: argparse.Namespace) -> int:  # a study's or benchmark's files are written in place
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(args.out / "parts" / "x.json"))
+
+    monkeypatch.setattr(bench_cli, "run", full)
+    code, err = _run(["bench", "models", "--out", str(tmp_path / "b")], capsys)
+    assert code == 2 and _error(err, "bench").endswith(f"--out {tmp_path / 'b'}: no space left on the device; "
+                                                       "nothing was written: free some space or choose another "
+                                                       "output place")
+
+
 def test_an_error_of_an_input_is_not_taken_for_the_place(tmp_path: Path) -> None:
     with pytest.raises(PermissionError), staged_folder(tmp_path / "out"):
         raise PermissionError(errno.EACCES, "Permission denied", "/somewhere/else/CT.dcm")
@@ -200,6 +217,17 @@ def test_a_case_replaces_the_files_it_wrote_and_only_those(tmp_path: Path) -> No
     with pytest.raises(OutputExistsError, match=r"case\.json"):
         write_phantom(out, beside={"case.json": b"{}"})
     assert (out / "case.json").read_text() == '{"edited": true}\n'
+
+
+def test_plan_refuses_a_foreign_report_before_the_work(case: PhantomFiles, tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.html").write_text("my report")
+    code, err = _run(["plan", "--rtstruct", str(case.rtstruct_path), "--targets", "Target_80_030", "--quiet",
+                      "--out", str(out)], capsys)
+    assert code == 2 and f"{out / 'report.html'} exists and was not written by reachplan" in _error(err, "plan")
+    assert _tree(tmp_path) == ["out", "out/report.html"] and (out / "report.html").read_text() == "my report"
 
 
 def test_dose_refuses_a_foreign_file_before_any_work_and_replaces_its_own(dose_args: list[str], tmp_path: Path,
@@ -293,7 +321,7 @@ def _wait_for_stage(parent: Path, proc: subprocess.Popen[str]) -> None:
         time.sleep(0.05)
 
 
-@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGHUP, 129)])
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGHUP, 129), (signal.SIGKILL, -9)])
 def test_a_second_run_fails_at_once_and_a_signal_leaves_no_staging(tmp_path: Path, sig: int, code: int) -> None:
     out = tmp_path / "out"
     first = _reachplan("demo", "--out", str(out), "--quiet")
@@ -310,6 +338,12 @@ def test_a_second_run_fails_at_once_and_a_signal_leaves_no_staging(tmp_path: Pat
     finally:
         first.kill()
     assert first.returncode == code, err
+    if sig == signal.SIGKILL:  # no clean-up possible: the next run into the place removes the staging folder
+        (stage,) = tmp_path.glob(".out.*.staging")
+        after = _reachplan("demo", "--case", "pilot", "--seed", "1", "--out", str(out))  # fails once staged
+        _, err = after.communicate(timeout=60)
+        assert after.returncode == 2 and f"removed {stage}, a staging folder left by an interrupted run (process " \
+            f"{first.pid})" in err
     assert list(tmp_path.iterdir()) == []  # no staging folder, no output folder
 
 
