@@ -343,10 +343,30 @@ def record_written(folder: Path, files: Mapping[Path, str]) -> None:
     files : mapping of Path to str
         Each file written (inside ``folder``) and its SHA-256 (:func:`digest`).
     """
+    atomic_write_bytes(*manifest_file(folder, files))
+
+
+def manifest_file(folder: Path, files: Mapping[Path, str]) -> tuple[Path, bytes]:
+    """Return ``folder``'s record with ``files`` added, as a file to write (e.g. in the same batch as the files).
+
+    Parameters
+    ----------
+    folder : Path
+        The output folder holding the record.
+    files : mapping of Path to str
+        Each file (inside ``folder``) and its SHA-256 (:func:`digest`).
+
+    Returns
+    -------
+    Path
+        The record's path (``folder / MANIFEST``).
+    bytes
+        Its new content (earlier entries kept).
+    """
     folder = Path(folder)
     entries = read_manifest(folder)
     entries.update({Path(p).relative_to(folder).as_posix(): h for p, h in files.items()})
-    atomic_write_bytes(folder / MANIFEST, manifest_bytes(entries))
+    return folder / MANIFEST, manifest_bytes(entries)
 
 
 def written_by_reachplan(path: Path) -> bool:

@@ -49,7 +49,7 @@ import numpy as np
 from reachplan.imaging.case_dicom import encode, image_files, is_case_file, rtstruct_dataset
 from reachplan.imaging.case_spec import PhantomSpec, PhantomStructure
 from reachplan.imaging.errors import OutputExistsError
-from reachplan.imaging.files import atomic_write_files, digest, record_written, written_by_reachplan
+from reachplan.imaging.files import atomic_write_files, digest, manifest_file, written_by_reachplan
 from reachplan.imaging.solids import Box, Cylinder, Ellipsoid, EllipticCylinder, TorusSection, rotation_x
 from reachplan.imaging.sweep import Sweep, Union
 
@@ -210,8 +210,8 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None, beside: Mappin
     (fixed UIDs derived from the phantom version). Existing phantom files are replaced (atomically,
     file by file); any other file in the way is left untouched and :class:`OutputExistsError` is raised
     before anything is written. The files are recorded in ``out_dir``'s record of what reachplan wrote
-    (:func:`~reachplan.imaging.files.record_written`); on a failure (a full disk) nothing new is left, not even a
-    folder.
+    (:func:`~reachplan.imaging.files.manifest_file`, renamed in with them); on a failure (a full disk) nothing new is
+    left, not even a folder.
 
     Parameters
     ----------
@@ -256,8 +256,8 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None, beside: Mappin
         ct.append(ref)
     encoded.append((rs_path, encode(rtstruct_dataset(spec, ct))))
     encoded += [(out_dir / name, data) for name, data in (beside or {}).items()]
+    encoded.append(manifest_file(out_dir, {path: digest(data) for path, data in encoded}))  # renamed in with them
     atomic_write_files(encoded)  # each file atomic, one batch of disk flushes for the series
     for p in stale:  # slices of an older phantom version would form a second series
         p.unlink()
-    record_written(out_dir, {path: digest(data) for path, data in encoded})
     return PhantomFiles(ct_dir=ct_dir, rtstruct_path=rs_path)

@@ -256,6 +256,14 @@ def start(quiet: bool = False) -> bool:
     return True
 
 
+def stop() -> None:
+    """Stop the background compile if it still runs (the command was interrupted: nothing waits for it any more)."""
+    if _child is not None and _child.proc.poll() is None:
+        _child.proc.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            _child.proc.wait(timeout=5)
+
+
 def main(argv: Sequence[str]) -> int:
     """Run ``python -m reachplan.planner.kernels`` (see the module docstring) on ``argv``; return the exit code.
 

@@ -143,6 +143,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             code = exc.exit_code
             message = f"reachplan {args.command}: error: {_one_line(exc, 1000)}"
         except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: staged outputs are removed on the way here
+            if "reachplan.planner.kernels" in sys.modules:  # as Ctrl-C stops the whole process group
+                sys.modules["reachplan.planner.kernels"].stop()
             signum = int(getattr(exc, "signum", 2))
             code, message = 128 + signum, "reachplan: interrupted" + ("" if signum == 2 else f" (signal {signum})")
         except Exception as exc:  # the last resort: an exception that escapes is a bug (a full disk is not)

@@ -4,23 +4,28 @@ per place; SIGTERM and SIGHUP clean up like Ctrl-C; staging folders of killed ru
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import io
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from reachplan.imaging import places
 from reachplan.imaging.errors import OutputExistsError, OutputPlaceError
 from reachplan.imaging.files import MANIFEST, atomic_write_bytes, read_manifest, written_by_reachplan
-from reachplan.imaging.phantom import PhantomFiles, write_phantom
-from reachplan.imaging.places import check_place, lock_place, release_places, remove_stale_stages
+from reachplan.imaging.phantom import PhantomFiles, phantom_spec, write_phantom
+from reachplan.imaging.places import check_place, lock_place, place_error, release_places, remove_stale_stages
 from reachplan.planner.cli import main
 from reachplan.planner.cli.edges import Interrupted, interruptible, staged_folder
 
@@ -208,14 +213,15 @@ def test_phantom_leaves_a_foreign_case_json_alone(tmp_path: Path, capsys: pytest
 
 def test_a_case_replaces_the_files_it_wrote_and_only_those(tmp_path: Path) -> None:
     out = tmp_path / "case"
+    small = dataclasses.replace(phantom_spec(), slice_thickness_mm=30.0, pixel_mm=8.0, matrix=32)  # 7 slices
     for about in (b'{"run": 1}', b'{"run": 2}'):  # the second run replaces what the first one wrote
-        files = write_phantom(out, beside={"case.json": about})
+        files = write_phantom(out, small, beside={"case.json": about})
         assert (out / "case.json").read_bytes() == about
     recorded = read_manifest(out)
     assert {"case.json", "RS.phantom.dcm", f"CT/{sorted(files.ct_dir.iterdir())[0].name}"} <= set(recorded)
     (out / "case.json").write_text('{"edited": true}\n')  # changed since reachplan wrote it: not ours any more
     with pytest.raises(OutputExistsError, match=r"case\.json"):
-        write_phantom(out, beside={"case.json": b"{}"})
+        write_phantom(out, small, beside={"case.json": b"{}"})
     assert (out / "case.json").read_text() == '{"edited": true}\n'
 
 
@@ -260,6 +266,69 @@ def test_a_staged_commit_checks_every_file_before_moving_any(tmp_path: Path) -> 
                                "out/report.html"]
     atomic_write_bytes(out / "export" / "RP.dcm", b"edited by hand")
     assert not written_by_reachplan(out / "export" / "RP.dcm")
+
+
+NAMES = ["plan.json", "report.html", "export/RP.dcm", "export/implant_steered/device.json", "phantom/CT/CT.0001.dcm"]
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.dictionaries(st.sampled_from(NAMES), st.sampled_from(["ours", "foreign", "edited"]), max_size=4),
+       st.sets(st.sampled_from(NAMES), min_size=1, max_size=4))
+def test_a_commit_replaces_what_reachplan_wrote_and_nothing_else(existing: dict[str, str], staged: set[str]) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out"
+        with places.staged_folder(out) as stage:  # an earlier run
+            for name, kind in existing.items():
+                (stage / name).parent.mkdir(parents=True, exist_ok=True)
+                (stage / name).write_bytes(b"old" if kind != "foreign" else b"")
+        for name, kind in existing.items():
+            if kind != "ours":
+                (out / name).write_bytes(kind.encode())  # written by someone else, or edited since
+        before = _snapshot(out)
+        blocking = sorted(n for n in staged if existing.get(n) in ("foreign", "edited"))
+        try:
+            with places.staged_folder(out) as stage:
+                for name in staged:
+                    (stage / name).parent.mkdir(parents=True, exist_ok=True)
+                    (stage / name).write_bytes(b"new")
+        except OutputExistsError as exc:
+            assert blocking and any(str(out / n) in str(exc) for n in blocking)
+            assert _snapshot(out) == before  # nothing moved
+        else:
+            assert not blocking
+            assert all((out / n).read_bytes() == b"new" and written_by_reachplan(out / n) for n in staged)
+            assert all((out / n).read_bytes() == before[n] for n in existing if n not in staged)
+        assert [p.name for p in Path(tmp).iterdir()] == ["out"]  # no staging folder left
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.sampled_from(sorted(errno.errorcode)), st.sampled_from(["stage", "out", "elsewhere", None]))
+def test_an_os_error_becomes_a_typed_error_only_about_the_place_and_never_names_the_stage(code: int,
+                                                                                        where: str | None) -> None:
+    stage, out = Path("/data/.out.1-ab.staging"), Path("/data/out")
+    filename = {"stage": stage / "export" / "RP.dcm", "out": out / "plan.json", "elsewhere": Path("/in/CT.dcm"),
+                None: None}[where]
+    exc = OSError(code, os.strerror(code), *([] if filename is None else [str(filename)]))
+    typed = place_error(exc, Path("out"), "--out", (stage, out))
+    place = code in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)
+    assert (typed is not None) == (place or (where != "elsewhere" and code in (
+        errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EEXIST, errno.ENOTEMPTY,
+        errno.EXDEV, errno.EINVAL)))
+    if typed is not None:
+        assert str(typed).startswith("--out out: ") and "staging" not in str(typed) and "\n" not in str(typed)
+
+
+def test_an_interrupted_run_stops_the_background_compile(monkeypatch: pytest.MonkeyPatch) -> None:
+    from reachplan.planner import kernels
+
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    monkeypatch.setattr(kernels, "_child", kernels._Child(child, Path("unused")))
+    kernels.stop()
+    assert child.poll() is not None
 
 
 # --- runs: locks, stale staging folders, signals --------------------------------------------------------------------
