@@ -359,7 +359,8 @@ class Interrupted(KeyboardInterrupt):
 def interruptible() -> Iterator[None]:
     """Within the block, SIGTERM and SIGHUP raise :class:`Interrupted` (as SIGINT raises ``KeyboardInterrupt``).
 
-    Only in the main thread (elsewhere signal handlers cannot be set); the previous handlers come back after.
+    Only in the main thread (elsewhere signal handlers cannot be set) and not for a signal that is ignored (under
+    ``nohup``, SIGHUP); the previous handlers come back after.
 
     Yields
     ------
@@ -375,11 +376,12 @@ def interruptible() -> Iterator[None]:
         return
 
     def interrupt(signum: int, frame: object) -> None:
-        for sig in wanted:  # one clean-up: a second signal during it does not cut it short
+        for sig in previous:  # one clean-up: a second signal during it does not cut it short
             signal.signal(sig, signal.SIG_IGN)
         raise Interrupted(signum)
 
-    previous = {sig: signal.signal(sig, interrupt) for sig in wanted}
+    # a signal ignored on purpose stays ignored (``nohup`` ignores SIGHUP so that the run outlives the terminal)
+    previous = {sig: signal.signal(sig, interrupt) for sig in wanted if signal.getsignal(sig) != signal.SIG_IGN}
     try:
         yield
     finally:

@@ -361,6 +361,14 @@ def test_sigterm_and_sighup_raise_like_ctrl_c_and_the_handlers_come_back() -> No
             time.sleep(5)  # interrupted at once
         assert exc.value.signum == sig and isinstance(exc.value, KeyboardInterrupt)
     assert signal.getsignal(signal.SIGTERM) == before
+    hup = signal.signal(signal.SIGHUP, signal.SIG_IGN)  # as under nohup: the run must outlive the terminal
+    try:
+        with interruptible():
+            os.kill(os.getpid(), signal.SIGHUP)
+            time.sleep(0.05)
+            assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, hup)
 
 
 def test_a_lock_is_held_once_per_place_and_released(tmp_path: Path) -> None:
