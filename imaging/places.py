@@ -20,6 +20,7 @@ error (:class:`OutputPlaceError`) that names the place as the user gave it, neve
 
 from __future__ import annotations
 
+import atexit
 import errno
 import hashlib
 import os
@@ -213,6 +214,8 @@ def lock_place(path: Path, given: Path, option: str) -> None:
         os.close(fd)
     os.ftruncate(fd, 0)
     os.write(fd, f"{os.getpid()} {key}\n".encode())
+    if not _held:
+        atexit.register(release_places)  # a process that ends without releasing still removes its lock files
     _held[key] = (fd, lock)
 
 

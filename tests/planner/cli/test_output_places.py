@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import hashlib
 import io
 import os
 import signal
@@ -382,6 +383,8 @@ def test_a_lock_is_held_once_per_place_and_released(tmp_path: Path) -> None:
     release_places()
     other = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True)
     assert other.returncode == 0 and other.stdout.strip() == "locked"
+    lock = places._lock_folder() / f"{hashlib.sha256(str(tmp_path).encode()).hexdigest()[:32]}.lock"
+    assert not lock.exists()  # removed when the process ended, though it never released the lock itself
 
 
 def _reachplan(*args: str) -> subprocess.Popen[str]:
