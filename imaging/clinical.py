@@ -607,7 +607,8 @@ def _column_target(shape: Sweep | Union, xy: tuple[float, float], at: float = 0.
 def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
     """Write the case as an image series (CT or MR) + RT Structure Set.
 
-    Also and ``case.json`` (parameters and named target points) beside them.
+    Also ``case.json`` (parameters and named target points) beside them, written with them (a ``case.json`` that
+    reachplan did not write is not replaced: :class:`~reachplan.imaging.errors.OutputExistsError`).
 
     Parameters
     ----------
@@ -621,11 +622,9 @@ def write_clinical(out_dir: Path, case: ClinicalCase) -> PhantomFiles:
     PhantomFiles
         The image series folder and the structure set file.
     """
-    from reachplan.imaging.files import atomic_write_json
+    from reachplan.imaging.files import json_bytes
 
-    files = write_phantom(out_dir, case.spec)
-    atomic_write_json(Path(out_dir) / "case.json", case.to_json())
-    return files
+    return write_phantom(out_dir, case.spec, beside={"case.json": json_bytes(case.to_json())})
 
 
 def structure_set(spec: PhantomSpec, names: tuple[str, ...] | None = None) -> StructureSet:

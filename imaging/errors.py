@@ -33,6 +33,18 @@ class OutputExistsError(ImagingError):
     """A file that reachplan did not write is in the way of an output; nothing was overwritten."""
 
 
+class OutputPlaceError(ImagingError):
+    """A place cannot hold an output: a system file system, no space, read-only, a file where a folder is expected.
+
+    The message names the place as the user gave it (never an internal staging path) and what to do; nothing
+    partial is left there.
+    """
+
+
+class OutputBusyError(OutputPlaceError):
+    """Another reachplan run is writing to the same output place (it holds the place's lock)."""
+
+
 class UnsupportedDataError(ImagingError):
     """Valid DICOM that reachplan cannot use (an undecodable transfer syntax, an unsupported layout)."""
 

@@ -40,6 +40,7 @@ Geometry (LPS mm; exact values in :func:`phantom_spec`)
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,7 +49,7 @@ import numpy as np
 from reachplan.imaging.case_dicom import encode, image_files, is_case_file, rtstruct_dataset
 from reachplan.imaging.case_spec import PhantomSpec, PhantomStructure
 from reachplan.imaging.errors import OutputExistsError
-from reachplan.imaging.files import atomic_write_files
+from reachplan.imaging.files import atomic_write_files, digest, manifest_file, written_by_reachplan
 from reachplan.imaging.solids import Box, Cylinder, Ellipsoid, EllipticCylinder, TorusSection, rotation_x
 from reachplan.imaging.sweep import Sweep, Union
 
@@ -200,14 +201,17 @@ class PhantomFiles:
     rtstruct_path: Path
 
 
-def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFiles:
+def write_phantom(out_dir: Path, spec: PhantomSpec | None = None, beside: Mapping[str, bytes] | None = None,
+                  ) -> PhantomFiles:
     """Write the phantom as a DICOM CT series and an RT Structure Set.
 
     Files: ``out_dir/CT/CT.0001.dcm ...`` (``out_dir/MR/MR.0001.dcm ...`` for an MR spec) and
     ``out_dir/RS.phantom.dcm``. The output is deterministic
     (fixed UIDs derived from the phantom version). Existing phantom files are replaced (atomically,
     file by file); any other file in the way is left untouched and :class:`OutputExistsError` is raised
-    before anything is written.
+    before anything is written. The files are recorded in ``out_dir``'s record of what reachplan wrote
+    (:func:`~reachplan.imaging.files.manifest_file`, renamed in with them); on a failure (a full disk) nothing new is
+    left, not even a folder.
 
     Parameters
     ----------
@@ -215,6 +219,9 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFile
         Folder to create or reuse.
     spec : PhantomSpec, optional
         The phantom to write (default :func:`phantom_spec`).
+    beside : mapping of str to bytes, optional
+        More files for ``out_dir`` (name -> content, e.g. the clinical case's ``case.json``), written with the
+        series; one that exists is replaced only when reachplan wrote it.
 
     Returns
     -------
@@ -232,6 +239,7 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFile
         raise OutputExistsError(f"{out_dir} is a file; give a folder for the phantom")
     names = [f"{spec.modality}.{k + 1:04d}.dcm" for k in range(spec.n_slices)]
     in_the_way = [p for p in [rs_path, *(ct_dir / n for n in names)] if p.exists() and not is_case_file(p)]
+    in_the_way += [p for p in (out_dir / n for n in beside or {}) if p.exists() and not written_by_reachplan(p)]
     stale = []
     if ct_dir.is_dir():
         extra = [p for p in sorted(ct_dir.iterdir()) if p.name not in names and not p.name.startswith(".")]
@@ -242,13 +250,14 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None) -> PhantomFile
             f"{in_the_way[0]} (and {len(in_the_way) - 1} more) is not a reachplan phantom file; "
             "refusing to overwrite: choose an empty or new --out folder"
         )
-    ct_dir.mkdir(parents=True, exist_ok=True)
-    for p in stale:  # slices of an older phantom version would form a second series
-        p.unlink()
     ct, encoded = [], []
     for name, data, ref in image_files(spec, phantom_ct_hu(spec)):
         encoded.append((ct_dir / name, data))
         ct.append(ref)
     encoded.append((rs_path, encode(rtstruct_dataset(spec, ct))))
+    encoded += [(out_dir / name, data) for name, data in (beside or {}).items()]
+    encoded.append(manifest_file(out_dir, {path: digest(data) for path, data in encoded}))  # renamed in with them
     atomic_write_files(encoded)  # each file atomic, one batch of disk flushes for the series
+    for p in stale:  # slices of an older phantom version would form a second series
+        p.unlink()
     return PhantomFiles(ct_dir=ct_dir, rtstruct_path=rs_path)

@@ -135,7 +135,8 @@ def cold(group: str) -> bool:
     """Whether ``group`` has a kernel without fresh machine code in numba's cache.
 
     Reads numba's cache index (an internal of numba: any surprise there reads as "cold", which costs only a
-    child that loads the kernels from the cache). A stale index (the source changed, e.g. a reinstall) is cold.
+    child that loads the kernels from the cache). A stale index (the source changed, e.g. a reinstall) is cold. A
+    function inlined into its callers (``inline="always"``) has no cache of its own and is not counted.
 
     Parameters
     ----------
@@ -148,9 +149,18 @@ def cold(group: str) -> bool:
         True when a kernel of the group would compile on its first call.
     """
     try:
-        return any(not d._cache._cache_file._load_index() for d in _dispatchers(group))
+        return any(not d._cache._cache_file._load_index() for d in _dispatchers(group) if not _inlined(d))
     except Exception:
         return True
+
+
+def _inlined(dispatcher: Any) -> bool:
+    """Whether ``dispatcher`` is inlined into its callers (``inline="always"``): it then has no machine code of its own.
+
+    Numba compiles such a function into each kernel that calls it, never on its own, so it never has a cache file:
+    counting it made the TG-43 group read as cold on every run (and every run started a background compile).
+    """
+    return getattr(dispatcher, "targetoptions", {}).get("inline", "never") == "always"
 
 
 class _Child:
@@ -244,6 +254,14 @@ def start(quiet: bool = False) -> bool:
         print("reachplan: compiling the numerical kernels once (first run after an install: about 10 s of CPU), "
               "in the background; later runs load them from the cache", file=sys.stderr)
     return True
+
+
+def stop() -> None:
+    """Stop the background compile if it still runs (the command was interrupted: nothing waits for it any more)."""
+    if _child is not None and _child.proc.poll() is None:
+        _child.proc.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            _child.proc.wait(timeout=5)
 
 
 def main(argv: Sequence[str]) -> int:

@@ -107,7 +107,8 @@ def console() -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command in ``argv`` (default: the process's) and return its exit code.
 
-    A :class:`ReachplanError` becomes one line on stderr and its ``exit_code`` (2); Ctrl-C gives 130.
+    A :class:`ReachplanError` becomes one line on stderr and its ``exit_code`` (2); Ctrl-C gives 130, SIGTERM
+    143 and SIGHUP 129 (each removes the staged outputs first). The output places' locks are released at the end.
 
     Parameters
     ----------
@@ -117,18 +118,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns
     -------
     int
-        The command's exit code; its error's ``exit_code`` (2) for a reachplan error, 130 on Ctrl-C,
-        :data:`INTERNAL_ERROR_EXIT` for a bug.
+        The command's exit code; its error's ``exit_code`` (2) for a reachplan error, 128 + the signal on Ctrl-C
+        (130), SIGTERM (143) or SIGHUP (129), :data:`INTERNAL_ERROR_EXIT` for a bug.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
     from tqdm import tqdm
 
-    from reachplan.planner.cli.edges import warning_lines
+    from reachplan.imaging.places import release_places
+    from reachplan.planner.cli.edges import interruptible, output_failure, warning_lines
 
     quiet = bool(getattr(args, "quiet", False))
     sink = io.StringIO()
     with contextlib.ExitStack() as stack:
+        stack.callback(release_places)  # the output places' locks (taken by the output checks)
+        stack.enter_context(interruptible())  # SIGTERM, SIGHUP: cleaned up as Ctrl-C
         if quiet:
             stack.enter_context(contextlib.redirect_stderr(sink))
             if not getattr(args, "json", False):
@@ -140,11 +144,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ReachplanError as exc:
             code = exc.exit_code
             message = f"reachplan {args.command}: error: {_one_line(exc, 1000)}"
-        except KeyboardInterrupt:
-            code, message = 130, "reachplan: interrupted"
-        except Exception as exc:  # the last resort: an exception that escapes is a bug
-            code = INTERNAL_ERROR_EXIT
-            message = (f"reachplan {args.command}: internal error: {type(exc).__name__}: {_one_line(exc, 200)}; "
+        except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: staged outputs are removed on the way here
+            if "reachplan.planner.kernels" in sys.modules:  # as Ctrl-C stops the whole process group
+                sys.modules["reachplan.planner.kernels"].stop()
+            signum = int(getattr(exc, "signum", 2))
+            code, message = 128 + signum, "reachplan: interrupted" + ("" if signum == 2 else f" (signal {signum})")
+        except Exception as exc:  # the last resort: an exception that escapes is a bug (a full disk is not)
+            placed = output_failure(args, exc)
+            code = INTERNAL_ERROR_EXIT if placed is None else placed.exit_code
+            message = (f"reachplan {args.command}: error: {_one_line(placed, 1000)}" if placed is not None else
+                       f"reachplan {args.command}: internal error: {type(exc).__name__}: {_one_line(exc, 200)}; "
                        "this is a bug in reachplan, please report it with the command and its inputs")
         else:
             message = ""

@@ -92,8 +92,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]:
-    from tqdm import tqdm
-
     from reachplan.imaging.dicom_io import read_series
     from reachplan.imaging.files import atomic_write_json
     from reachplan.imaging.rtstruct import read_rtstruct
@@ -101,11 +99,12 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     from reachplan.planner.cli.phantom import write_case
     from reachplan.planner.cli.plan import plan_and_write
     from reachplan.planner.kernels import start as start_kernels
+    from reachplan.planner.report.progress import MovingBar
     from reachplan.planner.run.case import CaseConfig, CaseInput
 
     t0 = time.perf_counter()
     start_kernels(quiet)  # first run after an install: the rod and dose kernels compile meanwhile, on the other core
-    bar = tqdm(total=2, desc="case: write, read back", unit="step", disable=quiet, leave=False)
+    bar = MovingBar(total=2, desc="case: write, read back", unit="step", disable=quiet, leave=False)
     files, _spec, about = write_case(args, out / "phantom")
     bar.update()
     t_write = time.perf_counter() - t0

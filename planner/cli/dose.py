@@ -18,6 +18,7 @@ from reachplan.planner.cli.edges import (
     output_file,
     print_json,
     seen_warnings,
+    writing,
 )
 
 if TYPE_CHECKING:
@@ -111,8 +112,9 @@ def run(args: argparse.Namespace) -> int:
     config = DoseCheckConfig(args.source, args.model, 2.5 if args.spacing is None else args.spacing, args.margin,
                              like, args.treatment_date, args.points, DecayWindow(args.decay_half_lives))
     check = check_plan_dose(plan, structures, config, str(args.plan))
-    # the only output, written last and atomically
-    write_rtdose(args.out, check.dose_gy, check.grid, check.context, bits=args.bits, ceiling_gy=check.ceiling_gy)
+    # the only output, written last and atomically (and recorded as reachplan's)
+    with writing(args.out, file=True):
+        write_rtdose(args.out, check.dose_gy, check.grid, check.context, bits=args.bits, ceiling_gy=check.ceiling_gy)
     aims_doc, aims_text = _aims(plan, structures, check, aims) if aims is not None else (None, "")
     _report(args, check, aims_doc)
     if aims_text and not args.json:

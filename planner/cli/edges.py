@@ -3,7 +3,8 @@
 * Arguments are checked before any work: :func:`finite` for numbers, :func:`output_folder` /
   :func:`output_file` for where results go (not an input, not an existing file, writable).
 * Outputs are staged beside their destination (:func:`staged_folder`, a hidden folder in the same parent) and
-  moved into place only when the command succeeds, so a failure leaves nothing partial.
+  moved into place only when the command succeeds, so a failure leaves nothing partial; a file that reachplan did
+  not write is never replaced, and one run at a time writes to a place (:mod:`reachplan.imaging.places`).
 * :func:`print_json` never writes NaN or Infinity: a value that cannot be computed is ``null``, and the fields
   set to ``null`` are named on stderr.
 * :func:`seen_warnings`: the named warnings a command met (``main`` records them), so they go into its JSON
@@ -14,13 +15,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 import sys
-import tempfile
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -170,24 +168,21 @@ def _input_folders(inputs: Iterable[Path | None]) -> list[tuple[Path, Path]]:
     return out
 
 
-def _check_writable(path: Path, option: str) -> None:
-    """Check that the nearest existing ancestor of ``path`` is a writable folder."""
-    probe = path.parent
-    while not probe.exists():
-        if probe.parent == probe:
-            break
-        probe = probe.parent
-    if not probe.is_dir():
-        raise ArgumentError(f"{option} {path}: {probe} is a file, not a folder; choose another output place")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise ArgumentError(f"{option} {path}: cannot write in {probe}; choose a writable output place")
+#: the files a planned case always writes at the top of its folder (``plan`` and ``demo``): one there that reachplan
+#: did not write stops the command before the work (every other file is checked before the staged files move in)
+CASE_FILES = ("plan.json", "report.html", "overview.png", "workspace.png", "ranking.json")
+#: free space an output folder or file needs at least, MB (a demo writes about 35 MB, a plan about 12 MB)
+FOLDER_NEED_MB = 50.0
+FILE_NEED_MB = 10.0
 
 
 def output_folder(out: Path, inputs: Iterable[Path | None] = (), option: str = "--out") -> Path:
-    """Check an output folder before any work; return it resolved.
+    """Check an output folder before any work and take its lock; return it resolved.
 
-    Not an existing file, not an input folder (nor inside one, nor holding an input file directly), and
-    writable.
+    Not an existing file, not an input folder (nor inside one, nor holding an input file directly), not on a
+    system file system, writable, with space (:func:`reachplan.imaging.places.check_place`). The folder's lock
+    (:func:`reachplan.imaging.places.lock_place`) is held until the command ends: a second run into the same folder
+    fails at once.
 
     Parameters
     ----------
@@ -206,7 +201,12 @@ def output_folder(out: Path, inputs: Iterable[Path | None] = (), option: str = "
     Raises
     ------
     ArgumentError
+        An existing file, or an input folder.
+    OutputPlaceError
+        A place that cannot hold the output, or one another run is writing to (:class:`OutputBusyError`).
     """
+    from reachplan.imaging.places import check_place, lock_place
+
     resolved = Path(out).resolve()
     if resolved.exists() and not resolved.is_dir():
         raise ArgumentError(f"{option} {out} is an existing file; give a folder (new or existing)")
@@ -214,12 +214,16 @@ def output_folder(out: Path, inputs: Iterable[Path | None] = (), option: str = "
         if resolved == folder or (_inside(resolved, folder) and given.resolve().is_dir()):
             raise ArgumentError(f"{option} {out} is the input folder of {given} or inside it; "
                                 "choose an output folder outside the inputs")
-    _check_writable(resolved / "x", option)
+    check_place(resolved, Path(out), option, folder=True, need_mb=FOLDER_NEED_MB)
+    lock_place(resolved, Path(out), option)
     return resolved
 
 
 def output_file(out: Path, inputs: Iterable[Path | None] = (), option: str = "--out") -> Path:
-    """Check an output file before any work: not an input, not a folder, and in a writable place.
+    """Check an output file before any work and take its lock: not an input, not a folder, in a place that can hold it.
+
+    An existing file is replaced only when reachplan wrote it (its folder's record says so). The lock is held
+    until the command ends.
 
     Parameters
     ----------
@@ -238,77 +242,156 @@ def output_file(out: Path, inputs: Iterable[Path | None] = (), option: str = "--
     Raises
     ------
     ArgumentError
+        A folder, or an input.
+    OutputPlaceError
+        A place that cannot hold the file, or one another run is writing to (:class:`OutputBusyError`).
+    OutputExistsError
+        A file there that reachplan did not write.
     """
+    from reachplan.imaging.files import refuse_foreign
+    from reachplan.imaging.places import check_place, lock_place
+
     resolved = Path(out).resolve()
     if resolved.is_dir():
         raise ArgumentError(f"{option} {out} is a folder; give the path of the file to write")
+    if resolved.exists() and not resolved.is_file():
+        raise ArgumentError(f"{option} {out} is not a regular file (a device, pipe or socket); give the path of "
+                            "the file to write")
     for given in inputs:
         if given is not None and Path(given).exists() and Path(given).resolve() == resolved:
             raise ArgumentError(f"{option} {out} is one of the inputs; choose another output file")
-    _check_writable(resolved, option)
+    check_place(resolved, Path(out), option, folder=False, need_mb=FILE_NEED_MB)
+    refuse_foreign([resolved], f"{option} {out}")
+    lock_place(resolved, Path(out), option)
     return resolved
 
 
-@contextmanager
-def staged_folder(out: Path) -> Iterator[Path]:
+def staged_folder(out: Path, option: str = "--out") -> AbstractContextManager[Path]:
     """Give a hidden folder beside ``out`` to write into, moved into place on success.
 
-    On success its entries move into ``out`` (created when missing, entries of the same name replaced); on any
-    failure it is removed and ``out`` is left as it was.
+    :func:`reachplan.imaging.places.staged_folder`: on success its files move into ``out`` (created when missing;
+    a file of the same name is replaced only when reachplan wrote it); on any failure it is removed and ``out`` is
+    left as it was; errors of the place name ``out`` as given. A file of :data:`CASE_FILES` in ``out`` that
+    reachplan did not write is refused at once.
 
     Parameters
     ----------
     out : Path
-        The folder the results end up in.
+        The folder the results end up in, as the user gave it.
+    option : str
+        The option that gave it.
+
+    Returns
+    -------
+    context manager of Path
+        Yields the staging folder (same file system as ``out``, so every move is a rename).
+    """
+    from reachplan.imaging.files import refuse_foreign
+    from reachplan.imaging.places import staged_folder as staged
+
+    resolved = Path(out).resolve()
+    refuse_foreign([resolved / n for n in CASE_FILES], f"{option} {out}")  # the usual clash, before the work
+    return staged(resolved, Path(out), option)
+
+
+def writing(out: Path, option: str = "--out", *, file: bool = False) -> AbstractContextManager[None]:
+    """Around writing an output in place (no staging): the place's errors name ``out`` as the user gave it.
+
+    Parameters
+    ----------
+    out : Path
+        The output folder (or file, with ``file``), as the user gave it.
+    option : str
+        The option that gave it.
+    file : bool
+        ``out`` is the one file written in the block: it must not be a file reachplan did not write, and it is
+        recorded as reachplan's (:func:`reachplan.imaging.places.written_file`).
+
+    Returns
+    -------
+    context manager
+        The caller writes in its block.
+    """
+    from reachplan.imaging.places import place_errors, written_file
+
+    return (written_file if file else place_errors)(Path(out).resolve(), Path(out), option)
+
+
+def output_failure(args: Any, exc: BaseException) -> ReachplanError | None:
+    """Return the typed error for a failure of the output place that escaped a command, or None.
+
+    The commands that write in place without staging (``study``, ``bench``) meet a full disk or a read-only place
+    as an ``OSError``; it becomes an :class:`~reachplan.imaging.errors.OutputPlaceError` naming ``--out`` as given.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's arguments (``out``, when it has one).
+    exc : BaseException
+        What escaped the command.
+
+    Returns
+    -------
+    ReachplanError or None
+        The error to report (exit code 2); None when ``exc`` is not about the output place.
+    """
+    from reachplan.imaging.places import place_error
+
+    out = getattr(args, "out", None)
+    if not isinstance(exc, OSError) or out is None:
+        return None
+    return place_error(exc, Path(out), "--out", (Path(out).resolve(),))
+
+
+# --- interruptions -----------------------------------------------------------------------------------------------
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM or SIGHUP arrived: raised like Ctrl-C's ``KeyboardInterrupt``, so every staged output is removed.
+
+    Parameters
+    ----------
+    signum : int
+        The signal's number (the command exits with 128 + it).
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextmanager
+def interruptible() -> Iterator[None]:
+    """Within the block, SIGTERM and SIGHUP raise :class:`Interrupted` (as SIGINT raises ``KeyboardInterrupt``).
+
+    Only in the main thread (elsewhere signal handlers cannot be set) and not for a signal that is ignored (under
+    ``nohup``, SIGHUP); the previous handlers come back after.
 
     Yields
     ------
-    Path
-        The staging folder (same file system as ``out``, so every move is a rename).
+    None
+        The command runs in the block.
     """
-    out = Path(out).resolve()
-    created: list[Path] = []
-    parent = out.parent
-    while not parent.exists():
-        created.append(parent)
-        parent = parent.parent
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".staging"))
-    try:
-        yield stage
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        for folder in created:  # the parents made for the stage, innermost first
-            try:
-                folder.rmdir()
-            except OSError:
-                break
-        raise
-    _commit(stage, out)
+    import signal
+    import threading
 
-
-def _commit(stage: Path, out: Path) -> None:
-    """Move the staged entries into ``out``.
-
-    A new ``out`` is one rename; into an existing one, folders merge and files replace their namesakes one rename
-    each (nothing else in ``out`` is touched).
-    """
-    if not out.exists():
-        os.replace(stage, out)
+    wanted = [getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    if threading.current_thread() is not threading.main_thread():
+        yield
         return
-    _merge(stage, out)
-    shutil.rmtree(stage, ignore_errors=True)
 
+    def interrupt(signum: int, frame: object) -> None:
+        for sig in previous:  # one clean-up: a second signal during it does not cut it short
+            signal.signal(sig, signal.SIG_IGN)
+        raise Interrupted(signum)
 
-def _merge(src: Path, dest: Path) -> None:
-    for entry in sorted(src.iterdir()):
-        target = dest / entry.name
-        if entry.is_dir() and not entry.is_symlink() and target.is_dir() and not target.is_symlink():
-            _merge(entry, target)
-        elif target.is_dir() and not target.is_symlink():
-            raise ArgumentError(f"{target} is a folder in the way of an output file; move it away")
-        else:
-            os.replace(entry, target)
+    # a signal ignored on purpose stays ignored (``nohup`` ignores SIGHUP so that the run outlives the terminal)
+    previous = {sig: signal.signal(sig, interrupt) for sig in wanted if signal.getsignal(sig) != signal.SIG_IGN}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 # --- JSON and warnings -----------------------------------------------------------------------------------

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from reachplan.planner.cli.edges import output_folder, print_json
+from reachplan.planner.cli.edges import output_folder, print_json, writing
 
 NAME = "phantom"
 HELP = "write a built-in case (clinical by default, or the pilot phantom) as DICOM: image series + RT Structure Set"
@@ -98,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
         0 once the files are written.
     """
     output_folder(args.out)
-    files, spec, about = write_case(args, args.out)
+    with writing(args.out):  # a full disk or a read-only place: a typed error; nothing new is left
+        files, spec, about = write_case(args, args.out)
     if args.json:
         doc = {
             **about,

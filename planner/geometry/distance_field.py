@@ -432,4 +432,5 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels a plan uses, on a tiny box (for the first run)."""
     f = DistanceField.from_mesh(trimesh.creation.box((4.0, 4.0, 4.0)), pitch_mm=1.0, reach_mm=3.0)
     f.path_clearance(np.array([[0.0, 0.0, -10.0], [0.0, 0.0, 10.0]]), 1.0)
+    f.sample(np.zeros((1, 3)))
     inside_by_parity(np.ascontiguousarray(trimesh.creation.box((4.0, 4.0, 4.0)).triangles), np.zeros(3))

@@ -6,8 +6,6 @@ only draws it).
 
 from __future__ import annotations
 
-from tqdm import tqdm
-
 from reachplan.imaging.types import Grid, StructureSet
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
 from reachplan.planner.case.result import PlanResult, choose_needles
@@ -17,6 +15,7 @@ from reachplan.planner.dose.structures import PlanningStructures
 from reachplan.planner.implant.compare import Comparison, compare_arms
 from reachplan.planner.implant.dwells import OptimizerSettings
 from reachplan.planner.report.options import COMPARISON_SETTINGS, ReportOptions
+from reachplan.planner.report.progress import MovingBar
 from reachplan.plugins.sources import SourceData
 
 
@@ -111,7 +110,7 @@ def straight_vs_steered(result: PlanResult, structures: StructureSet, delivery: 
     if delivery.implant is not None:  # the implant arms are the comparison (whole target volume, chosen sets)
         return None, ("Straight versus steered is compared as whole implants, each arm's needle set and dwell "
                       "times chosen together: see the section 'Implant'.")
-    bar = tqdm(total=1, desc="straight vs steered dose", disable=quiet, leave=False)
+    bar = MovingBar(total=1, desc="straight vs steered dose", disable=quiet, leave=False)  # one step of seconds
     comparison = compare_chosen(result, structures, grid, delivery.source, target_roi,
                                 delivery.export.source.air_kerma_rate_u, options.comparison_settings,
                                 planning=delivery.planning, aims=delivery.aims)

@@ -26,6 +26,7 @@ from reachplan.planner.geometry.organs import check_unique, has_closed
 from reachplan.planner.geometry.template import TemplatePose
 from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.report.comparison import straight_vs_steered
+from reachplan.planner.report.progress import spinner
 from reachplan.planner.steering.candidates import Target
 from reachplan.rod_model.errors import RodModelError
 from reachplan.rod_model.select import ErrorRow, error_table
@@ -240,10 +241,11 @@ def run_case(inputs: CaseInput, config: CaseConfig, *, quiet: bool = True,
         comparison, note = straight_vs_steered(result, inputs.structures, None)  # no dose: the note says so
         return CaseResult(inputs, config, scene, result, None, comparison, note, timings)
     t = time.perf_counter()
-    delivery = plan_delivery(result, inputs.structures, grid, source_name=config.source,
-                             target_roi=config.target_roi, volume=inputs.volume, input_paths=inputs.paths,
-                             named_points=config.named_points, scene=scene if config.implant else None,
-                             aims=config.aims, implant_settings=implant_settings(inputs, config))
+    with spinner("delivery: implant arms, dwell times, dose", quiet):  # ~20 s with no other bar: it must move
+        delivery = plan_delivery(result, inputs.structures, grid, source_name=config.source,
+                                 target_roi=config.target_roi, volume=inputs.volume, input_paths=inputs.paths,
+                                 named_points=config.named_points, scene=scene if config.implant else None,
+                                 aims=config.aims, implant_settings=implant_settings(inputs, config))
     comparison, note = straight_vs_steered(result, inputs.structures, delivery, grid, config.target_roi, quiet=quiet)
     timings["delivery_s"] = time.perf_counter() - t
     return CaseResult(inputs, config, scene, result, delivery, comparison, note, timings)

@@ -10,21 +10,25 @@ from pathlib import Path
 
 import pytest
 
-# one rod solve after start(): the solve must load the kernel the child compiled, not compile it again
+# one rod solve and the dose kernels after start(): each must load the kernel the child compiled, not compile it
+# again; the second run (the same cache) finds every background group cached and starts nothing
 SCRIPT = """
 import json, sys
 from reachplan.planner import kernels
-kernels.BACKGROUND = ("rod",)  # the dose group goes the same way; the rod alone keeps the test short
-was_cold = kernels.cold("rod")
+was_cold = kernels.cold("rod") or kernels.cold("dose")
 started = kernels.start(quiet=False)
 from reachplan.plugins import registry
 from reachplan.rod_model import _kernel
 from reachplan.rod_model.design import preset
+from reachplan.planner.dose import _tg43_numba
 d = preset("15ga-30j-tip")
 path = registry.get("rod_models", "two_tube_cosserat").solve(d, d.loads(5.0))
-print(json.dumps({"was_cold": was_cold, "started": started, "cold_after": kernels.cold("rod"),
+kernels.warm_up(["dose"])
+dose = [_tg43_numba.grid_dose, _tg43_numba.pair_matrix, _tg43_numba.pair_dose]
+print(json.dumps({"was_cold": was_cold, "started": started,
+                  "cold_after": kernels.cold("rod") or kernels.cold("dose"),
                   "tip_mm": path.positions_mm[-1].tolist(),
-                  "compiled_here": sum(_kernel.shoot.stats.cache_misses.values()),
+                  "compiled_here": sum(sum(k.stats.cache_misses.values()) for k in [_kernel.shoot, *dose]),
                   "loaded": sum(_kernel.shoot.stats.cache_hits.values())}))
 """
 
@@ -48,6 +52,16 @@ def test_a_cold_cache_is_compiled_by_the_child_and_loaded_by_the_main_process(tm
     assert not second["was_cold"] and not second["started"] and "compiling" not in err
     assert second["compiled_here"] == 0 and second["loaded"] == 1
     assert second["tip_mm"] == first["tip_mm"]
+
+
+def test_a_kernel_inlined_into_its_callers_does_not_make_its_group_cold() -> None:
+    from reachplan.planner import kernels
+    from reachplan.planner.dose import _tg43_numba
+
+    inlined = [d for d in kernels._dispatchers("dose") if kernels._inlined(d)]
+    assert _tg43_numba._pair in inlined and _tg43_numba.grid_dose not in inlined  # _pair has no cache file of its own
+    assert all(kernels._inlined(d) == (d.targetoptions.get("inline") == "always")
+               for g in kernels.GROUPS for d in kernels._dispatchers(g))
 
 
 def test_a_warm_cache_starts_nothing(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:

@@ -280,9 +280,10 @@ def test_staged_folder_leaves_nothing_on_failure_and_merges_on_success(tmp_path:
         raise RuntimeError("failed half way")
     assert not (tmp_path / "new").exists()
     keep = tmp_path / "old"
+    with staged_folder(keep) as stage:  # an earlier run: its files are recorded as reachplan's
+        (stage / "plan.json").write_text("old")
     (keep / "export").mkdir(parents=True)
     (keep / "export" / "mine.txt").write_text("user file")
-    (keep / "plan.json").write_text("old")
     with staged_folder(keep) as stage:
         (stage / "export").mkdir()
         (stage / "export" / "RP.dcm").write_text("new")
@@ -290,6 +291,7 @@ def test_staged_folder_leaves_nothing_on_failure_and_merges_on_success(tmp_path:
     assert (keep / "plan.json").read_text() == "new" and (keep / "export" / "RP.dcm").read_text() == "new"
     assert (keep / "export" / "mine.txt").read_text() == "user file"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+    assert sorted(p.name for p in keep.iterdir()) == [".reachplan-files.json", "export", "plan.json"]
     shutil.rmtree(keep)
 
 

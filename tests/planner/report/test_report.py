@@ -19,6 +19,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
+from reachplan.imaging.files import MANIFEST
 from reachplan.imaging.phantom import write_phantom
 from reachplan.planner.cli import main
 
@@ -71,7 +72,7 @@ def test_plan_writes_a_self_contained_report(planned: tuple[Path, dict[str, obje
     report = out / "report.html"
     assert doc["report"] == str(report)
     assert json.loads((out / "plan.json").read_text())["report"] == str(report)
-    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # atomic writes leave no temp file
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == [MANIFEST]  # no temp file, the record
     html = report.read_text(encoding="utf-8")
     parser = _Tags()
     parser.feed(html)
