@@ -89,6 +89,18 @@ def test_a_slice_that_cuts_the_tube_twice_gives_two_nodes_in_order() -> None:
     assert np.all(np.diff(arc) > 0) or np.all(np.diff(arc) < 0)  # monotonic along the true axis
     line, _ = roi_centreline(roi)
     assert line is not None and line[-1, 1] < -25.0  # it ends on the far leg
+    # the apex lies along the slices (one long section there, its centroid inside the bend): the drawn wall of the
+    # slices around it places the line
+    assert np.max(distance_to_curve(line, axis)) < 0.75 and np.max(distance_to_curve(axis[10:-10], line)) < 0.75
+
+
+@pytest.mark.parametrize(("bend", "tilt"), [(110.0, 0.0), (120.0, 20.0)])
+def test_a_tube_bent_past_the_slices_stays_within_a_millimetre(bend: float, tilt: float) -> None:
+    """Bent beyond 90 degrees, parts of the tube lie along the slices; the wall fit keeps the line on its axis."""
+    axis = bent_axis(30.0, 22.0, bend, 25.0, tilt_deg=tilt)
+    line, _ = roi_centreline(axial_roi(axis))
+    assert line is not None
+    assert np.percentile(distance_to_curve(line, axis), 95) < 0.5 and np.max(distance_to_curve(line, axis)) < 1.0
 
 
 def test_polygon_centroid_of_an_oblique_ellipse_is_its_centre() -> None:
