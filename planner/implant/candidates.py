@@ -96,7 +96,7 @@ class Channel:
     @property
     def dwell_directions(self) -> np.ndarray:
         """(d, 3) float, unit vectors, LPS: the source axis at each dwell, toward the tip."""
-        return dwell_directions(self.path_mm, self.dwell_positions_mm)
+        return dwell_directions(self.path_mm[::-1], self.dwell_positions_mm)  # it takes the path tip first
 
 
 # --- candidates ---------------------------------------------------------------------------------------

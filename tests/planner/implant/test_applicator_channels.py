@@ -79,6 +79,18 @@ def test_dwells_follow_the_channel_by_arc_length_from_the_tip_offset(demo: Demo)
         assert np.allclose(np.diff(s), -settings.dwell_step_mm, atol=1e-6)  # deepest first, one step apart
 
 
+def test_the_source_axis_at_each_dwell_points_toward_the_channels_end(demo: Demo) -> None:
+    """TG-43's anisotropy is not symmetric: the source's long axis must point toward the tip (PS3.3 C.8.8.15.14)."""
+    (ch,) = applicator_channels(demo.applicators, demo.planning, ImplantSettings())
+    path = ch.path_mm
+    s, _ = along(path, ch.dwell_positions_mm)
+    arc = arc_length_mm(path)
+    ahead = np.column_stack([np.interp(s + 0.5, arc, path[:, k]) - np.interp(s - 0.5, arc, path[:, k])
+                             for k in range(3)])
+    ahead /= np.linalg.norm(ahead, axis=1)[:, None]
+    assert np.min(np.sum(ch.dwell_directions * ahead, axis=1)) > 0.99
+
+
 def test_dwell_arc_lengths_of_a_channel() -> None:
     settings = ImplantSettings(dwell_step_mm=2.5, applicator_tip_offset_mm=3.5)
     assert np.allclose(applicator_dwell_arclengths(20.0, settings), [16.5, 14.0, 11.5, 9.0, 6.5, 4.0, 1.5])
