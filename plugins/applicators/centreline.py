@@ -331,8 +331,8 @@ def _line_centreline(roi: Roi) -> tuple[np.ndarray | None, tuple[str, ...]]:
 def roi_centreline(roi: Roi, axis: np.ndarray | None = None) -> tuple[np.ndarray | None, tuple[str, ...]]:
     """Return the centre line of an applicator ROI, curved as drawn, base to tip.
 
-    A drawn line (open contours, points) is the centre line as drawn; otherwise the closed contours are taken as a
-    tube's sections (see the module docstring).
+    A drawn line (open contours; points when there is no tube) is the centre line as drawn; otherwise the closed
+    contours are taken as a tube's sections (see the module docstring).
 
     Parameters
     ----------
@@ -348,8 +348,12 @@ def roi_centreline(roi: Roi, axis: np.ndarray | None = None) -> tuple[np.ndarray
     notes : tuple of str
         Why there is no line, or what was left out.
     """
-    if any(c.geometric_type in LINE_TYPES for c in roi.contours):
+    drawn_line = any(c.geometric_type in ("OPEN_NONPLANAR", "OPEN_PLANAR") for c in roi.contours)
+    tube = any(c.geometric_type == "CLOSED_PLANAR" and len(c.points_mm) >= 3 for c in roi.contours)
+    if drawn_line or (not tube and any(c.geometric_type == "POINT" for c in roi.contours)):
         line, notes = _line_centreline(roi)
+        if line is None and tube:  # a line that gives none beside a tube drawn around it: the tube
+            line, notes = _tube_centreline(roi)
     else:
         line, notes = _tube_centreline(roi)
     if line is None:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from reachplan.imaging.sweep import Sweep
 from reachplan.imaging.types import Contour, Roi, StructureSet
@@ -123,6 +125,11 @@ def test_an_open_centre_line_roi_is_the_channel_as_drawn() -> None:
     points = Roi(1, "Tandem", tuple(Contour(p[None], "POINT") for p in rng.permutation(axis)))
     line, _ = roi_centreline(points)
     assert line is not None and np.allclose(line, axis)  # single points are ordered along the curve
+    # a stray point beside a tube drawn around the axis does not stand for the channel
+    tube = circles_roi(axis)
+    with_point = Roi(1, "Tandem", (*tube.contours, Contour(axis[:1] + 50.0, "POINT")))
+    line, _ = roi_centreline(with_point)
+    assert line is not None and np.allclose(line, roi_centreline(tube)[0])
     # an ovoid or ring drawn as a line is its channel too; a MARKER line beside it is not
     ovoid = Roi(2, "Ovoid_L", (Contour(axis, "OPEN_NONPLANAR"),))
     marker = Roi(3, "LT OVOID", (Contour(axis, "OPEN_PLANAR"),), interpreted_type="MARKER")
@@ -145,3 +152,21 @@ def test_a_degenerate_roi_gives_no_channel_and_says_why(contours: tuple[Contour,
     assert line is None and says in notes[0] and "'Tandem'" in notes[0]
     (tandem,) = applicators_from_structures(StructureSet((roi,), "1.2.3"), BUILTIN_KINDS)
     assert tandem.channels == () and not tandem.loadable and says in tandem.notes[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(-3, 3), st.integers(3, 8), st.floats(0.0, 6.0), st.floats(-9.0, 9.0),
+                          st.sampled_from(["CLOSED_PLANAR", "OPEN_NONPLANAR", "POINT"])), min_size=1, max_size=8))
+def test_any_drawing_gives_a_finite_line_or_a_note(parts: list[tuple[int, int, float, float, str]]) -> None:
+    """Whatever is drawn (slices, sizes, degenerate polygons, lines, points, mixed): a finite line of two or more
+    points, or none and a note; never NaN, never an exception."""
+    contours = []
+    for k, n, radius, shift, kind in parts:
+        t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+        pts = np.column_stack([shift + radius * np.cos(t), radius * np.sin(t), np.full(n, 2.5 * k)])
+        contours.append(Contour(pts[:1] if kind == "POINT" else pts, kind))
+    line, notes = roi_centreline(Roi(1, "Tandem", tuple(contours)), np.array([0.0, 0.0, 1.0]))
+    if line is None:
+        assert notes and all(isinstance(x, str) and x for x in notes)
+    else:
+        assert line.shape[1] == 3 and len(line) >= 2 and np.all(np.isfinite(line))
