@@ -170,6 +170,7 @@ def build_scene(
     pose = _pose(structures, patient_from_template, config, _cylinder(found))
     applicators = applicators_from_structures(structures, kinds, dict(config.applicators),
                                               axis=pose.patient_from_template[:3, 2])
+    notes += [note for a in applicators for note in a.notes]  # e.g. a tandem that gives no channel, and why
     # distance-field screen (issue 19): FCL confirms clearances up to the ranking's cap + SCREEN_BAND_MM
     confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
     organs = tuple(with_distance_field(make_organ(n, meshes[n]), confirm) for n in oars)

@@ -20,7 +20,7 @@ HELP = ("write a built-in case as DICOM (the clinical case by default), read it 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--out``, the case options, ``--quiet`` and ``--json``.
+    """Add ``--out``, the case options, the implant options, ``--quiet`` and ``--json``.
 
     Parameters
     ----------
@@ -28,10 +28,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         ``reachplan demo``'s parser.
     """
     from reachplan.planner.cli.phantom import add_case_arguments
-    from reachplan.planner.cli.plan import add_rtplan_style
+    from reachplan.planner.cli.plan import add_implant_arguments, add_rtplan_style
 
     parser.add_argument("--out", type=Path, required=True, help="output folder (created; case in OUT/phantom)")
     add_case_arguments(parser)
+    add_implant_arguments(parser)
     parser.add_argument("--protocol", metavar="FILE_OR_NAME", help=PROTOCOL_HELP)
     add_rtplan_style(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
@@ -97,11 +98,12 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.cli.phantom import write_case
-    from reachplan.planner.cli.plan import plan_and_write
+    from reachplan.planner.cli.plan import implant_settings, plan_and_write
     from reachplan.planner.kernels import start as start_kernels
     from reachplan.planner.report.progress import MovingBar
     from reachplan.planner.run.case import CaseConfig, CaseInput
 
+    settings = implant_settings(args)  # checked before any work
     t0 = time.perf_counter()
     start_kernels(quiet)  # first run after an install: the rod and dose kernels compile meanwhile, on the other core
     bar = MovingBar(total=2, desc="case: write, read back", unit="step", disable=quiet, leave=False)
@@ -123,9 +125,9 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label, builtin=True)
-    case, doc = plan_and_write(inputs, CaseConfig(plan=config, target_names=targets, aims=args.aims,
-                                                  rtplan_style=args.rtplan_style),
-                               out, quiet, final_out=args.out,
+    case_config = CaseConfig(plan=config, target_names=targets, aims=args.aims, rtplan_style=args.rtplan_style,
+                             implant_settings=settings)
+    case, doc = plan_and_write(inputs, case_config, out, quiet, final_out=args.out,
                                extra={"case": label, "case_about": about,
                                       "phantom_s": {"write": t_write, "read": t_read}})
     atomic_write_json(out / "ranking.json", case.result.ranking_json())

@@ -33,6 +33,7 @@ if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of 
     from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.case.scene import Scene
     from reachplan.planner.geometry.template import TemplatePose
+    from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.planner.run.case import CaseConfig, CaseInput, CaseResult
     from reachplan.planner.steering.candidates import Target
 
@@ -101,6 +102,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-implant", action="store_true",
                         help="skip implant planning (the needle set and dwell times for the whole target, straight "
                              "against steered)")
+    add_implant_arguments(parser)
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
@@ -112,12 +114,49 @@ def add_rtplan_style(parser: argparse.ArgumentParser) -> None:
     Parameters
     ----------
     parser : argparse.ArgumentParser
-        The command's parser.
+        The ``plan`` or ``demo`` parser.
     """
     parser.add_argument("--rtplan-style", choices=("eclipse", "vitesse"), default="eclipse",
                         help="layout of the exported RT Plan's prescription: eclipse (default; no Target "
                              "Prescription Dose, the points as COORDINATES) or vitesse (adds the target as a SITE "
                              "item with Target Prescription Dose)")
+
+
+def add_implant_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the implant planning options (shared with ``demo``): ``--applicator-tip-offset``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser.
+    """
+    parser.add_argument("--applicator-tip-offset", type=finite_float, default=None, metavar="MM",
+                        help="the afterloader's source-tip offset in applicator channels (tandem, ring, ovoid, "
+                             "cylinder): the deepest dwell lies this far back from the channel's end (default 3.5)")
+
+
+def implant_settings(args: argparse.Namespace) -> ImplantSettings:
+    """Return the implant planning settings the options ask for (defaults for the options not given).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``plan`` or ``demo`` options (``applicator_tip_offset``).
+
+    Returns
+    -------
+    ImplantSettings
+        The settings.
+
+    Raises
+    ------
+    ArgumentError
+        A negative tip offset.
+    """
+    from reachplan.planner.implant.settings import ImplantSettings
+
+    offset = finite(getattr(args, "applicator_tip_offset", None), "--applicator-tip-offset", lo=0.0)
+    return ImplantSettings() if offset is None else ImplantSettings(applicator_tip_offset_mm=offset)
 
 
 def _triple(spec: str, what: str) -> tuple[float, float, float]:
@@ -364,7 +403,8 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
                       standard_names=tuple(standard_names), export=not args.no_export, implant=not args.no_implant,
                       source=args.source, target_roi=args.target_roi,
                       named_points=tuple(_reference_points(args.reference_point)), aims=args.aims,
-                      dwell_margin_mm=args.dwell_margin, rtplan_style=args.rtplan_style)
+                      dwell_margin_mm=args.dwell_margin, rtplan_style=args.rtplan_style,
+                      implant_settings=implant_settings(args))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,9 +6,11 @@ from every organ at risk. Paths are screened on Euclidean distance maps of the p
 the dwell margin; organs at risk), and the kept ones are confirmed with the organs' distance fields (bounds on the
 clearance) and, for a path they cannot prove farther than the margin plus :data:`CONFIRM_BAND_MM` from every organ,
 with the FCL clearance of :func:`reachplan.planner.geometry.collision.check_path`. Intracavitary channels
-(tandem, ring, ovoids) are passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are always
-available and not counted as needles. Dwell positions are every ``dwell_step_mm`` along the part of each channel
-inside the HR-CTV grown by ``dwell_margin_mm``.
+(tandem, ring, ovoids, cylinder) are passed in as :class:`Channel` objects of kind ``"intracavitary"``; they are
+always available and not counted as needles. Dwell positions are every ``dwell_step_mm`` along the part of each
+needle inside the HR-CTV grown by ``dwell_margin_mm``; in an applicator channel they follow its path by arc length
+from the afterloader's source-tip offset (``applicator_tip_offset_mm`` back from the channel's end), those in that
+region kept.
 """
 
 from __future__ import annotations
@@ -93,12 +95,8 @@ class Channel:
 
     @property
     def dwell_directions(self) -> np.ndarray:
-        """(d, 3) float, unit vectors, LPS: the source axis at each dwell, toward the tip.
-
-        ``path_mm`` runs base to tip; :func:`dwell_directions` takes it tip first (as the exported channel ROI and
-        ``reachplan dose`` read it), so the planned dose and the dose recomputed from the export are one.
-        """
-        return dwell_directions(self.path_mm[::-1], self.dwell_positions_mm)
+        """(d, 3) float, unit vectors, LPS: the source axis at each dwell, toward the tip."""
+        return dwell_directions(self.path_mm[::-1], self.dwell_positions_mm)  # it takes the path tip first
 
 
 # --- candidates ---------------------------------------------------------------------------------------
@@ -391,36 +389,64 @@ def _steered(bank: ShapeBank, hole_ids: Sequence[str], xy: np.ndarray, hole_dist
     return out
 
 
+def applicator_dwell_arclengths(length_mm: float, settings: ImplantSettings) -> np.ndarray:
+    """Return the dwell positions an afterloader can reach in an applicator channel, as arc lengths, deepest first.
+
+    The deepest lies ``settings.applicator_tip_offset_mm`` back from the channel's end; the others follow every
+    ``settings.dwell_step_mm`` toward the base.
+
+    Parameters
+    ----------
+    length_mm : float, mm
+        The channel's length along its path (base to end).
+    settings : ImplantSettings
+        The tip offset and the dwell step.
+
+    Returns
+    -------
+    (d,) float, mm
+        Arc lengths from the channel's base, decreasing, all within [0, ``length_mm``]; empty when the channel is
+        shorter than the tip offset.
+    """
+    first = float(length_mm) - settings.applicator_tip_offset_mm
+    if not first >= 0.0:
+        return np.zeros(0)
+    return first - settings.dwell_step_mm * np.arange(int(first // settings.dwell_step_mm + 1e-9) + 1)
+
+
 def intracavitary_channel(name: str, path_mm: np.ndarray, planning: PlanningStructures,
                           settings: ImplantSettings | None = None) -> Channel | None:
-    """Return an applicator channel with dwells where it lies in the target grown by the dwell margin.
+    """Return an applicator channel with the dwells along its path that lie in the target grown by the dwell margin.
+
+    The dwell positions follow the channel's path (curved as drawn) by arc length from the source-tip offset
+    (:func:`applicator_dwell_arclengths`); those inside the HR-CTV grown by ``settings.dwell_margin_mm`` are kept.
 
     Parameters
     ----------
     name : str
         The channel's name (e.g. ``"Tandem"``).
     path_mm : (k, 3) float, mm, LPS
-        Tandem, ring or ovoid, base to tip.
+        Tandem, ring, ovoid or cylinder channel, base to end (:attr:`Applicator.channels`).
     planning : PlanningStructures
         The target mask gives the dwell region.
     settings : ImplantSettings, optional
-        Dwell step, dwell margin and minimum dwells.
+        Dwell step, dwell margin, applicator tip offset and minimum dwells.
 
     Returns
     -------
     Channel or None
-        Of kind ``"intracavitary"``; None when it has fewer than ``settings.min_dwells`` dwells in the region.
+        Of kind ``"intracavitary"``, dwells deepest first; None when it has fewer than ``settings.min_dwells`` dwells
+        in the region.
     """
     settings = settings or ImplantSettings()
     p = np.asarray(path_mm, dtype=float)
-    s_path = arc_length_mm(p)
-    s = np.arange(0.0, s_path[-1] + 1e-9, 0.5)
-    pts = _points_at(p, s)
+    s_dw = applicator_dwell_arclengths(float(arc_length_mm(p)[-1]), settings)
+    pts = _points_at(p, s_dw)
     region = _distance_field(planning.grid, planning.target.mask, settings.dwell_margin_mm + 5.0)
-    _, s_dw = _dwell_arclengths(region.at(pts) <= settings.dwell_margin_mm + 1e-6, s, settings)
-    if len(s_dw) < settings.min_dwells:
+    pts = pts[region.at(pts) <= settings.dwell_margin_mm + 1e-6] if len(pts) else pts
+    if len(pts) < settings.min_dwells:
         return None
-    return Channel(name, "intracavitary", p, _points_at(p, s_dw))
+    return Channel(name, "intracavitary", p, pts)
 
 
 def applicator_channels(applicators: Sequence[Applicator], planning: PlanningStructures,
@@ -431,7 +457,8 @@ def applicator_channels(applicators: Sequence[Applicator], planning: PlanningStr
     ----------
     applicators : sequence of Applicator
         The case's applicators (:attr:`Scene.applicators`); their channels are (n, 3) centrelines, mm, LPS, base to
-        tip (a tandem's is the chord of its ROI: see :mod:`reachplan.plugins.applicators.tandem`).
+        end, curved as drawn (a tandem's is the centre line of its ROI:
+        :mod:`reachplan.plugins.applicators.centreline`).
     planning : PlanningStructures
         The target whose grown region holds the dwells.
     settings : ImplantSettings or None

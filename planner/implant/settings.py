@@ -18,6 +18,16 @@ class ImplantSettings:
     tip_offset_mm : float, mm
         Distance from the needle tip to its deepest dwell (the tip lies this far beyond the last dwell
         position).
+    applicator_tip_offset_mm : float, mm
+        The afterloader's source-tip offset in an applicator channel (tandem, ring, ovoid, cylinder): the deepest
+        dwell position lies this far back along the channel (arc length) from the channel's end, and the others
+        every ``dwell_step_mm`` behind it. Default 3.5 mm: the distance from the channel end (DICOM relative
+        position 0, PS3.3 C.8.8.15.9) of the first dwell position in the genuine Eclipse/BrachyVision exports for
+        the built-in source, GammaMed Plus HDR and PDR (``reference/tps_examples``: ovoids and the PDR tandem at
+        3.5 mm, the HDR tandem at 7.5 mm; ``reference/rtplan_conventions.md`` section 7). It is more than half the
+        source's active length (3.5 mm, AAPM/ESTRO consensus data, Perez-Calatayud et al. 2012), as it must be: the
+        source centre cannot reach the channel's end. The channel's end is taken where the drawn applicator ends,
+        so the applicator's wall at its tip is part of this offset.
     clearance_margin_mm : float, mm
         Smallest surface distance from a needle to any organ at risk.
     min_dwells : int
@@ -69,6 +79,7 @@ class ImplantSettings:
     dwell_step_mm: float = 2.5
     dwell_margin_mm: float = 2.5
     tip_offset_mm: float = 1.0
+    applicator_tip_offset_mm: float = 3.5
     clearance_margin_mm: float = 2.0
     min_dwells: int = 3
     neighbour_ratio: float = 2.0
@@ -94,8 +105,8 @@ class ImplantSettings:
 
     def __post_init__(self) -> None:
         if not (self.dwell_step_mm > 0 and self.dwell_margin_mm >= 0 and self.tip_offset_mm >= 0
-                and self.clearance_margin_mm >= 0):
-            raise ValueError("dwell step must be > 0 mm; margins and tip offset >= 0 mm")
+                and self.applicator_tip_offset_mm >= 0 and self.clearance_margin_mm >= 0):
+            raise ValueError("dwell step must be > 0 mm; margins and tip offsets >= 0 mm")
         if self.neighbour_ratio < 1 or not 0 < self.max_dwell_share <= 1:
             raise ValueError("neighbour_ratio must be >= 1 and max_dwell_share in (0, 1]")
         if min(self.min_dwells, self.max_needles, self.rolls, self.segments_per_channel,

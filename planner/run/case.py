@@ -98,6 +98,8 @@ class CaseConfig:
     rtplan_style : str
         Layout of the exported RT Plan's prescription: ``"eclipse"`` or ``"vitesse"``
         (:class:`~reachplan.plugins.exporters.base.ExportOptions`).
+    implant_settings : ImplantSettings
+        The implant planning's settings (e.g. the applicator channels' source-tip offset).
     """
 
     plan: PlanConfig = field(default_factory=PlanConfig)
@@ -114,6 +116,7 @@ class CaseConfig:
     aims: Aims = field(default_factory=Aims)
     dwell_margin_mm: float | None = None
     rtplan_style: str = "eclipse"
+    implant_settings: ImplantSettings = field(default_factory=ImplantSettings)
 
 
 @dataclass(frozen=True, eq=False)
@@ -264,12 +267,13 @@ def implant_settings(inputs: CaseInput, config: CaseConfig) -> ImplantSettings:
     Returns
     -------
     ImplantSettings
-        The defaults with ``dwell_margin_mm`` = the one given, else 0 on a real structure set, else the default.
+        ``config.implant_settings`` with ``dwell_margin_mm`` = the one given, else 0 on a real structure set, else
+        the settings' own.
     """
     margin = config.dwell_margin_mm
     if margin is None:
-        margin = ImplantSettings().dwell_margin_mm if inputs.builtin else 0.0
-    return ImplantSettings(dwell_margin_mm=margin)
+        margin = config.implant_settings.dwell_margin_mm if inputs.builtin else 0.0
+    return dataclasses.replace(config.implant_settings, dwell_margin_mm=margin)
 
 
 def rod_model_errors() -> tuple[ErrorRow, ...]:

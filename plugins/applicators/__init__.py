@@ -13,6 +13,7 @@ from types import MappingProxyType
 from reachplan.plugins.applicators.base import (
     Applicator,
     ApplicatorKind,
+    CentrelineKind,
     KindSpec,
     PlanOnlyKind,
     check_applicator_kind,
@@ -28,6 +29,7 @@ from reachplan.plugins.applicators.build import (
     kind_of_name,
     name_table,
 )
+from reachplan.plugins.applicators.centreline import roi_centreline
 from reachplan.plugins.applicators.cylinder import CYLINDER
 from reachplan.plugins.applicators.obturator import OBTURATOR
 from reachplan.plugins.applicators.ovoid import OVOID
@@ -42,6 +44,7 @@ __all__ = [
     "BUILTIN_KINDS",
     "Applicator",
     "ApplicatorKind",
+    "CentrelineKind",
     "KindSpec",
     "PlanOnlyKind",
     "applicator_from_roi",
@@ -53,5 +56,6 @@ __all__ = [
     "name_table",
     "plan_centreline",
     "principal_chord",
+    "roi_centreline",
     "roi_points",
 ]

@@ -19,9 +19,7 @@ from reachplan._arrays import frozen_floats
 from reachplan.imaging.brachy_plan import Channel
 from reachplan.imaging.names import name_key
 from reachplan.imaging.types import Roi
-
-#: Direction a channel is oriented along when no template axis is given: patient cranial (+z, LPS).
-CRANIAL = np.array([0.0, 0.0, 1.0])
+from reachplan.plugins.applicators.centreline import CRANIAL, LINE_TYPES, roi_centreline
 
 
 @dataclass(frozen=True, eq=False)
@@ -306,8 +304,43 @@ class KindSpec:
 
 
 @dataclass(frozen=True)
-class PlanOnlyKind(KindSpec):
-    """A kind whose channels are read from an RT Plan only: from contours it gives none, and says why.
+class CentrelineKind(KindSpec):
+    """A kind whose one channel is the centre line of its ROI, curved as drawn (a tube's contours or a drawn line).
+
+    Parameters
+    ----------
+    name, description, roi_names, obstacle, loadable
+        See :class:`KindSpec`.
+    """
+
+    def channels_from_roi(self, roi: Roi, axis: np.ndarray | None) -> tuple[tuple[np.ndarray, ...], tuple[str, ...]]:
+        """Return the ROI's centre line (:func:`reachplan.plugins.applicators.centreline.roi_centreline`).
+
+        Parameters
+        ----------
+        roi : Roi
+            The applicator ROI: closed contours of the tube, or an open centre line.
+        axis : (3,) float, LPS, or None
+            The template's insertion direction, to orient the channel base to tip (None: patient cranial, +z).
+
+        Returns
+        -------
+        channels : tuple of (n, 3) float, mm, LPS, base to tip
+            One centre line, or none when the ROI gives no honest one.
+        notes : tuple of str
+            Why there is no channel, or what was left out.
+        """
+        line, notes = roi_centreline(roi, axis)
+        return ((), notes) if line is None else ((line,), notes)
+
+
+@dataclass(frozen=True)
+class PlanOnlyKind(CentrelineKind):
+    """A kind whose channel is not derived from the drawn solid: from an RT Plan, or from a drawn channel line.
+
+    Its closed contours (the solid: a ring's tube, an ovoid's cap) give no channel, and the note says why; a
+    channel drawn as a line in its ROI (open contours, as a treatment planning system writes a channel ROI) is taken
+    as drawn, unless the ROI is a MARKER (a marker line beside the applicator, not its channel).
 
     Parameters
     ----------
@@ -320,19 +353,24 @@ class PlanOnlyKind(KindSpec):
     why: str = "its channel is not derived from its contours"
 
     def channels_from_roi(self, roi: Roi, axis: np.ndarray | None) -> tuple[tuple[np.ndarray, ...], tuple[str, ...]]:
-        """Return no channel and the reason.
+        """Return the channel drawn as a line in ``roi``, else no channel and the reason.
 
         Parameters
         ----------
         roi : Roi
-            The applicator ROI; only its name is used (in the note).
+            The applicator ROI.
         axis : (3,) float, LPS, or None
-            Unused.
+            The template's insertion direction, to orient a drawn channel base to tip (None: patient cranial, +z).
 
         Returns
         -------
-        channels : empty tuple
+        channels : tuple of (n, 3) float, mm, LPS, base to tip
+            The drawn channel line, or none.
         notes : tuple of str
-            ``"ROI '<name>': <why>"``.
+            ``"ROI '<name>': <why>"`` when there is no drawn line, or why the line gives no channel.
         """
+        if roi.interpreted_type.strip().upper() == "MARKER":
+            return (), (f"ROI {roi.name!r} is a MARKER, not a channel: {self.why}",)
+        if any(c.geometric_type in LINE_TYPES for c in roi.contours):
+            return super().channels_from_roi(roi, axis)
         return (), (f"ROI {roi.name!r}: {self.why}",)

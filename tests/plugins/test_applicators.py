@@ -86,9 +86,13 @@ def test_tandem_channel_is_the_axis_of_a_straight_tube(axis: np.ndarray | None) 
     roi = tube_roi(7, "Tandem", base, tip, radius_mm=3.0)
     (tandem,) = applicators_from_structures(StructureSet((roi,), "1.2.3"), BUILTIN_KINDS, axis=axis)
     assert tandem.kind == "tandem" and tandem.loadable and tandem.obstacle and tandem.roi_number == 7
+    assert tandem.notes == ()
     (line,) = tandem.channels
     want = np.array([base, tip]) if axis is None or axis[2] > 0 else np.array([tip, base])
-    assert np.allclose(line, want, atol=1e-9)  # the chord from the end nearer the template, along the axis
+    assert np.allclose(line[[0, -1]], want, atol=1e-6)  # from the end nearer the template, along the axis
+    u = (tip - base) / np.linalg.norm(tip - base)
+    rel = line - base
+    assert np.max(np.linalg.norm(rel - np.outer(rel @ u, u), axis=1)) < 0.02  # every point on the axis
     assert not line.flags.writeable
 
 
@@ -100,7 +104,7 @@ def test_obturator_channel_uses_its_closed_contours_and_ring_and_ovoid_say_why_n
     ob, ov = applicators_from_structures(StructureSet((obturator, ovoid), "1.2.3"), BUILTIN_KINDS)
     assert np.allclose(ob.channels[0], [[0.0, 0.0, -30.0], [0.0, 0.0, 60.0]], atol=1e-9)
     assert not ob.obstacle and not ob.loadable  # the template's needles run through the obturator
-    assert ov.channels == () and ov.obstacle and "handle" in ov.notes[0]
+    assert ov.channels == () and ov.obstacle and not ov.loadable and "handle" in ov.notes[0]
 
 
 def test_channels_from_an_eclipse_plan(reference_file: Callable[[str], Path]) -> None:
@@ -119,7 +123,11 @@ def test_channels_from_an_eclipse_plan(reference_file: Callable[[str], Path]) ->
     for a in found:  # the channel ROI's line, written tip first, read base to tip
         assert np.array_equal(a.channels[0], paths[a.plan_channels[0]][::-1])
         assert a.how == "its channel contour"
-    assert [a.loadable for a in found] == [True, False, False]
+    assert [a.loadable for a in found] == [True, True, True]  # a plan's ring and ovoid channels are loaded too
+    # the structure set alone: its channel ROIs (open lines) are the same channels, curved as drawn
+    from_rs = {a.name: a for a in applicators_from_structures(rs, BUILTIN_KINDS)}
+    for a in found:
+        assert np.allclose(from_rs[a.name].channels[0], a.channels[0], atol=1e-9) and from_rs[a.name].loadable
     # without the structure set: the dwell positions, base (largest distance from the tip) first
     tandem = applicators_from_rtplan(plan, BUILTIN_KINDS)[0]
     ch = plan.channels[0]

@@ -161,6 +161,7 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> PhantomFiles:
     (["--targets", "Target_80_030", "--source", "nope"], "no TG-43 source named 'nope'"),
     (["--targets", "Target_80_030", "--design", "99ga-1j-tip"], "99ga-1j-tip"),
     (["--targets", "Target_80_030", "--template", "nope"], "nope"),
+    (["--targets", "Target_80_030", "--applicator-tip-offset", "-1"], "--applicator-tip-offset must be in [0, inf]"),
 ])
 def test_plan_arguments_are_checked_before_any_work(case: PhantomFiles, tmp_path: Path, extra: list[str], match: str,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
@@ -168,6 +169,14 @@ def test_plan_arguments_are_checked_before_any_work(case: PhantomFiles, tmp_path
     code, _, err = _run(["plan", "--rtstruct", str(case.rtstruct_path), "--out", str(out), "--quiet", *extra], capsys)
     assert code == 2 and match in _one_error_line(err, "plan")
     assert not out.exists() and [p.name for p in tmp_path.iterdir()] == []
+
+
+def test_demo_checks_the_applicator_tip_offset_before_any_work(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    code, _, err = _run(["demo", "--out", str(out), "--quiet", "--applicator-tip-offset", "-2"], capsys)
+    assert code == 2 and "--applicator-tip-offset must be in [0, inf], got -2" in _one_error_line(err, "demo")
+    assert not out.exists()
 
 
 def test_plan_refuses_an_input_folder_or_a_file_as_output(case: PhantomFiles, tmp_path: Path,
