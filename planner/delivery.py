@@ -74,7 +74,7 @@ class Delivery:
     implant : ImplantComparison or None
         The two implant arms (:func:`~reachplan.planner.implant.case.plan_implants`) when asked for.
     implant_exports : dict of str to ExportPlan
-        By arm name, the export of each arm's chosen implant (loaded channels only).
+        By arm name, the export of each arm's chosen implant: its channels, reference points and planned dose.
     """
 
     optimisation: OptimisationResult
@@ -132,10 +132,11 @@ def plan_delivery(
     """Plan the dwell times on the target and assemble the export plan (RT Plan + Structure Set + Dose + device).
 
     With ``scene`` the implant is planned for the whole target volume, straight only and straight + steered
-    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported as device instructions,
-    and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
-    other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
-    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
+    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported on its own (RT Plan,
+    Structure Set, Dose with its reference points; device instructions), and the straight + steered arm's chosen
+    implant (never worse than straight only; the straight arm's when the other has no plan) is the delivered plan:
+    the RT Plan a TPS imports. Without ``scene`` (or when neither arm has a plan) every target gets its top-ranked
+    feasible needle and the dwell times are optimised on those.
     Dose by TG-43 against the EMBRACE II aims.
 
     The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
@@ -210,8 +211,18 @@ def plan_delivery(
                           reference_points=tuple(points), application_setup_type=setup, dose=dose)
 
     export = export_plan(label, exports, points, dose)
-    implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
-                       for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
+    implant_exports = {}
+    for a in implant.arms if implant is not None else ():
+        if a.plan is None or not a.plan.channels:
+            continue
+        # each arm a full DICOM RT set of its own (RP + RS + RD): its points and dose from its own dwells; the
+        # delivered arm's are the delivery's
+        same = a.plan.dwells is opt.dwells
+        a_points = points if same else _reference_points(structures, named_points, a.plan.dwells,
+                                                         len(a.plan.channels), kernel, air_kerma_u)
+        a_dose = dose if same or not planned_dose else _planned_dose(
+            planning, a.plan.dwells.select(a.plan.dwells.times_s > 0), kernel, air_kerma_u, fractions)
+        implant_exports[a.name] = export_plan(f"implant_{a.name}", implant_needles(a.plan), a_points, a_dose)
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
 
 

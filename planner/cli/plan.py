@@ -79,6 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="plan even when no organ at risk is found (needles are then checked against nothing)")
     parser.add_argument("--design", nargs="*", default=["15ga-30j-tip"], metavar="PRESET",
                         help="stylet presets to steer with (none: straight needles only)")
+    add_tension_reserve(parser)
     parser.add_argument("--target-roi", default="HR-CTV", help="ROI the dwell times are optimised on")
     parser.add_argument("--source", default="gammamed_plus_hdr", help="TG-43 source plugin for the dose")
     parser.add_argument("--reference-point", action="append", default=[], metavar="NAME=X,Y,Z",
@@ -92,6 +93,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
+
+
+def tension_reserve(text: str) -> float:
+    """Argparse ``type=`` of ``--tension-reserve``: a fraction of the stylet's tension limit, in [0, 0.9].
+
+    Parameters
+    ----------
+    text : str
+        The argument as given (``0.1``: 10 %).
+
+    Returns
+    -------
+    float
+        The fraction.
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number: give a fraction, e.g. 0.1 for 10 %") from None
+    if not (math.isfinite(value) and 0.0 <= value <= 0.9):
+        raise argparse.ArgumentTypeError(f"{text} is not a fraction in [0, 0.9] of the stylet's tension limit "
+                                         "(0.1 keeps 10 %; 0 allows the full limit)")
+    return value
+
+
+def add_tension_reserve(parser: argparse.ArgumentParser) -> None:
+    """Add ``--tension-reserve FRACTION`` (default 0.1) to ``parser`` (``plan`` and ``demo``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser.
+    """
+    parser.add_argument("--tension-reserve", type=tension_reserve, default=0.1, metavar="FRACTION",
+                        help="fraction of each stylet's tension limit no planned needle uses, for the hand's "
+                             "tension error (default 0.1: 10 %%; 0 allows the full limit)")
 
 
 def _triple(spec: str, what: str) -> tuple[float, float, float]:
@@ -359,7 +396,7 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet or args.json
     start_kernels(quiet)  # before reading the series: the first run's compile overlaps it
     _reference_points(args.reference_point)  # a bad point is an error before the series is read
-    config = PlanConfig(template=args.template, designs=tuple(args.design))
+    config = PlanConfig(template=args.template, designs=tuple(args.design), tension_reserve=args.tension_reserve)
     table, overrides, config = _names(args, config)
     volume = read_series(args.ct) if args.ct else None
     structures = read_rtstruct(args.rtstruct, volume, synonyms=table)
