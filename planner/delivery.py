@@ -8,7 +8,7 @@ implant, with the reference points, the prescription and the planned dose the ex
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -132,11 +132,10 @@ def plan_delivery(
     """Plan the dwell times on the target and assemble the export plan (RT Plan + Structure Set + Dose + device).
 
     With ``scene`` the implant is planned for the whole target volume, straight only and straight + steered
-    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported on its own (RT Plan,
-    Structure Set, Dose with its reference points; device instructions), and the straight + steered arm's chosen
-    implant (never worse than straight only; the straight arm's when the other has no plan) is the delivered plan:
-    the RT Plan a TPS imports. Without ``scene`` (or when neither arm has a plan) every target gets its top-ranked
-    feasible needle and the dwell times are optimised on those.
+    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported (RT Plan, Structure Set,
+    Dose, device), and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's
+    when the other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither
+    arm has a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
     Dose by TG-43 against the EMBRACE II aims.
 
     The export carries the prescription (the per-fraction dose whose D90 meets the EMBRACE II aim, in as many
@@ -211,19 +210,31 @@ def plan_delivery(
                           reference_points=tuple(points), application_setup_type=setup, dose=dose)
 
     export = export_plan(label, exports, points, dose)
-    implant_exports = {}
+    implant_exports = _arm_exports(implant, opt.dwells, points, dose, export_plan, lambda dw, n: _reference_points(
+        structures, named_points, dw, n, kernel, air_kerma_u), lambda dw: _planned_dose(
+        planning, dw.select(dw.times_s > 0), kernel, air_kerma_u, fractions) if planned_dose else None)
+    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
+
+
+def _arm_exports(implant: ImplantComparison | None, delivered: DwellSet, points: list[ReferencePoint],
+                 dose: PlannedDose | None, export_plan: Callable[..., ExportPlan],
+                 points_of: Callable[[DwellSet, int], list[ReferencePoint]],
+                 dose_of: Callable[[DwellSet], PlannedDose | None]) -> dict[str, ExportPlan]:
+    """Return each implant arm's chosen implant as an export of its own (RT Plan + Structure Set + Dose, device).
+
+    Its reference points and planned dose come from its own dwells (``points_of``, ``dose_of``); the delivered arm's
+    (``delivered`` dwells) are the delivery's ``points`` and ``dose``.
+    """
+    out = {}
     for a in implant.arms if implant is not None else ():
         if a.plan is None or not a.plan.channels:
             continue
-        # each arm a full DICOM RT set of its own (RP + RS + RD): its points and dose from its own dwells; the
-        # delivered arm's are the delivery's
-        same = a.plan.dwells is opt.dwells
-        a_points = points if same else _reference_points(structures, named_points, a.plan.dwells,
-                                                         len(a.plan.channels), kernel, air_kerma_u)
-        a_dose = dose if same or not planned_dose else _planned_dose(
-            planning, a.plan.dwells.select(a.plan.dwells.times_s > 0), kernel, air_kerma_u, fractions)
-        implant_exports[a.name] = export_plan(f"implant_{a.name}", implant_needles(a.plan), a_points, a_dose)
-    return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports)
+        dw = a.plan.dwells
+        same = dw is delivered
+        out[a.name] = export_plan(f"implant_{a.name}", implant_needles(a.plan),
+                                  points if same else points_of(dw, len(a.plan.channels)),
+                                  dose if same else dose_of(dw))
+    return out
 
 
 def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 from reachplan.planner.cli.edges import (
     applicator_assignments,
+    finite_float,
     output_folder,
     print_json,
     seen_warnings,
@@ -108,11 +109,8 @@ def tension_reserve(text: str) -> float:
     float
         The fraction.
     """
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number: give a fraction, e.g. 0.1 for 10 %") from None
-    if not (math.isfinite(value) and 0.0 <= value <= 0.9):
+    value = finite_float(text)
+    if not 0.0 <= value <= 0.9:
         raise argparse.ArgumentTypeError(f"{text} is not a fraction in [0, 0.9] of the stylet's tension limit "
                                          "(0.1 keeps 10 %; 0 allows the full limit)")
     return value

@@ -93,15 +93,48 @@ class _Context:
     check: NeedleCheckSettings
 
     def design(self, name: str) -> RodDesign:
-        """Return the plan's stylet design named ``name``."""
+        """Return the plan's stylet design named ``name``.
+
+        Parameters
+        ----------
+        name : str
+            A preset name of ``config.designs``.
+
+        Returns
+        -------
+        RodDesign
+            The design the plan resolved.
+        """
         return next(d for d in self.config.rod_designs if d.name == name)
 
     def hole_xy(self, hole_id: str) -> np.ndarray:
-        """Return a hole's position on the template (mm, template frame)."""
+        """Return a hole's position on the template.
+
+        Parameters
+        ----------
+        hole_id : str
+            The template hole.
+
+        Returns
+        -------
+        (2,) float, mm, template frame
+            Its position.
+        """
         return np.asarray(next(h.xy_mm for h in self.scene.template.needle_holes if h.hole_id == hole_id), float)
 
     def robustness_model(self, tip_mm: np.ndarray) -> KinematicInsertion:
-        """Return the robustness model at the tissue modulus where the needle ends (as the ranking does per target)."""
+        """Return the robustness model at the tissue modulus where the needle ends (as the ranking does per target).
+
+        Parameters
+        ----------
+        tip_mm : (3,) float, mm, LPS
+            The needle's tip.
+
+        Returns
+        -------
+        KinematicInsertion
+            ``models.robustness`` at the modulus of the organ holding the tip (:func:`target_modulus_pa`).
+        """
         modulus = target_modulus_pa(self.scene, _point("tip", tip_mm), self.config)
         return dataclasses.replace(self.models.robustness, tissue_modulus_pa=modulus)
 
