@@ -6,6 +6,7 @@ The end-to-end checks on the demo (plan.json's needle fields, both arms' DICOM f
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -138,3 +139,48 @@ def test_a_steered_needle_is_re_solved_with_the_reference_model_within_its_reser
     assert check.worst_reach_mm >= check.reach_error_mm and check.worst_clearance_mm <= out.clearance_mm + 1e-9
     assert len(out.scenario_paths_mm) == 8 and all(np.allclose(p[0], out.path_mm[0]) for p in out.scenario_paths_mm)
     assert set(check.to_json()) == set(NeedleCheck.NOT_CHECKED)
+
+
+def _plan(channels: tuple[Channel, ...], d90: float, aims_met: bool) -> object:
+    from reachplan.planner.dose.coverage import StructureMetrics
+    from reachplan.planner.dose.dwells import DwellSet
+    from reachplan.planner.implant.arms import ImplantPlan
+
+    pos = np.vstack([c.dwell_positions_mm for c in channels])
+    ch = np.concatenate([np.full(len(c.dwell_positions_mm), i + 1) for i, c in enumerate(channels)])
+    target = StructureMetrics("HR-CTV", 30.0, 7.0, 6.0, 0.0, 95.0, 50.0, d90, d90 - 10, 0.0, 10.0)
+    return ImplantPlan(channels, DwellSet(pos, np.tile([0.0, 0.0, 1.0], (len(pos), 1)), np.ones(len(pos)), ch),
+                       target, 20.0, (), aims_met)
+
+
+def test_a_rejected_needle_sends_the_arm_to_its_next_plan(lobe: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """check_arm: the chosen plan's steered needle fails its check, so the arm keeps its next plan whose needles all
+    pass (here a plan of straight needles, which needs no re-load), and says which needle was rejected and why."""
+    import reachplan.planner.implant.needles as needles
+    from reachplan.planner.implant.arms import ImplantArm
+
+    case, cands, config = lobe
+    steered = next(c for c in cands if c.steered)
+    straight = tuple(Channel(f"S{k}", "straight", np.array([[x, 0.0, 0.0], [x, 0.0, 90.0]]),
+                             np.array([[x, 0.0, 85.0], [x, 0.0, 82.5], [x, 0.0, 80.0]]), abs(x), 90.0, 10.0)
+                     for k, x in enumerate((-5.0, 5.0)))
+    chosen, fallback = _plan((steered,), 95.0, True), _plan(straight, 92.0, True)
+    arm = ImplantArm("steered", len(cands), (), chosen, 1.0, plans=(chosen,))  # type: ignore[arg-type]
+
+    def fake(channel: Channel, ctx: object) -> Channel | str:
+        if channel.steered:
+            return "the reference path comes 1.0 mm from Bowel (margin 2 mm)"
+        return dataclasses.replace(channel, check=NeedleCheck(0.0, None, 0.0, 0.0, 3.0, 5.0, "tilt", "kinematic"))
+
+    monkeypatch.setattr(needles, "check_needle", fake)
+    out = needles.check_arm(arm, _scene(case), case.planning, config, None, 1.0, ImplantSettings(),  # type: ignore
+                            extra_plans=(fallback,))
+    assert out.plan is not None and [c.name for c in out.plan.channels] == [c.name for c in straight]
+    assert all(c.check is not None for c in out.plan.channels)
+    rec = out.needle_check
+    assert rec["chosen_replaced"] and not rec["reloaded"]
+    assert rec["rejected"] == [{"hole_id": steered.name, "reason": "the reference path comes 1.0 mm from Bowel "
+                                                                  "(margin 2 mm)"}]
+    # with no plan whose needles pass, the arm has none, and says so
+    alone = needles.check_arm(arm, _scene(case), case.planning, config, None, 1.0, ImplantSettings())  # type: ignore
+    assert alone.plan is None and "needle check" in alone.reason
