@@ -340,9 +340,10 @@ def check_arm(arm: ImplantArm, scene: Scene, planning: PlanningStructures, confi
     kept: list[tuple[ImplantPlan, ImplantPlan, bool]] = []  # (screening plan, checked plan, re-loaded)
     tries = 0
     for candidate in _plan_order(arm, extra_plans):
-        if tries >= MAX_TRIES:
-            break
-        tries += any(c.steered for c in candidate.channels)
+        with_steered = any(c.steered for c in candidate.channels)
+        if with_steered and tries >= MAX_TRIES:
+            continue  # plans of straight needles only are still tried: they need no re-solve
+        tries += with_steered
         channels = [checked(c) if c.is_needle else c for c in candidate.channels]
         bad = [(c.name, r) for c, r in zip(candidate.channels, channels, strict=True) if isinstance(r, str)]
         if bad:

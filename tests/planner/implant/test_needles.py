@@ -181,6 +181,12 @@ def test_a_rejected_needle_sends_the_arm_to_its_next_plan(lobe: tuple, monkeypat
     assert rec["chosen_replaced"] and not rec["reloaded"]
     assert rec["rejected"] == [{"hole_id": steered.name, "reason": "the reference path comes 1.0 mm from Bowel "
                                                                   "(margin 2 mm)"}]
+    # past MAX_TRIES plans with a steered needle, plans of straight needles are still tried (no re-solve needed)
+    monkeypatch.setattr(needles, "MAX_TRIES", 0)
+    quick = needles.check_arm(arm, _scene(case), case.planning, config, None, 1.0, ImplantSettings(),  # type: ignore
+                              extra_plans=(fallback,))
+    assert quick.plan is not None and not quick.needle_check["rejected"] and quick.needle_check["chosen_replaced"]
+    monkeypatch.setattr(needles, "MAX_TRIES", 3)
     # with no plan whose needles pass, the arm has none, and says so
     alone = needles.check_arm(arm, _scene(case), case.planning, config, None, 1.0, ImplantSettings())  # type: ignore
     assert alone.plan is None and "needle check" in alone.reason
