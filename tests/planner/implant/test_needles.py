@@ -190,3 +190,16 @@ def test_a_rejected_needle_sends_the_arm_to_its_next_plan(lobe: tuple, monkeypat
     # with no plan whose needles pass, the arm has none, and says so
     alone = needles.check_arm(arm, _scene(case), case.planning, config, None, 1.0, ImplantSettings())  # type: ignore
     assert alone.plan is None and "needle check" in alone.reason
+
+
+def test_without_a_reserve_the_implant_candidates_use_the_full_limit(lobe: tuple) -> None:
+    """``--tension-reserve 0``: the deep lateral lobe's steered candidates bend with up to the stylet's whole limit;
+    with the default reserve none passes 90 % of it."""
+    case, cands, config = lobe
+    limit = DESIGN.max_tension_n
+    assert max(c.schedule.peak_tension_n for c in cands if c.steered) <= 0.9 * limit + 1e-9
+    bank = shape_bank(DESIGN, config.family, min(config.max_depth_mm, DESIGN.length_mm),
+                      PlanModels.for_config(config).screening, 0.0)
+    full = needle_candidates(case.ids, case.xy, case.dist, np.eye(4), case.planning, case.organs, RADIUS,
+                             ImplantSettings(steered_per_hole=1), [bank])
+    assert max(c.schedule.peak_tension_n for c in full if c.steered) == pytest.approx(limit)
