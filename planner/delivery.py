@@ -8,7 +8,7 @@ implant, with the reference points, the prescription and the planned dose the ex
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -75,7 +75,7 @@ class Delivery:
     implant : ImplantComparison or None
         The two implant arms (:func:`~reachplan.planner.implant.case.plan_implants`) when asked for.
     implant_exports : dict of str to ExportPlan
-        By arm name, the export of each arm's chosen implant (loaded channels only).
+        By arm name, the export of each arm's chosen implant: its channels, reference points and planned dose.
     aims : Aims
         The protocol the plan was made for and is reported against.
     aims_tables : dict of str to AimsTable
@@ -179,10 +179,10 @@ def plan_delivery(
     """Plan the dwell times on the target and assemble the export plan (RT Plan + Structure Set + Dose + device).
 
     With ``scene`` the implant is planned for the whole target volume, straight only and straight + steered
-    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported as device instructions,
-    and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's when the
-    other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither arm has
-    a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those (TG-43).
+    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported (RT Plan, Structure Set,
+    Dose, device), and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's
+    when the other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither
+    arm has a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
     Dose by TG-43 against ``aims``: every plan's aims table and the protocol's named warnings (:func:`_aims_tables`).
 
     The export carries the prescription (per-fraction dose whose D90 meets the planning aim, specified at a target
@@ -257,8 +257,17 @@ def plan_delivery(
                           plan_datetime=now, specification_point=spec_point)
 
     export = export_plan(label, exports, points, dose, rx[0][0] if rx else "")
-    implant_exports = {a.name: export_plan(f"implant_{a.name}", implant_needles(a.plan))
-                       for a in (implant.arms if implant is not None else ()) if a.plan is not None and a.plan.channels}
+
+    def arm_export(name: str, needles: Sequence[NeedleExport], dw: DwellSet, n: int) -> ExportPlan:
+        if dw is opt.dwells:  # the delivered arm: the delivery's points and dose
+            return export_plan(name, needles, points, dose, rx[0][0] if rx else "")
+        act = dw.select(dw.times_s > 0)
+        arm_rx = _rx_point(planning, act, kernel, air_kerma_u, aims.prescription_gy, target_roi, named_points)
+        pts = _reference_points(structures, [*arm_rx, *named_points], dw, n, kernel, air_kerma_u)
+        arm_dose = _planned_dose(planning, act, kernel, air_kerma_u, fractions) if planned_dose else None
+        return export_plan(name, needles, pts, arm_dose, arm_rx[0][0] if arm_rx else "")
+
+    implant_exports = _arm_exports(implant, arm_export)
     tables = _aims_tables(aims, planning, implant, opt, kind, points, kernel, air_kerma_u)
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports, aims, tables,
                     _protocol_warnings(aims, target_roi, tables))
@@ -302,6 +311,22 @@ def _aims_tables(aims: Aims, planning: PlanningStructures, implant: ImplantCompa
         tables["delivered"] = evaluate_aims(aims, opt.target, opt.oars, organ_volumes_cc=volumes,
                                             points=at_points(opt.dwells.select(opt.dwells.times_s > 0)))
     return tables
+
+
+def _arm_exports(implant: ImplantComparison | None,
+                 arm_export: Callable[[str, Sequence[NeedleExport], DwellSet, int], ExportPlan],
+                 ) -> dict[str, ExportPlan]:
+    """Return each implant arm's chosen implant as an export of its own (RT Plan + Structure Set + Dose, device).
+
+    ``arm_export(name, needles, dwells, n_channels)`` builds one from the arm's own dwells: its reference points and
+    planned dose (the delivered arm's are the delivery's).
+    """
+    out = {}
+    for a in implant.arms if implant is not None else ():
+        if a.plan is None or not a.plan.channels:
+            continue
+        out[a.name] = arm_export(f"implant_{a.name}", implant_needles(a.plan), a.plan.dwells, len(a.plan.channels))
+    return out
 
 
 def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,

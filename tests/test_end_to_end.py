@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -82,7 +83,8 @@ def test_demo_is_deterministic(demo: Path, tmp_path: Path) -> None:
 
 def _delivery_file(demo: Path, prefix: str) -> Path:
     files = [Path(f) for f in json.loads((demo / "plan.json").read_text())["delivery"]["files"]]
-    (found,) = [f for f in files if f.name.startswith(prefix) and f.suffix == ".dcm"]
+    # the delivered plan's files are in export/ itself; each implant arm's in export/implant_<arm>/
+    (found,) = [f for f in files if f.name.startswith(prefix) and f.suffix == ".dcm" and f.parent.name == "export"]
     return found
 
 
@@ -229,3 +231,74 @@ def test_demo_rt_plan_is_laid_out_as_eclipse_writes_it(demo: Path) -> None:
         if names[int(ch.ReferencedROINumber)].startswith("Needle "):  # applicators: their own offset (issue 26)
             assert rel == pytest.approx(ImplantSettings().tip_offset_mm, abs=0.01)
     assert fine, "every dwell time a multiple of 0.1 s: rounded"
+
+
+def test_demo_implant_needles_are_checked_like_ranked_ones(demo: Path) -> None:
+    """Issue 26.5: every implant needle carries its model, tension against the limit with the reserve kept, and its
+    worst-case clearance and reach; steered ones were re-solved with the reference model."""
+    from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE
+
+    plan = json.loads((demo / "plan.json").read_text())
+    reserve = plan["config"]["tension_reserve"]
+    assert reserve == 0.1  # the default: 10 % of each stylet's limit
+    kinds = set()
+    for name in ("straight", "steered"):
+        arm = plan["implant"][name]
+        assert arm["needle_check"]["reference_model"] == PLANNER_REFERENCE.info.label
+        assert arm["needle_check"]["tension_reserve"] == reserve
+        for n in arm["needles"]:
+            if n["kind"] == "intracavitary":
+                assert n["model"] is None and n["worst_reach_mm"] is None
+                continue
+            kinds.add(n["kind"])
+            for key in ("worst_clearance_mm", "worst_reach_mm", "peak_tension_n"):
+                assert isinstance(n[key], float) and math.isfinite(n[key]), (name, n["hole_id"], key)
+            assert n["worst_clearance_mm"] <= n["clearance_mm"] + 1e-3 and n["worst_case"]
+            if n["kind"] == "steered":
+                assert n["model"] == PLANNER_REFERENCE.info.label
+                assert n["tension_limit_n"] > 0 and n["tension_reserve"] == reserve
+                assert n["peak_tension_n"] <= (1 - reserve) * n["tension_limit_n"] + 1e-3
+                assert n["tension_reserve_n"] == pytest.approx(n["tension_limit_n"] - n["peak_tension_n"], abs=2e-3)
+                assert max(row[1] for row in n["schedule"]) == pytest.approx(n["peak_tension_n"], abs=2e-3)
+            else:
+                assert n["model"] == "straight" and n["peak_tension_n"] == 0.0 and n["tension_limit_n"] is None
+    assert kinds, "the demo's implants have no needle to check"
+    # a plan with a steered needle is re-loaded on the re-solved paths (its dwells lie on the exported path)
+    steered = plan["implant"]["steered"]
+    assert steered["needle_check"]["reloaded"] == any(n["kind"] == "steered" for n in steered["needles"])
+    assert not plan["implant"]["straight"]["needle_check"]["reloaded"]  # straight needles are not re-solved
+
+
+def test_demo_exports_both_arms_in_dicom(demo: Path, dciodvfy) -> None:
+    """Issue 26.7: export/implant_straight/ and export/implant_steered/ each hold an RT Plan, Structure Set and Dose
+    of that arm, whose dwell times are the arm's in plan.json; the delivered plan stays in export/."""
+    import pydicom
+
+    plan = json.loads((demo / "plan.json").read_text())
+    files = [Path(f) for f in plan["delivery"]["files"]]
+    for name in ("straight", "steered"):
+        arm = plan["implant"][name]
+        folder = demo / "export" / f"implant_{name}"
+        found = {p: sorted(folder.glob(f"{p}_*.dcm")) for p in ("RP", "RS", "RD")}
+        assert all(len(v) == 1 for v in found.values()), found
+        assert all(f in files for v in found.values() for f in v)
+        rp, rs, rd = (pydicom.dcmread(found[p][0]) for p in ("RP", "RS", "RD"))
+        assert (rp.Modality, rs.Modality, rd.Modality) == ("RTPLAN", "RTSTRUCT", "RTDOSE")
+        channels = rp.ApplicationSetupSequence[0].ChannelSequence
+        assert len(channels) == len(arm["needles"])
+        total = sum(float(ch.ChannelTotalTime) for ch in channels)
+        # dwell times are written to the afterloader's 0.1 s: within half a tick per dwell of plan.json's total
+        n_dwells = sum(len(n["dwell_times_s"]) for n in arm["needles"])
+        assert total == pytest.approx(arm["total_time_s"], abs=0.05 * n_dwells + 1e-6)
+        for ch, n in zip(channels, arm["needles"], strict=True):
+            assert float(ch.ChannelTotalTime) == pytest.approx(sum(n["dwell_times_s"]),
+                                                               abs=0.05 * len(n["dwell_times_s"]) + 1e-6)
+        assert rd.ReferencedRTPlanSequence[0].ReferencedSOPInstanceUID == rp.SOPInstanceUID
+        for path in (found["RP"][0], found["RS"][0], found["RD"][0]):
+            lines = dciodvfy(path)
+            assert not [x for x in lines if x.startswith("Error")], (path.name, lines)
+    # the delivered plan (export/) is the steered arm's implant
+    delivered = pydicom.dcmread(_delivery_file(demo, "RP_"))
+    steered = pydicom.dcmread(next((demo / "export" / "implant_steered").glob("RP_*.dcm")))
+    assert [float(c.ChannelTotalTime) for c in delivered.ApplicationSetupSequence[0].ChannelSequence] == \
+        [float(c.ChannelTotalTime) for c in steered.ApplicationSetupSequence[0].ChannelSequence]

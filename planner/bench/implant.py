@@ -3,8 +3,9 @@
 Times, on the built-in clinical case (seed 0, CT grid; the tandem an obstacle for needles and an intracavitary
 channel, as in ``reachplan demo``): the candidate needles for the HR-CTV, then each arm's Pareto curve of needle
 count against HR-CTV D90 and its chosen implant (:func:`reachplan.planner.implant.case.plan_implants`; the two arms
-run at once, each on a core, so ``seconds_arm`` overlap); the target is both arms in at most 20 s on a quiet
-2-core machine (the CSV also gives the CPU seconds and the load, since
+run at once, each on a core, so ``seconds_arm`` overlap), its needles checked after (``seconds_needle_check``: the
+reference re-solve, robustness and re-load of :mod:`reachplan.planner.implant.needles`); the target is both arms in
+at most 20 s on a quiet 2-core machine (the CSV also gives the CPU seconds and the load, since
 the wall time on a shared machine is not that). It also recomputes each chosen implant's dose with
 ``dose_on_grid`` on a grid of half the in-plane pixel (the HR-CTV re-rasterised from its contours) and records
 the D90 difference.
@@ -39,6 +40,7 @@ from reachplan.planner.lookup import get_source
 INSTALLS = {"implant_benchmark.csv": "docs/implant_benchmark.csv",
             "implant_benchmark.png": "docs/implant_benchmark.png"}
 COLUMNS = ("arm", "run", "seconds_candidates_and_arms", "cpu_seconds_candidates_and_arms", "seconds_arm",
+           "seconds_needle_check",
            "candidates", "n_needles",
            "hrctv_d90_eqd2_gy", "aims_met", "chosen", "fine_grid_d90_eqd2_gy", "fine_grid_rel_diff",
            "load_avg_1min")
@@ -111,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
                     "arm": arm.name, "run": k, "seconds_candidates_and_arms": round(seconds, 3),
                     "cpu_seconds_candidates_and_arms": round(cpu_s, 3),
                     "seconds_arm": round(arm.seconds, 3), "candidates": arm.n_candidates, "n_needles": p.n_needles,
+                    "seconds_needle_check": arm.needle_check.get("seconds", ""),
                     "hrctv_d90_eqd2_gy": round(p.hrctv_d90_eqd2_gy, 3), "aims_met": p.aims_met, "chosen": chosen,
                     "fine_grid_d90_eqd2_gy": round(fine_d90, 3) if chosen and fine_d90 is not None else "",
                     "fine_grid_rel_diff": round(fine_d90 / p.hrctv_d90_eqd2_gy - 1, 5)
@@ -145,6 +148,8 @@ def run(args: argparse.Namespace) -> int:
               + " ".join(f"{p.n_needles}:{p.hrctv_d90_eqd2_gy:.1f}" for p in arm.pareto)
               + ("" if pl is None else f"  chosen {pl.n_needles} needle{'s' if pl.n_needles != 1 else ''}, "
                                        f"D90 {pl.target.d90_eqd2_gy:.1f} Gy"))
+    check_s = sum(float(str(a.needle_check.get("seconds", 0.0))) for a in best.arms)
     print(f"both arms with candidates: {best_s:.2f} s wall, {best_cpu:.2f} s CPU (median of {len(runs)}; "
-          f"load {load:.1f})")
+          f"load {load:.1f}); of it the chosen needles' check (reference re-solve, robustness, re-load) "
+          f"{check_s:.2f} s")
     return 0

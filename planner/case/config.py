@@ -80,6 +80,11 @@ class PlanConfig:
     applicators : tuple of (str, str)
         (ROI name, applicator kind) pairs from ``--applicator KIND=ROI``; they override the recognition of
         applicator ROIs by name (:func:`reachplan.plugins.applicators.applicators_from_structures`).
+    tension_reserve : float
+        Fraction of each stylet's tension limit that no planned schedule uses (``--tension-reserve``), in [0, 1):
+        the screened schedules' plateaus, the reference re-solve's re-aim and every implant needle stay at or
+        below ``(1 - tension_reserve) × max_tension_n`` (:func:`~reachplan.planner.steering.steered.usable_tension_n`),
+        leaving room for the hand's tension error (the robustness check's ± 10 %).
     """
 
     template: str = "needlefinder_syed_63"
@@ -98,12 +103,16 @@ class PlanConfig:
     tissue_moduli_pa: tuple[tuple[str, float], ...] = ()
     screen_tolerance_mm: float = 0.5
     applicators: tuple[tuple[str, str], ...] = ()
+    tension_reserve: float = 0.10
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number of mm, got {v}")
+        if not (np.isfinite(self.tension_reserve) and 0.0 <= self.tension_reserve < 1.0):
+            raise ValueError(f"tension_reserve must be a fraction in [0, 1) of the stylet's limit, "
+                             f"got {self.tension_reserve}")
 
     @cached_property
     def rod_designs(self) -> tuple[RodDesign, ...]:

@@ -23,7 +23,7 @@ from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA
 from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.robustness import assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.planner.steering.steered import match_targets, place, refine_with, shape_bank
+from reachplan.planner.steering.steered import match_targets, place, refine_with, shape_bank, usable_tension_n
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.design import RodDesign
 from reachplan.rod_model.errors import RodModelError
@@ -233,7 +233,7 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
         One per hole not skipped, in the template's hole order.
     """
     model = model or screening_model(config)
-    bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm), model)
+    bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm), model, config.tension_reserve)
     radius = design.needle.outer_diameter_mm / 2
     matches = match_targets(bank, _template_offsets(scene, target), keep=len(bank.schedules))
     out: list[Candidate] = []
@@ -316,7 +316,8 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
         profile = modulus_profile(scene, c.path_mm, config.tissue_moduli_pa, reference.tissue_modulus_pa)
         try:
             sch, res = refine_with(reference, design, base, c.insertion_depth_mm, rel_all[index[c.hole_id]],
-                                   modulus_profile=profile)
+                                   modulus_profile=profile,
+                                   max_tension_n=usable_tension_n(design, config.tension_reserve))
         except (PlanInputError, RodModelError) as exc:
             new = mark_failed(c, f"reference re-solve ({reference.info.label}) failed: {exc}")
         else:

@@ -20,7 +20,7 @@ HELP = ("write a built-in case as DICOM (the clinical case by default), read it 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--out``, the case options, the implant options, ``--quiet`` and ``--json``.
+    """Add ``--out``, the case options, the implant options (tip offset, tension reserve), ``--quiet`` and ``--json``.
 
     Parameters
     ----------
@@ -121,7 +121,8 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
               "read back: "
               f"{volume.modality} {volume.grid.shape}, {len(structures.rois)} ROIs ({t_read:.1f} s)", file=sys.stderr)
     targets = tuple(n for n in structures.names if n.casefold().startswith("target"))
-    config = PlanConfig()  # the clinical case's tandem (an applicator) is an obstacle: a needle must not cross it
+    # the clinical case's tandem (an applicator) is an obstacle: a needle must not cross it
+    config = PlanConfig(tension_reserve=args.tension_reserve)
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label, builtin=True)

@@ -108,6 +108,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
 
 
+def tension_reserve(text: str) -> float:
+    """Argparse ``type=`` of ``--tension-reserve``: a fraction of the stylet's tension limit, in [0, 0.9].
+
+    Parameters
+    ----------
+    text : str
+        The argument as given (``0.1``: 10 %).
+
+    Returns
+    -------
+    float
+        The fraction.
+    """
+    value = finite_float(text)
+    if not 0.0 <= value <= 0.9:
+        raise argparse.ArgumentTypeError(f"{text} is not a fraction in [0, 0.9] of the stylet's tension limit "
+                                         "(0.1 keeps 10 %; 0 allows the full limit)")
+    return value
+
+
 def add_rtplan_style(parser: argparse.ArgumentParser) -> None:
     """Add ``--rtplan-style`` (the exported RT Plan's layout; ``plan`` and ``demo``).
 
@@ -123,7 +143,7 @@ def add_rtplan_style(parser: argparse.ArgumentParser) -> None:
 
 
 def add_implant_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the implant planning options (shared with ``demo``): ``--applicator-tip-offset``.
+    """Add the implant planning options (shared with ``demo``): ``--applicator-tip-offset``, ``--tension-reserve``.
 
     Parameters
     ----------
@@ -133,6 +153,9 @@ def add_implant_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--applicator-tip-offset", type=finite_float, default=None, metavar="MM",
                         help="the afterloader's source-tip offset in applicator channels (tandem, ring, ovoid, "
                              "cylinder): the deepest dwell lies this far back from the channel's end (default 3.5)")
+    parser.add_argument("--tension-reserve", type=tension_reserve, default=0.1, metavar="FRACTION",
+                        help="fraction of each stylet's tension limit no planned needle uses, for the hand's "
+                             "tension error (default 0.1: 10 %%; 0 allows the full limit)")
 
 
 def implant_settings(args: argparse.Namespace) -> ImplantSettings:
@@ -432,7 +455,7 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet or args.json
     start_kernels(quiet)  # before reading the series: the first run's compile overlaps it
     _reference_points(args.reference_point)  # a bad point is an error before the series is read
-    config = PlanConfig(template=args.template, designs=tuple(args.design))
+    config = PlanConfig(template=args.template, designs=tuple(args.design), tension_reserve=args.tension_reserve)
     table, overrides, config = _names(args, config)
     volume = read_series(args.ct, series_uid=args.series_uid) if args.ct else None
     structures = read_rtstruct(args.rtstruct, volume, synonyms=table)

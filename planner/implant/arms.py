@@ -18,7 +18,7 @@ from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import Dvh, StructureMetrics, structure_metrics, voxel_volume_cc
 from reachplan.planner.dose.dwells import DwellSet, dose_on_grid
 from reachplan.planner.dose.tg43 import Tg43Kernel
-from reachplan.planner.implant.candidates import Channel
+from reachplan.planner.implant.candidates import Channel, NeedleCheck
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,6 +144,10 @@ class ImplantArm:
         plan.json's ``selection`` record (the optimiser's description, the all-candidates bound, the budgets).
     plans : tuple of ImplantPlan
         The plan of each Pareto point.
+    needle_check : dict
+        plan.json's ``needle_check`` record: how the chosen implant's needles were checked (reference model,
+        tension reserve, re-load, rejected needles; :func:`reachplan.planner.implant.needles.check_arm`); empty when
+        they were not.
     """
 
     name: str
@@ -155,6 +159,7 @@ class ImplantArm:
     budgets: tuple[BudgetResult, ...] = ()
     selection: dict[str, object] = field(default_factory=dict)
     plans: tuple[ImplantPlan, ...] = ()
+    needle_check: dict[str, object] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, object]:
         """Return the arm for plan.json.
@@ -162,15 +167,18 @@ class ImplantArm:
         Returns
         -------
         dict
-            The candidates, wall time (s), reason and Pareto curve; with a plan, also its needles (hole, kind,
-            design, tension schedule as [depth mm, tension N, roll °] rows, dwell positions mm, LPS, dwell times
-            s per fraction), its metrics (EQD2 totals, Gy; volumes %), total time (s per fraction) and the
-            ``selection`` record with the chosen plan's status.
+            The candidates, wall time (s), reason, Pareto curve and ``needle_check`` record; with a plan, also its
+            needles (hole, kind, design, model, tension schedule as [depth mm, tension N, roll °] rows, dwell
+            positions mm, LPS, dwell times s per fraction, and the needle's check: peak tension and limit N, the
+            reserve, worst-case reach and clearance mm, :meth:`NeedleCheck.to_json`, None where not checked), its
+            metrics (EQD2 totals, Gy; volumes %), total time (s per fraction) and the ``selection`` record with the
+            chosen plan's status.
         """
         doc: dict[str, object] = {
             "candidates": self.n_candidates, "seconds": round(self.seconds, 3), "reason": self.reason,
             "pareto": [{"n_needles": p.n_needles, "hrctv_d90_eqd2_gy": round(p.hrctv_d90_eqd2_gy, 3),
                         "aims_met": p.aims_met} for p in self.pareto],
+            "needle_check": self.needle_check,
         }
         pl = self.plan
         if pl is None:
@@ -179,7 +187,7 @@ class ImplantArm:
         for ch, c in enumerate(pl.channels, start=1):
             keep = pl.dwells.channels == ch
             needles.append({
-                "hole_id": c.name, "kind": c.kind, "design": c.design,
+                "hole_id": c.name, "kind": c.kind, "design": c.design, "model": c.model or None,
                 "schedule": None if c.schedule is None else [
                     [round(float(d), 3), round(float(t), 3), round(float(r), 3)] for d, t, r in
                     zip(c.schedule.depth_mm, c.schedule.tension_n, c.schedule.roll_deg, strict=True)],
@@ -187,6 +195,7 @@ class ImplantArm:
                 "clearance_mm": round(c.clearance_mm, 3) if np.isfinite(c.clearance_mm) else None,
                 "dwell_positions_mm": np.round(pl.dwells.positions_mm[keep], 3).tolist(),
                 "dwell_times_s": np.round(pl.dwells.times_s[keep], 3).tolist(),
+                **(NeedleCheck.NOT_CHECKED if c.check is None else c.check.to_json()),
             })
         return {
             **doc,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from reachplan.planner.dose.structures import PlanningStructures
 from reachplan.planner.geometry.collision import Organ, check_path
 from reachplan.planner.geometry.distance_field import distance_transform
 from reachplan.planner.implant.settings import ImplantSettings
+from reachplan.planner.steering.insertion import STRAIGHT
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ShapeBank, place
 from reachplan.plugins.applicators import Applicator
@@ -68,7 +70,11 @@ class Channel:
         robustness room's worst-case paths), base to tip; empty when not computed. Robust planning adds its own
         sideways shifts of ``path_mm`` to these.
     model : str
-        The rod model that predicted ``path_mm`` ("" for a straight needle or an intracavitary channel).
+        The model that predicted ``path_mm``, as its label (``ModelInfo.label``): the screening model's for a steered
+        candidate, the reference model's once re-solved (:mod:`reachplan.planner.implant.needles`), ``"straight"`` for
+        a straight needle; "" for an intracavitary channel.
+    check : NeedleCheck or None
+        The needle's check as an exported needle (reference re-solve, robustness, tension); None when not checked.
     """
 
     name: str
@@ -82,6 +88,7 @@ class Channel:
     schedule: TensionSchedule | None = field(default=None, repr=False)
     scenario_paths_mm: tuple[np.ndarray, ...] = field(default=(), repr=False)
     model: str = ""
+    check: NeedleCheck | None = None
 
     @property
     def is_needle(self) -> bool:
@@ -97,6 +104,70 @@ class Channel:
     def dwell_directions(self) -> np.ndarray:
         """(d, 3) float, unit vectors, LPS: the source axis at each dwell, toward the tip."""
         return dwell_directions(self.path_mm[::-1], self.dwell_positions_mm)  # it takes the path tip first
+
+
+@dataclass(frozen=True)
+class NeedleCheck:
+    """An implant needle checked like a ranked one: its model, tension against the limit, worst case, dwell shift.
+
+    Parameters
+    ----------
+    peak_tension_n : float, N
+        Largest tendon tension of the schedule (0 for a straight needle).
+    tension_limit_n : float or None, N
+        The stylet's design limit (None for a straight needle).
+    tension_reserve : float
+        The fraction of the limit the plan keeps in reserve (``PlanConfig.tension_reserve``; 0 for a straight needle).
+    reach_error_mm : float, mm
+        Distance from the checked path's tip to the planned tip (the screening path's; 0 for a straight needle).
+    worst_reach_mm : float, mm
+        Largest tip error from the planned tip over the robustness check's perturbations (and the nominal path).
+    worst_clearance_mm : float, mm
+        Smallest clearance to an organ at risk over them (0 when one collides; inf without organs).
+    worst_case : str
+        The perturbation that set the worst case (``"nominal"`` when none is worse).
+    robustness_model : str
+        The fast model of the perturbed paths (``ModelInfo.label``).
+    dwell_shift_mm : float, mm
+        Largest distance between a dwell on the screening path and the same dwell (same distance from the tip) on
+        the re-solved path (0 for a straight needle).
+    """
+
+    peak_tension_n: float
+    tension_limit_n: float | None
+    tension_reserve: float
+    reach_error_mm: float
+    worst_reach_mm: float
+    worst_clearance_mm: float
+    worst_case: str
+    robustness_model: str
+    dwell_shift_mm: float = 0.0
+
+    #: the JSON fields of a channel that was not checked (an intracavitary channel, a plan not checked)
+    NOT_CHECKED: ClassVar[dict[str, object]] = dict.fromkeys(
+        ("peak_tension_n", "tension_limit_n", "tension_reserve", "tension_reserve_n", "reach_error_mm",
+         "worst_reach_mm", "worst_clearance_mm", "worst_case", "robustness_model", "dwell_shift_mm"))
+
+    def to_json(self) -> dict[str, object]:
+        """Return the check for plan.json's ``implant.<arm>.needles[*]``.
+
+        Returns
+        -------
+        dict
+            ``peak_tension_n``, ``tension_limit_n`` (N; None without a stylet), ``tension_reserve`` (the fraction
+            kept), ``tension_reserve_n`` (limit less peak, N), ``reach_error_mm``, ``worst_reach_mm``,
+            ``worst_clearance_mm`` (None when not finite), ``worst_case``, ``robustness_model``, ``dwell_shift_mm``.
+        """
+        def r(v: float | None) -> float | None:
+            return None if v is None or not np.isfinite(v) else round(float(v), 3)
+
+        limit = self.tension_limit_n
+        return {"peak_tension_n": r(self.peak_tension_n), "tension_limit_n": r(limit),
+                "tension_reserve": round(self.tension_reserve, 4),
+                "tension_reserve_n": None if limit is None else r(limit - self.peak_tension_n),
+                "reach_error_mm": r(self.reach_error_mm), "worst_reach_mm": r(self.worst_reach_mm),
+                "worst_clearance_mm": r(self.worst_clearance_mm), "worst_case": self.worst_case,
+                "robustness_model": self.robustness_model, "dwell_shift_mm": r(self.dwell_shift_mm)}
 
 
 # --- candidates ---------------------------------------------------------------------------------------
@@ -313,7 +384,7 @@ def needle_candidates(hole_ids: Sequence[str], hole_xy_mm: np.ndarray, hole_dist
         if clearance is None:
             continue
         out.append(Channel(hole, "straight", path, entries[h] + np.outer(s_dw, axis), float(hole_distance_mm[h]),
-                           tip, clearance))
+                           tip, clearance, model=STRAIGHT.label))
     for bank in banks:
         out += _steered(bank, hole_ids, xy, hole_distance_mm, m, region, in_region, oar, oar_min, settings,
                         confirm, straight_channels=[c for c in out if c.kind == "straight"])
@@ -383,7 +454,7 @@ def _steered(bank: ShapeBank, hole_ids: Sequence[str], xy: np.ndarray, hole_dist
             base = bank.schedules[k]
             sched = TensionSchedule(base.depth_mm, base.tension_n, np.full(len(base.depth_mm), roll))
             out.append(Channel(hole, "steered", path, _points_at(full, s_dw), float(hole_distance_mm[h]), tip,
-                               clearance, bank.design.name, sched))
+                               clearance, bank.design.name, sched, model=bank.model.label))
             kept.append(centroid)
             n_kept += 1
     return out

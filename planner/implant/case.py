@@ -19,6 +19,7 @@ from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import ImplantArm, with_subset
 from reachplan.planner.implant.candidates import Channel, applicator_channels, needle_candidates
+from reachplan.planner.implant.needles import check_arm, with_scenarios
 from reachplan.planner.implant.plan import plan_arms
 from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.steering.steered import shape_bank
@@ -110,18 +111,21 @@ def plan_implants(
     -------
     ImplantComparison
         The straight arm, the straight + steered arm (never worse: it takes in the straight arm's implants), every
-        candidate channel and the wall time.
+        candidate channel and the wall time. Each arm's chosen implant is checked
+        (:func:`~reachplan.planner.implant.needles.check_arm`): its steered needles re-solved with the reference
+        model within ``config.tension_reserve``, every needle's robustness, the plan re-loaded on the re-solved paths.
     """
     t0 = time.perf_counter()
     settings = settings or ImplantSettings()
     models = models or PlanModels.for_config(config)
     intracavitary = applicator_channels(scene.applicators, planning, settings)
     holes = scene.template.needle_holes
-    banks = [shape_bank(d, config.family, min(config.max_depth_mm, d.length_mm), models.screening)
-             for d in config.rod_designs]
+    banks = [shape_bank(d, config.family, min(config.max_depth_mm, d.length_mm), models.screening,
+                        config.tension_reserve) for d in config.rod_designs]
     cands = needle_candidates([h.hole_id for h in holes], np.array([h.xy_mm for h in holes]),
                               np.array([h.distance_mm for h in holes]), scene.patient_from_template, planning,
                               scene.organs, config.needle_radius_mm, settings, banks, config.max_depth_mm)
+    cands = with_scenarios(cands, scene, config, models)  # where each steered needle may go (cheap: every one)
     kernel = Tg43Kernel(source)
     # the two arms at once, on two cores; the steered arm's candidates include the straight ones, so the straight
     # arm's implants are its too: never worse
@@ -129,4 +133,11 @@ def plan_implants(
                                    ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
                                   aims=aims, settings=settings, gtv=gtv)
     steered = with_subset(steered, straight)
+    # the chosen needles re-solved with the reference model, their robustness, the plans re-loaded on them
+    cache: dict[int, Channel | str] = {}
+    checked_straight = check_arm(straight, scene, planning, config, kernel, air_kerma_u, settings, models=models,
+                                 gtv=gtv, cache=cache)
+    steered = check_arm(steered, scene, planning, config, kernel, air_kerma_u, settings, models=models, gtv=gtv,
+                        extra_plans=straight.plans, cache=cache)
+    straight = checked_straight
     return ImplantComparison(straight, steered, (*cands, *intracavitary), time.perf_counter() - t0)

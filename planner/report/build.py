@@ -17,6 +17,7 @@ from reachplan.imaging.types import Volume
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.delivery import Delivery
+from reachplan.planner.implant.case import ImplantComparison
 from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.implant.dwells import OptimizerSettings
 from reachplan.planner.report import charts, figures
@@ -73,7 +74,33 @@ def _implant_section(delivery: Delivery | None) -> Section | None:
             f"{aims.name} aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. Organ curves cover "
             "the voxels near the loaded dwells, where D2cm³ is decided."))
     blocks += [Paragraph(f"{a.name}: {a.reason}") for a in implant.arms if a.reason]
+    blocks += _needle_checks(implant)
     return Section("Implant: straight against steered", "implant", tuple(blocks))
+
+
+def _needle_checks(implant: ImplantComparison) -> list[Block]:
+    """Each arm's chosen needles as checked (model, tension against the limit, worst case, dwell shift); re-loads."""
+    rows = []
+    for a in implant.arms:
+        for c in a.plan.channels if a.plan is not None else ():
+            k = c.check
+            if k is None:
+                continue
+            limit = "-" if k.tension_limit_n is None else f"{k.tension_limit_n:g} (reserve {k.tension_reserve:.0%})"
+            rows.append((a.name, c.name, c.kind, c.model, _f(k.peak_tension_n), limit, _f(k.reach_error_mm),
+                         _f(k.worst_reach_mm), _f(k.worst_clearance_mm), k.worst_case, _f(k.dwell_shift_mm)))
+    if not rows:
+        return []
+    notes = [f"{a.name}: the plan was re-loaded on the re-solved paths (HR-CTV D90 "
+             f"{a.needle_check.get('screening_hrctv_d90_eqd2_gy')} Gy EQD2 on the screening paths)"
+             for a in implant.arms if a.needle_check.get("reloaded")]
+    notes += [f"{a.name}: rejected {r['hole_id']}: {r['reason']}" for a in implant.arms
+              for r in a.needle_check.get("rejected", ()) if isinstance(r, dict)]  # type: ignore[attr-defined]
+    return [Table(("arm", "hole", "kind", "model", "peak tension (N)", "limit (N)", "tip from planned (mm)",
+                   "worst reach (mm)", "worst clearance (mm)", "worst case", "dwell shift (mm)"), tuple(rows),
+                  "Implant needles as exported: steered ones re-solved with the reference model within the tension "
+                  "reserve, every one's worst case under tension, roll and entry-tilt errors",
+                  numeric=(4, 6, 7, 8, 10)), *(Paragraph(n) for n in notes)]
 
 
 #: Captions of the overview and workspace figures in the case section.

@@ -40,7 +40,8 @@ def workspace_figure(scene: Scene, config: PlanConfig, depth_mm: float | None = 
     label = "straight only"
     if config.designs:
         design = config.rod_designs[0]
-        bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm))
+        bank = shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm),
+                          reserve=config.tension_reserve)
         radius = float(reach_radius_mm(bank, np.array([depth]))[0])
         label = f"{design.name}: reach {radius:.1f} mm at {depth:.0f} mm depth"
     fig = Figure(figsize=(7, 7))

@@ -21,9 +21,10 @@ from reachplan.planner.run.case import CaseResult, rod_model_errors
 from reachplan.plugins.exporters import ExportOptions
 from reachplan.plugins.exporters.base import ExportPlan
 
-#: the exporters of the delivered plan, and of each implant arm's chosen implant (loaded needles only)
+#: the exporters of the delivered plan, and of each implant arm's chosen implant (``export/implant_<arm>/``: RT Plan,
+#: Structure Set and Dose of the arm, and its device instructions)
 PLAN_EXPORTERS: tuple[str, ...] = ("dicom_rt", "device_json", "device_csv")
-ARM_EXPORTERS: tuple[str, ...] = ("device_json", "device_csv")
+ARM_EXPORTERS: tuple[str, ...] = PLAN_EXPORTERS
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from reachplan.planner.steering.candidates import Candidate, Target, score_path
 from reachplan.planner.steering.insertion import ModelInfo
 from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.rod_model.design import RodDesign
 
 
 @dataclass(frozen=True)
@@ -112,28 +113,8 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
     Robustness
         Worst reach error and smallest clearance over the perturbations, and the perturbation responsible.
     """
-    m = np.asarray(patient_from_template, float)
-    variants: list[tuple[str, np.ndarray]] = []
-    design = candidate.design
-    if candidate.steered and candidate.schedule is not None and design is not None:
-        sch, depth = candidate.schedule, candidate.insertion_depth_mm
-        trials = [(f"tension x{1 + f:.2f}", TensionSchedule(
-            sch.depth_mm, np.minimum(sch.tension_n * (1 + f), design.max_tension_n), sch.roll_deg))
-            for f in (-perturbations.tension_fraction, perturbations.tension_fraction)]
-        trials += [(f"roll {d:+.0f} deg", TensionSchedule(sch.depth_mm, sch.tension_n, sch.roll_deg + d))
-                   for d in (-perturbations.roll_deg, perturbations.roll_deg)]
-        shapes = model.insert_array(design, [sch] + [t for _, t in trials], depth)  # template frame
-        s_model = np.linspace(0.0, depth, shapes.shape[1])
-        s_path = arc_length_mm(candidate.path_mm)
-        s_path *= depth / max(s_path[-1], 1e-12)
-        for (label, _), shape in zip(trials, shapes[1:], strict=True):
-            # the perturbation's effect (perturbed minus nominal, fast model) added to the candidate's path
-            delta = np.column_stack([np.interp(s_path, s_model, (shape - shapes[0])[:, j]) for j in range(3)])
-            variants.append((label, candidate.path_mm + delta @ m[:3, :3].T))
-    for axis_name, axis in (("x", m[:3, 0]), ("y", m[:3, 1])):
-        for sign in (-1.0, 1.0):
-            variants.append((f"entry tilt {sign * perturbations.tilt_deg:+.0f} deg about template {axis_name}",
-                             _tilt(candidate.path_mm, axis, sign * perturbations.tilt_deg)))
+    variants = perturbed_paths(candidate.path_mm, candidate.insertion_depth_mm, patient_from_template, perturbations,
+                               model, candidate.design if candidate.steered else None, candidate.schedule)
     worst_reach, worst_clear, worst = candidate.reach_error_mm, candidate.clearance_mm, "nominal"
     for label, path in variants:
         c = score_path(target, candidate.hole_id, candidate.hole_distance_mm, path, organs, needle_radius_mm,
@@ -146,6 +127,65 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
             if c.collides:
                 worst = f"{label}: collides with {c.closest_organ}"
     return Robustness(float(worst_reach), float(worst_clear), worst, model.info)
+
+
+def perturbed_paths(path_mm: np.ndarray, depth_mm: float, patient_from_template: np.ndarray,
+                    perturbations: Perturbations = Perturbations(), model: KinematicInsertion = KINEMATIC,
+                    design: RodDesign | None = None, schedule: TensionSchedule | None = None,
+                    ) -> list[tuple[str, np.ndarray]]:
+    """Return where a needle goes under each perturbation: its path with the error applied, labelled.
+
+    For a steered needle (``design`` and ``schedule`` given) the tension scaled by ``1 ± tension_fraction`` (at most
+    the stylet's limit) and the roll offset by ``± roll_deg``: the perturbed minus the nominal insertion of the fast
+    ``model`` added to ``path_mm`` (so the reference model's path keeps its shape); for every needle the entry
+    direction tilted by ``± tilt_deg`` about the template's x and y axes, about the hole.
+
+    Parameters
+    ----------
+    path_mm : (n, 3) float, mm, LPS
+        The needle's centreline, hole (first point) to tip.
+    depth_mm : float, mm
+        Inserted arc length.
+    patient_from_template : (4, 4) float
+        Template frame (mm) to patient LPS (mm); its x and y axes are the tilt axes.
+    perturbations : Perturbations
+        The errors to apply.
+    model : KinematicInsertion
+        Fast insertion model of the tension and roll errors (template frame).
+    design : RodDesign or None
+        The stylet (None: a straight needle, tilts only).
+    schedule : TensionSchedule or None
+        The needle's tension schedule (None: tilts only).
+
+    Returns
+    -------
+    list of (str, (n, 3) float)
+        The perturbation's label and the perturbed path (mm, LPS, hole to tip): 4 tension and roll errors for a
+        steered needle, then 4 tilts.
+    """
+    m = np.asarray(patient_from_template, float)
+    path_mm = np.asarray(path_mm, float)
+    variants: list[tuple[str, np.ndarray]] = []
+    if design is not None and schedule is not None:
+        sch = schedule
+        trials = [(f"tension x{1 + f:.2f}", TensionSchedule(
+            sch.depth_mm, np.minimum(sch.tension_n * (1 + f), design.max_tension_n), sch.roll_deg))
+            for f in (-perturbations.tension_fraction, perturbations.tension_fraction)]
+        trials += [(f"roll {d:+.0f} deg", TensionSchedule(sch.depth_mm, sch.tension_n, sch.roll_deg + d))
+                   for d in (-perturbations.roll_deg, perturbations.roll_deg)]
+        shapes = model.insert_array(design, [sch] + [t for _, t in trials], depth_mm)  # template frame
+        s_model = np.linspace(0.0, depth_mm, shapes.shape[1])
+        s_path = arc_length_mm(path_mm)
+        s_path *= depth_mm / max(s_path[-1], 1e-12)
+        for (label, _), shape in zip(trials, shapes[1:], strict=True):
+            # the perturbation's effect (perturbed minus nominal, fast model) added to the path
+            delta = np.column_stack([np.interp(s_path, s_model, (shape - shapes[0])[:, j]) for j in range(3)])
+            variants.append((label, path_mm + delta @ m[:3, :3].T))
+    for axis_name, axis in (("x", m[:3, 0]), ("y", m[:3, 1])):
+        for sign in (-1.0, 1.0):
+            variants.append((f"entry tilt {sign * perturbations.tilt_deg:+.0f} deg about template {axis_name}",
+                             _tilt(path_mm, axis, sign * perturbations.tilt_deg)))
+    return variants
 
 
 def with_robustness(c: Candidate, r: Robustness) -> Candidate:

@@ -54,23 +54,54 @@ class ScheduleFamily:
         if any(f <= 0 or f > 1 for f in self.plateau_fractions):
             raise ValueError("plateau fractions must be in (0, 1] of the design's maximum tension")
 
-    def schedules(self, design: RodDesign, roll_deg: float = 0.0) -> tuple[TensionSchedule, ...]:
-        """Return every onset × ramp × plateau (fraction of ``design``'s maximum tension) ramp at ``roll_deg``.
+    def schedules(self, design: RodDesign, roll_deg: float = 0.0, reserve: float = 0.0) -> tuple[TensionSchedule, ...]:
+        """Return every onset × ramp × plateau (fraction of the usable tension) ramp at ``roll_deg``.
 
         Parameters
         ----------
         design : RodDesign
-            The stylet design; its ``max_tension_n`` scales the plateaus.
+            The stylet design; the usable tension ``(1 - reserve) × max_tension_n`` scales the plateaus.
         roll_deg : float, degrees
             Roll of every schedule, template frame.
+        reserve : float
+            Fraction of the design's tension limit kept in reserve, in [0, 1) (:func:`usable_tension_n`).
 
         Returns
         -------
         tuple of TensionSchedule
             ``len(onsets_mm) * len(ramps_mm) * len(plateau_fractions)`` schedules, onset slowest, plateau fastest.
         """
-        return tuple(TensionSchedule.ramp(o, r, f * design.max_tension_n, roll_deg)
+        usable = usable_tension_n(design, reserve)
+        return tuple(TensionSchedule.ramp(o, r, f * usable, roll_deg)
                      for o in self.onsets_mm for r in self.ramps_mm for f in self.plateau_fractions)
+
+
+def usable_tension_n(design: RodDesign, reserve: float = 0.0) -> float:
+    """Return the largest tension a plan may use: the design's limit less a reserve.
+
+    The reserve leaves room for the hand's tension error (the robustness check's ± 10 %,
+    :class:`~reachplan.planner.steering.robustness.Perturbations`) without passing the stylet's limit.
+
+    Parameters
+    ----------
+    design : RodDesign
+        The stylet design (``max_tension_n``, N).
+    reserve : float
+        Fraction of ``max_tension_n`` kept in reserve, in [0, 1).
+
+    Returns
+    -------
+    float, N
+        ``(1 - reserve) × max_tension_n``.
+
+    Raises
+    ------
+    ValueError
+        ``reserve`` outside [0, 1).
+    """
+    if not 0.0 <= reserve < 1.0:
+        raise ValueError(f"the tension reserve must be a fraction in [0, 1) of the stylet's limit, got {reserve}")
+    return (1.0 - reserve) * design.max_tension_n
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,8 +132,8 @@ class ShapeBank:
 
 @lru_cache(maxsize=32)
 def shape_bank(design: RodDesign, family: ScheduleFamily = ScheduleFamily(), depth_mm: float = 200.0,
-               model: KinematicInsertion = KINEMATIC) -> ShapeBank:
-    """Compute (and cache) the shapes of ``family`` for ``design`` up to ``depth_mm``.
+               model: KinematicInsertion = KINEMATIC, reserve: float = 0.0) -> ShapeBank:
+    """Compute (and cache) the shapes of ``family`` for ``design`` up to ``depth_mm``, a tension reserve kept.
 
     Parameters
     ----------
@@ -114,13 +145,15 @@ def shape_bank(design: RodDesign, family: ScheduleFamily = ScheduleFamily(), dep
         Deepest insertion (capped at the design's length).
     model : KinematicInsertion
         The fast insertion model.
+    reserve : float
+        Fraction of the design's tension limit no schedule uses (:meth:`ScheduleFamily.schedules`).
 
     Returns
     -------
     ShapeBank
         The shapes at roll 0, template frame.
     """
-    schedules = family.schedules(design)
+    schedules = family.schedules(design, reserve=reserve)
     depth = min(depth_mm, design.length_mm)
     shapes = model.insert_array(design, schedules, depth)
     return ShapeBank(design, schedules, shapes, depth / (shapes.shape[1] - 1), model.info)
@@ -262,7 +295,8 @@ def _insert(model: TissueRodInsertion, design: RodDesign, schedule: tuple[tuple[
 def refine_with(model: TissueRodInsertion, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
                 rel_mm: np.ndarray, fast: KinematicInsertion = KINEMATIC, iterations: int = 3,
                 modulus_profile: tuple[np.ndarray, np.ndarray] | None = None, sample_mm: float = 1.0,
-                tolerance_mm: float = 0.25) -> tuple[TensionSchedule, InsertionPath]:
+                tolerance_mm: float = 0.25, max_tension_n: float | None = None,
+                ) -> tuple[TensionSchedule, InsertionPath]:
     """Re-solve a screened candidate with a richer insertion model and correct its aim.
 
     Space mapping: the richer model's tip departs from the fast model's by δ; the fast model is re-aimed at
@@ -296,6 +330,9 @@ def refine_with(model: TissueRodInsertion, design: RodDesign, schedule: TensionS
         Arc-length spacing of the returned path.
     tolerance_mm : float, mm
         Stop once the richer model's tip is this close to the target.
+    max_tension_n : float or None, N
+        Highest plateau the re-aim may use (the design's limit less the plan's reserve, :func:`usable_tension_n`);
+        None: the design's limit.
 
     Returns
     -------
@@ -314,6 +351,7 @@ def refine_with(model: TissueRodInsertion, design: RodDesign, schedule: TensionS
 
     target = np.array([np.hypot(rel_mm[0], rel_mm[1]), 0.0, rel_mm[2]])
     aim = target.copy()
+    top = design.max_tension_n if max_tension_n is None else min(max_tension_n, design.max_tension_n)
     sch = schedule
     label = model.info
 
@@ -341,7 +379,7 @@ def refine_with(model: TissueRodInsertion, design: RodDesign, schedule: TensionS
             tip = fast.insert_array(design, [TensionSchedule(d, unit * t, r)], depth_mm)[0, -1]
             return float(np.linalg.norm(tip - aim))
 
-        plateau = minimize_scalar(miss, bounds=(0.0, design.max_tension_n), method="bounded",
+        plateau = minimize_scalar(miss, bounds=(0.0, top), method="bounded",
                                   options={"xatol": 1e-3})
         if abs(float(plateau.x) - sch.peak_tension_n) < 0.01:  # N: no change worth a solve (e.g. at the limit)
             break

@@ -65,3 +65,28 @@ def test_bad_reference_point_is_one_line_exit_2(rtstruct: Path, tmp_path: Path, 
                  "--out", str(tmp_path), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and message in err and err.count("\n") == 0
+
+
+def test_tension_reserve_reaches_the_plan_config(rtstruct: Path, tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--tension-reserve`` on ``plan`` and ``demo`` (issue 26.5): 0.1 by default, 0 allows the full limit."""
+    import reachplan.planner.cli.plan as plan_cli
+    from reachplan.planner.cli import build_parser
+
+    seen = []
+
+    def capture(inputs: object, config: object, out: Path, quiet: bool, **kwargs: object) -> tuple[None, dict]:
+        seen.append(config)
+        return None, {}
+
+    monkeypatch.setattr(plan_cli, "plan_and_write", capture)
+    for given, expected in (([], 0.1), (["--tension-reserve", "0"], 0.0)):
+        assert main(["plan", "--rtstruct", str(rtstruct), "--targets", "Target_80_030", "--out",
+                     str(tmp_path / str(expected)), "--quiet", *given]) == 0
+        assert seen[-1].plan.tension_reserve == expected
+    demo = build_parser().parse_args(["demo", "--out", str(tmp_path / "d"), "--tension-reserve", "0.25"])
+    assert demo.tension_reserve == 0.25
+    with pytest.raises(SystemExit) as exc:  # argparse refuses a reserve outside [0, 0.9]
+        main(["plan", "--rtstruct", str(rtstruct), "--targets", "Target_80_030", "--out", str(tmp_path / "x"),
+              "--tension-reserve", "1"])
+    assert exc.value.code == 2

@@ -126,6 +126,10 @@ def test_report_content_matches_the_plan(planned: tuple[Path, dict[str, object],
         assert f'<td class="num">{pareto}</td>' in section
         if implant[arm]["needles"]:
             assert f'<td class="num">{implant[arm]["hrctv_d90_eqd2_gy"]:.1f}</td>' in section
+        for n in implant[arm]["needles"]:  # each needle as checked: its model, tension and worst case (issue 26.5)
+            if n["model"]:
+                assert "Implant needles as exported" in section
+                assert f"<td>{arm}</td><td>{n['hole_id']}</td><td>{n['kind']}</td><td>{n['model']}</td>" in section
     assert section.count("<img ") == 2  # the Pareto curves and both arms' DVHs
 
 
