@@ -178,17 +178,13 @@ def plan_delivery(
 ) -> Delivery:
     """Plan the dwell times on the target and assemble the export plan (RT Plan + Structure Set + Dose + device).
 
-    With ``scene`` the implant is planned for the whole target volume, straight only and straight + steered
-    (:func:`plan_implants` with ``implant_settings``), each arm's chosen implant is exported (RT Plan, Structure Set,
-    Dose, device), and the straight + steered arm's chosen implant (never worse than straight only; the straight arm's
-    when the other has no plan) is the delivered plan: the RT Plan a TPS imports. Without ``scene`` (or when neither
-    arm has a plan) every target gets its top-ranked feasible needle and the dwell times are optimised on those.
-    Dose by TG-43 against ``aims``: every plan's aims table and the protocol's named warnings (:func:`_aims_tables`).
-
-    The export carries the prescription (per-fraction dose whose D90 meets the planning aim, specified at a target
-    point that receives it), the reference points (that one, Point A, ICRU points, ``named_points``: see
-    :mod:`reachplan.planner.geometry.reference_points`) with each dwell's dose rate there, the application setup type
-    and the planned dose of all fractions near the target and organs (``planned_dose`` False: no RT Dose).
+    With ``scene`` both implant arms are planned (:func:`plan_implants`) and exported, and the straight + steered
+    arm's chosen implant (never worse than straight only) is the delivered plan, the RT Plan a TPS imports; without
+    (or when neither arm has a plan) every target gets its top-ranked feasible needle. Dose by TG-43 against ``aims``
+    (every plan's aims table, :func:`_aims_tables`). The export carries the prescription (per-fraction dose whose D90
+    meets the planning aim, specified at a target point that receives it), the reference points (that one, Point A,
+    ICRU points, ``named_points``: :mod:`reachplan.planner.geometry.reference_points`) with each dwell's dose rate
+    there, the application setup type and the planned dose near the target and organs (unless ``planned_dose`` False).
 
     Parameters
     ----------
@@ -240,34 +236,25 @@ def plan_delivery(
     kernel = Tg43Kernel(source)
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
                                                     implant_settings)
-    active = opt.dwells.select(opt.dwells.times_s > 0)
-    rx = _rx_point(planning, active, kernel, air_kerma_u, aims.prescription_gy, target_roi, named_points)
-    points = _reference_points(structures, [*rx, *named_points], opt.dwells, len(exports), kernel, air_kerma_u)
     fractions = aims.fractionation.n_fractions
-    dose = _planned_dose(planning, active, kernel, air_kerma_u, fractions) if planned_dose else None
     now, setup = datetime.now().replace(microsecond=0), load_template(result.config.template).application_setup_type
     spec = SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0))  # Eclipse
 
-    def export_plan(name: str, needles: Sequence[NeedleExport], points: Sequence[ReferencePoint] = (),
-                    dose: PlannedDose | None = None, spec_point: str = "") -> ExportPlan:
+    def export_of(name: str, needles: Sequence[NeedleExport], dw: DwellSet, n: int) -> ExportPlan:
+        # the export of dwells ``dw`` on ``n`` channels: its reference points, specification point and dose
+        act = dw.select(dw.times_s > 0)
+        rx = _rx_point(planning, act, kernel, air_kerma_u, aims.prescription_gy, target_roi, named_points)
+        pts = _reference_points(structures, [*rx, *named_points], dw, n, kernel, air_kerma_u)
         return ExportPlan(name[:16], tuple(needles), spec, structure_set=structures, volume=volume,
                           input_paths=tuple(input_paths), fractions_planned=fractions,
                           prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
-                          reference_points=tuple(points), application_setup_type=setup, dose=dose,
-                          plan_datetime=now, specification_point=spec_point)
+                          reference_points=tuple(pts), application_setup_type=setup,
+                          dose=_planned_dose(planning, act, kernel, air_kerma_u, fractions) if planned_dose else None,
+                          plan_datetime=now, specification_point=rx[0][0] if rx else "")
 
-    export = export_plan(label, exports, points, dose, rx[0][0] if rx else "")
-
-    def arm_export(name: str, needles: Sequence[NeedleExport], dw: DwellSet, n: int) -> ExportPlan:
-        if dw is opt.dwells:  # the delivered arm: the delivery's points and dose
-            return export_plan(name, needles, points, dose, rx[0][0] if rx else "")
-        act = dw.select(dw.times_s > 0)
-        arm_rx = _rx_point(planning, act, kernel, air_kerma_u, aims.prescription_gy, target_roi, named_points)
-        pts = _reference_points(structures, [*arm_rx, *named_points], dw, n, kernel, air_kerma_u)
-        arm_dose = _planned_dose(planning, act, kernel, air_kerma_u, fractions) if planned_dose else None
-        return export_plan(name, needles, pts, arm_dose, arm_rx[0][0] if arm_rx else "")
-
-    implant_exports = _arm_exports(implant, arm_export)
+    export = export_of(label, exports, opt.dwells, len(exports))
+    implant_exports = _arm_exports(implant, export_of, opt.dwells, export)
+    points = list(export.reference_points)
     tables = _aims_tables(aims, planning, implant, opt, kind, points, kernel, air_kerma_u)
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports, aims, tables,
                     _protocol_warnings(aims, target_roi, tables))
@@ -314,18 +301,20 @@ def _aims_tables(aims: Aims, planning: PlanningStructures, implant: ImplantCompa
 
 
 def _arm_exports(implant: ImplantComparison | None,
-                 arm_export: Callable[[str, Sequence[NeedleExport], DwellSet, int], ExportPlan],
-                 ) -> dict[str, ExportPlan]:
+                 export_of: Callable[[str, Sequence[NeedleExport], DwellSet, int], ExportPlan],
+                 delivered: DwellSet, export: ExportPlan) -> dict[str, ExportPlan]:
     """Return each implant arm's chosen implant as an export of its own (RT Plan + Structure Set + Dose, device).
 
-    ``arm_export(name, needles, dwells, n_channels)`` builds one from the arm's own dwells: its reference points and
-    planned dose (the delivered arm's are the delivery's).
+    ``export_of(name, needles, dwells, n_channels)`` builds one from the arm's own dwells: its reference points and
+    planned dose; the delivered arm's (``delivered`` dwells) are those of the delivery's ``export``.
     """
     out = {}
     for a in implant.arms if implant is not None else ():
         if a.plan is None or not a.plan.channels:
             continue
-        out[a.name] = arm_export(f"implant_{a.name}", implant_needles(a.plan), a.plan.dwells, len(a.plan.channels))
+        name, needles = f"implant_{a.name}", implant_needles(a.plan)
+        out[a.name] = (dataclasses.replace(export, label=name[:16], needles=tuple(needles))
+                       if a.plan.dwells is delivered else export_of(name, needles, a.plan.dwells, len(a.plan.channels)))
     return out
 
 

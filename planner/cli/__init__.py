@@ -41,6 +41,11 @@ COMMAND_MODULES: tuple[str, ...] = (
 #: Exit code of an unexpected exception (a bug): EX_SOFTWARE of sysexits.h.
 INTERNAL_ERROR_EXIT = 70
 
+#: per command, libraries imported before the command runs: they wrap their optional imports in
+#: ``except BaseException`` (trimesh does), so a Ctrl-C or SIGTERM arriving while they import would be swallowed
+#: and the run would go on with nothing cleaned up
+GUARDED_IMPORTS: dict[str, tuple[str, ...]] = {"plan": ("trimesh",), "demo": ("trimesh",), "study": ("trimesh",)}
+
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the ``reachplan`` parser with one sub-command per module of :data:`COMMAND_MODULES`.
@@ -130,6 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     quiet = bool(getattr(args, "quiet", False))
     sink = io.StringIO()
+    for module in GUARDED_IMPORTS.get(args.command, ()):  # before an interrupt can arrive while they import
+        importlib.import_module(module)
     with contextlib.ExitStack() as stack:
         stack.callback(release_places)  # the output places' locks (taken by the output checks)
         stack.enter_context(interruptible())  # SIGTERM, SIGHUP: cleaned up as Ctrl-C

@@ -441,3 +441,16 @@ def test_a_bar_keeps_moving_during_a_long_step_and_a_quiet_one_starts_no_thread(
     assert drawn >= 5 and "0/4" in sink.getvalue()  # redrawn while the step ran (its elapsed time moving)
     with spinner("delivery", quiet=True) as quiet_bar:
         assert quiet_bar._ticker is None
+
+
+def test_libraries_that_swallow_an_interrupt_are_imported_before_the_command_runs(tmp_path: Path) -> None:
+    """trimesh wraps its optional imports in ``except BaseException``: a SIGTERM or Ctrl-C arriving while it imports
+    was swallowed and the demo went on. The CLI imports it before the command (and its signal handlers) run."""
+    code = ("import sys\n"
+            "import reachplan.planner.cli.demo as demo\n"
+            "demo.run = lambda args: print('trimesh' in sys.modules) or 0\n"
+            "from reachplan.planner.cli import main\n"
+            f"sys.exit(main(['demo', '--out', {str(tmp_path / 'out')!r}]))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "True"

@@ -46,10 +46,10 @@ def test_the_schedule_family_keeps_the_tension_reserve() -> None:
 
 
 def test_the_command_line_sets_the_reserve_and_refuses_a_bad_one() -> None:
-    from reachplan.planner.cli.plan import add_tension_reserve
+    from reachplan.planner.cli.plan import add_implant_arguments
 
     parser = argparse.ArgumentParser(exit_on_error=False)
-    add_tension_reserve(parser)
+    add_implant_arguments(parser)
     assert parser.parse_args([]).tension_reserve == 0.1
     assert parser.parse_args(["--tension-reserve", "0"]).tension_reserve == 0.0
     for bad in ("1.5", "-0.1", "nan", "ten"):
