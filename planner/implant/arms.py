@@ -54,6 +54,10 @@ class ImplantPlan:
         Which budget and how the selection was made.
     dvhs : tuple of (name, Dvh)
         Cumulative DVH of each structure (Gy per fraction).
+    robustness : dict
+        plan.json's ``robustness``: the one-needle-displaced scenarios, each organ's worst D2cm³ and the lowest
+        HR-CTV D90 over them, and whether every hard limit holds in every scenario
+        (:func:`reachplan.planner.implant.robust.robustness_json`).
     """
 
     channels: tuple[Channel, ...]
@@ -67,6 +71,7 @@ class ImplantPlan:
     mip_gap: float | None = None
     mip_status: str = ""
     dvhs: tuple[tuple[str, Dvh], ...] = ()
+    robustness: dict[str, object] = field(default_factory=dict)
 
     @property
     def n_needles(self) -> int:

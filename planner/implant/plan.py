@@ -50,7 +50,12 @@ from reachplan.planner.implant.problem import (
     _sampled_problem,
     _target_rows,
 )
+from reachplan.planner.implant.robust import v200_dose, v200_rows
 from reachplan.planner.implant.settings import ImplantSettings
+
+#: the V200 row's first calibration: the HR-CTV's mean dose over its hottest third is some three times the dose at
+#: which that third begins (the dose near each source is high); the rounds calibrate it from there
+V200_KAPPA_START = 3.0
 
 
 def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
@@ -102,13 +107,15 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
         1.0 + settings.coverage_margin)
     selection = _selection_problem(prob, needles, settings, _target_rows(prob, settings.selection_target_points,
-                                                                         p_t, p_g), p_t, vox_cc)
-    # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows
+                                                                         p_t, p_g), aims, vox_cc)
+    # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows (and the V200 row)
     kappa = np.ones(len(selection.organs))
+    kappa[len(selection.organs) - (settings.v200_max_pct is not None):] = V200_KAPPA_START
     free = optimiser.optimise(selection, limit_factor=kappa)
     if free.times_s is not None:
-        kappa = _calibrate(kappa, _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
-                           selection.tail_means(free.times_s), selection.limits_gy)
+        exact = np.concatenate([_d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
+                                v200_dose(prob, free.times_s, settings)])
+        kappa = _calibrate(kappa, exact, selection.tail_means(free.times_s), selection.limits_gy)
         free = optimiser.optimise(selection, limit_factor=kappa)
     bound = free.objective if free.times_s is not None else float("nan")
     final = _Final(prob, *_target_rows(prob, settings.final_target_points, p_t, p_g), aims, settings, vox_cc,
@@ -122,8 +129,13 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
 
 
 def _selection_problem(prob: _Problem, needles: Sequence[int], settings: ImplantSettings,
-                       target: tuple[np.ndarray, np.ndarray], p_t: float, vox_cc: float) -> DwellProblem:
-    """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness."""
+                       target: tuple[np.ndarray, np.ndarray], aims: Aims, vox_cc: float) -> DwellProblem:
+    """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness.
+
+    Its rows: the target points, each organ's nominal D2cm³ rows (planning aim less the headroom) and the HR-CTV's
+    V200 rows; the scenarios are the final step's (:func:`reachplan.planner.implant.robust.robust_times`).
+    """
+    p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     channels = prob.channels
     cost = np.zeros(len(needles))
     if needles:
@@ -137,8 +149,10 @@ def _selection_problem(prob: _Problem, needles: Sequence[int], settings: Implant
         units += np.array_split(on_c, min(settings.segments_per_channel, len(on_c)))
     organs = _organ_rows(prob, prob.positions, prob.directions, settings.selection_oar_pitch_mm,
                          settings.oar_sample_cc, vox_cc)
+    rates = _rates(target[0], prob.positions, prob.directions, prob)
+    organs += v200_rows(prob, rates, settings.selection_target_points, settings, aims.prescription_gy, vox_cc)
     return DwellProblem(
-        _rates(target[0], prob.positions, prob.directions, prob), target[1], p_t, tuple(organs), prob.channel_of,
+        rates, target[1], p_t, tuple(organs), prob.channel_of,
         _modulation(settings), tuple(units),
         NeedleChoice(tuple(needles), tuple(channels[i].name for i in needles), cost),
         settings.swap_pool, settings.swap_passes)
@@ -169,6 +183,7 @@ class _Final:
                  vox_cc: float, optimiser: DwellOptimiser) -> None:
         self.prob, self.fin_pts, self.fin_p, self.aims, self.settings = prob, fin_pts, fin_p, aims, settings
         self.vox_cc, self.optimiser = vox_cc, optimiser
+        self.kappa: np.ndarray | None = None  # the last plan's calibration (organ rows, V200 row): the next's start
 
     def __call__(self, chosen: np.ndarray, kappa: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
         """Return the plan of the channels ``chosen``, its selection's ``status`` and ``gap`` recorded.
@@ -189,8 +204,10 @@ class _Final:
         ImplantPlan or None
             None when the chosen channels give no plan.
         """
-        return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc, kappa,
-                      status, gap, self.optimiser)
+        if self.kappa is None:
+            self.kappa = kappa.copy()
+        return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc,
+                      self.kappa, status, gap, self.optimiser)
 
 
 def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,

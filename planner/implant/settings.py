@@ -23,7 +23,11 @@ class ImplantSettings:
     min_dwells : int
         A needle needs at least this many dwell positions to be a candidate.
     neighbour_ratio : float
-        Neighbouring dwell times on a channel differ by at most this factor (>= 1).
+        Neighbouring dwell times on a channel differ by at most this factor (>= 1; ``inf``, the default: no such
+        rule, the smoothness term shapes the loading instead).
+    smoothness_weight : float
+        Weight of the dwell-time gradient term (the sum of the time differences of neighbouring dwells, as a dose at
+        the target, in units of the prescription) in both objectives (0: none).
     max_dwell_share : float
         No single dwell carries more than this share of the plan's total time.
     steered_per_hole : int
@@ -52,7 +56,20 @@ class ImplantSettings:
     time_weight : float
         Weight of the mean target dose (shorter plans) in both objectives.
     min_dwell_time_s : float, s
-        Dwell times below this are set to zero (afterloaders do not deliver shorter dwells).
+        No loaded dwell is shorter than this: a dwell is 0 or at least this long (afterloaders do not deliver
+        shorter dwells; the optimiser decides which short dwells go to 0 and which up to this).
+    v200_max_pct : float, %
+        Largest share of the HR-CTV that may receive twice the prescription (V200); None: no limit.
+    shift_mm : float, mm
+        Robust planning: every needle is also planned displaced this far sideways (perpendicular to its axis), in
+        ``shift_directions`` directions, one needle at a time; 0: nominal planning only.
+    shift_directions : int
+        Directions of the sideways shifts (evenly around the axis).
+    robust_rounds : int
+        Rounds of constraint generation: solve, check every scenario, add the violated ones' rows, solve again.
+    needles : int or None
+        The needle count to pick from each arm's Pareto curve (``--needles``); None: the fewest needles that meet
+        every aim.
     oar_eval_radius_mm : float, mm
         Organ voxels within this distance of a loaded dwell are evaluated for D2cm³.
     optimiser : str
@@ -71,7 +88,8 @@ class ImplantSettings:
     tip_offset_mm: float = 1.0
     clearance_margin_mm: float = 2.0
     min_dwells: int = 3
-    neighbour_ratio: float = 2.0
+    neighbour_ratio: float = float("inf")
+    smoothness_weight: float = 0.05
     max_dwell_share: float = 0.15
     steered_per_hole: int = 2
     rolls: int = 8
@@ -86,7 +104,12 @@ class ImplantSettings:
     selection_oar_pitch_mm: float = 3.0
     final_oar_pitch_mm: float = 3.0
     oar_sample_cc: float = 4.0
-    min_dwell_time_s: float = 0.1
+    min_dwell_time_s: float = 0.5
+    v200_max_pct: float | None = 35.0
+    shift_mm: float = 2.0
+    shift_directions: int = 4
+    robust_rounds: int = 6
+    needles: int | None = None
     oar_eval_radius_mm: float = 40.0
     invasiveness_weight: float = 1e-3  # tie-breaks in the objective
     time_weight: float = 1e-3
@@ -104,5 +127,11 @@ class ImplantSettings:
             raise ValueError("implant settings: counts must be >= 1 (steered_per_hole, extra_after_aims >= 0)")
         if not (self.selection_oar_pitch_mm > 0 and self.final_oar_pitch_mm > 0 and self.oar_sample_cc >= 2.0):
             raise ValueError("implant settings: organ pitches must be > 0 mm and oar_sample_cc >= 2 cm³")
+        if self.smoothness_weight < 0 or self.min_dwell_time_s < 0 or self.shift_mm < 0 or self.robust_rounds < 1 \
+                or self.shift_directions < 1 or (self.v200_max_pct is not None and not 0 < self.v200_max_pct <= 100):
+            raise ValueError("implant settings: smoothness weight, minimum dwell time and shift must be >= 0, "
+                             "robust rounds and shift directions >= 1, V200 limit in (0, 100] %")
+        if self.needles is not None and self.needles < 0:
+            raise ValueError("implant settings: the needle count to pick must be >= 0")
         if not self.optimiser.strip():
             raise ValueError("implant settings: the optimiser needs a name")
