@@ -20,7 +20,7 @@ HELP = ("write a built-in case as DICOM (the clinical case by default), read it 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--out``, the case options, ``--quiet`` and ``--json``.
+    """Add ``--needles``, ``--out``, the case options, ``--quiet`` and ``--json``.
 
     Parameters
     ----------
@@ -28,7 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         ``reachplan demo``'s parser.
     """
     from reachplan.planner.cli.phantom import add_case_arguments
+    from reachplan.planner.cli.plan import add_needles_argument
 
+    add_needles_argument(parser)
     parser.add_argument("--out", type=Path, required=True, help="output folder (created; case in OUT/phantom)")
     add_case_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
@@ -118,7 +120,8 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label)
-    case, doc = plan_and_write(inputs, CaseConfig(plan=config, target_names=targets), out, quiet, final_out=args.out,
+    case, doc = plan_and_write(inputs, CaseConfig(plan=config, target_names=targets, needles=args.needles), out, quiet,
+                               final_out=args.out,
                                extra={"case": label, "case_about": about,
                                       "phantom_s": {"write": t_write, "read": t_read}})
     atomic_write_json(out / "ranking.json", case.result.ranking_json())

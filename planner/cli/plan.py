@@ -37,6 +37,31 @@ NAME = "plan"
 HELP = "rank template holes, stylet designs and tension schedules for targets; write plan.json, figures, exports"
 
 
+def add_needles_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--needles K``: the implant's needle count, a point on each arm's Pareto curve.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser (``plan`` or ``demo``).
+    """
+    parser.add_argument("--needles", type=_needle_count, default=None, metavar="K",
+                        help="implant needles: the point of each arm's Pareto curve with K needles (default: the "
+                             "fewest that meet every aim with headroom and keep the hard limits with any needle 2 mm "
+                             "off)")
+
+
+def _needle_count(text: str) -> int:
+    """Return ``--needles``'s value: an integer >= 0 (an argparse type; a bad value is a usage error)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--needles needs a whole number of needles, not {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"--needles must be >= 0, not {value}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``plan`` options to ``parser``.
 
@@ -89,6 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-implant", action="store_true",
                         help="skip implant planning (the needle set and dwell times for the whole target, straight "
                              "against steered)")
+    add_needles_argument(parser)
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
     parser.add_argument("--json", action="store_true", help="print plan.json on stdout")
@@ -331,7 +357,7 @@ def case_config(args: argparse.Namespace, structures: StructureSet, config: Plan
                       allow_no_oars=args.allow_no_oars,
                       standard_names=tuple(standard_names), export=not args.no_export, implant=not args.no_implant,
                       source=args.source, target_roi=args.target_roi,
-                      named_points=tuple(_reference_points(args.reference_point)))
+                      named_points=tuple(_reference_points(args.reference_point)), needles=args.needles)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -52,12 +52,12 @@ from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import ImplantPlan
 from reachplan.planner.implant.optimiser import DwellOptimiser
 from reachplan.planner.implant.problem import (
-    _aims_met,
+    _aims_failed,
     _metrics,
     _Problem,
     _stride,
 )
-from reachplan.planner.implant.robust import ScenarioCheck, robust_times, robustness_json, worst
+from reachplan.planner.implant.robust import ScenarioCheck, robust_failed, robust_times, robustness_json, worst
 from reachplan.planner.implant.settings import ImplantSettings
 
 
@@ -378,7 +378,7 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.nd
     vox_cc : float, cm³
         Voxel volume of the planning grid.
     kappa : (n_organs + n_v200,) float
-        The calibration of the nominal organ rows and the V200 row to start from; updated in place to the one
+        The calibration of the nominal organ rows and the V200 rows to start from; updated in place to the one
         reached (the next plan's start).
     status : str
         How the selection was made (the plan's ``mip_status``).
@@ -443,6 +443,6 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
     new_index = {int(c): i + 1 for i, c in enumerate(chosen)}
     dwells = DwellSet(prob.positions[cols][keep], prob.directions[cols][keep], t[keep],
                       np.array([new_index[int(c)] for c in prob.channel_of[cols][keep]], dtype=int))
-    met = _aims_met(target, gtv, oars, aims, v200, settings.v200_max_pct) and bool(robustness["hard_limits_met"])
-    return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars, met, gtv, scale,
-                       gap, status, dvhs, robustness)
+    failed = _aims_failed(target, gtv, oars, aims, v200, settings.v200_max_pct) + robust_failed(robustness)
+    return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars, not failed, gtv,
+                       scale, gap, status, dvhs, robustness, tuple(failed))

@@ -50,12 +50,8 @@ from reachplan.planner.implant.problem import (
     _sampled_problem,
     _target_rows,
 )
-from reachplan.planner.implant.robust import v200_dose, v200_rows
+from reachplan.planner.implant.robust import V200_KAPPA_START
 from reachplan.planner.implant.settings import ImplantSettings
-
-#: the V200 row's first calibration: the HR-CTV's mean dose over its hottest third is some three times the dose at
-#: which that third begins (the dose near each source is high); the rounds calibrate it from there
-V200_KAPPA_START = 3.0
 
 
 def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
@@ -108,32 +104,34 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         1.0 + settings.coverage_margin)
     selection = _selection_problem(prob, needles, settings, _target_rows(prob, settings.selection_target_points,
                                                                          p_t, p_g), aims, vox_cc)
-    # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows (and the V200 row)
+    # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows
     kappa = np.ones(len(selection.organs))
-    kappa[len(selection.organs) - (settings.v200_max_pct is not None):] = V200_KAPPA_START
     free = optimiser.optimise(selection, limit_factor=kappa)
     if free.times_s is not None:
-        exact = np.concatenate([_d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
-                                v200_dose(prob, free.times_s, settings)])
-        kappa = _calibrate(kappa, exact, selection.tail_means(free.times_s), selection.limits_gy)
+        kappa = _calibrate(kappa, _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
+                           selection.tail_means(free.times_s), selection.limits_gy)
         free = optimiser.optimise(selection, limit_factor=kappa)
     bound = free.objective if free.times_s is not None else float("nan")
     final = _Final(prob, *_target_rows(prob, settings.final_target_points, p_t, p_g), aims, settings, vox_cc,
                    optimiser)
-    budgets, plans = _budgets(selection, needles, optimiser, kappa, bound, final)
+    rank: list[int] = []  # needles (indices into ``needles``) by their time in the all-candidates loading
+    if free.times_s is not None:
+        ch_time = np.bincount(prob.channel_of, weights=free.times_s, minlength=len(channels))
+        rank = [int(i) for i in np.argsort(-ch_time[needles], kind="stable") if ch_time[needles[i]] > 0]
+    budgets, plans = _budgets(selection, needles, optimiser, kappa, bound, final, rank)
     record: dict[str, object] = {
         "model": getattr(optimiser, "description", "") or optimiser.name,
         "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
         "budgets": [b.to_json() for b in budgets]}
-    return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record)
+    return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record, settings.needles)
 
 
 def _selection_problem(prob: _Problem, needles: Sequence[int], settings: ImplantSettings,
                        target: tuple[np.ndarray, np.ndarray], aims: Aims, vox_cc: float) -> DwellProblem:
     """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness.
 
-    Its rows: the target points, each organ's nominal D2cm³ rows (planning aim less the headroom) and the HR-CTV's
-    V200 rows; the scenarios are the final step's (:func:`reachplan.planner.implant.robust.robust_times`).
+    Its rows: the target points and each organ's nominal D2cm³ rows (planning aim less the headroom); the scenarios
+    and the V200 rows are the final step's (:func:`reachplan.planner.implant.robust.robust_times`).
     """
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     channels = prob.channels
@@ -149,10 +147,8 @@ def _selection_problem(prob: _Problem, needles: Sequence[int], settings: Implant
         units += np.array_split(on_c, min(settings.segments_per_channel, len(on_c)))
     organs = _organ_rows(prob, prob.positions, prob.directions, settings.selection_oar_pitch_mm,
                          settings.oar_sample_cc, vox_cc)
-    rates = _rates(target[0], prob.positions, prob.directions, prob)
-    organs += v200_rows(prob, rates, settings.selection_target_points, settings, aims.prescription_gy, vox_cc)
     return DwellProblem(
-        rates, target[1], p_t, tuple(organs), prob.channel_of,
+        _rates(target[0], prob.positions, prob.directions, prob), target[1], p_t, tuple(organs), prob.channel_of,
         _modulation(settings), tuple(units),
         NeedleChoice(tuple(needles), tuple(channels[i].name for i in needles), cost),
         settings.swap_pool, settings.swap_passes)
@@ -183,7 +179,7 @@ class _Final:
                  vox_cc: float, optimiser: DwellOptimiser) -> None:
         self.prob, self.fin_pts, self.fin_p, self.aims, self.settings = prob, fin_pts, fin_p, aims, settings
         self.vox_cc, self.optimiser = vox_cc, optimiser
-        self.kappa: np.ndarray | None = None  # the last plan's calibration (organ rows, V200 row): the next's start
+        self.kappa: np.ndarray | None = None  # the last plan's calibration (organ rows, V200 rows): the next's start
 
     def __call__(self, chosen: np.ndarray, kappa: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
         """Return the plan of the channels ``chosen``, its selection's ``status`` and ``gap`` recorded.
@@ -205,14 +201,22 @@ class _Final:
             None when the chosen channels give no plan.
         """
         if self.kappa is None:
-            self.kappa = kappa.copy()
+            self.kappa = np.concatenate([kappa, [V200_KAPPA_START] * (self.settings.v200_max_pct is not None)])
         return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc,
                       self.kappa, status, gap, self.optimiser)
 
 
 def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,
-             bound: float, final: _Final) -> tuple[list[BudgetResult], list[ImplantPlan]]:
-    """Select at budgets K = 1, 2, ... (0 with an intracavitary channel); return every budget and the new plans."""
+             bound: float, final: _Final, rank: Sequence[int]) -> tuple[list[BudgetResult], list[ImplantPlan]]:
+    """Select at budgets K = 1, 2, ... (0 with an intracavitary channel); return every budget and the new plans.
+
+    The selection model holds the nominal rows only: when its selection at K is one already planned (or has fewer
+    than K needles) and no plan meets every aim yet (the V200 limit or a scenario asks for more needles than the
+    selection model sees), the needle with the most time in the all-candidates loading (``rank``, indices into
+    ``needles``) whose hole is free is added. The budgets stop ``extra_after_aims`` after the first plan that meets
+    every aim (or at ``settings.needles``), after two budgets without a new selection, when the selection reaches the
+    all-candidates bound with every aim met, or after two new plans that do not raise the best D90.
+    """
     prob, settings = final.prob, final.settings
     channels = prob.channels
     intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
@@ -221,7 +225,8 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     seen: dict[tuple[int, ...], ImplantPlan | None] = {}
     keep: list[int] = []  # the last budget's needles (indices into ``needles``): a start for the next
     met_at: int | None = None
-    stall = 0
+    stall = no_gain = 0
+    best_d90 = -np.inf
     for k in range(0 if intracavitary else 1, min(settings.max_needles, len(needles)) + 1):
         t_k = time.perf_counter()
         sol = optimiser.optimise(selection, budget=k, limit_factor=kappa, start=keep)
@@ -232,6 +237,12 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         ch_time = np.bincount(prob.channel_of, weights=sol.times_s, minlength=len(channels))
         keep = [i for i in sol.needles if ch_time[needles[i]] > 0]
         picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
+        if met_at is None and len(keep) < k and picked in seen:
+            extra = _forced(keep, rank, channels, needles)
+            if extra is not None:
+                keep.append(extra)
+                picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
+                status += f"; needle {channels[needles[extra]].name} added (no plan meets every aim yet)"
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
         if new:
@@ -239,20 +250,27 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
                                  f"budget {k}: selection objective {value:.6g}, {status}", gap)
         budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
                                     tuple(channels[c] for c in picked), seen.get(picked) if new else None))
-        if new:
-            stall = 0
-            plan = seen[picked]
-            if plan is not None:
-                plans.append(plan)
-                if plan.aims_met and met_at is None:
-                    met_at = k
-        else:
-            stall += 1
-        if met_at is not None and k >= met_at + settings.extra_after_aims:
+        stall = 0 if new else stall + 1
+        plan = seen[picked] if new else None
+        if plan is not None:
+            plans.append(plan)
+            no_gain = 0 if plan.target.d90_eqd2_gy > best_d90 + 0.1 else no_gain + 1
+            best_d90 = max(best_d90, plan.target.d90_eqd2_gy)
+            if plan.aims_met and met_at is None:
+                met_at = k
+        if met_at is not None and k >= max(met_at + settings.extra_after_aims, settings.needles or 0):
             break
-        if stall >= 2 or value <= bound + 1e-9 * max(1.0, abs(bound)):
-            break  # nothing new twice, or the selection reaches the bound of every candidate loaded
+        at_bound = value <= bound + 1e-9 * max(1.0, abs(bound))
+        if stall >= 2 or no_gain >= 2 or (at_bound and met_at is not None):
+            break  # nothing new twice, no better plan twice, or the selection reaches the all-candidates bound
     return budgets, plans
+
+
+def _forced(keep: Sequence[int], rank: Sequence[int], channels: Sequence[Channel],
+            needles: Sequence[int]) -> int | None:
+    """Return the first needle of ``rank`` not in ``keep`` whose hole ``keep`` leaves free (None: there is none)."""
+    holes = {channels[needles[i]].name for i in keep}
+    return next((j for j in rank if j not in keep and channels[needles[j]].name not in holes), None)
 
 
 def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningStructures, kernel: Tg43Kernel,

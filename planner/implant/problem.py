@@ -217,23 +217,28 @@ def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vo
     return target, v200, gtv, tuple(oars), tuple(dvhs), scale
 
 
-def _aims_met(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequence[StructureMetrics],
-              aims: Aims, v200_pct: float | None = None, v200_max_pct: float | None = None) -> bool:
-    """Return True when the nominal plan meets every planning aim.
+def _aims_failed(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequence[StructureMetrics],
+                 aims: Aims, v200_pct: float | None = None, v200_max_pct: float | None = None) -> list[str]:
+    """Return the planning aims the nominal plan misses (empty: every one met), each with its value.
 
     HR-CTV D90 and D98, GTV D98, each organ's D2cm³ at least ``headroom_eqd2_gy`` below its aim, and V200 within its
     limit (when both are given).
     """
-    ok = target.d90_eqd2_gy >= aims.target_d90_eqd2_gy - 1e-6 and target.d98_eqd2_gy >= aims.target_d98_eqd2_gy - 1e-6
-    if gtv is not None:
-        ok = ok and gtv.d98_eqd2_gy >= aims.gtv_d98_eqd2_gy - 1e-6
+    out = []
+    if target.d90_eqd2_gy < aims.target_d90_eqd2_gy - 1e-6:
+        out.append(f"HR-CTV D90 {target.d90_eqd2_gy:.1f} < {aims.target_d90_eqd2_gy:g} Gy")
+    if target.d98_eqd2_gy < aims.target_d98_eqd2_gy - 1e-6:
+        out.append(f"HR-CTV D98 {target.d98_eqd2_gy:.1f} < {aims.target_d98_eqd2_gy:g} Gy")
+    if gtv is not None and gtv.d98_eqd2_gy < aims.gtv_d98_eqd2_gy - 1e-6:
+        out.append(f"GTV D98 {gtv.d98_eqd2_gy:.1f} < {aims.gtv_d98_eqd2_gy:g} Gy")
     for o in oars:
         aim = aims.oar_aim_eqd2_gy(o.name)
         if aim is not None and o.d2cc_eqd2_gy > aim - aims.headroom_eqd2_gy + 1e-6:
-            ok = False
+            out.append(f"{o.name} D2cm³ {o.d2cc_eqd2_gy:.1f} > {aim - aims.headroom_eqd2_gy:g} Gy "
+                       f"(aim {aim:g} less {aims.headroom_eqd2_gy:g} headroom)")
     if v200_pct is not None and v200_max_pct is not None and v200_pct > v200_max_pct + 1e-6:
-        ok = False
-    return bool(ok)
+        out.append(f"HR-CTV V200 {v200_pct:.1f} % > {v200_max_pct:g} %")
+    return out
 
 
 def _organ_samples(prob: _Problem, pos: np.ndarray, pitch_mm: float, volume_cc: float,

@@ -39,7 +39,6 @@ from reachplan.planner.implant.candidates import Channel
 from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, OrganRows
 from reachplan.planner.implant.problem import (
     _calibrate,
-    _dose,
     _modulation,
     _organ_samples,
     _Problem,
@@ -50,8 +49,12 @@ from reachplan.planner.implant.settings import ImplantSettings
 
 #: target voxels (an even stride through them) on which each scenario's HR-CTV D90 is evaluated
 SCENARIO_TARGET_POINTS = 6000
+#: the V200 rows' first calibration (the mean over the hottest third is some three times the dose where it begins)
+V200_KAPPA_START = 3.0
 #: HR-CTV points of the V200 rows (an even stride through the final model's target points)
 V200_POINTS = 250
+#: the rounds stop when no row set's calibration moves by more than this (relative)
+KAPPA_TOLERANCE = 0.02
 #: the V200 rows hold this much (percentage points of the HR-CTV) below the limit
 V200_MARGIN_PCT = 1.0
 
@@ -355,51 +358,105 @@ def robustness_json(results: list[ScenarioResult], names: tuple[str, ...], aims:
         ok = ok and (limit is None or value <= limit + 1e-6)
         organs[name] = {"value": round(value, 3), "scenario": f"{w.hole} {w.label}", "hard_limit": limit}
     return {**doc, "worst_hrctv_d90_eqd2_gy": round(fr.total_eqd2(low.d90_gy, ab_t), 3),
+            "hrctv_d90_hard_limit_eqd2_gy": aims.target_d90_limit_eqd2_gy,
             "worst_hrctv_d90_scenario": f"{low.hole} {low.label}", "worst_oar_d2cc_eqd2_gy": organs,
             "hard_limits_met": bool(ok)}
 
 
-def v200_rows(prob: _Problem, rates: np.ndarray, n_target: int, settings: ImplantSettings, rx_gy: float,
-              vox_cc: float) -> list[OrganRows]:
-    """Return the HR-CTV's V200 rows: its hottest ``v200_max_pct`` of volume under twice the prescription.
+def v200_points(n_target: int, n_fin: int) -> np.ndarray:
+    """Return the rows of the final model's target points that carry the V200 rows.
 
     Parameters
     ----------
-    prob : _Problem
-        The arm's sampled problem (the HR-CTV's voxels give its volume).
-    rates : (m, c) float, Gy s⁻¹ per fraction
-        A model's target rows, whose first rows are the HR-CTV's stride of ``n_target`` points
-        (:func:`reachplan.planner.implant.problem._target_rows`).
     n_target : int
-        The points asked of that stride.
-    settings : ImplantSettings
-        Its ``v200_max_pct`` (None: no rows).
-    rx_gy : float, Gy per fraction
-        The prescription.
-    vox_cc : float, cm³
-        Voxel volume of the planning grid.
+        The HR-CTV's voxels.
+    n_fin : int
+        The final model's HR-CTV points (its first rows, :func:`reachplan.planner.implant.problem._target_rows`).
 
     Returns
     -------
-    list of OrganRows
-        One row set (:data:`V200_POINTS` of the stride), or none.
+    (q,) int
+        An even stride of :data:`V200_POINTS` through the first ``min(n_target, n_fin)`` rows.
     """
-    if settings.v200_max_pct is None:
-        return []
-    n = min(len(prob.target_pts), n_target)
-    rows = _stride(n, V200_POINTS)
-    volume = len(prob.target_pts) * vox_cc
-    return [OrganRows(rates[rows], np.full(len(rows), volume / len(rows)), 2.0 * rx_gy,
-                      volume * _v200_row_pct(settings) / 100.0, "HR-CTV V200")]
+    return _stride(min(n_target, n_fin), V200_POINTS)
 
 
 def _v200_row_pct(settings: ImplantSettings) -> float:
     """Return the V200 rows' share (%): the limit less :data:`V200_MARGIN_PCT`.
 
-    Their calibration is on voxel centres, the plan's V200 on sub-voxels.
+    The rows are on a stride of voxel centres, the plan's V200 on sub-voxels.
     """
     assert settings.v200_max_pct is not None
     return max(settings.v200_max_pct - V200_MARGIN_PCT, 0.5 * settings.v200_max_pct)
+
+
+class _RobustModel:
+    """The rows of one robust loading: nominal organ rows, V200 rows, the scenarios' rows, and their rounds.
+
+    **V200**: the mean dose over the HR-CTV's hottest (``v200_max_pct`` less :data:`V200_MARGIN_PCT`) % under
+    ``κ`` × twice the prescription (the rows of :class:`reachplan.planner.implant.optimiser.OrganRows` over that
+    volume; the mean over a share is at least the dose where it begins, so ``κ`` = 1 implies the limit). Near each
+    source the dose is high, so that mean is some three times the dose where the share begins: ``κ`` starts at
+    :data:`V200_KAPPA_START` (or the last plan's) and is calibrated each round to the exact dose where the share
+    begins (on the scenario check's target voxels), as the organs' rows are to D2cm³.
+    """
+
+    def __init__(self, prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims,
+                 settings: ImplantSettings, vox_cc: float) -> None:
+        self.prob, self.settings = prob, settings
+        pos, dirs = prob.positions[cols], prob.directions[cols]
+        self.samples = _organ_samples(prob, pos, settings.final_oar_pitch_mm, settings.oar_sample_cc, vox_cc)
+        self.rates = [_rates(reps, pos, dirs, prob) for _, reps, _ in self.samples]
+        self.nominal = [OrganRows(r, w, float(prob.oar_limits[o]), 2.0, prob.oar_names[o])  # type: ignore[arg-type]
+                        for (o, _, w), r in zip(self.samples, self.rates, strict=True)]
+        self.hard = np.array([prob.oar_hard[o] for o, _, _ in self.samples], dtype=float)
+        a_t = _rates(fin_pts, pos, dirs, prob)
+        self.rx = aims.prescription_gy
+        self.v200 = []
+        if settings.v200_max_pct is not None:
+            rows = v200_points(len(prob.target_pts), settings.final_target_points)
+            volume = len(prob.target_pts) * vox_cc
+            self.v200 = [OrganRows(a_t[rows], np.full(len(rows), volume / len(rows)), 2.0 * self.rx,
+                                   volume * _v200_row_pct(settings) / 100.0, "HR-CTV V200")]
+        channels = sorted({int(c) for c in prob.channel_of[cols]})
+        self.check = ScenarioCheck(prob, cols, [s for c in channels for s in channel_scenarios(
+            prob.channels[c], c, settings.shift_mm, settings.shift_directions)], vox_cc)
+        self.active: list[tuple[int, int]] = []  # (scenario, organ) with rows
+        self.p_scale, self.d90_limit = 1.0, aims.per_fraction_target_gy(aims.target_d90_limit_eqd2_gy)
+        self.fin_p = fin_p
+        self.base = DwellProblem(a_t, fin_p, self.rx * (1.0 + settings.coverage_margin), (), prob.channel_of[cols],
+                                 _modulation(settings))
+
+    def problem(self, min_time_s: float = 0.0) -> DwellProblem:
+        """Return the problem with the rows found so far (nominal organs, scenarios, then V200)."""
+        scen = [OrganRows(self.check.displaced_rates(k, self.rates[i], self.samples[i][1]), self.samples[i][2],
+                          float(self.hard[i]), 2.0, f"{self.nominal[i].name}, "
+                          f"{self.prob.channels[self.check.scenarios[k].channel].name} {self.check.scenarios[k].label}")
+                for k, i in self.active]
+        return dataclasses.replace(self.base, target_dose_gy=self.fin_p * self.p_scale,
+                                   organs=(*self.nominal, *scen, *self.v200), min_time_s=min_time_s, cache={})
+
+    def update(self, times: np.ndarray, problem: DwellProblem, kap: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Evaluate a solve; return the next calibration and whether the rounds are done (nothing added or moved).
+
+        Every row set's ``κ`` (nominal organs, scenarios, V200) is recalibrated to its exact value.
+        """
+        results = self.check.evaluate(times)
+        v200 = [] if not self.v200 else [dose_to_fraction(self.check.dose_at_target(times),
+                                                          _v200_row_pct(self.settings) / 100.0)]
+        exact = np.concatenate([self.check.nominal(times)[0], [results[k].d2cc_gy[i] for k, i in self.active], v200])
+        new = _calibrate(kap, exact, problem.tail_means(times), problem.limits_gy)
+        added = [(k, i) for k, r in enumerate(results) for i in range(len(self.hard))
+                 if r.d2cc_gy[i] > self.hard[i] * (1 - 2e-3) and (k, i) not in self.active]
+        low = min((r.d90_gy for r in results), default=np.inf)  # on voxel centres: the final check is finer
+        raise_aim = low < self.d90_limit and self.p_scale < 1.1
+        if raise_aim:
+            self.p_scale = min(1.1, self.p_scale * self.d90_limit / max(low, 1e-9) * 1.005)
+        done = not added and not raise_aim and bool(np.all(np.abs(new / kap - 1) < KAPPA_TOLERANCE))
+        n_o = len(self.nominal) + len(self.active)
+        self.active += added
+        kap_next = np.concatenate([new[:n_o], new[[i for _, i in added]], new[n_o:]])
+        return kap_next, done
 
 
 def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims,
@@ -408,9 +465,10 @@ def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: n
     """Return the robust dwell times of the columns ``cols`` (module docstring) and their scenario check.
 
     Rounds of constraint generation (at most ``robust_rounds``): solve; evaluate the nominal D2cm³, the V200 and every
-    scenario exactly; recalibrate every row set's ``κ``; add the rows of each scenario and organ over its hard limit;
-    raise the coverage aim when a scenario's D90 is under its hard limit. Stops when no row is added and every ``κ``
-    moved by less than 1 %. A last solve applies ``min_dwell_time_s``.
+    scenario exactly; recalibrate every organ row set's ``κ``; add the rows of each scenario and organ over its hard
+    limit and the V200 rows (:class:`_RobustModel`); raise the coverage aim when a scenario's D90 is under its hard
+    limit. Stops when nothing is added and every ``κ`` moved by less than :data:`KAPPA_TOLERANCE`. A last solve
+    applies ``min_dwell_time_s``.
 
     Parameters
     ----------
@@ -427,7 +485,7 @@ def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: n
     vox_cc : float, cm³
         Voxel volume of the planning grid.
     kappa : (n_organs + n_v200,) float
-        The calibration of the nominal organ rows and the V200 row (if any) to start from (the last plan's).
+        The calibration of the nominal organ rows and the V200 rows (when limited) to start from (the last plan's).
     optimiser : DwellOptimiser
         Loads the columns (without a budget).
 
@@ -438,99 +496,54 @@ def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: n
     check : ScenarioCheck
         The scenarios of the chosen needles.
     kappa : (n_organs + n_v200,) float
-        The calibration reached (the next plan's start).
+        The calibration of the nominal organ rows and the V200 rows reached (the next plan's start).
     None
         When the optimiser finds no loading at all.
     """
-    pos, dirs = prob.positions[cols], prob.directions[cols]
-    samples = _organ_samples(prob, pos, settings.final_oar_pitch_mm, settings.oar_sample_cc, vox_cc)
-    rates = [_rates(reps, pos, dirs, prob) for _, reps, _ in samples]
-    nominal = [OrganRows(r, w, float(prob.oar_limits[o]), 2.0, prob.oar_names[o])  # type: ignore[arg-type]
-               for (o, _, w), r in zip(samples, rates, strict=True)]
-    hard = np.array([prob.oar_hard[o] for o, _, _ in samples], dtype=float)
-    a_t = _rates(fin_pts, pos, dirs, prob)
-    rx = aims.prescription_gy
-    extra = v200_rows(prob, a_t, settings.final_target_points, settings, rx, vox_cc)
-    channels = sorted({int(c) for c in prob.channel_of[cols]})
-    check = ScenarioCheck(prob, cols, [s for c in channels for s in channel_scenarios(
-        prob.channels[c], c, settings.shift_mm, settings.shift_directions)], vox_cc)
-    active: list[tuple[int, int]] = []  # (scenario, organ) with rows
-    kap = np.asarray(kappa, dtype=float)[:len(nominal) + len(extra)].copy()
-    p_scale, d90_limit = 1.0, aims.per_fraction_target_gy(aims.target_d90_limit_eqd2_gy)
+    model = _RobustModel(prob, cols, fin_pts, fin_p, aims, settings, vox_cc)
+    n_o = len(model.nominal)
+    start = np.asarray(kappa, dtype=float)
+    kap = np.concatenate([start[:n_o], start[n_o:n_o + len(model.v200)]])
     times = None
-    base = DwellProblem(a_t, fin_p, rx * (1.0 + settings.coverage_margin), (), prob.channel_of[cols],
-                        _modulation(settings))
-
-    def problem(active: list[tuple[int, int]], p_scale: float, min_time_s: float = 0.0) -> DwellProblem:
-        scen = [OrganRows(check.displaced_rates(k, rates[i], samples[i][1]), samples[i][2], float(hard[i]), 2.0,
-                          f"{nominal[i].name}, {prob.channels[check.scenarios[k].channel].name} "
-                          f"{check.scenarios[k].label}") for k, i in active]
-        return dataclasses.replace(base, target_dose_gy=fin_p * p_scale, organs=(*nominal, *extra, *scen),
-                                   min_time_s=min_time_s, cache={})
-
     for _ in range(settings.robust_rounds):
-        current = problem(active, p_scale)
+        current = model.problem()
         solution = optimiser.optimise(current, limit_factor=kap)
         if solution.times_s is None:
             break
         times = solution.times_s
-        results = check.evaluate(times)
-        exact = np.concatenate([check.nominal(times)[0], _v200_dose(check, times, settings),
-                                [results[k].d2cc_gy[i] for k, i in active]])
-        new = _calibrate(kap, exact, current.tail_means(times), current.limits_gy)
-        added = [(k, i) for k, r in enumerate(results) for i in range(len(hard))
-                 if r.d2cc_gy[i] > hard[i] * (1 - 2e-3) and (k, i) not in active]
-        low = min((r.d90_gy for r in results), default=np.inf)  # on voxel centres: the final check is finer
-        raise_aim = low < d90_limit and p_scale < 1.1
-        if raise_aim:
-            p_scale = min(1.1, p_scale * d90_limit / max(low, 1e-9) * 1.005)
-        if not added and not raise_aim and np.all(np.abs(new / kap - 1) < 0.01):
-            kap = new
+        kap, done = model.update(times, current, kap)
+        if done:
             break
-        active += added
-        kap = np.concatenate([new, new[[i for _, i in added]]])
     if times is None:
         return None
     if settings.min_dwell_time_s > 0:
-        solution = optimiser.optimise(problem(active, p_scale, settings.min_dwell_time_s), limit_factor=kap)
+        solution = optimiser.optimise(model.problem(settings.min_dwell_time_s), limit_factor=kap)
         if solution.times_s is not None:
             times = solution.times_s
-    return times, check, kap[:len(nominal) + len(extra)]
+    return times, model.check, np.concatenate([kap[:n_o], kap[len(kap) - len(model.v200):]])
 
 
-def _v200_dose(check: ScenarioCheck, times: np.ndarray, settings: ImplantSettings) -> list[float]:
-    """Return the V200 row's exact value: the dose where the HR-CTV's hottest share begins (Gy per fraction).
-
-    On the scenario check's target voxels; empty without a V200 limit.
-    """
-    if settings.v200_max_pct is None:
-        return []
-    return [dose_to_fraction(check.dose_at_target(times), _v200_row_pct(settings) / 100.0)]
-
-
-def v200_dose(prob: _Problem, times: np.ndarray, settings: ImplantSettings) -> list[float]:
-    """Return the V200 rows' exact value for a loading of every column of ``prob``.
-
-    The dose (Gy per fraction) at which the HR-CTV's hottest ``v200_max_pct`` (less the margin) begins, on an even
-    stride of its voxels.
+def robust_failed(doc: dict[str, object]) -> list[str]:
+    """Return the hard limits a plan breaks in some scenario (from its :func:`robustness_json`), each with its value.
 
     Parameters
     ----------
-    prob : _Problem
-        The arm's sampled problem.
-    times : (D,) float, s
-        Dwell time of every column.
-    settings : ImplantSettings
-        Its ``v200_max_pct`` (None: no value).
+    doc : dict
+        The plan's ``robustness``.
 
     Returns
     -------
-    list of float
-        One value, or none.
+    list of str
+        Empty when every hard limit holds in every scenario.
     """
-    if settings.v200_max_pct is None:
+    if doc.get("hard_limits_met", True):
         return []
-    on = times > 0
-    pts = prob.target_pts[_stride(len(prob.target_pts), SCENARIO_TARGET_POINTS)]
-    d = _dose(pts, prob.positions[on], prob.directions[on], times[on], prob)
-    return [dose_to_fraction(d, _v200_row_pct(settings) / 100.0)]
+    out = []
+    d90, limit = doc.get("worst_hrctv_d90_eqd2_gy"), doc.get("hrctv_d90_hard_limit_eqd2_gy")
+    if isinstance(d90, float) and isinstance(limit, float) and d90 < limit - 1e-6:
+        out.append(f"HR-CTV D90 {d90:.1f} < {limit:g} Gy with {doc.get('worst_hrctv_d90_scenario')}")
+    organs = doc.get("worst_oar_d2cc_eqd2_gy")
+    for name, w in (organs.items() if isinstance(organs, dict) else ()):
+        if w["hard_limit"] is not None and w["value"] > w["hard_limit"] + 1e-6:
+            out.append(f"{name} D2cm³ {w['value']:.1f} > {w['hard_limit']:g} Gy with {w['scenario']}")
+    return out

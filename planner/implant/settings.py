@@ -108,7 +108,7 @@ class ImplantSettings:
     v200_max_pct: float | None = 35.0
     shift_mm: float = 2.0
     shift_directions: int = 4
-    robust_rounds: int = 6
+    robust_rounds: int = 5
     needles: int | None = None
     oar_eval_radius_mm: float = 40.0
     invasiveness_weight: float = 1e-3  # tie-breaks in the objective

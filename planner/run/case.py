@@ -22,6 +22,7 @@ from reachplan.planner.delivery import Delivery, plan_delivery
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.organs import has_closed
 from reachplan.planner.geometry.template import TemplatePose
+from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.report.comparison import straight_vs_steered
 from reachplan.planner.steering.candidates import Target
 from reachplan.rod_model.errors import RodModelError
@@ -83,6 +84,9 @@ class CaseConfig:
         The ROI the dwell times are optimised on.
     named_points : tuple of (str, (float, float, float))
         Dose reference points (name, mm LPS) the delivered plan carries.
+    needles : int or None
+        The implant's needle count (a point of each arm's Pareto curve, ``--needles``); None: the fewest needles
+        that meet every aim.
     """
 
     plan: PlanConfig = field(default_factory=PlanConfig)
@@ -96,6 +100,7 @@ class CaseConfig:
     source: str = "gammamed_plus_hdr"
     target_roi: str = "HR-CTV"
     named_points: tuple[tuple[str, tuple[float, float, float]], ...] = ()
+    needles: int | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,7 +224,9 @@ def run_case(inputs: CaseInput, config: CaseConfig, *, quiet: bool = True,
     t = time.perf_counter()
     delivery = plan_delivery(result, inputs.structures, grid, source_name=config.source,
                              target_roi=config.target_roi, volume=inputs.volume, input_paths=inputs.paths,
-                             named_points=config.named_points, scene=scene if config.implant else None)
+                             named_points=config.named_points, scene=scene if config.implant else None,
+                             implant_settings=None if config.needles is None else ImplantSettings(
+                                 needles=config.needles))
     comparison, note = straight_vs_steered(result, inputs.structures, delivery, grid, config.target_roi, quiet=quiet)
     timings["delivery_s"] = time.perf_counter() - t
     return CaseResult(inputs, config, scene, result, delivery, comparison, note, timings)
