@@ -435,7 +435,7 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
         t = np.where((t > 0) & (t < settings.min_dwell_time_s), settings.min_dwell_time_s, t)
         results = check.evaluate(t)
     # the scenarios' D90 on their target voxels, shifted by the nominal's difference to the final sub-voxels
-    bias = target.d90_gy - check.nominal_d90(t)
+    bias = target.d90_gy - check.nominal(t)[1]
     results = [dataclasses.replace(r, d90_gy=r.d90_gy + bias) for r in results]
     names = tuple(prob.oar_names[o] for o in check.organs)
     robustness = robustness_json(results, names, aims, settings.shift_mm, settings.shift_directions)

@@ -232,29 +232,15 @@ class ScenarioCheck:
             out.append(ScenarioResult(self.prob.channels[s.channel].name, s.label, d2, d90))
         return out
 
-    def nominal_d90(self, t: np.ndarray) -> float:
-        """Return the nominal HR-CTV D90 (Gy per fraction) on the scenarios' target points.
-
-        Its difference to the final metrics' D90 (on sub-voxels) is the bias of their sampling.
-
-        Parameters
-        ----------
-        t : (c,) float, s
-            Dwell time of each chosen column.
-
-        Returns
-        -------
-        float, Gy per fraction
-        """
-        return self.nominal(t)[1]
-
-    def nominal(self, t: np.ndarray) -> tuple[tuple[float, ...], float]:
+    def nominal(self, times_s: np.ndarray) -> tuple[tuple[float, ...], float]:
         """Return the nominal organ D2cm³ and HR-CTV D90 (Gy per fraction) on the scenarios' points.
 
+        The D90's difference to the final metrics' (on sub-voxels) is the bias of their sampling.
+
         Parameters
         ----------
-        t : (c,) float, s
-            Dwell time of each chosen column.
+        times_s : (c,) float, s
+            The loading of the chosen columns.
 
         Returns
         -------
@@ -262,21 +248,21 @@ class ScenarioCheck:
             Each organ's (organs with an aim).
         d90 : float, Gy per fraction
         """
-        return self._metrics(self.rates @ t.astype(np.float32))
+        return self._metrics(self.rates @ times_s.astype(np.float32))
 
-    def dose_at_target(self, t: np.ndarray) -> np.ndarray:
-        """Return the nominal dose (Gy per fraction) at the scenarios' target points.
+    def dose_at_target(self, times_s: np.ndarray) -> np.ndarray:
+        """Return the nominal dose at the scenarios' HR-CTV points for the loading ``times_s`` (s, chosen columns).
 
         Parameters
         ----------
-        t : (c,) float, s
-            Dwell time of each chosen column.
+        times_s : (c,) float, s
 
         Returns
         -------
         (n,) float, Gy per fraction
         """
-        out: np.ndarray = (self.rates[self.split[-1] if len(self.split) else 0:] @ t.astype(np.float32)).astype(float)
+        start = self.split[-1] if len(self.split) else 0
+        out: np.ndarray = (self.rates[start:] @ times_s.astype(np.float32)).astype(float)
         return out
 
     def displaced_rates(self, k: int, rates: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -428,7 +414,17 @@ class _RobustModel:
                                  _modulation(settings))
 
     def problem(self, min_time_s: float = 0.0) -> DwellProblem:
-        """Return the problem with the rows found so far (nominal organs, scenarios, then V200)."""
+        """Return the problem with the rows found so far (nominal organs, scenarios, then V200).
+
+        Parameters
+        ----------
+        min_time_s : float, s
+            The problem's minimum loaded dwell time (0: none).
+
+        Returns
+        -------
+        DwellProblem
+        """
         scen = [OrganRows(self.check.displaced_rates(k, self.rates[i], self.samples[i][1]), self.samples[i][2],
                           float(self.hard[i]), 2.0, f"{self.nominal[i].name}, "
                           f"{self.prob.channels[self.check.scenarios[k].channel].name} {self.check.scenarios[k].label}")
@@ -440,6 +436,22 @@ class _RobustModel:
         """Evaluate a solve; return the next calibration and whether the rounds are done (nothing added or moved).
 
         Every row set's ``κ`` (nominal organs, scenarios, V200) is recalibrated to its exact value.
+
+        Parameters
+        ----------
+        times : (c,) float, s
+            The solve's dwell times.
+        problem : DwellProblem
+            The problem solved (:meth:`problem`).
+        kap : (n_rows,) float
+            The calibration it was solved with.
+
+        Returns
+        -------
+        kappa : (n_rows',) float
+            The next problem's calibration (the added scenarios' rows start at their organ's).
+        done : bool
+            Nothing was added and no ``κ`` moved by :data:`KAPPA_TOLERANCE` or more.
         """
         results = self.check.evaluate(times)
         v200 = [] if not self.v200 else [dose_to_fraction(self.check.dose_at_target(times),
@@ -476,8 +488,10 @@ def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: n
         The arm's sampled problem.
     cols : (c,) int
         The dwell columns of the chosen channels (grouped by channel).
-    fin_pts, fin_p : (m, 3) float, mm, LPS; (m,) float, Gy per fraction
-        The final model's target points and the dose each should reach.
+    fin_pts : (m, 3) float, mm, LPS
+        The final model's target points.
+    fin_p : (m,) float, Gy per fraction
+        The dose each should reach.
     aims : Aims
         The prescription and the target's hard limit.
     settings : ImplantSettings
