@@ -56,6 +56,9 @@ class ImplantPlan:
         Cumulative DVH of each structure (Gy per fraction).
     failed : tuple of str
         The aims the plan misses (empty when ``aims_met``), e.g. ``"HR-CTV V200 36.1 % > 35 %"``.
+    limited_by : tuple of str
+        The limits the plan stands on (an organ's D2cm³ within 0.3 Gy of its planning aim less the headroom, V200
+        within 1.5 % of its limit): why the coverage is no higher.
     robustness : dict
         plan.json's ``robustness``: the one-needle-displaced scenarios, each organ's worst D2cm³ and the lowest
         HR-CTV D90 over them, and whether every hard limit holds in every scenario
@@ -75,6 +78,7 @@ class ImplantPlan:
     dvhs: tuple[tuple[str, Dvh], ...] = ()
     robustness: dict[str, object] = field(default_factory=dict)
     failed: tuple[str, ...] = ()
+    limited_by: tuple[str, ...] = ()
 
     @property
     def n_needles(self) -> int:
@@ -220,6 +224,7 @@ class ImplantArm:
             "selection_gap": None if pl.mip_gap is None else round(pl.mip_gap, 4),
             "selection": {**self.selection, "chosen": pl.mip_status},
             "aims_failed": list(pl.failed),
+            "limited_by": list(pl.limited_by),
             "robustness": pl.robustness,
             "time_balance": time_balance(pl),
             "loading": {"min_loaded_dwell_s": round(float(pl.dwells.times_s.min()), 3) if len(pl.dwells.times_s)
@@ -310,7 +315,8 @@ def _arm(name: str, n_candidates: int, plans: Sequence[ImplantPlan], seconds: fl
                   else max(pareto_plans, key=lambda p: (p.target.d90_eqd2_gy, -p.n_needles)))
         reason = "" if meeting else "no needle budget meets every aim; the plan with the highest D90 is kept"
     if not chosen.aims_met and chosen.failed:
-        reason = "; ".join([r for r in (reason, "missed: " + ", ".join(chosen.failed)) if r])
+        why = "" if not chosen.limited_by else "; limited by " + ", ".join(chosen.limited_by)
+        reason = "; ".join([r for r in (reason, "missed: " + ", ".join(chosen.failed) + why) if r])
     return ImplantArm(name, n_candidates, pareto, chosen, seconds, reason, budgets, record, tuple(pareto_plans),
                       wanted)
 

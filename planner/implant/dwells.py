@@ -445,4 +445,20 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
                       np.array([new_index[int(c)] for c in prob.channel_of[cols][keep]], dtype=int))
     failed = _aims_failed(target, gtv, oars, aims, v200, settings.v200_max_pct) + robust_failed(robustness)
     return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars, not failed, gtv,
-                       scale, gap, status, dvhs, robustness, tuple(failed))
+                       scale, gap, status, dvhs, robustness, tuple(failed), _limited_by(oars, v200, aims, settings))
+
+
+def _limited_by(oars: Sequence[StructureMetrics], v200_pct: float, aims: Aims,
+                settings: ImplantSettings) -> tuple[str, ...]:
+    """Return the limits a plan stands on (EQD2 Gy, %).
+
+    Organs within 0.3 Gy of their planning aim less the headroom, V200 within 1.5 % of its limit.
+    """
+    out = []
+    for o in oars:
+        aim = aims.oar_aim_eqd2_gy(o.name)
+        if aim is not None and o.d2cc_eqd2_gy >= aim - aims.headroom_eqd2_gy - 0.3:
+            out.append(f"{o.name} D2cm³ {o.d2cc_eqd2_gy:.1f} Gy (aim {aim:g} less {aims.headroom_eqd2_gy:g} headroom)")
+    if settings.v200_max_pct is not None and v200_pct >= settings.v200_max_pct - 1.5:
+        out.append(f"HR-CTV V200 {v200_pct:.1f} % (limit {settings.v200_max_pct:g} %)")
+    return tuple(out)

@@ -348,5 +348,6 @@ def _target_rows(prob: _Problem, n_pts: int, p_t: float, p_g: float) -> tuple[np
 
 def _modulation(settings: ImplantSettings) -> Modulation:
     """Return the modulation rules and objective weights of ``settings``."""
-    return Modulation(settings.max_dwell_share, settings.neighbour_ratio, settings.time_weight,
+    ratio = float("inf") if settings.neighbour_ratio is None else settings.neighbour_ratio
+    return Modulation(settings.max_dwell_share, ratio, settings.time_weight,
                       settings.invasiveness_weight, settings.smoothness_weight)

@@ -530,7 +530,8 @@ def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: n
             break
     if times is None:
         return None
-    if settings.min_dwell_time_s > 0:
+    short = (times > 1e-9) & (times < settings.min_dwell_time_s * (1 - 1e-9))
+    if short.any():  # the LP left dwells under the minimum: solved again with them rounded
         solution = optimiser.optimise(model.problem(settings.min_dwell_time_s), limit_factor=kap)
         if solution.times_s is not None:
             times = solution.times_s

@@ -22,9 +22,9 @@ class ImplantSettings:
         Smallest surface distance from a needle to any organ at risk.
     min_dwells : int
         A needle needs at least this many dwell positions to be a candidate.
-    neighbour_ratio : float
-        Neighbouring dwell times on a channel differ by at most this factor (>= 1; ``inf``, the default: no such
-        rule, the smoothness term shapes the loading instead).
+    neighbour_ratio : float or None
+        Neighbouring dwell times on a channel differ by at most this factor (>= 1; None, the default: no such rule,
+        the smoothness term shapes the loading instead).
     smoothness_weight : float
         Weight of the dwell-time gradient term (the sum of the time differences of neighbouring dwells, as a dose at
         the target, in units of the prescription) in both objectives (0: none).
@@ -88,7 +88,7 @@ class ImplantSettings:
     tip_offset_mm: float = 1.0
     clearance_margin_mm: float = 2.0
     min_dwells: int = 3
-    neighbour_ratio: float = float("inf")
+    neighbour_ratio: float | None = None
     smoothness_weight: float = 0.05
     max_dwell_share: float = 0.15
     steered_per_hole: int = 2
@@ -119,7 +119,7 @@ class ImplantSettings:
         if not (self.dwell_step_mm > 0 and self.dwell_margin_mm >= 0 and self.tip_offset_mm >= 0
                 and self.clearance_margin_mm >= 0):
             raise ValueError("dwell step must be > 0 mm; margins and tip offset >= 0 mm")
-        if self.neighbour_ratio < 1 or not 0 < self.max_dwell_share <= 1:
+        if (self.neighbour_ratio is not None and self.neighbour_ratio < 1) or not 0 < self.max_dwell_share <= 1:
             raise ValueError("neighbour_ratio must be >= 1 and max_dwell_share in (0, 1]")
         if min(self.min_dwells, self.max_needles, self.rolls, self.segments_per_channel,
                self.selection_target_points, self.final_target_points) < 1 or self.steered_per_hole < 0 \

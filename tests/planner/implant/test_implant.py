@@ -163,12 +163,8 @@ def test_chosen_implants_follow_the_dwell_rules(which: str, request: pytest.Fixt
         # empty-needle rule: every channel of the implant carries time, on at least three dwells
         assert plan.channels and min(plan.loaded_dwells) >= 3
         assert plan.max_dwell_share <= SETTINGS.max_dwell_share + 1e-9
-        for ch in range(1, len(plan.channels) + 1):
-            sel = plan.dwells.channels == ch
-            t, p = plan.dwells.times_s[sel], plan.dwells.positions_mm[sel]
-            adjacent = np.linalg.norm(np.diff(p, axis=0), axis=1) < 1.5 * SETTINGS.dwell_step_mm
-            ratio = np.maximum(t[1:] / t[:-1], t[:-1] / t[1:])[adjacent]
-            assert np.all(ratio <= SETTINGS.neighbour_ratio * (1 + 1e-6))
+        # no loaded dwell under the afterloader's minimum (the neighbour ratio is tested on its own below)
+        assert np.all(plan.dwells.times_s >= SETTINGS.min_dwell_time_s - 1e-9)
         # the exporters get exactly the loaded needles, each with time
         needles = implant_needles(plan)
         assert [n.hole_id for n in needles] == [c.name for c in plan.channels]

@@ -168,7 +168,7 @@ def test_scenarios_shift_each_dwell_sideways_and_follow_scenario_paths() -> None
         assert np.allclose(np.einsum("ij,ij->i", d, axis), 0.0, atol=1e-9)
     opposite = scen[0].positions_mm - dwells + scen[2].positions_mm - dwells
     assert np.allclose(opposite, 0.0, atol=1e-9)
-    assert np.allclose(scen[4].positions_mm, dwells + [1.5, 0.0, 0.0], atol=0.05)
+    assert np.allclose(scen[4].positions_mm, dwells + np.array([1.5, 0.0, 0.0]), atol=0.05)
     tandem = Channel("Tandem", "intracavitary", path, dwells)
     assert channel_scenarios(tandem, 0, 2.0, 4) == []
 
