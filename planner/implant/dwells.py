@@ -422,7 +422,8 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
     """Return the plan of the loading ``t`` of ``cols``: its metrics, every scenario's, and the aims met.
 
     All times are scaled down (by one factor) when a nominal D2cm³ exceeds its planning limit or a scenario's its
-    hard limit; a dwell the scaling takes under ``min_dwell_time_s`` is set to that minimum.
+    hard limit, and when HR-CTV D90 is over its upper planning aim (down to it, or to the factor that keeps every
+    scenario's D90 at its hard limit); a dwell the scaling takes under ``min_dwell_time_s`` is set to that minimum.
     """
     hard = np.array([prob.oar_hard[o] for o in check.organs], dtype=float)
     results = check.evaluate(t)
@@ -431,12 +432,18 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
     max_scale = float(np.min(hard[over] / d2_worst[over])) * (1 - 1e-9) if over.any() else 1.0
     target, v200, gtv, oars, dvhs, scale = _metrics(prob, cols, t, aims, vox_cc, max_scale)
     if scale < 1.0:
-        t = t * scale
-        t = np.where((t > 0) & (t < settings.min_dwell_time_s), settings.min_dwell_time_s, t)
+        t = np.where(t > 0, np.maximum(t * scale, settings.min_dwell_time_s), 0.0)
         results = check.evaluate(t)
     # the scenarios' D90 on their target voxels, shifted by the nominal's difference to the final sub-voxels
     bias = target.d90_gy - check.nominal(t)[1]
     results = [dataclasses.replace(r, d90_gy=r.d90_gy + bias) for r in results]
+    down = _down_to_upper_aim(target.d90_gy, min((r.d90_gy for r in results), default=np.inf), aims)
+    if down < 1.0:  # over the D90 upper aim: every time scaled down to it (as far as the scenarios' D90 allows)
+        t = np.where(t > 0, np.maximum(t * down, settings.min_dwell_time_s), 0.0)
+        target, v200, gtv, oars, dvhs, _ = _metrics(prob, cols, t, aims, vox_cc)
+        scale *= down
+        bias = target.d90_gy - check.nominal(t)[1]
+        results = [dataclasses.replace(r, d90_gy=r.d90_gy + bias) for r in check.evaluate(t)]
     names = tuple(prob.oar_names[o] for o in check.organs)
     robustness = robustness_json(results, names, aims, settings.shift_mm, settings.shift_directions)
     keep = t > 0
@@ -446,6 +453,19 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
     failed = _aims_failed(target, gtv, oars, aims, v200, settings.v200_max_pct) + robust_failed(robustness)
     return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars, not failed, gtv,
                        scale, gap, status, dvhs, robustness, tuple(failed), _limited_by(oars, v200, aims, settings))
+
+
+def _down_to_upper_aim(d90_gy: float, worst_d90_gy: float, aims: Aims) -> float:
+    """Return the factor (<= 1) that brings HR-CTV D90 (Gy per fraction) down to its upper planning aim.
+
+    No lower than what keeps the lowest scenario D90 (``worst_d90_gy``) at its hard limit; 1 without an upper aim.
+    """
+    if aims.target_d90_max_eqd2_gy is None or d90_gy <= 0:
+        return 1.0
+    down = aims.per_fraction_target_gy(aims.target_d90_max_eqd2_gy) / d90_gy
+    if np.isfinite(worst_d90_gy) and worst_d90_gy > 0:
+        down = max(down, aims.per_fraction_target_gy(aims.target_d90_limit_eqd2_gy) / worst_d90_gy)
+    return min(1.0, down * (1 - 1e-6) if down < 1.0 else 1.0)
 
 
 def _limited_by(oars: Sequence[StructureMetrics], v200_pct: float, aims: Aims,

@@ -221,12 +221,14 @@ def _aims_failed(target: StructureMetrics, gtv: StructureMetrics | None, oars: S
                  aims: Aims, v200_pct: float | None = None, v200_max_pct: float | None = None) -> list[str]:
     """Return the planning aims the nominal plan misses (empty: every one met), each with its value.
 
-    HR-CTV D90 and D98, GTV D98, each organ's D2cm³ at least ``headroom_eqd2_gy`` below its aim, and V200 within its
-    limit (when both are given).
+    HR-CTV D90 (within its upper aim too) and D98, GTV D98, each organ's D2cm³ at least ``headroom_eqd2_gy`` below its
+    aim, and V200 within its limit (when both are given).
     """
     out = []
     if target.d90_eqd2_gy < aims.target_d90_eqd2_gy - 1e-6:
         out.append(f"HR-CTV D90 {target.d90_eqd2_gy:.1f} < {aims.target_d90_eqd2_gy:g} Gy")
+    if aims.target_d90_max_eqd2_gy is not None and target.d90_eqd2_gy > aims.target_d90_max_eqd2_gy + 0.05:
+        out.append(f"HR-CTV D90 {target.d90_eqd2_gy:.1f} > {aims.target_d90_max_eqd2_gy:g} Gy")
     if target.d98_eqd2_gy < aims.target_d98_eqd2_gy - 1e-6:
         out.append(f"HR-CTV D98 {target.d98_eqd2_gy:.1f} < {aims.target_d98_eqd2_gy:g} Gy")
     if gtv is not None and gtv.d98_eqd2_gy < aims.gtv_d98_eqd2_gy - 1e-6:
