@@ -39,7 +39,7 @@ from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import BudgetResult, ImplantArm, ImplantPlan, _arm
 from reachplan.planner.implant.candidates import Channel
 from reachplan.planner.implant.dwells import _final
-from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, NeedleChoice, resolve
+from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, NeedleChoice, OrganRows, resolve
 from reachplan.planner.implant.problem import (
     _calibrate,
     _d2cc,
@@ -50,7 +50,7 @@ from reachplan.planner.implant.problem import (
     _sampled_problem,
     _target_rows,
 )
-from reachplan.planner.implant.robust import V200_KAPPA_START
+from reachplan.planner.implant.robust import V200_KAPPA_START, v200_points, v200_row_pct
 from reachplan.planner.implant.settings import ImplantSettings
 
 
@@ -105,11 +105,13 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     selection = _selection_problem(prob, needles, settings, _target_rows(prob, settings.selection_target_points,
                                                                          p_t, p_g), aims, vox_cc)
     # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows
+    n_org = sum(limit is not None for limit in prob.oar_limits)
     kappa = np.ones(len(selection.organs))
+    kappa[n_org:] = V200_KAPPA_START
     free = optimiser.optimise(selection, limit_factor=kappa)
     if free.times_s is not None:
-        kappa = _calibrate(kappa, _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
-                           selection.tail_means(free.times_s), selection.limits_gy)
+        kappa[:n_org] = _calibrate(kappa[:n_org], _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
+                                   selection.tail_means(free.times_s)[:n_org], selection.limits_gy[:n_org])
         free = optimiser.optimise(selection, limit_factor=kappa)
     bound = free.objective if free.times_s is not None else float("nan")
     final = _Final(prob, *_target_rows(prob, settings.final_target_points, p_t, p_g), aims, settings, vox_cc,
@@ -130,8 +132,9 @@ def _selection_problem(prob: _Problem, needles: Sequence[int], settings: Implant
                        target: tuple[np.ndarray, np.ndarray], aims: Aims, vox_cc: float) -> DwellProblem:
     """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness.
 
-    Its rows: the target points and each organ's nominal D2cm³ rows (planning aim less the headroom); the scenarios
-    and the V200 rows are the final step's (:func:`reachplan.planner.implant.robust.robust_times`).
+    Its rows: the target points, each organ's nominal D2cm³ rows (planning aim less the headroom) and the HR-CTV's
+    V200 rows (their calibration the last final plan's); the scenarios are the final step's
+    (:func:`reachplan.planner.implant.robust.robust_times`).
     """
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     channels = prob.channels
@@ -147,8 +150,14 @@ def _selection_problem(prob: _Problem, needles: Sequence[int], settings: Implant
         units += np.array_split(on_c, min(settings.segments_per_channel, len(on_c)))
     organs = _organ_rows(prob, prob.positions, prob.directions, settings.selection_oar_pitch_mm,
                          settings.oar_sample_cc, vox_cc)
+    rates = _rates(target[0], prob.positions, prob.directions, prob)
+    if settings.v200_max_pct is not None:
+        rows = v200_points(len(prob.target_pts), settings.selection_target_points)
+        volume = len(prob.target_pts) * vox_cc
+        organs.append(OrganRows(rates[rows], np.full(len(rows), volume / len(rows)), 2.0 * aims.prescription_gy,
+                                volume * v200_row_pct(settings) / 100.0, "HR-CTV V200"))
     return DwellProblem(
-        _rates(target[0], prob.positions, prob.directions, prob), target[1], p_t, tuple(organs), prob.channel_of,
+        rates, target[1], p_t, tuple(organs), prob.channel_of,
         _modulation(settings), tuple(units),
         NeedleChoice(tuple(needles), tuple(channels[i].name for i in needles), cost),
         settings.swap_pool, settings.swap_passes)
@@ -220,6 +229,8 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     prob, settings = final.prob, final.settings
     channels = prob.channels
     intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
+    kappa = kappa.copy()
+    n_org = len(kappa) - (settings.v200_max_pct is not None)
     budgets: list[BudgetResult] = []
     plans: list[ImplantPlan] = []
     seen: dict[tuple[int, ...], ImplantPlan | None] = {}
@@ -229,6 +240,8 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     best_d90 = -np.inf
     for k in range(0 if intracavitary else 1, min(settings.max_needles, len(needles)) + 1):
         t_k = time.perf_counter()
+        if final.kappa is not None and settings.v200_max_pct is not None:
+            kappa[-1] = final.kappa[-1]  # the V200 rows' calibration: the last final plan's
         sol = optimiser.optimise(selection, budget=k, limit_factor=kappa, start=keep)
         value, lower, status = sol.objective, sol.bound, sol.status
         if sol.times_s is None:
@@ -246,7 +259,7 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
         if new:
-            seen[picked] = final(np.array(picked, dtype=int), kappa.copy(),
+            seen[picked] = final(np.array(picked, dtype=int), kappa[:n_org].copy(),
                                  f"budget {k}: selection objective {value:.6g}, {status}", gap)
         budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
                                     tuple(channels[c] for c in picked), seen.get(picked) if new else None))

@@ -367,10 +367,19 @@ def v200_points(n_target: int, n_fin: int) -> np.ndarray:
     return _stride(min(n_target, n_fin), V200_POINTS)
 
 
-def _v200_row_pct(settings: ImplantSettings) -> float:
+def v200_row_pct(settings: ImplantSettings) -> float:
     """Return the V200 rows' share (%): the limit less :data:`V200_MARGIN_PCT`.
 
     The rows are on a stride of voxel centres, the plan's V200 on sub-voxels.
+
+    Parameters
+    ----------
+    settings : ImplantSettings
+        Its ``v200_max_pct`` (not None).
+
+    Returns
+    -------
+    float, %
     """
     assert settings.v200_max_pct is not None
     return max(settings.v200_max_pct - V200_MARGIN_PCT, 0.5 * settings.v200_max_pct)
@@ -403,7 +412,7 @@ class _RobustModel:
             rows = v200_points(len(prob.target_pts), settings.final_target_points)
             volume = len(prob.target_pts) * vox_cc
             self.v200 = [OrganRows(a_t[rows], np.full(len(rows), volume / len(rows)), 2.0 * self.rx,
-                                   volume * _v200_row_pct(settings) / 100.0, "HR-CTV V200")]
+                                   volume * v200_row_pct(settings) / 100.0, "HR-CTV V200")]
         channels = sorted({int(c) for c in prob.channel_of[cols]})
         self.check = ScenarioCheck(prob, cols, [s for c in channels for s in channel_scenarios(
             prob.channels[c], c, settings.shift_mm, settings.shift_directions)], vox_cc)
@@ -455,7 +464,7 @@ class _RobustModel:
         """
         results = self.check.evaluate(times)
         v200 = [] if not self.v200 else [dose_to_fraction(self.check.dose_at_target(times),
-                                                          _v200_row_pct(self.settings) / 100.0)]
+                                                          v200_row_pct(self.settings) / 100.0)]
         exact = np.concatenate([self.check.nominal(times)[0], [results[k].d2cc_gy[i] for k, i in self.active], v200])
         new = _calibrate(kap, exact, problem.tail_means(times), problem.limits_gy)
         added = [(k, i) for k, r in enumerate(results) for i in range(len(self.hard))
