@@ -1,10 +1,12 @@
 """Dwell times of a chosen set of channels: the implant's final LP, and the per-target plan of given needles.
 
-**Dwell times on the chosen channels of an implant** (:func:`_final`): the optimiser without a budget over every
-dwell (no blocks), its organ rows calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under
-``min_dwell_time_s`` are dropped; a needle left with fewer than ``min_dwells`` loaded dwells is not part of the
-implant: it is dropped and the rest re-solved. The plan is checked on every organ voxel near the implant and all
-times scaled down when a D2cm³ still exceeds its limit.
+**Dwell times on the chosen channels of an implant** (:func:`_final`): the robust loading of
+:func:`reachplan.planner.implant.robust.robust_times` (nominal organ rows at the planning aim less the headroom,
+V200 rows, the rows of every one-needle-displaced scenario over a hard limit, calibrated until they hold; no loaded
+dwell under ``min_dwell_time_s``); a needle left with fewer than ``min_dwells`` loaded dwells is not part of the
+implant: it is dropped and the rest re-solved. The plan is checked on every organ voxel near the implant and in
+every scenario, all times scaled down when a D2cm³ still exceeds its limit (or D90 its upper aim), and the aims it
+misses and the limits it stands on are named (:func:`_plan`).
 
 **Dwell times on given needles** (:func:`optimise_dwell_times`, the per-target delivery), a linear programme (scipy
 HiGHS, deterministic)::

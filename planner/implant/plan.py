@@ -8,21 +8,24 @@ on the model of :mod:`reachplan.planner.implant.model`):
 
 1. **Needle selection** at budget K, on the selection problem: each channel's dwells in ``segments_per_channel``
    blocks of equal time, ``selection_target_points`` sampled target points, organ rows on a lattice of
-   ``selection_oar_pitch_mm``, one binary per needle, one needle per template hole. The bound reported per budget
+   ``selection_oar_pitch_mm`` (each organ's planning aim less the headroom), the HR-CTV's V200 rows (calibrated by
+   the last final plan), one binary per needle, one needle per template hole. The bound reported per budget
    is the optimiser's (the built-in's: the LP relaxation's) and the relative gap to the selection kept
    (:class:`reachplan.planner.implant.arms.BudgetResult`; plan.json ``selection``). The LP with every candidate
    loaded, its organ rows calibrated once, bounds every budget (``selection.all_candidates_objective``); every
    budget's model has those rows.
-2. **Dwell times on the chosen channels** (:func:`reachplan.planner.implant.dwells._final`): the optimiser without
-   a budget over every dwell of the selection, the empty-needle rule, the check on every organ voxel.
+2. **Dwell times on the chosen channels** (:func:`reachplan.planner.implant.dwells._final`): the robust loading
+   (:mod:`reachplan.planner.implant.robust`: hard limits and D90 >= 85 Gy with any one needle displaced), the
+   empty-needle rule, the check on every organ voxel and in every scenario.
 
-Each new selection's plan is a point of the arm's Pareto curve (:mod:`reachplan.planner.implant.arms`). The budgets
-stop ``extra_after_aims`` after the first that meets the aims, after two budgets without a new selection, or when
-the selection reaches the all-candidates bound.
+Each new selection's plan is a point of the arm's Pareto curve (:mod:`reachplan.planner.implant.arms`); the plan
+chosen is the fewest needles that meet every planning aim with the headroom and keep the hard limits in every
+scenario (or the Pareto point of ``ImplantSettings.needles``). The budgets stop as :func:`_budgets` says.
 
 Aims (EQD2, α/β 10 tumour / 3 organs, 45 Gy / 25 fractions external beam + 4 fractions): EMBRACE II
-(Pötter et al., Clin Transl Radiat Oncol 9:48, 2018) and the ESGO/ESTRO achievability table (90 % of
-patients: HR-CTV D90 > 85, D98 > 75, GTV D98 > 90 Gy), as :class:`reachplan.planner.dose.aims.Aims`.
+(Pötter et al., Clin Transl Radiat Oncol 9:48, 2018), as :class:`reachplan.planner.dose.aims.Aims`: planning aims
+HR-CTV D90 > 90 and < 95, D98 > 75, GTV D98 > 95 Gy, organ D2cm³ 1 Gy below their aims; hard limits HR-CTV D90 > 85
+Gy and the organs' limits, kept with any one needle displaced.
 """
 
 from __future__ import annotations
