@@ -56,6 +56,9 @@ from reachplan.planner.implant.problem import (
 from reachplan.planner.implant.robust import V200_KAPPA_START, v200_points, v200_row_pct
 from reachplan.planner.implant.settings import ImplantSettings
 
+#: a new plan that raises the arm's best HR-CTV D90 by less than this (Gy EQD2) is no gain (two such end the budgets)
+MIN_GAIN_GY = 0.5
+
 
 def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
                  air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
@@ -227,7 +230,8 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     selection model sees), the needle with the most time in the all-candidates loading (``rank``, indices into
     ``needles``) whose hole is free is added. The budgets stop ``extra_after_aims`` after the first plan that meets
     every aim (or at ``settings.needles``), after two budgets without a new selection, when the selection reaches the
-    all-candidates bound with every aim met, or after two new plans that do not raise the best D90.
+    all-candidates bound with every aim met, or after two new plans that do not raise the best D90 by
+    :data:`MIN_GAIN_GY`.
     """
     prob, settings = final.prob, final.settings
     channels = prob.channels
@@ -270,7 +274,7 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         plan = seen[picked] if new else None
         if plan is not None:
             plans.append(plan)
-            no_gain = 0 if plan.target.d90_eqd2_gy > best_d90 + 0.1 else no_gain + 1
+            no_gain = 0 if plan.target.d90_eqd2_gy > best_d90 + MIN_GAIN_GY else no_gain + 1
             best_d90 = max(best_d90, plan.target.d90_eqd2_gy)
             if plan.aims_met and met_at is None:
                 met_at = k

@@ -54,7 +54,7 @@ V200_KAPPA_START = 3.0
 #: HR-CTV points of the V200 rows (an even stride through the final model's target points)
 V200_POINTS = 250
 #: the rounds stop when no row set's calibration moves by more than this (relative)
-KAPPA_TOLERANCE = 0.02
+KAPPA_TOLERANCE = 0.03
 #: the V200 rows hold this much (percentage points of the HR-CTV) below the limit
 V200_MARGIN_PCT = 1.0
 

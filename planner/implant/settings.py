@@ -96,8 +96,8 @@ class ImplantSettings:
     max_needles: int = 16
     extra_after_aims: int = 1
     coverage_margin: float = 0.03
-    swap_pool: int = 8
-    swap_passes: int = 3
+    swap_pool: int = 6
+    swap_passes: int = 2
     segments_per_channel: int = 2
     selection_target_points: int = 200
     final_target_points: int = 800
@@ -108,7 +108,7 @@ class ImplantSettings:
     v200_max_pct: float | None = 35.0
     shift_mm: float = 2.0
     shift_directions: int = 4
-    robust_rounds: int = 5
+    robust_rounds: int = 4
     needles: int | None = None
     oar_eval_radius_mm: float = 40.0
     invasiveness_weight: float = 1e-3  # tie-breaks in the objective
