@@ -302,3 +302,26 @@ def test_demo_exports_both_arms_in_dicom(demo: Path, dciodvfy) -> None:
     steered = pydicom.dcmread(next((demo / "export" / "implant_steered").glob("RP_*.dcm")))
     assert [float(c.ChannelTotalTime) for c in delivered.ApplicationSetupSequence[0].ChannelSequence] == \
         [float(c.ChannelTotalTime) for c in steered.ApplicationSetupSequence[0].ChannelSequence]
+
+
+def test_demo_implant_is_robust_with_clinical_loading(demo: Path) -> None:
+    """The exported arm (straight + steered) meets every planning aim with the headroom, keeps the hard limits with
+    any one needle 2 mm off, HR-CTV V200 <= 35 %, no loaded dwell under 0.5 s; its time balance is reported."""
+    from reachplan.planner.dose.aims import Aims
+
+    aims = Aims()
+    arm = json.loads((demo / "plan.json").read_text())["implant"]["steered"]
+    assert arm["aims_met"] and not arm["aims_failed"], arm["reason"]
+    assert arm["hrctv_d90_eqd2_gy"] >= 90.0 and arm["hrctv_d98_eqd2_gy"] >= 75.0
+    assert arm["hrctv_v200_percent"] <= 35.0
+    for organ, value in arm["oar_d2cc_eqd2_gy"].items():
+        aim = aims.oar_aim_eqd2_gy(organ)
+        assert aim is None or value <= aim - aims.headroom_eqd2_gy + 1e-3, organ
+    rob = arm["robustness"]
+    assert rob["hard_limits_met"] and rob["scenarios"] >= 4 * arm["n_needles"]
+    assert rob["worst_hrctv_d90_eqd2_gy"] >= 85.0
+    for organ, worst in rob["worst_oar_d2cc_eqd2_gy"].items():
+        assert worst["value"] <= aims.oar_hard_limit_eqd2_gy(organ), organ
+    assert min(t for n in arm["needles"] for t in n["dwell_times_s"]) >= 0.5 - 1e-3
+    balance = arm["time_balance"]
+    assert balance["intracavitary_s"] + balance["interstitial_s"] == pytest.approx(arm["total_time_s"], abs=0.01)

@@ -20,7 +20,7 @@ HELP = ("write a built-in case as DICOM (the clinical case by default), read it 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--out``, the case options, the implant options (tip offset, tension reserve), ``--quiet`` and ``--json``.
+    """Add ``--out``, the case options, the implant options (tip offset, reserve, ``--needles``), ``--quiet``...
 
     Parameters
     ----------

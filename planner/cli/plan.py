@@ -41,6 +41,31 @@ NAME = "plan"
 HELP = "rank template holes, stylet designs and tension schedules for targets; write plan.json, figures, exports"
 
 
+def add_needles_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--needles K``: the implant's needle count, a point on each arm's Pareto curve.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser (``plan`` or ``demo``).
+    """
+    parser.add_argument("--needles", type=_needle_count, default=None, metavar="K",
+                        help="implant needles: the point of each arm's Pareto curve with K needles (default: the "
+                             "fewest that meet every aim with headroom and keep the hard limits with any needle 2 mm "
+                             "off)")
+
+
+def _needle_count(text: str) -> int:
+    """Return ``--needles``'s value: an integer >= 0 (an argparse type; a bad value is a usage error)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--needles needs a whole number of needles, not {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"--needles must be >= 0, not {value}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``plan`` options to ``parser``.
 
@@ -143,7 +168,7 @@ def add_rtplan_style(parser: argparse.ArgumentParser) -> None:
 
 
 def add_implant_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the implant planning options (shared with ``demo``): ``--applicator-tip-offset``, ``--tension-reserve``.
+    """Add the implant planning options (shared with ``demo``): tip offset, tension reserve, ``--needles``.
 
     Parameters
     ----------
@@ -156,6 +181,7 @@ def add_implant_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tension-reserve", type=tension_reserve, default=0.1, metavar="FRACTION",
                         help="fraction of each stylet's tension limit no planned needle uses, for the hand's "
                              "tension error (default 0.1: 10 %%; 0 allows the full limit)")
+    add_needles_argument(parser)
 
 
 def implant_settings(args: argparse.Namespace) -> ImplantSettings:
@@ -164,7 +190,7 @@ def implant_settings(args: argparse.Namespace) -> ImplantSettings:
     Parameters
     ----------
     args : argparse.Namespace
-        Parsed ``plan`` or ``demo`` options (``applicator_tip_offset``).
+        Parsed ``plan`` or ``demo`` options (``applicator_tip_offset``, ``needles``).
 
     Returns
     -------
@@ -179,7 +205,8 @@ def implant_settings(args: argparse.Namespace) -> ImplantSettings:
     from reachplan.planner.implant.settings import ImplantSettings
 
     offset = finite(getattr(args, "applicator_tip_offset", None), "--applicator-tip-offset", lo=0.0)
-    return ImplantSettings() if offset is None else ImplantSettings(applicator_tip_offset_mm=offset)
+    settings = ImplantSettings(needles=getattr(args, "needles", None))
+    return settings if offset is None else dataclasses.replace(settings, applicator_tip_offset_mm=offset)
 
 
 def _triple(spec: str, what: str) -> tuple[float, float, float]:

@@ -54,6 +54,15 @@ class ImplantPlan:
         Which budget and how the selection was made.
     dvhs : tuple of (name, Dvh)
         Cumulative DVH of each structure (Gy per fraction).
+    failed : tuple of str
+        The aims the plan misses (empty when ``aims_met``), e.g. ``"HR-CTV V200 36.1 % > 35 %"``.
+    limited_by : tuple of str
+        The limits the plan stands on (an organ's D2cm³ within 0.3 Gy of its planning aim less the headroom, V200
+        within 1.5 % of its limit): why the coverage is no higher.
+    robustness : dict
+        plan.json's ``robustness``: the one-needle-displaced scenarios, each organ's worst D2cm³ and the lowest
+        HR-CTV D90 over them, and whether every hard limit holds in every scenario
+        (:func:`reachplan.planner.implant.robust.robustness_json`).
     """
 
     channels: tuple[Channel, ...]
@@ -67,6 +76,9 @@ class ImplantPlan:
     mip_gap: float | None = None
     mip_status: str = ""
     dvhs: tuple[tuple[str, Dvh], ...] = ()
+    robustness: dict[str, object] = field(default_factory=dict)
+    failed: tuple[str, ...] = ()
+    limited_by: tuple[str, ...] = ()
 
     @property
     def n_needles(self) -> int:
@@ -148,6 +160,9 @@ class ImplantArm:
         plan.json's ``needle_check`` record: how the chosen implant's needles were checked (reference model,
         tension reserve, re-load, rejected needles; :func:`reachplan.planner.implant.needles.check_arm`); empty when
         they were not.
+    wanted_needles : int or None
+        The needle count asked for (``--needles``): the Pareto point chosen; None: the fewest needles that meet
+        every aim.
     """
 
     name: str
@@ -160,6 +175,7 @@ class ImplantArm:
     selection: dict[str, object] = field(default_factory=dict)
     plans: tuple[ImplantPlan, ...] = ()
     needle_check: dict[str, object] = field(default_factory=dict)
+    wanted_needles: int | None = None
 
     def to_json(self) -> dict[str, object]:
         """Return the arm for plan.json.
@@ -216,6 +232,12 @@ class ImplantArm:
             "scale": round(pl.scale, 6),
             "selection_gap": None if pl.mip_gap is None else round(pl.mip_gap, 4),
             "selection": {**self.selection, "chosen": pl.mip_status},
+            "aims_failed": list(pl.failed),
+            "limited_by": list(pl.limited_by),
+            "robustness": pl.robustness,
+            "time_balance": time_balance(pl),
+            "loading": {"min_loaded_dwell_s": round(float(pl.dwells.times_s.min()), 3) if len(pl.dwells.times_s)
+                        else None, "wanted_needles": self.wanted_needles},
         }
 
 
@@ -279,18 +301,52 @@ class BudgetResult:
 
 
 def _arm(name: str, n_candidates: int, plans: Sequence[ImplantPlan], seconds: float,
-         budgets: tuple[BudgetResult, ...], record: dict[str, object]) -> ImplantArm:
-    """Return an arm from its plans: the Pareto curve and the plan chosen from it (``plan.plan_implant``)."""
+         budgets: tuple[BudgetResult, ...], record: dict[str, object], wanted: int | None = None) -> ImplantArm:
+    """Return an arm from its plans: the Pareto curve and the plan chosen from it (``plan.plan_implant``).
+
+    The plan chosen: with ``wanted`` (a needle count), the Pareto point with that many needles, else the one with the
+    most needles under it (the fewest above it when there is none); without, the fewest needles that meet every aim
+    (planning aims with the headroom, hard limits in every scenario), else the highest D90.
+    """
     pareto_plans = _pareto(plans)
     pareto = tuple(ParetoPoint(p.n_needles, p.target.d90_eqd2_gy, p.aims_met) for p in pareto_plans)
     if not pareto_plans:
         return ImplantArm(name, n_candidates, (), None, seconds, "no needle budget gave a plan (every LP failed)",
-                          budgets, record)
+                          budgets, record, wanted_needles=wanted)
     meeting = [p for p in pareto_plans if p.aims_met]
-    chosen = (min(meeting, key=lambda p: (p.n_needles, -p.target.d90_eqd2_gy)) if meeting
-              else max(pareto_plans, key=lambda p: (p.target.d90_eqd2_gy, -p.n_needles)))
-    reason = "" if meeting else "no needle budget meets every aim; the plan with the highest D90 is kept"
-    return ImplantArm(name, n_candidates, pareto, chosen, seconds, reason, budgets, record, tuple(pareto_plans))
+    if wanted is not None:
+        under = [p for p in pareto_plans if p.n_needles <= wanted]
+        chosen = max(under, key=lambda p: p.n_needles) if under else min(pareto_plans, key=lambda p: p.n_needles)
+        reason = "" if chosen.n_needles == wanted else \
+            f"no Pareto point has {wanted} needles; the one with {chosen.n_needles} is kept"
+    else:
+        chosen = (min(meeting, key=lambda p: (p.n_needles, -p.target.d90_eqd2_gy)) if meeting
+                  else max(pareto_plans, key=lambda p: (p.target.d90_eqd2_gy, -p.n_needles)))
+        reason = "" if meeting else "no needle budget meets every aim; the plan with the highest D90 is kept"
+    if not chosen.aims_met and chosen.failed:
+        why = "" if not chosen.limited_by else "; limited by " + ", ".join(chosen.limited_by)
+        reason = "; ".join([r for r in (reason, "missed: " + ", ".join(chosen.failed) + why) if r])
+    return ImplantArm(name, n_candidates, pareto, chosen, seconds, reason, budgets, record, tuple(pareto_plans),
+                      wanted_needles=wanted)
+
+
+def time_balance(plan: ImplantPlan) -> dict[str, object]:
+    """Return the intracavitary/interstitial time balance of a plan (plan.json ``time_balance``).
+
+    Parameters
+    ----------
+    plan : ImplantPlan
+        Its dwell times (s per fraction) and channels.
+
+    Returns
+    -------
+    dict
+        ``intracavitary_s``, ``interstitial_s`` (s per fraction) and ``interstitial_share`` (of the total time).
+    """
+    total = plan.total_time_s
+    needle = total * plan.needle_time_share
+    return {"intracavitary_s": round(total - needle, 3), "interstitial_s": round(needle, 3),
+            "interstitial_share": round(plan.needle_time_share, 5)}
 
 
 def with_subset(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
@@ -310,7 +366,8 @@ def with_subset(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
     -------
     ImplantArm
     """
-    return _arm(arm.name, arm.n_candidates, [*arm.plans, *subset.plans], arm.seconds, arm.budgets, arm.selection)
+    return _arm(arm.name, arm.n_candidates, [*arm.plans, *subset.plans], arm.seconds, arm.budgets, arm.selection,
+                arm.wanted_needles)
 
 
 def _pareto(plans: Sequence[ImplantPlan]) -> list[ImplantPlan]:

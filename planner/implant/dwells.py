@@ -1,10 +1,12 @@
 """Dwell times of a chosen set of channels: the implant's final LP, and the per-target plan of given needles.
 
-**Dwell times on the chosen channels of an implant** (:func:`_final`): the optimiser without a budget over every
-dwell (no blocks), its organ rows calibrated until the D2cm³ they give is within 1 % of the limit. Dwells under
-``min_dwell_time_s`` are dropped; a needle left with fewer than ``min_dwells`` loaded dwells is not part of the
-implant: it is dropped and the rest re-solved. The plan is checked on every organ voxel near the implant and all
-times scaled down when a D2cm³ still exceeds its limit.
+**Dwell times on the chosen channels of an implant** (:func:`_final`): the robust loading of
+:func:`reachplan.planner.implant.robust.robust_times` (nominal organ rows at the planning aim less the headroom,
+V200 rows, the rows of every one-needle-displaced scenario over a hard limit, calibrated until they hold; no loaded
+dwell under ``min_dwell_time_s``); a needle left with fewer than ``min_dwells`` loaded dwells is not part of the
+implant: it is dropped and the rest re-solved. The plan is checked on every organ voxel near the implant and in
+every scenario, all times scaled down when a D2cm³ still exceeds its limit (or D90 its upper aim), and the aims it
+misses and the limits it stands on are named (:func:`_plan`).
 
 **Dwell times on given needles** (:func:`optimise_dwell_times`, the per-target delivery), a linear programme (scipy
 HiGHS, deterministic)::
@@ -27,6 +29,7 @@ Needle paths are ``(k, 3)`` polylines in mm, LPS, ordered from the template (bas
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -49,18 +52,14 @@ from reachplan.planner.dose.dwells import DwellSet, dwells_along_path, grid_poin
 from reachplan.planner.dose.structures import PlanningStructures
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import ImplantPlan
-from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem
+from reachplan.planner.implant.optimiser import DwellOptimiser
 from reachplan.planner.implant.problem import (
-    _aims_met,
-    _calibrate,
-    _d2cc,
+    _aims_failed,
     _metrics,
-    _modulation,
-    _organ_rows,
     _Problem,
-    _rates,
     _stride,
 )
+from reachplan.planner.implant.robust import ScenarioCheck, robust_failed, robust_times, robustness_json, worst
 from reachplan.planner.implant.settings import ImplantSettings
 
 
@@ -367,7 +366,7 @@ def optimise_dwell_times(
 def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims,
            settings: ImplantSettings, vox_cc: float, kappa: np.ndarray, status: str, gap: float | None,
            optimiser: DwellOptimiser) -> ImplantPlan | None:
-    """Return the implant of the chosen channels: their dwell times (the empty-needle rule) and the plan's metrics.
+    """Return the implant of the chosen channels: their robust dwell times (the empty-needle rule) and its metrics.
 
     Parameters
     ----------
@@ -380,8 +379,9 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.nd
     aims, settings : Aims, ImplantSettings
     vox_cc : float, cm³
         Voxel volume of the planning grid.
-    kappa : (n_organs,) float
-        The selection's calibration of the organ rows (the start of this one's).
+    kappa : (n_organs + n_v200,) float
+        The calibration of the nominal organ rows and the V200 rows to start from; updated in place to the one
+        reached (the next plan's start).
     status : str
         How the selection was made (the plan's ``mip_status``).
     gap : float or None
@@ -396,12 +396,15 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.nd
     """
     t = np.zeros(0)
     cols = np.zeros(0, dtype=int)
+    check = None
     for _ in range(3):
         cols = np.flatnonzero(np.isin(prob.channel_of, chosen))
-        loaded = _calibrated_times(prob, cols, fin_pts, fin_p, aims, settings, vox_cc, kappa, optimiser)
+        loaded = robust_times(prob, cols, fin_pts, fin_p, aims, settings, vox_cc, kappa, optimiser)
         if loaded is None:
             return None
-        t = np.where(loaded >= settings.min_dwell_time_s, loaded, 0.0)
+        times, check, reached = loaded
+        kappa[:len(reached)] = reached
+        t = np.where(times >= settings.min_dwell_time_s * (1 - 1e-6), times, 0.0)
         n_loaded = np.bincount(prob.channel_of[cols], weights=(t > 0).astype(float), minlength=len(prob.channels))
         need = np.array([settings.min_dwells if prob.channels[c].is_needle else 1 for c in range(len(prob.channels))])
         loaded_ch = np.array([c for c in chosen if n_loaded[c] >= need[c]], dtype=int)
@@ -412,38 +415,72 @@ def _final(prob: _Problem, chosen: np.ndarray, fin_pts: np.ndarray, fin_p: np.nd
         if len(loaded_ch) == len(chosen):
             break
         chosen = loaded_ch  # a needle the optimum leaves (almost) empty is not part of the implant: re-solve
-    target, v200, gtv, oars, dvhs, scale = _metrics(prob, cols, t, aims, vox_cc)
+    assert check is not None
+    return _plan(prob, chosen, cols, t, check, aims, settings, vox_cc, status, gap)
+
+
+def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, check: ScenarioCheck, aims: Aims,
+          settings: ImplantSettings, vox_cc: float, status: str, gap: float | None) -> ImplantPlan:
+    """Return the plan of the loading ``t`` of ``cols``: its metrics, every scenario's, and the aims met.
+
+    All times are scaled down (by one factor) when a nominal D2cm³ exceeds its planning limit or a scenario's its
+    hard limit, and when HR-CTV D90 is over its upper planning aim (down to it, or to the factor that keeps every
+    scenario's D90 at its hard limit); a dwell the scaling takes under ``min_dwell_time_s`` is set to that minimum.
+    """
+    hard = np.array([prob.oar_hard[o] for o in check.organs], dtype=float)
+    results = check.evaluate(t)
+    d2_worst, _ = worst(results, hard)
+    over = d2_worst > hard
+    max_scale = float(np.min(hard[over] / d2_worst[over])) * (1 - 1e-9) if over.any() else 1.0
+    target, v200, gtv, oars, dvhs, scale = _metrics(prob, cols, t, aims, vox_cc, max_scale)
+    if scale < 1.0:
+        t = np.where(t > 0, np.maximum(t * scale, settings.min_dwell_time_s), 0.0)
+        results = check.evaluate(t)
+    # the scenarios' D90 on their target voxels, shifted by the nominal's difference to the final sub-voxels
+    bias = target.d90_gy - check.nominal(t)[1]
+    results = [dataclasses.replace(r, d90_gy=r.d90_gy + bias) for r in results]
+    down = _down_to_upper_aim(target.d90_gy, min((r.d90_gy for r in results), default=np.inf), aims)
+    if down < 1.0:  # over the D90 upper aim: every time scaled down to it (as far as the scenarios' D90 allows)
+        t = np.where(t > 0, np.maximum(t * down, settings.min_dwell_time_s), 0.0)
+        target, v200, gtv, oars, dvhs, _ = _metrics(prob, cols, t, aims, vox_cc)
+        scale *= down
+        bias = target.d90_gy - check.nominal(t)[1]
+        results = [dataclasses.replace(r, d90_gy=r.d90_gy + bias) for r in check.evaluate(t)]
+    names = tuple(prob.oar_names[o] for o in check.organs)
+    robustness = robustness_json(results, names, aims, settings.shift_mm, settings.shift_directions)
     keep = t > 0
     new_index = {int(c): i + 1 for i, c in enumerate(chosen)}
-    dwells = DwellSet(prob.positions[cols][keep], prob.directions[cols][keep], t[keep] * scale,
+    dwells = DwellSet(prob.positions[cols][keep], prob.directions[cols][keep], t[keep],
                       np.array([new_index[int(c)] for c in prob.channel_of[cols][keep]], dtype=int))
-    return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars,
-                       _aims_met(target, gtv, oars, aims), gtv, scale, gap, status, dvhs)
+    failed = _aims_failed(target, gtv, oars, aims, v200, settings.v200_max_pct) + robust_failed(robustness)
+    return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars, not failed, gtv,
+                       scale, gap, status, dvhs, robustness, tuple(failed), _limited_by(oars, v200, aims, settings))
 
 
-def _calibrated_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims,
-                      settings: ImplantSettings, vox_cc: float, kappa: np.ndarray,
-                      optimiser: DwellOptimiser) -> np.ndarray | None:
-    """Return the dwell times ((len(cols),) s) of the dwell columns ``cols``, organ rows calibrated to D2cm³.
+def _down_to_upper_aim(d90_gy: float, worst_d90_gy: float, aims: Aims) -> float:
+    """Return the factor (<= 1) that brings HR-CTV D90 (Gy per fraction) down to its upper planning aim.
 
-    Solved until the calibration ``κ`` of every organ row changes by less than 1 % (at most four solves); None when
-    the optimiser finds no loading at all.
+    No lower than what keeps the lowest scenario D90 (``worst_d90_gy``) at its hard limit; 1 without an upper aim.
     """
-    pos, dirs = prob.positions[cols], prob.directions[cols]
-    problem = DwellProblem(
-        _rates(fin_pts, pos, dirs, prob), fin_p, aims.prescription_gy * (1.0 + settings.coverage_margin),
-        tuple(_organ_rows(prob, pos, dirs, settings.final_oar_pitch_mm, settings.oar_sample_cc, vox_cc)),
-        prob.channel_of[cols], _modulation(settings))
-    kap = kappa.copy()
-    times = None
-    for _ in range(4):  # until the organ rows are calibrated to D2cm³ within 1 %
-        solution = optimiser.optimise(problem, limit_factor=kap)
-        if solution.times_s is None:
-            break
-        times = solution.times_s
-        new = _calibrate(kap, _d2cc(prob, pos, dirs, times, vox_cc), problem.tail_means(times), problem.limits_gy)
-        if np.all(np.abs(new / kap - 1) < 0.01):
-            break
-        kap = new
-    return times
+    if aims.target_d90_max_eqd2_gy is None or d90_gy <= 0:
+        return 1.0
+    down = aims.per_fraction_target_gy(aims.target_d90_max_eqd2_gy) / d90_gy
+    if np.isfinite(worst_d90_gy) and worst_d90_gy > 0:
+        down = max(down, aims.per_fraction_target_gy(aims.target_d90_limit_eqd2_gy) / worst_d90_gy)
+    return min(1.0, down * (1 - 1e-6) if down < 1.0 else 1.0)
 
+
+def _limited_by(oars: Sequence[StructureMetrics], v200_pct: float, aims: Aims,
+                settings: ImplantSettings) -> tuple[str, ...]:
+    """Return the limits a plan stands on (EQD2 Gy, %).
+
+    Organs within 0.3 Gy of their planning aim less the headroom, V200 within 1.5 % of its limit.
+    """
+    out = []
+    for o in oars:
+        aim = aims.oar_aim_eqd2_gy(o.name)
+        if aim is not None and o.d2cc_eqd2_gy >= aim - aims.headroom_eqd2_gy - 0.3:
+            out.append(f"{o.name} D2cm³ {o.d2cc_eqd2_gy:.1f} Gy (aim {aim:g} less {aims.headroom_eqd2_gy:g} headroom)")
+    if settings.v200_max_pct is not None and v200_pct >= settings.v200_max_pct - 1.5:
+        out.append(f"HR-CTV V200 {v200_pct:.1f} % (limit {settings.v200_max_pct:g} %)")
+    return tuple(out)

@@ -8,11 +8,24 @@ D2cm³ limit, written linearly as ``ζ + Σ w_i s_i / 2 cm³ <= κ L``, ``s_i >=
 Oper Res 54(2):201, 2006). The mean over the hottest 2 cm³ is at least D2cm³, so with ``κ`` = 1 the row implies
 D2cm³ <= L; ``κ`` is then calibrated to the exact D2cm³ on the organ's 20 cm³ nearest the loaded dwells
 (:func:`reachplan.planner.implant.problem._calibrate`), which puts D2cm³ on the limit instead of below it.
-Neighbouring dwells on a channel within ``neighbour_ratio`` (as IPSA's dwell-time deviation constraint / HIPO's
-dwell-time gradient restriction, Mosleh-Shirazi et al., J Contemp Brachytherapy 11(3), 2019): a channel is loaded
-on all its dwells or on none. No dwell over ``max_dwell_share`` of the total. Objective: mean underdose (in units
-of the prescription) + ``time_weight`` × mean target dose (shorter plans) + ``invasiveness_weight`` × each used
-needle's normalised hole distance and tissue length ("least invasive").
+Clinical loading: a **dwell-time gradient term** in the objective, ``smoothness_weight`` × the sum over neighbouring
+dwells of a channel of ``|t_a - t_b|`` (auxiliary ``g >= ±(t_a - t_b)``), as a target dose in units of the
+prescription; it is the linear form of IPSA's dwell-time modulation restriction and HIPO's dwell-time gradient
+restriction (Balvert et al., Phys Med Biol 60(2):537, 2015, who also show what it costs in coverage; Mosleh-Shirazi
+et al., J Contemp Brachytherapy 11(3):265, 2019, for cervix HDR): plateaus instead of one peak with halvings. The
+older hard rule, neighbouring dwells within ``neighbour_ratio`` of each other, is kept when that is finite (a
+channel is then loaded on all its dwells or on none). No dwell over ``max_dwell_share`` of the total. With
+``min_time_s`` (:class:`reachplan.planner.implant.optimiser.DwellProblem`) a loaded dwell carries at least that
+time: the LP first, then its short dwells rounded to 0 or the minimum and the LP solved again with every loaded
+dwell at the minimum or more and the empty ones held empty
+(:func:`reachplan.planner.implant.selection._min_time`). Objective: mean
+underdose (in units of the prescription) + ``time_weight`` × mean target dose (shorter plans) + the gradient term
++ ``invasiveness_weight`` × each used needle's normalised hole distance and tissue length ("least invasive").
+
+The rows of a structure's tail (:class:`reachplan.planner.implant.optimiser.OrganRows`) hold the mean over its
+hottest ``volume_cc``: an organ's D2cm³ (2 cm³) in the nominal plan or with one needle displaced (a robustness
+scenario, :mod:`reachplan.planner.implant.robust`), or the HR-CTV's hottest ``v200_max_pct`` of volume under
+twice the prescription (its V200).
 
 With needle binaries (the selection model): binary ``y_n`` per needle with each unit's time ``<= M y_n`` (``M``: the
 time at which the unit alone brings every target point to ``P``, or fills an organ's row), one needle per template
@@ -123,15 +136,20 @@ class _Model:
         ao = [np.asarray((member.T @ o.rates.T).T) for o in organs]
         n_p = sum(len(o.weight_cc) for o in organs)
         i_y, i_u, i_T, i_z, i_s = n_u, n_u + n_y, n_u + n_y + m, n_u + n_y + m + 1, n_u + n_y + m + 1 + len(organs)
-        n = i_s + n_p
+        pairs = _neighbour_pairs(unit_ch)
         mod = problem.modulation
+        i_g = i_s + n_p
+        n = i_g + (len(pairs) if mod.smoothness_weight > 0 else 0)
         c = np.zeros(n)
         c[:n_u] = mod.time_weight * sizes * at.mean(axis=0) / (problem.reference_dose_gy * max(sizes.sum(), 1.0))
         c[i_y:i_u] = mod.invasiveness_weight * (np.zeros(0) if choice is None else choice.cost)
         c[i_u:i_T] = 1.0 / (m * problem.reference_dose_gy)
+        c[i_g:] = mod.smoothness_weight * float(np.mean(at.mean(axis=0) / sizes)) / problem.reference_dose_gy
         rows = _Rows(n)
         rows.add(rows.cols([(0, at), (i_u, sparse.identity(m))], m), p, np.inf)  # target: A t + u >= p
         _modulation_rows(rows, sizes, unit_ch, i_T, mod.max_dwell_share, mod.neighbour_ratio)
+        if n > i_g:
+            _gradient_rows(rows, pairs, i_g)
         limit_rows = _organ_tail_rows(rows, organs, ao, i_z, i_s)
         self.big_m = _big_m(p, at, organs, ao)
         if n_y and choice is not None:
@@ -146,9 +164,11 @@ class _Model:
         self.c, self.n, self.n_u, self.n_y, self.i_y, self.i_u = c, n, n_u, n_y, i_y, i_u
         self.member = member
         self.hole_of = [] if choice is None else list(choice.holes)
+        self.min_time_s = problem.min_time_s
 
     def solve(self, budget: int | None = None, kappa: np.ndarray | None = None,
-              only: Sequence[int] | None = None) -> sopt.OptimizeResult:
+              only: Sequence[int] | None = None, units: tuple[np.ndarray, np.ndarray] | None = None,
+              ) -> sopt.OptimizeResult:
         """Solve the LP (the needle binaries relaxed to [0, 1]) with at most ``budget`` needles (None: no budget).
 
         Parameters
@@ -160,6 +180,8 @@ class _Model:
         only : sequence of int, optional
             The needles (indices into the needles) used (``y`` = 1), the others held empty: the LP is then solved on
             their columns alone (and the intracavitary channels').
+        units : ((n_u,) float, (n_u,) float), optional
+            Lower and upper bounds of each unit's time (s); None: ``t >= 0``.
 
         Returns
         -------
@@ -174,6 +196,8 @@ class _Model:
         lo = np.zeros(self.n)
         hi = np.full(self.n, np.inf)
         hi[self.i_y:self.i_u] = 1.0
+        if units is not None:
+            lo[:self.n_u], hi[:self.n_u] = units[0], units[1]
         cols = np.arange(self.n)
         if only is not None:
             on = np.zeros(self.n_y, dtype=bool)
@@ -231,9 +255,30 @@ def _modulation_rows(rows: _Rows, sizes: np.ndarray, unit_ch: np.ndarray, i_T: i
     rows.add(rows.cols([(0, sizes[None, :]), (i_T, -np.ones((1, 1)))], 1), 0.0, 0.0)
     share = share * (1 - 1e-3)
     rows.add(rows.cols([(0, sparse.identity(n_u)), (i_T, -share * np.ones((n_u, 1)))], n_u), -np.inf, 0.0)
+    if not np.isfinite(ratio):
+        return
     groups = [np.flatnonzero(unit_ch == ch) for ch in np.unique(unit_ch)]
     for rowset in _neighbour_rows(groups, n_u, ratio):
         rows.add(rows.cols([(0, rowset)], rowset.shape[0]), -np.inf, 0.0)
+
+
+def _neighbour_pairs(unit_ch: np.ndarray) -> np.ndarray:
+    """Return the (q, 2) int pairs of consecutive units of one channel (units of a channel are consecutive)."""
+    a = np.flatnonzero(unit_ch[1:] == unit_ch[:-1])
+    return np.column_stack([a, a + 1]).astype(int)
+
+
+def _gradient_rows(rows: _Rows, pairs: np.ndarray, i_g: int) -> None:
+    """Add ``g_k >= t_a - t_b`` and ``g_k >= t_b - t_a`` for each pair (a, b) of neighbouring units."""
+    q = len(pairs)
+    if q == 0:
+        return
+    r = np.arange(q)
+    for sign in (1.0, -1.0):
+        block = sparse.csr_matrix((np.concatenate([np.full(q, sign), np.full(q, -sign), np.full(q, -1.0)]),
+                                   (np.concatenate([r, r, r]), np.concatenate([pairs[:, 0], pairs[:, 1], i_g + r]))),
+                                  shape=(q, rows.n))
+        rows.add(block, -np.inf, 0.0)
 
 
 def _organ_tail_rows(rows: _Rows, organs: Sequence[OrganRows], ao: Sequence[np.ndarray], i_z: int,
@@ -250,7 +295,7 @@ def _organ_tail_rows(rows: _Rows, organs: Sequence[OrganRows], ao: Sequence[np.n
         rows.add(rows.cols([(0, a), (i_z + k, -np.ones((q, 1))), (i_s + start, -sparse.identity(q))], q),
                  -np.inf, 0.0)
         limit_rows.append(rows.count)
-        rows.add(rows.cols([(i_z + k, np.ones((1, 1))), (i_s + start, o.weight_cc[None, :] / 2.0)], 1), -np.inf,
+        rows.add(rows.cols([(i_z + k, np.ones((1, 1))), (i_s + start, o.weight_cc[None, :] / o.volume_cc)], 1), -np.inf,
                  o.limit_gy)
         start += q
     return limit_rows
@@ -264,7 +309,7 @@ def _big_m(p: np.ndarray, at: np.ndarray, organs: Sequence[OrganRows], ao: Seque
     """
     big_m = p.max() / np.maximum(at.min(axis=0), 1e-30)
     for o, a in zip(organs, ao, strict=True):
-        big_m = np.minimum(big_m, o.limit_gy / np.maximum(tail_mean(a, o.weight_cc, 2.0), 1e-30))
+        big_m = np.minimum(big_m, o.limit_gy / np.maximum(tail_mean(a, o.weight_cc, o.volume_cc), 1e-30))
     out: np.ndarray = big_m
     return out
 

@@ -26,7 +26,10 @@ from reachplan.planner import lookup
 
 @dataclass(frozen=True, eq=False)
 class OrganRows:
-    """One organ's D2cm³ rows: the dose rates of its representative points, their volumes and the organ's limit.
+    """One structure's tail rows: the mean dose over its hottest ``volume_cc`` within a limit.
+
+    An organ's D2cm³ rows (nominal, or with one needle displaced: a robustness scenario), or the HR-CTV's V200 rows
+    (its hottest ``v200_max_pct`` of volume under twice the prescription).
 
     Parameters
     ----------
@@ -36,11 +39,17 @@ class OrganRows:
         Volume each point stands for.
     limit_gy : float, Gy per fraction
         D2cm³ limit (physical).
+    volume_cc : float, cm³
+        The hottest volume whose mean dose is held within the limit (2 for D2cm³).
+    name : str
+        What the rows stand for (e.g. ``"Bladder"``, ``"Bladder, needle 3 +x"``, ``"HR-CTV V200"``).
     """
 
     rates: np.ndarray
     weight_cc: np.ndarray
     limit_gy: float
+    volume_cc: float = 2.0
+    name: str = ""
 
 
 @dataclass(frozen=True)
@@ -57,12 +66,15 @@ class Modulation:
         Weight of the mean target dose (shorter plans) in the objective.
     invasiveness_weight : float
         Weight of each used needle's cost (its invasiveness) in the objective.
+    smoothness_weight : float
+        Weight of the dwell-time gradient term in the objective (0: none).
     """
 
     max_dwell_share: float
     neighbour_ratio: float
     time_weight: float
     invasiveness_weight: float
+    smoothness_weight: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,6 +134,8 @@ class DwellProblem:
         The needle binaries; None: every channel is loaded as given (no selection).
     swap_pool, swap_passes : int
         Effort of a selecting optimiser's local search (candidates considered, passes), for those that search.
+    min_time_s : float, s
+        A loaded column carries at least this time (each column 0 or >= ``min_time_s``; 0: no such rule).
     cache : dict
         Scratch space for optimisers (e.g. a built LP), keyed by the optimiser's name.
     """
@@ -136,6 +150,7 @@ class DwellProblem:
     needles: NeedleChoice | None = None
     swap_pool: int = 8
     swap_passes: int = 3
+    min_time_s: float = 0.0
     cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @property
@@ -149,7 +164,7 @@ class DwellProblem:
         return np.array([o.limit_gy for o in self.organs])
 
     def tail_means(self, times_s: np.ndarray) -> np.ndarray:
-        """Return each organ's mean dose over its hottest 2 cm³ of representative points.
+        """Return each row set's mean dose over its hottest ``volume_cc`` of points.
 
         Parameters
         ----------
@@ -160,7 +175,8 @@ class DwellProblem:
         -------
         (n_organs,) float, Gy per fraction
         """
-        return np.array([float(tail_mean((o.rates @ times_s)[:, None], o.weight_cc, 2.0)[0]) for o in self.organs])
+        return np.array([float(tail_mean((o.rates @ times_s)[:, None], o.weight_cc, o.volume_cc)[0])
+                         for o in self.organs])
 
 
 @dataclass(frozen=True, eq=False)

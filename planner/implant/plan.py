@@ -8,21 +8,24 @@ on the model of :mod:`reachplan.planner.implant.model`):
 
 1. **Needle selection** at budget K, on the selection problem: each channel's dwells in ``segments_per_channel``
    blocks of equal time, ``selection_target_points`` sampled target points, organ rows on a lattice of
-   ``selection_oar_pitch_mm``, one binary per needle, one needle per template hole. The bound reported per budget
+   ``selection_oar_pitch_mm`` (each organ's planning aim less the headroom), the HR-CTV's V200 rows (calibrated by
+   the last final plan), one binary per needle, one needle per template hole. The bound reported per budget
    is the optimiser's (the built-in's: the LP relaxation's) and the relative gap to the selection kept
    (:class:`reachplan.planner.implant.arms.BudgetResult`; plan.json ``selection``). The LP with every candidate
    loaded, its organ rows calibrated once, bounds every budget (``selection.all_candidates_objective``); every
    budget's model has those rows.
-2. **Dwell times on the chosen channels** (:func:`reachplan.planner.implant.dwells._final`): the optimiser without
-   a budget over every dwell of the selection, the empty-needle rule, the check on every organ voxel.
+2. **Dwell times on the chosen channels** (:func:`reachplan.planner.implant.dwells._final`): the robust loading
+   (:mod:`reachplan.planner.implant.robust`: hard limits and D90 >= 85 Gy with any one needle displaced), the
+   empty-needle rule, the check on every organ voxel and in every scenario.
 
-Each new selection's plan is a point of the arm's Pareto curve (:mod:`reachplan.planner.implant.arms`). The budgets
-stop ``extra_after_aims`` after the first that meets the aims, after two budgets without a new selection, or when
-the selection reaches the all-candidates bound.
+Each new selection's plan is a point of the arm's Pareto curve (:mod:`reachplan.planner.implant.arms`); the plan
+chosen is the fewest needles that meet every planning aim with the headroom and keep the hard limits in every
+scenario (or the Pareto point of ``ImplantSettings.needles``). The budgets stop as :func:`_budgets` says.
 
 Aims (EQD2, α/β 10 tumour / 3 organs, 45 Gy / 25 fractions external beam + 4 fractions): EMBRACE II
-(Pötter et al., Clin Transl Radiat Oncol 9:48, 2018) and the ESGO/ESTRO achievability table (90 % of
-patients: HR-CTV D90 > 85, D98 > 75, GTV D98 > 90 Gy), as :class:`reachplan.planner.dose.aims.Aims`.
+(Pötter et al., Clin Transl Radiat Oncol 9:48, 2018), as :class:`reachplan.planner.dose.aims.Aims`: planning aims
+HR-CTV D90 > 90 and < 95, D98 > 75, GTV D98 > 95 Gy, organ D2cm³ 1 Gy below their aims; hard limits HR-CTV D90 > 85
+Gy and the organs' limits, kept with any one needle displaced.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import BudgetResult, ImplantArm, ImplantPlan, _arm
 from reachplan.planner.implant.candidates import Channel
 from reachplan.planner.implant.dwells import _final
-from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, NeedleChoice, resolve
+from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, NeedleChoice, OrganRows, resolve
 from reachplan.planner.implant.problem import (
     _calibrate,
     _d2cc,
@@ -50,7 +53,11 @@ from reachplan.planner.implant.problem import (
     _sampled_problem,
     _target_rows,
 )
+from reachplan.planner.implant.robust import V200_KAPPA_START, v200_points, v200_row_pct
 from reachplan.planner.implant.settings import ImplantSettings
+
+#: a new plan that raises the arm's best HR-CTV D90 by less than this (Gy EQD2) is no gain (two such end the budgets)
+MIN_GAIN_GY = 0.5
 
 
 def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
@@ -102,28 +109,40 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
         1.0 + settings.coverage_margin)
     selection = _selection_problem(prob, needles, settings, _target_rows(prob, settings.selection_target_points,
-                                                                         p_t, p_g), p_t, vox_cc)
+                                                                         p_t, p_g), aims, vox_cc)
     # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows
+    n_org = sum(limit is not None for limit in prob.oar_limits)
     kappa = np.ones(len(selection.organs))
+    kappa[n_org:] = V200_KAPPA_START
     free = optimiser.optimise(selection, limit_factor=kappa)
     if free.times_s is not None:
-        kappa = _calibrate(kappa, _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
-                           selection.tail_means(free.times_s), selection.limits_gy)
+        kappa[:n_org] = _calibrate(kappa[:n_org], _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
+                                   selection.tail_means(free.times_s)[:n_org], selection.limits_gy[:n_org])
         free = optimiser.optimise(selection, limit_factor=kappa)
     bound = free.objective if free.times_s is not None else float("nan")
     final = _Final(prob, *_target_rows(prob, settings.final_target_points, p_t, p_g), aims, settings, vox_cc,
                    optimiser)
-    budgets, plans = _budgets(selection, needles, optimiser, kappa, bound, final)
+    rank: list[int] = []  # needles (indices into ``needles``) by their time in the all-candidates loading
+    if free.times_s is not None:
+        ch_time = np.bincount(prob.channel_of, weights=free.times_s, minlength=len(channels))
+        rank = [int(i) for i in np.argsort(-ch_time[needles], kind="stable") if ch_time[needles[i]] > 0]
+    budgets, plans = _budgets(selection, needles, optimiser, kappa, bound, final, rank)
     record: dict[str, object] = {
         "model": getattr(optimiser, "description", "") or optimiser.name,
         "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
         "budgets": [b.to_json() for b in budgets]}
-    return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record)
+    return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record, settings.needles)
 
 
 def _selection_problem(prob: _Problem, needles: Sequence[int], settings: ImplantSettings,
-                       target: tuple[np.ndarray, np.ndarray], p_t: float, vox_cc: float) -> DwellProblem:
-    """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness."""
+                       target: tuple[np.ndarray, np.ndarray], aims: Aims, vox_cc: float) -> DwellProblem:
+    """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness.
+
+    Its rows: the target points, each organ's nominal D2cm³ rows (planning aim less the headroom) and the HR-CTV's
+    V200 rows (their calibration the last final plan's); the scenarios are the final step's
+    (:func:`reachplan.planner.implant.robust.robust_times`).
+    """
+    p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     channels = prob.channels
     cost = np.zeros(len(needles))
     if needles:
@@ -137,8 +156,14 @@ def _selection_problem(prob: _Problem, needles: Sequence[int], settings: Implant
         units += np.array_split(on_c, min(settings.segments_per_channel, len(on_c)))
     organs = _organ_rows(prob, prob.positions, prob.directions, settings.selection_oar_pitch_mm,
                          settings.oar_sample_cc, vox_cc)
+    rates = _rates(target[0], prob.positions, prob.directions, prob)
+    if settings.v200_max_pct is not None:
+        rows = v200_points(len(prob.target_pts), settings.selection_target_points)
+        volume = len(prob.target_pts) * vox_cc
+        organs.append(OrganRows(rates[rows], np.full(len(rows), volume / len(rows)), 2.0 * aims.prescription_gy,
+                                volume * v200_row_pct(settings) / 100.0, "HR-CTV V200"))
     return DwellProblem(
-        _rates(target[0], prob.positions, prob.directions, prob), target[1], p_t, tuple(organs), prob.channel_of,
+        rates, target[1], p_t, tuple(organs), prob.channel_of,
         _modulation(settings), tuple(units),
         NeedleChoice(tuple(needles), tuple(channels[i].name for i in needles), cost),
         settings.swap_pool, settings.swap_passes)
@@ -169,6 +194,7 @@ class _Final:
                  vox_cc: float, optimiser: DwellOptimiser) -> None:
         self.prob, self.fin_pts, self.fin_p, self.aims, self.settings = prob, fin_pts, fin_p, aims, settings
         self.vox_cc, self.optimiser = vox_cc, optimiser
+        self.kappa: np.ndarray | None = None  # the last plan's calibration (organ rows, V200 rows): the next's start
 
     def __call__(self, chosen: np.ndarray, kappa: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
         """Return the plan of the channels ``chosen``, its selection's ``status`` and ``gap`` recorded.
@@ -189,24 +215,40 @@ class _Final:
         ImplantPlan or None
             None when the chosen channels give no plan.
         """
-        return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc, kappa,
-                      status, gap, self.optimiser)
+        if self.kappa is None:
+            self.kappa = np.concatenate([kappa, [V200_KAPPA_START] * (self.settings.v200_max_pct is not None)])
+        return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc,
+                      self.kappa, status, gap, self.optimiser)
 
 
 def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,
-             bound: float, final: _Final) -> tuple[list[BudgetResult], list[ImplantPlan]]:
-    """Select at budgets K = 1, 2, ... (0 with an intracavitary channel); return every budget and the new plans."""
+             bound: float, final: _Final, rank: Sequence[int]) -> tuple[list[BudgetResult], list[ImplantPlan]]:
+    """Select at budgets K = 1, 2, ... (0 with an intracavitary channel); return every budget and the new plans.
+
+    The selection model holds the nominal rows only: when its selection at K is one already planned (or has fewer
+    than K needles) and no plan meets every aim yet (the V200 limit or a scenario asks for more needles than the
+    selection model sees), the needle with the most time in the all-candidates loading (``rank``, indices into
+    ``needles``) whose hole is free is added. The budgets stop ``extra_after_aims`` after the first plan that meets
+    every aim (or at ``settings.needles``), after two budgets without a new selection, when the selection reaches the
+    all-candidates bound with every aim met, or after two new plans that do not raise the best D90 by
+    :data:`MIN_GAIN_GY`.
+    """
     prob, settings = final.prob, final.settings
     channels = prob.channels
     intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
+    kappa = kappa.copy()
+    n_org = len(kappa) - (settings.v200_max_pct is not None)
     budgets: list[BudgetResult] = []
     plans: list[ImplantPlan] = []
     seen: dict[tuple[int, ...], ImplantPlan | None] = {}
     keep: list[int] = []  # the last budget's needles (indices into ``needles``): a start for the next
     met_at: int | None = None
-    stall = 0
+    stall = no_gain = 0
+    best_d90 = -np.inf
     for k in range(0 if intracavitary else 1, min(settings.max_needles, len(needles)) + 1):
         t_k = time.perf_counter()
+        if final.kappa is not None and settings.v200_max_pct is not None:
+            kappa[-1] = final.kappa[-1]  # the V200 rows' calibration: the last final plan's
         sol = optimiser.optimise(selection, budget=k, limit_factor=kappa, start=keep)
         value, lower, status = sol.objective, sol.bound, sol.status
         if sol.times_s is None:
@@ -215,27 +257,40 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         ch_time = np.bincount(prob.channel_of, weights=sol.times_s, minlength=len(channels))
         keep = [i for i in sol.needles if ch_time[needles[i]] > 0]
         picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
+        if met_at is None and len(keep) < k and picked in seen:
+            extra = _forced(keep, rank, channels, needles)
+            if extra is not None:
+                keep.append(extra)
+                picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
+                status += f"; needle {channels[needles[extra]].name} added (no plan meets every aim yet)"
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
         if new:
-            seen[picked] = final(np.array(picked, dtype=int), kappa.copy(),
+            seen[picked] = final(np.array(picked, dtype=int), kappa[:n_org].copy(),
                                  f"budget {k}: selection objective {value:.6g}, {status}", gap)
         budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
                                     tuple(channels[c] for c in picked), seen.get(picked) if new else None))
-        if new:
-            stall = 0
-            plan = seen[picked]
-            if plan is not None:
-                plans.append(plan)
-                if plan.aims_met and met_at is None:
-                    met_at = k
-        else:
-            stall += 1
-        if met_at is not None and k >= met_at + settings.extra_after_aims:
+        stall = 0 if new else stall + 1
+        plan = seen[picked] if new else None
+        if plan is not None:
+            plans.append(plan)
+            no_gain = 0 if plan.target.d90_eqd2_gy > best_d90 + MIN_GAIN_GY else no_gain + 1
+            best_d90 = max(best_d90, plan.target.d90_eqd2_gy)
+            if plan.aims_met and met_at is None:
+                met_at = k
+        if met_at is not None and k >= max(met_at + settings.extra_after_aims, settings.needles or 0):
             break
-        if stall >= 2 or value <= bound + 1e-9 * max(1.0, abs(bound)):
-            break  # nothing new twice, or the selection reaches the bound of every candidate loaded
+        at_bound = value <= bound + 1e-9 * max(1.0, abs(bound))
+        if stall >= 2 or no_gain >= 2 or (at_bound and met_at is not None):
+            break  # nothing new twice, no better plan twice, or the selection reaches the all-candidates bound
     return budgets, plans
+
+
+def _forced(keep: Sequence[int], rank: Sequence[int], channels: Sequence[Channel],
+            needles: Sequence[int]) -> int | None:
+    """Return the first needle of ``rank`` not in ``keep`` whose hole ``keep`` leaves free (None: there is none)."""
+    holes = {channels[needles[i]].name for i in keep}
+    return next((j for j in rank if j not in keep and channels[needles[j]].name not in holes), None)
 
 
 def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningStructures, kernel: Tg43Kernel,

@@ -48,7 +48,7 @@ class _Problem:
     target_pts: np.ndarray  # all target voxel centres (n, 3)
     gtv_pts: np.ndarray | None
     oar_pts: tuple[np.ndarray, ...]  # all voxels of each organ
-    oar_limits: tuple[float | None, ...]
+    oar_limits: tuple[float | None, ...]  # nominal: each organ's planning aim less the headroom, Gy per fraction
     gy_per_s: float
     kernel: Tg43Kernel
     oar_names: tuple[str, ...]
@@ -57,6 +57,7 @@ class _Problem:
     gtv_fine: tuple[np.ndarray, np.ndarray] | None
     # each organ's voxels within ``eval_radius_mm`` of any candidate dwell (every loading's organ dose is read there)
     oar_near: tuple[np.ndarray, ...] = ()
+    oar_hard: tuple[float | None, ...] = ()  # each organ's hard limit (every scenario), Gy per fraction
     lattices: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def near_organ(self, o: int, pos: np.ndarray, radius_mm: float, vox_cc: float, times_2cc: int = 4) -> np.ndarray:
@@ -178,18 +179,18 @@ def _organ_sample(lattice: tuple[np.ndarray, np.ndarray], near_mm: np.ndarray,
 
 
 def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vox_cc: float,
-             ) -> tuple[StructureMetrics, float, StructureMetrics | None, tuple[StructureMetrics, ...],
-                        tuple[tuple[str, Dvh], ...], float]:
+             max_scale: float = 1.0) -> tuple[StructureMetrics, float, StructureMetrics | None,
+                                              tuple[StructureMetrics, ...], tuple[tuple[str, Dvh], ...], float]:
     """Compute target, V200, GTV and organ metrics of a loading on every voxel.
 
-    Organs: voxels within ``oar_eval_radius`` of a loaded dwell. Also returns the factor <= 1 that keeps every
-    D2cm³ within its limit.
+    Organs: voxels within ``oar_eval_radius`` of a loaded dwell. Also returns the factor <= ``max_scale`` (the
+    scenarios' own, <= 1) that keeps every nominal D2cm³ within its planning limit.
     """
     loaded = times > 0
     pos, dirs, t = prob.positions[cols][loaded], prob.directions[cols][loaded], times[loaded]
     rx = aims.prescription_gy
     dose_oar = []
-    scale = 1.0
+    scale = max_scale
     for o, limit in enumerate(prob.oar_limits):
         d = _dose(prob.near_organ(o, pos, prob.eval_radius_mm, vox_cc), pos, dirs, t, prob)
         dose_oar.append(d)
@@ -216,28 +217,47 @@ def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vo
     return target, v200, gtv, tuple(oars), tuple(dvhs), scale
 
 
-def _aims_met(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequence[StructureMetrics],
-              aims: Aims) -> bool:
-    ok = target.d90_eqd2_gy >= aims.target_d90_eqd2_gy - 1e-6 and target.d98_eqd2_gy >= aims.target_d98_eqd2_gy - 1e-6
-    if gtv is not None:
-        ok = ok and gtv.d98_eqd2_gy >= aims.gtv_d98_eqd2_gy - 1e-6
+def _aims_failed(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequence[StructureMetrics],
+                 aims: Aims, v200_pct: float | None = None, v200_max_pct: float | None = None) -> list[str]:
+    """Return the planning aims the nominal plan misses (empty: every one met), each with its value.
+
+    HR-CTV D90 (within its upper aim too) and D98, GTV D98, each organ's D2cm³ at least ``headroom_eqd2_gy`` below its
+    aim, and V200 within its limit (when both are given).
+    """
+    out = []
+    if target.d90_eqd2_gy < aims.target_d90_eqd2_gy - 1e-6:
+        out.append(f"HR-CTV D90 {target.d90_eqd2_gy:.1f} < {aims.target_d90_eqd2_gy:g} Gy")
+    if aims.target_d90_max_eqd2_gy is not None and target.d90_eqd2_gy > aims.target_d90_max_eqd2_gy + 0.05:
+        out.append(f"HR-CTV D90 {target.d90_eqd2_gy:.1f} > {aims.target_d90_max_eqd2_gy:g} Gy")
+    if target.d98_eqd2_gy < aims.target_d98_eqd2_gy - 1e-6:
+        out.append(f"HR-CTV D98 {target.d98_eqd2_gy:.1f} < {aims.target_d98_eqd2_gy:g} Gy")
+    if gtv is not None and gtv.d98_eqd2_gy < aims.gtv_d98_eqd2_gy - 1e-6:
+        out.append(f"GTV D98 {gtv.d98_eqd2_gy:.1f} < {aims.gtv_d98_eqd2_gy:g} Gy")
     for o in oars:
-        limit = next((v for n, v in aims.oar_d2cc_eqd2_gy if n.casefold() in o.name.casefold()), None)
-        if limit is not None and o.d2cc_eqd2_gy > limit + 1e-6:
-            ok = False
-    return bool(ok)
+        aim = aims.oar_aim_eqd2_gy(o.name)
+        if aim is not None and o.d2cc_eqd2_gy > aim - aims.headroom_eqd2_gy + 1e-6:
+            out.append(f"{o.name} D2cm³ {o.d2cc_eqd2_gy:.1f} > {aim - aims.headroom_eqd2_gy:g} Gy "
+                       f"(aim {aim:g} less {aims.headroom_eqd2_gy:g} headroom)")
+    if v200_pct is not None and v200_max_pct is not None and v200_pct > v200_max_pct + 1e-6:
+        out.append(f"HR-CTV V200 {v200_pct:.1f} % > {v200_max_pct:g} %")
+    return out
+
+
+def _organ_samples(prob: _Problem, pos: np.ndarray, pitch_mm: float, volume_cc: float,
+                   vox_cc: float) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Return each organ with a limit, its representative points and their volumes for the dwells ``pos``.
+
+    Points (p, 3) mm, LPS; volumes (p,) cm³ (module docstring).
+    """
+    return [(o, *_organ_sample(prob.lattice(o, pitch_mm, vox_cc), pos, volume_cc))
+            for o, limit in enumerate(prob.oar_limits) if limit is not None]
 
 
 def _organ_rows(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, pitch_mm: float, volume_cc: float,
                 vox_cc: float) -> list[OrganRows]:
     """Return the D2cm³ rows of every organ with a limit, for the dwells ``pos``/``dirs`` (module docstring)."""
-    out = []
-    for o, limit in enumerate(prob.oar_limits):
-        if limit is None:
-            continue
-        reps, w = _organ_sample(prob.lattice(o, pitch_mm, vox_cc), pos, volume_cc)
-        out.append(OrganRows(_rates(reps, pos, dirs, prob), w, float(limit)))
-    return out
+    return [OrganRows(_rates(reps, pos, dirs, prob), w, float(prob.oar_limits[o]), 2.0, prob.oar_names[o])  # type: ignore[arg-type]
+            for o, reps, w in _organ_samples(prob, pos, pitch_mm, volume_cc, vox_cc)]
 
 
 def _d2cc(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, vox_cc: float) -> np.ndarray:
@@ -277,12 +297,14 @@ def _calibrate(kappa: np.ndarray, d2: np.ndarray, tails: np.ndarray, limits: np.
 
     An organ whose row binds (or whose exact D2cm³ is over its limit) gets ``kappa × limit / D2cm³``: the mean
     over the hottest 2 cm³ exceeds D2cm³ by a factor that changes little between nearby loadings, so the next
-    solution's D2cm³ lands on the limit (within 1 % in two rounds on the clinical case).
+    solution's D2cm³ lands on the limit (within 1 % in two rounds on the clinical case). The same for any tail row
+    against its exact value (the V200 rows: the dose at which the HR-CTV's hottest ``v200_max_pct`` begins, whose
+    tail mean is several times that dose, hence the wide clip).
     """
     out = kappa.copy()
     binds = (tails >= 0.98 * limits * kappa) | (d2 > limits * (1 + 1e-3))
     ok = binds & (d2 > 0)
-    out[ok] = np.clip(kappa[ok] * limits[ok] / d2[ok] * (1 - 2e-3), 0.25, 4.0)
+    out[ok] = np.clip(kappa[ok] * limits[ok] / d2[ok] * (1 - 2e-3), 0.25, 10.0)
     return out
 
 
@@ -303,9 +325,10 @@ def _sampled_problem(channels: Sequence[Channel], planning: PlanningStructures, 
         grid_points_mm(grid, np.flatnonzero(planning.target.mask.ravel())),
         None if gtv is None else grid_points_mm(grid, np.flatnonzero(gtv.mask.ravel())),
         tuple(grid_points_mm(grid, np.flatnonzero(o.mask.ravel())) for o in planning.oars),
-        tuple(aims.oar_limit_gy(o.name) for o in planning.oars), air_kerma_strength_u / 360000.0, kernel,
+        tuple(aims.oar_planning_gy(o.name) for o in planning.oars), air_kerma_strength_u / 360000.0, kernel,
         tuple(o.name for o in planning.oars), settings.oar_eval_radius_mm, _supersampled(grid, planning.target.mask),
-        None if gtv is None else _supersampled(grid, gtv.mask))
+        None if gtv is None else _supersampled(grid, gtv.mask),
+        oar_hard=tuple(aims.oar_hard_limit_gy(o.name) for o in planning.oars))
     tree = cKDTree(positions)
     return dataclasses.replace(prob, oar_near=tuple(
         pts[np.isfinite(tree.query(pts, distance_upper_bound=settings.oar_eval_radius_mm * (1 + 1e-6) + 1e-6)[0])]
@@ -327,5 +350,6 @@ def _target_rows(prob: _Problem, n_pts: int, p_t: float, p_g: float) -> tuple[np
 
 def _modulation(settings: ImplantSettings) -> Modulation:
     """Return the modulation rules and objective weights of ``settings``."""
-    return Modulation(settings.max_dwell_share, settings.neighbour_ratio, settings.time_weight,
-                      settings.invasiveness_weight)
+    ratio = float("inf") if settings.neighbour_ratio is None else settings.neighbour_ratio
+    return Modulation(settings.max_dwell_share, ratio, settings.time_weight,
+                      settings.invasiveness_weight, settings.smoothness_weight)

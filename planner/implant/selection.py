@@ -97,6 +97,29 @@ def _improved(model: _Model, budget: int, kappa: np.ndarray, relaxed: sopt.Optim
     return best, n_lp
 
 
+def _min_time(model: _Model, kappa: np.ndarray, lp: sopt.OptimizeResult) -> tuple[sopt.OptimizeResult, str]:
+    """Return the LP solution ``lp`` with no unit loaded below ``model.min_time_s``, and how it was made.
+
+    Rounding and one re-solve: a unit the LP left under half the minimum is emptied, one between half the minimum and
+    the minimum is held at the minimum or more, and every unit the LP loaded keeps at least the minimum (the others
+    stay empty), so the re-solved LP has no short unit. Should that LP fail, the short units are emptied instead (the
+    LP's loading with them emptied keeps every organ row).
+    """
+    t = lp.x[:model.n_u]
+    lo_t = model.min_time_s
+    short = (t > 1e-9) & (t < lo_t * (1 - 1e-9))
+    if not short.any():
+        return lp, "solved"
+    on = (t >= lo_t * (1 - 1e-9)) | (short & (t >= 0.5 * lo_t))
+    res = model.solve(None, kappa=kappa, units=(np.where(on, lo_t, 0.0), np.where(on, np.inf, 0.0)))
+    if res.x is not None:
+        return res, f"solved; {int(short.sum())} short dwells rounded to 0 or {lo_t:g} s and re-solved"
+    x = lp.x.copy()
+    x[:model.n_u][short] = 0.0
+    lp.x = x
+    return lp, f"solved; {int(short.sum())} short dwells emptied"
+
+
 class LinearProgramme:
     """The built-in dwell optimiser: the LP of the model, and at a budget the rounded relaxation improved by swaps.
 
@@ -156,8 +179,10 @@ class LinearProgramme:
             res = model.solve(None, kappa=kappa)
             if res.x is None:
                 return DwellSolution(None, f"linear programme did not solve: {res.message}")
-            return DwellSolution(model.dwell_times(res.x), "solved", float(res.fun), float(res.fun),
-                                 model.selected(res.x))
+            bound, status = float(res.fun), "solved"
+            if problem.min_time_s > 0:
+                res, status = _min_time(model, kappa, res)
+            return DwellSolution(model.dwell_times(res.x), status, float(res.fun), bound, model.selected(res.x))
         return self._select(problem, model, budget, kappa, start)
 
     def _select(self, problem: DwellProblem, model: _Model, k: int, kappa: np.ndarray,

@@ -32,8 +32,12 @@ class ImplantSettings:
         Smallest surface distance from a needle to any organ at risk.
     min_dwells : int
         A needle needs at least this many dwell positions to be a candidate.
-    neighbour_ratio : float
-        Neighbouring dwell times on a channel differ by at most this factor (>= 1).
+    neighbour_ratio : float or None
+        Neighbouring dwell times on a channel differ by at most this factor (>= 1; None, the default: no such rule,
+        the smoothness term shapes the loading instead).
+    smoothness_weight : float
+        Weight of the dwell-time gradient term (the sum of the time differences of neighbouring dwells, as a dose at
+        the target, in units of the prescription) in both objectives (0: none).
     max_dwell_share : float
         No single dwell carries more than this share of the plan's total time.
     steered_per_hole : int
@@ -62,7 +66,20 @@ class ImplantSettings:
     time_weight : float
         Weight of the mean target dose (shorter plans) in both objectives.
     min_dwell_time_s : float, s
-        Dwell times below this are set to zero (afterloaders do not deliver shorter dwells).
+        No loaded dwell is shorter than this: a dwell is 0 or at least this long (afterloaders do not deliver
+        shorter dwells; the optimiser decides which short dwells go to 0 and which up to this).
+    v200_max_pct : float, %
+        Largest share of the HR-CTV that may receive twice the prescription (V200); None: no limit.
+    shift_mm : float, mm
+        Robust planning: every needle is also planned displaced this far sideways (perpendicular to its axis), in
+        ``shift_directions`` directions, one needle at a time; 0: nominal planning only.
+    shift_directions : int
+        Directions of the sideways shifts (evenly around the axis).
+    robust_rounds : int
+        Rounds of constraint generation: solve, check every scenario, add the violated ones' rows, solve again.
+    needles : int or None
+        The needle count to pick from each arm's Pareto curve (``--needles``); None: the fewest needles that meet
+        every aim.
     oar_eval_radius_mm : float, mm
         Organ voxels within this distance of a loaded dwell are evaluated for D2cm³.
     optimiser : str
@@ -82,22 +99,28 @@ class ImplantSettings:
     applicator_tip_offset_mm: float = 3.5
     clearance_margin_mm: float = 2.0
     min_dwells: int = 3
-    neighbour_ratio: float = 2.0
+    neighbour_ratio: float | None = None
+    smoothness_weight: float = 0.05
     max_dwell_share: float = 0.15
     steered_per_hole: int = 2
     rolls: int = 8
     max_needles: int = 16
     extra_after_aims: int = 1
     coverage_margin: float = 0.03
-    swap_pool: int = 8
-    swap_passes: int = 3
+    swap_pool: int = 6
+    swap_passes: int = 2
     segments_per_channel: int = 2
     selection_target_points: int = 200
     final_target_points: int = 800
     selection_oar_pitch_mm: float = 3.0
     final_oar_pitch_mm: float = 3.0
     oar_sample_cc: float = 4.0
-    min_dwell_time_s: float = 0.1
+    min_dwell_time_s: float = 0.5
+    v200_max_pct: float | None = 35.0
+    shift_mm: float = 2.0
+    shift_directions: int = 4
+    robust_rounds: int = 4
+    needles: int | None = None
     oar_eval_radius_mm: float = 40.0
     invasiveness_weight: float = 1e-3  # tie-breaks in the objective
     time_weight: float = 1e-3
@@ -107,7 +130,7 @@ class ImplantSettings:
         if not (self.dwell_step_mm > 0 and self.dwell_margin_mm >= 0 and self.tip_offset_mm >= 0
                 and self.applicator_tip_offset_mm >= 0 and self.clearance_margin_mm >= 0):
             raise ValueError("dwell step must be > 0 mm; margins and tip offsets >= 0 mm")
-        if self.neighbour_ratio < 1 or not 0 < self.max_dwell_share <= 1:
+        if (self.neighbour_ratio is not None and self.neighbour_ratio < 1) or not 0 < self.max_dwell_share <= 1:
             raise ValueError("neighbour_ratio must be >= 1 and max_dwell_share in (0, 1]")
         if min(self.min_dwells, self.max_needles, self.rolls, self.segments_per_channel,
                self.selection_target_points, self.final_target_points) < 1 or self.steered_per_hole < 0 \
@@ -115,5 +138,11 @@ class ImplantSettings:
             raise ValueError("implant settings: counts must be >= 1 (steered_per_hole, extra_after_aims >= 0)")
         if not (self.selection_oar_pitch_mm > 0 and self.final_oar_pitch_mm > 0 and self.oar_sample_cc >= 2.0):
             raise ValueError("implant settings: organ pitches must be > 0 mm and oar_sample_cc >= 2 cm³")
+        if self.smoothness_weight < 0 or self.min_dwell_time_s < 0 or self.shift_mm < 0 or self.robust_rounds < 1 \
+                or self.shift_directions < 1 or (self.v200_max_pct is not None and not 0 < self.v200_max_pct <= 100):
+            raise ValueError("implant settings: smoothness weight, minimum dwell time and shift must be >= 0, "
+                             "robust rounds and shift directions >= 1, V200 limit in (0, 100] %")
+        if self.needles is not None and self.needles < 0:
+            raise ValueError("implant settings: the needle count to pick must be >= 0")
         if not self.optimiser.strip():
             raise ValueError("implant settings: the optimiser needs a name")

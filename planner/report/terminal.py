@@ -357,6 +357,12 @@ def implant_rows(comparison: ImplantComparison, tables: Mapping[str, AimsTable] 
 
         rows.append((f"{organ} D2cc Gy", *(cell(a, d2cc) for a in arms)))
     rows.append(("needle dwell weight %", *(cell(a, lambda p: f"{100 * p.needle_time_share:.0f}") for a in arms)))
+    rows.append(("IC / IS time s", *(cell(a, lambda p: f"{p.total_time_s * (1 - p.needle_time_share):.0f} / "
+                                              f"{p.total_time_s * p.needle_time_share:.0f}") for a in arms)))
+    rows.append(("1 needle off: D90 Gy", *(cell(a, lambda p: "-" if "worst_hrctv_d90_eqd2_gy" not in p.robustness
+                                                else f"{p.robustness['worst_hrctv_d90_eqd2_gy']:.1f}") for a in arms)))
+    rows.append(("1 needle off: limits", *(cell(a, lambda p: "kept" if p.robustness.get("hard_limits_met", True)
+                                                else "broken") for a in arms)))
     rows.append(("largest dwell share %", *(cell(a, lambda p: f"{100 * p.max_dwell_share:.1f}") for a in arms)))
     rows.append(("loaded dwells/needle", *(cell(a, lambda p: " ".join(
         str(n) for c, n in zip(p.channels, p.loaded_dwells, strict=True) if c.is_needle)) for a in arms)))

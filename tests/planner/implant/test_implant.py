@@ -89,7 +89,9 @@ def bank() -> object:
     return shape_bank(design, config.family, min(config.max_depth_mm, design.length_mm), screening)
 
 
-SETTINGS = ImplantSettings(max_needles=4, max_dwell_share=0.25)
+#: the planted cases test reach: nominal planning (no displaced-needle scenarios, no V200 limit; a 9 mm sphere
+#: cannot keep D90 with its one needle 2 mm off); robust planning is tested in test_robust.py
+SETTINGS = ImplantSettings(max_needles=4, max_dwell_share=0.25, shift_mm=0.0, v200_max_pct=None)
 
 
 def _arms(case: Case, bank: object, kernel: Tg43Kernel, settings: ImplantSettings = SETTINGS,
@@ -161,12 +163,8 @@ def test_chosen_implants_follow_the_dwell_rules(which: str, request: pytest.Fixt
         # empty-needle rule: every channel of the implant carries time, on at least three dwells
         assert plan.channels and min(plan.loaded_dwells) >= 3
         assert plan.max_dwell_share <= SETTINGS.max_dwell_share + 1e-9
-        for ch in range(1, len(plan.channels) + 1):
-            sel = plan.dwells.channels == ch
-            t, p = plan.dwells.times_s[sel], plan.dwells.positions_mm[sel]
-            adjacent = np.linalg.norm(np.diff(p, axis=0), axis=1) < 1.5 * SETTINGS.dwell_step_mm
-            ratio = np.maximum(t[1:] / t[:-1], t[:-1] / t[1:])[adjacent]
-            assert np.all(ratio <= SETTINGS.neighbour_ratio * (1 + 1e-6))
+        # no loaded dwell under the afterloader's minimum (the neighbour ratio is tested on its own below)
+        assert np.all(plan.dwells.times_s >= SETTINGS.min_dwell_time_s - 1e-9)
         # the exporters get exactly the loaded needles, each with time
         needles = implant_needles(plan)
         assert [n.hole_id for n in needles] == [c.name for c in plan.channels]
@@ -180,7 +178,8 @@ def test_modulation_limit_binds(open_case: tuple, bank: object, kernel: Tg43Kern
     straight = [c for c in cands if not c.steered]
     spread = {}
     for ratio in (1.2, 1e6):
-        s = ImplantSettings(max_needles=4, neighbour_ratio=ratio, max_dwell_share=1.0, min_dwell_time_s=0.0)
+        s = replace(SETTINGS, neighbour_ratio=ratio, max_dwell_share=1.0, min_dwell_time_s=0.0,
+                    smoothness_weight=0.0)
         arm = plan_implant("straight", straight, case.planning, kernel, SK, LOOSE, s)
         assert arm.plan is not None
         worst = 1.0
@@ -195,7 +194,7 @@ def test_modulation_limit_binds(open_case: tuple, bank: object, kernel: Tg43Kern
 def test_dwell_share_limit(open_case: tuple, kernel: Tg43Kernel) -> None:
     case, cands, _, _ = open_case
     for share in (0.12, 0.3):
-        s = ImplantSettings(max_needles=3, max_dwell_share=share)
+        s = replace(SETTINGS, max_needles=3, max_dwell_share=share)
         arm = plan_implant("straight", [c for c in cands if not c.steered], case.planning, kernel, SK, LOOSE, s)
         assert arm.plan is not None
         assert arm.plan.max_dwell_share <= share + 1e-9
@@ -313,7 +312,7 @@ def test_pareto_is_monotone_with_its_gap_reported(open_case: tuple, bank: object
     proved, and its objective never rises with the budget."""
     case = _with_lobe(_case(((-5.0, 0.0, 60.0), 8.0), {"Rectum": ((-20.0, 11.0, 20.0), (30.0, 24.0, 100.0))}),
                       (25.0, 0.0, 60.0), 8.0)
-    settings = ImplantSettings(max_needles=4, max_dwell_share=0.25, extra_after_aims=2)
+    settings = replace(SETTINGS, extra_after_aims=2)
     cands = needle_candidates(case.ids, case.xy, case.dist, np.eye(4), case.planning, case.organs, RADIUS,
                               settings)
     arm = plan_implant("straight", cands, case.planning, kernel, SK, Aims(), settings)
@@ -351,7 +350,7 @@ def test_steered_arm_strictly_wins_with_a_hidden_lobe(bank: object, kernel: Tg43
     not, or with fewer needles, or a D90 higher by over 1 Gy)."""
     case = _with_lobe(_case(((0.0, 0.0, 70.0), 8.0), {"Bowel": ((11.0, -14.0, 10.0), (26.0, 14.0, 60.0))}),
                       (17.0, 0.0, 100.0), 7.0)
-    settings = ImplantSettings(max_needles=3, max_dwell_share=0.25)
+    settings = replace(SETTINGS, max_needles=3)
     _, straight, steered = _arms(case, bank, kernel, settings, Aims())  # the bowel limit holds
     assert straight.plan is not None and steered.plan is not None
     _no_worse(steered, straight)

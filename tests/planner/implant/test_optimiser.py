@@ -26,8 +26,10 @@ from reachplan.plugins.errors import PluginError
 
 SK = 40700.0
 LOOSE = Aims(oar_d2cc_eqd2_gy=(("rectum", 400.0),))
-#: no dwell-share limit: a uniform loading of a few dwells would be clipped by it
-SETTINGS = ImplantSettings(max_needles=3, max_dwell_share=1.0, extra_after_aims=0)
+#: no dwell-share limit: a uniform loading of a few dwells would be clipped by it; the neighbour ratio instead of
+#: the smoothness term (the built-in's loading is then modulated, not a plateau like the stand-in's); nominal planning
+SETTINGS = ImplantSettings(max_needles=3, max_dwell_share=1.0, extra_after_aims=0, smoothness_weight=0.0,
+                           neighbour_ratio=2.0, shift_mm=0.0, v200_max_pct=None)
 
 #: The whole of a new optimiser: one module (its registration is the entry point written next to it).
 UNIFORM = textwrap.dedent('''
