@@ -217,100 +217,65 @@ class Aims:
         return self.fractionation.per_fraction_for(self.target_d90_eqd2_gy, self.alpha_beta_target_gy)
 
     def per_fraction_target_gy(self, total_eqd2_gy: float) -> float:
-        """Return the per-fraction physical dose (Gy) that brings a target's total to ``total_eqd2_gy`` (α/β tumour).
+        """Return the per-fraction dose that brings a target's total to ``total_eqd2_gy`` (α/β of the tumour).
 
         Parameters
         ----------
         total_eqd2_gy : float, Gy EQD2
-            Total with the external beam.
+            The target's total with the external beam.
 
         Returns
         -------
-        float, Gy per fraction
-            Brachytherapy dose per fraction.
+        float, Gy
+            The brachytherapy dose of each fraction.
         """
         return self.fractionation.per_fraction_for(total_eqd2_gy, self.alpha_beta_target_gy)
 
-    def oar_aim_eqd2_gy(self, name: str) -> float | None:
-        """Return organ ``name``'s D2cm³ planning aim, Gy EQD2 (None when it has none).
+    def oar_eqd2_gy(self, name: str, level: str = "aim") -> float | None:
+        """Return organ ``name``'s D2cm³ aim or limit, Gy EQD2 (None when the organ has none).
 
         Parameters
         ----------
         name : str
             The organ's name (matched case-insensitively, also as a substring).
+        level : {"aim", "planning", "limit"}
+            The planning aim; the planning aim less the headroom (what a nominal plan may reach); the hard limit
+            (never below the aim).
 
         Returns
         -------
         float or None
             Gy EQD2.
-        """
-        return _lookup(self.oar_d2cc_eqd2_gy, name)
 
-    def oar_hard_limit_eqd2_gy(self, name: str) -> float | None:
-        """Return organ ``name``'s D2cm³ hard limit, Gy EQD2 (never below its aim; None without aim or limit).
+        Raises
+        ------
+        ValueError
+            An unknown ``level``.
+        """
+        aim = _lookup(self.oar_d2cc_eqd2_gy, name)
+        if level == "aim":
+            return aim
+        if level == "planning":
+            return None if aim is None else max(aim - self.headroom_eqd2_gy, 1e-3)
+        if level == "limit":
+            limit = _lookup(self.oar_d2cc_limit_eqd2_gy, name)
+            return aim if limit is None else limit if aim is None else max(aim, limit)
+        raise ValueError(f"aims: level must be 'aim', 'planning' or 'limit', not {level!r}")
+
+    def oar_gy(self, name: str, level: str = "aim") -> float | None:
+        """Return :meth:`oar_eqd2_gy` as the per-fraction physical D2cm³ of the brachytherapy, Gy.
 
         Parameters
         ----------
         name : str
-            The organ's name (matched case-insensitively, also as a substring).
+            The organ's name.
+        level : {"aim", "planning", "limit"}
+            As in :meth:`oar_eqd2_gy`.
 
         Returns
         -------
         float or None
-            Gy EQD2.
+            Gy per fraction (α/β of the organs, with the external beam).
         """
-        aim = self.oar_aim_eqd2_gy(name)
-        limit = _lookup(self.oar_d2cc_limit_eqd2_gy, name)
-        if aim is None or limit is None:
-            return aim if limit is None else limit
-        return max(aim, limit)
-
-    def oar_limit_gy(self, name: str) -> float | None:
-        """Return organ ``name``'s per-fraction physical D2cm³ planning aim (no headroom).
-
-        Parameters
-        ----------
-        name : str
-            The organ's name (matched case-insensitively, also as a substring).
-
-        Returns
-        -------
-        float or None
-            Gy per fraction; None when the organ has no aim.
-        """
-        aim = self.oar_aim_eqd2_gy(name)
-        return None if aim is None else self.fractionation.per_fraction_for(aim, self.alpha_beta_oar_gy)
-
-    def oar_planning_gy(self, name: str) -> float | None:
-        """Return the per-fraction physical D2cm³ a nominal plan may reach: the planning aim less the headroom.
-
-        Parameters
-        ----------
-        name : str
-            The organ's name (matched case-insensitively, also as a substring).
-
-        Returns
-        -------
-        float or None
-            Gy per fraction; None when the organ has no aim.
-        """
-        aim = self.oar_aim_eqd2_gy(name)
-        if aim is None:
-            return None
-        return self.fractionation.per_fraction_for(max(aim - self.headroom_eqd2_gy, 1e-3), self.alpha_beta_oar_gy)
-
-    def oar_hard_limit_gy(self, name: str) -> float | None:
-        """Return organ ``name``'s per-fraction physical D2cm³ hard limit.
-
-        Parameters
-        ----------
-        name : str
-            The organ's name (matched case-insensitively, also as a substring).
-
-        Returns
-        -------
-        float or None
-            Gy per fraction; None when the organ has neither aim nor limit.
-        """
-        limit = self.oar_hard_limit_eqd2_gy(name)
-        return None if limit is None else self.fractionation.per_fraction_for(limit, self.alpha_beta_oar_gy)
+        total = self.oar_eqd2_gy(name, level)
+        return None if total is None else self.fractionation.per_fraction_for(total, self.alpha_beta_oar_gy)

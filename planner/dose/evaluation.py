@@ -196,7 +196,7 @@ class AimsTable:
 
 def _organ_results(aims: Aims, o: StructureMetrics, volume_cc: float) -> tuple[list[AimResult], str]:
     """Return the D2cm³ row of one organ (not applicable under 2 cm³, D0.1cm³ then) and its warning ("" without)."""
-    aim, limit = aims.oar_aim_eqd2_gy(o.name), aims.oar_hard_limit_eqd2_gy(o.name)
+    aim, limit = aims.oar_eqd2_gy(o.name), aims.oar_eqd2_gy(o.name, "limit")
     h = aims.headroom_eqd2_gy
     if volume_cc >= SMALL_ORGAN_CC:
         return [AimResult(f"{o.name} D2cm³", o.name, "D2cm³", o.d2cc_eqd2_gy, None, aim, None,
@@ -349,7 +349,7 @@ def protocol_json(aims: Aims) -> dict[str, object]:
     """
     fr = aims.fractionation
     organs = [{"structure": n, "metric": "D2cm³", "planning_aim": bounds_text(None, v),
-               "hard_limit": bounds_text(None, aims.oar_hard_limit_eqd2_gy(n))} for n, v in aims.oar_d2cc_eqd2_gy]
+               "hard_limit": bounds_text(None, aims.oar_eqd2_gy(n, "limit"))} for n, v in aims.oar_d2cc_eqd2_gy]
     return {
         "name": aims.name, "site": aims.site, "origin": aims.origin, "source": aims.source,
         "target_names": list(aims.target_names), "headroom_eqd2_gy": aims.headroom_eqd2_gy,

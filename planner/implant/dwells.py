@@ -278,7 +278,7 @@ def _optimise_columns(
     prob: _NeedleProblem, cols: np.ndarray, structures: PlanningStructures, aims: Aims, settings: OptimizerSettings,
 ) -> OptimisationResult:
     vox = voxel_volume_cc(structures.grid)
-    limits = [aims.oar_limit_gy(o.name) for o in structures.oars]
+    limits = [aims.oar_gy(o.name) for o in structures.oars]
     released: list[np.ndarray] = [np.zeros(0, dtype=int) for _ in structures.oars]
     n_hot = max(1, math.ceil(2.0 / vox - 1e-9) - 1)  # voxels allowed above the limit
     reason = "no dwells"
@@ -478,7 +478,7 @@ def _limited_by(oars: Sequence[StructureMetrics], v200_pct: float, aims: Aims,
     """
     out = []
     for o in oars:
-        aim = aims.oar_aim_eqd2_gy(o.name)
+        aim = aims.oar_eqd2_gy(o.name)
         if aim is not None and o.d2cc_eqd2_gy >= aim - aims.headroom_eqd2_gy - 0.3:
             out.append(f"{o.name} D2cm³ {o.d2cc_eqd2_gy:.1f} Gy (aim {aim:g} less {aims.headroom_eqd2_gy:g} headroom)")
     if settings.v200_max_pct is not None and v200_pct >= settings.v200_max_pct - 1.5:

@@ -234,7 +234,7 @@ def _aims_failed(target: StructureMetrics, gtv: StructureMetrics | None, oars: S
     if gtv is not None and gtv.d98_eqd2_gy < aims.gtv_d98_eqd2_gy - 1e-6:
         out.append(f"GTV D98 {gtv.d98_eqd2_gy:.1f} < {aims.gtv_d98_eqd2_gy:g} Gy")
     for o in oars:
-        aim = aims.oar_aim_eqd2_gy(o.name)
+        aim = aims.oar_eqd2_gy(o.name)
         if aim is not None and o.d2cc_eqd2_gy > aim - aims.headroom_eqd2_gy + 1e-6:
             out.append(f"{o.name} D2cm³ {o.d2cc_eqd2_gy:.1f} > {aim - aims.headroom_eqd2_gy:g} Gy "
                        f"(aim {aim:g} less {aims.headroom_eqd2_gy:g} headroom)")
@@ -325,10 +325,10 @@ def _sampled_problem(channels: Sequence[Channel], planning: PlanningStructures, 
         grid_points_mm(grid, np.flatnonzero(planning.target.mask.ravel())),
         None if gtv is None else grid_points_mm(grid, np.flatnonzero(gtv.mask.ravel())),
         tuple(grid_points_mm(grid, np.flatnonzero(o.mask.ravel())) for o in planning.oars),
-        tuple(aims.oar_planning_gy(o.name) for o in planning.oars), air_kerma_strength_u / 360000.0, kernel,
+        tuple(aims.oar_gy(o.name, "planning") for o in planning.oars), air_kerma_strength_u / 360000.0, kernel,
         tuple(o.name for o in planning.oars), settings.oar_eval_radius_mm, _supersampled(grid, planning.target.mask),
         None if gtv is None else _supersampled(grid, gtv.mask),
-        oar_hard=tuple(aims.oar_hard_limit_gy(o.name) for o in planning.oars))
+        oar_hard=tuple(aims.oar_gy(o.name, "limit") for o in planning.oars))
     tree = cKDTree(positions)
     return dataclasses.replace(prob, oar_near=tuple(
         pts[np.isfinite(tree.query(pts, distance_upper_bound=settings.oar_eval_radius_mm * (1 + 1e-6) + 1e-6)[0])]

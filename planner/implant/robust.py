@@ -9,8 +9,9 @@ dose of a scenario is the nominal dose less the needle's planned contribution pl
 times.
 
 **The robust problem** is scenario-based minimax in the sense of Fredriksson, Forsgren & Hårdemark (Med Phys
-38(3):1672, 2011): the nominal plan keeps every organ's planning aim less the headroom (``Aims.oar_planning_gy``)
-and every scenario its hard limit (``Aims.oar_hard_limit_gy``). With finitely many scenarios the robust counterpart
+38(3):1672, 2011): the nominal plan keeps every organ's planning aim less the headroom
+(``Aims.oar_gy(name, "planning")``) and every scenario its hard limit (``Aims.oar_gy(name, "limit")``). With finitely
+many scenarios the robust counterpart
 of the LP is the LP with one set of organ rows per scenario (Ben-Tal & Nemirovski, Math Program 88:411, 2000;
 Bertsimas & Sim, Oper Res 52(1):35, 2004, for the price of robustness); for HDR brachytherapy under catheter and
 applicator displacement, Balvert, den Hertog & Hoffmann (INFORMS J Comput 31(1):100, 2019) and the cervix study
@@ -340,7 +341,7 @@ def robustness_json(results: list[ScenarioResult], names: tuple[str, ...], aims:
     ok = fr.total_eqd2(low.d90_gy, ab_t) >= aims.target_d90_limit_eqd2_gy - 1e-6
     for i, name in enumerate(names):
         w = max(results, key=lambda r: r.d2cc_gy[i])
-        value, limit = fr.total_eqd2(w.d2cc_gy[i], ab_o), aims.oar_hard_limit_eqd2_gy(name)
+        value, limit = fr.total_eqd2(w.d2cc_gy[i], ab_o), aims.oar_eqd2_gy(name, "limit")
         ok = ok and (limit is None or value <= limit + 1e-6)
         organs[name] = {"value": round(value, 3), "scenario": f"{w.hole} {w.label}", "hard_limit": limit}
     return {**doc, "worst_hrctv_d90_eqd2_gy": round(fr.total_eqd2(low.d90_gy, ab_t), 3),

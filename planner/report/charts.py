@@ -87,7 +87,7 @@ def _dvh_curves(ax: Any, dvhs: Sequence[tuple[str, Any]], aims: Any, target: str
         if name == target:
             ax.plot([aims.prescription_gy], [0.9 * v[0]], "D", color=colour, mec="k", ms=8, gid="aim:D90",
                     label=f"{name} D90 aim ({aims.target_d90_eqd2_gy:g} Gy EQD2)")
-        elif (limit := aims.oar_limit_gy(name)) is not None:
+        elif (limit := aims.oar_gy(name)) is not None:
             ax.plot([limit], [2.0], "X", color=colour, mec="k", ms=9, gid=f"limit:{name}",
                     label=f"{name} D2cm³ limit")
 

@@ -84,7 +84,7 @@ def plan_dose_aims(plan: RtPlan, structures: StructureSet, grid: Grid, dose_gy: 
         target = _metrics(target_roi, grid, per_fraction, aims, aims.alpha_beta_target_gy)
     organs = []
     for roi in closed:
-        if roi is target_roi or aims.oar_aim_eqd2_gy(roi.name) is None:
+        if roi is target_roi or aims.oar_eqd2_gy(roi.name) is None:
             continue
         m = _metrics(roi, grid, per_fraction, aims, aims.alpha_beta_oar_gy)
         if m is not None:

@@ -113,7 +113,7 @@ def test_the_builtin_embrace_ii_file_is_exactly_the_default_aims() -> None:
     # the numbers of the reference notes (ESGO/ESTRO table, EMBRACE II), written out here once more
     assert (a.target_d90_eqd2_gy, a.target_d90_max_eqd2_gy, a.target_d90_limit_eqd2_gy) == (90.0, 95.0, 85.0)
     assert (a.target_d98_eqd2_gy, a.gtv_d98_eqd2_gy, a.gtv_d98_limit_eqd2_gy) == (75.0, 95.0, 90.0)
-    assert [(o, a.oar_aim_eqd2_gy(o), a.oar_hard_limit_eqd2_gy(o)) for o in ("Bladder", "Rectum", "Colon_Sigmoid",
+    assert [(o, a.oar_eqd2_gy(o), a.oar_eqd2_gy(o, "limit")) for o in ("Bladder", "Rectum", "Colon_Sigmoid",
                                                                             "Bowel_Small")] == \
         [("Bladder", 80, 90), ("Rectum", 65, 75), ("Colon_Sigmoid", 70, 75), ("Bowel_Small", 70, 75)]
     rv = next(p for p in a.points if p.name == "ICRU recto-vaginal")
@@ -134,7 +134,7 @@ def test_a_user_file_of_another_site_changes_the_plans_aims(tmp_path: Path, case
     ebrt = 46.0 * (2.0 + 1.5) / (2.0 + 1.5)
     d = aims.prescription_gy
     assert math.isclose(d * (d + 1.5) / 3.5 + ebrt, 100.0, rel_tol=1e-9)
-    assert aims.oar_aim_eqd2_gy("Rectum") == 75.0 and aims.oar_aim_eqd2_gy("Bladder") is None
+    assert aims.oar_eqd2_gy("Rectum") == 75.0 and aims.oar_eqd2_gy("Bladder") is None
     # the dwell optimiser plans to it: another prescription, another plan
     ours = optimise_dwell_times([np.array([[0.0, 0.0, -20.0], [0.0, 0.0, 30.0]])], case.planning, case.kernel, SK,
                                 aims)

@@ -72,15 +72,15 @@ def test_prescription_from_embrace_ii() -> None:
     assert float(eqd2(rx, 4, 10.0) + eqd2(1.8, 25, 10.0)) == pytest.approx(90.0)
     assert 7.6 < rx < 7.9  # d² + 10 d = 137.25 → 7.74 Gy
     # two levels: the nominal plan keeps 1 Gy EQD2 below the aim, the hard limit is EMBRACE II's
-    assert float(eqd2(aims.oar_planning_gy("Bladder"), 4, 3.0) + eqd2(1.8, 25, 3.0)) == pytest.approx(79.0)
-    assert float(eqd2(aims.oar_hard_limit_gy("sigmoid_colon"), 4, 3.0) + eqd2(1.8, 25, 3.0)) == pytest.approx(75.0)
-    assert aims.oar_hard_limit_gy("femur") is None
+    assert float(eqd2(aims.oar_gy("Bladder", "planning"), 4, 3.0) + eqd2(1.8, 25, 3.0)) == pytest.approx(79.0)
+    assert float(eqd2(aims.oar_gy("sigmoid_colon", "limit"), 4, 3.0) + eqd2(1.8, 25, 3.0)) == pytest.approx(75.0)
+    assert aims.oar_gy("femur", "limit") is None
     # a limit is never below its aim: overriding only the aims keeps them consistent
-    assert Aims(oar_d2cc_eqd2_gy=(("bowel", 400.0),)).oar_hard_limit_eqd2_gy("bowel") == 400.0
+    assert Aims(oar_d2cc_eqd2_gy=(("bowel", 400.0),)).oar_eqd2_gy("bowel", "limit") == 400.0
     with pytest.raises(ValueError, match="hard limit"):
         Aims(target_d90_limit_eqd2_gy=92.0)
-    assert aims.oar_limit_gy("Bladder_P") == pytest.approx(Fractionation().per_fraction_for(80.0, 3.0))
-    assert aims.oar_limit_gy("Femur") is None
+    assert aims.oar_gy("Bladder_P") == pytest.approx(Fractionation().per_fraction_for(80.0, 3.0))
+    assert aims.oar_gy("Femur") is None
     with pytest.raises(ValueError, match="limits"):
         Aims(oar_d2cc_eqd2_gy=(("bladder", -1.0),))
 
@@ -93,7 +93,7 @@ def test_organ_limits_respected(phantom: PlanningStructures, kernel: Tg43Kernel,
     # independent check: grid dose of the optimised dwells (float32 grid path) and a direct sort
     dose = dose_on_grid(phantom.grid, res.dwells, kernel, SK)
     for organ, limit in (("Bladder", bladder_limit), ("Rectum", 65.0)):
-        per_fraction = aims.oar_limit_gy(organ)
+        per_fraction = aims.oar_gy(organ)
         assert per_fraction is not None
         assert _d2cc_independent(phantom, dose, organ) <= per_fraction * (1 + 1e-4)
         metric = next(o for o in res.oars if o.name == organ)

@@ -133,7 +133,7 @@ def test_delivered_dvh_marks_each_aim_where_the_aims_put_it() -> None:
     ax = charts.dvh_aims_figure(dvhs, aims).axes[0]
     marks = {ln.get_gid(): ln.get_xydata()[0] for ln in ax.lines if (ln.get_gid() or "").startswith(("aim", "limit"))}
     assert np.allclose(marks["aim:D90"], (aims.prescription_gy, 0.9 * 60.0))
-    assert np.allclose(marks["limit:Rectum"], (aims.oar_limit_gy("Rectum"), 2.0))
+    assert np.allclose(marks["limit:Rectum"], (aims.oar_gy("Rectum"), 2.0))
     assert "limit:Uterus" not in marks  # no limit, no mark
     assert ax.get_yscale() == "log"
 

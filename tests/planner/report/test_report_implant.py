@@ -84,5 +84,5 @@ def test_implant_dvhs_both_arms_by_line_style_monotone_with_the_aims(arms: tuple
         assert lines[f"dvh:{arm.name}:HR-CTV"].get_linewidth() > lines[f"dvh:{arm.name}:Rectum"].get_linewidth()  # type: ignore[attr-defined]
     assert np.allclose(lines["aim:D90"].get_xdata(), aims.prescription_gy)  # type: ignore[attr-defined]
     for organ in ("Bladder", "Rectum", "Sigmoid"):
-        assert np.allclose(lines[f"limit:{organ}"].get_xydata(), [(aims.oar_limit_gy(organ), 2.0)])  # type: ignore[attr-defined]
+        assert np.allclose(lines[f"limit:{organ}"].get_xydata(), [(aims.oar_gy(organ), 2.0)])  # type: ignore[attr-defined]
     assert sum(str(g).startswith("aim:") for g in lines) == 1  # the marks once, not per arm
