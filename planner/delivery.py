@@ -22,7 +22,7 @@ from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.evaluation import AimsTable, emit, evaluate_aims, site_warning
-from reachplan.planner.dose.structures import planning_structures
+from reachplan.planner.dose.structures import gtv_structure, planning_structures
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.implant.case import ImplantComparison, plan_implants
 from reachplan.planner.lookup import get_source, load_template
@@ -31,7 +31,7 @@ from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
     from reachplan.planner.dose.dwells import DwellSet
-    from reachplan.planner.dose.structures import PlanningStructures
+    from reachplan.planner.dose.structures import PlanningStructures, Structure
     from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
     from reachplan.planner.implant.dwells import OptimisationResult
@@ -235,7 +235,7 @@ def plan_delivery(
     source, aims = get_source(source_name), Aims() if aims is None else aims
     kernel = Tg43Kernel(source)
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
-                                                    implant_settings)
+                                                    implant_settings, gtv_structure(structures, planning.grid))
     fractions = aims.fractionation.n_fractions
     now, setup = datetime.now().replace(microsecond=0), load_template(result.config.template).application_setup_type
     spec = SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0))  # Eclipse
@@ -320,14 +320,17 @@ def _arm_exports(implant: ImplantComparison | None,
 
 def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,
                kernel: Tg43Kernel, air_kerma_u: float, aims: Aims, implant_settings: ImplantSettings | None,
+               gtv: Structure | None = None,
                ) -> tuple[ImplantComparison | None, OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...], str]:
     """Return the implant arms (with ``scene``) and the plan to deliver: optimisation, needles, roles and kind.
 
-    The implant arm :func:`_delivered_implant` picks, else one needle per target (:func:`_per_target`).
+    The implant arm :func:`_delivered_implant` picks, else one needle per target (:func:`_per_target`). The implant
+    also aims at ``gtv`` (GTV_res, :func:`~reachplan.planner.dose.structures.gtv_structure`) when there is one.
     """
     implant = None
     if scene is not None:
-        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings, aims=aims)
+        implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings, aims=aims,
+                                gtv=gtv)
     delivered = _delivered_implant(implant, planning.target.name)
     if delivered is not None:
         arm, opt, exports, roles = delivered

@@ -120,3 +120,36 @@ def planning_structures(structures: StructureSet, grid: Grid | None, target_roi:
         grid = fit_grid(union, None, 2.0)
     oars = tuple(Structure(r.normalized_name, roi_mask(r, grid)) for r in oar_rois)
     return PlanningStructures(grid, Structure(target_roi, roi_mask(roi, grid)), oars)
+
+
+def gtv_structure(structures: StructureSet, grid: Grid) -> Structure | None:
+    """Return the residual GTV at brachytherapy (GTV_res) as a mask on ``grid``, or None when there is none.
+
+    By name (case, spaces and punctuation ignored): a name that starts with ``gtv`` and holds ``res`` (``GTV_res``,
+    ``GTV-T_res``) first, else a plain ``GTV`` (``GTV``, ``GTVp``, ``GTV_T``); a GTV at diagnosis (``GTV_init``)
+    is not the brachytherapy GTV and is not taken. ROIs without closed contours are skipped.
+
+    Parameters
+    ----------
+    structures : StructureSet
+        The case's ROIs (contours mm, LPS).
+    grid : Grid
+        The planning grid.
+
+    Returns
+    -------
+    Structure or None
+        Named as the ROI, boolean mask (k, j, i).
+    """
+    from reachplan.imaging.meshing import roi_mask
+
+    def key(name: str) -> str:
+        return "".join(ch for ch in name.casefold() if ch.isalnum())
+
+    closed = [r for r in structures.rois if any(c.geometric_type == "CLOSED_PLANAR" for c in r.contours)]
+    ranked = [r for r in closed if key(r.name).startswith("gtv") and "res" in key(r.name)]
+    ranked += [r for r in closed if key(r.name) in ("gtv", "gtvp", "gtvt")]
+    if not ranked:
+        return None
+    mask = roi_mask(ranked[0], grid)
+    return Structure(ranked[0].name, mask) if mask.any() else None
