@@ -136,6 +136,9 @@ class DwellProblem:
         Effort of a selecting optimiser's local search (candidates considered, passes), for those that search.
     min_time_s : float, s
         A loaded column carries at least this time (each column 0 or >= ``min_time_s``; 0: no such rule).
+    exhaustive_max : int
+        A selecting optimiser that can enumerate solves every selection of at most the budget (one needle per hole)
+        when there are at most this many (0: never), and so proves its selection optimal.
     cache : dict
         Scratch space for optimisers (e.g. a built LP), keyed by the optimiser's name.
     """
@@ -151,6 +154,7 @@ class DwellProblem:
     swap_pool: int = 8
     swap_passes: int = 3
     min_time_s: float = 0.0
+    exhaustive_max: int = 0
     cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @property

@@ -8,9 +8,10 @@ on the model of :mod:`reachplan.planner.implant.model`):
 
 1. **Needle selection** at budget K, on the selection problem: each channel's dwells in ``segments_per_channel``
    blocks of equal time, ``selection_target_points`` sampled target points, organ rows on a lattice of
-   ``selection_oar_pitch_mm`` (each organ's planning aim less the headroom), the HR-CTV's V200 rows (calibrated by
-   the last final plan), one binary per needle, one needle per template hole. The bound reported per budget
-   is the optimiser's (the built-in's: the LP relaxation's) and the relative gap to the selection kept
+   ``selection_oar_pitch_mm`` (each organ's planning aim less the headroom), the HR-CTV's V200 rows, one binary per
+   needle, one needle per template hole; where the selections of at most K needles are few enough
+   (``exhaustive_max_selections``), every one is solved and the selection is proven optimal. The bound reported per
+   budget is the optimiser's (the built-in's: the LP relaxation's) and the relative gap to the selection kept
    (:class:`reachplan.planner.implant.arms.BudgetResult`; plan.json ``selection``). The LP with every candidate
    loaded, its organ rows calibrated once, bounds every budget (``selection.all_candidates_objective``); every
    budget's model has those rows.
@@ -30,8 +31,10 @@ Gy and the organs' limits, kept with any one needle displaced.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,7 +45,14 @@ from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import BudgetResult, ImplantArm, ImplantPlan, _arm
 from reachplan.planner.implant.candidates import Channel
 from reachplan.planner.implant.dwells import _final
-from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, NeedleChoice, OrganRows, resolve
+from reachplan.planner.implant.optimiser import (
+    DwellOptimiser,
+    DwellProblem,
+    DwellSolution,
+    NeedleChoice,
+    OrganRows,
+    resolve,
+)
 from reachplan.planner.implant.problem import (
     _calibrate,
     _d2cc,
@@ -64,6 +74,8 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
                  air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
                  gtv: Structure | None = None) -> ImplantArm:
     """Return the Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
+
+    One arm of :func:`plan_arms`.
 
     Parameters
     ----------
@@ -95,22 +107,38 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
     reachplan.plugins.errors.PluginError
         No dwell optimiser is registered under ``settings.optimiser`` (the message lists the available ones).
     """
-    t0 = time.perf_counter()
-    aims = aims or Aims()
-    settings = settings or ImplantSettings()
-    optimiser = resolve(settings.optimiser)
-    channels = tuple(c for c in channels if len(c.dwell_positions_mm) >= 1)
-    needles = [i for i, c in enumerate(channels) if c.is_needle]
-    if not channels:
-        return ImplantArm(name, 0, (), None, time.perf_counter() - t0, "no candidate channel")
+    return plan_arms([(name, channels)], planning, kernel, air_kerma_strength_u, aims, settings, gtv=gtv,
+                     workers=1)[0]
+
+
+@dataclass(frozen=True, eq=False)
+class _Shared:
+    """What every arm of a case shares, so that one needle set gets one score whichever arm evaluates it.
+
+    The sampled problem of every arm's channels together, the selection problem on all of them (rows: target points,
+    organ lattices near every candidate dwell, V200), the calibration of its organ rows from every candidate loaded,
+    the final step's target rows, and the needles' invasiveness normalised over all candidates.
+    """
+
+    prob: _Problem
+    selection: DwellProblem
+    free: DwellSolution
+    kappa: np.ndarray
+    final_rows: tuple[np.ndarray, np.ndarray]
+    vox_cc: float
+
+
+def _shared(channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel, air_kerma_u: float,
+            aims: Aims, settings: ImplantSettings, gtv: Structure | None, optimiser: DwellOptimiser) -> _Shared:
+    """Return the problem every arm of ``channels`` shares (:class:`_Shared`), its rows calibrated once."""
     vox_cc = voxel_volume_cc(planning.grid)
-    prob = _sampled_problem(channels, planning, kernel, air_kerma_strength_u, aims, settings, gtv)
+    prob = _sampled_problem(channels, planning, kernel, air_kerma_u, aims, settings, gtv)
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
         1.0 + settings.coverage_margin)
-    selection = _selection_problem(prob, needles, settings, _target_rows(prob, settings.selection_target_points,
-                                                                         p_t, p_g), aims, vox_cc)
-    # the arm's bound: every candidate loaded, no budget; its solution calibrates the organ rows
+    selection = _selection_problem(prob, settings, _target_rows(prob, settings.selection_target_points, p_t, p_g),
+                                   aims, vox_cc)
+    # every candidate loaded, no budget; its solution calibrates the organ rows (of every arm)
     n_org = sum(limit is not None for limit in prob.oar_limits)
     kappa = np.ones(len(selection.organs))
     kappa[n_org:] = V200_KAPPA_START
@@ -119,31 +147,57 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         kappa[:n_org] = _calibrate(kappa[:n_org], _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
                                    selection.tail_means(free.times_s)[:n_org], selection.limits_gy[:n_org])
         free = optimiser.optimise(selection, limit_factor=kappa)
+    return _Shared(prob, selection, free, kappa, _target_rows(prob, settings.final_target_points, p_t, p_g), vox_cc)
+
+
+def _restricted(selection: DwellProblem, allowed: Sequence[int]) -> DwellProblem:
+    """Return the selection problem on the channels ``allowed`` alone: the same rows, their units and needles."""
+    keep = set(allowed)
+    units = tuple(u for u in (selection.units or ()) if int(selection.channel[u[0]]) in keep)
+    choice = selection.needles
+    assert choice is not None
+    on = [i for i, c in enumerate(choice.channels) if c in keep]
+    needles = NeedleChoice(tuple(choice.channels[i] for i in on), tuple(choice.holes[i] for i in on),
+                           choice.cost[on])
+    return dataclasses.replace(selection, units=units, needles=needles, cache={})
+
+
+def _plan_arm(name: str, allowed: Sequence[int], shared: _Shared, aims: Aims, settings: ImplantSettings,
+              optimiser: DwellOptimiser) -> ImplantArm:
+    """Return one arm's Pareto curve and chosen implant, its candidates the shared problem's ``allowed`` channels."""
+    t0 = time.perf_counter()
+    prob = shared.prob
+    whole = len(allowed) == len(prob.channels)
+    selection = shared.selection if whole else _restricted(shared.selection, allowed)
+    assert selection.needles is not None
+    needles = list(selection.needles.channels)
+    free = shared.free if whole else optimiser.optimise(selection, limit_factor=shared.kappa)
     bound = free.objective if free.times_s is not None else float("nan")
-    final = _Final(prob, *_target_rows(prob, settings.final_target_points, p_t, p_g), aims, settings, vox_cc,
-                   optimiser)
+    final = _Final(prob, *shared.final_rows, aims, settings, shared.vox_cc, optimiser, shared.kappa)
     rank: list[int] = []  # needles (indices into ``needles``) by their time in the all-candidates loading
     if free.times_s is not None:
-        ch_time = np.bincount(prob.channel_of, weights=free.times_s, minlength=len(channels))
+        ch_time = np.bincount(prob.channel_of, weights=free.times_s, minlength=len(prob.channels))
         rank = [int(i) for i in np.argsort(-ch_time[needles], kind="stable") if ch_time[needles[i]] > 0]
-    budgets, plans = _budgets(selection, needles, optimiser, kappa, bound, final, rank)
+    budgets, plans = _budgets(selection, needles, optimiser, shared.kappa, bound, final, rank)
     record: dict[str, object] = {
         "model": getattr(optimiser, "description", "") or optimiser.name,
         "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
+        "exhaustive_max_selections": settings.exhaustive_max_selections,
         "budgets": [b.to_json() for b in budgets]}
     return _arm(name, len(needles), plans, time.perf_counter() - t0, tuple(budgets), record, settings.needles)
 
 
-def _selection_problem(prob: _Problem, needles: Sequence[int], settings: ImplantSettings,
-                       target: tuple[np.ndarray, np.ndarray], aims: Aims, vox_cc: float) -> DwellProblem:
+def _selection_problem(prob: _Problem, settings: ImplantSettings, target: tuple[np.ndarray, np.ndarray],
+                       aims: Aims, vox_cc: float) -> DwellProblem:
     """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness.
 
     Its rows: the target points, each organ's nominal D2cm³ rows (planning aim less the headroom) and the HR-CTV's
-    V200 rows (their calibration the last final plan's); the scenarios are the final step's
-    (:func:`reachplan.planner.implant.robust.robust_times`).
+    V200 rows; the scenarios are the final step's (:func:`reachplan.planner.implant.robust.robust_times`). A needle's
+    invasiveness is its hole distance and tissue length, each over the largest of every candidate.
     """
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     channels = prob.channels
+    needles = [i for i, c in enumerate(channels) if c.is_needle]
     cost = np.zeros(len(needles))
     if needles:
         dmax = max(max(channels[i].hole_distance_mm for i in needles), 1e-9)
@@ -166,7 +220,7 @@ def _selection_problem(prob: _Problem, needles: Sequence[int], settings: Implant
         rates, target[1], p_t, tuple(organs), prob.channel_of,
         _modulation(settings), tuple(units),
         NeedleChoice(tuple(needles), tuple(channels[i].name for i in needles), cost),
-        settings.swap_pool, settings.swap_passes)
+        settings.swap_pool, settings.swap_passes, exhaustive_max=settings.exhaustive_max_selections)
 
 
 class _Final:
@@ -188,23 +242,23 @@ class _Final:
         Voxel volume of the planning grid.
     optimiser : DwellOptimiser
         Loads each chosen set (without a budget).
+    kappa : (n_organs + n_v200,) float, unitless
+        The calibration every plan starts from (the shared one: a needle set's plan does not depend on the arm or
+        on the plans made before it).
     """
 
     def __init__(self, prob: _Problem, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims, settings: ImplantSettings,
-                 vox_cc: float, optimiser: DwellOptimiser) -> None:
+                 vox_cc: float, optimiser: DwellOptimiser, kappa: np.ndarray) -> None:
         self.prob, self.fin_pts, self.fin_p, self.aims, self.settings = prob, fin_pts, fin_p, aims, settings
-        self.vox_cc, self.optimiser = vox_cc, optimiser
-        self.kappa: np.ndarray | None = None  # the last plan's calibration (organ rows, V200 rows): the next's start
+        self.vox_cc, self.optimiser, self.kappa = vox_cc, optimiser, kappa
 
-    def __call__(self, chosen: np.ndarray, kappa: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
+    def __call__(self, chosen: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
         """Return the plan of the channels ``chosen``, its selection's ``status`` and ``gap`` recorded.
 
         Parameters
         ----------
         chosen : (c,) int
             Indices into ``prob.channels``, ascending.
-        kappa : (n_organs,) float, unitless
-            The organ rows' calibration at the selection.
         status : str
             How the selection was made.
         gap : float or None
@@ -215,10 +269,8 @@ class _Final:
         ImplantPlan or None
             None when the chosen channels give no plan.
         """
-        if self.kappa is None:
-            self.kappa = np.concatenate([kappa, [V200_KAPPA_START] * (self.settings.v200_max_pct is not None)])
         return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc,
-                      self.kappa, status, gap, self.optimiser)
+                      self.kappa.copy(), status, gap, self.optimiser)
 
 
 def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,
@@ -236,8 +288,6 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     prob, settings = final.prob, final.settings
     channels = prob.channels
     intracavitary = [c for c in range(len(channels)) if not channels[c].is_needle]
-    kappa = kappa.copy()
-    n_org = len(kappa) - (settings.v200_max_pct is not None)
     budgets: list[BudgetResult] = []
     plans: list[ImplantPlan] = []
     seen: dict[tuple[int, ...], ImplantPlan | None] = {}
@@ -247,8 +297,6 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     best_d90 = -np.inf
     for k in range(0 if intracavitary else 1, min(settings.max_needles, len(needles)) + 1):
         t_k = time.perf_counter()
-        if final.kappa is not None and settings.v200_max_pct is not None:
-            kappa[-1] = final.kappa[-1]  # the V200 rows' calibration: the last final plan's
         sol = optimiser.optimise(selection, budget=k, limit_factor=kappa, start=keep)
         value, lower, status = sol.objective, sol.bound, sol.status
         if sol.times_s is None:
@@ -266,7 +314,7 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
         if new:
-            seen[picked] = final(np.array(picked, dtype=int), kappa[:n_org].copy(),
+            seen[picked] = final(np.array(picked, dtype=int),
                                  f"budget {k}: selection objective {value:.6g}, {status}", gap)
         budgets.append(BudgetResult(k, len(keep), value, lower, gap, status, time.perf_counter() - t_k, new,
                                     tuple(channels[c] for c in picked), seen.get(picked) if new else None))
@@ -296,11 +344,14 @@ def _forced(keep: Sequence[int], rank: Sequence[int], channels: Sequence[Channel
 def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningStructures, kernel: Tg43Kernel,
               air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
               gtv: Structure | None = None, workers: int = 2) -> tuple[ImplantArm, ...]:
-    """Plan several arms (:func:`plan_implant`, each on its own), in up to ``workers`` threads.
+    """Plan several arms on one shared problem, each arm's search on its own, in up to ``workers`` threads.
 
+    The arms share the sampled problem of all their channels (:class:`_Shared`: rows, organ-row calibration, the
+    invasiveness scale, the final step's start): a needle set gets the same selection objective and the same plan
+    whichever arm evaluates it, so an arm whose candidates include another's is never worse where both enumerate.
     HiGHS and the compiled dose kernels release the GIL, so two arms run on two cores. Threads only when the
     compiled kernels' threading layer allows calls from several threads at once (``omp`` or ``tbb``; numba's
-    ``workqueue`` does not); else one after the other, with the same result (the arms do not share state).
+    ``workqueue`` does not); else one after the other, with the same result (the arms share no mutable state).
 
     Parameters
     ----------
@@ -326,15 +377,32 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
     tuple of ImplantArm
         In the order of ``arms``.
     """
-    def one(arm: tuple[str, Sequence[Channel]]) -> ImplantArm:
-        return plan_implant(arm[0], arm[1], planning, kernel, air_kerma_strength_u, aims, settings, gtv=gtv)
+    aims = aims or Aims()
+    settings = settings or ImplantSettings()
+    optimiser = resolve(settings.optimiser)
+    union: list[Channel] = []
+    index: dict[int, int] = {}
+    members: list[tuple[int, ...]] = []
+    for _, channels in arms:
+        for c in channels:
+            if len(c.dwell_positions_mm) >= 1 and id(c) not in index:
+                index[id(c)] = len(union)
+                union.append(c)
+        members.append(tuple(sorted({index[id(c)] for c in channels if id(c) in index})))
+    t0 = time.perf_counter()
+    shared = _shared(union, planning, kernel, air_kerma_strength_u, aims, settings, gtv, optimiser) if union else None
+
+    def one(i: int) -> ImplantArm:
+        if shared is None or not members[i]:
+            return ImplantArm(arms[i][0], 0, (), None, time.perf_counter() - t0, "no candidate channel")
+        return _plan_arm(arms[i][0], members[i], shared, aims, settings, optimiser)
 
     if workers < 2 or len(arms) < 2 or not _threads_safe(kernel):
-        return tuple(one(a) for a in arms)
+        return tuple(one(i) for i in range(len(arms)))
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(min(workers, len(arms))) as pool:
-        return tuple(pool.map(one, arms))
+        return tuple(pool.map(one, range(len(arms))))
 
 
 def _threads_safe(kernel: Tg43Kernel) -> bool:

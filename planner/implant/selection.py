@@ -3,7 +3,12 @@
 Without a budget, the LP of :class:`reachplan.planner.implant.model._Model` (needle binaries, if any, relaxed to
 [0, 1]): the dwell times of a chosen set, or the bound of every candidate loaded.
 
-**Needle selection at a budget K: a mixed-integer programme solved by a deterministic heuristic with a bound.** The
+**Needle selection at a budget K: exact by enumeration where that is cheap, else a deterministic heuristic with a
+bound.** When the selections of at most K needles (one per hole) number at most ``exhaustive_max``
+(:class:`reachplan.planner.implant.optimiser.DwellProblem`; ``ImplantSettings.exhaustive_max_selections``), every
+one's LP is solved and the best kept (:func:`_exhaustive`): the selection is the model's optimum (gap 0), and the
+same needles get the same objective in every arm whose problem shares the rows
+(:func:`reachplan.planner.implant.plan.plan_arms`). Beyond that: the
 model: each channel's dwells in ``segments_per_channel`` blocks of equal time, sampled target points, the needle
 binaries (:mod:`reachplan.planner.implant.model`). Its LP relaxation (HiGHS dual simplex through
 ``scipy.optimize.milp``) bounds every selection of K needles from below. Starts: the relaxation rounded (its largest
@@ -19,6 +24,7 @@ it is that far from it.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import numpy as np
@@ -94,6 +100,54 @@ def _improved(model: _Model, budget: int, kappa: np.ndarray, relaxed: sopt.Optim
         if step is best:
             break
         best = step
+    return best, n_lp
+
+
+def selections_at_most(holes: Sequence[str], budget: int) -> int:
+    """Return how many selections of 1 to ``budget`` needles there are, one needle per template hole at most.
+
+    Parameters
+    ----------
+    holes : sequence of str
+        The template hole of each needle.
+    budget : int
+        The most needles a selection holds.
+
+    Returns
+    -------
+    int
+        The sum over sizes 1..``budget`` of the elementary symmetric polynomials of the needles per hole.
+    """
+    e = [1] + [0] * budget  # e[j]: selections of j needles over the holes seen so far
+    for n_h in np.unique(np.asarray(holes, dtype=object), return_counts=True)[1]:
+        for j in range(budget, 0, -1):
+            e[j] += e[j - 1] * int(n_h)
+    return sum(e[1:])
+
+
+def _exhaustive(model: _Model, budget: int, kappa: np.ndarray,
+                memo: dict[tuple[int, ...], sopt.OptimizeResult]) -> tuple[sopt.OptimizeResult | None, int]:
+    """Return the best selection of 1 to ``budget`` needles (one per hole) over all of them, and the LPs solved.
+
+    Every selection's LP is solved (those in ``memo``, a smaller budget's, are read from it): the result is the
+    selection model's optimum at this budget, proven by enumeration.
+    """
+    by_hole: dict[str, list[int]] = {}
+    for i, h in enumerate(model.hole_of):
+        by_hole.setdefault(h, []).append(i)
+    groups = list(by_hole.values())
+    best: sopt.OptimizeResult | None = None
+    n_lp = 0
+    for size in range(1, budget + 1):
+        for combo in itertools.combinations(groups, size):
+            for pick in itertools.product(*combo):
+                key = tuple(sorted(pick))
+                res = memo.get(key)
+                if res is None:
+                    res = memo[key] = model.solve(budget, kappa=kappa, only=key)
+                    n_lp += 1
+                if res.x is not None and (best is None or float(res.fun) < float(best.fun) - 1e-12):
+                    best = res
     return best, n_lp
 
 
@@ -175,6 +229,9 @@ class LinearProgramme:
         """
         model = self.model(problem)
         kappa = np.ones(len(problem.organs)) if limit_factor is None else np.asarray(limit_factor, dtype=float)
+        if budget is not None and budget >= 1 and \
+                selections_at_most(model.hole_of, budget) <= problem.exhaustive_max:
+            return self._enumerate(problem, model, budget, kappa)
         if budget is None:
             res = model.solve(None, kappa=kappa)
             if res.x is None:
@@ -184,6 +241,22 @@ class LinearProgramme:
                 res, status = _min_time(model, kappa, res)
             return DwellSolution(model.dwell_times(res.x), status, float(res.fun), bound, model.selected(res.x))
         return self._select(problem, model, budget, kappa, start)
+
+    def _enumerate(self, problem: DwellProblem, model: _Model, k: int, kappa: np.ndarray) -> DwellSolution:
+        """Select at most ``k`` needles by solving every selection's LP (:func:`_exhaustive`); the bound is its value.
+
+        The LPs of one calibration ``kappa`` are kept in the problem's cache, so budget ``k`` solves only the
+        selections of ``k`` needles.
+        """
+        memo = problem.cache.setdefault(f"{self.name}:selections:{kappa.tobytes().hex()}", {})
+        n_all = selections_at_most(model.hole_of, k)
+        best, n_lp = _exhaustive(model, k, kappa, memo)
+        if best is None:
+            return DwellSolution(None, f"no feasible selection among all {n_all} of at most {k} needles",
+                                 float("inf"), None)
+        value = float(best.fun)
+        return DwellSolution(model.dwell_times(best.x), f"exhaustive: optimal over all {n_all} selections of at most "
+                             f"{k} needles ({n_lp} LPs solved here)", value, value, model.selected(best.x))
 
     def _select(self, problem: DwellProblem, model: _Model, k: int, kappa: np.ndarray,
                 keep: Sequence[int]) -> DwellSolution:

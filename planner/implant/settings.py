@@ -50,6 +50,10 @@ class ImplantSettings:
         Pareto points computed beyond the first budget that meets every aim.
     coverage_margin : float
         The LP aims target points at (1 + this) × the D90 prescription.
+    exhaustive_max_selections : int
+        At a needle budget K, when there are at most this many selections of at most K needles (one per hole), each
+        one's dwell LP is solved and the best kept: the selection is then proven optimal on the selection model
+        (0: never enumerate). 200 covers one and two needles among 19 straight candidates, one among 98 steered.
     swap_pool, swap_passes : int
         The selection's local search at each needle budget: swaps with the needles of the largest relaxed ``y``
         (this many), for at most this many passes (0: the rounded LP relaxation alone).
@@ -107,6 +111,7 @@ class ImplantSettings:
     max_needles: int = 16
     extra_after_aims: int = 1
     coverage_margin: float = 0.03
+    exhaustive_max_selections: int = 200
     swap_pool: int = 6
     swap_passes: int = 2
     segments_per_channel: int = 2
@@ -136,6 +141,8 @@ class ImplantSettings:
                self.selection_target_points, self.final_target_points) < 1 or self.steered_per_hole < 0 \
                 or self.extra_after_aims < 0:
             raise ValueError("implant settings: counts must be >= 1 (steered_per_hole, extra_after_aims >= 0)")
+        if self.exhaustive_max_selections < 0:
+            raise ValueError("implant settings: exhaustive_max_selections must be >= 0 (0: never enumerate)")
         if not (self.selection_oar_pitch_mm > 0 and self.final_oar_pitch_mm > 0 and self.oar_sample_cc >= 2.0):
             raise ValueError("implant settings: organ pitches must be > 0 mm and oar_sample_cc >= 2 cm³")
         if self.smoothness_weight < 0 or self.min_dwell_time_s < 0 or self.shift_mm < 0 or self.robust_rounds < 1 \

@@ -1,0 +1,123 @@
+"""Needle selection with a proof: every selection enumerated where that is cheap, checked against HiGHS's
+branch and bound on the same mixed-integer programme, and one score per needle set whichever arm asks."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy import optimize as sopt
+
+from reachplan.planner.implant.model import _Model
+from reachplan.planner.implant.optimiser import DwellProblem, Modulation, NeedleChoice, OrganRows
+from reachplan.planner.implant.plan import _restricted
+from reachplan.planner.implant.selection import LP, selections_at_most
+
+
+def _problem(seed: int, exhaustive_max: int) -> DwellProblem:
+    """Seven needles (two pairs share a hole) and one intracavitary channel, three dwells each; a target of 40
+    points, an organ of 30 points that the needles near it dose strongly (so the choice is not the obvious one)."""
+    rng = np.random.default_rng(seed)
+    n_ch, per = 8, 3
+    channel = np.repeat(np.arange(n_ch), per)
+    target = rng.uniform(0.2, 1.0, (40, n_ch * per)) * rng.uniform(0.1, 1.0, n_ch * per)
+    organ = rng.uniform(0.0, 0.3, (30, n_ch * per))
+    organ[:, channel < 3] *= 6.0
+    rows = OrganRows(organ, np.full(30, 0.2), limit_gy=3.0, volume_cc=2.0, name="Rectum")
+    holes = ("A", "A", "B", "C", "C", "D", "E")
+    units = tuple(np.flatnonzero(channel == c) for c in range(n_ch))
+    return DwellProblem(target, np.full(40, 7.0), 7.0, (rows,), channel,
+                        Modulation(1.0, float("inf"), 1e-3, 1e-3, 0.0), units,
+                        NeedleChoice(tuple(range(7)), holes, rng.uniform(0.0, 1.0, 7)),
+                        swap_pool=2, swap_passes=1, exhaustive_max=exhaustive_max)
+
+
+def test_the_count_of_selections_is_the_brute_force_count() -> None:
+    holes = ["A", "A", "B", "C", "C", "C", "D", "E", "E", "F"]
+    for budget in range(0, 5):
+        brute = sum(1 for k in range(1, budget + 1) for s in itertools.combinations(range(len(holes)), k)
+                    if len({holes[i] for i in s}) == k)
+        assert selections_at_most(holes, budget) == brute
+
+
+def _branch_and_bound(problem: DwellProblem, budget: int) -> float:
+    """The selection MIP solved by HiGHS's branch and bound to optimality (integral needle binaries)."""
+    model = _Model(problem)
+    ub = model.ub.copy()
+    ub[-1] = budget
+    integrality = np.zeros(model.n)
+    integrality[model.i_y:model.i_u] = 1
+    hi = np.full(model.n, np.inf)
+    hi[model.i_y:model.i_u] = 1.0
+    res = sopt.milp(model.c, constraints=[sopt.LinearConstraint(model.a, model.lb, ub)],
+                    bounds=sopt.Bounds(np.zeros(model.n), hi), integrality=integrality,
+                    options={"mip_rel_gap": 1e-9})
+    assert res.status == 0, res.message
+    return float(res.fun)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("budget", [1, 2, 3])
+def test_enumeration_finds_the_branch_and_bound_optimum(seed: int, budget: int) -> None:
+    """The enumerated selection is optimal (HiGHS's branch and bound agrees to 1e-7) and says so (gap 0); the
+    heuristic on the same problem is never better than it."""
+    exact = LP.optimise(_problem(seed, 10_000), budget=budget)
+    assert exact.times_s is not None and exact.status.startswith("exhaustive")
+    assert exact.bound == exact.objective
+    assert exact.objective == pytest.approx(_branch_and_bound(_problem(seed, 10_000), budget), rel=1e-7, abs=1e-9)
+    heuristic = LP.optimise(_problem(seed, 0), budget=budget)
+    assert not heuristic.status.startswith("exhaustive")
+    assert heuristic.objective >= exact.objective - 1e-9
+    holes = _problem(seed, 0).needles.holes  # type: ignore[union-attr]
+    assert len({holes[i] for i in exact.needles}) == len(exact.needles) <= budget
+
+
+def test_beyond_the_limit_the_heuristic_runs_with_its_bound() -> None:
+    problem = _problem(0, selections_at_most(_problem(0, 0).needles.holes, 2) - 1)  # type: ignore[union-attr]
+    assert LP.optimise(problem, budget=1).status.startswith("exhaustive")
+    sol = LP.optimise(problem, budget=2)
+    assert not sol.status.startswith("exhaustive") and sol.bound is not None and sol.bound <= sol.objective
+
+
+def test_a_needle_set_gets_one_score_whichever_arm_evaluates_it() -> None:
+    """An arm whose candidates are a part of the others' (the straight arm) is the same problem restricted to
+    its channels: each of its selections has the objective it has in the whole problem, and its enumerated
+    optimum is the whole problem's best among those needles."""
+    whole = _problem(3, 10_000)
+    part = _restricted(whole, [0, 2, 3, 5, 7])  # needles 0, 2, 3, 5 and the intracavitary channel 7
+    m_whole, m_part = LP.model(whole), LP.model(part)
+    idx = {c: i for i, c in enumerate(whole.needles.channels)}  # type: ignore[union-attr]
+    for k in (1, 2):
+        for sel in itertools.combinations(range(4), k):
+            a = m_part.solve(k, only=list(sel))
+            b = m_whole.solve(k, only=[idx[part.needles.channels[i]] for i in sel])  # type: ignore[union-attr]
+            assert a.x is not None and b.x is not None
+            assert float(a.fun) == pytest.approx(float(b.fun), rel=1e-9, abs=1e-12)
+    best_part = LP.optimise(part, budget=2)
+    best_whole_among = min(float(m_whole.solve(2, only=[idx[c] for c in s]).fun)
+                           for k in (1, 2) for s in itertools.combinations([0, 2, 3, 5], k))
+    assert best_part.objective == pytest.approx(best_whole_among, rel=1e-9)
+
+
+def test_warm_started_selection_lps_agree_with_cold_ones() -> None:
+    """The model's HiGHS instance, warm-started from the last selection, gives the cold solver's optimum."""
+    problem = _problem(4, 0)
+    model = LP.model(problem)
+    order = [[0], [3, 5], [1], [2, 4, 6], [6]]
+    for only in order:
+        warm = model.solve(3, only=only)
+        cold = _cold(model, only)
+        assert warm.x is not None and cold.x is not None
+        assert float(warm.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
+        assert np.allclose(model.dwell_times(warm.x) @ problem.target_rates.T,
+                           model.dwell_times(cold.x) @ problem.target_rates.T, rtol=0, atol=1e-6) or \
+            float(warm.fun) == pytest.approx(float(cold.fun), rel=1e-12)
+
+
+def _cold(model: _Model, only: list[int]) -> sopt.OptimizeResult:
+    """The selection's LP by scipy's milp from scratch (no basis kept)."""
+    lo, hi = model._on_columns(np.array(only))
+    ub = model.ub.copy()
+    ub[-1] = 3
+    return sopt.milp(model.c, constraints=[sopt.LinearConstraint(model.a, model.lb, ub)], bounds=sopt.Bounds(lo, hi))
