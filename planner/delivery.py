@@ -25,6 +25,7 @@ from reachplan.planner.dose.evaluation import AimsTable, emit, evaluate_aims, si
 from reachplan.planner.dose.structures import gtv_structure, planning_structures
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.implant.case import ImplantComparison, plan_implants
+from reachplan.planner.implant.problem import PointLimit, point_limits
 from reachplan.planner.lookup import get_source, load_template
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.plugins.sources import SourceData
@@ -235,7 +236,8 @@ def plan_delivery(
     source, aims = get_source(source_name), Aims() if aims is None else aims
     kernel = Tg43Kernel(source)
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
-                                                    implant_settings, gtv_structure(structures, planning.grid))
+                                                    implant_settings, gtv_structure(structures, planning.grid),
+                                                    case_point_limits(structures, aims, named_points))
     fractions = aims.fractionation.n_fractions
     now, setup = datetime.now().replace(microsecond=0), load_template(result.config.template).application_setup_type
     spec = SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0))  # Eclipse
@@ -318,19 +320,47 @@ def _arm_exports(implant: ImplantComparison | None,
     return out
 
 
+def case_point_limits(structures: StructureSet, aims: Aims,
+                      named_points: Sequence[tuple[str, Sequence[float]]] = ()) -> tuple[PointLimit, ...]:
+    """Return the protocol's dose points with an aim that this case's reference points stand for.
+
+    Parameters
+    ----------
+    structures : StructureSet
+        The case's ROIs (mm, LPS): the landmarks of the placed points
+        (:mod:`reachplan.planner.geometry.reference_points`).
+    aims : Aims
+        The protocol.
+    named_points : sequence of (str, (float, float, float))
+        Further reference points, name and position (mm, LPS); malformed ones are left to the export's check.
+
+    Returns
+    -------
+    tuple of PointLimit
+        Per fraction, the planning value (aim less headroom) and hard limit of each matched point.
+    """
+    from reachplan.planner.geometry.reference_points import place_reference_points
+
+    placed, _ = place_reference_points(structures)
+    named = [(n, np.asarray(p, dtype=float)) for n, p in named_points
+             if np.asarray(p, dtype=float).shape == (3,) and np.all(np.isfinite(np.asarray(p, dtype=float)))]
+    return point_limits(aims, [*((p.name, p.position_mm) for p in placed), *named])
+
+
 def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,
                kernel: Tg43Kernel, air_kerma_u: float, aims: Aims, implant_settings: ImplantSettings | None,
-               gtv: Structure | None = None,
+               gtv: Structure | None = None, points: Sequence[PointLimit] = (),
                ) -> tuple[ImplantComparison | None, OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...], str]:
     """Return the implant arms (with ``scene``) and the plan to deliver: optimisation, needles, roles and kind.
 
     The implant arm :func:`_delivered_implant` picks, else one needle per target (:func:`_per_target`). The implant
-    also aims at ``gtv`` (GTV_res, :func:`~reachplan.planner.dose.structures.gtv_structure`) when there is one.
+    also aims at ``gtv`` (GTV_res, :func:`~reachplan.planner.dose.structures.gtv_structure`) when there is one, and
+    holds the protocol's dose points (``points``: the ICRU recto-vaginal point) with the organs.
     """
     implant = None
     if scene is not None:
         implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings, aims=aims,
-                                gtv=gtv)
+                                gtv=gtv, points=points)
     delivered = _delivered_implant(implant, planning.target.name)
     if delivered is not None:
         arm, opt, exports, roles = delivered

@@ -30,6 +30,8 @@ from reachplan.imaging.meshing import fit_grid, roi_mask
 from reachplan.planner.bench.common import settings, write_csv, write_png
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.case.scene import build_scene
+from reachplan.planner.delivery import case_point_limits
+from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.structures import planning_structures
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.implant.arms import recompute_target
@@ -92,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
     runs = []
     for _ in range(max(1, s.repeat)):
         t, cpu = time.perf_counter(), time.process_time()
-        result = plan_implants(scene, planning, config, source, DEFAULT_AIR_KERMA_U, implant)
+        result = plan_implants(scene, planning, config, source, DEFAULT_AIR_KERMA_U, implant,
+                               points=case_point_limits(structures, Aims()))
         runs.append((time.perf_counter() - t, result, time.process_time() - cpu))
     best_s, best, best_cpu = sorted(runs, key=lambda r: r[0])[len(runs) // 2]  # the median run
     roi = structures.get("HR-CTV")

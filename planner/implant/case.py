@@ -8,6 +8,7 @@ plan) and the case's loadable applicator channels; each arm's Pareto curve and c
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,7 @@ from reachplan.planner.implant.arms import ImplantArm, with_subset
 from reachplan.planner.implant.candidates import Channel, applicator_channels, needle_candidates
 from reachplan.planner.implant.needles import check_arm, with_scenarios
 from reachplan.planner.implant.plan import plan_arms
+from reachplan.planner.implant.problem import PointLimit
 from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.steering.steered import shape_bank
 from reachplan.plugins.sources import SourceData
@@ -82,6 +84,7 @@ def plan_implants(
     gtv: Structure | None = None,
     models: PlanModels | None = None,
     aims: Aims | None = None,
+    points: Sequence[PointLimit] = (),
 ) -> ImplantComparison:
     """Plan both implant arms of a case: candidates for its target volume, each arm's Pareto curve and chosen plan.
 
@@ -106,6 +109,9 @@ def plan_implants(
         The insertion models (the screening model builds the shape banks); :meth:`PlanModels.for_config` when None.
     aims : Aims or None
         The protocol's aims both arms are planned to; None: EMBRACE II.
+    points : sequence of PointLimit
+        Dose points with a planning aim and a hard limit (the ICRU recto-vaginal point:
+        :func:`~reachplan.planner.implant.problem.point_limits`), held by both arms' selection and loading.
 
     Returns
     -------
@@ -131,13 +137,13 @@ def plan_implants(
     # arm's implants are its too: never worse
     straight, steered = plan_arms([("straight", [*[c for c in cands if not c.steered], *intracavitary]),
                                    ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
-                                  aims=aims, settings=settings, gtv=gtv)
+                                  aims=aims, settings=settings, gtv=gtv, points=points)
     steered = with_subset(steered, straight)
     # the chosen needles re-solved with the reference model, their robustness, the plans re-loaded on them
     cache: dict[int, Channel | str] = {}
     checked_straight = check_arm(straight, scene, planning, config, kernel, air_kerma_u, settings, models=models,
-                                 gtv=gtv, cache=cache)
-    steered = check_arm(steered, scene, planning, config, kernel, air_kerma_u, settings, models=models, gtv=gtv,
-                        extra_plans=straight.plans, cache=cache)
+                                 aims=aims, gtv=gtv, cache=cache, points=points)
+    steered = check_arm(steered, scene, planning, config, kernel, air_kerma_u, settings, models=models, aims=aims,
+                        gtv=gtv, extra_plans=straight.plans, cache=cache, points=points)
     straight = checked_straight
     return ImplantComparison(straight, steered, (*cands, *intracavitary), time.perf_counter() - t0)

@@ -58,8 +58,16 @@ from reachplan.planner.implant.problem import (
     _metrics,
     _Problem,
     _stride,
+    point_doses,
 )
-from reachplan.planner.implant.robust import ScenarioCheck, robust_failed, robust_times, robustness_json, worst
+from reachplan.planner.implant.robust import (
+    ScenarioCheck,
+    robust_failed,
+    robust_times,
+    robustness_json,
+    worst,
+    worst_points,
+)
 from reachplan.planner.implant.settings import ImplantSettings
 
 
@@ -447,12 +455,16 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
         bias = target.d90_gy - check.nominal(t)[1]
         results = [dataclasses.replace(r, d90_gy=r.d90_gy + bias) for r in check.evaluate(t)]
     names = tuple(prob.oar_names[o] for o in check.organs)
-    robustness = robustness_json(results, names, aims, settings.shift_mm, settings.shift_directions)
+    pt_worst = worst_points(check, t)
+    robustness = robustness_json(results, names, aims, settings.shift_mm, settings.shift_directions,
+                                 [(p, v, sc) for p, (v, sc) in zip(prob.points, pt_worst, strict=True)])
+    pt_nominal = point_doses(prob, prob.positions[cols], prob.directions[cols], t)
     keep = t > 0
     new_index = {int(c): i + 1 for i, c in enumerate(chosen)}
     dwells = DwellSet(prob.positions[cols][keep], prob.directions[cols][keep], t[keep],
                       np.array([new_index[int(c)] for c in prob.channel_of[cols][keep]], dtype=int))
-    failed = _aims_failed(target, gtv, oars, aims, v200, settings.v200_max_pct) + robust_failed(robustness)
+    failed = _aims_failed(target, gtv, oars, aims, v200, settings.v200_max_pct,
+                          list(zip(prob.points, pt_nominal, strict=True))) + robust_failed(robustness)
     return ImplantPlan(tuple(prob.channels[int(c)] for c in chosen), dwells, target, v200, oars, not failed, gtv,
                        scale, gap, status, dvhs, robustness, tuple(failed), _limited_by(oars, v200, aims, settings))
 

@@ -41,7 +41,8 @@ from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
 from reachplan.planner.implant.candidates import Channel, NeedleCheck
-from reachplan.planner.implant.plan import plan_implant
+from reachplan.planner.implant.plan import load_implant
+from reachplan.planner.implant.problem import PointLimit
 from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.steering.candidates import Target, score_path
 from reachplan.planner.steering.insertion import STRAIGHT
@@ -284,7 +285,8 @@ def _plan_order(arm: ImplantArm, extra: Sequence[ImplantPlan]) -> list[ImplantPl
 def check_arm(arm: ImplantArm, scene: Scene, planning: PlanningStructures, config: PlanConfig, kernel: Tg43Kernel,
               air_kerma_u: float, settings: ImplantSettings, *, models: PlanModels | None = None,
               aims: Aims | None = None, gtv: Structure | None = None, check: NeedleCheckSettings | None = None,
-              extra_plans: Sequence[ImplantPlan] = (), cache: dict[int, Channel | str] | None = None) -> ImplantArm:
+              extra_plans: Sequence[ImplantPlan] = (), cache: dict[int, Channel | str] | None = None,
+              points: Sequence[PointLimit] = ()) -> ImplantArm:
     """Check every needle of the arm's chosen implant; re-load it on the re-solved paths (module docstring).
 
     The chosen plan is kept when its needles pass and its re-loaded plan meets the aims as the screening plan did;
@@ -319,6 +321,8 @@ def check_arm(arm: ImplantArm, scene: Scene, planning: PlanningStructures, confi
         Further plans the arm may fall back on (the straight arm's, for the straight + steered arm).
     cache : dict or None
         Checked needles by channel object, shared between arms (their plans share channels).
+    points : sequence of PointLimit
+        The dose points of the re-load, as in the arm.
 
     Returns
     -------
@@ -349,8 +353,8 @@ def check_arm(arm: ImplantArm, scene: Scene, planning: PlanningStructures, confi
         if bad:
             rejected += [row for row in ({"hole_id": n, "reason": r} for n, r in bad) if row not in rejected]
             continue
-        plan, reloaded = _reload(candidate, [c for c in channels if isinstance(c, Channel)], arm.name, planning,
-                                 kernel, air_kerma_u, aims, settings, gtv)
+        plan, reloaded = _reload(candidate, [c for c in channels if isinstance(c, Channel)], planning,
+                                 kernel, air_kerma_u, aims, settings, gtv, points)
         if plan is None:
             continue
         kept.append((candidate, plan, reloaded))
@@ -375,19 +379,14 @@ def check_arm(arm: ImplantArm, scene: Scene, planning: PlanningStructures, confi
     return dataclasses.replace(arm, plan=chosen[1], needle_check=record)
 
 
-def _reload(plan: ImplantPlan, channels: list[Channel], name: str, planning: PlanningStructures, kernel: Tg43Kernel,
+def _reload(plan: ImplantPlan, channels: list[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
             air_kerma_u: float, aims: Aims | None, settings: ImplantSettings, gtv: Structure | None,
-            ) -> tuple[ImplantPlan | None, bool]:
+            points: Sequence[PointLimit]) -> tuple[ImplantPlan | None, bool]:
     """Return the plan on its checked channels, and whether its times were optimised again.
 
-    A plan without a steered needle keeps its dwells (a straight needle's path is not re-solved); otherwise the
-    dwell times are optimised again on the checked channels, the plan of all of them kept when the optimiser loads
-    them all, else the one its choice rule gives.
+    A plan without a steered needle keeps its dwells (a straight needle's path is not re-solved); otherwise exactly
+    these channels are loaded again (:func:`~reachplan.planner.implant.plan.load_implant`: no new selection).
     """
     if not any(c.steered for c in channels):
         return dataclasses.replace(plan, channels=tuple(channels)), False
-    sub = plan_implant(name, channels, planning, kernel, air_kerma_u, aims,
-                       dataclasses.replace(settings, max_needles=max(1, plan.n_needles)), gtv=gtv)
-    names = sorted(c.name for c in channels)
-    same = [p for p in sub.plans if sorted(c.name for c in p.channels) == names]
-    return (same[0] if same else sub.plan), True
+    return load_implant(channels, planning, kernel, air_kerma_u, aims, settings, gtv=gtv, points=points), True

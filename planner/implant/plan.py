@@ -54,6 +54,7 @@ from reachplan.planner.implant.optimiser import (
     resolve,
 )
 from reachplan.planner.implant.problem import (
+    PointLimit,
     _calibrate,
     _d2cc,
     _modulation,
@@ -62,6 +63,7 @@ from reachplan.planner.implant.problem import (
     _rates,
     _sampled_problem,
     _target_rows,
+    point_rows,
 )
 from reachplan.planner.implant.robust import V200_KAPPA_START, v200_points, v200_row_pct
 from reachplan.planner.implant.settings import ImplantSettings
@@ -72,7 +74,7 @@ MIN_GAIN_GY = 0.5
 
 def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
                  air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
-                 gtv: Structure | None = None) -> ImplantArm:
+                 gtv: Structure | None = None, points: Sequence[PointLimit] = ()) -> ImplantArm:
     """Return the Pareto curve of needle count against HR-CTV D90 and the chosen implant of one arm.
 
     One arm of :func:`plan_arms`.
@@ -96,6 +98,8 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         Its ``optimiser`` names the dwell optimiser.
     gtv : Structure, optional
         The GTV mask on the planning grid, when there is one (its D98 is then an aim).
+    points : sequence of PointLimit
+        Dose points with a planning aim and a hard limit.
 
     Returns
     -------
@@ -108,7 +112,49 @@ def plan_implant(name: str, channels: Sequence[Channel], planning: PlanningStruc
         No dwell optimiser is registered under ``settings.optimiser`` (the message lists the available ones).
     """
     return plan_arms([(name, channels)], planning, kernel, air_kerma_strength_u, aims, settings, gtv=gtv,
-                     workers=1)[0]
+                     workers=1, points=points)[0]
+
+
+def load_implant(channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
+                 air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
+                 gtv: Structure | None = None, points: Sequence[PointLimit] = ()) -> ImplantPlan | None:
+    """Return the plan of exactly ``channels``: no selection, their robust dwell times (the empty-needle rule).
+
+    The organ rows are calibrated on these channels loaded, then the final step of :func:`plan_arms` loads them.
+
+    Parameters
+    ----------
+    channels : sequence of Channel
+        The implant's needles and intracavitary channels (paths mm, LPS).
+    planning : PlanningStructures
+        Target and organ masks on the planning grid.
+    kernel : Tg43Kernel
+        TG-43 dose kernel of the source.
+    air_kerma_strength_u : float, U
+        Source strength.
+    aims : Aims, optional
+        EMBRACE II by default.
+    settings : ImplantSettings, optional
+        Its ``optimiser`` loads the channels.
+    gtv : Structure, optional
+        The GTV mask on the planning grid, when there is one.
+    points : sequence of PointLimit
+        Dose points with a planning aim and a hard limit.
+
+    Returns
+    -------
+    ImplantPlan or None
+        None when no channel has a dwell or the optimiser finds no loading.
+    """
+    aims = aims or Aims()
+    settings = settings or ImplantSettings()
+    optimiser = resolve(settings.optimiser)
+    channels = tuple(c for c in channels if len(c.dwell_positions_mm) >= 1)
+    if not channels:
+        return None
+    shared = _shared(channels, planning, kernel, air_kerma_strength_u, aims, settings, gtv, optimiser, points)
+    final = _Final(shared.prob, *shared.final_rows, aims, settings, shared.vox_cc, optimiser, shared.kappa)
+    return final(np.arange(len(channels)), "the given channels loaded (no selection)", None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,10 +175,11 @@ class _Shared:
 
 
 def _shared(channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel, air_kerma_u: float,
-            aims: Aims, settings: ImplantSettings, gtv: Structure | None, optimiser: DwellOptimiser) -> _Shared:
+            aims: Aims, settings: ImplantSettings, gtv: Structure | None, optimiser: DwellOptimiser,
+            points: Sequence[PointLimit]) -> _Shared:
     """Return the problem every arm of ``channels`` shares (:class:`_Shared`), its rows calibrated once."""
     vox_cc = voxel_volume_cc(planning.grid)
-    prob = _sampled_problem(channels, planning, kernel, air_kerma_u, aims, settings, gtv)
+    prob = _sampled_problem(channels, planning, kernel, air_kerma_u, aims, settings, gtv, points)
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     p_g = aims.fractionation.per_fraction_for(aims.gtv_d98_eqd2_gy, aims.alpha_beta_target_gy) * (
         1.0 + settings.coverage_margin)
@@ -140,8 +187,8 @@ def _shared(channels: Sequence[Channel], planning: PlanningStructures, kernel: T
                                    aims, vox_cc)
     # every candidate loaded, no budget; its solution calibrates the organ rows (of every arm)
     n_org = sum(limit is not None for limit in prob.oar_limits)
-    kappa = np.ones(len(selection.organs))
-    kappa[n_org:] = V200_KAPPA_START
+    kappa = np.ones(len(selection.organs))  # the dose points' rows are exact: κ = 1
+    kappa[n_org:n_org + (settings.v200_max_pct is not None)] = V200_KAPPA_START
     free = optimiser.optimise(selection, limit_factor=kappa)
     if free.times_s is not None:
         kappa[:n_org] = _calibrate(kappa[:n_org], _d2cc(prob, prob.positions, prob.directions, free.times_s, vox_cc),
@@ -191,9 +238,10 @@ def _selection_problem(prob: _Problem, settings: ImplantSettings, target: tuple[
                        aims: Aims, vox_cc: float) -> DwellProblem:
     """Return the selection problem: every candidate's dwells in blocks, a binary per needle, its invasiveness.
 
-    Its rows: the target points, each organ's nominal D2cm³ rows (planning aim less the headroom) and the HR-CTV's
-    V200 rows; the scenarios are the final step's (:func:`reachplan.planner.implant.robust.robust_times`). A needle's
-    invasiveness is its hole distance and tissue length, each over the largest of every candidate.
+    Its rows: the target points, each organ's nominal D2cm³ rows (planning aim less the headroom), the HR-CTV's
+    V200 rows and each dose point's row (its planning value); the scenarios are the final step's
+    (:func:`reachplan.planner.implant.robust.robust_times`). A needle's invasiveness is its hole distance and tissue
+    length, each over the largest of every candidate.
     """
     p_t = aims.prescription_gy * (1.0 + settings.coverage_margin)
     channels = prob.channels
@@ -216,6 +264,7 @@ def _selection_problem(prob: _Problem, settings: ImplantSettings, target: tuple[
         volume = len(prob.target_pts) * vox_cc
         organs.append(OrganRows(rates[rows], np.full(len(rows), volume / len(rows)), 2.0 * aims.prescription_gy,
                                 volume * v200_row_pct(settings) / 100.0, "HR-CTV V200"))
+    organs += point_rows(prob, prob.positions, prob.directions)
     return DwellProblem(
         rates, target[1], p_t, tuple(organs), prob.channel_of,
         _modulation(settings), tuple(units),
@@ -343,7 +392,8 @@ def _forced(keep: Sequence[int], rank: Sequence[int], channels: Sequence[Channel
 
 def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningStructures, kernel: Tg43Kernel,
               air_kerma_strength_u: float, aims: Aims | None = None, settings: ImplantSettings | None = None, *,
-              gtv: Structure | None = None, workers: int = 2) -> tuple[ImplantArm, ...]:
+              gtv: Structure | None = None, workers: int = 2,
+              points: Sequence[PointLimit] = ()) -> tuple[ImplantArm, ...]:
     """Plan several arms on one shared problem, each arm's search on its own, in up to ``workers`` threads.
 
     The arms share the sampled problem of all their channels (:class:`_Shared`: rows, organ-row calibration, the
@@ -371,6 +421,9 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
         As in :func:`plan_implant`.
     workers : int
         Threads at most.
+    points : sequence of PointLimit
+        Dose points with a planning aim and a hard limit (:func:`reachplan.planner.implant.problem.point_limits`):
+        rows of the selection, the nominal loading and every scenario.
 
     Returns
     -------
@@ -390,7 +443,8 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
                 union.append(c)
         members.append(tuple(sorted({index[id(c)] for c in channels if id(c) in index})))
     t0 = time.perf_counter()
-    shared = _shared(union, planning, kernel, air_kerma_strength_u, aims, settings, gtv, optimiser) if union else None
+    shared = _shared(union, planning, kernel, air_kerma_strength_u, aims, settings, gtv, optimiser,
+                     points) if union else None
 
     def one(i: int) -> ImplantArm:
         if shared is None or not members[i]:

@@ -35,6 +35,59 @@ from reachplan.planner.implant.settings import ImplantSettings
 
 
 @dataclass(frozen=True, eq=False)
+class PointLimit:
+    """A dose point with a planning aim and a hard limit (the ICRU recto-vaginal point of EMBRACE II).
+
+    Parameters
+    ----------
+    name : str
+        The protocol's name of the point (``"ICRU recto-vaginal"``).
+    position_mm : (3,) float, mm, LPS
+        Where the point lies (:func:`reachplan.planner.geometry.reference_points.place_reference_points`).
+    planning_gy : float, Gy per fraction
+        The nominal plan's limit: the aim less the protocol's headroom.
+    hard_gy : float, Gy per fraction
+        The hard limit, kept with any one needle displaced.
+    alpha_beta_gy : float, Gy
+        The α/β of its EQD2 (3 for an organ point).
+    """
+
+    name: str
+    position_mm: np.ndarray
+    planning_gy: float
+    hard_gy: float
+    alpha_beta_gy: float = 3.0
+
+
+def point_limits(aims: Aims, placed: Sequence[tuple[str, np.ndarray]]) -> tuple[PointLimit, ...]:
+    """Return the protocol's dose points with an upper aim that the placed reference points stand for.
+
+    Parameters
+    ----------
+    aims : Aims
+        The protocol (its ``points``, fractionation, headroom).
+    placed : sequence of (str, (3,) float)
+        The case's reference points by name, mm, LPS.
+
+    Returns
+    -------
+    tuple of PointLimit
+        One per placed point matched by a protocol point with an upper aim; the hard limit is the aim when the
+        protocol gives none.
+    """
+    out = []
+    for point in aims.points:
+        if point.aim_max_eqd2_gy is None:
+            continue
+        ab = aims.alpha_beta_target_gy if point.tissue == "target" else aims.alpha_beta_oar_gy
+        planning = aims.fractionation.per_fraction_for(point.aim_max_eqd2_gy - aims.headroom_eqd2_gy, ab)
+        hard = aims.fractionation.per_fraction_for(point.limit_max_eqd2_gy or point.aim_max_eqd2_gy, ab)
+        out += [PointLimit(point.name, np.asarray(pos, dtype=float), planning, hard, ab)
+                for name, pos in placed if point.matches(name)]
+    return tuple(out)
+
+
+@dataclass(frozen=True, eq=False)
 class _Problem:
     """One arm's channels and dwells (mm, LPS), the structures' voxel points, organ limits and the dose kernel.
 
@@ -58,6 +111,7 @@ class _Problem:
     # each organ's voxels within ``eval_radius_mm`` of any candidate dwell (every loading's organ dose is read there)
     oar_near: tuple[np.ndarray, ...] = ()
     oar_hard: tuple[float | None, ...] = ()  # each organ's hard limit (every scenario), Gy per fraction
+    points: tuple[PointLimit, ...] = ()  # dose points with a planning aim (nominal) and a hard limit (scenarios)
     lattices: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def near_organ(self, o: int, pos: np.ndarray, radius_mm: float, vox_cc: float, times_2cc: int = 4) -> np.ndarray:
@@ -217,12 +271,44 @@ def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vo
     return target, v200, gtv, tuple(oars), tuple(dvhs), scale
 
 
+def point_rows(prob: _Problem, pos: np.ndarray, dirs: np.ndarray) -> list[OrganRows]:
+    """Return one row per dose point of the problem: its dose from the dwells ``pos`` within its planning value.
+
+    A row of one point whose weight is its volume: the tail mean is the point's dose, so κ = 1 is exact.
+    """
+    return [OrganRows(_rates(p.position_mm[None], pos, dirs, prob), np.ones(1), p.planning_gy, 1.0, p.name)
+            for p in prob.points]
+
+
+def point_doses(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Return the dose (Gy per fraction) at each of the problem's points from the dwells ``pos`` loaded ``times``.
+
+    Parameters
+    ----------
+    prob : _Problem
+        Its ``points``.
+    pos, dirs : (c, 3) float
+        Dwell positions (mm, LPS) and source directions.
+    times : (c,) float, s
+
+    Returns
+    -------
+    (n_points,) float, Gy per fraction
+    """
+    if not prob.points:
+        return np.zeros(0)
+    out: np.ndarray = _dose(np.array([p.position_mm for p in prob.points]), pos, dirs, times, prob)
+    return out
+
+
 def _aims_failed(target: StructureMetrics, gtv: StructureMetrics | None, oars: Sequence[StructureMetrics],
-                 aims: Aims, v200_pct: float | None = None, v200_max_pct: float | None = None) -> list[str]:
+                 aims: Aims, v200_pct: float | None = None, v200_max_pct: float | None = None,
+                 points: Sequence[tuple[PointLimit, float]] = ()) -> list[str]:
     """Return the planning aims the nominal plan misses (empty: every one met), each with its value.
 
-    HR-CTV D90 (within its upper aim too) and D98, GTV D98, each organ's D2cm³ at least ``headroom_eqd2_gy`` below its
-    aim, and V200 within its limit (when both are given).
+    HR-CTV D90 (within its upper aim too) and D98, GTV D98, each organ's D2cm³ and each dose point (``points``:
+    each with its dose, Gy per fraction) at least ``headroom_eqd2_gy`` below its aim, and V200 within its limit (when
+    both are given).
     """
     out = []
     if target.d90_eqd2_gy < aims.target_d90_eqd2_gy - 1e-6:
@@ -238,6 +324,11 @@ def _aims_failed(target: StructureMetrics, gtv: StructureMetrics | None, oars: S
         if aim is not None and o.d2cc_eqd2_gy > aim - aims.headroom_eqd2_gy + 1e-6:
             out.append(f"{o.name} D2cm³ {o.d2cc_eqd2_gy:.1f} > {aim - aims.headroom_eqd2_gy:g} Gy "
                        f"(aim {aim:g} less {aims.headroom_eqd2_gy:g} headroom)")
+    for p, dose_gy in points:
+        value, limit = aims.fractionation.total_eqd2(dose_gy, p.alpha_beta_gy), \
+            aims.fractionation.total_eqd2(p.planning_gy, p.alpha_beta_gy)
+        if value > limit + 1e-6:
+            out.append(f"{p.name} {value:.1f} > {limit:.3g} Gy (aim less {aims.headroom_eqd2_gy:g} headroom)")
     if v200_pct is not None and v200_max_pct is not None and v200_pct > v200_max_pct + 1e-6:
         out.append(f"HR-CTV V200 {v200_pct:.1f} % > {v200_max_pct:g} %")
     return out
@@ -310,7 +401,7 @@ def _calibrate(kappa: np.ndarray, d2: np.ndarray, tails: np.ndarray, limits: np.
 
 def _sampled_problem(channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel,
                      air_kerma_strength_u: float, aims: Aims, settings: ImplantSettings,
-                     gtv: Structure | None) -> _Problem:
+                     gtv: Structure | None, points: Sequence[PointLimit] = ()) -> _Problem:
     """Return the sampled problem of ``channels`` (each with at least one dwell) on the planning structures.
 
     ``oar_near`` holds each organ's voxels within ``oar_eval_radius_mm`` of any candidate dwell: every voxel of an
@@ -328,7 +419,7 @@ def _sampled_problem(channels: Sequence[Channel], planning: PlanningStructures, 
         tuple(aims.oar_gy(o.name, "planning") for o in planning.oars), air_kerma_strength_u / 360000.0, kernel,
         tuple(o.name for o in planning.oars), settings.oar_eval_radius_mm, _supersampled(grid, planning.target.mask),
         None if gtv is None else _supersampled(grid, gtv.mask),
-        oar_hard=tuple(aims.oar_gy(o.name, "limit") for o in planning.oars))
+        oar_hard=tuple(aims.oar_gy(o.name, "limit") for o in planning.oars), points=tuple(points))
     tree = cKDTree(positions)
     return dataclasses.replace(prob, oar_near=tuple(
         pts[np.isfinite(tree.query(pts, distance_upper_bound=settings.oar_eval_radius_mm * (1 + 1e-6) + 1e-6)[0])]

@@ -28,6 +28,7 @@ when a scenario falls below it, the nominal coverage aim is raised by the shortf
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,12 +40,14 @@ from reachplan.planner.dose.dwells import dwell_directions
 from reachplan.planner.implant.candidates import Channel
 from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, OrganRows
 from reachplan.planner.implant.problem import (
+    PointLimit,
     _calibrate,
     _modulation,
     _organ_samples,
     _Problem,
     _rates,
     _stride,
+    point_rows,
 )
 from reachplan.planner.implant.settings import ImplantSettings
 
@@ -309,8 +312,38 @@ def worst(results: list[ScenarioResult], hard_gy: np.ndarray) -> tuple[np.ndarra
     return np.max([r.d2cc_gy for r in results], axis=0), min(r.d90_gy for r in results)
 
 
+def worst_points(check: ScenarioCheck, times_s: np.ndarray) -> list[tuple[float, str]]:
+    """Return each dose point's highest dose over the scenarios (Gy per fraction) and the scenario that gives it.
+
+    Parameters
+    ----------
+    check : ScenarioCheck
+        The scenarios of the chosen needles (its problem's ``points``).
+    times_s : (c,) float, s
+        The loading of the chosen columns.
+
+    Returns
+    -------
+    list of (float, str)
+        One per point; the nominal dose and ``"nominal"`` when there is no scenario.
+    """
+    prob, cols = check.prob, check.cols
+    pos, dirs = prob.positions[cols], prob.directions[cols]
+    out = []
+    for p in prob.points:
+        rates = _rates(p.position_mm[None], pos, dirs, prob)
+        best = (float((rates @ times_s)[0]), "nominal")
+        for k, sc in enumerate(check.scenarios):
+            dose = float((check.displaced_rates(k, rates, p.position_mm[None]) @ times_s)[0])
+            if dose > best[0]:
+                best = (dose, f"{prob.channels[sc.channel].name} {sc.label}")
+        out.append(best)
+    return out
+
+
 def robustness_json(results: list[ScenarioResult], names: tuple[str, ...], aims: Aims,
-                    shift_mm: float, n_directions: int) -> dict[str, object]:
+                    shift_mm: float, n_directions: int,
+                    points: Sequence[tuple[PointLimit, float, str]] = ()) -> dict[str, object]:
     """Return plan.json's ``robustness`` of a plan: the scenarios, each organ's worst D2cm³ and the lowest D90.
 
     Parameters
@@ -325,12 +358,16 @@ def robustness_json(results: list[ScenarioResult], names: tuple[str, ...], aims:
         The sideways shift of the scenarios.
     n_directions : int
         Its directions.
+    points : sequence of (PointLimit, float, str)
+        Each dose point with its highest dose over the scenarios (Gy per fraction) and that scenario
+        (:func:`worst_points`).
 
     Returns
     -------
     dict
         ``scenarios`` (count), ``shift_mm``, ``directions``, ``worst_hrctv_d90_eqd2_gy`` with its scenario,
-        ``worst_oar_d2cc_eqd2_gy`` (organ → value, scenario, hard limit), ``hard_limits_met``.
+        ``worst_oar_d2cc_eqd2_gy`` (organ → value, scenario, hard limit), ``worst_point_eqd2_gy`` (point → value,
+        scenario, hard limit), ``hard_limits_met``.
     """
     fr, ab_t, ab_o = aims.fractionation, aims.alpha_beta_target_gy, aims.alpha_beta_oar_gy
     doc: dict[str, object] = {"scenarios": len(results), "shift_mm": shift_mm, "directions": n_directions}
@@ -344,10 +381,15 @@ def robustness_json(results: list[ScenarioResult], names: tuple[str, ...], aims:
         value, limit = fr.total_eqd2(w.d2cc_gy[i], ab_o), aims.oar_eqd2_gy(name, "limit")
         ok = ok and (limit is None or value <= limit + 1e-6)
         organs[name] = {"value": round(value, 3), "scenario": f"{w.hole} {w.label}", "hard_limit": limit}
+    dose_points = {}
+    for p, dose_gy, scenario in points:
+        value, limit = fr.total_eqd2(dose_gy, p.alpha_beta_gy), fr.total_eqd2(p.hard_gy, p.alpha_beta_gy)
+        ok = ok and value <= limit + 1e-6
+        dose_points[p.name] = {"value": round(value, 3), "scenario": scenario, "hard_limit": round(limit, 3)}
     return {**doc, "worst_hrctv_d90_eqd2_gy": round(fr.total_eqd2(low.d90_gy, ab_t), 3),
             "hrctv_d90_hard_limit_eqd2_gy": aims.target_d90_limit_eqd2_gy,
             "worst_hrctv_d90_scenario": f"{low.hole} {low.label}", "worst_oar_d2cc_eqd2_gy": organs,
-            "hard_limits_met": bool(ok)}
+            "worst_point_eqd2_gy": dose_points, "hard_limits_met": bool(ok)}
 
 
 def v200_points(n_target: int, n_fin: int) -> np.ndarray:
@@ -417,6 +459,13 @@ class _RobustModel:
         channels = sorted({int(c) for c in prob.channel_of[cols]})
         self.check = ScenarioCheck(prob, cols, [s for c in channels for s in channel_scenarios(
             prob.channels[c], c, settings.shift_mm, settings.shift_directions)], vox_cc)
+        # each dose point: nominal within its planning value, and within its hard limit in every scenario (one row
+        # each: exact, κ = 1, all from the start)
+        self.points = point_rows(prob, pos, dirs)
+        for p, nominal in zip(prob.points, list(self.points), strict=True):
+            self.points += [OrganRows(self.check.displaced_rates(k, nominal.rates, p.position_mm[None]), np.ones(1),
+                                      p.hard_gy, 1.0, f"{p.name}, {prob.channels[sc.channel].name} {sc.label}")
+                            for k, sc in enumerate(self.check.scenarios)]
         self.active: list[tuple[int, int]] = []  # (scenario, organ) with rows
         self.p_scale, self.d90_limit = 1.0, aims.per_fraction_target_gy(aims.target_d90_limit_eqd2_gy)
         self.fin_p = fin_p
@@ -440,7 +489,22 @@ class _RobustModel:
                           f"{self.prob.channels[self.check.scenarios[k].channel].name} {self.check.scenarios[k].label}")
                 for k, i in self.active]
         return dataclasses.replace(self.base, target_dose_gy=self.fin_p * self.p_scale,
-                                   organs=(*self.nominal, *scen, *self.v200), min_time_s=min_time_s, cache={})
+                                   organs=(*self.nominal, *scen, *self.v200, *self.points), min_time_s=min_time_s,
+                                   cache={})
+
+    def factors(self, kap: np.ndarray) -> np.ndarray:
+        """Return the limit factors of :meth:`problem`'s rows: ``kap`` (organs, scenarios, V200), then 1 per point row.
+
+        Parameters
+        ----------
+        kap : (n_rows,) float
+            The calibration of the organ, scenario and V200 rows.
+
+        Returns
+        -------
+        (n_rows + n_point_rows,) float
+        """
+        return np.concatenate([kap, np.ones(len(self.points))])
 
     def update(self, times: np.ndarray, problem: DwellProblem, kap: np.ndarray) -> tuple[np.ndarray, bool]:
         """Evaluate a solve; return the next calibration and whether the rounds are done (nothing added or moved).
@@ -467,7 +531,8 @@ class _RobustModel:
         v200 = [] if not self.v200 else [dose_to_fraction(self.check.dose_at_target(times),
                                                           v200_row_pct(self.settings) / 100.0)]
         exact = np.concatenate([self.check.nominal(times)[0], [results[k].d2cc_gy[i] for k, i in self.active], v200])
-        new = _calibrate(kap, exact, problem.tail_means(times), problem.limits_gy)
+        n_cal = len(kap)  # the point rows after them are exact
+        new = _calibrate(kap, exact, problem.tail_means(times)[:n_cal], problem.limits_gy[:n_cal])
         added = [(k, i) for k, r in enumerate(results) for i in range(len(self.hard))
                  if r.d2cc_gy[i] > self.hard[i] * (1 - 2e-3) and (k, i) not in self.active]
         low = min((r.d90_gy for r in results), default=np.inf)  # on voxel centres: the final check is finer
@@ -531,7 +596,7 @@ def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: n
     times = None
     for _ in range(settings.robust_rounds):
         current = model.problem()
-        solution = optimiser.optimise(current, limit_factor=kap)
+        solution = optimiser.optimise(current, limit_factor=model.factors(kap))
         if solution.times_s is None:
             break
         times = solution.times_s
@@ -542,7 +607,7 @@ def robust_times(prob: _Problem, cols: np.ndarray, fin_pts: np.ndarray, fin_p: n
         return None
     short = (times > 1e-9) & (times < settings.min_dwell_time_s * (1 - 1e-9))
     if short.any():  # the LP left dwells under the minimum: solved again with them rounded
-        solution = optimiser.optimise(model.problem(settings.min_dwell_time_s), limit_factor=kap)
+        solution = optimiser.optimise(model.problem(settings.min_dwell_time_s), limit_factor=model.factors(kap))
         if solution.times_s is not None:
             times = solution.times_s
     return times, model.check, np.concatenate([kap[:n_o], kap[len(kap) - len(model.v200):]])
@@ -571,4 +636,8 @@ def robust_failed(doc: dict[str, object]) -> list[str]:
     for name, w in (organs.items() if isinstance(organs, dict) else ()):
         if w["hard_limit"] is not None and w["value"] > w["hard_limit"] + 1e-6:
             out.append(f"{name} D2cm³ {w['value']:.1f} > {w['hard_limit']:g} Gy with {w['scenario']}")
+    points = doc.get("worst_point_eqd2_gy")
+    for name, w in (points.items() if isinstance(points, dict) else ()):
+        if w["value"] > w["hard_limit"] + 1e-6:
+            out.append(f"{name} {w['value']:.1f} > {w['hard_limit']:g} Gy with {w['scenario']}")
     return out
