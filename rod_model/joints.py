@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -516,7 +516,23 @@ class DiscreteJoints:
         return self.tol * (1e-3 + tension_n * float(np.max(chain.arm_m)) + (ext.scale_nm if ext else 0.0))
 
     def _free(self, chain: Chain, tension_n: np.ndarray, history: TensionHistory) -> _Solution:
-        """Solve free-space pulls (b,) N: every hinge alone (Newton per hinge, vectorised)."""
+        """Solve free-space pulls (b,) N: every hinge alone (Newton per hinge, vectorised).
+
+        Without capstan friction a hinge's angle depends only on its own stiffness, arm, half-gap and friction:
+        each distinct hinge (about three per design) is solved once and copied.
+        """
+        if chain.capstan_mu != 0.0:
+            return self._free_hinges(chain, tension_n, history)
+        params = np.column_stack([chain.stiffness_nm, chain.arm_m, chain.half_gap_m, chain.friction_arm_m,
+                                  chain.is_joint])
+        distinct, inverse = np.unique(params, axis=0, return_inverse=True)
+        small = replace(chain, hinge_s_m=np.arange(len(distinct), dtype=float), stiffness_nm=distinct[:, 0],
+                        arm_m=distinct[:, 1], half_gap_m=distinct[:, 2], friction_arm_m=distinct[:, 3],
+                        is_joint=distinct[:, 4] > 0)
+        sol = self._free_hinges(small, tension_n, history)
+        return replace(sol, theta=sol.theta[:, inverse.ravel()])
+
+    def _free_hinges(self, chain: Chain, tension_n: np.ndarray, history: TensionHistory) -> _Solution:
         k = chain.stiffness_nm
         theta_r = np.where(chain.is_joint, history.reversal_joint_curvature_per_m * chain.pitch_m, 0.0)
         theta = np.zeros((len(tension_n), len(k)))
