@@ -458,7 +458,7 @@ class DiscreteJoints:
     Parameters
     ----------
     tube_step_mm : float, mm
-        Largest element of the nitinol tube sections (1 mm: the tip moves by about 1 µm when halved).
+        Largest element of the nitinol tube sections (1 mm: the tip moves by about 2 µm when halved).
     joint_half_gap_mm : float, mm
         ASSUMED: axial distance from a ball's centre to the tendon's channel exits of the disks on either
         side (the ball's radius, 0.4 mm; unpublished).

@@ -204,6 +204,17 @@ def test_friction_loop_matches_the_cosserat_friction_model() -> None:
     assert joint_curvature_per_m(df, a[3]) > joint_curvature_per_m(df, a[1])
 
 
+def test_friction_under_a_tip_force_while_pulled_and_released_matches_the_cosserat_model() -> None:
+    # the coupled (loaded) solve with stuck and sliding joints: the same history in both models
+    d = preset("15ga-20j-tip")
+    df = replace(d, stylet=replace(d.stylet, joint_friction_coefficient=0.3, tendon_friction_coefficient=0.2))
+    for history in (TensionHistory(), TensionHistory(False, 10.0, 3.0)):
+        loads = Loads((6.0, 0.0, 0.0, 0.0), tip_force_n=(0.05, 0.0, -0.1), history=history)
+        a, b = _ok(DISCRETE_JOINTS.solve(df, loads)), _ok(TWO_TUBE_COSSERAT.solve(df, loads))
+        assert np.linalg.norm(a.tip_position_mm - b.tip_position_mm) < 0.06
+    assert a.tip_deflection_mm > 29.0
+
+
 def test_routing_tensions_are_the_kernels_capstan_rule() -> None:
     rng = np.random.default_rng(5)
     theta = rng.uniform(-0.05, 0.1, (1, 40))
