@@ -16,8 +16,9 @@ links (pseudo-rigid-body model, Howell, *Compliant Mechanisms*, 2001) clamped at
   ``disk_arm_mm``) and an axial distance ``a`` (:attr:`DiscreteJoints.joint_half_gap_mm`, ASSUMED 0.4 mm, the
   ball's radius) before the ball's centre, and enters the next disk's channel ``a`` after it, running straight
   (a chord) in between. Its pull on the distal disk has the moment ``λ (r cos(θ/2) + a sin(θ/2))`` about the ball
-  for a joint angle ``θ`` toward the tendon (the chord's distance from the ball's centre; derived in the docs
-  and checked against the vector computation in the tests): the lever grows as the joint closes.
+  for a joint angle ``θ`` toward the tendon (the chord's distance from the ball's centre; checked in the tests
+  against the virtual work of a tendon of constant tension, ``λ × its length``): the lever grows as the joint
+  closes.
 * **Coulomb friction at every ball.** A friction moment ``μ_j × ball radius × compression`` (the
   design's ``joint_friction_coefficient``; the compression of the stack is the local tendon tension) opposes
   any change of each joint's angle: a joint sticks at its angle of the last reversal until the moment on it
