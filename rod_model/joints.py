@@ -56,7 +56,6 @@ from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
-from scipy.linalg import cholesky_banded, solve_banded
 
 from reachplan.rod_model.design import Calibration, Loads, RodDesign, TensionHistory
 from reachplan.rod_model.errors import RodModelError, UnsupportedLoadError
@@ -349,6 +348,8 @@ def max_solve(diag: np.ndarray, lever: np.ndarray, rhs: np.ndarray) -> np.ndarra
     numpy.linalg.LinAlgError
         A singular system.
     """
+    from scipy.linalg import solve_banded  # here: importing scipy.linalg costs ~0.5 s, loading the plugin must not
+
     y = solve_banded((1, 1), _tridiagonal(diag, lever), rhs - np.r_[rhs[1:], 0.0])
     return np.diff(y, prepend=0.0)
 
@@ -375,6 +376,8 @@ def max_positive_definite(diag: np.ndarray, lever: np.ndarray) -> bool:
     -------
     bool
     """
+    from scipy.linalg import cholesky_banded  # see max_solve
+
     ab = _tridiagonal(diag, lever)
     try:
         cholesky_banded(ab[1:], lower=True)
