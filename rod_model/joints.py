@@ -386,6 +386,33 @@ def max_positive_definite(diag: np.ndarray, lever: np.ndarray) -> bool:
     return True
 
 
+def bending_direction(design: RodDesign, loads: Loads) -> np.ndarray:
+    """Find the bending plane's direction: the pulled tendon's, or without tension the loads' lateral one.
+
+    Parameters
+    ----------
+    design : RodDesign
+        Its tendons' offsets.
+    loads : Loads
+        Tensions, roll and external loads (base frame).
+
+    Returns
+    -------
+    (3,) float, unit, needle frame
+        In the x-y plane; tendon 0's offset when nothing is pulled and no load acts sideways.
+    """
+    offsets = design.tendon_unit_offsets(loads.roll_deg)
+    if max(loads.tensions_n) > 0.0:
+        return offsets[int(np.argmax(loads.tensions_n))]
+    z = np.array([0.0, 0.0, 1.0])
+    for v in (np.asarray(loads.tip_force_n), np.asarray(loads.distributed_n_per_m),
+              np.cross(np.asarray(loads.tip_moment_nm), z)):
+        side = v - (v @ z) * z
+        if np.linalg.norm(side) > 1e-12 * (1.0 + np.linalg.norm(v)):
+            return side / np.linalg.norm(side)
+    return offsets[0]
+
+
 def planar_loads(design: RodDesign, loads: Loads, direction: np.ndarray) -> PlanarLoads | None:
     """Project the external loads on the bending plane; None without external loads.
 
@@ -634,7 +661,8 @@ class DiscreteJoints:
         design : RodDesign
             The stylet in its needle.
         loads : Loads
-            One pulled tendon (its direction is the bending plane), roll, history, and loads in that plane.
+            One pulled tendon (its direction is the bending plane; without tension the loads' lateral direction),
+            roll, history, and loads in that plane.
 
         Returns
         -------
@@ -652,7 +680,7 @@ class DiscreteJoints:
         check_loads(self.name, self.capabilities, design, loads)
         lam = np.asarray(loads.tensions_n)
         j = int(np.argmax(lam))
-        direction = design.tendon_unit_offsets(loads.roll_deg)[j]
+        direction = bending_direction(design, loads)
         ext = planar_loads(design, loads, direction)
         chain = self.chain(design)
         sol = (self._free(chain, lam[j:j + 1], loads.history) if ext is None

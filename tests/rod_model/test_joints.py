@@ -13,7 +13,15 @@ from reachplan.rod_model import _kernel
 from reachplan.rod_model.beam import PLANAR_BEAM
 from reachplan.rod_model.calibrate import CALIBRATION_ROWS, VALIDATION_ROWS, calibrate, every_published_row, predict
 from reachplan.rod_model.cosserat import COSSERAT_ROD, TWO_TUBE_COSSERAT
-from reachplan.rod_model.design import Calibration, Foundation, Loads, RodDesign, TensionHistory, preset
+from reachplan.rod_model.design import (
+    Calibration,
+    Foundation,
+    Loads,
+    RodDesign,
+    TensionHistory,
+    gravity_load,
+    preset,
+)
 from reachplan.rod_model.errors import UnsupportedLoadError
 from reachplan.rod_model.friction import joint_curvature_per_m, loop_width_mm, solve_sweep
 from reachplan.rod_model.joints import (
@@ -244,6 +252,11 @@ def test_what_it_cannot_represent_is_refused() -> None:
     d = preset("15ga-20j-tip")
     with pytest.raises(UnsupportedLoadError, match="planar"):
         DISCRETE_JOINTS.solve(d, Loads((5.0, 0.0, 0.0, 0.0), tip_force_n=(0.0, 0.1, 0.0)))
+    # without tension the plane is the loads' own: weight along y bends the rod toward y, as the Cosserat rod does
+    weight = Loads((0.0,) * 4, distributed_n_per_m=gravity_load(d, (0.0, 1.0, 0.0)))
+    a, b = _ok(DISCRETE_JOINTS.solve(d, weight)), _ok(COSSERAT_ROD.solve(d, weight))
+    assert a.tip_position_mm[1] > 0.2 and abs(a.tip_position_mm[0]) < 1e-12
+    assert np.linalg.norm(a.tip_position_mm - b.tip_position_mm) < 0.02
     with pytest.raises(UnsupportedLoadError, match="one pulled tendon"):
         DISCRETE_JOINTS.solve(d, Loads((5.0, 5.0, 0.0, 0.0)))
     fnd = Foundation(np.array([0.0, 100.0]), np.array([0.1, 0.1]), np.zeros((2, 3)), np.ones(2))
