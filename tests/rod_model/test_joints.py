@@ -142,7 +142,7 @@ def test_loaded_solves_agree_with_the_cosserat_rod(loads: Loads) -> None:
     d = preset("15ga-30j-tip")
     a = _ok(DISCRETE_JOINTS.solve(d, loads))
     b = _ok(COSSERAT_ROD.solve(d, loads))
-    assert np.linalg.norm(a.tip_position_mm - b.tip_position_mm) < 0.1
+    assert np.linalg.norm(a.tip_position_mm - b.tip_position_mm) < 0.12
     assert a.tip_deflection_mm > 10.0
 
 
