@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
@@ -160,7 +161,10 @@ def build_chain(design: RodDesign, tube_step_mm: float, joint_half_gap_mm: float
     s, k, arm, gap_m, fr, isj = (np.concatenate(c) for c in cols)
     secs = design.sections()
     bounds = np.array([secs[0].start_m] + [x.end_m for x in secs])
-    return Chain(s, float(bounds[-1]), k, arm, gap_m, fr, isj.astype(bool), pitch, secs[0].capstan_mu, bounds)
+    isj = isj.astype(bool)
+    for a in (s, k, arm, gap_m, fr, isj, bounds):
+        a.setflags(write=False)  # shared through the per-design cache
+    return Chain(s, float(bounds[-1]), k, arm, gap_m, fr, isj, pitch, secs[0].capstan_mu, bounds)
 
 
 def routing_tensions(tension_n: np.ndarray, theta: np.ndarray, mu: float, history: TensionHistory,
@@ -750,16 +754,7 @@ def _samples(chain: Chain, theta: np.ndarray, direction: np.ndarray) -> tuple[np
     return s, pos, bend_frames(direction, psi[idx])
 
 
-_CHAINS: dict[tuple[RodDesign, float, float], Chain] = {}
-
-
-def _cached_chain(design: RodDesign, tube_step_mm: float, joint_half_gap_mm: float) -> Chain:
-    key = (design, tube_step_mm, joint_half_gap_mm)
-    if key not in _CHAINS:
-        if len(_CHAINS) > 256:
-            _CHAINS.clear()
-        _CHAINS[key] = build_chain(design, tube_step_mm, joint_half_gap_mm)
-    return _CHAINS[key]
+_cached_chain = lru_cache(maxsize=256)(build_chain)
 
 
 DISCRETE_JOINTS = DiscreteJoints()
