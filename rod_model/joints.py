@@ -100,6 +100,9 @@ class Chain:
         The tendon's friction coefficient on its routing.
     section_bounds_m : (k + 1,) float, m
         Boundaries of the design's sections (:meth:`RodDesign.sections`).
+    contact_angle_rad : (h,) float, rad
+        Largest angle of each hinge: at a joint ``2 atan(a / R_disk)``, where the rims of the two disks touch
+        (their faces ``a`` from the ball's centre); π at a tube hinge or with a zero half-gap (no limit).
     """
 
     hinge_s_m: np.ndarray
@@ -112,6 +115,7 @@ class Chain:
     pitch_m: float
     capstan_mu: float
     section_bounds_m: np.ndarray
+    contact_angle_rad: np.ndarray
 
     @property
     def node_s_m(self) -> np.ndarray:
@@ -140,7 +144,8 @@ def build_chain(design: RodDesign, tube_step_mm: float, joint_half_gap_mm: float
     RodModelError
         A half-gap that does not fit in half a pitch.
     """
-    cols: list[list[np.ndarray]] = [[], [], [], [], [], []]
+    cols: list[list[np.ndarray]] = [[], [], [], [], [], [], []]
+    rim = 0.5 * design.stylet.disk_diameter_mm * 1e-3
     pitch = design.stylet.joint_pitch_mm * 1e-3
     for sec in design.sections():
         if sec.kind == "joints":
@@ -154,17 +159,18 @@ def build_chain(design: RodDesign, tube_step_mm: float, joint_half_gap_mm: float
             gap = 0.5 * sec.length_m / n
         step = sec.length_m / n
         joint = sec.kind == "joints"
+        limit = 2.0 * math.atan(gap / rim) if joint and gap > 0 else math.pi
         for col, value in zip(cols, (sec.start_m + (np.arange(n) + 0.5) * step, (sec.ei1 + sec.ei2) / step,
-                                     sec.arm_m, gap, sec.joint_friction_arm_m if joint else 0.0, joint),
+                                     sec.arm_m, gap, sec.joint_friction_arm_m if joint else 0.0, joint, limit),
                               strict=True):
             col.append(np.broadcast_to(np.asarray(value, dtype=float), (n,)))
-    s, k, arm, gap_m, fr, isj = (np.concatenate(c) for c in cols)
+    s, k, arm, gap_m, fr, isj, contact = (np.concatenate(c) for c in cols)
     secs = design.sections()
     bounds = np.array([secs[0].start_m] + [x.end_m for x in secs])
     isj = isj.astype(bool)
-    for a in (s, k, arm, gap_m, fr, isj, bounds):
+    for a in (s, k, arm, gap_m, fr, isj, bounds, contact):
         a.setflags(write=False)  # shared through the per-design cache
-    return Chain(s, float(bounds[-1]), k, arm, gap_m, fr, isj, pitch, secs[0].capstan_mu, bounds)
+    return Chain(s, float(bounds[-1]), k, arm, gap_m, fr, isj, pitch, secs[0].capstan_mu, bounds, contact)
 
 
 def routing_tensions(tension_n: np.ndarray, theta: np.ndarray, mu: float, history: TensionHistory,
@@ -456,6 +462,10 @@ def planar_loads(design: RodDesign, loads: Loads, direction: np.ndarray) -> Plan
     return PlanarLoads((float(f @ direction), float(f @ z)), float(m @ normal), (float(q @ direction), float(q @ z)))
 
 
+_GEOMETRY = ("a joint turned past the angle where its disks' rims touch (or a tendon chord past its channel): the "
+             "load is beyond what the joint section can take")
+
+
 @dataclass(frozen=True)
 class _Solution:
     theta: np.ndarray  # (b, h) rad
@@ -559,11 +569,11 @@ class DiscreteJoints:
         if chain.capstan_mu != 0.0:
             return self._free_hinges(chain, tension_n, history)
         params = np.column_stack([chain.stiffness_nm, chain.arm_m, chain.half_gap_m, chain.friction_arm_m,
-                                  chain.is_joint])
+                                  chain.is_joint, chain.contact_angle_rad])
         distinct, inverse = np.unique(params, axis=0, return_inverse=True)
         small = replace(chain, hinge_s_m=np.arange(len(distinct), dtype=float), stiffness_nm=distinct[:, 0],
                         arm_m=distinct[:, 1], half_gap_m=distinct[:, 2], friction_arm_m=distinct[:, 3],
-                        is_joint=distinct[:, 4] > 0)
+                        is_joint=distinct[:, 4] > 0, contact_angle_rad=distinct[:, 5])
         sol = self._free_hinges(small, tension_n, history)
         return replace(sol, theta=sol.theta[:, inverse.ravel()])
 
@@ -583,16 +593,18 @@ class DiscreteJoints:
             if np.all(res <= tol) or not np.all(np.isfinite(res)):
                 break
             theta = theta - e / np.where(stuck, 1.0, (k - d_moment) / k)
-        ok = (res <= tol) & self._chords_ok(chain, theta)
-        return _Solution(theta, res, it, ok, "" if np.all(ok) else
-                         f"hinge equilibrium not reached: moment residual {np.max(res):.2e} N·m after {it} "
-                         "Newton iterations (or a tendon chord turned past its channel)")
+        geometry = self._geometry_ok(chain, theta)
+        ok = (res <= tol) & geometry
+        reason = ("" if np.all(ok) else _GEOMETRY if np.all(res <= tol) else
+                  f"hinge equilibrium not reached: moment residual {np.max(res):.2e} N·m after {it} Newton iterations")
+        return _Solution(theta, res, it, ok, reason)
 
     @staticmethod
-    def _chords_ok(chain: Chain, theta: np.ndarray) -> np.ndarray:
-        """(b,) bool: every chord runs forward (``a cos(θ/2) − r sin(θ/2) > 0``) and every angle is finite."""
+    def _geometry_ok(chain: Chain, theta: np.ndarray) -> np.ndarray:
+        """(b,) bool: every angle finite and within its hinge's contact angle, every chord running forward."""
         fwd = chain.half_gap_m * np.cos(0.5 * theta) - chain.arm_m * np.sin(0.5 * theta)
-        return np.all(np.isfinite(theta), axis=-1) & np.all((fwd > 0) | (chain.half_gap_m == 0), axis=-1)
+        return (np.all(np.isfinite(theta), axis=-1) & np.all(np.abs(theta) < chain.contact_angle_rad, axis=-1)
+                & np.all((fwd > 0) | (chain.half_gap_m == 0), axis=-1))
 
     def _newton(self, chain: Chain, tension_n: float, history: TensionHistory, ext: PlanarLoads, factor: float,
                 theta: np.ndarray, check: bool) -> tuple[np.ndarray, float, int, str]:
@@ -647,11 +659,12 @@ class DiscreteJoints:
                 theta, res, it, status = self._newton(chain, tension_n, history, ext, step / ramp, theta,
                                                       step == ramp)
                 its += it
-                if status != "ok" or not self._chords_ok(chain, theta):
+                if status != "ok" or not self._geometry_ok(chain, theta):
                     break
             else:
                 return _Solution(theta[None, :], np.array([res]), its, np.array([True]))
-            reason = (f"unstable equilibrium (tangent stiffness not positive definite) after {ramp} load steps"
+            reason = (_GEOMETRY if status == "ok" else
+                      f"unstable equilibrium (tangent stiffness not positive definite) after {ramp} load steps"
                       if status == "unstable" else f"hinge equilibrium not reached at load step {step}/{ramp}: "
                       f"moment residual {res:.2e} N·m")
         return _Solution(theta[None, :], np.array([res]), its, np.array([False]),

@@ -22,7 +22,7 @@ from reachplan.rod_model.design import (
     gravity_load,
     preset,
 )
-from reachplan.rod_model.errors import UnsupportedLoadError
+from reachplan.rod_model.errors import TensionAboveLimitWarning, UnsupportedLoadError
 from reachplan.rod_model.friction import joint_curvature_per_m, loop_width_mm, solve_sweep
 from reachplan.rod_model.joints import (
     DISCRETE_JOINTS,
@@ -179,6 +179,18 @@ def test_an_axial_load_beyond_euler_is_refused_and_below_it_solved() -> None:
     assert below.tip_deflection_mm < 1e-9
     above = DiscreteJoints().solve(d, Loads((0.0,) * 4, tip_force_n=(0.0, 0.0, -1.5 * euler)))
     assert not above and "unstable" in above.reason
+
+
+def test_a_tension_that_would_close_the_disks_is_refused_not_coiled() -> None:
+    # 5000 N turns each ball by about 3 rad; the disks' rims touch at 2 atan(a / R_disk) = 59.5°
+    d = preset("15ga-20j-tip")
+    with pytest.warns(TensionAboveLimitWarning):
+        r = DISCRETE_JOINTS.solve(d, d.loads(5000.0))
+    assert not r and "rims touch" in r.reason
+    batch = DISCRETE_JOINTS.solve_batch(d, np.array([10.0, 5000.0]))
+    assert batch.converged.tolist() == [True, False] and np.isnan(batch.tip_positions_mm[1]).all()
+    limit = DISCRETE_JOINTS.chain(d).contact_angle_rad[DISCRETE_JOINTS.chain(d).is_joint][0]
+    assert limit == pytest.approx(2 * np.arctan(0.4 / 0.7))
 
 
 def test_joint_friction_holds_each_ball_by_its_coulomb_moment() -> None:
