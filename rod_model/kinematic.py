@@ -101,12 +101,28 @@ def arc_path(bounds_mm: np.ndarray, curvature_per_m: np.ndarray, s_mm: np.ndarra
     ax = np.sum(chord * np.cos(psi_prev + half), axis=-1)
     psi = np.sum(kap * seg, axis=-1)
     pos = lat[..., None] * direction + ax[..., None] * np.array([0.0, 0.0, 1.0])
-    # Rotation by psi about a = z x direction (bends +z toward direction): Rodrigues.
+    return pos, bend_frames(direction, psi)
+
+
+def bend_frames(direction: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """Rotate the base frame by ``psi`` about ``z × direction`` (bends ``+z`` toward ``direction``): Rodrigues.
+
+    Parameters
+    ----------
+    direction : (3,) float, unit, needle frame
+        The bending direction, in the x-y plane.
+    psi : (...) float, rad
+        Angle of the tangent from ``+z`` toward ``direction``.
+
+    Returns
+    -------
+    (..., 3, 3) float, needle frame
+        Columns ``d1, d2, d3`` (``d3`` the tangent); identity where ``psi`` is 0.
+    """
     a = np.array([-direction[1], direction[0], 0.0])  # z x direction
     k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
     sp, cp = np.sin(psi)[..., None, None], np.cos(psi)[..., None, None]
-    frames = np.eye(3) + sp * k + (1.0 - cp) * (k @ k)
-    return pos, frames
+    return np.eye(3) + sp * k + (1.0 - cp) * (k @ k)
 
 
 def _arc_solution(model: str, design: RodDesign, loads: Loads, curv: np.ndarray, t0: float,

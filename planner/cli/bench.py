@@ -98,6 +98,8 @@ TARGETS: tuple[Target, ...] = (
            (Option("--repeat", int, "timed renderings, the median is reported (5; quick 1)"),)),
     Target("factors", "factors", "kinematic curvature factor per stylet design against the tissue modulus, "
            "fitted to the in-tissue rod (the planner's package table)"),
+    Target("joints", "joints", "discrete joint-section model: every published free-space row (calibration or "
+           "validation), the joint-count trend, convergence"),
     Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
            (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
 )

@@ -57,7 +57,8 @@ def _assert_real_png(path: Path) -> None:
 
 def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.CaptureFixture[str]) -> None:
     assert [t.name for t in bench.TARGETS] == ["models", "planning", "dose", "imaging", "study", "startup", "firstrun",
-                                              "distance", "dosekernel", "implant", "report", "factors", "demo"]
+                                              "distance", "dosekernel", "implant", "report", "factors", "joints",
+                                              "demo"]
     for target in bench.TARGETS:
         module = bench._load(target.module)
         assert callable(module.run)
@@ -142,6 +143,25 @@ def test_models_quick_writes_the_chart_and_its_table(tmp_path: Path, capsys: pyt
     in_tissue = [r for r in rows if "tissue" in r["model"]]
     assert len(in_tissue) == 2 and all(float(r["median_ms"]) > 0 for r in in_tissue)
     _assert_real_png(out / "rod_models_tissue.png")
+
+
+def test_joints_quick_reports_every_published_row_with_its_role(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from reachplan.planner.bench import joints
+    from reachplan.rod_model.calibrate import CALIBRATION_ROWS, VALIDATION_ROWS
+
+    out = _quick("joints", tmp_path, capsys)
+    header, rows = _read_csv(out / "joints_rows.csv")
+    assert header == list(joints.ROW_COLUMNS)
+    roles = {(r.preset, "calibration") for r in CALIBRATION_ROWS} | {(r.preset, "validation") for r in VALIDATION_ROWS}
+    for variant in {r["variant"] for r in rows}:
+        assert {(r["preset"], r["role"]) for r in rows if r["variant"] == variant} == roles
+    _, family = _read_csv(out / "joints_family.csv")
+    # every calibration of the family reproduces the row it is built on
+    assert family and all(abs(float(f["15ga-20j-tip"]) - 9.87) < 1e-6 for f in family)
+    _, conv = _read_csv(out / "joints_convergence.csv")
+    assert max(float(c["tip_error_mm"]) for c in conv) < 0.02
+    _assert_real_png(out / "joints_trend.png")
 
 
 def test_dose_quick_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
