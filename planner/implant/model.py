@@ -41,6 +41,7 @@ Without ``highspy`` every solve goes through ``scipy.optimize.milp``.
 from __future__ import annotations
 
 import itertools
+import threading
 from collections.abc import Sequence
 from typing import Any
 
@@ -50,6 +51,10 @@ from scipy import sparse
 
 from reachplan.planner.implant.optimiser import DwellProblem, OrganRows, tail_mean
 
+#: HiGHS instances of several threads do not run (or go) at once: two arms' instances solving on two threads crashed
+#: the process (its task scheduler is the process's; cf. HiGHS issues 810 and 3141). Re-entrant: a model collected
+#: while its own thread holds the lock may take it again.
+_HIGHS_LOCK = threading.RLock()
 _highs: Any  # HiGHS's own bindings: a solver object that keeps its basis between solves (optional)
 try:
     from highspy import _core as _highs
@@ -237,6 +242,12 @@ class _Model:
             res.x = x
         return res
 
+    def __del__(self) -> None:
+        """Let the HiGHS instance go under the lock (see :data:`_HIGHS_LOCK`)."""
+        if getattr(self, "_solver", None) is not None:
+            with _HIGHS_LOCK:
+                self._solver = None
+
     def _on_columns(self, only: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the column bounds (lower, upper) with the needles ``only`` used and every other needle empty."""
         on = np.zeros(self.n_y, dtype=bool)
@@ -249,6 +260,23 @@ class _Model:
         return lo, hi
 
     def _warm(self, row_ub: np.ndarray, only: np.ndarray) -> sopt.OptimizeResult:
+        """Solve :meth:`_warm_locked` holding :data:`_HIGHS_LOCK`.
+
+        Parameters
+        ----------
+        row_ub : (rows,) float
+            The rows' upper bounds.
+        only : (k,) int
+            The needles used.
+
+        Returns
+        -------
+        scipy.optimize.OptimizeResult
+        """
+        with _HIGHS_LOCK:
+            return self._warm_locked(row_ub, only)
+
+    def _warm_locked(self, row_ub: np.ndarray, only: np.ndarray) -> sopt.OptimizeResult:
         """Solve the LP of the selection ``only`` on the model's HiGHS instance, from the last solve's basis.
 
         Parameters
