@@ -21,6 +21,7 @@ from reachplan.planner.implant.case import ImplantComparison
 from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.implant.dwells import OptimizerSettings
 from reachplan.planner.report import charts, figures
+from reachplan.planner.report.handoff import handoff_section
 from reachplan.planner.report.html import (
     Block,
     Figure,
@@ -34,15 +35,15 @@ from reachplan.planner.report.html import (
 from reachplan.planner.report.options import ReportOptions
 from reachplan.planner.report.terminal import (
     AIMS_LEGEND,
-    TENSION_MARGIN,
     aims_rows,
     implant_rows,
-    miss_flag,
     plain_model,
-    tension_flag,
+    reach_margin_mm,
+    tension_reserve_n,
 )
 from reachplan.planner.report.view3d import Needle3d, scene_figure
 from reachplan.planner.steering.candidates import Candidate
+from reachplan.plugins.exporters.handoff import RESEARCH_USE
 from reachplan.rod_model.select import ErrorRow
 
 
@@ -459,18 +460,12 @@ def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered:
     tol, p = cfg.reach_tolerance_mm, cfg.perturbations
     rows = []
     for c in sorted((*straight, *steered), key=lambda c: (list(order).index(c.target), c.steered)):
-        flags = []
-        if miss_flag(c, tol):
-            flags.append(f"worst-case miss over {tol:g} mm")
-        if np.isfinite(c.worst_clearance_mm) and c.worst_clearance_mm <= 0:
-            flags.append("touches an organ in the worst case")
-        if tension_flag(c):
-            flags.append(f"tension within {TENSION_MARGIN:.0%} of the limit")
         limit = "-" if c.design is None else f"{c.design.max_tension_n:g}"
+        margin = reach_margin_mm(c, tol)
         rows.append((c.target, "steered" if c.steered else "straight", c.hole_id, c.design_name or "-",
-                     _f(c.reach_error_mm), _f(c.worst_reach_mm), _f(c.clearance_mm), _f(c.worst_clearance_mm),
-                     c.worst_case or "not assessed", _f(c.peak_tension_n) if c.steered else "-", limit,
-                     "; ".join(flags) or "ok", plain_model(c)))
+                     _f(c.reach_error_mm), _f(c.worst_reach_mm), "-" if not np.isfinite(margin) else f"{margin:+.1f}",
+                     _f(c.clearance_mm), _f(c.worst_clearance_mm), c.worst_case or "not assessed",
+                     _f(c.peak_tension_n) if c.steered else "-", limit, _f(tension_reserve_n(c)), plain_model(c)))
     infos = {c.model.label: c.model for c in (*straight, *steered)}
     settings = tuple((label, ", ".join(f"{k} = {v:g}" if isinstance(v, float) else f"{k} = {v}"
                                        for k, v in info.settings) or "-") for label, info in infos.items())
@@ -478,13 +473,15 @@ def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered:
         Paragraph(f"Each target's best straight and best steered needle. Robustness: the needle re-evaluated with "
                   f"the fast kinematic model under tension × (1 ± {p.tension_fraction:.0%}), roll ± {p.roll_deg:g}° "
                   f"and an entry tilt of ± {p.tilt_deg:g}° about both template axes (handheld insertions deflect "
-                  "by 3.6-7.9 mm even when straight: Karius et al., Strahlenther. Onkol. 2025); the worst reach "
-                  f"error is flagged when over the {tol:g} mm reach tolerance. The peak tendon tension is flagged "
-                  f"within {TENSION_MARGIN:.0%} of the stylet's design limit. The last column says in words which "
-                  "model produced the needle's numbers."),
-        Table(("target", "needle", "hole", "stylet", "reach error (mm)", "worst-case miss (mm)", "clearance (mm)",
-               "worst-case clearance (mm)", "worst case", "peak tension (N)", "design limit (N)", "flags",
-               "model"), tuple(rows), "Robustness and tension per needle", numeric=(4, 5, 6, 7, 9, 10)),
+                  "by 3.6-7.9 mm even when straight: Karius et al., Strahlenther. Onkol. 2025; the sizes are the "
+                  f"planner's assumptions). Reach margin: the {tol:g} mm reach tolerance less the worst-case reach "
+                  "error (+ inside, - over), with the perturbation that sets it; tension reserve: the stylet's "
+                  "design limit less the peak tension. The last column says in words which model produced the "
+                  "needle's numbers."),
+        Table(("target", "needle", "hole", "stylet", "reach error (mm)", "worst-case miss (mm)", "reach margin (mm)",
+               "clearance (mm)", "worst-case clearance (mm)", "worst case", "peak tension (N)", "design limit (N)",
+               "tension reserve (N)", "model"), tuple(rows), "Robustness margins and tension per needle",
+              numeric=(4, 5, 6, 7, 8, 10, 11, 12)),
         Table(("model", "settings"), settings, "Model settings (units in the names)", collapsed=True),
     ))
 
@@ -580,6 +577,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                       f"; delivered plan HR-CTV D90 {delivery.optimisation.target.d90_eqd2_gy:.1f} Gy "
                                       f"EQD2 ({'aims met' if _aims_met(delivery) else 'aims not met'})"))
     sections: list[Section | None] = [
+        handoff_section(delivery, scene),
         case_sec,
         _ranking_section(result, order),
         Section("Slices through the targets", "slices", tuple(slices)),
@@ -604,7 +602,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                                      tuple((k.removesuffix("_s"), f"{v:.1f}")
                                                            for k, v in timings.items()),
                                                      "Wall time per stage", numeric=(1,)),)))
-    return Report(f"reachplan report: {case}", subtitle, tuple(s for s in sections if s is not None))
+    return Report(f"reachplan report: {case}", subtitle, tuple(s for s in sections if s is not None), RESEARCH_USE)
 
 
 def report_html(scene: Scene, result: PlanResult, *, volume: Volume | None = None, delivery: Delivery | None = None,
