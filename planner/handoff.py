@@ -57,9 +57,9 @@ ARM_PLANS = {"straight": "implant, straight", "steered": "implant, straight + st
 
 #: Where the margins' perturbation sizes come from.
 PERTURBATION_SOURCE = (
-    "The sizes are the planner's assumptions (PlanConfig.perturbations); for scale: handheld straight needles "
-    "deviate transversally by 3.6 ± 2.1 to 7.9 ± 3.0 mm at the tip (Karius et al., Strahlenther. Onkol. 2025; "
-    "reference oncoreach.md), and an entry tilt of 2 deg moves a tip 100 mm deep by 3.5 mm.")
+    "Sizes ASSUMED (PlanConfig.perturbations); for scale, handheld straight needles deviate by 3.6 ± 2.1 to "
+    "7.9 ± 3.0 mm at the tip (Karius et al., Strahlenther. Onkol. 2025), and a 2 deg tilt moves a tip 100 mm deep "
+    "by 3.5 mm.")
 
 
 def toward(vector_lps: np.ndarray) -> str:
@@ -244,7 +244,8 @@ def channel_geometry(needle: NeedleExport, channel: int) -> ApplicatorChannel:
         Arc length; the angle between its entry and tip directions (the chords of its first and last
         :data:`END_CHORD_MM`: on an arc of radius R that is END_CHORD_MM / R rad less than the turn); the tightest
         radius over any :data:`RADIUS_WINDOW_MM` of it (the turn between the chords at both ends of the window:
-        exact on an arc); the direction it turns toward (tip direction less entry direction) in patient terms.
+        exact on an arc); the direction it turns toward (the tip direction's part across the entry direction) in
+        patient terms.
     """
     path = needle.path_mm
     length = float(arc_length_mm(path)[-1])
@@ -258,7 +259,8 @@ def channel_geometry(needle: NeedleExport, channel: int) -> ApplicatorChannel:
     turns = np.arccos(np.clip(np.einsum("ij,ij->i", tangents[:-w], tangents[w:]), -1.0, 1.0)) if w < len(
         tangents) else np.zeros(1)
     radius = float(w * step / turns.max()) if turns.max() > 1e-9 else float("inf")
-    words = toward(tangents[-1] - tangents[0]) if bend >= NEGLIGIBLE else ""
+    turn = tangents[-1] - (tangents[-1] @ tangents[0]) * tangents[0]  # the tip direction across the entry direction
+    words = toward(turn) if bend >= NEGLIGIBLE else ""
     return ApplicatorChannel(channel, needle.hole_id, length, bend, radius if words else float("inf"), words)
 
 
@@ -361,12 +363,12 @@ def perturbation_words(config: PlanConfig, clearance_margin_mm: float) -> str:
         The perturbations, how a margin is read, and :data:`PERTURBATION_SOURCE`.
     """
     p = config.perturbations
-    return (f"Margins: each needle re-inserted under tension x (1 ± {p.tension_fraction:.0%}) and roll ± "
-            f"{p.roll_deg:g} deg (steered), and an entry tilt of ± {p.tilt_deg:g} deg about both template axes "
-            "(every needle), with the fast kinematic model; reach margin = the "
-            f"{config.reach_tolerance_mm:g} mm reach tolerance less the largest tip displacement from the planned tip, "
-            f"clearance margin = the smallest clearance to an organ at risk less the {clearance_margin_mm:g} mm "
-            "clearance margin; + is on the safe side, - over, and the perturbation that sets each is named. "
+    return (f"Margins (+ on the safe side, - over; the perturbation that sets each is named): reach = the "
+            f"{config.reach_tolerance_mm:g} mm reach tolerance less the largest tip displacement, clearance = the "
+            f"smallest clearance to an organ at risk less the {clearance_margin_mm:g} mm clearance margin, over "
+            f"tension x (1 ± {p.tension_fraction:.0%}) and roll ± {p.roll_deg:g} deg (steered needles) and an "
+            f"entry tilt of ± {p.tilt_deg:g} deg about both template axes (every needle), re-inserted with the fast "
+            "kinematic model. "
             + PERTURBATION_SOURCE)
 
 

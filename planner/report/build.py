@@ -421,7 +421,7 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
 
 def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate],
                      delivery: Delivery | None, max_faces: int) -> dict[str, Any]:
-    """Return the 3-D view's plotly figure: both arms' needles and the delivered plan's active dwells.
+    """Return the 3-D view's plotly figure: the needles to insert, each target's best needles, the active dwells.
 
     Parameters
     ----------
@@ -442,6 +442,11 @@ def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Seque
         A plotly figure as a JSON-ready dict.
     """
     needles = [Needle3d.of(c) for c in (*straight, *steered)]
+    handoff = delivery.export.handoff if delivery is not None else None
+    if handoff is not None:  # the implant to insert first, named as in the insert list
+        paths = {n.hole_id: n.path_mm for n in delivery.export.needles}  # type: ignore[union-attr]
+        needles = [Needle3d(f"insert {n.hole_id} (channel {n.channel}, {n.kind})", paths[n.hole_id],
+                            n.kind == "steered") for n in handoff.needles] + needles
     if delivery is None or not delivery.optimisation.success:
         return scene_figure(scene, needles, max_faces=max_faces)
     dwells = delivery.optimisation.dwells
@@ -582,7 +587,8 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         _ranking_section(result, order),
         Section("Slices through the targets", "slices", tuple(slices)),
         Section("3-D view", "views-3d", (
-            Paragraph("Organs, the target points, the template holes, each target's best straight and best steered "
+            Paragraph("Organs, the target points, the template holes, the needles to insert (legend 'insert "
+                      "<hole>'), each target's best straight and best steered "
                       "needle and the delivered plan's dwell positions, in an interactive view: drag to turn, scroll "
                       "to zoom, click a legend entry to hide or show it (bone and obturator start hidden); the "
                       "buttons turn it to the named views and the title says from where it is seen. It opens "

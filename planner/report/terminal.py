@@ -9,7 +9,7 @@ the rows.
 from __future__ import annotations
 
 import textwrap
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -246,11 +246,16 @@ def format_rows(rows: Sequence[Sequence[str]]) -> str:
     return "\n".join(_aligned(rows))
 
 
-def _aligned(rows: Sequence[Sequence[str]]) -> list[str]:
-    """Return rows as text, the first column left-aligned, the others right-aligned."""
+def _aligned(rows: Sequence[Sequence[str]], right: Collection[int] | None = None) -> list[str]:
+    """Return rows as text, the columns ``right`` right-aligned (default all but the first), the others left."""
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
-            for r in rows]
+    right = range(1, len(widths)) if right is None else right
+    return ["  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
+            .rstrip() for r in rows]
+
+
+#: The insert list's columns that are numbers (right-aligned): channel, depth, reserve.
+NUMERIC_COLUMNS = (0, 4, 6)
 
 
 def _wrap(text: str, indent: str = "  ") -> list[str]:
@@ -277,7 +282,7 @@ def format_insert_list(handoff: InsertList) -> list[str]:
         applicator channels, the rule at the tension limit, the perturbation model and the applicators taken.
     """
     lines = [*textwrap.wrap(handoff.statement, WIDTH), "", handoff.title()]
-    lines += _aligned(handoff.rows())
+    lines += _aligned(handoff.rows(), right=NUMERIC_COLUMNS)
     for hole, words, checks in handoff.details():
         lines += _wrap(f"{hole}: {words}", "  ")
         lines += _wrap(f"check depths: {checks}", "      ")
