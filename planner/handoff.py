@@ -118,14 +118,18 @@ def schedule_words(rows: np.ndarray, patient_from_template: np.ndarray, depth_mm
     Returns
     -------
     str
-        E.g. ``tendon slack to 40 mm; 40-45 mm: pull from 0.0 to 5.7 N, bending toward anterior (roll 270 deg);
-        hold 5.7 N to 112 mm``.
+        E.g. ``tendon slack from 0 to 40 mm; 40-45 mm: pull from 0.0 to 5.7 N, bending toward anterior (roll 270 deg);
+        hold 5.7 N from 45 to 112 mm``.
     """
     d = np.r_[0.0, rows[:, 0], depth_mm]
     t = np.interp(d, rows[:, 0], rows[:, 1])
     r = np.interp(d, rows[:, 0], rows[:, 2])
     keep = np.r_[True, np.diff(d) > 1e-6] & (d <= depth_mm + 1e-6)
     d, t, r = d[keep], t[keep], r[keep]
+    same = np.abs(np.diff(t)) < 1e-6
+    same &= np.abs(np.diff(r)) < 1e-6
+    inner = np.r_[False, same[:-1] & same[1:], False]  # a breakpoint inside one hold says nothing
+    d, t, r = d[~inner], t[~inner], r[~inner]
     parts: list[str] = []
     for k in range(len(d) - 1):
         a, b = f"{d[k]:.0f}", f"{d[k + 1]:.0f}"
@@ -143,7 +147,7 @@ def schedule_words(rows: np.ndarray, patient_from_template: np.ndarray, depth_mm
     return "; ".join(parts)
 
 
-def _points_at(path_mm: np.ndarray, s_mm: Sequence[float]) -> np.ndarray:
+def _points_at(path_mm: np.ndarray, s_mm: Sequence[float] | np.ndarray) -> np.ndarray:
     """Points (mm, LPS) at arc lengths ``s_mm`` along ``path_mm``."""
     s = arc_length_mm(path_mm)
     return np.column_stack([np.interp(s_mm, s, path_mm[:, j]) for j in range(3)])

@@ -73,7 +73,7 @@ def test_schedule_in_words_follows_the_breakpoints() -> None:
     rows = np.array([[0.0, 0.0, -90.0], [40.0, 0.0, -90.0], [45.0, 5.7, -90.0], [90.0, 5.7, -90.0]])
     words = schedule_words(rows, np.eye(4), 112.0)
     assert words == ("tendon slack from 0 to 40 mm; 40-45 mm: pull from 0.0 to 5.7 N, bending toward anterior "
-                     "(roll 270 deg); hold 5.7 N from 45 to 90 mm; hold 5.7 N from 90 to 112 mm")
+                     "(roll 270 deg); hold 5.7 N from 45 to 112 mm")
 
 
 def _arc(radius_mm: float, angle_deg: float, n: int = 400) -> np.ndarray:
