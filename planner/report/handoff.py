@@ -10,6 +10,7 @@ from reachplan.planner.case.scene import Scene
 from reachplan.planner.delivery import Delivery
 from reachplan.planner.handoff import obstacles_line
 from reachplan.planner.report.html import Block, Paragraph, Section, Table
+from reachplan.plugins.exporters.handoff import NUMERIC_COLUMNS
 
 #: The section's anchor (``report.html#insert-these``).
 ANCHOR = "insert-these"
@@ -42,7 +43,7 @@ def handoff_section(delivery: Delivery | None, scene: Scene) -> Section:
                   "terminal's first screen, the device page export/*_device.html and plan.json insert_list). The "
                   "per-target candidates further down explain the choice; the template map, slices and 3-D view "
                   "show the needles."),
-        Table(rows[0], tuple(rows[1:]), "One row per needle, in RT Plan channel order", numeric=(0, 4, 6)),
+        Table(rows[0], tuple(rows[1:]), "One row per needle, in RT Plan channel order", numeric=NUMERIC_COLUMNS),
         Table(("hole", "tension schedule (direction in patient terms)", "check depths: expected tip"),
               tuple(handoff.details()), "How to insert each needle, and where to image it"),
     ]

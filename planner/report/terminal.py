@@ -19,11 +19,12 @@ from reachplan.planner.delivery import Delivery
 from reachplan.planner.dose.evaluation import AimsTable, bounds_text
 from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.steering.candidates import Candidate
+from reachplan.plugins.exporters.handoff import NUMERIC_COLUMNS as INSERT_NUMERIC
+from reachplan.plugins.exporters.handoff import RESEARCH_USE, InsertList
 
 if TYPE_CHECKING:
     from reachplan.planner.delivery import ImplantComparison
     from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
-    from reachplan.plugins.exporters.handoff import InsertList
 
 
 def top_candidates(result: PlanResult, n_per_target: int = 1) -> list[Candidate]:
@@ -254,9 +255,6 @@ def _aligned(rows: Sequence[Sequence[str]], right: Collection[int] | None = None
             .rstrip() for r in rows]
 
 
-#: The insert list's columns that are numbers (right-aligned): channel, depth, reserve.
-NUMERIC_COLUMNS = (0, 4, 6)
-
 
 def _wrap(text: str, indent: str = "  ") -> list[str]:
     """Wrap a paragraph to :data:`WIDTH` columns, every line indented."""
@@ -282,7 +280,7 @@ def format_insert_list(handoff: InsertList) -> list[str]:
         applicator channels, the rule at the tension limit, the perturbation model and the applicators taken.
     """
     lines = [*textwrap.wrap(handoff.statement, WIDTH), "", handoff.title()]
-    lines += _aligned(handoff.rows(), right=NUMERIC_COLUMNS)
+    lines += _aligned(handoff.rows(), right=INSERT_NUMERIC)
     for hole, words, checks in handoff.details():
         lines += _wrap(f"{hole}: {words}", "  ")
         lines += _wrap(f"check depths: {checks}", "      ")
@@ -323,8 +321,6 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
     str
         Lines of text (mm, N, Gy EQD2).
     """
-    from reachplan.plugins.exporters.handoff import RESEARCH_USE
-
     handoff = delivery.export.handoff if delivery is not None else None
     lines = (format_insert_list(handoff) if handoff is not None
              else [*textwrap.wrap(RESEARCH_USE, WIDTH), *([applicators] if applicators else [])])

@@ -19,7 +19,7 @@ from reachplan.imaging.files import atomic_write_bytes
 from reachplan.plugins.exporters import base
 from reachplan.plugins.exporters.base import ExportedFile, ExportedFiles, ExportOptions, ExportPlan
 from reachplan.plugins.exporters.device import dwell_rows, output_paths, schedule_rows, straight_notes
-from reachplan.plugins.exporters.handoff import RESEARCH_USE
+from reachplan.plugins.exporters.handoff import NUMERIC_COLUMNS, RESEARCH_USE, mm
 
 _CSS = """
 body { font-family: system-ui, sans-serif; font-size: 11pt; margin: 1.5em; color: #111; }
@@ -33,13 +33,14 @@ p.small { font-size: 9.5pt; color: #333; }
 """
 
 
-def _table(head: Sequence[str], rows: Sequence[Sequence[object]], cls: str = "") -> str:
-    """Return an HTML table; numbers right-aligned."""
-    def cell(v: object) -> str:
-        return f'<td class="n">{escape(str(v))}</td>' if isinstance(v, (int, float)) else f"<td>{escape(str(v))}</td>"
+def _table(head: Sequence[str], rows: Sequence[Sequence[object]], cls: str = "", numeric: Sequence[int] = ()) -> str:
+    """Return an HTML table; numbers and the ``numeric`` columns right-aligned."""
+    def cell(i: int, v: object) -> str:
+        right = isinstance(v, (int, float)) or i in numeric
+        return f'<td class="n">{escape(str(v))}</td>' if right else f"<td>{escape(str(v))}</td>"
 
     th = "".join(f"<th>{escape(h)}</th>" for h in head)
-    body = "".join("<tr>" + "".join(cell(v) for v in r) + "</tr>" for r in rows)
+    body = "".join("<tr>" + "".join(cell(i, v) for i, v in enumerate(r)) + "</tr>" for r in rows)
     return f'<table class="{cls}"><tr>{th}</tr>{body}</table>'
 
 
@@ -54,7 +55,7 @@ def _needle_block(plan: ExportPlan, k: int, step_mm: float) -> str:
         parts.append(_table(("check depth (mm)", "when", "expected tip from the hole's line", "expected tip (mm, LPS)"),
                             [(round(c.depth_mm, 1), c.what,
                               f"{c.offset_mm:.1f} mm {c.toward}" if c.toward else "on the line",
-                              ", ".join(f"{v:.1f}" for v in c.tip_mm)) for c in item.checks]))
+                              ", ".join(mm(v) for v in c.tip_mm)) for c in item.checks]))
     else:
         parts.append(f"<p>Stylet {escape(n.design or 'plain')}; insert to <b>{n.length_mm:.1f} mm</b>.</p>")
     if n.schedule is not None:
@@ -91,7 +92,7 @@ def device_page(plan: ExportPlan, step_mm: float) -> str:
     if h is not None:
         out.append(f'<h2 id="insert-these">{escape(h.title())}</h2>')
         rows = h.rows()
-        out.append(_table(rows[0], rows[1:], "insert"))
+        out.append(_table(rows[0], rows[1:], "insert", NUMERIC_COLUMNS))
         out.append(f'<p class="small">{escape(h.perturbations)}</p>')
         if h.tension_rule:
             out.append(f'<p id="tension-rule"><b>{escape(h.tension_rule)}</b></p>')

@@ -25,6 +25,25 @@ RESEARCH_USE = ("RESEARCH USE ONLY: a pre-plan computed by reachplan for researc
 #: Columns of :meth:`InsertList.rows` (units in the headers).
 COLUMNS = ("ch", "hole", "needle", "stylet", "depth (mm)", "peak / limit (N)", "reserve (N)",
            "reach margin (mm)", "clearance margin (mm)")
+#: The columns of :data:`COLUMNS` that hold numbers (right-aligned): channel, depth, reserve.
+NUMERIC_COLUMNS = (0, 4, 6)
+
+
+def mm(v: float) -> str:
+    """Return a length with one decimal, never ``-0.0``.
+
+    Parameters
+    ----------
+    v : float, mm
+        The value.
+
+    Returns
+    -------
+    str
+        E.g. ``"12.3"``; a value that rounds to zero is ``"0.0"``.
+    """
+    text = f"{v:.1f}"
+    return "0.0" if text == "-0.0" else text
 
 
 def _r(x: float | None, nd: int = 2) -> float | None:
@@ -66,7 +85,7 @@ class CheckDepth:
         """
         where = (f"{self.offset_mm:.1f} mm {self.toward} of the hole's line" if self.toward
                  else "on the hole's line")
-        lps = ", ".join(f"{v:.1f}" for v in self.tip_mm)
+        lps = ", ".join(mm(v) for v in self.tip_mm)
         return f"{self.depth_mm:.0f} mm ({self.what}): tip {where}, at ({lps}) mm LPS"
 
     def to_json(self) -> dict[str, object]:
