@@ -38,7 +38,14 @@ from reachplan.planner.steering.insertion import STRAIGHT
 from reachplan.planner.steering.robustness import perturbed_paths
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.plugins.exporters.base import ExportPlan, NeedleExport
-from reachplan.plugins.exporters.handoff import ApplicatorChannel, CheckDepth, InsertList, InsertNeedle, Margin
+from reachplan.plugins.exporters.handoff import (
+    ApplicatorChannel,
+    CheckDepth,
+    InsertList,
+    InsertNeedle,
+    Margin,
+    Scenario,
+)
 from reachplan.rod_model.design import RodDesign
 
 #: Patient directions of the LPS axes (+x left, +y posterior, +z superior), negative then positive.
@@ -202,8 +209,8 @@ def check_depths(path_mm: np.ndarray, rows: np.ndarray | None, patient_from_temp
 
 
 def _margins(needle: NeedleExport, design: RodDesign | None, scene: Scene, config: PlanConfig,
-             models: PlanModels, clearance_margin_mm: float) -> tuple[Margin, Margin]:
-    """Worst tip displacement and smallest clearance of one needle over the perturbations, as margins."""
+             models: PlanModels, clearance_margin_mm: float) -> tuple[Margin, Margin, tuple[Scenario, ...]]:
+    """Worst tip displacement and smallest clearance of one needle over the perturbations, and every scenario."""
     path, m = needle.path_mm, scene.patient_from_template
     depth, tip = needle.length_mm, needle.path_mm[-1]
     schedule = None if needle.schedule is None or design is None else TensionSchedule(
@@ -215,21 +222,19 @@ def _margins(needle: NeedleExport, design: RodDesign | None, scene: Scene, confi
     hole_distance = float(np.linalg.norm((inv[:3, :3] @ path[0] + inv[:3, 3])[:2]))
     tol = config.reach_tolerance_mm
 
-    def score(p: np.ndarray) -> tuple[float, float, str]:
+    def score(label: str, p: np.ndarray) -> Scenario:
         c = score_path(planned, needle.hole_id, hole_distance, p, scene.organs, radius, tol, STRAIGHT,
                        steered=schedule is not None, depth_mm=depth)
-        return float(np.linalg.norm(p[-1] - tip)), (0.0 if c.collides else c.clearance_mm), c.closest_organ
+        return Scenario(label, float(np.linalg.norm(p[-1] - tip)), 0.0 if c.collides else c.clearance_mm,
+                        c.closest_organ)
 
-    reach, clear, organ = score(path)
-    reach_cause = clear_cause = "nominal"
-    for label, p in perturbed_paths(path, depth, m, config.perturbations, robustness, design, schedule):
-        r, c, o = score(p)
-        if r > reach:
-            reach, reach_cause = r, label
-        if c < clear:
-            clear, clear_cause, organ = c, label, o
-    return (Margin(reach, tol, tol - reach, reach_cause),
-            Margin(clear, clearance_margin_mm, clear - clearance_margin_mm, clear_cause, organ if scene.organs else ""))
+    scenarios = (score("nominal", path), *(score(label, p) for label, p in perturbed_paths(
+        path, depth, m, config.perturbations, robustness, design, schedule)))
+    reach = max(scenarios, key=lambda s: s.reach_mm)  # the first of equals: nominal when none is worse
+    clear = min(scenarios, key=lambda s: s.clearance_mm)
+    return (Margin(reach.reach_mm, tol, tol - reach.reach_mm, reach.label),
+            Margin(clear.clearance_mm, clearance_margin_mm, clear.clearance_mm - clearance_margin_mm, clear.label,
+                   clear.organ), scenarios)
 
 
 def channel_geometry(needle: NeedleExport, channel: int) -> ApplicatorChannel:
@@ -338,7 +343,7 @@ def insert_list(export: ExportPlan, scene: Scene, config: PlanConfig, *, plan: s
             continue
         design = designs.get(n.design) if n.schedule is not None else None
         rows = n.schedule if design is not None else None
-        reach, clear = _margins(n, design, scene, config, models, clearance_margin_mm)
+        reach, clear, scenarios = _margins(n, design, scene, config, models, clearance_margin_mm)
         words = ("straight: no tendon; insert to the depth" if rows is None
                  else schedule_words(np.asarray(rows), m, n.length_mm))
         peak = 0.0 if rows is None else float(np.max(rows[:, 1]))
@@ -346,7 +351,7 @@ def insert_list(export: ExportPlan, scene: Scene, config: PlanConfig, *, plan: s
                                     _needle_words(design, config.needle_radius_mm), "" if design is None else n.design,
                                     n.length_mm, words, peak, None if design is None else design.max_tension_n,
                                     reach, clear, check_depths(n.path_mm, rows, m),
-                                    (model_of or {}).get(n.hole_id, "")))
+                                    (model_of or {}).get(n.hole_id, ""), scenarios))
     return InsertList(plan, tuple(needles), tuple(applicators), perturbation_words(config, clearance_margin_mm),
                       tension_rule(needles, config.reach_tolerance_mm), obstacles_line(scene))
 

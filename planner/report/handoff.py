@@ -50,5 +50,10 @@ def handoff_section(delivery: Delivery | None, scene: Scene) -> Section:
     blocks += [Paragraph(a.text()) for a in handoff.applicators]
     if handoff.tension_rule:
         blocks.append(Paragraph(handoff.tension_rule))
-    blocks += [Paragraph(handoff.perturbations), Paragraph(handoff.obstacles)]
+    blocks.append(Paragraph(handoff.perturbations))
+    scenarios = handoff.scenario_rows()
+    if len(scenarios) > 1:
+        blocks.append(Table(scenarios[0], tuple(scenarios[1:]), "The margins' evidence: every needle under every "
+                            "perturbation", numeric=(2, 3, 4, 5), collapsed=True))
+    blocks.append(Paragraph(handoff.obstacles))
     return Section(handoff.title(), ANCHOR, tuple(blocks))

@@ -58,6 +58,10 @@ def _needle_block(plan: ExportPlan, k: int, step_mm: float) -> str:
                               ", ".join(mm(v) for v in c.tip_mm)) for c in item.checks]))
     else:
         parts.append(f"<p>Stylet {escape(n.design or 'plain')}; insert to <b>{n.length_mm:.1f} mm</b>.</p>")
+    if item is not None and item.scenarios:
+        parts.append(_table(("perturbation", "tip displacement (mm)", "clearance (mm)", "organ"),
+                            [(s.label, round(s.reach_mm, 1), round(s.clearance_mm, 1), s.organ or "-")
+                             for s in item.scenarios], "scenarios"))
     if n.schedule is not None:
         rows = schedule_rows(n, step_mm)
         parts.append(_table(("depth (mm)", "tension (N)", "roll (deg, template frame)"),

@@ -151,6 +151,39 @@ class Margin:
 
 
 @dataclass(frozen=True)
+class Scenario:
+    """One perturbation of a needle's insertion and where it puts the needle.
+
+    Parameters
+    ----------
+    label : str
+        The perturbation (e.g. ``"roll +10 deg"``, ``"entry tilt -2 deg about template y"``; ``"nominal"``).
+    reach_mm : float, mm
+        The tip's displacement from the planned tip.
+    clearance_mm : float, mm
+        The smallest clearance to an organ at risk (0 when the needle collides; inf without organs).
+    organ : str
+        The organ at that clearance ("" without organs).
+    """
+
+    label: str
+    reach_mm: float
+    clearance_mm: float
+    organ: str
+
+    def to_json(self) -> dict[str, object]:
+        """Return the scenario as JSON-ready values (mm).
+
+        Returns
+        -------
+        dict
+            ``perturbation``, ``reach_mm``, ``clearance_mm`` (None when not finite), ``organ``.
+        """
+        return {"perturbation": self.label, "reach_mm": _r(self.reach_mm), "clearance_mm": _r(self.clearance_mm),
+                "organ": self.organ or None}
+
+
+@dataclass(frozen=True)
 class InsertNeedle:
     """One needle to insert, as the bedside needs it.
 
@@ -182,6 +215,9 @@ class InsertNeedle:
         Depths to image at, with the expected tip there (deepest last: the tip).
     model : str
         The model that predicted the path (e.g. ``straight``, ``tissue_rod+two_tube_cosserat``).
+    scenarios : tuple of Scenario
+        The nominal insertion and every perturbation the margins were taken over, each with its tip displacement
+        and clearance.
     """
 
     channel: int
@@ -197,6 +233,7 @@ class InsertNeedle:
     clearance: Margin
     checks: tuple[CheckDepth, ...]
     model: str
+    scenarios: tuple[Scenario, ...] = ()
 
     @property
     def reserve_n(self) -> float | None:
@@ -229,7 +266,8 @@ class InsertNeedle:
                 "tension_schedule": self.tension_words, "peak_tension_n": _r(self.peak_tension_n),
                 "tension_limit_n": _r(self.tension_limit_n), "tension_reserve_n": _r(self.reserve_n),
                 "reach": self.reach.to_json(), "clearance": self.clearance.to_json(),
-                "check_depths": [c.to_json() for c in self.checks], "model": self.model}
+                "check_depths": [c.to_json() for c in self.checks], "model": self.model,
+                "scenarios": [s.to_json() for s in self.scenarios]}
 
 
 @dataclass(frozen=True)
@@ -349,6 +387,25 @@ class InsertList:
             ``(hole_id, schedule, checks)``; the checks joined with ``"; "``.
         """
         return [(n.hole_id, n.tension_words, "; ".join(c.text() for c in n.checks)) for n in self.needles]
+
+    def scenario_rows(self) -> list[tuple[str, ...]]:
+        """Return every needle's perturbations as text rows, the header first: the margins' evidence.
+
+        Returns
+        -------
+        list of tuple of str
+            ``hole, perturbation, tip displacement, reach margin, clearance, clearance margin, organ`` (mm).
+        """
+        head = ("hole", "perturbation", "tip displacement (mm)", "reach margin (mm)", "clearance (mm)",
+                "clearance margin (mm)", "organ")
+        rows: list[tuple[str, ...]] = [head]
+        for n in self.needles:
+            for s in n.scenarios:
+                finite = bool(np.isfinite(s.clearance_mm))
+                rows.append((n.hole_id, s.label, f"{s.reach_mm:.1f}", f"{n.reach.limit_mm - s.reach_mm:+.1f}",
+                             f"{s.clearance_mm:.1f}" if finite else "-",
+                             f"{s.clearance_mm - n.clearance.limit_mm:+.1f}" if finite else "-", s.organ or "-"))
+        return rows
 
     def to_json(self) -> dict[str, object]:
         """Return the list as JSON-ready values (plan.json ``insert_list``; the device JSON's).

@@ -144,6 +144,13 @@ def test_margins_of_a_straight_needle_beside_a_box_follow_the_tilt_geometry() ->
     assert item.clearance.worst_mm == pytest.approx(expected, abs=0.05)
     assert item.clearance.margin_mm == pytest.approx(expected - 2.0, abs=0.05)
     assert item.clearance.organ == "Bladder" and "about template y" in item.clearance.cause
+    # the margins are the scenarios' extremes: nominal and the four tilts of a straight needle
+    assert item.scenarios[0].label == "nominal" and len(item.scenarios) == 5
+    assert item.reach.worst_mm == max(sc.reach_mm for sc in item.scenarios) and item.scenarios[0].reach_mm == 0.0
+    assert item.clearance.worst_mm == min(sc.clearance_mm for sc in item.scenarios)
+    assert item.scenarios[0].clearance_mm == pytest.approx(gap - config.needle_radius_mm, abs=0.05)
+    rows = handoff.scenario_rows()
+    assert len(rows) == 1 + len(item.scenarios) and rows[1][:4] == ("Cj", "nominal", "0.0", "+2.0")
     assert item.kind == "straight" and item.tension_limit_n is None and item.reserve_n is None
     assert handoff.tension_rule == "" and "Karius" in handoff.perturbations
 
@@ -171,3 +178,31 @@ def test_a_tandem_is_an_obstacle_by_default_and_the_line_names_the_applicators()
     line = obstacles_line(scene)
     assert "Tandem (tandem; an obstacle: needles keep off it)" in line
     assert "Obturator (obturator; not an obstacle)" in line
+
+
+def test_a_steered_needle_gets_its_schedule_reserve_checks_and_steering_errors() -> None:
+    config = PlanConfig()
+    design = config.rod_designs[0]
+    peak = 0.8 * design.max_tension_n
+    schedule = TensionSchedule([0.0, 30.0, 40.0], [0.0, 0.0, peak], [-90.0] * 3)
+    shape = KINEMATIC.insert_array(design, [schedule], 100.0)[0]  # template = patient frame here (pose identity)
+    path = shape + np.array([0.0, -20.0, 0.0])
+    rows = np.column_stack([schedule.depth_mm, schedule.tension_n, schedule.roll_deg])
+    needle = NeedleExport("Bd", path, path[-3:-2], np.array([10.0]), design=design.name, schedule=rows)
+    box = trimesh.creation.box(extents=(20.0, 20.0, 20.0))
+    box.apply_translation((60.0, 0.0, 50.0))  # far away: the clearance is not the point here
+    (item,) = insert_list(_export(needle), _scene(box), config, plan="test", clearance_margin_mm=2.0,
+                          models=PlanModels()).needles
+    assert item.kind == "steered" and item.stylet == design.name and item.needle.startswith(f"{design.needle.gauge} ga")
+    assert item.peak_tension_n == pytest.approx(peak) and item.reserve_n == pytest.approx(0.2 * design.max_tension_n)
+    assert "30-40 mm: pull from 0.0 to" in item.tension_words and "bending toward anterior" in item.tension_words
+    assert [c.what for c in item.checks] == ["the pull starts", "full tension", "tip"]
+    assert item.checks[-1].toward == "anterior"
+    labels = [s.label for s in item.scenarios]
+    assert labels[:5] == ["nominal", "tension x0.90", "tension x1.10", "roll -10 deg", "roll +10 deg"]
+    assert len(labels) == 9  # and four entry tilts
+    # the tension error moves the tip as the kinematic model says, independently re-inserted here
+    more = TensionSchedule(schedule.depth_mm, schedule.tension_n * 1.1, schedule.roll_deg)
+    moved = KINEMATIC.insert_array(design, [more], 100.0)[0][-1] - shape[-1]
+    assert item.scenarios[2].reach_mm == pytest.approx(float(np.linalg.norm(moved)), abs=1e-4)
+    assert item.reach.worst_mm == max(s.reach_mm for s in item.scenarios)
