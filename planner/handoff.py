@@ -341,14 +341,14 @@ def insert_list(export: ExportPlan, scene: Scene, config: PlanConfig, *, plan: s
         if n.applicator:
             applicators.append(channel_geometry(n, ch))
             continue
-        design = designs.get(n.design) if n.schedule is not None else None
-        rows = n.schedule if design is not None else None
+        rows = n.schedule  # None: a straight needle; a stylet the plan does not know gets no tension errors
+        design = designs.get(n.design) if rows is not None else None
         reach, clear, scenarios = _margins(n, design, scene, config, models, clearance_margin_mm)
         words = ("straight: no tendon; insert to the depth" if rows is None
                  else schedule_words(np.asarray(rows), m, n.length_mm))
         peak = 0.0 if rows is None else float(np.max(rows[:, 1]))
-        needles.append(InsertNeedle(ch, n.hole_id, "straight" if design is None else "steered",
-                                    _needle_words(design, config.needle_radius_mm), "" if design is None else n.design,
+        needles.append(InsertNeedle(ch, n.hole_id, "straight" if rows is None else "steered",
+                                    _needle_words(design, config.needle_radius_mm), "" if rows is None else n.design,
                                     n.length_mm, words, peak, None if design is None else design.max_tension_n,
                                     reach, clear, check_depths(n.path_mm, rows, m),
                                     (model_of or {}).get(n.hole_id, ""), scenarios))

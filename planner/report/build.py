@@ -365,7 +365,8 @@ def _device_section(delivery: Delivery | None) -> Section:
                   "the template plane) and the tension schedule (tendon tension and roll of the bending plane, "
                   "template frame, 0° = template +x; held from each depth until the next). Only channels that carry "
                   "dwell time are listed: a needle the optimum leaves empty is not inserted. The exact rows are in "
-                  "export/*_device.json and one CSV per needle; the afterloader plan in export/RP_*.dcm. Source: "
+                  "export/*_device.json, the printable bedside page export/*_device.html (the insert list, check "
+                  "depths, every channel's dwells) and the CSVs; the afterloader plan in export/RP_*.dcm. Source: "
                   f"{src.title or src.name}, S_K {src.air_kerma_rate_u:.0f} U (ASSUMED planning strength)."),
         Table(("channel", "hole", "for", "stylet", "insertion depth (mm)", "schedule", "active dwells",
                "total dwell time (s)"), tuple(rows), "Device instructions", numeric=(0, 4, 6, 7)),
