@@ -191,8 +191,11 @@ def test_a_steered_needle_gets_its_schedule_reserve_checks_and_steering_errors()
     needle = NeedleExport("Bd", path, path[-3:-2], np.array([10.0]), design=design.name, schedule=rows)
     box = trimesh.creation.box(extents=(20.0, 20.0, 20.0))
     box.apply_translation((60.0, 0.0, 50.0))  # far away: the clearance is not the point here
-    (item,) = insert_list(_export(needle), _scene(box), config, plan="test", clearance_margin_mm=2.0,
-                          models=PlanModels()).needles
+    handoff = insert_list(_export(needle), _scene(box), config, plan="test", clearance_margin_mm=2.0,
+                          models=PlanModels())
+    (item,) = handoff.needles
+    assert f"Bd {design.max_tension_n:g} N (plan {peak:.1f} N, reserve {0.2 * design.max_tension_n:.1f} N)" in (
+        handoff.tension_rule)
     assert item.kind == "steered" and item.stylet == design.name and item.needle.startswith(f"{design.needle.gauge} ga")
     assert item.peak_tension_n == pytest.approx(peak) and item.reserve_n == pytest.approx(0.2 * design.max_tension_n)
     assert "30-40 mm: pull from 0.0 to" in item.tension_words and "bending toward anterior" in item.tension_words
