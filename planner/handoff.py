@@ -59,6 +59,9 @@ END_CHORD_MM = 2.0
 #: An applicator channel's radius of curvature is the tightest over any window of this arc length.
 RADIUS_WINDOW_MM = 20.0
 
+#: How the robustness room labels an entry tilt (every other perturbation but "nominal" is a steering error).
+TILT = "entry tilt"
+
 #: Each implant arm's plan in words (as :attr:`~reachplan.planner.delivery.Delivery.kind` names the delivered one).
 ARM_PLANS = {"straight": "implant, straight", "steered": "implant, straight + steered"}
 
@@ -230,11 +233,40 @@ def _margins(needle: NeedleExport, design: RodDesign | None, scene: Scene, confi
 
     scenarios = (score("nominal", path), *(score(label, p) for label, p in perturbed_paths(
         path, depth, m, config.perturbations, robustness, design, schedule)))
-    reach = max(scenarios, key=lambda s: s.reach_mm)  # the first of equals: nominal when none is worse
+    return (*_worst(scenarios, tol, clearance_margin_mm), scenarios)
+
+
+def _worst(scenarios: Sequence[Scenario], tolerance_mm: float, clearance_margin_mm: float) -> tuple[Margin, Margin]:
+    """Return the reach and clearance margins over ``scenarios`` (the first of equals: nominal when none is worse)."""
+    reach = max(scenarios, key=lambda s: s.reach_mm)
     clear = min(scenarios, key=lambda s: s.clearance_mm)
-    return (Margin(reach.reach_mm, tol, tol - reach.reach_mm, reach.label),
+    return (Margin(reach.reach_mm, tolerance_mm, tolerance_mm - reach.reach_mm, reach.label),
             Margin(clear.clearance_mm, clearance_margin_mm, clear.clearance_mm - clearance_margin_mm, clear.label,
-                   clear.organ), scenarios)
+                   clear.organ))
+
+
+def steering_margins(scenarios: Sequence[Scenario], tolerance_mm: float,
+                     clearance_margin_mm: float) -> tuple[Margin, Margin] | None:
+    """Return the margins over the steering errors alone: the nominal path and the tension and roll errors.
+
+    Parameters
+    ----------
+    scenarios : sequence of Scenario
+        A needle's scenarios (nominal first), labelled as
+        :func:`~reachplan.planner.steering.robustness.perturbed_paths` labels them (tilts start with
+        :data:`TILT`).
+    tolerance_mm : float, mm
+        The reach tolerance.
+    clearance_margin_mm : float, mm
+        The clearance margin.
+
+    Returns
+    -------
+    (Margin, Margin) or None
+        Reach and clearance margins; None when there is no steering error (a straight needle).
+    """
+    steering = [s for s in scenarios if not s.label.startswith(TILT)]
+    return _worst(steering, tolerance_mm, clearance_margin_mm) if len(steering) > 1 else None
 
 
 def channel_geometry(needle: NeedleExport, channel: int) -> ApplicatorChannel:
@@ -351,7 +383,8 @@ def insert_list(export: ExportPlan, scene: Scene, config: PlanConfig, *, plan: s
                                     _needle_words(design, config.needle_radius_mm), "" if rows is None else n.design,
                                     n.length_mm, words, peak, None if design is None else design.max_tension_n,
                                     reach, clear, check_depths(n.path_mm, rows, m),
-                                    (model_of or {}).get(n.hole_id, ""), scenarios))
+                                    (model_of or {}).get(n.hole_id, ""), scenarios,
+                                    steering_margins(scenarios, config.reach_tolerance_mm, clearance_margin_mm)))
     return InsertList(plan, tuple(needles), tuple(applicators), perturbation_words(config, clearance_margin_mm),
                       tension_rule(needles, config.reach_tolerance_mm), obstacles_line(scene))
 

@@ -51,7 +51,7 @@ def _needle_block(plan: ExportPlan, k: int, step_mm: float) -> str:
     item = next((x for x in plan.handoff.needles if x.hole_id == n.hole_id), None) if plan.handoff else None
     if item is not None:
         parts.append(f"<p><b>{escape(item.needle)}</b>; stylet {escape(item.stylet or 'plain (straight needle)')}; "
-                     f"insert to <b>{item.depth_mm:.1f} mm</b>. Tension: {escape(item.tension_words)}.</p>")
+                     f"insert to <b>{item.depth_mm:.1f} mm</b>. Tension: {escape(item.schedule_text())}.</p>")
         parts.append(_table(("check depth (mm)", "when", "expected tip from the hole's line", "expected tip (mm, LPS)"),
                             [(round(c.depth_mm, 1), c.what,
                               f"{c.offset_mm:.1f} mm {c.toward}" if c.toward else "on the line",

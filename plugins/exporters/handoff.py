@@ -218,6 +218,9 @@ class InsertNeedle:
     scenarios : tuple of Scenario
         The nominal insertion and every perturbation the margins were taken over, each with its tip displacement
         and clearance.
+    steering : tuple of (Margin, Margin) or None
+        The reach and clearance margins over the steering errors alone (tension and roll, not the entry tilt that
+        every needle shares): what sets a steered needle apart; None for a straight needle.
     """
 
     channel: int
@@ -234,11 +237,26 @@ class InsertNeedle:
     checks: tuple[CheckDepth, ...]
     model: str
     scenarios: tuple[Scenario, ...] = ()
+    steering: tuple[Margin, Margin] | None = None
 
     @property
     def reserve_n(self) -> float | None:
         """The tension left below the stylet's limit, N (None for a straight needle)."""
         return None if self.tension_limit_n is None else self.tension_limit_n - self.peak_tension_n
+
+    def schedule_text(self) -> str:
+        """Return the tension schedule in words, with the steering errors' own margins for a steered needle.
+
+        Returns
+        -------
+        str
+            :attr:`tension_words`, then (steered) ``steering errors alone: reach margin ..., clearance margin ...``.
+        """
+        if self.steering is None:
+            return self.tension_words
+        reach, clear = self.steering
+        return (f"{self.tension_words}. Steering errors alone: reach margin {reach.text()}, clearance margin "
+                f"{clear.text()}")
 
     def cells(self) -> tuple[str, ...]:
         """Return the needle's row of :data:`COLUMNS` as text cells.
@@ -267,7 +285,9 @@ class InsertNeedle:
                 "tension_limit_n": _r(self.tension_limit_n), "tension_reserve_n": _r(self.reserve_n),
                 "reach": self.reach.to_json(), "clearance": self.clearance.to_json(),
                 "check_depths": [c.to_json() for c in self.checks], "model": self.model,
-                "scenarios": [s.to_json() for s in self.scenarios]}
+                "scenarios": [s.to_json() for s in self.scenarios],
+                "steering_errors": None if self.steering is None else {
+                    "reach": self.steering[0].to_json(), "clearance": self.steering[1].to_json()}}
 
 
 @dataclass(frozen=True)
@@ -384,9 +404,10 @@ class InsertList:
         Returns
         -------
         list of (str, str, str)
-            ``(hole_id, schedule, checks)``; the checks joined with ``"; "``.
+            ``(hole_id, schedule, checks)``: the schedule as :meth:`InsertNeedle.schedule_text`, the checks joined
+            with ``"; "``.
         """
-        return [(n.hole_id, n.tension_words, "; ".join(c.text() for c in n.checks)) for n in self.needles]
+        return [(n.hole_id, n.schedule_text(), "; ".join(c.text() for c in n.checks)) for n in self.needles]
 
     def scenario_rows(self) -> list[tuple[str, ...]]:
         """Return every needle's perturbations as text rows, the header first: the margins' evidence.

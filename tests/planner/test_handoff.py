@@ -152,6 +152,7 @@ def test_margins_of_a_straight_needle_beside_a_box_follow_the_tilt_geometry() ->
     rows = handoff.scenario_rows()
     assert len(rows) == 1 + len(item.scenarios) and rows[1][:4] == ("Cj", "nominal", "0.0", "+2.0")
     assert item.kind == "straight" and item.tension_limit_n is None and item.reserve_n is None
+    assert item.steering is None and handoff.details()[0][1] == item.tension_words
     assert handoff.tension_rule == "" and "Karius" in handoff.perturbations
 
 
@@ -209,3 +210,9 @@ def test_a_steered_needle_gets_its_schedule_reserve_checks_and_steering_errors()
     moved = KINEMATIC.insert_array(design, [more], 100.0)[0][-1] - shape[-1]
     assert item.scenarios[2].reach_mm == pytest.approx(float(np.linalg.norm(moved)), abs=1e-4)
     assert item.reach.worst_mm == max(s.reach_mm for s in item.scenarios)
+    # what sets a steered needle apart: its margins over the tension and roll errors alone (the tilts left out)
+    assert item.steering is not None
+    steer_reach, steer_clear = item.steering
+    assert steer_reach.worst_mm == max(s.reach_mm for s in item.scenarios[:5])
+    assert steer_reach.cause in labels[1:5] and steer_clear.worst_mm == min(s.clearance_mm for s in item.scenarios[:5])
+    assert "Steering errors alone: reach margin" in handoff.details()[0][1]
