@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -17,10 +20,18 @@ FIELDS = {"target", "hole_id", "hole_distance_mm", "reach_error_mm", "clearance_
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """The demo's folder and what it printed (not --quiet: the terminal summary is part of what is tested)."""
     out = tmp_path_factory.mktemp("demo")
-    assert main(["demo", "--out", str(out), "--quiet"]) == 0
-    return out
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["demo", "--out", str(out)]) == 0
+    return out, printed.getvalue()
+
+
+@pytest.fixture(scope="module")
+def demo(demo_run: tuple[Path, str]) -> Path:
+    return demo_run[0]
 
 
 def test_demo_writes_ranking_plan_figure_and_exports(demo: Path) -> None:
@@ -337,3 +348,50 @@ def test_demo_implant_is_robust_with_clinical_loading(demo: Path) -> None:
     assert min(t for n in arm["needles"] for t in n["dwell_times_s"]) >= 0.5 - 1e-3
     balance = arm["time_balance"]
     assert balance["intracavitary_s"] + balance["interstitial_s"] == pytest.approx(arm["total_time_s"], abs=0.01)
+
+
+def _first_table_holes(html: str, anchor: str) -> list[str]:
+    """The hole column (second) of the first table after ``anchor`` in an HTML page."""
+    start = html.index(anchor)
+    table = html[html.index("<table", start):html.index("</table>", start)]
+    return re.findall(r"<tr><td[^>]*>\d+</td><td[^>]*>([^<]+)</td>", table)
+
+
+def test_demo_names_the_implant_needles_identically_everywhere(demo_run: tuple[Path, str]) -> None:
+    """Issue 29 acceptance: the implant's needles are named in the terminal's first screen, the report's first
+    section and the device page, identically, and as plan.json's delivery; the margins are the implant check's."""
+    demo, printed = demo_run
+    plan = json.loads((demo / "plan.json").read_text())
+    delivery = plan["delivery"]
+    needles = [h for h, role in zip(delivery["needles"], delivery["roles"], strict=True) if role != "intracavitary"]
+    assert needles
+    assert [n["hole_id"] for n in plan["insert_list"]["needles"]] == needles
+    # the terminal: the research-use statement, then the list, before anything per target
+    summary = printed[printed.index("RESEARCH USE ONLY"):]
+    first_screen = summary[:summary.index("\nPer target")].splitlines()
+    assert len(first_screen) <= 40
+    head = next(i for i, ln in enumerate(first_screen) if ln.startswith("ch  hole"))
+    assert [ln.split()[1] for ln in first_screen[head + 1:head + 1 + len(needles)]] == needles
+    assert first_screen[head + 1 + len(needles)].startswith("  ")  # the table ends with the needles
+    # the report: the statement in the header, the list as its first section
+    html = (demo / "report.html").read_text(encoding="utf-8")
+    assert html.index('id="statement"') < html.index("<section ") == html.index('<section id="insert-these">')
+    assert _first_table_holes(html, '<section id="insert-these">') == needles
+    # the bedside page and the device JSON
+    page = (demo / "export" / "reachplan_device.html").read_text(encoding="utf-8")
+    assert _first_table_holes(page, 'id="insert-these"') == needles
+    device = json.loads((demo / "export" / "reachplan_device.json").read_text())
+    assert [n["hole_id"] for n in device["insert_list"]["needles"]] == needles
+    # the margins are the implant check's worst cases (same paths, perturbations and organs)
+    arm = "steered" if delivery["plan"] == "implant, straight + steered" else delivery["plan"].removeprefix("implant, ")
+    checked = {n["hole_id"]: n for n in plan["implant"][arm]["needles"]}
+    for n in plan["insert_list"]["needles"]:
+        c = checked[n["hole_id"]]
+        assert n["clearance"]["worst_mm"] == pytest.approx(c["worst_clearance_mm"], abs=0.01)
+        assert abs(n["reach"]["worst_mm"] - c["worst_reach_mm"]) <= c["reach_error_mm"] + 0.01
+        assert n["reach"]["margin_mm"] == pytest.approx(plan["config"]["reach_tolerance_mm"] - n["reach"]["worst_mm"],
+                                                        abs=0.011)
+        assert n["check_depths"][-1]["depth_mm"] == pytest.approx(n["insertion_depth_mm"], abs=0.01)
+    # the tandem is an obstacle without extra options, and the list says which ROIs were taken as applicators
+    assert "Tandem" in plan["config"]["oar_names"]
+    assert "Tandem (tandem; an obstacle" in plan["applicators"] and "Tandem (tandem; an obstacle" in printed

@@ -548,6 +548,7 @@ def plan_and_write(inputs: CaseInput, config: CaseConfig, out: Path, quiet: bool
     dict
         plan.json's content.
     """
+    from reachplan.planner.handoff import obstacles_line
     from reachplan.planner.kernels import start
     from reachplan.planner.report.terminal import format_implant, format_summary
     from reachplan.planner.run.case import run_case
@@ -560,7 +561,7 @@ def plan_and_write(inputs: CaseInput, config: CaseConfig, out: Path, quiet: bool
         written = [("report", str(files.report)), ("plan", str(files.plan))]
         written += [("device instructions", str(f)) for f in files.device_instructions]
         print(format_summary(case.result, targets=[t.name for t in case.scene.targets], delivery=case.delivery,
-                             comparison=case.comparison, files=written))
+                             comparison=case.comparison, files=written, applicators=obstacles_line(case.scene)))
         if case.delivery is not None and case.delivery.implant is not None:
             print("\n" + format_implant(case.delivery.implant, case.delivery.aims_tables))
     return case, files.doc

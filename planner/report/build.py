@@ -21,6 +21,7 @@ from reachplan.planner.implant.case import ImplantComparison
 from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.implant.dwells import OptimizerSettings
 from reachplan.planner.report import charts, figures
+from reachplan.planner.report.handoff import handoff_section
 from reachplan.planner.report.html import (
     Block,
     Figure,
@@ -34,15 +35,15 @@ from reachplan.planner.report.html import (
 from reachplan.planner.report.options import ReportOptions
 from reachplan.planner.report.terminal import (
     AIMS_LEGEND,
-    TENSION_MARGIN,
     aims_rows,
     implant_rows,
-    miss_flag,
     plain_model,
-    tension_flag,
+    reach_margin_mm,
+    tension_reserve_n,
 )
 from reachplan.planner.report.view3d import Needle3d, scene_figure
 from reachplan.planner.steering.candidates import Candidate
+from reachplan.plugins.exporters.handoff import RESEARCH_USE
 from reachplan.rod_model.select import ErrorRow
 
 
@@ -364,7 +365,8 @@ def _device_section(delivery: Delivery | None) -> Section:
                   "the template plane) and the tension schedule (tendon tension and roll of the bending plane, "
                   "template frame, 0° = template +x; held from each depth until the next). Only channels that carry "
                   "dwell time are listed: a needle the optimum leaves empty is not inserted. The exact rows are in "
-                  "export/*_device.json and one CSV per needle; the afterloader plan in export/RP_*.dcm. Source: "
+                  "export/*_device.json, the printable bedside page export/*_device.html (the insert list, check "
+                  "depths, every channel's dwells) and the CSVs; the afterloader plan in export/RP_*.dcm. Source: "
                   f"{src.title or src.name}, S_K {src.air_kerma_rate_u:.0f} U (ASSUMED planning strength)."),
         Table(("channel", "hole", "for", "stylet", "insertion depth (mm)", "schedule", "active dwells",
                "total dwell time (s)"), tuple(rows), "Device instructions", numeric=(0, 4, 6, 7)),
@@ -420,7 +422,7 @@ def dose_overlay(delivery: Delivery | None) -> figures.DoseOverlay | None:
 
 def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate],
                      delivery: Delivery | None, max_faces: int) -> dict[str, Any]:
-    """Return the 3-D view's plotly figure: both arms' needles and the delivered plan's active dwells.
+    """Return the 3-D view's plotly figure: the needles to insert, each target's best needles, the active dwells.
 
     Parameters
     ----------
@@ -441,6 +443,11 @@ def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Seque
         A plotly figure as a JSON-ready dict.
     """
     needles = [Needle3d.of(c) for c in (*straight, *steered)]
+    handoff = delivery.export.handoff if delivery is not None else None
+    if handoff is not None:  # the implant to insert first, named as in the insert list
+        paths = {n.hole_id: n.path_mm for n in delivery.export.needles}  # type: ignore[union-attr]
+        needles = [Needle3d(f"insert {n.hole_id} (channel {n.channel}, {n.kind})", paths[n.hole_id],
+                            n.kind == "steered") for n in handoff.needles] + needles
     if delivery is None or not delivery.optimisation.success:
         return scene_figure(scene, needles, max_faces=max_faces)
     dwells = delivery.optimisation.dwells
@@ -459,18 +466,12 @@ def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered:
     tol, p = cfg.reach_tolerance_mm, cfg.perturbations
     rows = []
     for c in sorted((*straight, *steered), key=lambda c: (list(order).index(c.target), c.steered)):
-        flags = []
-        if miss_flag(c, tol):
-            flags.append(f"worst-case miss over {tol:g} mm")
-        if np.isfinite(c.worst_clearance_mm) and c.worst_clearance_mm <= 0:
-            flags.append("touches an organ in the worst case")
-        if tension_flag(c):
-            flags.append(f"tension within {TENSION_MARGIN:.0%} of the limit")
         limit = "-" if c.design is None else f"{c.design.max_tension_n:g}"
+        margin = reach_margin_mm(c, tol)
         rows.append((c.target, "steered" if c.steered else "straight", c.hole_id, c.design_name or "-",
-                     _f(c.reach_error_mm), _f(c.worst_reach_mm), _f(c.clearance_mm), _f(c.worst_clearance_mm),
-                     c.worst_case or "not assessed", _f(c.peak_tension_n) if c.steered else "-", limit,
-                     "; ".join(flags) or "ok", plain_model(c)))
+                     _f(c.reach_error_mm), _f(c.worst_reach_mm), "-" if not np.isfinite(margin) else f"{margin:+.1f}",
+                     _f(c.clearance_mm), _f(c.worst_clearance_mm), c.worst_case or "not assessed",
+                     _f(c.peak_tension_n) if c.steered else "-", limit, _f(tension_reserve_n(c)), plain_model(c)))
     infos = {c.model.label: c.model for c in (*straight, *steered)}
     settings = tuple((label, ", ".join(f"{k} = {v:g}" if isinstance(v, float) else f"{k} = {v}"
                                        for k, v in info.settings) or "-") for label, info in infos.items())
@@ -478,13 +479,15 @@ def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered:
         Paragraph(f"Each target's best straight and best steered needle. Robustness: the needle re-evaluated with "
                   f"the fast kinematic model under tension × (1 ± {p.tension_fraction:.0%}), roll ± {p.roll_deg:g}° "
                   f"and an entry tilt of ± {p.tilt_deg:g}° about both template axes (handheld insertions deflect "
-                  "by 3.6-7.9 mm even when straight: Karius et al., Strahlenther. Onkol. 2025); the worst reach "
-                  f"error is flagged when over the {tol:g} mm reach tolerance. The peak tendon tension is flagged "
-                  f"within {TENSION_MARGIN:.0%} of the stylet's design limit. The last column says in words which "
-                  "model produced the needle's numbers."),
-        Table(("target", "needle", "hole", "stylet", "reach error (mm)", "worst-case miss (mm)", "clearance (mm)",
-               "worst-case clearance (mm)", "worst case", "peak tension (N)", "design limit (N)", "flags",
-               "model"), tuple(rows), "Robustness and tension per needle", numeric=(4, 5, 6, 7, 9, 10)),
+                  "by 3.6-7.9 mm even when straight: Karius et al., Strahlenther. Onkol. 2025; the sizes are the "
+                  f"planner's assumptions). Reach margin: the {tol:g} mm reach tolerance less the worst-case reach "
+                  "error (+ inside, - over), with the perturbation that sets it; tension reserve: the stylet's "
+                  "design limit less the peak tension. The last column says in words which model produced the "
+                  "needle's numbers."),
+        Table(("target", "needle", "hole", "stylet", "reach error (mm)", "worst-case miss (mm)", "reach margin (mm)",
+               "clearance (mm)", "worst-case clearance (mm)", "worst case", "peak tension (N)", "design limit (N)",
+               "tension reserve (N)", "model"), tuple(rows), "Robustness margins and tension per needle",
+              numeric=(4, 5, 6, 7, 8, 10, 11, 12)),
         Table(("model", "settings"), settings, "Model settings (units in the names)", collapsed=True),
     ))
 
@@ -580,11 +583,13 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                       f"; delivered plan HR-CTV D90 {delivery.optimisation.target.d90_eqd2_gy:.1f} Gy "
                                       f"EQD2 ({'aims met' if _aims_met(delivery) else 'aims not met'})"))
     sections: list[Section | None] = [
+        handoff_section(delivery, scene),
         case_sec,
         _ranking_section(result, order),
         Section("Slices through the targets", "slices", tuple(slices)),
         Section("3-D view", "views-3d", (
-            Paragraph("Organs, the target points, the template holes, each target's best straight and best steered "
+            Paragraph("Organs, the target points, the template holes, the needles to insert (legend 'insert "
+                      "<hole>'), each target's best straight and best steered "
                       "needle and the delivered plan's dwell positions, in an interactive view: drag to turn, scroll "
                       "to zoom, click a legend entry to hide or show it (bone and obturator start hidden); the "
                       "buttons turn it to the named views and the title says from where it is seen. It opens "
@@ -604,7 +609,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
                                                      tuple((k.removesuffix("_s"), f"{v:.1f}")
                                                            for k, v in timings.items()),
                                                      "Wall time per stage", numeric=(1,)),)))
-    return Report(f"reachplan report: {case}", subtitle, tuple(s for s in sections if s is not None))
+    return Report(f"reachplan report: {case}", subtitle, tuple(s for s in sections if s is not None), RESEARCH_USE)
 
 
 def report_html(scene: Scene, result: PlanResult, *, volume: Volume | None = None, delivery: Delivery | None = None,

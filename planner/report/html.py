@@ -172,6 +172,8 @@ class Report:
         A one-line subtitle.
     sections : tuple of Section
         Its sections in order, anchors unique.
+    statement : str
+        A statement shown in the header, above everything (the research-use statement); "" for none.
 
     Raises
     ------
@@ -182,6 +184,7 @@ class Report:
     title: str
     subtitle: str
     sections: tuple[Section, ...]
+    statement: str = ""
 
     def __post_init__(self) -> None:
         anchors = [s.anchor for s in self.sections]
@@ -225,6 +228,7 @@ figure img { max-width: 100%; height: auto; border: 1px solid #e1e4ea; }
 figcaption { font-size: 12.5px; color: #4a5263; margin-top: 4px; }
 details summary { cursor: pointer; font-weight: 600; margin: 6px 0; }
 footer { color: #6b7280; font-size: 12px; padding: 0 32px 24px 32px; }
+header p.statement { opacity: 1; margin-top: 8px; padding: 6px 10px; background: #7a1010; font-weight: 600; }
 """
 
 
@@ -336,7 +340,9 @@ def render_html(report: Report, footer: str = "") -> str:
         f"<meta http-equiv=\"Content-Security-Policy\" content=\"default-src 'none'; {script_src}img-src data:; "
         "style-src 'unsafe-inline'\">"
         f"<title>{_e(report.title)}</title><style>{STYLE}</style>{lib}</head>\n"
-        f"<body><header><h1>{_e(report.title)}</h1><p>{_e(report.subtitle)}</p></header>\n"
+        f"<body><header><h1>{_e(report.title)}</h1><p>{_e(report.subtitle)}</p>"
+        + (f'<p class="statement" id="statement">{_e(report.statement)}</p>' if report.statement else "")
+        + "</header>\n"
         f"<nav>{nav}</nav>\n<main>\n{sections}\n</main>\n"
         f"<footer>{_e(footer)}</footer></body></html>\n"
     )

@@ -1,12 +1,15 @@
 """The plan's summary as text, for the terminal.
 
-The best needles per target with their flags, the models in plain words and the implant arms side by side; the
-HTML report reuses the flags, the model words and the rows.
+The first screen is the research-use statement and the delivered implant's insert list (the hand-off, the same rows
+the report and the device page print); below it, to explain it, the best needles per target with robustness margins,
+the models in plain words and the implant arms side by side; the HTML report reuses the margins, the model words and
+the rows.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+import textwrap
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -16,6 +19,8 @@ from reachplan.planner.delivery import Delivery
 from reachplan.planner.dose.evaluation import AimsTable, bounds_text
 from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.steering.candidates import Candidate
+from reachplan.plugins.exporters.handoff import NUMERIC_COLUMNS as INSERT_NUMERIC
+from reachplan.plugins.exporters.handoff import RESEARCH_USE, InsertList
 
 if TYPE_CHECKING:
     from reachplan.planner.delivery import ImplantComparison
@@ -44,41 +49,38 @@ def _cell(v: float, digits: int = 1) -> str:
     return f"{v:.{digits}f}" if np.isfinite(v) else "-"
 
 
-def tension_flag(c: Candidate) -> bool:
-    """Return True when a needle's peak tension is within :data:`TENSION_MARGIN` of its stylet's design limit.
+def reach_margin_mm(c: Candidate, tolerance_mm: float) -> float:
+    """Return how far a needle's worst-case reach error stays under (+) or goes over (-) the reach tolerance.
 
     Parameters
     ----------
     c : Candidate
-        The needle, steered or straight.
-
-    Returns
-    -------
-    bool
-        False for a plain straight needle (no design).
-    """
-    return c.design is not None and c.peak_tension_n >= (1 - TENSION_MARGIN) * c.design.max_tension_n
-
-
-def miss_flag(c: Candidate, tolerance_mm: float) -> bool:
-    """Return True when the worst-case reach error under the perturbations exceeds the reach tolerance.
-
-    Parameters
-    ----------
-    c : Candidate
-        The needle (not assessed: False).
+        The needle (not assessed: NaN).
     tolerance_mm : float, mm
         The plan's reach tolerance.
 
     Returns
     -------
-    bool
+    float, mm
+        ``tolerance - worst_reach``; NaN when the needle was not assessed.
     """
-    return bool(np.isfinite(c.worst_reach_mm) and c.worst_reach_mm > tolerance_mm)
+    return float(tolerance_mm - c.worst_reach_mm) if np.isfinite(c.worst_reach_mm) else float("nan")
 
 
-#: A peak tension within this fraction of the stylet's limit is flagged.
-TENSION_MARGIN = 0.05
+def tension_reserve_n(c: Candidate) -> float:
+    """Return the tension a needle's schedule leaves below its stylet's design limit.
+
+    Parameters
+    ----------
+    c : Candidate
+        The needle.
+
+    Returns
+    -------
+    float, N
+        Limit less peak; NaN for a straight needle (no stylet design).
+    """
+    return float(c.design.max_tension_n - c.peak_tension_n) if c.design is not None else float("nan")
 
 
 #: Rod and insertion models in plain words.
@@ -245,20 +247,59 @@ def format_rows(rows: Sequence[Sequence[str]]) -> str:
     return "\n".join(_aligned(rows))
 
 
-def _aligned(rows: Sequence[Sequence[str]]) -> list[str]:
-    """Return rows as text, the first column left-aligned, the others right-aligned."""
+def _aligned(rows: Sequence[Sequence[str]], right: Collection[int] | None = None) -> list[str]:
+    """Return rows as text, the columns ``right`` right-aligned (default all but the first), the others left."""
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
-            for r in rows]
+    right = range(1, len(widths)) if right is None else right
+    return ["  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
+            .rstrip() for r in rows]
+
+
+
+def _wrap(text: str, indent: str = "  ") -> list[str]:
+    """Wrap a paragraph to :data:`WIDTH` columns, every line indented."""
+    return textwrap.wrap(text, WIDTH, initial_indent=indent, subsequent_indent=indent + "  ")
+
+
+#: Terminal width the paragraphs of the first screen wrap at.
+WIDTH = 118
+
+
+def format_insert_list(handoff: InsertList) -> list[str]:
+    """Return the first screen: the research-use statement and the insert list (:meth:`InsertList.rows`).
+
+    Parameters
+    ----------
+    handoff : InsertList
+        The delivered plan's insert list.
+
+    Returns
+    -------
+    list of str
+        The statement, the list's heading and table, per needle its schedule and check depths in words, the
+        applicator channels, the rule at the tension limit, the perturbation model and the applicators taken.
+    """
+    lines = [*textwrap.wrap(handoff.statement, WIDTH), "", handoff.title()]
+    lines += _aligned(handoff.rows(), right=INSERT_NUMERIC)
+    for hole, words, checks in handoff.details():
+        lines += _wrap(f"{hole}: {words}", "  ")
+        lines += _wrap(f"check depths: {checks}", "      ")
+    lines += [f"  {a.text()}" for a in handoff.applicators]
+    if handoff.tension_rule:
+        lines += _wrap(handoff.tension_rule)
+    lines += _wrap(handoff.perturbations)
+    return [*lines, *_wrap(handoff.obstacles)]
 
 
 def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, delivery: Delivery | None = None,
-                   comparison: Comparison | None = None, files: Sequence[tuple[str, str]] = ()) -> str:
+                   comparison: Comparison | None = None, files: Sequence[tuple[str, str]] = (),
+                   applicators: str = "") -> str:
     """Return the terminal summary of a plan.
 
-    Per target (in ``targets``' order, the user's; default the ranking's) its best straight and best steered
-    needle with units in every header, then one line per arm with the dose aims met or not, then the files
-    written.
+    First the research-use statement and the delivered plan's insert list (:func:`format_insert_list`), then, to
+    explain it, per target (in ``targets``' order, the user's; default the ranking's) its best straight and best
+    steered needle with units in every header and robustness margins, then one line per arm with the dose aims met
+    or not, then the files written.
 
     Parameters
     ----------
@@ -267,21 +308,29 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
     targets : sequence of str or None
         Target names in the user's order; None: the ranking's.
     delivery : Delivery or None
-        The delivered plan (its dose line); None: ranked only.
+        The delivered plan (its insert list and dose lines); None: ranked only.
     comparison : Comparison or None
         Straight versus steered dose (one line per arm).
     files : sequence of (str, str)
         (what, path) of the files written.
+    applicators : str
+        Which ROIs were taken as applicators (printed when there is no insert list to say it).
 
     Returns
     -------
     str
         Lines of text (mm, N, Gy EQD2).
     """
+    handoff = delivery.export.handoff if delivery is not None else None
+    lines = (format_insert_list(handoff) if handoff is not None
+             else [*textwrap.wrap(RESEARCH_USE, WIDTH), *([applicators] if applicators else [])])
     tol = result.config.reach_tolerance_mm
+    lines += ["", "Per target (to explain the list: each target's best needles; the implant is chosen for the whole "
+              "volume)"]
     head = (f"{'target':<15} {'needle':<9} {'hole':<5} {'from centre (mm)':>16} {'reach error (mm)':>16} "
-            f"{'clearance (mm)':>14} {'worst miss (mm)':>17} {'peak tension (N)':>16}  model")
-    lines = [head, ""]
+            f"{'clearance (mm)':>14} {'reach margin (mm)':>17} {'peak / reserve (N)':>18}  model")
+    lines += [head, ""]
+    rule = len(lines) - 1
     order = [t for t in (targets or result.ranking) if t in result.ranking]
     for t in order:
         cands = result.ranking[t]
@@ -293,15 +342,15 @@ def format_summary(result: PlanResult, *, targets: Sequence[str] | None = None, 
             if c is None:
                 lines.append(f"{name:<15} {kind:<9} none feasible")
                 continue
-            miss = _cell(c.worst_reach_mm) + (" !" if miss_flag(c, tol) else "  ")
-            tension = "-" if not steered else (f"{c.peak_tension_n:.1f}" + (
-                f" of {c.design.max_tension_n:g} !" if c.design is not None and tension_flag(c) else ""))
+            margin = reach_margin_mm(c, tol)
+            margin_cell = "-" if not np.isfinite(margin) else f"{margin:+.1f}"
+            tension = "-" if not steered else f"{c.peak_tension_n:.1f} / {_cell(tension_reserve_n(c))}"
             lines.append(f"{name:<15} {kind:<9} {c.hole_id:<5} {c.hole_distance_mm:>16.1f} {c.reach_error_mm:>16.1f} "
-                         f"{_cell(c.clearance_mm):>14} {miss:>17} {tension:>16}  "
+                         f"{_cell(c.clearance_mm):>14} {margin_cell:>17} {tension:>18}  "
                          f"{SHORT_MODELS.get(c.model.insertion, c.model.label)}")
-    lines[1] = "-" * max(len(ln) for ln in lines)
-    lines += [f"* ranked first for its target.  ! worst case over the {tol:g} mm reach tolerance, or peak tension "
-              f"within {TENSION_MARGIN:.0%} of the stylet's limit.", ""]
+    lines[rule] = "-" * max(len(ln) for ln in lines[rule - 1:])
+    lines += [f"* ranked first for its target. Reach margin: the {tol:g} mm reach tolerance less the worst-case "
+              "tip error under the perturbations (+ inside, - over); reserve: the stylet's limit less the peak.", ""]
     lines += _arm_lines(delivery, comparison)
     if files:
         width = max(len(w) for w, _ in files)

@@ -24,6 +24,7 @@ from reachplan.planner.dose.evaluation import protocol_json
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.organs import check_unique, has_closed
 from reachplan.planner.geometry.template import TemplatePose
+from reachplan.planner.handoff import obstacles_line, with_handoff
 from reachplan.planner.implant.settings import ImplantSettings
 from reachplan.planner.report.comparison import straight_vs_steered
 from reachplan.planner.report.progress import spinner
@@ -140,7 +141,7 @@ class CaseResult:
     comparison_note : str
         What the report says instead of (or about) the comparison.
     timings : dict of str to float
-        Wall time of each stage, s (``scene_s``, ``plan_s``, ``delivery_s``).
+        Wall time of each stage, s (``scene_s``, ``plan_s``, ``delivery_s``, ``handoff_s``).
     """
 
     inputs: CaseInput
@@ -158,11 +159,16 @@ class CaseResult:
         Returns
         -------
         dict
-            JSON-ready values (mm, N, LPS, Gy); the writer adds the files and the report's place. With dose:
+            JSON-ready values (mm, N, LPS, Gy); the writer adds the files and the report's place. ``applicators``: which
+            ROIs were taken as applicators (obstacles or not); with a delivery, ``insert_list`` (the hand-off,
+            :class:`~reachplan.plugins.exporters.handoff.InsertList`). With dose:
             ``protocol`` (which aims were used, :func:`~reachplan.planner.dose.evaluation.protocol_json`), the
             protocol's warnings added to ``warnings``, ``delivery.aims`` and ``implant.<arm>.aims``.
         """
         doc: dict[str, object] = self.result.to_json()
+        doc["applicators"] = obstacles_line(self.scene)
+        if self.delivery is not None and self.delivery.export.handoff is not None:
+            doc["insert_list"] = self.delivery.export.handoff.to_json()
         if self.scene.pose is not None:
             doc["template_pose"] = self.scene.pose.to_json()
         warnings = list(self.scene.notes)
@@ -251,6 +257,9 @@ def run_case(inputs: CaseInput, config: CaseConfig, *, quiet: bool = True,
                                  aims=config.aims, implant_settings=implant_settings(inputs, config))
     comparison, note = straight_vs_steered(result, inputs.structures, delivery, grid, config.target_roi, quiet=quiet)
     timings["delivery_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    delivery = with_handoff(delivery, scene, result, config.implant_settings.clearance_margin_mm)
+    timings["handoff_s"] = time.perf_counter() - t
     return CaseResult(inputs, config, scene, result, delivery, comparison, note, timings)
 
 

@@ -23,7 +23,7 @@ from reachplan.plugins.exporters.base import ExportPlan
 
 #: the exporters of the delivered plan, and of each implant arm's chosen implant (``export/implant_<arm>/``: RT Plan,
 #: Structure Set and Dose of the arm, and its device instructions)
-PLAN_EXPORTERS: tuple[str, ...] = ("dicom_rt", "device_json", "device_csv")
+PLAN_EXPORTERS: tuple[str, ...] = ("dicom_rt", "device_json", "device_csv", "device_html")
 ARM_EXPORTERS: tuple[str, ...] = PLAN_EXPORTERS
 
 
@@ -50,14 +50,14 @@ class CaseFiles:
 
     @property
     def device_instructions(self) -> tuple[Path, ...]:
-        """The device-instruction JSON files, delivered plan first.
+        """The device-instruction JSON files and printable pages, delivered plan first.
 
         Returns
         -------
         tuple of Path
             Paths inside the final folder.
         """
-        return tuple(f for f in self.exports if "device" in f.name and f.suffix == ".json")
+        return tuple(f for f in self.exports if "device" in f.name and f.suffix in (".json", ".html"))
 
 
 def _export(plan: ExportPlan, names: tuple[str, ...], folder: Path, out: Path, final: Path,

@@ -28,6 +28,7 @@ import numpy as np
 from reachplan._arrays import arc_length_mm, frozen_floats
 from reachplan.imaging.types import Grid, StructureSet, Volume
 from reachplan.plugins.errors import ExportError
+from reachplan.plugins.exporters.handoff import InsertList
 from reachplan.plugins.sources import SourceData
 
 #: A dwell farther than this from its needle's path is an input error (mm).
@@ -421,6 +422,9 @@ class ExportPlan:
     specification_point : str
         The reference point at which the prescription (Brachy Application Setup Dose) is specified, by name: its
         planned dose per fraction is the prescription. "" when there is none.
+    handoff : InsertList or None
+        The planner's "insert these" list of this plan (:mod:`reachplan.plugins.exporters.handoff`): the device
+        instructions print it; None: they give what the channels alone say.
 
     Raises
     ------
@@ -446,6 +450,7 @@ class ExportPlan:
     dose: PlannedDose | None = None
     input_paths: tuple[Path, ...] = field(default=())
     specification_point: str = ""
+    handoff: InsertList | None = None
 
     def __post_init__(self) -> None:
         _check_short_text(self.label, "plan label", 16)

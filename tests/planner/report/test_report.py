@@ -172,7 +172,11 @@ def test_interactive_view_has_one_trace_per_organ_and_needle(planned: tuple[Path
     assert isinstance(targets, dict)
     expected = sorted(f"{kind} {best['hole_id']} → {t}" for t in TARGETS for kind in ("straight", "steered")
                       if (best := targets[t][f"best_{kind}"]) is not None)
-    assert sorted(needles) == expected  # each target's best of each kind; Target_65_000 has no straight one
+    insert = doc["insert_list"]
+    assert isinstance(insert, dict)
+    expected += [f"insert {n['hole_id']} (channel {n['channel']}, {n['kind']})" for n in insert["needles"]]
+    # the needles to insert, then each target's best of each kind; Target_65_000 has no straight one
+    assert sorted(needles) == sorted(expected) and needles[0].startswith("insert ")
     dwells = next(t for t in data if t["meta"] == "dwells")
     assert isinstance(dwells["x"], list) and len(dwells["x"]) > 0
     assert sorted(t["meta"] for t in data if t["meta"] not in {"organ", "needle"}) == ["dwells", "targets",
