@@ -49,8 +49,12 @@ from reachplan.planner.report.html import Figure as FigureBlock
 HALF_WIDTH_MM = 25.0
 #: Arc-length step of the reformat's planes (and of the image samples along the needle), mm.
 STEP_MM = 2.0
+#: How far the reformat runs on past the needle's tip (straight ahead), mm: what lies beyond the tip shows.
+AHEAD_MM = 10.0
 #: Sample spacing of the closest-approach search along the needle, mm.
 SEARCH_STEP_MM = 0.5
+#: Left and right edges of the reformat's axes (figure fractions) and the width between them.
+FIGURE_LEFT_RIGHT = (0.08, 0.8, 0.72)
 
 
 @dataclass(frozen=True, eq=False)
@@ -399,18 +403,17 @@ def needle_reformat_figure(scene: Scene, needle: Any, radius_mm: float, volume: 
     colour, style = (STEERED_COLOUR, "-") if steered else (STRAIGHT_COLOUR, "--")
     closest = closest_approach(path, {o.name: o.mesh for o in scene.organs}, radius_mm)
     length = float(arc_length(path)[-1])
-    s = np.unique(np.concatenate([np.arange(0.0, length, STEP_MM), [length],
-                                  [] if closest is None else [closest.s_mm]]))
-    towards = scene.patient_from_template[:3, 1] if closest is None else \
-        closest.organ_point_mm - closest.needle_point_mm
     if closest is not None:  # the nearest organ within the panel, however far
         half_width_mm = max(half_width_mm, closest.clearance_mm + radius_mm + 6.0)
-    e1 = lateral_directions(path, s, towards)
-    tan = _tangents(path, s)
-    e2 = np.cross(tan, e1)
+    path, s, e1, e2, tan = _rulings(path, closest, scene.patient_from_template[:3, 1])
     at = int(np.argmin(np.abs(s - (closest.s_mm if closest is not None else length))))
-    fig = Figure(figsize=(12.5, 10.4))
-    axes = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [1.0, 1.0, 0.5]})
+    # mm square in both panels at the width available: the figure's height follows the needle's length
+    width_in, bars_in, gap_in, top_in, bottom_in = 12.5, 1.5, 0.6, 0.95, 0.75
+    panel_in = min(2 * half_width_mm * FIGURE_LEFT_RIGHT[2] * width_in / (s[-1] + 3.0), 3.6)
+    height_in = top_in + 2 * panel_in + bars_in + 2 * gap_in + bottom_in
+    fig = Figure(figsize=(width_in, height_in))
+    axes = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [panel_in, panel_in, bars_in],
+                                                         "hspace": gap_in / ((2 * panel_in + bars_in) / 3)})
     outlines = _outlines(scene, path, s, (e1, e2), half_width_mm)
     drawn = list(dict.fromkeys(n for panel in outlines for n in panel))
     d_s = _dwell_s(path, needle.dwell_positions_mm)
@@ -420,13 +423,13 @@ def needle_reformat_figure(scene: Scene, needle: Any, radius_mm: float, volume: 
         ax.plot([0.0, length], [0.0, 0.0], style, color=colour, lw=2.4, gid=f"needle:{needle.hole_id}")
         ax.plot([length], [0.0], "o", color=colour, ms=6)
         ax.scatter(d_s, np.zeros(len(d_s)), s=14, color="k", zorder=5, gid="dwells")
-        ax.set_xlim(-2.0, length + 4.0)
+        ax.set_xlim(-2.0, s[-1] + 1.0)
         ax.set_ylim(-half_width_mm, half_width_mm)
         ax.set_aspect("equal")
         ax.set_ylabel("offset from the\nneedle (mm)", fontsize=MIN_FONT_PT + 1)
         ax.tick_params(labelsize=MIN_FONT_PT)
         label_edges(ax, tan[at], e[at])
-    _annotate(axes[0], closest)
+    _annotate(axes[0], closest, tan[at], e1[at])
     ax3 = axes[2]
     ax3.set_gid("dwell-times")
     ax3.bar(d_s, needle.dwell_times_s, width=1.6, color=colour, edgecolor="k", lw=0.5, gid="dwell-times")
@@ -450,25 +453,49 @@ def needle_reformat_figure(scene: Scene, needle: Any, radius_mm: float, volume: 
     fig.legend(handles=handles, loc="center right", fontsize=MIN_FONT_PT + 1, frameon=False)
     fig.suptitle(f"Needle {needle.hole_id}: the slice along it, straightened (base at the template hole, left)",
                  fontsize=13)
-    fig.subplots_adjust(left=0.08, right=0.8, top=0.92, bottom=0.07, hspace=0.3)
+    fig.subplots_adjust(left=FIGURE_LEFT_RIGHT[0], right=FIGURE_LEFT_RIGHT[1], top=1 - top_in / height_in,
+                        bottom=bottom_in / height_in)
     axes[0].apply_aspect()  # the panels keep mm square: the bars below take their width, so depths line up
     p0, p3 = axes[0].get_position(), ax3.get_position()
     ax3.set_position((p0.x0, p3.y0, p0.width, p3.height))
     return fig, closest
 
 
-def _annotate(ax: Any, closest: Closest | None) -> None:
-    """Mark the closest approach on the panel turned toward it: a double arrow from the needle to the organ."""
+def _rulings(path: np.ndarray, closest: Closest | None,
+             default: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return the reformat's path (run on :data:`AHEAD_MM` past the tip), its arc lengths and directions.
+
+    The arc lengths are every :data:`STEP_MM` with the tip and the point of closest approach; the directions the
+    first panel's (toward the nearest organ, else ``default``), the second's (turned 90° about the needle) and the
+    tangents, each (m, 3), unit vectors, LPS.
+    """
+    length = float(arc_length(path)[-1])
+    ext = np.vstack([path, path[-1] + AHEAD_MM * _tangents(path, np.array([length]))[0]])
+    s = np.unique(np.concatenate([np.arange(0.0, length + AHEAD_MM, STEP_MM), [length, length + AHEAD_MM],
+                                  [] if closest is None else [closest.s_mm]]))
+    towards = default if closest is None else closest.organ_point_mm - closest.needle_point_mm
+    e1 = lateral_directions(ext, s, towards)
+    tan = _tangents(ext, s)
+    return ext, s, e1, np.cross(tan, e1), tan
+
+
+def _annotate(ax: Any, closest: Closest | None, tangent: np.ndarray, lateral: np.ndarray) -> None:
+    """Mark the closest approach on the panel turned toward it: a double arrow from the needle to the organ.
+
+    The gap from the needle's point to the organ's lies in the plane of the needle's ``tangent`` and the panel's
+    ``lateral`` direction there (the lateral is the gap less its component along the tangent), so the arrow is drawn
+    at its true length: across the needle for a point along it, slanting ahead at the tip.
+    """
     if closest is None:
         return
     gap = closest.organ_point_mm - closest.needle_point_mm
-    reach = float(np.linalg.norm(gap))  # in this panel's plane by construction: the ruling at s* points at it
-    ax.annotate("", xy=(closest.s_mm, reach), xytext=(closest.s_mm, 0.0),
+    s_o, t_o = closest.s_mm + float(gap @ tangent), float(gap @ lateral)
+    ax.annotate("", xy=(s_o, t_o), xytext=(closest.s_mm, 0.0),
                 arrowprops={"arrowstyle": "<->", "color": "#ffffff", "lw": 1.6, "shrinkA": 0, "shrinkB": 0},
                 gid="clearance")
-    ax.plot([closest.s_mm], [reach], "x", color="#ffffff", ms=8, mew=2, gid="closest-point")
+    ax.plot([s_o], [t_o], "x", color="#ffffff", ms=8, mew=2, gid="closest-point")
     left = closest.s_mm > 0.75 * ax.get_xlim()[1]
-    ax.text(closest.s_mm + (-2.0 if left else 2.0), reach / 2, f"{closest.clearance_mm:.1f} mm",
+    ax.text((closest.s_mm + s_o) / 2 + (-2.0 if left else 2.0), t_o / 2, f"{closest.clearance_mm:.1f} mm",
             ha="right" if left else "left", va="center", fontsize=MIN_FONT_PT + 2, fontweight="bold",
             color="#000000", bbox={"boxstyle": "round,pad=0.2", "fc": "#ffffff", "ec": "none", "alpha": 0.85},
             gid="clearance-label")
