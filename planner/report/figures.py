@@ -35,7 +35,7 @@ from reachplan.planner.steering.candidates import Candidate
 #: Display colour of each organ (matched without regard to case; GTV_res and the like take the GTV's). Chosen
 #: so that every two of these, and each against the needle and target colours below, differ by a CIEDE2000 colour
 #: difference of at least 20 (tests/planner/report/test_figures_legible.py measures it; docs/report.md lists the
-#: palette): rectum brown, sigmoid dark purple and bowel magenta instead of three browns and pinks.
+#: palette): rectum brown, sigmoid dark purple and bowel magenta instead of light browns and pinks.
 ORGAN_COLOURS = {
     "Bladder": "#f0c808", "Rectum": "#8c510a", "Sigmoid": "#762a83", "Bowel": "#e7298a", "Bone": "#3b5bdb",
     "HR-CTV": "#d62728", "GTV": "#7a0019", "Uterus": "#9e7fd6", "Cervix": "#f4b6c2", "Obturator": "#9a9a9a",

@@ -161,6 +161,27 @@ def closest_approach(path_mm: np.ndarray, meshes: dict[str, trimesh.Trimesh], ra
     return best
 
 
+def longest_edge_mm(v: np.ndarray, f: np.ndarray) -> float:
+    """Return the longest edge of a triangle mesh.
+
+    Parameters
+    ----------
+    v : (n, 3) float, mm
+        Vertices.
+    f : (m, 3) int
+        Triangles.
+
+    Returns
+    -------
+    float, mm
+        0 for a mesh without triangles.
+    """
+    if not len(f):
+        return 0.0
+    t = v[f]
+    return float(np.sqrt(max(float(np.max(np.sum((t[:, i] - t[:, (i + 1) % 3]) ** 2, axis=1))) for i in range(3))))
+
+
 def _nearest_on_mesh(mesh: trimesh.Trimesh, pts: np.ndarray) -> tuple[int, np.ndarray, float]:
     """Return the sample of ``pts`` nearest to the mesh's surface, its nearest surface point and the distance (mm).
 
@@ -169,7 +190,7 @@ def _nearest_on_mesh(mesh: trimesh.Trimesh, pts: np.ndarray) -> tuple[int, np.nd
     distance plus ``L`` of them can hold its point; their point-to-triangle distances are computed exactly.
     """
     v, f = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces)
-    edge = float(np.max(mesh.edges_unique_length))
+    edge = longest_edge_mm(v, f)
     tree = cKDTree(v)
     dv, _ = tree.query(pts)
     cand = np.flatnonzero(dv <= dv.min() + edge)
@@ -270,7 +291,7 @@ def curved_section(mesh: trimesh.Trimesh, path_mm: np.ndarray, s_mm: np.ndarray,
     """
     pts = resample(path_mm, s_mm)
     v, f = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces)
-    reach = half_width_mm + float(np.max(mesh.edges_unique_length)) + float(np.max(np.diff(s_mm), initial=0.0))
+    reach = half_width_mm + longest_edge_mm(v, f) + float(np.max(np.diff(s_mm), initial=0.0))
     dist, nearest = cKDTree(pts).query(v)  # each vertex's nearest ruling
     f = f[(dist[f] <= reach).any(axis=1)]
     if not len(f):

@@ -23,12 +23,12 @@ from reachplan.planner.report import charts, figures
 from reachplan.planner.report.legibility import small_texts, text_overlaps
 from reachplan.planner.report.workspace import workspace_map_figure
 
-TARGET = "Target_80_030"
+TARGET = "Target_solids"  # the target of the solids_scene fixture (conftest.py)
 
 
 @pytest.fixture(scope="module")
-def scene(phantom_scene: Scene) -> Scene:
-    return phantom_scene
+def scene(solids_scene: Scene) -> Scene:
+    return solids_scene
 
 
 def _needle(scene: Scene, hole_id: str, steered: bool) -> Any:

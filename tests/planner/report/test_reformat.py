@@ -60,14 +60,14 @@ def test_the_sections_lie_on_the_organ_and_map_back_to_it(path: np.ndarray) -> N
         assert np.nanmin(cut[:, 0]) == pytest.approx(60.0 - 8.0, abs=0.15)
 
 
-def test_clearance_annotated_is_fcls_and_the_figure_is_legible(phantom_scene: Scene) -> None:
-    scene = phantom_scene
-    hole = next(h for h in scene.template.holes if h.hole_id == "Ea")
+def test_clearance_annotated_is_fcls_and_the_figure_is_legible(solids_scene: Scene) -> None:
+    scene = solids_scene
+    hole = next(h for h in scene.template.holes if h.hole_id == "Cd")
     m = scene.patient_from_template
     base = m[:3, :3] @ np.array([*hole.xy_mm, 0.0]) + m[:3, 3]
     path = base + np.linspace(0.0, 85.0, 30)[:, None] * m[:3, 2]
     dwells = path[-1] - np.arange(6)[:, None] * 2.5 * m[:3, 2]
-    needle: Any = SimpleNamespace(hole_id="Ea", path_mm=path, dwell_positions_mm=dwells,
+    needle: Any = SimpleNamespace(hole_id="Cd", path_mm=path, dwell_positions_mm=dwells,
                                   dwell_times_s=np.array([5.0, 9.0, 12.0, 12.0, 9.0, 5.0]), schedule=None)
     fig, closest = reformat.needle_reformat_figure(scene, needle, RADIUS_MM)
     # FCL on every organ the distance fields cannot rule out (their bounds are proven, so none is missed)
@@ -87,5 +87,5 @@ def test_clearance_annotated_is_fcls_and_the_figure_is_legible(phantom_scene: Sc
     assert x1 == pytest.approx(x0, abs=1e-6) or closest.s_mm == pytest.approx(reformat.arc_length(path)[-1])
     bars = next(a for a in fig.axes if a.get_gid() == "dwell-times").patches
     assert sorted(b.get_height() for b in bars) == sorted(needle.dwell_times_s)
-    assert {str(ln.get_gid()) for a in fig.axes for ln in a.lines} >= {"needle:Ea", f"organ:{closest.organ}"}
+    assert {str(ln.get_gid()) for a in fig.axes for ln in a.lines} >= {"needle:Cd", f"organ:{closest.organ}"}
     assert small_texts(fig) == [] and text_overlaps(fig) == []

@@ -12,13 +12,16 @@ import numpy as np
 import pytest
 from matplotlib.text import Text
 
-from reachplan.planner.case.scene import Scene
+from reachplan.imaging.phantom import write_phantom
+from reachplan.imaging.rtstruct import read_rtstruct
+from reachplan.planner.case.scene import Scene, build_scene
 from reachplan.planner.report import figures
 
 
 @pytest.fixture(scope="module")
-def scene(phantom_scene: Scene) -> Scene:
-    return phantom_scene
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
+    rs = write_phantom(tmp_path_factory.mktemp("phantom")).rtstruct_path
+    return build_scene(read_rtstruct(rs, None), ["Target_80_030"])
 
 
 def _display(ax: object, xy: np.ndarray) -> np.ndarray:
