@@ -292,11 +292,17 @@ def curved_section(mesh: trimesh.Trimesh, path_mm: np.ndarray, s_mm: np.ndarray,
     pts = resample(path_mm, s_mm)
     v, f = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces)
     reach = half_width_mm + longest_edge_mm(v, f) + float(np.max(np.diff(s_mm), initial=0.0))
-    dist, nearest = cKDTree(pts).query(v)  # each vertex's nearest ruling
-    f = f[(dist[f] <= reach).any(axis=1)]
+    tree = cKDTree(pts)
+    box = np.flatnonzero(np.all((v >= pts.min(axis=0) - reach) & (v <= pts.max(axis=0) + reach), axis=1))
+    near = np.zeros(len(v), dtype=bool)
+    near[box[np.isfinite(tree.query(v[box], distance_upper_bound=reach)[0])]] = True
+    f = f[near[f].any(axis=1)]
     if not len(f):
         return [np.zeros((0, 2)) for _ in laterals]
     # each face belongs to the strips next to the rulings nearest to its vertices (faces sorted by strip)
+    used = np.unique(f)
+    nearest = np.zeros(len(v), dtype=int)
+    nearest[used] = tree.query(v[used])[1]
     j = nearest[f]
     first, last = np.maximum(j.min(axis=1) - 1, 0), np.minimum(j.max(axis=1), len(pts) - 2)
     count = np.maximum(last - first + 1, 0)
@@ -340,7 +346,7 @@ def _sample_image(volume: Volume, points_mm: np.ndarray) -> np.ndarray:
 
     shape = points_mm.shape[:-1]
     ijk = volume.grid.to_index(points_mm.reshape(-1, 3))  # (n, 3): i, j, k
-    vals = map_coordinates(np.asarray(volume.array, dtype=float), [ijk[:, 2], ijk[:, 1], ijk[:, 0]], order=1,
+    vals = map_coordinates(np.asarray(volume.array), [ijk[:, 2], ijk[:, 1], ijk[:, 0]], order=1, output=float,
                            mode="constant", cval=np.nan)
     return vals.reshape(shape)
 
