@@ -137,5 +137,8 @@ def test_charts_are_legible() -> None:
     dvhs = (("HR-CTV", cumulative_dvh(rng.gamma(9.0, 1.0, 2000), 0.01)),
             *((o, cumulative_dvh(rng.exponential(1.5, 2000), 0.03)) for o in ("Bladder", "Rectum", "Sigmoid")))
     _legible(charts.dvh_aims_figure(dvhs, Aims()))
-    arm = SimpleNamespace(name="steered", plan=SimpleNamespace(dvhs=dvhs), pareto=())
-    _legible(charts.implant_dvh_figure([arm], Aims()))
+    points = tuple(SimpleNamespace(n_needles=n, hrctv_d90_eqd2_gy=80.0 + 2 * n, aims_met=n > 2) for n in range(5))
+    plan = SimpleNamespace(dvhs=dvhs, n_needles=3, target=SimpleNamespace(d90_eqd2_gy=86.0))
+    arms = [SimpleNamespace(name=name, plan=plan, pareto=points) for name in ("straight", "steered")]
+    _legible(charts.implant_dvh_figure(arms, Aims()))
+    _legible(charts.pareto_figure(arms, Aims().target_d90_eqd2_gy))
