@@ -13,7 +13,7 @@ from reachplan.planner.report.figures import MIN_FONT_PT
 
 
 def text_overlaps(fig: Figure) -> list[tuple[str, str]]:
-    """Return every two visible, non-empty texts of a drawn figure whose boxes overlap (tick labels included).
+    """Return every two visible texts of a drawn figure whose boxes overlap, and every text the figure's edge cuts.
 
     The figure is drawn first (at its own dpi); each text's box is its rendered extent in pixels. Used by the tests
     on every report figure: no label may hide another (a hole's name under an orientation letter).
@@ -26,7 +26,7 @@ def text_overlaps(fig: Figure) -> list[tuple[str, str]]:
     Returns
     -------
     list of (str, str)
-        The two texts of each overlapping pair; empty when none overlap.
+        The two texts of each overlapping pair, or a text and ``"the figure's edge"``; empty when all are clear.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.text import Text
@@ -38,7 +38,9 @@ def text_overlaps(fig: Figure) -> list[tuple[str, str]]:
     texts = [t for t in fig.findobj(Text) if t.get_visible() and t.get_text().strip() and id(t) not in hidden]
     boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in texts]
     boxes = [(n, b) for n, b in boxes if b.width > 0 and b.height > 0]
-    out = []
+    width, height = fig.canvas.get_width_height()
+    out = [(n, "the figure's edge") for n, b in boxes if b.x0 < -0.5 or b.y0 < -0.5 or b.x1 > width + 0.5
+           or b.y1 > height + 0.5]
     for i, (na, a) in enumerate(boxes):
         for nb, b in boxes[i + 1:]:
             if a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1:

@@ -112,5 +112,5 @@ def workspace_map_figure(scene: Scene, config: PlanConfig, depth_mm: float | Non
     bar.ax.tick_params(labelsize=MIN_FONT_PT)
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=MIN_FONT_PT + 1,
                title="outlines at this depth", title_fontsize=MIN_FONT_PT + 1, frameon=False)
-    fig.subplots_adjust(left=0.08, right=0.97, top=0.9, bottom=0.08 + 0.035 * (1 + (len(handles) + 4) // 5))
+    fig.subplots_adjust(left=0.08, right=0.86, top=0.9, bottom=0.08 + 0.035 * (1 + (len(handles) + 4) // 5))
     return fig
