@@ -560,13 +560,16 @@ def _slice_blocks(scene: Scene, result: PlanResult, volume: Volume | None, dose:
     """Return the slices section's blocks: the caption, then each target's slice views (``done`` after each)."""
     slices: list[Block] = [Paragraph(
         "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
-        "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane. "
+        "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane, drawn "
+        f"faint where more than {figures.IN_PLANE_MM:g} mm from it (a needle in front of an organ does not cross "
+        "it; the slice along each implant needle shows the true gaps). "
         f"Axial slices are {figures.RADIOLOGICAL}, like the template map; coronal slices are seen from the "
         "front (patient left on the right), sagittal slices from the patient's left (anterior on the left); "
         "the letters on the edges say which side is which."
         + ("" if dose is None else " Isodose lines of the delivered plan at 50, 100, 150 and 200 % of the "
            f"prescription ({dose.prescription_gy:.2f} Gy per fraction); black dots are its active dwell "
-           "positions within 2.5 mm of the plane, labelled with their dwell times in seconds."))]
+           "positions within 2.5 mm of the plane, sized by their dwell times (the times are given along each "
+           "implant needle)."))]
     for t in slice_targets:
         s, st = result.best(t, False), result.best(t, True)
         desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "

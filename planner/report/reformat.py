@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from reachplan.imaging.types import Volume
 from reachplan.planner.case.scene import Scene
-from reachplan.planner.delivery import Delivery
+from reachplan.planner.delivery import EXPORT_ARM, Delivery
 from reachplan.planner.report.figures import (
     ISODOSE_PERCENT,
     ISODOSE_STYLE,
@@ -584,8 +584,9 @@ def reformat_section(scene: Scene, radius_mm: float, volume: Volume | None, deli
     needles = [n for n in delivery.export.needles if not n.applicator]
     if not needles:
         return None
-    arm = next((a for a in delivery.implant.arms if a.plan is not None and
-                any(c.name == needles[0].hole_id for c in a.plan.channels)), None) if delivery.implant else None
+    delivered = EXPORT_ARM if delivery.kind == "implant, straight + steered" else \
+        delivery.kind.removeprefix("implant, ")
+    arm = next((a for a in delivery.implant.arms if a.name == delivered), None) if delivery.implant else None
     checks = {c.name: c.check for c in arm.plan.channels} if arm is not None and arm.plan is not None else {}
     blocks: list[Block] = [Paragraph(
         "Each needle of the delivered implant, straightened: left to right along the needle from its template hole "
