@@ -112,7 +112,8 @@ def test_plan_writes_a_self_contained_report(planned: tuple[Path, dict[str, obje
     for img in images:
         rgb = img[..., :3].reshape(-1, 3)
         assert rgb.std(axis=0).max() > 0.05, "blank figure"
-        assert len(np.unique((rgb[::5] * 255).astype(np.uint8), axis=0)) > 50  # every fifth pixel: palette PNGs
+        rgb8 = (rgb * 255).astype(np.uint32)  # each colour one integer: a 1-D unique, 20 times faster than axis=0
+        assert len(np.unique(rgb8[:, 0] << 16 | rgb8[:, 1] << 8 | rgb8[:, 2])) > 50
 
 
 def test_report_content_matches_the_plan(planned: tuple[Path, dict[str, object], str]) -> None:
