@@ -31,6 +31,7 @@ from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.plugins.sources import SourceData
 
 if TYPE_CHECKING:
+    from reachplan.planner.dose.coverage import Dvh
     from reachplan.planner.dose.dwells import DwellSet
     from reachplan.planner.dose.structures import PlanningStructures, Structure
     from reachplan.planner.dose.tg43 import Tg43Kernel
@@ -48,6 +49,37 @@ PER_TARGET = "one needle per target"
 
 #: The implant arm exported as the delivered plan: straight + steered (never worse than straight only).
 EXPORT_ARM = "steered"
+#: A structure holding less than this share of its own (contoured) volume on the dose grid is reported as cropped.
+CROPPED_SHARE = 0.97
+
+
+@dataclass(frozen=True, eq=False)
+class WholeDvhs:
+    """Cumulative DVHs of whole structures, every exported plan's on one grid (what :func:`whole_dvhs` returns).
+
+    Parameters
+    ----------
+    grid : Grid
+        The dose grid (the planning grid's box around the target and every organ at risk), mm, LPS.
+    by_plan : dict of str to tuple of (str, Dvh)
+        Per exported plan (``delivered`` and each implant arm by name), the DVH (Gy per fraction, cm³) of the
+        target and each organ at risk over every voxel of its mask.
+    volume_cc : dict of str to float, cm³
+        Each structure's volume on the grid (what its DVH starts at).
+    own_cc : dict of str to float, cm³
+        Each structure's own volume (its closed mesh), where known.
+    """
+
+    grid: Grid
+    by_plan: dict[str, tuple[tuple[str, Dvh], ...]]
+    volume_cc: dict[str, float]
+    own_cc: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def cropped(self) -> dict[str, tuple[float, float]]:
+        """Structures the grid holds less than :data:`CROPPED_SHARE` of: name -> (on the grid, own volume), cm³."""
+        return {n: (v, self.own_cc[n]) for n, v in self.volume_cc.items()
+                if n in self.own_cc and v < CROPPED_SHARE * self.own_cc[n]}
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +117,9 @@ class Delivery:
     warnings : tuple of str
         ``"Category: message"`` of the protocol's named warnings: the dose target is not the protocol's site's
         (which aims were used), an organ smaller than 2 cm³.
+    whole_dvhs : WholeDvhs or None
+        Whole-structure DVHs of the delivered plan and each implant arm on the planned dose's grid (None without a
+        planned dose).
     """
 
     optimisation: OptimisationResult
@@ -98,6 +133,7 @@ class Delivery:
     aims: Aims = field(default_factory=Aims)
     aims_tables: dict[str, AimsTable] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    whole_dvhs: WholeDvhs | None = None
 
     @property
     def n_needles(self) -> int:
@@ -258,8 +294,55 @@ def plan_delivery(
     implant_exports = _arm_exports(implant, export_of, opt.dwells, export)
     points = list(export.reference_points)
     tables = _aims_tables(aims, planning, implant, opt, kind, points, kernel, air_kerma_u)
+    own = {} if scene is None else {n: abs(float(m.volume)) / 1000.0 for n, m in scene.meshes.items()}
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports, aims, tables,
-                    _protocol_warnings(aims, target_roi, tables))
+                    _protocol_warnings(aims, target_roi, tables),
+                    whole_dvhs(planning, {"delivered": export, **implant_exports}, fractions, own))
+
+
+def whole_dvhs(planning: PlanningStructures, exports: dict[str, ExportPlan], fractions: int,
+               own_cc: dict[str, float] | None = None) -> WholeDvhs | None:
+    """Return the whole-structure DVHs of each export's planned dose, all on its one grid (None without a dose).
+
+    Every export's planned dose lies on the same grid, the planning grid's box around the target and every organ
+    at risk (:func:`_dose_region`), so each structure's DVH covers every voxel of its planning mask and the plans
+    give it the same volume; the implant's own DVHs cover only the voxels near its dwells, where D2cm³ is decided.
+
+    Parameters
+    ----------
+    planning : PlanningStructures
+        The planning masks (the target and the organs at risk, bone and applicators excluded).
+    exports : dict of str to ExportPlan
+        The plans by name; those without a planned dose on the dose region are skipped.
+    fractions : int
+        Fractions the planned dose covers (the DVHs are per fraction).
+    own_cc : dict of str to float or None, cm³
+        Each structure's own volume (its mesh), to tell a structure the grid crops.
+
+    Returns
+    -------
+    WholeDvhs or None
+        None when no export has a planned dose on the dose region.
+    """
+    from reachplan.planner.dose.coverage import cumulative_dvh, voxel_volume_cc
+
+    lo, hi = _region_box(planning)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    vox = voxel_volume_cc(planning.grid)
+    structures = (planning.target, *planning.oars)
+    by_plan: dict[str, tuple[tuple[str, Dvh], ...]] = {}
+    grid = None
+    for name, ex in exports.items():
+        if ex.dose is None or ex.dose.grid.shape != tuple(int(b - a) for a, b in zip(lo, hi, strict=True)):
+            continue
+        grid, per_fraction = ex.dose.grid, np.asarray(ex.dose.dose_gy, dtype=float) / max(fractions, 1)
+        by_plan[name] = tuple((s.name, cumulative_dvh(per_fraction[s.mask[box]], vox)) for s in structures
+                              if s.mask.any())
+    if grid is None:
+        return None
+    volumes = {s.name: float(s.mask.sum()) * vox for s in structures}
+    own = {n: v for n, v in (own_cc or {}).items() if n in volumes}
+    return WholeDvhs(grid, by_plan, volumes, own)
 
 
 def _protocol_warnings(aims: Aims, target_roi: str, tables: dict[str, AimsTable]) -> tuple[str, ...]:
@@ -524,8 +607,8 @@ def implant_needles(plan: ImplantPlan) -> tuple[NeedleExport, ...]:
     return tuple(out)
 
 
-def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
-    """Return the part of the planning grid around the target and the organs at risk, as a grid of its own.
+def _region_box(planning: PlanningStructures, margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Return the (k, j, i) index box [lo, hi) of the planning grid around the target and the organs at risk.
 
     ``margin``: voxels added on every side.
     """
@@ -533,8 +616,15 @@ def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
     for o in planning.oars:
         mask |= o.mask
     idx = np.argwhere(mask)
-    lo = np.maximum(idx.min(axis=0) - margin, 0)
-    hi = np.minimum(idx.max(axis=0) + margin + 1, planning.grid.shape)
+    return np.maximum(idx.min(axis=0) - margin, 0), np.minimum(idx.max(axis=0) + margin + 1, planning.grid.shape)
+
+
+def _dose_region(planning: PlanningStructures, margin: int = 2) -> Grid:
+    """Return the part of the planning grid around the target and the organs at risk, as a grid of its own.
+
+    ``margin``: voxels added on every side.
+    """
+    lo, hi = _region_box(planning, margin)
     affine = planning.grid.patient_from_index.copy()
     affine[:3, 3] = affine[:3, :3] @ np.array([lo[2], lo[1], lo[0]], dtype=float) + affine[:3, 3]
     shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]), int(hi[2] - lo[2]))

@@ -20,7 +20,7 @@ from reachplan.planner.delivery import Delivery
 from reachplan.planner.implant.case import ImplantComparison
 from reachplan.planner.implant.compare import Comparison
 from reachplan.planner.implant.dwells import OptimizerSettings
-from reachplan.planner.report import charts, figures
+from reachplan.planner.report import charts, figures, reformat
 from reachplan.planner.report.handoff import handoff_section
 from reachplan.planner.report.html import (
     Block,
@@ -63,17 +63,18 @@ def _implant_section(delivery: Delivery | None) -> Section | None:
                   + ", ".join(f"{o} < {v:g} Gy" for o, v in aims.oar_d2cc_eqd2_gy) + "."),
         Table(rows[0], tuple(rows[1:]), "Implant arms side by side (EQD2 totals, Gy)",
               numeric=tuple(range(1, len(rows[0])))),
-        Figure(figures.png_bytes(charts.pareto_figure(implant.arms, aims.target_d90_eqd2_gy), dpi=90),
+        Figure(figures.png_bytes(charts.pareto_figure(implant.arms, aims.target_d90_eqd2_gy)),
                "Pareto curves: template needles against HR-CTV D90 (EQD2) with the organ limits held; filled: every "
                "aim met, hollow: an aim not met; circled: the chosen implant; dotted red: the 85 Gy aim. Straight: "
                "dashed orange, steered: solid cyan."),
     ]
     if any(a.plan is not None and a.plan.dvhs for a in implant.arms):
+        whole = delivery.whole_dvhs
         blocks.append(Figure(
-            figures.png_bytes(charts.implant_dvh_figure(implant.arms, aims), dpi=90),
+            figures.png_bytes(charts.implant_dvh_figure(implant.arms, aims,
+                                                        whole=None if whole is None else whole.by_plan)),
             "Both arms' cumulative DVHs per fraction (straight dashed, steered solid; HR-CTV thicker) with the "
-            f"{aims.name} aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. Organ curves cover "
-            "the voxels near the loaded dwells, where D2cm³ is decided."))
+            f"{aims.name} aim (diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. {dvh_volumes(delivery)}"))
     blocks += [Paragraph(f"{a.name}: {a.reason}") for a in implant.arms if a.reason]
     blocks += _needle_checks(implant)
     return Section("Implant: straight against steered", "implant", tuple(blocks))
@@ -145,7 +146,7 @@ def models_used(result: PlanResult) -> dict[str, str]:
     return {rod: "; ".join(roles) for rod, roles in used.items()}
 
 
-def _case_section(scene: Scene, result: PlanResult, case: str, template_png: bytes) -> Section:
+def _case_section(scene: Scene, result: PlanResult, case: str, template_map: Figure) -> Section:
     cfg = result.config
     oars = {o.name for o in scene.organs}
     targets = {t.name for t in scene.targets}
@@ -175,9 +176,7 @@ def _case_section(scene: Scene, result: PlanResult, case: str, template_png: byt
               numeric=(1, 2, 3)),
         Paragraph(template),
         Paragraph(settings),
-        Figure(template_png, f"Template holes with their names, {figures.RADIOLOGICAL} (the same orientation as "
-                             "the axial slices); the holes of the per-target best straight (orange) and best "
-                             "steered (cyan) needles are filled and their names in bold."),
+        template_map,
     ))
 
 
@@ -282,10 +281,11 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
         blocks.append(Paragraph(note))
     if delivery is not None:
         opt = delivery.optimisation
-        rows2 = [(opt.target.name, _f(opt.target.volume_cc), _f(opt.target.d90_gy, 2), _f(opt.target.d90_eqd2_gy),
-                  _f(opt.target.d98_eqd2_gy), _f(opt.target.v100_pct), "-")]
-        rows2 += [(o.name, _f(o.volume_cc), _f(o.d90_gy, 2), _f(o.d90_eqd2_gy), _f(o.d98_eqd2_gy), _f(o.v100_pct),
-                   _f(o.d2cc_eqd2_gy)) for o in opt.oars]
+        vol = {} if delivery.whole_dvhs is None else delivery.whole_dvhs.volume_cc
+        rows2 = [(opt.target.name, _f(vol.get(opt.target.name, opt.target.volume_cc)), _f(opt.target.d90_gy, 2),
+                  _f(opt.target.d90_eqd2_gy), _f(opt.target.d98_eqd2_gy), _f(opt.target.v100_pct), "-")]
+        rows2 += [(o.name, _f(vol.get(o.name, o.volume_cc)), _f(o.d90_gy, 2), _f(o.d90_eqd2_gy), _f(o.d98_eqd2_gy),
+                   _f(o.v100_pct), _f(o.d2cc_eqd2_gy)) for o in opt.oars]
         status = ((f"{delivery.aims.name} aims met" if _aims_met(delivery) else f"{delivery.aims.name} aims NOT met")
                   if opt.success else f"not solved: {opt.reason}")
         blocks += [
@@ -295,11 +295,41 @@ def _dose_section(delivery: Delivery | None, comparison: Comparison | None, dvh_
                    "D2cm³ EQD2 (Gy)"), tuple(rows2), "Delivered plan: dose-volume metrics",
                   numeric=(1, 2, 3, 4, 5, 6)),
         ]
-        if opt.success and opt.dvhs:
-            png = figures.png_bytes(charts.dvh_aims_figure(opt.dvhs, delivery.aims, opt.target.name), dpi=90)
+        whole = delivery.whole_dvhs
+        dvhs = whole.by_plan.get("delivered", opt.dvhs) if whole is not None else opt.dvhs
+        if opt.success and dvhs:
+            png = figures.png_bytes(charts.dvh_aims_figure(dvhs, delivery.aims, opt.target.name))
             blocks.append(Figure(png, f"Delivered plan: cumulative DVHs per fraction with the {delivery.aims.name} aim "
-                                      "(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked."))
+                                      f"(diamond: HR-CTV D90) and organ limits (crosses: D2cm³) marked. "
+                                      f"{dvh_volumes(delivery)}"))
     return Section("Dose and coverage", "dose", tuple(blocks))
+
+
+def dvh_volumes(delivery: Delivery) -> str:
+    """Say what volume each DVH covers: every structure whole on the dose grid, or which ones the grid crops.
+
+    Parameters
+    ----------
+    delivery : Delivery
+        The delivered plan (its :attr:`~reachplan.planner.delivery.Delivery.whole_dvhs`).
+
+    Returns
+    -------
+    str
+        One or two sentences for a DVH's caption.
+    """
+    whole = delivery.whole_dvhs
+    if whole is None:
+        return ("Organ curves cover only the voxels near the loaded dwells, where D2cm³ is decided (no planned dose "
+                "was computed), so their volumes are not the organs' own.")
+    sizes = ", ".join(f"{n} {v:.1f} cm³" for n, v in whole.volume_cc.items())
+    text = (f"Each curve covers its whole structure on one dose grid, the same for every plan ({sizes}), from the "
+            "planned dose at every voxel centre.")
+    cropped = whole.cropped
+    if cropped:
+        text += " Cropped by the images: " + ", ".join(
+            f"{n} {on:.1f} of its {own:.1f} cm³" for n, (on, own) in cropped.items()) + " lie on the grid."
+    return text
 
 
 def _aims_met(delivery: Delivery) -> bool:
@@ -447,7 +477,11 @@ def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Seque
     if handoff is not None:  # the implant to insert first, named as in the insert list
         paths = {n.hole_id: n.path_mm for n in delivery.export.needles}  # type: ignore[union-attr]
         needles = [Needle3d(f"insert {n.hole_id} (channel {n.channel}, {n.kind})", paths[n.hole_id],
-                            n.kind == "steered") for n in handoff.needles] + needles
+                            n.kind == "steered", implant=True) for n in handoff.needles] + needles
+    elif delivery is not None:
+        needles = [Needle3d(f"implant: {'steered' if n.schedule is not None else 'straight'} {n.hole_id}",
+                            n.path_mm, n.schedule is not None, implant=True)
+                   for n in delivery.export.needles if not n.applicator] + needles
     if delivery is None or not delivery.optimisation.success:
         return scene_figure(scene, needles, max_faces=max_faces)
     dwells = delivery.optimisation.dwells
@@ -492,18 +526,54 @@ def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered:
     ))
 
 
+def template_map_block(scene: Scene, delivery: Delivery | None, straight: Sequence[Candidate],
+                       steered: Sequence[Candidate]) -> Figure:
+    """Return the template map: the delivered implant's holes filled (else each target's best needles, said so).
+
+    Parameters
+    ----------
+    scene : Scene
+        The template and its pose.
+    delivery : Delivery or None
+        The delivered plan; its exported needles are the implant.
+    straight : sequence of Candidate
+        Each target's best straight needle (used without a delivered plan).
+    steered : sequence of Candidate
+        Each target's best steered needle (likewise).
+
+    Returns
+    -------
+    Figure
+        The figure block; its alt text names the filled holes (``template map: implant holes Ab, Cc``).
+    """
+    if delivery is not None:
+        holes = figures.implant_holes(delivery.export.needles)
+        what, words = "implant", "the delivered implant's needles (the RT Plan's channels)"
+    else:
+        holes = [(c.hole_id, c.steered) for c in (*straight, *steered)]
+        what, words = "per-target best", "each target's best straight and best steered needle (no plan delivered)"
+    png = figures.template_map(scene, holes, what)
+    names = ", ".join(h for h, _ in holes) or "none"
+    return Figure(png, f"Template holes with their names, {figures.RADIOLOGICAL} (the same orientation as the axial "
+                       f"slices); filled: the holes of {words}, straight orange and steered cyan, names in bold: "
+                       f"{names}.", alt=f"template map: {what} holes {names}")
+
+
 def _slice_blocks(scene: Scene, result: PlanResult, volume: Volume | None, dose: figures.DoseOverlay | None,
                   slice_targets: Sequence[str], done: Callable[[], object]) -> list[Block]:
     """Return the slices section's blocks: the caption, then each target's slice views (``done`` after each)."""
     slices: list[Block] = [Paragraph(
         "Slices through each target point (organ outlines from the meshes, image underneath); the best straight "
-        "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane. "
+        "(dashed orange) and best steered (solid cyan) needle of the target are projected onto each plane, drawn "
+        f"faint where more than {figures.IN_PLANE_MM:g} mm from it (a needle in front of an organ does not cross "
+        "it; the slice along each implant needle shows the true gaps). "
         f"Axial slices are {figures.RADIOLOGICAL}, like the template map; coronal slices are seen from the "
         "front (patient left on the right), sagittal slices from the patient's left (anterior on the left); "
         "the letters on the edges say which side is which."
         + ("" if dose is None else " Isodose lines of the delivered plan at 50, 100, 150 and 200 % of the "
            f"prescription ({dose.prescription_gy:.2f} Gy per fraction); black dots are its active dwell "
-           "positions within 2.5 mm of the plane, labelled with their dwell times in seconds."))]
+           "positions within 2.5 mm of the plane, sized by their dwell times (the times are given along each "
+           "implant needle)."))]
     for t in slice_targets:
         s, st = result.best(t, False), result.best(t, True)
         desc = "; ".join(f"{k} {c.hole_id} ({c.model.label}, reach {c.reach_error_mm:.1f} mm, clearance "
@@ -563,7 +633,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
     slice_targets = order[: options.max_slice_targets]
     bar = tqdm(total=4 + len(slice_targets), desc="report", unit="figure", disable=quiet, leave=False)
     try:
-        case_sec = _case_section(scene, result, case, figures.template_map(scene, straight, steered))
+        case_sec = _case_section(scene, result, case, template_map_block(scene, delivery, straight, steered))
         case_sec = Section(case_sec.title, case_sec.anchor, (*case_sec.blocks, *case_figures))
         bar.update()
         slices = _slice_blocks(scene, result, volume, dose_overlay(delivery), slice_targets, bar.update)
@@ -587,6 +657,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
         case_sec,
         _ranking_section(result, order),
         Section("Slices through the targets", "slices", tuple(slices)),
+        reformat.reformat_section(scene, result.config.needle_radius_mm, volume, delivery, dose_overlay(delivery)),
         Section("3-D view", "views-3d", (
             Paragraph("Organs, the target points, the template holes, the needles to insert (legend 'insert "
                       "<hole>'), each target's best straight and best steered "

@@ -16,6 +16,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
 from reachplan.planner.report.figures import (
+    MIN_FONT_PT,
     STEERED_COLOUR,
     STRAIGHT_COLOUR,
     TITLE_Y,
@@ -53,7 +54,7 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
                 y = max(r.max_tip_error_mm, floor)
                 ax.scatter([r.median_ms], [y], s=260, facecolors="none", edgecolors="k", lw=1.5, zorder=5)
                 ax.annotate(f"{name}: {used[name]}\n{r.median_ms:.2f} ms, max error {r.max_tip_error_mm:.2g} mm",
-                            (r.median_ms, y), xytext=(12, -4), textcoords="offset points", fontsize=8,
+                            (r.median_ms, y), xytext=(12, -4), textcoords="offset points", fontsize=MIN_FONT_PT,
                             bbox={"boxstyle": "round", "fc": "#fffbe6", "ec": "#c9b458"})
     ax.set_xscale("log")
     ax.set_yscale("log")
@@ -61,9 +62,9 @@ def speed_accuracy(rows: Sequence[Any], used: Mapping[str, str]) -> bytes:
     ax.set_ylabel(f"max tip error vs converged two-tube reference (mm; floor {floor:g})")
     ax.set_title("Rod models: speed vs accuracy (ringed: used in this plan)", fontsize=11, y=TITLE_Y)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="upper right")
+    ax.legend(fontsize=MIN_FONT_PT, loc="upper right")
     fig.subplots_adjust(left=0.1, right=0.97, top=0.93, bottom=0.1)  # fixed margins: no tight-layout pass
-    return png_bytes(fig, dpi=90)
+    return png_bytes(fig)
 
 
 #: Line style of each implant arm in the shared figures (steered solid, straight dashed, as the needles).
@@ -101,15 +102,15 @@ def _dvh_frame(fig: Figure, ax: Any, aims: Any, title: str, ncol: int = 3, extra
     ax.set_xlabel("dose per fraction (Gy)")
     ax.set_ylabel("volume receiving at least the dose (cm³, log)")
     ax.set_title(f"cumulative DVH, {title}\n◆ the target's curve must pass right of its aim, "
-                 "✕ an organ's curve left of its limit", fontsize=9, y=TITLE_Y)
+                 "✕ an organ's curve left of its limit", fontsize=10, y=TITLE_Y)
     ax.grid(True, which="both", alpha=0.25)
     handles, labels = ax.get_legend_handles_labels()
     handles, labels = [*extra, *handles], [*(h.get_label() for h in extra), *labels]
-    fig.legend(handles, labels, fontsize=7, ncol=ncol, loc="lower center", frameon=False)
+    fig.legend(handles, labels, fontsize=MIN_FONT_PT, ncol=ncol, loc="lower center", frameon=False)
     rows = (len(labels) + ncol - 1) // ncol
     height_in = fig.get_size_inches()[1]
-    fig.subplots_adjust(left=0.1, right=0.97, top=1 - 0.55 / height_in,
-                        bottom=(0.62 + 0.16 * rows) / height_in)  # fixed margins: no tight-layout pass
+    fig.subplots_adjust(left=0.1, right=0.97, top=1 - 0.6 / height_in,
+                        bottom=(0.66 + 0.2 * rows) / height_in)  # fixed margins: no tight-layout pass
     return fig
 
 
@@ -140,7 +141,8 @@ def dvh_aims_figure(dvhs: Sequence[tuple[str, Any]], aims: Any, target: str = "H
     return _dvh_frame(fig, ax, aims, title)
 
 
-def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -> Figure:
+def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV",
+                       whole: Mapping[str, Sequence[tuple[str, Any]]] | None = None) -> Figure:
     """Both implant arms' cumulative DVHs on one axes, the arms told apart by line style (:data:`ARM_STYLES`).
 
     Parameters
@@ -153,6 +155,9 @@ def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -
         depend on the arm).
     target : str
         The target's structure name (drawn thicker, its D90 aim marked).
+    whole : mapping of str to sequence of (str, Dvh), optional
+        By arm name, whole-structure DVHs on one grid (:attr:`reachplan.planner.delivery.Delivery.whole_dvhs`)
+        drawn instead of the arm's own (which cover the voxels near its dwells only).
 
     Returns
     -------
@@ -160,10 +165,12 @@ def implant_dvh_figure(arms: Sequence[Any], aims: Any, target: str = "HR-CTV") -
     """
     fig = Figure(figsize=(8.0, 5.6))
     ax = fig.add_subplot()
-    with_plan = [a for a in arms if a.plan is not None and a.plan.dvhs]
+    curves = {a.name: (whole[a.name] if whole is not None and a.name in whole else a.plan.dvhs) for a in arms
+              if a.plan is not None and a.plan.dvhs}
+    with_plan = [a for a in arms if a.name in curves]
     for i, a in enumerate(with_plan):
-        _dvh_curves(ax, a.plan.dvhs, aims, target, ARM_STYLES.get(a.name, ":"), a.name, marks=i == 0)
-    names = list(dict.fromkeys(n for a in with_plan for n, _ in a.plan.dvhs))
+        _dvh_curves(ax, curves[a.name], aims, target, ARM_STYLES.get(a.name, ":"), a.name, marks=i == 0)
+    names = list(dict.fromkeys(n for a in with_plan for n, _ in curves[a.name]))
     extra = [Line2D([], [], color="k", ls=ARM_STYLES.get(a.name, ":"), label=f"{a.name} arm") for a in with_plan]
     extra += [Line2D([], [], color=organ_colour(n), lw=2.2 if n == target else 1.4, label=n) for n in names]
     return _dvh_frame(fig, ax, aims, "implant arms (" + ", ".join(
@@ -215,7 +222,7 @@ def pareto_figure(arms: Sequence[Any], aim_gy: float) -> Figure:
     ax.set_ylabel("HR-CTV D90 (Gy EQD2), organ limits held")
     ax.set_title("Implant: needles against HR-CTV D90, straight against steered", fontsize=10, y=TITLE_Y)
     ax.grid(True, alpha=0.3)
-    ax.legend(handles=handles, fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    ax.legend(handles=handles, fontsize=MIN_FONT_PT, loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.subplots_adjust(left=0.1, right=0.72, top=0.92, bottom=0.12)  # fixed margins: no tight-layout pass
     return fig
 
@@ -231,6 +238,6 @@ def dvh_png(comparison: Any) -> bytes:
     Returns
     -------
     bytes
-        PNG at 90 dpi.
+        PNG at the report's display resolution.
     """
-    return png_bytes(comparison.figure(), dpi=90)
+    return png_bytes(comparison.figure())

@@ -32,13 +32,27 @@ from reachplan.imaging.types import Volume
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.steering.candidates import Candidate
 
+#: Display colour of each organ (matched without regard to case; GTV_res and the like take the GTV's). Chosen
+#: so that every two of these, and each against the needle and target colours below, differ by a CIEDE2000 colour
+#: difference of at least 20 (tests/planner/report/test_figures_legible.py measures it; docs/report.md lists the
+#: palette): rectum brown, sigmoid dark purple and bowel magenta instead of light browns and pinks.
 ORGAN_COLOURS = {
-    "Bladder": "#e6c229", "Rectum": "#8c564b", "Sigmoid": "#c49c94", "Bowel": "#f7b6d2", "Bone": "#5b7bd5",
-    "HR-CTV": "#d62728", "Uterus": "#9467bd", "Cervix": "#ff9896", "Obturator": "#7f7f7f",
+    "Bladder": "#f0c808", "Rectum": "#8c510a", "Sigmoid": "#762a83", "Bowel": "#e7298a", "Bone": "#3b5bdb",
+    "HR-CTV": "#d62728", "GTV": "#7a0019", "Uterus": "#9e7fd6", "Cervix": "#f4b6c2", "Obturator": "#9a9a9a",
+    "Tandem": "#404040",
 }
+#: Colour of an ROI not in :data:`ORGAN_COLOURS`.
+OTHER_COLOUR = "#7f7f7f"
 TARGET_COLOUR = "#2ca02c"
 STRAIGHT_COLOUR = "#ff7f0e"
 STEERED_COLOUR = "#17becf"
+#: Smallest font of any text in a report figure, in points at the size the report shows it (figures are rendered
+#: at :data:`DISPLAY_DPI`, one image pixel per CSS pixel, so a matplotlib point is a point on the screen).
+MIN_FONT_PT = 9.0
+#: Dots per inch of the report's PNG figures: CSS's 96 px per inch, so the browser shows them at their own size.
+DISPLAY_DPI = 96
+#: Widest figure the report shows at its own size (CSS px): ``main`` is 1400 px wide less 2 x 32 px padding.
+MAX_DISPLAY_WIDTH_PX = 1336
 
 #: (axis normal to the plane, horizontal axis, vertical axis, name) of the three slice views.
 VIEWS: tuple[tuple[int, int, int, str], ...] = ((2, 0, 1, "axial"), (0, 1, 2, "sagittal"), (1, 0, 2, "coronal"))
@@ -85,7 +99,7 @@ def label_edges(ax: Any, right: np.ndarray, up: np.ndarray) -> None:
     box = {"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.75}
     for (x, y), d, ha, va in (((0.01, 0.5), -r, "left", "center"), ((0.99, 0.5), r, "right", "center"),
                               ((0.5, 0.99), u, "center", "top"), ((0.5, 0.01), -u, "center", "bottom")):
-        ax.text(x, y, direction_letter(d), transform=ax.transAxes, ha=ha, va=va, fontsize=10, fontweight="bold",
+        ax.text(x, y, direction_letter(d), transform=ax.transAxes, ha=ha, va=va, fontsize=11, fontweight="bold",
                 color="#1d2b45", bbox=box, gid="orientation")
 
 
@@ -95,7 +109,7 @@ _UNIT = np.eye(3)
 TITLE_Y = 1.0
 
 
-def png_bytes(fig: Figure, dpi: int = 100) -> bytes:
+def png_bytes(fig: Figure, dpi: int = DISPLAY_DPI) -> bytes:
     """Render a figure to PNG bytes at the size it is shown: an 8-bit palette image.
 
     256 colours (fast octree quantisation) keep the line art and the grey image underneath, at about a third of the
@@ -157,9 +171,13 @@ def organ_colour(name: str) -> str:
     str
         ``#rrggbb``.
     """
-    if name.casefold().startswith("target"):
+    key = name.casefold()
+    if key.startswith("target"):
         return TARGET_COLOUR
-    return ORGAN_COLOURS.get(name, "#7f7f7f")
+    by_key = {k.casefold(): v for k, v in ORGAN_COLOURS.items()}
+    if key.startswith("gtv"):
+        return ORGAN_COLOURS["GTV"]
+    return by_key.get(key, OTHER_COLOUR)
 
 
 def _section(mesh: trimesh.Trimesh, axis: int, value_mm: float) -> list[np.ndarray]:
@@ -193,7 +211,30 @@ def plane_section(mesh: trimesh.Trimesh, normal: np.ndarray, offset_mm: float) -
     list of (3 n, 3) float, mm, LPS
         One array of the n cut segments, each two points followed by a NaN row; empty when the plane misses.
     """
-    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    return plane_cut(np.asarray(mesh.vertices), np.asarray(mesh.faces), normal, offset_mm)
+
+
+def plane_cut(v: np.ndarray, f: np.ndarray, normal: np.ndarray, offset_mm: float) -> list[np.ndarray]:
+    """Return where the plane ``x · normal = offset_mm`` cuts the triangles ``f`` of the vertices ``v``.
+
+    :func:`plane_section` on arrays (a mesh's faces, or a subset of them).
+
+    Parameters
+    ----------
+    v : (n, 3) float, mm, LPS
+        Vertices.
+    f : (m, 3) int
+        Triangles, as indices into ``v``.
+    normal : (3,) float, unit vector, LPS
+        The plane's normal.
+    offset_mm : float, mm
+        The plane's signed distance from the origin.
+
+    Returns
+    -------
+    list of (3 n, 3) float, mm, LPS
+        One array of the n cut segments, each two points followed by a NaN row; empty when the plane misses.
+    """
     height = v @ np.asarray(normal, dtype=float) - offset_mm  # signed distance of each vertex, mm
     above = height >= 0.0
     side = above[f]
@@ -213,8 +254,44 @@ def plane_section(mesh: trimesh.Trimesh, normal: np.ndarray, offset_mm: float) -
     return [out.reshape(-1, 3)]
 
 
-def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float) -> None:
-    """Draw the image slice of ``volume`` at ``x[axis] = value_mm`` (axis-aligned grids only) in grey."""
+#: The CT window of the slices (HU): a soft-tissue window, level 50 and width 500.
+CT_WINDOW_HU = (-200.0, 300.0)
+#: Percentiles of an image's own voxels that bound the grey scale of any other modality (MR): the brightest half
+#: per cent saturates, not the organs.
+WINDOW_PERCENTILES = (1.0, 99.5)
+
+
+def display_window(volume: Volume) -> tuple[float, float]:
+    """Return the grey-scale window (lowest, highest value) the slices draw ``volume`` with.
+
+    CT in Hounsfield units gets the fixed soft-tissue window :data:`CT_WINDOW_HU`; any other modality (MR, in
+    arbitrary units) the :data:`WINDOW_PERCENTILES` of its own voxels (on at most about 2 x 10⁵ voxels, evenly
+    strided), so that its organs are not saturated at a CT window.
+
+    Parameters
+    ----------
+    volume : Volume
+        The image.
+
+    Returns
+    -------
+    tuple of float
+        (vmin, vmax) in the image's units, vmin < vmax.
+    """
+    if volume.modality.upper() == "CT":
+        return CT_WINDOW_HU
+    a = np.asarray(volume.array)
+    step = max(1, round((a.size / 2e5) ** (1.0 / 3.0)))
+    lo, hi = (float(v) for v in np.percentile(a[::step, ::step, ::step], WINDOW_PERCENTILES))
+    return (lo, hi) if hi > lo else (lo, lo + 1.0)
+
+
+def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float,
+                window: tuple[float, float] | None = None) -> None:
+    """Draw the image slice of ``volume`` at ``x[axis] = value_mm`` (axis-aligned grids only) in grey.
+
+    ``window``: (vmin, vmax) of the grey scale; None: :func:`display_window`.
+    """
     if volume is None:
         return
     m = volume.grid.patient_from_index
@@ -233,7 +310,9 @@ def _background(ax: Any, volume: Volume | None, axis: int, value_mm: float) -> N
         img, ext = volume.array[:, :, n], (lo[1], hi[1], lo[2], hi[2])
     else:
         img, ext = volume.array[:, n, :], (lo[0], hi[0], lo[2], hi[2])
-    ax.imshow(img, cmap="gray", vmin=-200, vmax=300, origin="lower", extent=ext, interpolation="nearest")
+    vmin, vmax = display_window(volume) if window is None else window
+    ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax, origin="lower", extent=ext, interpolation="nearest",
+              gid="image")
 
 
 def _box(points: Sequence[np.ndarray], margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -274,7 +353,8 @@ def _isodoses(ax: Any, dose: DoseOverlay, normal: int, value_mm: float, u: int, 
     """Draw isodose lines of ``dose`` on the plane ``x[normal] = value_mm`` and the dwells near it.
 
     Over the box ``lo``..``hi`` (mm, LPS); the dwell positions within 2.5 mm of the plane are dots sized by dwell
-    time, labelled in s.
+    time (their times are in each needle's reformat, :mod:`reachplan.planner.report.reformat`: labels 2.5 mm apart
+    would cover one another at a legible size).
     """
     gu, gv = np.linspace(lo[u], hi[u], n), np.linspace(lo[v], hi[v], n)
     uu, vv = np.meshgrid(gu, gv)
@@ -290,8 +370,43 @@ def _isodoses(ax: Any, dose: DoseOverlay, normal: int, value_mm: float, u: int, 
     if len(p):
         ax.scatter(p[:, u], p[:, v], s=6 + 40 * t / max(float(dose.dwell_times_s.max()), 1e-9), color="k",
                    zorder=6, gid="dwells")
-        for q, ti in zip(p, t, strict=True):
-            ax.annotate(f"{ti:.0f}", (q[u], q[v]), xytext=(2, 2), textcoords="offset points", fontsize=5)
+
+
+#: A needle is drawn solid (or dashed) where it lies within this distance of a slice's plane, faint elsewhere: a
+#: needle passing in front of an organ is not drawn across it.
+IN_PLANE_MM = 5.0
+
+
+def draw_needle(ax: Any, path_mm: np.ndarray, normal: int, value_mm: float, u: int, v: int, colour: str,
+                style: str, gid: str) -> None:
+    """Draw a needle on the slice ``x[normal] = value_mm``: full strength within :data:`IN_PLANE_MM`, faint beyond.
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes
+        The slice's axes (horizontal ``x[u]``, vertical ``x[v]``, mm).
+    path_mm : (n, 3) float, mm, LPS
+        The needle's centreline, base to tip; its tip is a dot.
+    normal : int
+        LPS axis of the plane's normal.
+    value_mm : float, mm
+        The plane's position along ``normal``.
+    u : int
+        LPS axis of the axes' horizontal direction.
+    v : int
+        LPS axis of the axes' vertical direction.
+    colour : str
+        Line colour.
+    style : str
+        Line style (``"-"`` steered, ``"--"`` straight).
+    gid : str
+        The in-plane line's gid (the faint one gets ``GID:projected``).
+    """
+    p = np.asarray(path_mm, dtype=float)
+    ax.plot(p[:, u], p[:, v], style, color=colour, lw=1.1, alpha=0.35, gid=f"{gid}:projected")
+    near = np.where((np.abs(p[:, normal] - value_mm) <= IN_PLANE_MM)[:, None], p, np.nan)
+    ax.plot(near[:, u], near[:, v], style, color=colour, lw=1.8, gid=gid)
+    ax.plot(p[-1, u], p[-1, v], "o", color=colour, ms=4, alpha=1.0 if np.isfinite(near[-1, 0]) else 0.35)
 
 
 def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered: Candidate | None,
@@ -300,7 +415,8 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
     """Axial, sagittal and coronal slices through a target with organ outlines and its two needles.
 
     The needles (best straight: dashed orange, best steered: solid cyan) are drawn projected onto each
-    plane, with their tips as dots; the target point is a green cross. Each view shows the needles and
+    plane, at full strength within :data:`IN_PLANE_MM` of it and faint beyond, with their tips as dots; the
+    target point is a green cross. Each view shows the needles and
     the outlines in its plane, at most ``window_mm`` from the target. Organ outlines carry the gid
     ``organ:NAME``, the axes the gid of their view (``axial``, ``sagittal``, ``coronal``).
 
@@ -333,19 +449,19 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
     meshes = {n: scene.meshes[n] for n in names if n in scene.meshes}
     needles = [(c, STRAIGHT_COLOUR, "--") for c in (straight,) if c is not None]
     needles += [(c, STEERED_COLOUR, "-") for c in (steered,) if c is not None]
-    fig = Figure(figsize=(13.5, 5.2))
+    fig = Figure(figsize=(13.5, 5.6))
     axes = fig.subplots(1, 3)
+    grey = None if volume is None else display_window(volume)
     for ax, (normal, u, v, view) in zip(axes, VIEWS, strict=True):
         ax.set_gid(view)
-        _background(ax, volume, normal, float(point[normal]))
+        _background(ax, volume, normal, float(point[normal]), grey)
         around = [point[None], *(c.path_mm for c, _, _ in needles)]
         for name, mesh in meshes.items():
             for loop in _section(mesh, normal, float(point[normal])):
                 ax.plot(loop[:, u], loop[:, v], color=organ_colour(name), lw=1.4, gid=f"organ:{name}")
                 around.append(loop)
         for c, colour, style in needles:
-            ax.plot(c.path_mm[:, u], c.path_mm[:, v], style, color=colour, lw=1.6)
-            ax.plot(c.path_mm[-1, u], c.path_mm[-1, v], "o", color=colour, ms=4)
+            draw_needle(ax, c.path_mm, normal, float(point[normal]), u, v, colour, style, f"needle:{c.hole_id}")
         ax.plot(point[u], point[v], "+", color=TARGET_COLOUR, ms=12, mew=2)
         lo, hi = _box(around, 10.0)
         lo, hi = np.maximum(lo, point - window_mm), np.minimum(hi, point + window_mm)
@@ -358,10 +474,10 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
         ax.set_ylim((hi[v], lo[v]) if view == "axial" else (lo[v], hi[v]))  # axial: anterior (-y) at the top
         ax.set_aspect("equal")
         seen = {"axial": "from the feet", "sagittal": "from the patient's left", "coronal": "from the front"}[view]
-        ax.set_title(f"{view} ({seen}), {'xyz'[normal]} = {point[normal]:.0f} mm", fontsize=10, y=TITLE_Y)
-        ax.set_xlabel(AXIS_LABELS[u], fontsize=8)
-        ax.set_ylabel(AXIS_LABELS[v], fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.set_title(f"{view} ({seen}), {'xyz'[normal]} = {point[normal]:.0f} mm", fontsize=11, y=TITLE_Y)
+        ax.set_xlabel(AXIS_LABELS[u], fontsize=MIN_FONT_PT)
+        ax.set_ylabel(AXIS_LABELS[v], fontsize=MIN_FONT_PT)
+        ax.tick_params(labelsize=MIN_FONT_PT)
         ax.locator_params(nbins=5)
         label_edges(ax, _UNIT[u], _UNIT[v])
     handles = [Line2D([], [], color=organ_colour(n), label=n) for n in meshes]
@@ -371,10 +487,12 @@ def slice_figure(scene: Scene, target: str, straight: Candidate | None, steered:
         handles.append(Line2D([], [], color=STEERED_COLOUR, label=f"steered {steered.hole_id}"))
     if dose is not None:
         handles += [Line2D([], [], color=c, lw=1.2, ls=ISODOSE_STYLE, label=f"{p} %") for p, c in ISODOSE_PERCENT]
-        handles.append(Line2D([], [], color="k", marker="o", ls="", ms=3, label="dwell (s)"))
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 9), fontsize=8, facecolor="#cfcfcf")
-    fig.suptitle(f"{target}: needles projected onto the slices through the target", fontsize=11)
-    fig.subplots_adjust(left=0.05, right=0.99, top=0.9, bottom=0.2, wspace=0.25)
+        handles.append(Line2D([], [], color="k", marker="o", ls="", ms=3, label="dwell (size: time)"))
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=MIN_FONT_PT,
+               facecolor="#cfcfcf")
+    fig.suptitle(f"{target}: needles projected onto the slices through the target (faint: more than "
+                 f"{IN_PLANE_MM:g} mm from the slice)", fontsize=12)
+    fig.subplots_adjust(left=0.055, right=0.99, top=0.89, bottom=0.24, wspace=0.28)
     return fig
 
 
@@ -405,16 +523,13 @@ def slice_views(scene: Scene, target: str, straight: Candidate | None, steered: 
     Returns
     -------
     bytes
-        PNG at 90 dpi.
+        PNG at :data:`DISPLAY_DPI`.
     """
-    return png_bytes(slice_figure(scene, target, straight, steered, volume, organs, window_mm, dose), dpi=90)
+    return png_bytes(slice_figure(scene, target, straight, steered, volume, organs, window_mm, dose))
 
 
 def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None = None) -> bytes:
-    """Draw the axial slice at the targets' mean height and the mid-sagittal slice (x = 0 mm) as PNG bytes.
-
-    With organ outlines, the target points (green crosses) and ``needles`` (steered: solid cyan, straight: dashed
-    orange).
+    """:func:`overview_figure` as PNG bytes.
 
     Parameters
     ----------
@@ -428,21 +543,46 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
     Returns
     -------
     bytes
-        PNG.
+        PNG at :data:`DISPLAY_DPI`.
+    """
+    return png_bytes(overview_figure(scene, needles, volume))
+
+
+def overview_figure(scene: Scene, needles: Sequence[Candidate], volume: Volume | None = None) -> Figure:
+    """Draw the axial slice at the targets' mean height and the mid-sagittal slice (x = 0 mm).
+
+    With organ outlines, the target points (green crosses) and ``needles`` (steered: solid cyan, straight: dashed
+    orange; faint more than :data:`IN_PLANE_MM` from the slice), the image in the window of
+    :func:`display_window`.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organ meshes and targets, mm, LPS.
+    needles : sequence of Candidate
+        The needles to draw.
+    volume : Volume or None
+        The image underneath.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Two axes (gids ``axial`` and ``sagittal``); the image carries the gid ``image``.
     """
     points = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)
     tz = float(np.mean(points[:, 2]))
-    fig = Figure(figsize=(12, 6))
+    fig = Figure(figsize=(12, 6.2))
     axes = fig.subplots(1, 2)
+    grey = None if volume is None else display_window(volume)
     for ax, (normal, u, v, view), value in zip(axes, VIEWS[:2], (tz, 0.0), strict=True):
-        _background(ax, volume, normal, value)
+        ax.set_gid(view)
+        _background(ax, volume, normal, value, grey)
         for name, mesh in scene.meshes.items():
             for loop in _section(mesh, normal, value):
-                ax.plot(loop[:, u], loop[:, v], color=organ_colour(name), lw=1.2)
+                ax.plot(loop[:, u], loop[:, v], color=organ_colour(name), lw=1.2, gid=f"organ:{name}")
         for c in needles:
             colour, style = (STEERED_COLOUR, "-") if c.steered else (STRAIGHT_COLOUR, "--")
-            ax.plot(c.path_mm[:, u], c.path_mm[:, v], style, color=colour, lw=1)
-            ax.plot(c.path_mm[-1, u], c.path_mm[-1, v], "o", color=colour, ms=3)
+            draw_needle(ax, c.path_mm, normal, value, u, v, colour, style, f"needle:{c.hole_id}")
         if view == "axial":
             ax.plot(points[:, u], points[:, v], "+", color=TARGET_COLOUR, ms=8, ls="")
         ax.set(title=f"{view}, {'xyz'[normal]} = {value:.0f} mm", xlabel=AXIS_LABELS[u], ylabel=AXIS_LABELS[v])
@@ -457,9 +597,9 @@ def overview(scene: Scene, needles: Sequence[Candidate], volume: Volume | None =
     handles += [Line2D([], [], color=TARGET_COLOUR, marker="+", ls="", label="target points and ROIs"),
                 Line2D([], [], color=STEERED_COLOUR, label="top needle per target: steered"),
                 Line2D([], [], color=STRAIGHT_COLOUR, ls="--", label="top needle per target: straight")]
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
-    fig.subplots_adjust(left=0.06, right=0.985, top=0.94, bottom=0.19, wspace=0.22)  # fixed: no tight-layout pass
-    return png_bytes(fig, dpi=110)
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=MIN_FONT_PT, frameon=False)
+    fig.subplots_adjust(left=0.07, right=0.985, top=0.94, bottom=0.22, wspace=0.22)  # fixed: no tight-layout pass
+    return fig
 
 
 #: Faces of an organ in the 3-D view: quadric decimation keeps the organs' shapes (bladder, rectum, pelvic bone)
@@ -541,22 +681,41 @@ def light_mesh(mesh: trimesh.Trimesh, max_faces: int = VIEW_FACES) -> trimesh.Tr
     return mesh.simplify_quadric_decimation(face_count=max_faces, aggression=9)
 
 
-def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> Figure:
+def implant_holes(needles: Sequence[Any]) -> list[tuple[str, bool]]:
+    """Return the template holes of an implant's needles, each with whether its needle is steered.
+
+    Parameters
+    ----------
+    needles : sequence of NeedleExport
+        The delivered plan's channels (:class:`reachplan.plugins.exporters.NeedleExport`); applicator channels
+        (``applicator``) are left out, a needle with a tension ``schedule`` is steered.
+
+    Returns
+    -------
+    list of (str, bool)
+        (hole id, steered) in channel order.
+    """
+    return [(n.hole_id, n.schedule is not None) for n in needles if not n.applicator]
+
+
+def template_map_figure(scene: Scene, implant: Sequence[tuple[str, bool]], what: str = "implant") -> Figure:
     """Draw the template's holes with their names (mm, template frame), as the operator sees the template.
 
     Seen from the patient's feet along the needles: the same orientation as the axial slices
     (:data:`RADIOLOGICAL`). The axes are flipped as the pose requires (patient left to the right, anterior up)
-    and the edges carry the anatomical letters of the pose. The holes of the chosen needles are filled and named
-    in bold; the hole markers carry the gid ``holes``.
+    and the edges carry the anatomical letters of the pose, in margins kept free of holes. Exactly the holes of
+    ``implant`` are filled (gids ``implant:steered`` and ``implant:straight``) and named in bold; every hole marker
+    carries the gid ``holes``.
 
     Parameters
     ----------
     scene : Scene
         The template and its pose.
-    straight : sequence of Candidate
-        The chosen straight needles.
-    steered : sequence of Candidate
-        The chosen steered needles.
+    implant : sequence of (str, bool)
+        The implant's needles: hole id and whether steered (:func:`implant_holes`).
+    what : str
+        What the filled holes are, for the legend (``implant`` or, without a delivered plan, the per-target
+        needles).
 
     Returns
     -------
@@ -564,58 +723,59 @@ def template_map_figure(scene: Scene, straight: Sequence[Candidate], steered: Se
         One axes in template coordinates (mm).
     """
     m = scene.patient_from_template
-    fig = Figure(figsize=(8.0, 5.2))
+    fig = Figure(figsize=(10.5, 7.0))
     ax = fig.add_subplot()
     holes = {h.hole_id: h for h in scene.template.holes}
     xy = np.array([h.xy_mm for h in scene.template.holes])
-    ax.scatter(xy[:, 0], xy[:, 1], s=22, facecolors="none", edgecolors="#999999", label="hole", gid="holes")
+    ax.scatter(xy[:, 0], xy[:, 1], s=26, facecolors="none", edgecolors="#888888", label="hole", gid="holes")
     for h in scene.template.holes:
         if h.kind != "needle":
-            ax.scatter(*h.xy_mm, s=60, marker="s", color="#7f7f7f", label=h.kind)
-    used_all: set[str] = set()
-    for cands, colour, label in ((straight, STRAIGHT_COLOUR, "straight"), (steered, STEERED_COLOUR, "steered")):
-        used = sorted({c.hole_id for c in cands})
-        used_all |= set(used)
-        if not used:
-            continue
-        p = np.array([holes[u].xy_mm for u in used])
-        ax.scatter(p[:, 0], p[:, 1], s=70 if label == "straight" else 34, color=colour, label=f"{label} needle")
+            ax.scatter(*h.xy_mm, s=70, marker="s", color="#7f7f7f", label=h.kind)
+    chosen = dict(implant)
+    for steered, colour in ((False, STRAIGHT_COLOUR), (True, STEERED_COLOUR)):
+        used = [hole for hole, st in chosen.items() if st == steered]
+        if used:
+            p = np.array([holes[u].xy_mm for u in used])
+            ax.scatter(p[:, 0], p[:, 1], s=90, color=colour, edgecolors="k", linewidths=0.8, zorder=4,
+                       label=f"{what}: {'steered' if steered else 'straight'} needle",
+                       gid=f"implant:{'steered' if steered else 'straight'}")
     for h in scene.template.holes:
-        ax.annotate(h.hole_id, h.xy_mm, xytext=(0, 4.5), textcoords="offset points", fontsize=5.5, ha="center",
-                    fontweight="bold" if h.hole_id in used_all else "normal",
-                    color="#000000" if h.hole_id in used_all else "#555555")
+        ax.annotate(h.hole_id, h.xy_mm, xytext=(0, 5), textcoords="offset points", fontsize=MIN_FONT_PT,
+                    ha="center", va="bottom", fontweight="bold" if h.hole_id in chosen else "normal",
+                    color="#000000" if h.hole_id in chosen else "#555555", gid=f"hole:{h.hole_id}")
     ax.set_aspect("equal")
-    ax.margins(0.08)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    pad = 0.1 * (hi - lo) + 6.0  # mm: a margin on every side for the orientation letters, free of holes and names
+    ax.set_xlim(lo[0] - pad[0], hi[0] + pad[0])
+    ax.set_ylim(lo[1] - pad[1], hi[1] + pad[1] + 3.0)  # a name sits above its hole
     if m[0, 0] < 0:  # template +x towards the patient's right: flip so that the patient's left is on the right
         ax.invert_xaxis()
     if m[1, 1] > 0:  # template +y posterior: flip so that anterior is at the top
         ax.invert_yaxis()
     label_edges(ax, m[:3, 0], m[:3, 1])
     ax.set(xlabel="template x (mm)", ylabel="template y (mm)")
-    ax.set_title(f"template {scene.template.name}, seen from the patient's feet (operator's view)", fontsize=10,
+    ax.set_title(f"template {scene.template.name}, seen from the patient's feet (operator's view)", fontsize=12,
                  y=TITLE_Y)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
-    fig.subplots_adjust(left=0.08, right=0.79, top=0.93, bottom=0.1)  # fixed margins: no tight-layout pass
+    ax.legend(fontsize=MIN_FONT_PT + 1, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    fig.subplots_adjust(left=0.08, right=0.75, top=0.94, bottom=0.09)  # fixed margins: no tight-layout pass
     return fig
 
 
-def template_map(scene: Scene, straight: Sequence[Candidate], steered: Sequence[Candidate]) -> bytes:
+def template_map(scene: Scene, implant: Sequence[tuple[str, bool]], what: str = "implant") -> bytes:
     """:func:`template_map_figure` as PNG bytes.
 
     Parameters
     ----------
     scene : Scene
         Template and pose, as for :func:`template_map_figure`.
-    straight : sequence of Candidate
-        Straight needles whose holes are marked.
-    steered : sequence of Candidate
-        Steered needles whose holes are marked.
+    implant : sequence of (str, bool)
+        The holes to fill: hole id and whether steered.
+    what : str
+        What the filled holes are.
 
     Returns
     -------
     bytes
-        PNG at 90 dpi.
+        PNG at :data:`DISPLAY_DPI`.
     """
-    return png_bytes(template_map_figure(scene, straight, steered), dpi=90)
-
-
+    return png_bytes(template_map_figure(scene, implant, what))

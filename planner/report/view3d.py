@@ -57,11 +57,15 @@ class Needle3d:
         Centreline from base to tip.
     steered : bool
         Drawn as a steered needle (solid cyan) or a straight one (dashed orange).
+    implant : bool
+        A needle of the delivered implant (trace ``meta`` ``implant``, drawn thicker); when any is drawn, the
+        other needles (each target's best candidates) start hidden.
     """
 
     label: str
     path_mm: np.ndarray
     steered: bool
+    implant: bool = False
 
     @staticmethod
     def of(c: Candidate, note: str = "") -> Needle3d:
@@ -123,8 +127,8 @@ def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_m
     Returns
     -------
     dict of str to object
-        ``data`` (traces; each has ``meta`` = ``organ``, ``needle``, ``targets``, ``template`` or ``dwells``) and
-        ``layout``; coordinates in mm, LPS.
+        ``data`` (traces; each has ``meta`` = ``organ``, ``implant``, ``needle``, ``targets``, ``template`` or
+        ``dwells``) and ``layout``; coordinates in mm, LPS.
     """
     data: list[dict[str, Any]] = []
     for name, mesh in scene.meshes.items():
@@ -137,12 +141,14 @@ def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_m
             "i": f[:, 0].tolist(), "j": f[:, 1].tolist(), "k": f[:, 2].tolist(), "flatshading": True,
             "hoverinfo": "name", "visible": "legendonly" if name in HIDDEN_ORGANS else True,
         })
+    any_implant = any(n.implant for n in needles)
     for n in needles:
         p = np.asarray(n.path_mm, dtype=float)
         data.append({
-            "type": "scatter3d", "mode": "lines", "name": n.label, "meta": "needle",
+            "type": "scatter3d", "mode": "lines", "name": n.label, "meta": "implant" if n.implant else "needle",
             "x": _r(p[:, 0]), "y": _r(p[:, 1]), "z": _r(p[:, 2]), "hoverinfo": "name",
-            "line": {"color": STEERED_COLOUR if n.steered else STRAIGHT_COLOUR, "width": 6,
+            "visible": "legendonly" if any_implant and not n.implant else True,
+            "line": {"color": STEERED_COLOUR if n.steered else STRAIGHT_COLOUR, "width": 9 if n.implant else 5,
                      "dash": "solid" if n.steered else "dash"},
         })
     pts = np.array([t.position_mm for t in scene.targets], dtype=float).reshape(-1, 3)

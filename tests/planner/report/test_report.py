@@ -10,6 +10,7 @@ import base64
 import io
 import json
 import os
+import re
 import shutil
 import subprocess
 from html.parser import HTMLParser
@@ -55,11 +56,26 @@ def planned(rtstruct: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[P
     return out, json.loads(buf.getvalue()), buf.getvalue()  # json.loads fails unless stdout is one document
 
 
-def _images(html: str) -> list[np.ndarray]:
+def _implant_needles(out: Path) -> list[tuple[str, bool]]:
+    """The delivered implant's template needles from plan.json: hole and whether steered (applicators left out)."""
+    doc = json.loads((out / "plan.json").read_text())
+    delivery, implant = doc["delivery"], doc["implant"]
+    kinds = {n["hole_id"]: n["kind"] for arm in ("straight", "steered") for n in implant[arm]["needles"]}
+    arm = "steered" if delivery["plan"] == "implant, straight + steered" else "straight"
+    kinds.update({n["hole_id"]: n["kind"] for n in implant[arm]["needles"]})
+    return [(h, kinds[h] == "steered") for h, role in zip(delivery["needles"], delivery["roles"], strict=True)
+            if role != "intracavitary"]
+
+
+def _parsed(html: str) -> list[tuple[str, dict[str, str | None]]]:
     parser = _Tags()
     parser.feed(html)
+    return parser.tags
+
+
+def _images(html: str) -> list[np.ndarray]:
     out = []
-    for tag, attrs in parser.tags:
+    for tag, attrs in _parsed(html):
         if tag == "img":
             src = attrs.get("src") or ""
             assert src.startswith("data:image/png;base64,"), src[:60]
@@ -85,16 +101,19 @@ def test_plan_writes_a_self_contained_report(planned: tuple[Path, dict[str, obje
         assert tag != "script" or "src" not in attrs  # scripts are inline (plotly.js and the 3-D view)
     assert "script-src 'unsafe-inline'" in html and "connect-src" not in html and "default-src 'none'" in html
     ids = {a.get("id") for t, a in parser.tags if t == "section"}
-    assert ids >= {"case", "ranking", "slices", "views-3d", "needles", "dose", "implant", "device", "models"}
+    assert ids >= {"case", "ranking", "slices", "reformat", "views-3d", "needles", "dose", "implant", "device",
+                   "models"}
     assert len(report.read_bytes()) < 3.5e6  # plotly.js's gl3d bundle, palette PNGs, decimated organs
     images = _images(html)
-    # template map, overview, workspace, one slice figure per target, the delivered plan's DVH, the implant arms'
-    # Pareto curves and DVHs, speed-accuracy chart (the implant arms are the straight-versus-steered comparison)
-    assert len(images) == 3 + len(TARGETS) + 1 + 2 + 1
+    # template map, overview, workspace, one slice figure per target, one reformat per implant needle, the delivered
+    # plan's DVH, the implant arms' Pareto curves and DVHs, speed-accuracy chart (the implant arms are the
+    # straight-versus-steered comparison)
+    assert len(images) == 3 + len(TARGETS) + len(_implant_needles(out)) + 1 + 2 + 1
     for img in images:
         rgb = img[..., :3].reshape(-1, 3)
         assert rgb.std(axis=0).max() > 0.05, "blank figure"
-        assert len(np.unique((rgb * 255).astype(np.uint8), axis=0)) > 50
+        rgb8 = (rgb * 255).astype(np.uint32)  # each colour one integer: a 1-D unique, 20 times faster than axis=0
+        assert len(np.unique(rgb8[:, 0] << 16 | rgb8[:, 1] << 8 | rgb8[:, 2])) > 50
 
 
 def test_report_content_matches_the_plan(planned: tuple[Path, dict[str, object], str]) -> None:
@@ -179,8 +198,12 @@ def test_interactive_view_has_one_trace_per_organ_and_needle(planned: tuple[Path
     assert sorted(needles) == sorted(expected) and needles[0].startswith("insert ")
     dwells = next(t for t in data if t["meta"] == "dwells")
     assert isinstance(dwells["x"], list) and len(dwells["x"]) > 0
-    assert sorted(t["meta"] for t in data if t["meta"] not in {"organ", "needle"}) == ["dwells", "targets",
-                                                                                       "template"]
+    implant = [t for t in data if t["meta"] == "implant"]  # the delivered implant's needles, shown; the rest hidden
+    assert sorted(t["name"].split()[-1] for t in implant) == sorted(h for h, _ in _implant_needles(out))
+    assert all(t.get("visible", True) is True for t in implant)
+    assert all(t["visible"] == "legendonly" for t in data if t["meta"] == "needle")
+    assert sorted(t["meta"] for t in data if t["meta"] not in {"organ", "needle", "implant"}) == [
+        "dwells", "targets", "template"]
 
 
 def test_report_renders_in_headless_chromium(planned: tuple[Path, dict[str, object], str], tmp_path: Path) -> None:
@@ -208,6 +231,40 @@ def test_report_renders_in_headless_chromium(planned: tuple[Path, dict[str, obje
     for rgb in (STEERED_RGB, STRAIGHT_RGB):  # needle colours appear only inside the embedded figures
         near = np.abs(px - np.array(rgb)).max(axis=1) <= 12
         assert near.sum() > 200, f"no {rgb} pixels: the figures did not render"
+    _implant_in_the_browser(exe, out, dom.stdout, tmp_path)
+
+
+def _implant_in_the_browser(exe: str, out: Path, dom: str, tmp_path: Path) -> None:
+    """Issue 29: the template map Chromium shows fills exactly the implant's holes; one reformat per implant needle.
+
+    The rendered DOM names the figures (their alt text); the template map, taken from the report with the report's
+    own style sheet, is screenshot alone: its filled markers of each needle colour are the implant's needles of that
+    kind plus the legend's one.
+    """
+    from scipy import ndimage
+
+    implant = _implant_needles(out)
+    alts = [a.get("alt") or "" for t, a in _parsed(dom) if t == "img"]
+    (tmap,) = [a for a in alts if a.startswith("template map: ")]
+    assert tmap == "template map: implant holes " + ", ".join(h for h, _ in implant)
+    assert sorted(a for a in alts if a.startswith("reformat along needle ")) == sorted(
+        f"reformat along needle {h}" for h, _ in implant)
+    html = (out / "report.html").read_text(encoding="utf-8")
+    style = html[html.index("<style>"):html.index("</style>") + len("</style>")]
+    img = next(m for m in re.findall(r"<img [^>]*>", html) if 'alt="template map: ' in m)
+    page = tmp_path / "map.html"
+    page.write_text(f"<!doctype html><html><head><meta charset='utf-8'>{style}</head>"
+                    f"<body style='margin:0'><figure style='margin:0'>{img}</figure></body></html>", encoding="utf-8")
+    shot = tmp_path / "map.png"
+    run = subprocess.run(_browser(exe, tmp_path / "profile3", f"--screenshot={shot}", "--window-size=1100,760",
+                                  page.resolve().as_uri()), capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 0 and shot.is_file(), run.stderr[-2000:]
+    px = (mpimg.imread(shot)[..., :3] * 255).round().astype(int)
+    for rgb, steered in ((STRAIGHT_RGB, False), (STEERED_RGB, True)):
+        n = sum(s == steered for _, s in implant)
+        blobs, _ = ndimage.label(np.abs(px - np.array(rgb)).max(axis=2) <= 12)
+        sizes = np.bincount(blobs.ravel())[1:]
+        assert int(np.sum(sizes >= 40)) == (n + 1 if n else 0), (rgb, sizes)  # filled markers: ~80 px each
 
 
 def test_progress_bars_by_default_and_silence_with_quiet(rtstruct: Path, tmp_path: Path,

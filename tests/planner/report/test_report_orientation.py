@@ -45,7 +45,7 @@ def _organ_centre_px(ax: object, name: str) -> np.ndarray:
 
 def test_template_map_and_axial_slice_put_the_bladder_side_at_the_top(scene: Scene) -> None:
     m = scene.patient_from_template
-    tmap = figures.template_map_figure(scene, [], [])
+    tmap = figures.template_map_figure(scene, [])
     ax_t = tmap.axes[0]
     holes = [h for h in scene.template.holes if h.kind == "needle"]
     xy = np.array([h.xy_mm for h in holes])
@@ -97,7 +97,7 @@ def test_a_flipped_pose_flips_the_template_map(scene: Scene) -> None:
 
     turn = np.diag([-1.0, -1.0, 1.0, 1.0])
     flipped = dataclasses.replace(scene, patient_from_template=scene.patient_from_template @ turn)
-    ax = figures.template_map_figure(flipped, [], []).axes[0]
+    ax = figures.template_map_figure(flipped, []).axes[0]
     xy = np.array([h.xy_mm for h in flipped.template.holes])
     patient = xy @ flipped.patient_from_template[:2, :3] + flipped.patient_from_template[:3, 3]
     px = _display(ax, xy)
@@ -128,4 +128,4 @@ def test_isodose_lines_are_drawn_at_the_levels_asked(scene: Scene) -> None:
 
 
 def test_rendered_figures_are_png(scene: Scene, tmp_path: Path) -> None:
-    assert figures.template_map(scene, [], []).startswith(b"\x89PNG")
+    assert figures.template_map(scene, []).startswith(b"\x89PNG")
