@@ -14,8 +14,9 @@ Model: the in-tissue Cosserat rod (:mod:`~reachplan.planner.steering.tissue_rod`
 kinematic model's curvature factor is fitted only from 0.1 MPa, above the default band's soft end of 0.063 MPa). The
 band's paths are the needle's own path plus the change the rod predicts (rod at the scaled moduli minus rod at the
 planned ones, both on :data:`BAND_MODEL`'s coarse 4 mm steps): 15ga-30j-tip, 9 N ramps, tips at 90-140 mm, that
-change agrees with the planner's reference rod (2 mm steps with Richardson extrapolation) to 0.08 mm, at about a
-third of its cost (0.15-0.5 s a solve; three solves a needle, memoised).
+change agrees with the planner's reference rod (2 mm steps with Richardson extrapolation) to 0.09 mm
+(``docs/mechanics.md``, the tissue band), at about a third of its cost (three solves a needle, memoised: 0.6 s of CPU
+for the clinical demo case's four chosen steered needles).
 """
 
 from __future__ import annotations
