@@ -184,11 +184,11 @@ def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_m
 
 
 def with_tissue_bands(figure: dict[str, Any], bands: Sequence[tuple[str, TissueBand]]) -> dict[str, Any]:
-    """Return ``figure`` with each steered needle's tissue band drawn: a ribbon through its paths, edges labelled.
+    """Return ``figure`` with each steered needle's tissue band drawn: a ribbon through its paths, and its edges.
 
     The ribbon joins the band's paths from the softest tissue to the stiffest (translucent, the steered needles'
-    colour); the softest and stiffest paths are dotted lines whose hover text gives the modulus at the tip. One
-    legend entry per needle toggles both.
+    colour); the softest and stiffest paths are one dotted trace (a gap between them) named with their moduli at
+    the tip. Both are in one legend group: a click on either hides or shows the band.
 
     Parameters
     ----------
@@ -201,8 +201,8 @@ def with_tissue_bands(figure: dict[str, Any], bands: Sequence[tuple[str, TissueB
     Returns
     -------
     dict of str to object
-        A new figure: ``figure``'s traces, then per band a ``mesh3d`` ribbon and two line traces, ``meta`` =
-        ``tissue band``.
+        A new figure: ``figure``'s traces, then per band a ``mesh3d`` ribbon and a ``scatter3d`` of its two edge
+        paths, ``meta`` = ``tissue band``.
     """
     traces: list[dict[str, Any]] = []
     for label, band in bands:
@@ -216,14 +216,15 @@ def with_tissue_bands(figure: dict[str, Any], bands: Sequence[tuple[str, TissueB
         faces = np.concatenate([np.column_stack([a, a + 1, a + n + 1]), np.column_stack([a, a + n + 1, a + n])])
         group = f"band {label}"
         lo, hi = band.moduli_pa[0] / 1e6, band.moduli_pa[-1] / 1e6
-        name = f"tissue band {label} ({lo:.3g}-{hi:.3g} MPa)"
-        traces.append({"type": "mesh3d", "name": name, "meta": "tissue band", "legendgroup": group,
-                       "showlegend": True, "color": STEERED_COLOUR, "opacity": 0.3, "flatshading": True,
-                       "x": _r(v[:, 0]), "y": _r(v[:, 1]), "z": _r(v[:, 2]), "i": faces[:, 0].tolist(),
-                       "j": faces[:, 1].tolist(), "k": faces[:, 2].tolist(), "hoverinfo": "name"})
-        for p, e in ((paths[0], lo), (paths[-1], hi)):
-            traces.append({"type": "scatter3d", "mode": "lines", "name": f"{label} in {e:.3g} MPa",
-                           "meta": "tissue band", "legendgroup": group, "showlegend": False,
-                           "x": _r(p[:, 0]), "y": _r(p[:, 1]), "z": _r(p[:, 2]), "hoverinfo": "name",
-                           "line": {"color": STEERED_COLOUR, "width": 3, "dash": "dot"}})
+        traces.append({"type": "mesh3d", "name": f"tissue band {label} ({lo:.3g}-{hi:.3g} MPa)",
+                       "meta": "tissue band", "legendgroup": group, "showlegend": True, "color": STEERED_COLOUR,
+                       "opacity": 0.3, "flatshading": True, "x": _r(v[:, 0]), "y": _r(v[:, 1]), "z": _r(v[:, 2]),
+                       "i": faces[:, 0].tolist(), "j": faces[:, 1].tolist(), "k": faces[:, 2].tolist(),
+                       "hoverinfo": "name"})
+        soft, stiff = paths[0], paths[-1]
+        edges = {axis: [*_r(soft[:, k]), None, *_r(stiff[:, k])] for k, axis in enumerate("xyz")}
+        traces.append({"type": "scatter3d", "mode": "lines", "meta": "tissue band", "legendgroup": group,
+                       "name": f"{label}: softest / stiffest path ({lo:.3g} / {hi:.3g} MPa at the tip)",
+                       "showlegend": True, **edges, "connectgaps": False, "hoverinfo": "name",
+                       "line": {"color": STEERED_COLOUR, "width": 3, "dash": "dot"}})
     return {**figure, "data": [*figure["data"], *traces]}

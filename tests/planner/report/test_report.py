@@ -175,8 +175,10 @@ def test_interactive_view_has_one_trace_per_organ_and_needle(planned: tuple[Path
     assert sorted(needles) == expected  # each target's best of each kind; Target_65_000 has no straight one
     dwells = next(t for t in data if t["meta"] == "dwells")
     assert isinstance(dwells["x"], list) and len(dwells["x"]) > 0
-    assert sorted(t["meta"] for t in data if t["meta"] not in {"organ", "needle"}) == ["dwells", "targets",
-                                                                                       "template"]
+    assert sorted(t["meta"] for t in data if t["meta"] not in {"organ", "needle", "tissue band"}) == [
+        "dwells", "targets", "template"]
+    steered = [n for n in needles if n.startswith("steered")]  # each drawn with its tissue band: ribbon and edges
+    assert len([t for t in data if t["meta"] == "tissue band"]) == 2 * len(steered) > 0
 
 
 def test_report_renders_in_headless_chromium(planned: tuple[Path, dict[str, object], str], tmp_path: Path) -> None:

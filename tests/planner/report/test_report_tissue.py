@@ -99,14 +99,16 @@ def test_the_3d_view_draws_each_band_as_a_ribbon_between_its_softest_and_stiffes
     base = {"data": [{"type": "scatter3d", "meta": "needle"}], "layout": {}}
     fig = draw_bands(base, [("Ch", band), ("failed", dataclasses.replace(band, paths_mm=()))])
     assert fig["data"][0] == base["data"][0] and len(base["data"]) == 1  # not changed in place
-    ribbon, soft, stiff = fig["data"][1:]
-    assert ribbon["type"] == "mesh3d" and ribbon["meta"] == soft["meta"] == stiff["meta"] == "tissue band"
+    ribbon, edges = fig["data"][1:]
+    assert ribbon["type"] == "mesh3d" and ribbon["meta"] == edges["meta"] == "tissue band"
+    assert ribbon["legendgroup"] == edges["legendgroup"] and ribbon["showlegend"] and edges["showlegend"]
     n = len(band.paths_mm[0])
     assert len(ribbon["x"]) == 3 * n and len(ribbon["i"]) == 2 * 2 * (n - 1)  # two triangles a quad
     assert max(ribbon["i"] + ribbon["j"] + ribbon["k"]) == 3 * n - 1
-    assert soft["x"][-1] == pytest.approx(band.paths_mm[0][-1][0], abs=0.05)
-    assert stiff["z"][-1] == pytest.approx(band.paths_mm[-1][-1][2], abs=0.05)
-    assert "0.0633" in soft["name"] and "0.57" in stiff["name"]
+    assert len(edges["x"]) == 2 * n + 1 and edges["x"][n] is None  # softest, a gap, stiffest
+    assert edges["x"][n - 1] == pytest.approx(band.paths_mm[0][-1][0], abs=0.05)
+    assert edges["z"][-1] == pytest.approx(band.paths_mm[-1][-1][2], abs=0.05)
+    assert "0.0633 / 0.57 MPa" in edges["name"]
 
 
 def test_an_implant_needle_is_banded_about_its_own_tip_once_for_both_arms(
