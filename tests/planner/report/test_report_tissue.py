@@ -20,7 +20,7 @@ from reachplan.imaging.types import StructureSet
 from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene, build_scene
-from reachplan.planner.case.search import plan
+from reachplan.planner.case.search import band_shortlist, plan
 from reachplan.planner.dose.coverage import StructureMetrics
 from reachplan.planner.dose.dwells import DwellSet
 from reachplan.planner.errors import PlanInputError
@@ -142,3 +142,14 @@ def test_an_implant_needle_is_banded_about_its_own_tip_once_for_both_arms(
 def test_an_organ_modulus_for_a_missing_roi_is_a_typed_error(structures: StructureSet) -> None:
     with pytest.raises(PlanInputError, match="--organ-modulus names 'Parametrium'"):
         build_scene(structures, [TARGET], config=PlanConfig(tissue_moduli_pa=(("Parametrium", 0.3e6),)))
+
+
+def test_an_organ_modulus_sets_the_band_where_the_needle_ends(scene: Scene, plans: dict[float, PlanResult]) -> None:
+    """The target ROI given 0.5 MPa: the band's moduli at the tip are its, scaled; the gel elsewhere."""
+    config = dataclasses.replace(_config(), tissue_moduli_pa=((TARGET, 0.5e6),))
+    out = band_shortlist(scene, list(plans[0.19e6].candidates), config)
+    (banded,) = [c for c in out if c.tissue_band is not None]
+    assert banded.tissue_band is not None
+    assert banded.tissue_band.moduli_pa == pytest.approx((0.5e6 / 3, 0.5e6, 1.5e6))
+    gel = choose_needles(plans[0.19e6], steered=True)[0].tissue_band
+    assert gel is not None and banded.tissue_band.reach_mm != pytest.approx(gel.reach_mm, abs=1e-4)
