@@ -100,6 +100,8 @@ TARGETS: tuple[Target, ...] = (
            "fitted to the in-tissue rod (the planner's package table)"),
     Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
            (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
+    Target("band", "band", "the tissue band's rod model against the reference rod: tip change over the modulus band, "
+           "CPU per solve"),
 )
 
 

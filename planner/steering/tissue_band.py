@@ -13,10 +13,11 @@ and every band says so (:data:`DEFAULT_SOURCE`); a cited range is given with ``-
 Model: the in-tissue Cosserat rod (:mod:`~reachplan.planner.steering.tissue_rod`), which holds at every modulus (the
 kinematic model's curvature factor is fitted only from 0.1 MPa, above the default band's soft end of 0.063 MPa). The
 band's paths are the needle's own path plus the change the rod predicts (rod at the scaled moduli minus rod at the
-planned ones, both on :data:`BAND_MODEL`'s coarse 4 mm steps): 15ga-30j-tip, 9 N ramps, tips at 90-140 mm, that
-change agrees with the planner's reference rod (2 mm steps with Richardson extrapolation) to 0.09 mm
-(``docs/mechanics.md``, the tissue band), at about a third of its cost (three solves a needle, memoised: 0.6 s of CPU
-for the clinical demo case's four chosen steered needles).
+planned ones, both on :data:`BAND_MODEL`'s coarse 4 mm insertion steps). Against the planner's reference rod (2 mm
+steps with Richardson extrapolation; ``reachplan bench band``, ``docs/tissue_band.csv``): the stiff edge's tip change
+within 0.06 mm, the soft edge's within 0.19 mm except for needles pulled from the template with deep tips (0.5 mm at
+150 mm, pessimistic), at a third of the reference's CPU per solve (0.19 s against 0.53 s); three solves a needle,
+memoised.
 """
 
 from __future__ import annotations
@@ -41,8 +42,10 @@ from reachplan.rod_model.design import RodDesign
 DEFAULT_SOURCE = ("ASSUMED: the plan's tissue modulus (the phantom gel's 0.19 MPa, SimuGel #3, oncoreach.md) "
                   "x/÷ 3; the reference material gives no Young's modulus for uterus, cervix or parametrium")
 
-#: The band's rod model: 4 mm insertion steps, 2 mm RK4 steps, no extrapolation (see the module docstring).
-BAND_MODEL = TissueRodInsertion(rod_model=TwoTubeCosserat(steps_per_mm=0.5), step_mm=4.0)
+#: The band's rod model: 4 mm insertion steps, 1 RK4 step per mm, no extrapolation (the coarse half of the
+#: reference's Richardson pair; see the module docstring). 2 mm RK4 steps failed the rod's own step-doubling check
+#: in the gel ÷ 3 (ramp from 40 mm, tip at 120 mm: the tip moved 0.0502 mm against a 0.05 mm limit).
+BAND_MODEL = TissueRodInsertion(rod_model=TwoTubeCosserat(steps_per_mm=1.0), step_mm=4.0)
 
 
 @dataclass(frozen=True)
