@@ -33,7 +33,7 @@ from reachplan.plugins.sources import SourceData
 if TYPE_CHECKING:
     from reachplan.planner.dose.coverage import Dvh
     from reachplan.planner.dose.dwells import DwellSet
-    from reachplan.planner.dose.structures import PlanningStructures, Structure
+    from reachplan.planner.dose.structures import PlanningStructures
     from reachplan.planner.dose.tg43 import Tg43Kernel
     from reachplan.planner.implant.arms import ImplantArm, ImplantPlan
     from reachplan.planner.implant.dwells import OptimisationResult
@@ -272,8 +272,7 @@ def plan_delivery(
     source, aims = get_source(source_name), Aims() if aims is None else aims
     kernel = Tg43Kernel(source)
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
-                                                    implant_settings, gtv_structure(structures, planning.grid),
-                                                    case_point_limits(structures, aims, named_points))
+                                                    implant_settings, structures, named_points)
     fractions = aims.fractionation.n_fractions
     now, setup = datetime.now().replace(microsecond=0), load_template(result.config.template).application_setup_type
     spec = SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0))  # Eclipse
@@ -432,18 +431,20 @@ def case_point_limits(structures: StructureSet, aims: Aims,
 
 def _delivered(result: PlanResult, scene: Scene | None, planning: PlanningStructures, source: SourceData,
                kernel: Tg43Kernel, air_kerma_u: float, aims: Aims, implant_settings: ImplantSettings | None,
-               gtv: Structure | None = None, points: Sequence[PointLimit] = (),
+               structures: StructureSet, named_points: Sequence[tuple[str, Sequence[float]]] = (),
                ) -> tuple[ImplantComparison | None, OptimisationResult, tuple[NeedleExport, ...], tuple[str, ...], str]:
     """Return the implant arms (with ``scene``) and the plan to deliver: optimisation, needles, roles and kind.
 
     The implant arm :func:`_delivered_implant` picks, else one needle per target (:func:`_per_target`). The implant
-    also aims at ``gtv`` (GTV_res, :func:`~reachplan.planner.dose.structures.gtv_structure`) when there is one, and
-    holds the protocol's dose points (``points``: the ICRU recto-vaginal point) with the organs.
+    also aims at the GTV (GTV_res, :func:`~reachplan.planner.dose.structures.gtv_structure`) when ``structures``
+    has one, and holds the protocol's dose points (:func:`case_point_limits`: the ICRU recto-vaginal point) with the
+    organs.
     """
     implant = None
     if scene is not None:
         implant = plan_implants(scene, planning, result.config, source, air_kerma_u, implant_settings, aims=aims,
-                                gtv=gtv, points=points)
+                                gtv=gtv_structure(structures, planning.grid),
+                                points=case_point_limits(structures, aims, named_points))
     delivered = _delivered_implant(implant, planning.target.name)
     if delivered is not None:
         arm, opt, exports, roles = delivered

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
 
 from reachplan.planner.lookup import rod_model, rod_model_capabilities
 from reachplan.planner.ranking import RankWeights
+from reachplan.planner.steering.factors import TIP_FOLLOWING_MIN_PA
+from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA
 from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.robustness import Perturbations
 from reachplan.planner.steering.steered import ScheduleFamily
+from reachplan.planner.steering.tissue_band import ModulusBand
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.design import RodDesign, preset
 
@@ -69,11 +72,19 @@ class PlanConfig:
     perturbations : Perturbations
         Tension, roll and entry-angle errors of the robustness check.
     tissue_moduli_pa : tuple of (str, float), Pa
-        Young's modulus per organ (normalised ROI name), e.g. ``(("Uterus", 0.5e6),)``; tissue outside the named
-        organs keeps the gel's 0.19 MPa (the reference's only modulus). The organ holding a target sets the
+        Young's modulus per organ (normalised ROI name), e.g. ``(("Uterus", 0.5e6),)`` (``--organ-modulus``);
+        tissue outside the named organs has ``tissue_modulus_pa``. The organ holding a target sets the
         screening and robustness models' curvature factor
         (:func:`~reachplan.planner.steering.factors.curvature_factor`); the reference model takes the modulus
-        along the path.
+        along the path. Each at least :data:`~reachplan.planner.steering.factors.TIP_FOLLOWING_MIN_PA`.
+    tissue_modulus_pa : float, Pa
+        Young's modulus of the tissue outside the organs of ``tissue_moduli_pa`` (``--tissue-modulus``); default
+        the phantom gel's 0.19 MPa (SimuGel #3, reference ``oncoreach.md``: the reference's only tissue modulus).
+        At least :data:`~reachplan.planner.steering.factors.TIP_FOLLOWING_MIN_PA` (the screening model's range).
+    modulus_band : ModulusBand
+        The range of moduli each shown steered needle is re-inserted over (``--modulus-band``; default the plan's
+        moduli x/÷ 3, ASSUMED: :mod:`~reachplan.planner.steering.tissue_band`); its worst reach and clearance are
+        reported beside the needle.
     screen_tolerance_mm : float, mm
         The screening uses the cheapest rod model (by batched throughput) whose measured free-space tip error (the
         rod-model benchmark's table) is within it; ``planar_beam`` at 0.5 mm.
@@ -104,6 +115,8 @@ class PlanConfig:
     screen_tolerance_mm: float = 0.5
     applicators: tuple[tuple[str, str], ...] = ()
     tension_reserve: float = 0.10
+    tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
+    modulus_band: ModulusBand = field(default_factory=ModulusBand)
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
@@ -113,6 +126,10 @@ class PlanConfig:
         if not (np.isfinite(self.tension_reserve) and 0.0 <= self.tension_reserve < 1.0):
             raise ValueError(f"tension_reserve must be a fraction in [0, 1) of the stylet's limit, "
                              f"got {self.tension_reserve}")
+        for name, value in (("the tissue", self.tissue_modulus_pa), *self.tissue_moduli_pa):
+            if not (np.isfinite(value) and value >= TIP_FOLLOWING_MIN_PA):
+                raise ValueError(f"the Young's modulus of {name} must be at least {TIP_FOLLOWING_MIN_PA / 1e6:g} MPa "
+                                 f"(the screening model's range), got {value / 1e6:g} MPa")
 
     @cached_property
     def rod_designs(self) -> tuple[RodDesign, ...]:
@@ -157,17 +174,23 @@ class PlanModels:
     def for_config(cls, config: PlanConfig) -> PlanModels:
         """Return the default models, with the screening model of ``config`` (:func:`screening_model`).
 
+        Every model's tissue modulus is ``config.tissue_modulus_pa`` (the organs of ``config.tissue_moduli_pa`` set
+        theirs per target and along each path).
+
         Parameters
         ----------
         config : PlanConfig
-            Its ``screen_tolerance_mm`` picks the screening rod model.
+            Its ``screen_tolerance_mm`` picks the screening rod model; ``tissue_modulus_pa`` (Pa).
 
         Returns
         -------
         PlanModels
-            The reference and robustness defaults, and that screening model.
+            The reference and robustness defaults, and that screening model, in the plan's tissue.
         """
-        return cls(screening=screening_model(config))
+        e = config.tissue_modulus_pa
+        return cls(screening=replace(screening_model(config), tissue_modulus_pa=e),
+                   reference=replace(PLANNER_REFERENCE, tissue_modulus_pa=e),
+                   robustness=replace(KINEMATIC, tissue_modulus_pa=e))
 
 
 def screening_model(config: PlanConfig) -> KinematicInsertion:

@@ -9,6 +9,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
+from reachplan.imaging.errors import StructureError
 from reachplan.imaging.types import Grid, Roi, StructureSet
 from reachplan.planner.case.config import SCREEN_BAND_MM, PlanConfig
 from reachplan.planner.errors import PlanInputError
@@ -161,7 +162,8 @@ def build_scene(
         )
     rois = [structures.get(n) for n in target_names]
     context = [*[n for n in ("HR-CTV", "Uterus", "Cervix") if n in structures.names],
-               *[n for n in parts if n not in oars]]  # for the figures: the target volume and the applicators
+               *[n for n in parts if n not in oars],  # for the figures: the target volume and the applicators
+               *_modulus_organs(structures, config)]  # the organs given a tissue modulus
     meshes = mesh_structures(structures, [*oars, *[r.normalized_name for r in rois if has_closed(r)], *context],
                              grid, quiet)
     targets = [*_targets(rois, meshes, notes), *target_points]
@@ -176,6 +178,18 @@ def build_scene(
     organs = tuple(with_distance_field(make_organ(n, meshes[n]), confirm) for n in oars)
     return Scene(organs, tuple(targets), load_template(config.template), pose.patient_from_template,
                  meshes, pose=pose, notes=tuple(notes), applicators=applicators)
+
+
+def _modulus_organs(structures: StructureSet, config: PlanConfig) -> list[str]:
+    """Return the normalised names of the ROIs ``config.tissue_moduli_pa`` names (typed error for one not there)."""
+    names = []
+    for name, _ in config.tissue_moduli_pa:
+        try:
+            names.append(structures.get(name).normalized_name)
+        except StructureError:
+            raise PlanInputError(f"--organ-modulus names {name!r}, which is not a ROI of the structure set (ROIs: "
+                                 f"{', '.join(repr(r.name) for r in structures.rois)})") from None
+    return names
 
 
 def _cylinder(applicators: Sequence[Applicator]) -> str | None:

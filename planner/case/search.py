@@ -13,17 +13,25 @@ from tqdm import tqdm
 
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.case.config import PlanConfig, PlanModels, screening_model
-from reachplan.planner.case.result import PlanResult
+from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.template import hole_frames
 from reachplan.planner.ranking import rank
-from reachplan.planner.steering.candidates import Candidate, Target, mark_failed, score_path, straight_candidates
+from reachplan.planner.steering.candidates import (
+    Candidate,
+    Target,
+    TissueBand,
+    mark_failed,
+    score_path,
+    straight_candidates,
+)
 from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA
 from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.robustness import assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import match_targets, place, refine_with, shape_bank, usable_tension_n
+from reachplan.planner.steering.tissue_band import assess_band, uniform_profile
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.design import RodDesign
 from reachplan.rod_model.errors import RodModelError
@@ -71,14 +79,16 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
             steered = steered_candidates(scene, target, design, config, skip=clear, model=screening)
             cands += refine_shortlist(scene, target, design, steered, config, models.reference)
     cands = assess_shortlist(scene, cands, config, models.robustness)
+    cands = band_shortlist(scene, cands, config)
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
 
 
 def target_modulus_pa(scene: Scene, target: Target, config: PlanConfig) -> float:
     """Return the Young's modulus (Pa) of the tissue a target lies in.
 
-    The first organ of ``config.tissue_moduli_pa`` whose mesh contains the target, else the phantom's gel
-    (SimuGel #3, 0.19 MPa, reference ``oncoreach.md``: the only tissue modulus the reference gives).
+    The first organ of ``config.tissue_moduli_pa`` whose mesh contains the target, else ``config.tissue_modulus_pa``
+    (default the phantom's gel, SimuGel #3, 0.19 MPa, reference ``oncoreach.md``: the only tissue modulus the
+    reference gives).
 
     Parameters
     ----------
@@ -87,7 +97,7 @@ def target_modulus_pa(scene: Scene, target: Target, config: PlanConfig) -> float
     target : Target
         The target point (LPS mm).
     config : PlanConfig
-        Its ``tissue_moduli_pa`` (Pa per organ).
+        Its ``tissue_moduli_pa`` (Pa per organ) and ``tissue_modulus_pa`` (Pa, elsewhere).
 
     Returns
     -------
@@ -100,8 +110,8 @@ def target_modulus_pa(scene: Scene, target: Target, config: PlanConfig) -> float
         When a named organ has no mesh in the scene, or a modulus is not positive.
     """
     point = np.asarray(target.position_mm, dtype=float)[None, :]
-    profile = modulus_profile(scene, point, config.tissue_moduli_pa, SIMUGEL_MODULUS_PA)
-    return SIMUGEL_MODULUS_PA if profile is None else float(profile[1][0])
+    profile = modulus_profile(scene, point, config.tissue_moduli_pa, config.tissue_modulus_pa)
+    return config.tissue_modulus_pa if profile is None else float(profile[1][0])
 
 
 def modulus_profile(scene: Scene, path_mm: np.ndarray, moduli: tuple[tuple[str, float], ...],
@@ -190,6 +200,48 @@ def assess_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig,
                     chosen[id(c)] = mark_failed(c, f"robustness ({model.info.label}) failed: {exc}")
                     continue
                 chosen[id(c)] = with_robustness(c, r)
+    return [chosen.get(id(c), c) for c in cands]
+
+
+def band_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig) -> list[Candidate]:
+    """Give the steered needles the plan shows and delivers their tissue band (``config.modulus_band``).
+
+    Those :func:`~reachplan.planner.case.result.choose_needles` picks (steered only, and either kind): each re-inserted
+    with its schedule in tissue of the plan's moduli scaled over the band
+    (:func:`~reachplan.planner.steering.tissue_band.assess_band`); when the rod model fails on the band, the band
+    says why (:meth:`~reachplan.planner.steering.candidates.TissueBand.failed`). The ranking does not use the band.
+
+    Parameters
+    ----------
+    scene : Scene
+        Organs, targets, template pose and the meshes the moduli name.
+    cands : list of Candidate
+        Every candidate of the plan.
+    config : PlanConfig
+        ``modulus_band``, the moduli, the weights and the reach tolerance.
+
+    Returns
+    -------
+    list of Candidate
+        ``cands`` in the same order, the banded ones carrying ``tissue_band``.
+    """
+    if not config.modulus_band.enabled:
+        return cands
+    targets = {t.name: t for t in scene.targets}
+    ranked = PlanResult(tuple(cands), rank(cands, config.weights), config)
+    chosen: dict[int, Candidate] = {}
+    for c in (*choose_needles(ranked, steered=True), *choose_needles(ranked)):
+        if not c.steered or c.design is None or id(c) in chosen:
+            continue
+        profile = (modulus_profile(scene, c.path_mm, config.tissue_moduli_pa, config.tissue_modulus_pa)
+                   or uniform_profile(config.tissue_modulus_pa))
+        try:
+            band = assess_band(c, targets[c.target], scene.organs, scene.patient_from_template,
+                               c.design.needle.outer_diameter_mm / 2, profile, config.modulus_band,
+                               config.reach_tolerance_mm)
+        except (PlanInputError, RodModelError) as exc:
+            band = TissueBand.failed(str(exc), config.modulus_band.source)
+        chosen[id(c)] = dataclasses.replace(c, tissue_band=band)
     return [chosen.get(id(c), c) for c in cands]
 
 

@@ -102,6 +102,8 @@ TARGETS: tuple[Target, ...] = (
            "validation), the joint-count trend, convergence"),
     Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
            (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
+    Target("band", "band", "the tissue band's rod model against the reference rod: tip change over the modulus band, "
+           "CPU per solve"),
 )
 
 

@@ -29,10 +29,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """
     from reachplan.planner.cli.phantom import add_case_arguments
     from reachplan.planner.cli.plan import add_implant_arguments, add_rtplan_style
+    from reachplan.planner.cli.tissue import add_tissue_arguments
 
     parser.add_argument("--out", type=Path, required=True, help="output folder (created; case in OUT/phantom)")
     add_case_arguments(parser)
     add_implant_arguments(parser)
+    add_tissue_arguments(parser)
     parser.add_argument("--protocol", metavar="FILE_OR_NAME", help=PROTOCOL_HELP)
     add_rtplan_style(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars or table")
@@ -99,6 +101,7 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
     from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.cli.phantom import write_case
     from reachplan.planner.cli.plan import implant_settings, plan_and_write
+    from reachplan.planner.cli.tissue import tissue_options
     from reachplan.planner.kernels import start as start_kernels
     from reachplan.planner.report.progress import MovingBar
     from reachplan.planner.run.case import CaseConfig, CaseInput
@@ -122,7 +125,7 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
               f"{volume.modality} {volume.grid.shape}, {len(structures.rois)} ROIs ({t_read:.1f} s)", file=sys.stderr)
     targets = tuple(n for n in structures.names if n.casefold().startswith("target"))
     # the clinical case's tandem (an applicator) is an obstacle: a needle must not cross it
-    config = PlanConfig(tension_reserve=args.tension_reserve)
+    config = PlanConfig(tension_reserve=args.tension_reserve, **tissue_options(args))
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label, builtin=True)

@@ -21,6 +21,7 @@ from reachplan.planner.cli.edges import (
     staged_folder,
 )
 from reachplan.planner.cli.points import check_targets_inside, parse_point
+from reachplan.planner.cli.tissue import add_tissue_arguments, tissue_options
 from reachplan.planner.errors import PlanInputError
 
 if TYPE_CHECKING:  # the run-time imports are inside the functions: start-up of every command stays light
@@ -113,6 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="plan even when no organ at risk is found (needles are then checked against nothing)")
     parser.add_argument("--design", nargs="*", default=["15ga-30j-tip"], metavar="PRESET",
                         help="stylet presets to steer with (none: straight needles only)")
+    add_tissue_arguments(parser)
     parser.add_argument("--target-roi", default="HR-CTV", help="ROI the dwell times are optimised on")
     parser.add_argument("--source", default="gammamed_plus_hdr", help="TG-43 source plugin for the dose")
     parser.add_argument("--protocol", metavar="FILE_OR_NAME", help=PROTOCOL_HELP)
@@ -482,7 +484,8 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet or args.json
     start_kernels(quiet)  # before reading the series: the first run's compile overlaps it
     _reference_points(args.reference_point)  # a bad point is an error before the series is read
-    config = PlanConfig(template=args.template, designs=tuple(args.design), tension_reserve=args.tension_reserve)
+    config = PlanConfig(template=args.template, designs=tuple(args.design), tension_reserve=args.tension_reserve,
+                        **tissue_options(args))
     table, overrides, config = _names(args, config)
     volume = read_series(args.ct, series_uid=args.series_uid) if args.ct else None
     structures = read_rtstruct(args.rtstruct, volume, synonyms=table)

@@ -212,6 +212,7 @@ class ImplantArm:
                 "dwell_positions_mm": np.round(pl.dwells.positions_mm[keep], 3).tolist(),
                 "dwell_times_s": np.round(pl.dwells.times_s[keep], 3).tolist(),
                 **(NeedleCheck.NOT_CHECKED if c.check is None else c.check.to_json()),
+                "tissue_band": None if c.tissue_band is None else c.tissue_band.to_json(),
             })
         return {
             **doc,

@@ -29,6 +29,7 @@ from reachplan.planner.dose.structures import PlanningStructures
 from reachplan.planner.geometry.collision import Organ, check_path
 from reachplan.planner.geometry.distance_field import distance_transform
 from reachplan.planner.implant.settings import ImplantSettings
+from reachplan.planner.steering.candidates import TissueBand
 from reachplan.planner.steering.insertion import STRAIGHT
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import ShapeBank, place
@@ -75,6 +76,9 @@ class Channel:
         a straight needle; "" for an intracavitary channel.
     check : NeedleCheck or None
         The needle's check as an exported needle (reference re-solve, robustness, tension); None when not checked.
+    tissue_band : TissueBand or None
+        A steered implant needle's path over the plan's range of tissue moduli and its worst case
+        (:mod:`reachplan.planner.implant.tissue`); None when not computed.
     """
 
     name: str
@@ -89,6 +93,7 @@ class Channel:
     scenario_paths_mm: tuple[np.ndarray, ...] = field(default=(), repr=False)
     model: str = ""
     check: NeedleCheck | None = None
+    tissue_band: TissueBand | None = None
 
     @property
     def is_needle(self) -> bool:

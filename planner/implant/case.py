@@ -24,6 +24,7 @@ from reachplan.planner.implant.needles import check_arm, with_scenarios
 from reachplan.planner.implant.plan import plan_arms
 from reachplan.planner.implant.problem import PointLimit
 from reachplan.planner.implant.settings import ImplantSettings
+from reachplan.planner.implant.tissue import with_tissue_bands
 from reachplan.planner.steering.steered import shape_bank
 from reachplan.plugins.sources import SourceData
 
@@ -119,7 +120,8 @@ def plan_implants(
         The straight arm, the straight + steered arm (never worse: it takes in the straight arm's implants), every
         candidate channel and the wall time. Each arm's chosen implant is checked
         (:func:`~reachplan.planner.implant.needles.check_arm`): its steered needles re-solved with the reference
-        model within ``config.tension_reserve``, every needle's robustness, the plan re-loaded on the re-solved paths.
+        model within ``config.tension_reserve``, every needle's robustness, the plan re-loaded on the re-solved paths;
+        then each steered one's tissue band (:func:`~reachplan.planner.implant.tissue.with_tissue_bands`).
     """
     t0 = time.perf_counter()
     settings = settings or ImplantSettings()
@@ -145,5 +147,6 @@ def plan_implants(
                                  aims=aims, gtv=gtv, cache=cache, points=points)
     steered = check_arm(steered, scene, planning, config, kernel, air_kerma_u, settings, models=models, aims=aims,
                         gtv=gtv, extra_plans=straight.plans, cache=cache, points=points)
-    straight = checked_straight
+    # each chosen steered needle over the plan's range of tissue moduli (reported, not planned on)
+    straight, steered = with_tissue_bands((checked_straight, steered), scene, config)
     return ImplantComparison(straight, steered, (*cands, *intracavitary), time.perf_counter() - t0)

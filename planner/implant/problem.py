@@ -275,6 +275,20 @@ def point_rows(prob: _Problem, pos: np.ndarray, dirs: np.ndarray) -> list[OrganR
     """Return one row per dose point of the problem: its dose from the dwells ``pos`` within its planning value.
 
     A row of one point whose weight is its volume: the tail mean is the point's dose, so κ = 1 is exact.
+
+    Parameters
+    ----------
+    prob : _Problem
+        Its ``points``.
+    pos : (c, 3) float, mm, LPS
+        Dwell positions (the columns of the rows).
+    dirs : (c, 3) float
+        Source directions (unit).
+
+    Returns
+    -------
+    list of OrganRows
+        One per point, in the order of ``prob.points``.
     """
     return [OrganRows(_rates(p.position_mm[None], pos, dirs, prob), np.ones(1), p.planning_gy, 1.0, p.name)
             for p in prob.points]
@@ -287,9 +301,12 @@ def point_doses(prob: _Problem, pos: np.ndarray, dirs: np.ndarray, times: np.nda
     ----------
     prob : _Problem
         Its ``points``.
-    pos, dirs : (c, 3) float
-        Dwell positions (mm, LPS) and source directions.
+    pos : (c, 3) float, mm, LPS
+        Dwell positions.
+    dirs : (c, 3) float
+        Source directions (unit).
     times : (c,) float, s
+        Dwell times.
 
     Returns
     -------

@@ -41,7 +41,8 @@ from reachplan.planner.report.terminal import (
     reach_margin_mm,
     tension_reserve_n,
 )
-from reachplan.planner.report.view3d import Needle3d, scene_figure
+from reachplan.planner.report.tissue import band_section, tissue_bands
+from reachplan.planner.report.view3d import Needle3d, scene_figure, with_tissue_bands
 from reachplan.planner.steering.candidates import Candidate
 from reachplan.plugins.exporters.handoff import RESEARCH_USE
 from reachplan.rod_model.select import ErrorRow
@@ -483,14 +484,15 @@ def interactive_view(scene: Scene, straight: Sequence[Candidate], steered: Seque
                             n.path_mm, n.schedule is not None, implant=True)
                    for n in delivery.export.needles if not n.applicator] + needles
     if delivery is None or not delivery.optimisation.success:
-        return scene_figure(scene, needles, max_faces=max_faces)
+        return with_tissue_bands(scene_figure(scene, needles, max_faces=max_faces), tissue_bands(steered, delivery))
     dwells = delivery.optimisation.dwells
     on = dwells.times_s > 0
     holes = [n.hole_id for n in delivery.export.needles]
     labels = [f"channel {ch} ({holes[ch - 1]})" if 0 < ch <= len(holes) else f"channel {ch}"
               for ch in dwells.channels[on]]
-    return scene_figure(scene, needles, dwell_positions_mm=dwells.positions_mm[on], dwell_times_s=dwells.times_s[on],
-                        dwell_labels=labels, max_faces=max_faces)
+    return with_tissue_bands(scene_figure(scene, needles, dwell_positions_mm=dwells.positions_mm[on],
+                                          dwell_times_s=dwells.times_s[on], dwell_labels=labels, max_faces=max_faces),
+                             tissue_bands(steered, delivery))
 
 
 def _needles_section(result: PlanResult, straight: Sequence[Candidate], steered: Sequence[Candidate],
@@ -669,6 +671,7 @@ def build_report(scene: Scene, result: PlanResult, *, volume: Volume | None = No
             Interactive(view, "3-D view of organs, needles, dwell positions and template (mm, LPS)"),
         )),
         _needles_section(result, straight, steered, order),
+        band_section(result.config, tissue_bands(steered, delivery)),
         _dose_section(delivery, comparison, dvh, source_name, comparison_note, options.comparison_settings),
         _aims_section(delivery),
         _implant_section(delivery),

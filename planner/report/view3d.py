@@ -28,7 +28,7 @@ from reachplan.planner.report.figures import (
     light_mesh,
     organ_colour,
 )
-from reachplan.planner.steering.candidates import Candidate
+from reachplan.planner.steering.candidates import Candidate, TissueBand
 
 #: Named views: (name, camera eye direction, camera up direction), LPS. Looking along -eye with ``up`` at the
 #: top, plotly's right-handed camera puts ``-eye × up`` on the right: from the feet, +x (patient left) is on the
@@ -187,3 +187,50 @@ def scene_figure(scene: Scene, needles: Sequence[Needle3d], *, dwell_positions_m
                          "yanchor": "top", "pad": {"t": 4}, "buttons": buttons}],
     }
     return {"data": data, "layout": layout}
+
+
+def with_tissue_bands(figure: dict[str, Any], bands: Sequence[tuple[str, TissueBand]]) -> dict[str, Any]:
+    """Return ``figure`` with each steered needle's tissue band drawn: a ribbon through its paths, and its edges.
+
+    The ribbon joins the band's paths from the softest tissue to the stiffest (translucent, the steered needles'
+    colour); the softest and stiffest paths are one dotted trace (a gap between them) named with their moduli at
+    the tip. Both are in one legend group: a click on either hides or shows the band.
+
+    Parameters
+    ----------
+    figure : dict of str to object
+        A figure of :func:`scene_figure` (not changed).
+    bands : sequence of (str, TissueBand)
+        The needle's label and its band (paths mm, LPS, each hole to tip, the same number of points); bands
+        without paths (not computed) are left out.
+
+    Returns
+    -------
+    dict of str to object
+        A new figure: ``figure``'s traces, then per band a ``mesh3d`` ribbon and a ``scatter3d`` of its two edge
+        paths, ``meta`` = ``tissue band``.
+    """
+    traces: list[dict[str, Any]] = []
+    for label, band in bands:
+        paths = [np.asarray(p, dtype=float) for p in band.paths_mm]
+        if len(paths) < 2 or len({len(p) for p in paths}) != 1:
+            continue
+        n = len(paths[0])
+        v = np.vstack(paths)
+        i, j = np.meshgrid(np.arange(len(paths) - 1), np.arange(n - 1), indexing="ij")
+        a = (i * n + j).ravel()  # quad (a, a + 1, a + n + 1, a + n) between path i and i + 1, points j and j + 1
+        faces = np.concatenate([np.column_stack([a, a + 1, a + n + 1]), np.column_stack([a, a + n + 1, a + n])])
+        group = f"band {label}"
+        lo, hi = band.moduli_pa[0] / 1e6, band.moduli_pa[-1] / 1e6
+        traces.append({"type": "mesh3d", "name": f"tissue band {label} ({lo:.3g}-{hi:.3g} MPa)",
+                       "meta": "tissue band", "legendgroup": group, "showlegend": True, "color": STEERED_COLOUR,
+                       "opacity": 0.3, "flatshading": True, "x": _r(v[:, 0]), "y": _r(v[:, 1]), "z": _r(v[:, 2]),
+                       "i": faces[:, 0].tolist(), "j": faces[:, 1].tolist(), "k": faces[:, 2].tolist(),
+                       "hoverinfo": "name"})
+        soft, stiff = paths[0], paths[-1]
+        edges = {axis: [*_r(soft[:, k]), None, *_r(stiff[:, k])] for k, axis in enumerate("xyz")}
+        traces.append({"type": "scatter3d", "mode": "lines", "meta": "tissue band", "legendgroup": group,
+                       "name": f"{label}: softest / stiffest path ({lo:.3g} / {hi:.3g} MPa at the tip)",
+                       "showlegend": True, **edges, "connectgaps": False, "hoverinfo": "name",
+                       "line": {"color": STEERED_COLOUR, "width": 3, "dash": "dot"}})
+    return {**figure, "data": [*figure["data"], *traces]}

@@ -241,7 +241,9 @@ def run_case(inputs: CaseInput, config: CaseConfig, *, quiet: bool = True,
     timings["scene_s"] = time.perf_counter() - t
     if on_scene is not None:
         on_scene(scene)
-    config = dataclasses.replace(config, plan=dataclasses.replace(config.plan,
+    # the organs given a modulus by the names the scene meshed them under (--organ-modulus may differ in case)
+    moduli = tuple((inputs.structures.get(n).normalized_name, e) for n, e in config.plan.tissue_moduli_pa)
+    config = dataclasses.replace(config, plan=dataclasses.replace(config.plan, tissue_moduli_pa=moduli,
                                                                   oar_names=tuple(o.name for o in scene.organs)))
     t = time.perf_counter()
     result = plan(scene, config.plan, quiet=quiet)

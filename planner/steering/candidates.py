@@ -46,6 +46,85 @@ class Target:
 
 
 @dataclass(frozen=True, eq=False)
+class TissueBand:
+    """A steered needle's band of paths over a range of tissue moduli, and its worst case over the band.
+
+    The schedule is the planned one; only the tissue changes (every modulus of the plan scaled alike). Computed by
+    :func:`reachplan.planner.steering.tissue_band.assess_band`.
+
+    Parameters
+    ----------
+    scales : (b,) tuple of float
+        The factor on the plan's moduli of each path, increasing; 1 is the planned (nominal) path.
+    moduli_pa : (b,) tuple of float, Pa
+        The tissue modulus at the needle's tip on each path (the plan's modulus there times the scale).
+    paths_mm : (b,) tuple of (n, 3) float, mm, LPS
+        Each path, hole (first point) to tip; the nominal one is the needle's own path.
+    reach_mm : (b,) tuple of float, mm
+        Each path's tip distance from the aim (the target, or the implant needle's planned tip).
+    clearance_mm : (b,) tuple of float, mm
+        Each path's smallest clearance to an organ at risk (0 when it touches one).
+    worst_reach_mm, worst_clearance_mm : float, mm
+        The largest reach error and the smallest clearance over the band.
+    worst_case : str
+        The path that sets the worst case (``"nominal"`` when none is worse), with its modulus.
+    model : str
+        The insertion model of the band's change of shape (``ModelInfo.label``).
+    source : str
+        Where the modulus range comes from (a citation, or ASSUMED with the reason).
+    """
+
+    scales: tuple[float, ...]
+    moduli_pa: tuple[float, ...]
+    paths_mm: tuple[np.ndarray, ...] = field(repr=False)
+    reach_mm: tuple[float, ...]
+    clearance_mm: tuple[float, ...]
+    worst_reach_mm: float
+    worst_clearance_mm: float
+    worst_case: str
+    model: str
+    source: str
+
+    @staticmethod
+    def failed(reason: str, source: str) -> TissueBand:
+        """Return a band that could not be computed: no paths, NaN worst case, ``worst_case`` the reason.
+
+        Parameters
+        ----------
+        reason : str
+            Why (the model's failure).
+        source : str
+            Where the modulus range comes from.
+
+        Returns
+        -------
+        TissueBand
+            Empty, saying ``not computed: <reason>``.
+        """
+        nan = float("nan")
+        return TissueBand((), (), (), (), (), nan, nan, f"not computed: {reason}", "", source)
+
+    def to_json(self) -> dict[str, Any]:
+        """Return the band as JSON-ready values (plan.json, ranking.json).
+
+        Returns
+        -------
+        dict of str to JSON value
+            ``moduli_pa`` (Pa), ``scales``, per path ``tip_position_mm`` (mm, LPS), ``reach_mm`` and
+            ``clearance_mm`` (mm; None when not finite), ``worst_reach_mm``, ``worst_clearance_mm``, ``worst_case``,
+            ``model`` and ``source``.
+        """
+        def r(v: float) -> float | None:
+            return round(float(v), 3) if np.isfinite(v) else None
+
+        return {"scales": [round(s, 4) for s in self.scales], "moduli_pa": [round(m, 1) for m in self.moduli_pa],
+                "tip_position_mm": [[round(float(v), 3) for v in p[-1]] for p in self.paths_mm],
+                "reach_mm": [r(v) for v in self.reach_mm], "clearance_mm": [r(v) for v in self.clearance_mm],
+                "worst_reach_mm": r(self.worst_reach_mm), "worst_clearance_mm": r(self.worst_clearance_mm),
+                "worst_case": self.worst_case, "model": self.model, "source": self.source}
+
+
+@dataclass(frozen=True, eq=False)
 class Candidate:
     """One needle candidate for one target, with its score.
 
@@ -91,6 +170,9 @@ class Candidate:
     worst_reach_mm, worst_clearance_mm, worst_case : float, float, str
         Robustness (see :mod:`reachplan.planner.steering.robustness`): worst reach error and smallest clearance under
         tension, roll and entry-angle errors, and which error gave them; NaN/"" when not assessed.
+    tissue_band : TissueBand or None
+        The path over the plan's range of tissue moduli and its worst case (a steered needle the plan shows); None
+        when not computed.
     """
 
     target: str
@@ -114,6 +196,7 @@ class Candidate:
     worst_clearance_mm: float = float("nan")
     worst_case: str = ""
     failed: bool = False
+    tissue_band: TissueBand | None = None
 
     @property
     def feasible(self) -> bool:
@@ -133,7 +216,8 @@ class Candidate:
         dict of str to JSON value
             Its fields rounded to 1e-3 (``contact_depth_mm`` to 0.1 mm), ``entry_position_mm`` and
             ``tip_position_mm`` (mm, LPS), the schedule as rows (depth mm, tension N, roll deg) and the robustness
-            (None when not assessed); ``clearance_mm`` None when not finite.
+            (None when not assessed), the tissue band (:meth:`TissueBand.to_json`; None when not computed);
+            ``clearance_mm`` None when not finite.
         """
         sched = None if self.schedule is None else [
             [round(float(d), 3), round(float(t), 3), round(float(r), 3)]
@@ -163,6 +247,7 @@ class Candidate:
                 "worst_clearance_mm": round(self.worst_clearance_mm, 3) if np.isfinite(self.worst_clearance_mm)
                 else None,
                 "worst_case": self.worst_case},
+            "tissue_band": None if self.tissue_band is None else self.tissue_band.to_json(),
         }
 
 

@@ -271,7 +271,7 @@ def _key(values: np.ndarray) -> tuple[float, ...]:
     return tuple(round(float(v), 6) for v in np.asarray(values).ravel())
 
 
-@lru_cache(maxsize=64)
+@lru_cache(maxsize=256)
 def _insert(model: TissueRodInsertion, design: RodDesign, schedule: tuple[tuple[float, ...], ...], depth_mm: float,
             profile: tuple[tuple[float, ...], ...] | None, sample_mm: float) -> np.ndarray | str:
     """One insertion by ``model`` resampled every ~``sample_mm`` of arc length (read-only), or why it failed.
@@ -290,6 +290,39 @@ def _insert(model: TissueRodInsertion, design: RodDesign, schedule: tuple[tuple[
     out = np.column_stack([np.interp(even, arc, positions[:, i]) for i in range(3)])
     out.setflags(write=False)
     return out
+
+
+def insert_memo(model: TissueRodInsertion, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+                modulus_profile: tuple[np.ndarray, np.ndarray] | None = None,
+                sample_mm: float = 1.0) -> np.ndarray | str:
+    """Insert one schedule with a rod insertion model, memoised on its values rounded to 1e-6 (mm, N, deg, Pa).
+
+    Mirror-image candidates agree to rounding, not to the last bit, and so share a solve.
+
+    Parameters
+    ----------
+    model : TissueRodInsertion
+        The in-tissue rod model.
+    design : RodDesign
+        The stylet design.
+    schedule : TensionSchedule
+        Tension (N) and roll (deg) against depth (mm).
+    depth_mm : float, mm
+        Insertion depth.
+    modulus_profile : tuple of ((p,) float, (p,) float) or None
+        ``(depth_mm, modulus_pa)`` along the insertion (:meth:`TissueRodInsertion.insert_one`); None: the model's.
+    sample_mm : float, mm
+        Arc-length spacing of the returned path.
+
+    Returns
+    -------
+    (m + 1, 3) float ndarray or str
+        The centreline (mm, template frame, read-only), ``m = max(2, round(depth_mm / sample_mm))`` equal arc-length
+        steps, hole first; or why the model failed.
+    """
+    key = tuple(_key(a) for a in (schedule.depth_mm, schedule.tension_n, schedule.roll_deg))
+    profile = None if modulus_profile is None else tuple(_key(a) for a in modulus_profile)
+    return _insert(model, design, key, round(float(depth_mm), 6), profile, float(sample_mm))
 
 
 def refine_with(model: TissueRodInsertion, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
@@ -355,12 +388,8 @@ def refine_with(model: TissueRodInsertion, design: RodDesign, schedule: TensionS
     sch = schedule
     label = model.info
 
-    # keys rounded to 1e-6 (mm, N, deg, Pa): mirror-image candidates agree to rounding, not to the last bit
-    profile = None if modulus_profile is None else tuple(_key(a) for a in modulus_profile)
-
     def solve(s: TensionSchedule) -> InsertionPath:
-        key = tuple(_key(a) for a in (s.depth_mm, s.tension_n, s.roll_deg))
-        positions = _insert(model, design, key, round(float(depth_mm), 6), profile, float(sample_mm))
+        positions = insert_memo(model, design, s, depth_mm, modulus_profile, sample_mm)
         if isinstance(positions, str):
             raise PlanInputError(positions)
         return InsertionPath(positions, depth_mm, label)

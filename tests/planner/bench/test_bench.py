@@ -58,7 +58,7 @@ def _assert_real_png(path: Path) -> None:
 def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.CaptureFixture[str]) -> None:
     assert [t.name for t in bench.TARGETS] == ["models", "planning", "dose", "imaging", "study", "startup", "firstrun",
                                               "distance", "dosekernel", "implant", "report", "factors", "joints",
-                                              "demo"]
+                                              "demo", "band"]
     for target in bench.TARGETS:
         module = bench._load(target.module)
         assert callable(module.run)
@@ -313,3 +313,14 @@ def test_firstrun_reports_cold_minus_warm_per_measurement(tmp_path: Path, monkey
     assert float(demo["cold_waited_s"]) == 1.5 and float(demo["penalty_cpu_s"]) == 12.0
     assert float(kernels["penalty_wall_s"]) == 8.0
     assert (tmp_path / "firstrun.png").stat().st_size > 0
+
+
+def test_band_compares_the_band_model_with_the_reference_on_one_case() -> None:
+    from reachplan.planner.bench.band import QUICK, _figure, compare
+
+    rows = compare(QUICK)  # one case, two scales: six short rod insertions
+    assert [r["scale"] for r in rows] == pytest.approx([1 / 3, 3.0], abs=1e-4)
+    for r in rows:  # the band model's change of the tip follows the reference's (docs/mechanics.md: within 0.09 mm)
+        assert r["difference_mm"] < 0.15 and abs(r["reference_lateral_mm"]) > 0.3
+        assert r["band_cpu_s"] > 0 and r["reference_cpu_s"] > 0
+    assert len(_figure(rows).axes) == 2

@@ -191,19 +191,23 @@ def test_interactive_view_has_one_trace_per_organ_and_needle(planned: tuple[Path
     assert isinstance(targets, dict)
     expected = sorted(f"{kind} {best['hole_id']} → {t}" for t in TARGETS for kind in ("straight", "steered")
                       if (best := targets[t][f"best_{kind}"]) is not None)
-    insert = doc["insert_list"]
-    assert isinstance(insert, dict)
-    expected += [f"insert {n['hole_id']} (channel {n['channel']}, {n['kind']})" for n in insert["needles"]]
-    # the needles to insert, then each target's best of each kind; Target_65_000 has no straight one
-    assert sorted(needles) == sorted(expected) and needles[0].startswith("insert ")
+    assert sorted(needles) == expected  # each target's best of each kind; Target_65_000 has no straight one
     dwells = next(t for t in data if t["meta"] == "dwells")
     assert isinstance(dwells["x"], list) and len(dwells["x"]) > 0
-    implant = [t for t in data if t["meta"] == "implant"]  # the delivered implant's needles, shown; the rest hidden
-    assert sorted(t["name"].split()[-1] for t in implant) == sorted(h for h, _ in _implant_needles(out))
+    insert = doc["insert_list"]
+    assert isinstance(insert, dict)
+    # the needles to insert (the delivered implant), named as in the insert list, drawn first and shown
+    implant = [t for t in data if t["meta"] == "implant"]
+    assert [t["name"] for t in implant] == [f"insert {n['hole_id']} (channel {n['channel']}, {n['kind']})"
+                                            for n in insert["needles"]]
+    assert sorted(t["name"].split()[1] for t in implant) == sorted(h for h, _ in _implant_needles(out))
+    assert next(t["meta"] for t in data if t["meta"] in {"implant", "needle"}) == "implant"
     assert all(t.get("visible", True) is True for t in implant)
     assert all(t["visible"] == "legendonly" for t in data if t["meta"] == "needle")
-    assert sorted(t["meta"] for t in data if t["meta"] not in {"organ", "needle", "implant"}) == [
+    assert sorted(t["meta"] for t in data if t["meta"] not in {"organ", "needle", "implant", "tissue band"}) == [
         "dwells", "targets", "template"]
+    steered = [n for n in needles if n.startswith("steered")]  # each drawn with its tissue band: ribbon and edges
+    assert len([t for t in data if t["meta"] == "tissue band"]) == 2 * len(steered) > 0
 
 
 def test_report_renders_in_headless_chromium(planned: tuple[Path, dict[str, object], str], tmp_path: Path) -> None:
