@@ -184,3 +184,22 @@ def test_identical_organs_are_meshed_once_per_process() -> None:
     c = mesh_structures(StructureSet((moved,), "in-memory"), ["Obturator"], grid, reuse=True)["Obturator"]
     assert c is not a and np.allclose(c.vertices.mean(axis=0), a.vertices.mean(axis=0) + np.array([0.5, 0.0, 0.0]),
                                       atol=1e-6)
+
+
+def test_cost_benchmark_writes_the_stages_per_case(tmp_path: Path) -> None:
+    """``reachplan bench studycost``'s table and chart from measured rows: the median, the 90th percentile and each
+    stage's median over the cases with a time."""
+    from reachplan.planner.bench.study_cost import HEADER, STAGES, write_results
+
+    rows = [{"case": f"clinical_{s}", "seed": s, "status": "ok", "cpu_s": 10.0 + 2 * s, "wall_s": 20.0,
+             **{f"{k}_cpu_s": float(j + s) for j, k in enumerate(STAGES)}, "straight_needles": 3,
+             "steered_needles": 2, "worker": "w", "load_avg_1min": 1.0} for s in range(5)]
+    rows.append({**rows[0], "case": "clinical_9", "seed": 9, "status": "failed", "cpu_s": None,
+                 **{f"{k}_cpu_s": None for k in STAGES}})
+    summary = write_results(tmp_path, rows)
+    assert summary["median_cpu_s"] == 14.0 and summary["p90_cpu_s"] == pytest.approx(17.2)  # 16 + 0.6 (18 - 16), linear
+    assert summary["median_arms_cpu_s"] == 3.0 + 2.0  # stage 3 of the five, seeds 0-4
+    with (tmp_path / "study_cost.csv").open(encoding="utf-8", newline="") as f:
+        table = list(csv.DictReader(f))
+    assert list(table[0]) == list(HEADER) and len(table) == 6 and table[5]["cpu_s"] == ""
+    assert (tmp_path / "study_cost.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
