@@ -228,12 +228,12 @@ def format_designs(doc: Mapping[str, Any]) -> str:
         m = "-" if s["mean"] is None else format(s["mean"], fmt)
         return m if lo is None else f"{m} ({lo:{fmt}} .. {hi:{fmt}})"
 
-    lines = [f"{'design':<16} {'cases':>5} {'needles saved':>22} {'D90 gained Gy':>22} {'steered':>7} "
+    lines = [f"{'design':<16} {'cases':>5} {'needles saved (CI)':>26} {'D90 gained Gy (CI)':>26} {'steered':>7} "
              f"{'reserve N':>9}"]
     for d, b in doc["by_design"].items():
         res = b["tension_reserve_n"]["median"]
-        lines.append(f"{d:<16} {b['paired_cases']:>5} {ci(b['needles_saved'], '+.2f'):>22} "
-                     f"{ci(b['d90_gained_gy'], '+.2f'):>22} {b['cases_using_steered']:>7} "
+        lines.append(f"{d:<16} {b['paired_cases']:>5} {ci(b['needles_saved'], '+.2f'):>26} "
+                     f"{ci(b['d90_gained_gy'], '+.2f'):>26} {b['cases_using_steered']:>7} "
                      f"{'-' if res is None else format(res, '.2f'):>9}")
     lines.append(f"most needles saved: {doc['best'] or '-'} (straight arm shared by every design)")
     return "\n".join(lines)
