@@ -134,8 +134,8 @@ def write_results(out: Path, rows: list[dict[str, Any]]) -> dict[str, float]:
     ax.set_xticks(x, [str(r["seed"]) for r in timed], fontsize=9)
     ax.set_xlabel("clinical case (seed)")
     ax.set_ylabel("CPU s per case (both arms)")
-    ax.set_title(f"implant study: {len(timed)} cases, one thread per worker (load {rows[0]['load_avg_1min']:g})"
-                 if rows else "implant study", fontsize=10)
+    ax.set_title(f"implant study: {len(timed)} cases, one thread per worker (1-min load when summarised "
+                 f"{rows[0]['load_avg_1min']:g})" if rows else "implant study", fontsize=10)
     ax.legend(fontsize=9, ncols=2)
     write_png(out / "study_cost.png", fig)
     return summary
