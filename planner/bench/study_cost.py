@@ -9,7 +9,7 @@ needles' check and re-load). Writes ``study_cost.csv`` (one row per case) and ``
 case, the median and the issue's 10 s aim); prints the median, the 90th percentile and each stage's median.
 
 Run: ``reachplan bench studycost --out DIR [--cases N] [--seed S] [--workers W] [--quick] [--install]``; ``--quick``:
-one case in a reduced configuration (coarse schedules, two needles at most), a smoke run.
+one case in a reduced configuration (two needles at most), a smoke run.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ class CostSettings:
     workers : int
         Worker processes of the local cluster (one thread each).
     reduced : bool
-        The quick configuration: coarse schedules and at most two needles per arm.
+        The quick configuration: two rolls, one steered candidate per hole and design, at most two needles per arm.
     """
 
     cases: int = 30
@@ -76,17 +76,14 @@ def measure(out: Path, s: CostSettings) -> list[dict[str, Any]]:
         :data:`HEADER` keys; times in s.
     """
     from reachplan.planner.case.config import PlanConfig
-    from reachplan.planner.cli.study import COARSE_FAMILY
     from reachplan.planner.implant.settings import ImplantSettings
-    from reachplan.planner.steering.steered import ScheduleFamily
     from reachplan.planner.study.implant import ImplantStudySpec, run_implant_study
 
-    config, implant = PlanConfig(), ImplantSettings()
+    implant = ImplantSettings()
     if s.reduced:
-        config = PlanConfig(family=ScheduleFamily(**COARSE_FAMILY))
         implant = ImplantSettings(max_needles=2, rolls=2, steered_per_hole=1, selection_target_points=150,
                                   final_target_points=400)
-    spec = ImplantStudySpec(tuple(range(s.seed, s.seed + s.cases)), config, implant)
+    spec = ImplantStudySpec(tuple(range(s.seed, s.seed + s.cases)), PlanConfig(), implant)
     run_implant_study(spec, out / "study", workers=s.workers)
     load = os.getloadavg()[0]
     rows = []
