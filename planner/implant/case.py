@@ -191,8 +191,8 @@ def plan_design_arms(
     aims : Aims or None
         The aims; None: EMBRACE II.
     steered : mapping of str to sequence of str, optional
-        Arm name -> the stylet preset names it may use (each non-empty); None: one arm ``"steered"`` of
-        ``config.designs``.
+        Arm name -> the stylet preset names it may use (none: the straight candidates alone, as with a
+        configuration without designs); None: one arm ``"steered"`` of ``config.designs``.
     threads : int
         Arms planned at once, each on its own thread (1: one after the other, the same result).
 
@@ -201,16 +201,9 @@ def plan_design_arms(
     DesignArms
         The straight arm, the steered arms by name (each checked as in :func:`plan_implants`), the candidates, the
         wall time and the CPU time per stage.
-
-    Raises
-    ------
-    ValueError
-        A steered arm without a design.
     """
     t0, c0 = time.perf_counter(), time.process_time()
     groups = {k: tuple(v) for k, v in (steered or {"steered": config.designs}).items()}
-    if any(not v for v in groups.values()):
-        raise ValueError("every steered arm needs at least one stylet design")
     designs = tuple(dict.fromkeys(d for v in groups.values() for d in v))
     config_all = dataclasses.replace(config, designs=designs)
     settings = settings or ImplantSettings()
