@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import functools
+import hashlib
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import TypeVar, cast
 
 import numpy as np
 import trimesh
@@ -20,6 +25,8 @@ from reachplan.planner.lookup import applicator_kinds, load_template
 from reachplan.planner.steering.candidates import Target
 from reachplan.plugins.applicators import Applicator, applicators_from_structures
 from reachplan.plugins.templates import Template
+
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,8 +64,46 @@ class Scene:
     applicators: tuple[Applicator, ...] = ()
 
 
+#: Meshes and organs this process made with ``reuse=True``, by the ROI's content (most recently used last): cases of
+#: a study share ROIs (the generated cases' pelvic bone, the largest mesh, is the same in each), so a worker meshes,
+#: builds the collision model and distance field of such a ROI once. Read-only once made; at most
+#: :data:`_REUSE_SIZE` are kept (more than a case makes, so the previous case's are all there).
+_REUSED: OrderedDict[tuple[object, ...], object] = OrderedDict()
+_REUSE_SIZE = 40
+_REUSE_LOCK = threading.Lock()
+
+
+def _roi_key(roi: Roi, grid: Grid | None) -> str:
+    """Return a digest of what a ROI's mesh depends on: its name, contours (type and points) and the image grid."""
+    h = hashlib.sha1(roi.normalized_name.encode())
+    for c in roi.contours:
+        h.update(c.geometric_type.encode())
+        h.update(np.ascontiguousarray(c.points_mm, dtype=float).tobytes())
+    if grid is not None:
+        h.update(np.asarray(grid.shape, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(grid.patient_from_index, dtype=float).tobytes())
+    return h.hexdigest()
+
+
+def _reused(key: tuple[object, ...], make: Callable[[], _T], reuse: bool) -> _T:
+    """Return ``make()``, or with ``reuse`` the value this process made for ``key`` before (then kept for later)."""
+    if not reuse:
+        return make()
+    with _REUSE_LOCK:
+        if key in _REUSED:
+            _REUSED.move_to_end(key)
+            return cast(_T, _REUSED[key])
+    value = make()
+    with _REUSE_LOCK:
+        _REUSED[key] = value
+        while len(_REUSED) > _REUSE_SIZE:
+            _REUSED.popitem(last=False)
+    return value
+
+
 def mesh_structures(
-    structures: StructureSet, names: Iterable[str], grid: Grid | None = None, quiet: bool = True
+    structures: StructureSet, names: Iterable[str], grid: Grid | None = None, quiet: bool = True,
+    reuse: bool = False,
 ) -> dict[str, trimesh.Trimesh]:
     """Watertight meshes of the named ROIs that exist in ``structures``, by normalised name.
 
@@ -72,6 +117,9 @@ def mesh_structures(
         The image grid the contours were drawn on (meshing resolution); None: chosen from the contours.
     quiet : bool
         No progress bar.
+    reuse : bool
+        Take the mesh of a ROI this process meshed before with the same contours and grid (a study's later cases;
+        the meshes are shared: do not modify them).
 
     Returns
     -------
@@ -85,7 +133,8 @@ def mesh_structures(
     for name in tqdm(wanted, desc="meshing organs", unit="roi", disable=quiet, leave=False):
         roi = structures.get(name)
         if has_closed(roi):
-            out[roi.normalized_name] = roi_mesh(roi, grid)
+            key = ("mesh", _roi_key(roi, grid) if reuse else roi.normalized_name)
+            out[roi.normalized_name] = _reused(key, functools.partial(roi_mesh, roi, grid), reuse)
     return out
 
 
@@ -100,6 +149,7 @@ def build_scene(
     *,
     allow_no_oars: bool = False,
     standard_names: Sequence[str] | None = None,
+    reuse: bool = False,
 ) -> Scene:
     """Recognise the applicators, mesh the organs at risk and the target ROIs, and place the template.
 
@@ -124,6 +174,9 @@ def build_scene(
         Plan even when no organ at risk is found (otherwise a :class:`PlanInputError`).
     standard_names : sequence of str or None
         The synonym table's standard names (ROIs not mapped to one are listed in the notes).
+    reuse : bool
+        Take the mesh and organ (collision model, distance field) of a ROI this process made before from the same
+        contours and grid (:func:`mesh_structures`; for studies, whose cases share ROIs).
 
     Returns
     -------
@@ -165,7 +218,7 @@ def build_scene(
                *[n for n in parts if n not in oars],  # for the figures: the target volume and the applicators
                *_modulus_organs(structures, config)]  # the organs given a tissue modulus
     meshes = mesh_structures(structures, [*oars, *[r.normalized_name for r in rois if has_closed(r)], *context],
-                             grid, quiet)
+                             grid, quiet, reuse)
     targets = [*_targets(rois, meshes, notes), *target_points]
     if not targets:
         raise PlanInputError("no targets: name target ROIs or give target points")
@@ -175,7 +228,8 @@ def build_scene(
     notes += [note for a in applicators for note in a.notes]  # e.g. a tandem that gives no channel, and why
     # distance-field screen (issue 19): FCL confirms clearances up to the ranking's cap + SCREEN_BAND_MM
     confirm = config.weights.clearance_cap_mm + SCREEN_BAND_MM
-    organs = tuple(with_distance_field(make_organ(n, meshes[n]), confirm) for n in oars)
+    organs = tuple(_reused(("organ", _roi_key(structures.get(n), grid) if reuse else n, confirm),
+                           functools.partial(_organ, n, meshes[n], confirm), reuse) for n in oars)
     return Scene(organs, tuple(targets), load_template(config.template), pose.patient_from_template,
                  meshes, pose=pose, notes=tuple(notes), applicators=applicators)
 
@@ -190,6 +244,11 @@ def _modulus_organs(structures: StructureSet, config: PlanConfig) -> list[str]:
             raise PlanInputError(f"--organ-modulus names {name!r}, which is not a ROI of the structure set (ROIs: "
                                  f"{', '.join(repr(r.name) for r in structures.rois)})") from None
     return names
+
+
+def _organ(name: str, mesh: trimesh.Trimesh, confirm_mm: float) -> Organ:
+    """Return an organ to keep needles off: its mesh (LPS mm) and distance-field screen (FCL within ``confirm_mm``)."""
+    return with_distance_field(make_organ(name, mesh), confirm_mm)
 
 
 def _cylinder(applicators: Sequence[Applicator]) -> str | None:

@@ -87,6 +87,9 @@ TARGETS: tuple[Target, ...] = (
             Option("--est-designs", int, "designs of the estimated study (7)"),
             Option("--est-targets", int, "targets per patient of the estimated study (10)"),
             Option("--est-workers", int, "workers of the estimated study (32)"))),
+    Target("studycost", "study_cost", "implant study: CPU per case (both arms) by stage on one-thread Dask workers",
+           (Option("--cases", int, "clinical cases (30; quick 1, reduced planning)"),
+            Option("--seed", int, "first seed (0)"), Option("--workers", int, "worker processes (2; quick 1)"))),
     Target("startup", "startup", "start-up of reachplan --help and one reachplan rod solve against python -c pass"),
     Target("firstrun", "firstrun", "first-run penalty: reachplan demo and the kernels alone, fresh numba cache "
            "against a warm one", (Option("--repeat", int, "cold + warm pairs, medians reported (3; quick 1)"),)),

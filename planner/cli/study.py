@@ -17,6 +17,9 @@ HELP = ("plan every case x stylet design x target of a cohort on a local process
         "resumable; writes study.parquet, summary.csv and summary.png (or --make-cohort N phantom cases, or "
         "--implant N: straight against steered implants on N clinical cases)")
 
+#: ``--implant`` without a count: the cohort's size.
+IMPLANT_CASES = 30
+
 #: ``--family coarse``: 3 onsets x 1 ramp x 2 plateaus, for quick looks and tests.
 COARSE_FAMILY = {"onsets_mm": (0.0, 40.0, 80.0), "ramps_mm": (10.0,), "plateau_fractions": (0.5, 1.0)}
 
@@ -32,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cases", nargs="+", type=Path, metavar="DIR",
                         help="case folders (each holding an RS*.dcm), or folders of case folders")
     parser.add_argument("--designs", nargs="+", default=["15ga-30j-tip"], metavar="PRESET",
-                        help="stylet presets to compare ('straight': straight needles only)")
+                        help="stylet presets to compare ('straight': straight needles only); with --implant: a "
+                             "straight + steered arm per preset, the straight arm shared (designs.csv)")
     parser.add_argument("--targets", nargs="+", metavar="ROI", help="target ROI names (default: every Target* ROI)")
     parser.add_argument("--template", default="needlefinder_syed_63", help="template plugin name")
     parser.add_argument("--family", choices=("default", "coarse"), default="default",
@@ -47,10 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--retry-failed", action="store_true", help="run again the tasks recorded as failed")
     parser.add_argument("--make-cohort", type=int, metavar="N",
                         help="instead of a study: write N deterministic phantom variants to --out")
-    parser.add_argument("--implant", type=int, metavar="N",
-                        help="instead of a design study: plan both implant arms (straight; straight + steered with "
-                             "--designs) on the clinical case of N seeds from --seed and summarise needles saved and "
-                             "D90 gained by steering (paired t 95 %% CIs); writes cases.csv, summary.json, summary.png")
+    parser.add_argument("--implant", type=int, nargs="?", const=IMPLANT_CASES, metavar="N",
+                        help="instead of a design study: plan the implant arms (straight; straight + steered, one "
+                             "per --designs preset) on the clinical case of N seeds from --seed (N default "
+                             f"{IMPLANT_CASES}) and summarise needles saved and D90 gained by steering; writes "
+                             "cases.csv, designs.csv, summary.json (with the CPU cost per case), summary.png")
     parser.add_argument("--max-needles", type=int, default=16, metavar="K",
                         help="with --implant: largest needle budget on each arm's Pareto curve")
     parser.add_argument("--seed", type=int, default=0, help="seed of --make-cohort and --implant (first case)")
@@ -134,13 +139,16 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
         raise StudyError(f"--implant needs between 1 and 10000 cases, got {args.implant}")
     if "straight" in args.designs:
         raise StudyError("--implant always plans the straight arm; give only stylet presets with --designs")
+    if len(set(args.designs)) != len(args.designs):
+        raise StudyError("--designs names a preset twice; give each once")
     if args.max_needles < 1:
         raise StudyError(f"--max-needles must be at least 1, got {args.max_needles}")
     output_folder(args.out)
     from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.planner.steering.steered import ScheduleFamily
-    from reachplan.planner.study.implant import ImplantStudySpec, format_summary, run_implant_study, summary_json
+    from reachplan.planner.study.designs import format_designs
+    from reachplan.planner.study.implant import ImplantStudySpec, format_summary, run_implant_study
 
     family = ScheduleFamily(**COARSE_FAMILY) if args.family == "coarse" else ScheduleFamily()
     # as the demo: the clinical case's tandem (an applicator) is an obstacle, a needle must not cross it
@@ -150,10 +158,13 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
     result = run_implant_study(spec, args.out, scheduler=args.scheduler, workers=args.workers,
                                retry_failed=args.retry_failed, quiet=quiet)
     if args.json:
-        print_json({"out": str(result.out), "resumed": result.n_resumed,
-                    **summary_json(result.summary, result.rows, result.wall_s)}, NAME)
+        print_json({"out": str(result.out), "resumed": result.n_resumed, **result.doc}, NAME)
     elif not quiet:
         print(format_summary(result.summary, result.rows))
-        print(f"\n{len(result.rows)} cases ({result.n_resumed} already done) in {result.wall_s:.1f} s; wrote "
-              f"{result.out / 'cases.csv'}, summary.json and summary.png")
+        print("\n" + format_designs(result.doc["designs"]))
+        cpu = result.doc["cost"]["cpu_s_per_case"]
+        median = "-" if cpu["median"] is None else f"{cpu['median']:.1f} s"
+        print(f"\n{len(result.rows)} cases ({result.n_resumed} already done) in {result.wall_s:.1f} s; CPU per case "
+              f"(both arms, every design): median {median} over {cpu['n']}; wrote {result.out / 'cases.csv'}, "
+              "designs.csv, summary.json and summary.png")
     return 0

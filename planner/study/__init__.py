@@ -217,7 +217,7 @@ def serial_results(todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R
 
 
 def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
-          fail: Callable[[T, str], R]) -> Iterator[tuple[T, R]]:
+          fail: Callable[[T, str], R], worker_setup: Any = None) -> Iterator[tuple[T, R]]:
     """Run ``task_fn(task, config)`` per task on the Dask ``client``, yielding results as they finish.
 
     Each task needs a unique ``key``; a task that raises (or whose worker keeps dying) gives ``fail(task, reason)``.
@@ -234,6 +234,8 @@ def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[
         Runs one task (importable by the workers).
     fail : callable (task, reason) -> result
         The result of a task that raised.
+    worker_setup : WorkerSetup or None
+        Registered on the cluster's workers first (:func:`setup_workers`); None: the default set-up.
 
     Yields
     ------
@@ -247,6 +249,7 @@ def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[
     """
     from distributed import as_completed
 
+    setup_workers(client, worker_setup)
     run = uuid.uuid4().hex[:8]
     workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
     futures = {}
@@ -274,7 +277,7 @@ def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[
 
 def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, workers: int | None = None,
               client: Any = None, retry_failed: bool = False, quiet: bool = True,
-              task_fn: TaskFn = run_task) -> StudyResult:
+              task_fn: TaskFn = run_task, worker_setup: Any = None) -> StudyResult:
     """Run (or resume) a study into the folder ``out``.
 
     Parameters
@@ -295,6 +298,9 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
         No progress bar.
     task_fn : callable (StudyTask, PlanConfig) -> sequence of StudyRow
         The function a worker runs per task (default :func:`run_task`; must be importable by workers).
+    worker_setup : WorkerSetup or None
+        How Dask workers are set up (:func:`setup_workers`); None: one thread per library, the kernels the tasks use
+        loaded.
 
     Returns
     -------
@@ -323,7 +329,11 @@ def run_study(spec: StudySpec, out: Path, *, scheduler: str | None = None, worke
         else:
             if client is None:
                 client = stack.enter_context(dask_client(scheduler, workers, len(todo)))
-            results = dask_results(client, todo, spec.config, task_fn, failed_rows)
+            if worker_setup is None:  # the kernels the tasks use: the rod and the organs' distance (and the dose)
+                from reachplan.planner.study.workers import WorkerSetup
+
+                worker_setup = WorkerSetup(("distance", "rod", *(("dose",) if spec.dose else ())))
+            results = dask_results(client, todo, spec.config, task_fn, failed_rows, worker_setup)
         bar = stack.enter_context(tqdm(total=len(todo), desc="study tasks", unit="task", disable=quiet or not todo))
         kill_after = _kill_after_parts()
         for n_written, (task, rows) in enumerate(results, start=1):
@@ -393,10 +403,32 @@ def dask_client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any
     n = workers if workers is not None else (os.cpu_count() or 1)
     if n < 1:
         raise StudyError(f"--workers must be >= 0, got {n}")
+    from reachplan.planner.study.workers import WORKER_ENV
+
+    # one thread per worker and per numerical library (numba, OpenMP, BLAS; HiGHS: WorkerSetup): parallelism comes
+    # from the workers, one per core
     cluster = LocalCluster(n_workers=min(n, n_tasks), threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, scheduler_kwargs=LOOPBACK_HTTP)
+                           dashboard_address=None, scheduler_kwargs=LOOPBACK_HTTP, env=dict(WORKER_ENV))
     client = Client(cluster)
     return _Closing(client, cluster)
+
+
+def setup_workers(client: Any, plugin: Any = None) -> None:
+    """Set up every worker of ``client``'s cluster, present and future, for study tasks (once per worker).
+
+    One numba, HiGHS and BLAS thread and the numerical kernels loaded
+    (:class:`reachplan.planner.study.workers.WorkerSetup`).
+
+    Parameters
+    ----------
+    client : distributed.Client
+        Connected client (a local cluster's or a scheduler's).
+    plugin : WorkerSetup or None
+        The set-up to register; None: ``WorkerSetup()`` (every kernel group).
+    """
+    from reachplan.planner.study.workers import WorkerSetup
+
+    client.register_plugin(plugin if plugin is not None else WorkerSetup())
 
 
 class _Closing:

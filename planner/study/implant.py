@@ -41,9 +41,11 @@ from reachplan import ReachplanError
 from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.errors import StudyError
+from reachplan.planner.study.cost import cost_json
+from reachplan.planner.study.designs import designs_json, part_design_rows, write_designs
 
 if TYPE_CHECKING:
-    from reachplan.planner.implant.case import ImplantComparison
+    from reachplan.planner.implant.case import DesignArms
     from reachplan.planner.implant.settings import ImplantSettings
 
 ARMS = ("straight", "steered")
@@ -51,7 +53,7 @@ PARTS = "parts"
 CASES_CSV = "cases.csv"
 SUMMARY_JSON = "summary.json"
 SUMMARY_PNG = "summary.png"
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2  # 2: one straight + steered arm per stylet design (1: one arm screening every design)
 
 
 # ------------------------------------------------------------------------------------------------ statistics
@@ -230,7 +232,9 @@ class ImplantStudySpec:
     seeds : tuple of int
         One case per seed, each once.
     config : PlanConfig
-        The plan configuration (stylet designs of the steered arm, at least one; schedule family, template).
+        The plan configuration (schedule family, template); its ``designs`` (at least one) are compared: a
+        straight + steered arm each, the straight arm shared (:mod:`reachplan.planner.study.designs`); the first
+        design's arm is the case's ``steered`` arm.
     settings : ImplantSettings or None
         The implant settings (None: the defaults).
     source : str
@@ -420,8 +424,14 @@ def case_row(task: ImplantCase, implant: Mapping[str, Any], seconds: float | Non
         worker=f"{socket.gethostname()}:{os.getpid()}")
 
 
-def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
-    """Build the clinical case of ``seed`` in memory and plan both implant arms on it (as ``reachplan demo``).
+def plan_case(seed: int, spec: ImplantStudySpec, threads: int = 2) -> tuple[DesignArms, dict[str, float]]:
+    """Build the clinical case of ``seed`` in memory and plan its implant arms on it (as ``reachplan demo``).
+
+    The straight arm once and one straight + steered arm per design of ``spec.config.designs``
+    (:func:`~reachplan.planner.implant.case.plan_design_arms`), with the GTV_res and the protocol's dose points as
+    the demo plans them. Organs whose contours an earlier case of this process
+    had (the generated cases' pelvic bone) are not meshed again (:func:`~reachplan.planner.case.scene.build_scene`
+    ``reuse``).
 
     Parameters
     ----------
@@ -429,33 +439,47 @@ def plan_case(seed: int, spec: ImplantStudySpec) -> ImplantComparison:
         Seed of :func:`~reachplan.imaging.clinical.clinical_case`.
     spec : ImplantStudySpec
         Configuration, settings, source and modality.
+    threads : int
+        Arms planned at once (1 on a study worker: one core each).
 
     Returns
     -------
-    ImplantComparison
-        Both arms with their Pareto curves.
+    arms : DesignArms
+        The straight arm and each design's arm (by design name), with their Pareto curves.
+    cpu_s : dict of str to float
+        CPU time of this process per stage, s: ``case`` (the anatomy and its contours), ``scene`` (meshes, organs,
+        template pose, planning masks), then :class:`DesignArms`'s ``candidates``, ``arms`` and ``check``.
     """
     from reachplan.imaging.clinical import clinical_case, image_grid, structure_set
     from reachplan.planner.case.scene import build_scene
-    from reachplan.planner.dose.structures import planning_structures
-    from reachplan.planner.implant.case import plan_implants
+    from reachplan.planner.delivery import case_point_limits
+    from reachplan.planner.dose.aims import Aims
+    from reachplan.planner.dose.structures import gtv_structure, planning_structures
+    from reachplan.planner.implant.case import plan_design_arms
     from reachplan.planner.lookup import get_source
 
+    c0 = time.process_time()
     case = clinical_case(seed, modality=spec.modality)
     structures = structure_set(case.spec)
     grid = image_grid(case.spec)
+    c1 = time.process_time()
     targets = [n for n in structures.names if n.casefold().startswith("target")]
-    scene = build_scene(structures, targets, grid=grid, config=spec.config)
+    scene = build_scene(structures, targets, grid=grid, config=spec.config, reuse=True)
     config = dataclasses.replace(spec.config, oar_names=tuple(o.name for o in scene.organs))
     planning = planning_structures(structures, grid, "HR-CTV", config.oar_names, scene.applicators)
-    return plan_implants(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U, spec.settings)
+    c2 = time.process_time()
+    arms = plan_design_arms(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U, spec.settings,
+                            gtv_structure(structures, planning.grid), steered={d: (d,) for d in spec.config.designs},
+                            threads=threads, points=case_point_limits(structures, Aims()))
+    return arms, {"case": round(c1 - c0, 3), "scene": round(c2 - c1, 3), **arms.cpu_s}
 
 
 def run_case(task: ImplantCase, spec: ImplantStudySpec) -> dict[str, Any]:
     """Plan one case (the worker's task).
 
     An expected failure (any :class:`ReachplanError`, e.g. no target volume) becomes the failed row; anything
-    else propagates and is recorded by the study the same way.
+    else propagates and is recorded by the study the same way. In a Dask worker the case runs on one thread
+    (:func:`~reachplan.planner.study.tasks.task_threads`).
 
     Parameters
     ----------
@@ -467,15 +491,23 @@ def run_case(task: ImplantCase, spec: ImplantStudySpec) -> dict[str, Any]:
     Returns
     -------
     dict of str to object
-        ``{"row": ImplantRow as a dict, "implant": plan.json's implant section or None}``.
+        ``{"row": ImplantRow as a dict, "implant": plan.json's implant section or None}`` (the first design's arm
+        is its ``steered``), ``designs``: each further design's arm section by design, and ``cpu_s``: the CPU time
+        per stage (:func:`plan_case`).
     """
+    from reachplan.planner.implant.case import ImplantComparison
+    from reachplan.planner.study.tasks import task_threads
+
     t, cpu = time.perf_counter(), time.process_time()
     try:
-        implant = plan_case(task.seed, spec).to_json()
+        arms, stages = plan_case(task.seed, spec, task_threads())
     except ReachplanError as exc:
         return failed_case(task, f"{type(exc).__name__}: {exc}")
+    first, *others = spec.config.designs
+    implant = ImplantComparison(arms.straight, arms.steered[first], arms.candidates, arms.seconds).to_json()
     row = case_row(task, implant, time.perf_counter() - t, time.process_time() - cpu)
-    return {"row": dataclasses.asdict(row), "implant": implant}
+    return {"row": dataclasses.asdict(row), "implant": implant,
+            "designs": {d: arms.steered[d].to_json() for d in others}, "cpu_s": stages}
 
 
 # ------------------------------------------------------------------------------------------------ the study
@@ -496,6 +528,8 @@ class ImplantStudyResult:
         Cases already done before this run.
     wall_s : float, s
         Wall time of this run.
+    doc : dict
+        ``summary.json`` as written (with ``cost`` and ``designs``).
     """
 
     out: Path
@@ -503,6 +537,7 @@ class ImplantStudyResult:
     summary: ImplantCohortSummary
     n_resumed: int
     wall_s: float
+    doc: dict[str, Any] = field(default_factory=dict)
 
 
 CaseFn = Callable[[ImplantCase, ImplantStudySpec], dict[str, Any]]
@@ -510,7 +545,8 @@ CaseFn = Callable[[ImplantCase, ImplantStudySpec], dict[str, Any]]
 
 def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | None = None,
                       workers: int | None = None, client: Any = None, retry_failed: bool = False,
-                      level: float = 0.95, quiet: bool = True, task_fn: CaseFn = run_case) -> ImplantStudyResult:
+                      level: float = 0.95, quiet: bool = True, task_fn: CaseFn = run_case,
+                      worker_setup: Any = None) -> ImplantStudyResult:
     """Run (or resume) an implant study into the folder ``out``: ``cases.csv``, ``summary.json``, ``summary.png``.
 
     Parameters
@@ -533,6 +569,9 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
         No progress bar.
     task_fn : callable (ImplantCase, ImplantStudySpec) -> dict
         The function a worker runs per case (default :func:`run_case`; must be importable by workers).
+    worker_setup : WorkerSetup or None
+        How Dask workers are set up (:func:`reachplan.planner.study.setup_workers`); None: one thread per numerical
+        library and every kernel loaded.
 
     Returns
     -------
@@ -564,7 +603,7 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
         else:
             if client is None:
                 client = stack.enter_context(dask_client(scheduler, workers, len(todo)))
-            results = dask_results(client, todo, spec, task_fn, failed_case)
+            results = dask_results(client, todo, spec, task_fn, failed_case, worker_setup)
         bar = stack.enter_context(tqdm(total=len(todo), desc="implant cases", unit="case", disable=quiet or not todo))
         for task, part in results:
             atomic_write_json(out / PARTS / f"{task.key}.json", part)
@@ -573,10 +612,14 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
     rows = tuple(ImplantRow(**done[t.key]["row"]) for t in tasks)
     summary = _summary([dataclasses.asdict(r) for r in rows], level)
     write_dataclass_csv(ImplantRow, rows, out / CASES_CSV)
+    design_rows = [r for t in tasks for r in part_design_rows(t.key, t.seed, done[t.key], spec.config.designs)]
+    write_designs(design_rows, out)
     wall = time.perf_counter() - t0
-    atomic_write_json(out / SUMMARY_JSON, summary_json(summary, rows, wall))
+    doc = {**summary_json(summary, rows, wall), "cost": cost_json([done[t.key] for t in tasks]),
+           "designs": designs_json(design_rows, spec.config.designs, t_interval, level)}
+    atomic_write_json(out / SUMMARY_JSON, doc)
     summary_figure(rows, summary, out / SUMMARY_PNG)
-    return ImplantStudyResult(out, rows, summary, len(tasks) - len(todo), wall)
+    return ImplantStudyResult(out, rows, summary, len(tasks) - len(todo), wall, doc)
 
 
 def _read_parts(out: Path) -> dict[str, dict[str, Any]]:

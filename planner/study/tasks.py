@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import socket
+import sys
 import threading
 import time
 from collections import OrderedDict
@@ -181,6 +182,26 @@ class StudyRow:
     def __post_init__(self) -> None:
         if self.status not in ("ok", "failed"):
             raise ValueError(f"row status must be 'ok' or 'failed', got {self.status!r}")
+
+
+def task_threads() -> int:
+    """Return the threads a task's numerical work may use: 1 inside a Dask worker (limits set there), else 2.
+
+    In a worker, numba runs this thread's kernels on one thread and HiGHS on one
+    (:func:`reachplan.planner.study.workers.limit_threads`); the study's parallelism is its workers.
+
+    Returns
+    -------
+    int
+        1 in a Dask worker's task, 2 in this process.
+    """
+    if "distributed" in sys.modules:  # a worker has imported it; a plain process need not pay for the import
+        from reachplan.planner.study.workers import limit_threads, on_worker
+
+        if on_worker():
+            limit_threads(1)
+            return 1
+    return 2
 
 
 def _worker_name() -> str:
@@ -391,6 +412,7 @@ def run_task(task: StudyTask, config: PlanConfig) -> tuple[StudyRow, ...]:
     from reachplan.planner.case.search import plan
 
     cpu = time.process_time()
+    task_threads()
     try:
         designs = () if task.design == STRAIGHT else (task.design,)
         cfg = dataclasses.replace(config, designs=designs)

@@ -26,6 +26,7 @@ from reachplan.planner.study.implant import (
     run_implant_study,
     t_interval,
 )
+from reachplan.planner.study.workers import WorkerSetup
 
 #: Student t quantiles t(0.975, df) from a printed table (NIST/SEMATECH e-Handbook, 1.3.6.7.2), not from scipy.
 T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 9: 2.262}
@@ -176,7 +177,8 @@ def test_dask_gives_the_serial_rows(spec: ImplantStudySpec, tmp_path: Path) -> N
     serial = run_implant_study(spec, tmp_path / "serial", workers=0, task_fn=planted)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None,
                                   scheduler_kwargs=LOOPBACK_HTTP) as cluster, distributed.Client(cluster) as client:
-        on_dask = run_implant_study(spec, tmp_path / "dask", client=client, task_fn=planted)
+        on_dask = run_implant_study(spec, tmp_path / "dask", client=client, task_fn=planted,
+                                    worker_setup=WorkerSetup(groups=()))  # the kernels: test_study_scale
 
     def strip(rows: tuple[ImplantRow, ...]) -> list[dict[str, object]]:
         return [{k: v for k, v in dataclasses.asdict(r).items() if k not in RUN_COLUMNS} for r in rows]
