@@ -17,7 +17,7 @@ from reachplan.planner.case.scene import Scene
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
-from reachplan.planner.implant.arms import ImplantArm, with_subset
+from reachplan.planner.implant.arms import ImplantArm, with_straight_plans, with_subset
 from reachplan.planner.implant.candidates import Channel, applicator_channels, needle_candidates
 from reachplan.planner.implant.needles import check_arm, with_scenarios
 from reachplan.planner.implant.plan import plan_arms
@@ -133,6 +133,8 @@ def plan_implants(
                                    ("steered", [*cands, *intracavitary])], planning, kernel, air_kerma_u,
                                   aims=aims, settings=settings, gtv=gtv)
     steered = with_subset(steered, straight)
+    # fair arms: an implant of straight needles the steered arm's search found is the straight arm's too
+    straight = with_straight_plans(straight, steered)
     # the chosen needles re-solved with the reference model, their robustness, the plans re-loaded on them
     cache: dict[int, Channel | str] = {}
     checked_straight = check_arm(straight, scene, planning, config, kernel, air_kerma_u, settings, models=models,
