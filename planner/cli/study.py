@@ -50,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--implant", type=int, metavar="N",
                         help="instead of a design study: plan both implant arms (straight; straight + steered with "
                              "--designs) on the clinical case of N seeds from --seed and summarise needles saved and "
-                             "D90 gained by steering (paired t 95 %% CIs); writes cases.csv, summary.json, summary.png")
+                             "D90 gained by steering (Wilcoxon, sign and paired t tests with 95 %% CIs, strata of "
+                             "anatomy); writes cases.csv, summary.json, summary.png")
     parser.add_argument("--max-needles", type=int, default=16, metavar="K",
                         help="with --implant: largest needle budget on each arm's Pareto curve")
     parser.add_argument("--seed", type=int, default=0, help="seed of --make-cohort and --implant (first case)")
@@ -140,7 +141,8 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
     from reachplan.planner.case.config import PlanConfig
     from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.planner.steering.steered import ScheduleFamily
-    from reachplan.planner.study.implant import ImplantStudySpec, format_summary, run_implant_study, summary_json
+    from reachplan.planner.study.implant import ImplantStudySpec, run_implant_study
+    from reachplan.planner.study.summary import format_implant_summary, implant_summary_json
 
     family = ScheduleFamily(**COARSE_FAMILY) if args.family == "coarse" else ScheduleFamily()
     # as the demo: the clinical case's tandem (an applicator) is an obstacle, a needle must not cross it
@@ -150,10 +152,11 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
     result = run_implant_study(spec, args.out, scheduler=args.scheduler, workers=args.workers,
                                retry_failed=args.retry_failed, quiet=quiet)
     if args.json:
+        rows = [dataclasses.asdict(r) for r in result.rows]
         print_json({"out": str(result.out), "resumed": result.n_resumed,
-                    **summary_json(result.summary, result.rows, result.wall_s)}, NAME)
+                    **implant_summary_json(result.summary, rows, result.wall_s)}, NAME)
     elif not quiet:
-        print(format_summary(result.summary, result.rows))
+        print(format_implant_summary(result.summary, [dataclasses.asdict(r) for r in result.rows]))
         print(f"\n{len(result.rows)} cases ({result.n_resumed} already done) in {result.wall_s:.1f} s; wrote "
               f"{result.out / 'cases.csv'}, summary.json and summary.png")
     return 0
