@@ -1,8 +1,8 @@
 """The anatomical variety of the clinical cohort: each parameter's distribution and where it comes from.
 
-:func:`draw_params` draws one case's :class:`~reachplan.imaging.clinical.ClinicalParams` from the distributions of
-:data:`VARIETY` (seed 0, the reference case of ``reachplan demo``, is not drawn: it keeps the defaults). Each
-:class:`Draw` names its source in ``gyn_anatomy.md`` (the project's reference notes on published pelvic anatomy),
+:func:`draw_params` draws the fields of one case's ``ClinicalParams`` (:mod:`reachplan.imaging.clinical`) from the
+distributions of :data:`VARIETY` (seed 0, the reference case of ``reachplan demo``, is not drawn: it keeps the
+defaults). Each :class:`Draw` names its source in ``gyn_anatomy.md`` (the project's reference notes on published pelvic anatomy),
 or says ASSUMED and why (no citable number was found there). :func:`variety_table` prints them.
 
 Sampling order is fixed (one generator per case, every draw made whether or not it is used), so a case's anatomy
@@ -13,13 +13,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cache
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from reachplan.imaging.clinical import ClinicalParams
 
 
 @dataclass(frozen=True)
@@ -169,51 +165,42 @@ VARIETY: dict[str, Draw] = {
 }
 
 
-@cache
-def rectum_length_mm() -> float:
-    """Return the length of the clinical case's rectum centre line (mm), for its volume-to-radius conversion.
+def rectum_radius_mm(volume_cm3: float, length_mm: float) -> float:
+    """Return the radius (mm) of a rectum tube ``length_mm`` long holding ``volume_cm3``, clipped to 8..16 mm.
 
-    Returns
-    -------
-    float, mm
-        The tube's arc length.
-    """
-    from reachplan.imaging.clinical import _RECTUM_POINTS, tube
-
-    return tube(_RECTUM_POINTS, 10.0, rounded=False).length_mm
-
-
-def rectum_radius_mm(volume_cm3: float) -> float:
-    """Return the radius (mm) of the rectum tube holding ``volume_cm3``, clipped to 8..16 mm (kept off the vagina).
+    The clip keeps the rectum off the vagina.
 
     Parameters
     ----------
     volume_cm3 : float, cm³
         The rectum's volume.
+    length_mm : float, mm
+        The length of its centre line.
 
     Returns
     -------
     float, mm
-        ``sqrt(V / (π L))`` with ``L`` :func:`rectum_length_mm`, rounded to 0.01.
+        ``sqrt(V / (π L))``, rounded to 0.01.
     """
-    return round(float(np.clip(math.sqrt(volume_cm3 * 1000.0 / (math.pi * rectum_length_mm())), 8.0, 16.0)), 2)
+    return round(float(np.clip(math.sqrt(volume_cm3 * 1000.0 / (math.pi * length_mm)), 8.0, 16.0)), 2)
 
 
-def draw_params(rng: np.random.Generator) -> ClinicalParams:
+def draw_params(rng: np.random.Generator, rectum_length_mm: float) -> dict[str, Any]:
     """Draw one case's anatomy from :data:`VARIETY` (every draw made, in a fixed order).
 
     Parameters
     ----------
     rng : numpy.random.Generator
         The case's generator.
+    rectum_length_mm : float, mm
+        Length of the case's rectum centre line (its drawn volume becomes a radius).
 
     Returns
     -------
-    ClinicalParams
-        The anatomy (the uterine body's length is the uterus' less the cervix', at least 30 mm).
+    dict of str to object
+        The fields of :class:`reachplan.imaging.clinical.ClinicalParams` (the uterine body's length is the uterus'
+        less the cervix', at least 30 mm).
     """
-    from reachplan.imaging.clinical import ClinicalParams
-
     d = {name: draw.sample(rng) for name, draw in VARIETY.items()}
 
     def f(name: str) -> float:
@@ -221,13 +208,14 @@ def draw_params(rng: np.random.Generator) -> ClinicalParams:
 
     size = str(d["tumour_size"])
     cervix = f("cervix_length_mm")
-    return ClinicalParams(
+    return dict(
         version_deg=f("version_anteverted_deg" if d["anteverted"] else "version_retroverted_deg"),
         flexion_deg=f("flexion_anteflexed_deg" if d["anteflexed"] else "flexion_retroflexed_deg"),
         cervix_length_mm=cervix, corpus_length_mm=round(max(f("uterus_length_mm") - cervix, 30.0), 2),
         uterus_width_mm=f("uterus_width_mm"), uterus_thickness_mm=f("uterus_thickness_mm"),
         bladder_volume_cc=f("bladder_volume_cm3"), bladder_wall_y_mm=f("bladder_wall_y_mm"),
-        rectum_radius_mm=rectum_radius_mm(f("rectum_volume_cm3")), sigmoid_radius_mm=f("sigmoid_radius_mm"),
+        rectum_radius_mm=rectum_radius_mm(f("rectum_volume_cm3"), rectum_length_mm),
+        sigmoid_radius_mm=f("sigmoid_radius_mm"),
         sigmoid_shift_mm=(f("sigmoid_shift_mm"), _float(VARIETY["sigmoid_shift_mm"].sample(rng)),
                           _float(VARIETY["sigmoid_shift_mm"].sample(rng))),
         bowel_shift_mm=(f("bowel_shift_xy_mm"), _float(VARIETY["bowel_shift_xy_mm"].sample(rng)),

@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reachplan.imaging.anatomy import draw_params
 from reachplan.imaging.case_spec import PhantomSpec, PhantomStructure
 from reachplan.imaging.phantom import PhantomFiles, write_phantom
 from reachplan.imaging.sweep import SAMPLE_MM, Sweep, Union, arc_curve, resample_curve
@@ -221,9 +222,8 @@ def sample_params(seed: int) -> ClinicalParams:
     """
     if seed == 0:
         return ClinicalParams()
-    from reachplan.imaging.anatomy import draw_params
-
-    return draw_params(np.random.default_rng([1013, seed]))
+    rectum_mm = tube(_RECTUM_POINTS, 10.0, rounded=False).length_mm
+    return ClinicalParams(**draw_params(np.random.default_rng([1013, seed]), rectum_mm))
 
 
 @dataclass(frozen=True, eq=False)
