@@ -548,12 +548,13 @@ def implant_summary_figure(summary: ImplantCohortSummary, rows: Sequence[Mapping
     for ax, values, label in ((ax_n, saved, "needles saved by steering (per case)"),
                               (ax_d, gain, "HR-CTV D90 gained by steering (Gy EQD2)")):
         for x, k in enumerate(order):
-            ax.bar(x, values[k], 0.8, color=_GROUP_COLOURS.get(group[k], "#bcbd22"), edgecolor="black", lw=0.5,
-                   hatch="///" if used[k] else None)
+            colour = _GROUP_COLOURS.get(group[k], "#bcbd22")
+            ax.bar(x, values[k], 0.8, color=colour, edgecolor="black", lw=0.5, hatch="///" if used[k] else None)
+            ax.plot([x], [values[k]], "o", color=colour, mec="black", mew=0.5, ms=5)  # a zero difference shows too
         ax.axhline(0.0, color="black", lw=0.8)
         ax.set_xticks(range(len(order)), [paired[k]["case"].rsplit("_", 1)[-1] for k in order], fontsize=7,
                       rotation=90)
-        ax.set_xlabel("case (seed), sorted")
+        ax.set_xlabel("case (seed), sorted by needles saved, then D90 gained")
         ax.set_ylabel(label, fontsize=9)
     ax_n.yaxis.get_major_locator().set_params(integer=True)
     handles = [Patch(color=c, label=f"parametrium: {g}") for g, c in _GROUP_COLOURS.items()]
