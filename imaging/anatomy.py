@@ -2,8 +2,8 @@
 
 :func:`draw_params` draws the fields of one case's ``ClinicalParams`` (:mod:`reachplan.imaging.clinical`) from the
 distributions of :data:`VARIETY` (seed 0, the reference case of ``reachplan demo``, is not drawn: it keeps the
-defaults). Each :class:`Draw` names its source in ``gyn_anatomy.md`` (the project's reference notes on published pelvic anatomy),
-or says ASSUMED and why (no citable number was found there). :func:`variety_table` prints them.
+defaults). Each :class:`Draw` names its source in ``gyn_anatomy.md`` (the project's reference notes on published
+pelvic anatomy), or says ASSUMED and why (no citable number was found there). :func:`variety_table` prints them.
 
 Sampling order is fixed (one generator per case, every draw made whether or not it is used), so a case's anatomy
 depends on its seed only.

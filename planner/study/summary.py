@@ -554,7 +554,7 @@ def implant_summary_figure(summary: ImplantCohortSummary, rows: Sequence[Mapping
         ax.axhline(0.0, color="black", lw=0.8)
         ax.set_xticks(range(len(order)), [paired[k]["case"].rsplit("_", 1)[-1] for k in order], fontsize=7,
                       rotation=90)
-        ax.set_xlabel("case (seed), sorted by needles saved, then D90 gained")
+        ax.set_xlabel("case (seed); sorted by needles, then D90", fontsize=9)
         ax.set_ylabel(label, fontsize=9)
     ax_n.yaxis.get_major_locator().set_params(integer=True)
     handles = [Patch(color=c, label=f"parametrium: {g}") for g, c in _GROUP_COLOURS.items()]
