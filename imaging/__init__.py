@@ -15,7 +15,8 @@
   ``phantom_spec``), built from the analytic solids of :mod:`reachplan.imaging.solids`; the files are encoded by
   :mod:`reachplan.imaging.case_dicom`.
 * :mod:`reachplan.imaging.clinical` : the built-in clinical case (``clinical_case``, ``write_clinical``), built
-  from the smooth solids of :mod:`reachplan.imaging.sweep`.
+  from the smooth solids of :mod:`reachplan.imaging.sweep`; :mod:`reachplan.imaging.anatomy` holds the
+  distributions (with their sources) each seed's anatomy is drawn from.
 * :mod:`reachplan.imaging.inspect` : what a DICOM folder holds (``reachplan inspect``).
 * :mod:`reachplan.imaging.errors` : typed errors and warnings.
 

@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reachplan.imaging.anatomy import draw_params
 from reachplan.imaging.case_spec import PhantomSpec, PhantomStructure
 from reachplan.imaging.phantom import PhantomFiles, write_phantom
 from reachplan.imaging.sweep import SAMPLE_MM, Sweep, Union, arc_curve, resample_curve
@@ -83,13 +84,27 @@ TISSUE_CLASS = {"air": "air", "fat": "fat", "muscle": "muscle", "soft tissue": "
                 "fluid": "fluid", "cortical bone": "cortical bone", "cancellous bone": "cancellous bone",
                 "plastic": "plastic"}
 
-#: Target lines (x, y) in LPS mm: holes Ce, Cg, Cc, Df, Da of the built-in template (identity pose).
+#: A parametrial extension reaching this far (mm) from the cervix axis is distal, a shorter one proximal (ASSUMED:
+#: about half way to the obturator internus on the side wall, 55 mm from the axis in this case).
+DISTAL_REACH_MM = 36.0
+
+#: Target lines (x, y) in LPS mm: holes Ce, Cg, Cc, Df, Da of the built-in template (identity pose). When a line
+#: misses (a retroverted uterus, a proximal extension), the fallback of :data:`TARGET_FALLBACK` is taken.
 TARGET_COLUMNS: dict[str, tuple[float, float]] = {
     "corpus_ant": (0.0, -30.0),
     "corpus_L": (19.284, -22.981),
     "corpus_R": (-19.284, -22.981),
     "param_L": (40.0, 0.0),
     "param_R": (-40.0, 0.0),
+}
+#: Further lines, tried in order, for targets whose first misses (holes Cn, Ab, Cl, Ch, Bg, Ba: posterior, inner
+#: ring, 20 mm ring).
+TARGET_FALLBACK: dict[str, tuple[tuple[float, float], ...]] = {
+    "corpus_ant": ((0.0, 30.0), (0.0, -10.6)),
+    "corpus_L": ((19.284, 22.981),),
+    "corpus_R": ((-19.284, 22.981),),
+    "param_L": ((20.0, 0.0),),
+    "param_R": ((-20.0, 0.0),),
 }
 
 
@@ -102,9 +117,9 @@ class ClinicalParams:
     Parameters
     ----------
     version_deg : float, degrees
-        Cervix axis tilted anteriorly from the vaginal axis (ASSUMED), 0-80.
+        Cervix axis tilted anteriorly from the vaginal axis (ASSUMED), -80..80; negative: retroverted (posteriorly).
     flexion_deg : float, degrees
-        Uterine body axis from the cervix axis (ASSUMED), 0-80.
+        Uterine body axis from the cervix axis (ASSUMED), -80..80; negative: retroflexed (bent posteriorly).
     cervix_length_mm, corpus_length_mm : float, mm
         Lengths of the cervix and of the uterine body along their axes.
     uterus_width_mm, uterus_thickness_mm : float, mm
@@ -116,11 +131,22 @@ class ClinicalParams:
     sigmoid_shift_mm : (float, float, float), mm, LPS
         Displacement of the sigmoid loop (x, y, z).
     parametria : str
-        ``"L"``, ``"R"`` or ``"LR"``: the sides of parametrial extension.
+        ``"L"``, ``"R"`` or ``"LR"``: the sides of parametrial extension; ``""``: none.
     param_reach_mm : float, mm
-        The extension's lateral reach from the cervix axis (ASSUMED).
+        The extension's lateral reach from the cervix axis (ASSUMED); below :data:`DISTAL_REACH_MM` it is proximal
+        (the medial parametrium), else distal (toward the pelvic side wall).
     hrctv_margin_mm : float, mm
         The HR-CTV's margin grown around the uterus.
+    hrctv_corpus_fraction : float
+        The fraction of the uterine body's length (from the cervix up) the HR-CTV covers, in (0, 1]; 1: the whole
+        uterus (a tumour confined to the cervix and lower body is smaller).
+    vaginal_extension_mm : float, mm
+        Length of the tumour's extension down the vaginal wall from the fornix (0: none).
+    vaginal_extension_azimuth_deg : float, degrees
+        Where around the vagina it lies, in the axial plane from patient left (+x) toward posterior (+y); any value
+        (taken modulo 360).
+    bowel_shift_mm : (float, float, float), mm, LPS
+        Displacement of the small-bowel loops (x, y, z) before they are moved clear of the other organs.
     bladder_wall_y_mm : float, mm, LPS
         The bladder's posterior wall (y) in the mid-sagittal plane; its base rests on the anterior vaginal wall
         and the cervix (ASSUMED, as the distances cervix-to-bladder-wall were NOT FOUND).
@@ -145,25 +171,44 @@ class ClinicalParams:
     param_reach_mm: float = 45.0
     hrctv_margin_mm: float = 2.0
     bladder_wall_y_mm: float = -28.0
+    hrctv_corpus_fraction: float = 1.0
+    vaginal_extension_mm: float = 0.0
+    vaginal_extension_azimuth_deg: float = 0.0
+    bowel_shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        if self.parametria not in ("L", "R", "LR"):
-            raise ValueError(f"parametria must be 'L', 'R' or 'LR', got {self.parametria!r}")
-        if not 0.0 <= self.version_deg <= 80.0 or not 0.0 <= self.flexion_deg <= 80.0:
-            raise ValueError("version_deg and flexion_deg must be in 0..80 degrees (anteverted, anteflexed)")
+        if self.parametria not in ("", "L", "R", "LR"):
+            raise ValueError(f"parametria must be '', 'L', 'R' or 'LR', got {self.parametria!r}")
+        if not -80.0 <= self.version_deg <= 80.0 or not -80.0 <= self.flexion_deg <= 80.0:
+            raise ValueError("version_deg and flexion_deg must be in -80..80 degrees (negative: retro-)")
+        if not 0.0 < self.hrctv_corpus_fraction <= 1.0 or not 0.0 <= self.vaginal_extension_mm <= 40.0:
+            raise ValueError("hrctv_corpus_fraction must be in (0, 1] and vaginal_extension_mm in 0..40 mm")
         for name in ("cervix_length_mm", "corpus_length_mm", "uterus_width_mm", "uterus_thickness_mm",
                      "bladder_volume_cc", "rectum_radius_mm", "sigmoid_radius_mm", "param_reach_mm"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"ClinicalParams.{name} must be positive, got {v}")
 
+    @property
+    def parametrial_extension(self) -> str:
+        """Return the parametrial extension in words: ``none``, or the side(s) and proximal or distal.
+
+        Returns
+        -------
+        str
+            ``none``, ``left proximal``, ``right distal``, ``bilateral distal``, ...
+        """
+        if not self.parametria:
+            return "none"
+        side = {"L": "left", "R": "right", "LR": "bilateral"}[self.parametria]
+        return f"{side} {'distal' if self.param_reach_mm >= DISTAL_REACH_MM else 'proximal'}"
+
 
 def sample_params(seed: int) -> ClinicalParams:
     """Deterministic anatomical variation for ``seed`` (0 = the reference case).
 
-    Within published ranges: uterine version and flexion, uterine size (Nayab 2022 ± 1
-    SD), bladder filling (Jamema 2008 ± 1 SD), sigmoid position and tumour extent (sides and lateral reach of the
-    parametrial extension).
+    Every parameter is drawn from the distribution :data:`reachplan.imaging.anatomy.VARIETY` documents, with its
+    source (:func:`reachplan.imaging.anatomy.draw_params`).
 
     Parameters
     ----------
@@ -177,16 +222,8 @@ def sample_params(seed: int) -> ClinicalParams:
     """
     if seed == 0:
         return ClinicalParams()
-    rng = np.random.default_rng([1013, seed])
-    u = lambda lo, hi: round(float(rng.uniform(lo, hi)), 2)  # noqa: E731
-    return ClinicalParams(
-        version_deg=u(20.0, 40.0), flexion_deg=u(25.0, 45.0),
-        cervix_length_mm=u(27.0, 34.0), corpus_length_mm=u(42.0, 54.0),
-        uterus_width_mm=u(40.0, 50.0), uterus_thickness_mm=u(30.0, 40.0),
-        bladder_volume_cc=u(100.0, 180.0), bladder_wall_y_mm=u(-29.5, -26.5),
-        sigmoid_shift_mm=(u(-4.0, 4.0), u(-4.0, 4.0), u(-4.0, 4.0)),
-        parametria=str(rng.choice(["L", "R", "LR"])), param_reach_mm=u(42.0, 48.0),
-    )
+    rectum_mm = tube(_RECTUM_POINTS, 10.0, rounded=False).length_mm
+    return ClinicalParams(**draw_params(np.random.default_rng([1013, seed]), rectum_mm))
 
 
 @dataclass(frozen=True, eq=False)
@@ -344,12 +381,13 @@ def _overlap(a: Sweep | Union, b: Sweep | Union, gap_mm: float = 0.0, step: floa
     return int(np.count_nonzero(b.field(pts[inside]) <= gap_mm))
 
 
-def _bowel(dx: float) -> tuple[Sweep, Sweep]:
-    """Two small-bowel loops above the uterus, on the right (ASSUMED course), shifted by ``dx`` mm along x."""
+def _bowel(dx: float, dy: float = 0.0, dz: float = 0.0) -> tuple[Sweep, Sweep]:
+    """Two small-bowel loops above the uterus, on the right (ASSUMED course), shifted by (dx, dy, dz) mm."""
     a = [(-48, -25, 150), (-38, -58, 154), (-12, -52, 170), (-36, -28, 180), (-50, -45, 190), (-25, -70, 194),
          (-12, -76, 190)]
     b = [(-45, 15, 165), (-25, 5, 184), (-5, -18, 197)]
-    return (tube([(x + dx, y, z) for x, y, z in a], 12.0), tube([(x + dx, y, z) for x, y, z in b], 12.0))
+    return (tube([(x + dx, y + dy, z + dz) for x, y, z in a], 12.0), tube([(x + dx, y + dy, z + dz) for x, y, z in b],
+                                                                          12.0))
 
 
 def _hip(side: float) -> Sweep:
@@ -389,13 +427,12 @@ def clinical_case(seed: int = 0, params: ClinicalParams | None = None, modality:
     """
     p = params or sample_params(seed)
     mr = modality.upper() == "MR"
-    uterus, cervix, axis = _uterus(p)
-    hrctv = _hrctv(p, uterus, axis)
+    rectum = tube(_RECTUM_POINTS, p.rectum_radius_mm, rounded=False)
+    p, uterus, cervix, axis, hrctv = _fitted_uterus(p, rectum)
     hips = (_hip(1.0), _hip(-1.0))
     bladder = _placed_bladder(p, hrctv, hips)
-    rectum = tube(_RECTUM_POINTS, p.rectum_radius_mm, rounded=False)
-    sigmoid = _placed_sigmoid(p, hrctv, bladder)
-    bowel = _placed_bowel(sigmoid)
+    sigmoid = _placed_sigmoid(p, hrctv, bladder, hips)
+    bowel = _placed_bowel(sigmoid, p.bowel_shift_mm, (hrctv, bladder, sigmoid), hips)
     bones = (*hips, _sacrum())
     body = _z_rod(np.linspace(0.0, 210.0, 841), 150.0, 108.0, y_mm=5.0)
     structures = (
@@ -451,7 +488,11 @@ def _paint(name: str, shape: Sweep | Union, tissue: str, mr: bool) -> PhantomStr
 
 
 def _hrctv(p: ClinicalParams, uterus: Sweep, axis: np.ndarray) -> Union:
-    """Return the HR-CTV: the uterus grown by the case's margin, with the parametrial extension on its side(s).
+    """Return the HR-CTV: the uterus grown by the case's margin, with the parametrial and vaginal extensions.
+
+    With ``hrctv_corpus_fraction`` < 1 only the cervix and that fraction of the body are covered (the cut end
+    rounded over 10 mm); a vaginal extension is a tube 7 mm in radius in the vaginal wall (its axis 22.5 mm from the
+    obturator's) from the fornix down (ASSUMED shape).
 
     Parameters
     ----------
@@ -463,8 +504,36 @@ def _hrctv(p: ClinicalParams, uterus: Sweep, axis: np.ndarray) -> Union:
         The uterus' centre line, sampled every ``SAMPLE_MM`` from the external os.
     """
     cervix_mid = axis[round(0.55 * p.cervix_length_mm / SAMPLE_MM)]
-    sides = [1.0] if p.parametria == "L" else [-1.0] if p.parametria == "R" else [1.0, -1.0]
-    return Union((uterus.grown(p.hrctv_margin_mm), *(_parametrium(p, cervix_mid, s) for s in sides)))
+    sides = {"": [], "L": [1.0], "R": [-1.0], "LR": [1.0, -1.0]}[p.parametria]
+    body = uterus
+    if p.hrctv_corpus_fraction < 1.0:
+        k = round((p.cervix_length_mm + p.hrctv_corpus_fraction * p.corpus_length_mm) / SAMPLE_MM) + 1
+        s = np.arange(k) * SAMPLE_MM
+        f = _round_ends(s, s[-1], 0.0, min(10.0, 0.5 * s[-1]))
+        body = Sweep(uterus.samples_mm[:k], uterus.semi_a_mm[:k] * f, uterus.semi_b_mm[:k] * f, uterus.reference)
+    parts = [body.grown(p.hrctv_margin_mm), *(_parametrium(p, cervix_mid, s) for s in sides)]
+    if p.vaginal_extension_mm > 0.0:
+        a = math.radians(p.vaginal_extension_azimuth_deg)
+        x, y = 22.5 * math.cos(a), 22.5 * math.sin(a)
+        parts.append(tube([(x, y, 66.0), (x, y, 61.0 - p.vaginal_extension_mm)], 7.0))
+    return Union(tuple(parts))
+
+
+def _fitted_uterus(p: ClinicalParams, rectum: Sweep) -> tuple[ClinicalParams, Sweep, Sweep, np.ndarray, Union]:
+    """Return the anatomy, uterus, cervix, centre line and HR-CTV, a retro-tilted uterus lifted off the rectum.
+
+    A retroverted or retroflexed uterus rests on the rectum: its negative angles are brought 5 degrees at a time
+    toward 0 until 3 mm of tissue separate the HR-CTV from the rectum (ASSUMED; at most 16 steps). The anatomy
+    returned holds the angles used.
+    """
+    for _ in range(16):
+        uterus, cervix, axis = _uterus(p)
+        hrctv = _hrctv(p, uterus, axis)
+        if min(p.version_deg, p.flexion_deg) >= 0.0 or _overlap(hrctv, rectum, gap_mm=3.0, step=2.0) == 0:
+            break
+        p = dataclasses.replace(p, version_deg=min(p.version_deg + 5.0, 0.0) if p.version_deg < 0 else p.version_deg,
+                                flexion_deg=min(p.flexion_deg + 5.0, 0.0) if p.flexion_deg < 0 else p.flexion_deg)
+    return p, uterus, cervix, axis, hrctv
 
 
 def _placed_bladder(p: ClinicalParams, hrctv: Union, hips: tuple[Sweep, Sweep]) -> Sweep:
@@ -484,31 +553,56 @@ def _placed_bladder(p: ClinicalParams, hrctv: Union, hips: tuple[Sweep, Sweep]) 
     return bladder
 
 
-def _placed_sigmoid(p: ClinicalParams, hrctv: Union, bladder: Sweep) -> Sweep:
-    """Return the sigmoid colon, lifted in 2 mm steps until 3 mm of fat separate it from the HR-CTV and bladder."""
+def _placed_sigmoid(p: ClinicalParams, hrctv: Union, bladder: Sweep, hips: tuple[Sweep, Sweep]) -> Sweep:
+    """Return the sigmoid colon clear of its neighbours (at most 20 steps of 2 mm).
+
+    Moved toward the midline while it touches a hip bone (2 mm of gap), then lifted until 3 mm of fat separate it
+    from the HR-CTV and bladder.
+    """
     dx, dy, dz = p.sigmoid_shift_mm
 
-    def course(dz: float) -> Sweep:
+    def course(dx: float, dz: float) -> Sweep:
         loop = ((x + dx, y + dy, z + dz) for x, y, z in _SIGMOID_LOOP)
         return tube([(26, 56, 127), *loop, (56, -10, 205)], p.sigmoid_radius_mm, rounded=False)
 
-    sigmoid = course(dz)
+    sigmoid = course(dx, dz)
     for _ in range(20):
-        if _overlap(sigmoid, hrctv, 3.0, step=2.0) == 0 and _overlap(sigmoid, bladder, 3.0, step=2.0) == 0:
+        if any(_overlap(sigmoid, h, 2.0, step=2.0) for h in hips):
+            dx -= 2.0
+        elif _overlap(sigmoid, hrctv, 3.0, step=2.0) or _overlap(sigmoid, bladder, 3.0, step=2.0):
+            dz += 2.0
+        else:
             break
-        dz += 2.0
-        sigmoid = course(dz)
+        sigmoid = course(dx, dz)
     return sigmoid
 
 
-def _placed_bowel(sigmoid: Sweep) -> tuple[Sweep, Sweep]:
-    """Return the small-bowel loops on the right, moved further right (up to 12 mm) until clear of the sigmoid."""
+def _placed_bowel(sigmoid: Sweep, shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  avoid: tuple[Sweep | Union, ...] = (), hips: tuple[Sweep, ...] = ()) -> tuple[Sweep, Sweep]:
+    """Return the small-bowel loops on the right, shifted by ``shift_mm``, then clear of the other organs.
+
+    They move further right (up to 12 mm) until clear of the sigmoid; then (at most 30 steps of 2 mm) up while
+    they touch a hip bone (2 mm gap), further right while they touch the sigmoid (up to 16 mm in all), else up
+    until 3 mm separate them from each of ``avoid`` (the HR-CTV, the bladder, the sigmoid).
+    """
+    dx, dy, dz = shift_mm
     bowel_shift = 0.0
     while True:
-        bowel = _bowel(bowel_shift)
+        bowel = _bowel(bowel_shift + dx, dy, dz)
         if bowel_shift <= -12.0 or all(_overlap(b, sigmoid, 4.0, step=2.0) == 0 for b in bowel):
-            return bowel
+            break
         bowel_shift -= 2.0
+    for _ in range(30):
+        if any(_overlap(b, h, 2.0, step=2.0) for b in bowel for h in hips):
+            dz += 2.0  # the iliac wing flares outward above: up is away from it
+        elif bowel_shift > -16.0 and any(_overlap(b, sigmoid, 4.0, step=2.0) for b in bowel):
+            bowel_shift -= 2.0
+        elif any(_overlap(b, a, 3.0, step=2.0) for b in bowel for a in avoid):
+            dz += 2.0
+        else:
+            break
+        bowel = _bowel(bowel_shift + dx, dy, dz)
+    return bowel
 
 
 def _z_rod(z_mm: np.ndarray, semi_x_mm: float, semi_y_mm: float, y_mm: float = 0.0) -> Sweep:
@@ -524,7 +618,7 @@ def _tandem(uterus: Sweep, axis: np.ndarray) -> Sweep:
     It ends 12 mm short of the fundus and is 6 mm across (ASSUMED), with rounded ends.
     """
     canal = axis[: int((uterus.length_mm - 12.0) / SAMPLE_MM)]
-    tandem_line = resample_curve(np.vstack([[0.0, 0.0, -20.0], [0.0, 0.0, 40.0], canal[::24], canal[-1:]]))
+    tandem_line = resample_curve(np.vstack([[0.0, 0.0, -20.0], [0.0, 0.0, 40.0], canal[:-1:24], canal[-1:]]))
     r_t = np.full(len(tandem_line), 3.0) * _round_ends(np.arange(len(tandem_line)) * SAMPLE_MM,
                                                        (len(tandem_line) - 1) * SAMPLE_MM, 0.0, 3.0)
     return Sweep(tandem_line, r_t, r_t, (1.0, 0.0, 0.0))
@@ -567,15 +661,24 @@ def _target_points(p: ClinicalParams, uterus: Sweep, hrctv: Union) -> list[tuple
     Corpus targets in the anterior-inferior part of the body (a fifth of the chord up: about 10 mm from the canal
     and its tandem); parametrial targets in the middle of the extension, on the involved side(s) only. Each is
     written as a small target ROI (``Target_<name>``: a cylinder 8 mm across and 5 mm tall centred on the point,
-    its flat ends on slice boundaries, so the ROI's centroid is the point exactly).
+    its flat ends on slice boundaries, so the ROI's centroid is the point exactly). A line that misses, or whose
+    point falls outside the HR-CTV, gives way to the next of :data:`TARGET_FALLBACK` (with an HR-CTV that covers
+    only part of the body the corpus targets are taken on the HR-CTV); a target with no line left is not made.
     """
     points = []
     for name, xy in TARGET_COLUMNS.items():
         if name.startswith("param") and name[-1] not in p.parametria:
             continue
-        x, y, z = _column_target(uterus, xy, 0.2) if name.startswith("corpus") else _column_target(hrctv, xy)
-        z = -20.0 + 2.5 * round((z + 20.0) / 2.5)  # on a slice boundary
-        points.append((name, (x, y, z)))
+        for column in (xy, *TARGET_FALLBACK[name]):
+            try:
+                x, y, z = (_column_target(uterus if p.hrctv_corpus_fraction == 1.0 else hrctv, column, 0.2)
+                           if name.startswith("corpus") else _column_target(hrctv, column))
+            except ValueError:  # the line misses: try the fallback, else no such target in this case
+                continue
+            z = -20.0 + 2.5 * round((z + 20.0) / 2.5)  # on a slice boundary
+            if float(hrctv.field(np.array([x, y, z]))) < 0.0:
+                points.append((name, (x, y, z)))
+                break
     return points
 
 

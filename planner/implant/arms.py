@@ -8,6 +8,7 @@ one point per count (:func:`_pareto`). The plan chosen is the one with the fewes
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -369,6 +370,28 @@ def with_subset(arm: ImplantArm, subset: ImplantArm) -> ImplantArm:
     """
     return _arm(arm.name, arm.n_candidates, [*arm.plans, *subset.plans], arm.seconds, arm.budgets, arm.selection,
                 arm.wanted_needles)
+
+
+def with_straight_plans(straight: ImplantArm, steered: ImplantArm) -> ImplantArm:
+    """Return the straight arm with every plan of the steered arm that holds no steered needle taken in (fair arms).
+
+    Such a plan is one the straight arm could have made: with it the straight arm's search is as strong as the
+    steered arm's, and a needle saved by steering always comes from a steered needle.
+
+    Parameters
+    ----------
+    straight : ImplantArm
+        The straight arm (its name, candidates, budgets and selection record are kept).
+    steered : ImplantArm
+        The straight + steered arm planned on a superset of its candidates.
+
+    Returns
+    -------
+    ImplantArm
+        Its Pareto curve and chosen plan taken over both sets of plans (:func:`with_subset`).
+    """
+    plans = tuple(p for p in steered.plans if not any(c.steered for c in p.channels))
+    return with_subset(straight, dataclasses.replace(steered, plans=plans))
 
 
 def _pareto(plans: Sequence[ImplantPlan]) -> list[ImplantPlan]:

@@ -19,7 +19,7 @@ from reachplan.planner.case.scene import Scene
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
-from reachplan.planner.implant.arms import ImplantArm, with_subset
+from reachplan.planner.implant.arms import ImplantArm, with_straight_plans, with_subset
 from reachplan.planner.implant.candidates import Channel, applicator_channels, needle_candidates
 from reachplan.planner.implant.needles import check_arm, with_scenarios
 from reachplan.planner.implant.plan import plan_arms
@@ -238,14 +238,16 @@ def plan_design_arms(
                         points=points)
     c2 = time.process_time()
     straight = planned[0]
+    steered_arms = [with_subset(arm, straight) for arm in planned[1:]]
+    for arm in steered_arms:  # fair arms: an implant of straight needles a steered arm's search found is the
+        straight = with_straight_plans(straight, arm)  # straight arm's too
     # the chosen needles re-solved with the reference model, their robustness, the plans re-loaded on them
     cache: dict[int, Channel | str] = {}
     checked = check_arm(straight, scene, planning, config_all, kernel, air_kerma_u, settings, models=models,
                         aims=aims, gtv=gtv, cache=cache, points=points)
-    arms = {name: check_arm(with_subset(arm, straight), scene, planning, config_all, kernel, air_kerma_u, settings,
-                            models=models, aims=aims, gtv=gtv, extra_plans=straight.plans, cache=cache,
-                            points=points)
-            for name, arm in zip(groups, planned[1:], strict=True)}
+    arms = {name: check_arm(arm, scene, planning, config_all, kernel, air_kerma_u, settings, models=models,
+                            aims=aims, gtv=gtv, extra_plans=straight.plans, cache=cache, points=points)
+            for name, arm in zip(groups, steered_arms, strict=True)}
     # each chosen steered needle over the plan's range of tissue moduli (reported, not planned on)
     banded = with_tissue_bands((checked, *arms.values()), scene, config_all)
     checked, arms = banded[0], dict(zip(arms, banded[1:], strict=True))

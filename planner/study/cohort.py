@@ -1,8 +1,10 @@
 """Deterministic cohorts of case variants for design studies, tests and benchmarks.
 
 ``case="clinical"`` (the default): variant ``i`` of seed ``s`` is the built-in clinical case of seed ``s + i``
-(:func:`reachplan.imaging.clinical.clinical_case`: uterine version and flexion, uterine size, bladder filling,
-sigmoid position and tumour extent varied within published ranges); its targets are the ``Target_*`` ROIs.
+(:func:`reachplan.imaging.clinical.clinical_case`; its anatomy drawn from the distributions of
+:data:`reachplan.imaging.anatomy.VARIETY`, each with its source: uterine version and flexion, uterine size, HR-CTV
+size, parametrial and vaginal extension, bladder filling and position, rectum filling, sigmoid and small-bowel
+position); its targets are the ``Target_*`` ROIs. :func:`case_anatomy` measures what ``cases.csv`` records of it.
 
 ``case="pilot"``: variant ``i`` of seed ``s`` perturbs the pilot phantom
 (:func:`reachplan.imaging.phantom.phantom_spec`) with a random
@@ -19,12 +21,16 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from reachplan.imaging.case_spec import PhantomSpec, PhantomStructure
 from reachplan.imaging.phantom import phantom_spec, write_phantom
 from reachplan.imaging.solids import Box, Cylinder, Ellipsoid, EllipticCylinder, Shape, TorusSection
+
+if TYPE_CHECKING:
+    from reachplan.imaging.clinical import ClinicalCase
 
 
 @dataclass(frozen=True)
@@ -218,3 +224,54 @@ def make_cohort(out_dir: Path, n: int, seed: int = 0, case: str = "clinical") ->
         cases.append(folder)
     atomic_write_json(out_dir / "cohort.json", {"seed": seed, "kind": case, "cases": doc})
     return tuple(cases)
+
+
+@dataclass(frozen=True)
+class CaseAnatomy:
+    """What a clinical case's anatomy is, as ``cases.csv`` records it (measured on the built case).
+
+    Parameters
+    ----------
+    hrctv_cm3 : float, cm³
+        HR-CTV volume (its solid integrated on a 1 mm lattice).
+    bladder_cm3 : float, cm³
+        Bladder volume after it was placed clear of the HR-CTV and bones (it may hold less than drawn).
+    rectum_cm3 : float, cm³
+        Rectum volume.
+    uterus_version_deg, uterus_flexion_deg : float, degrees
+        Version and flexion as built (negative: retro-).
+    parametrial_extension : str
+        ``none`` or side(s) and extent, e.g. ``left proximal``, ``bilateral distal``.
+    vaginal_extension_mm : float, mm
+        Length of the vaginal extension (0: none).
+    """
+
+    hrctv_cm3: float
+    bladder_cm3: float
+    rectum_cm3: float
+    uterus_version_deg: float
+    uterus_flexion_deg: float
+    parametrial_extension: str
+    vaginal_extension_mm: float
+
+
+def case_anatomy(case: ClinicalCase) -> CaseAnatomy:
+    """Return the anatomy of a built clinical case (volumes measured on its solids).
+
+    Parameters
+    ----------
+    case : ClinicalCase
+        The case (:func:`reachplan.imaging.clinical.clinical_case`).
+
+    Returns
+    -------
+    CaseAnatomy
+        Volumes (cm³, rounded to 0.1) and the anatomy's descriptors.
+    """
+    def volume_cm3(name: str) -> float:
+        (shape,) = case.spec.get(name).shapes
+        return round(float(shape.analytic_volume_mm3) / 1000.0, 1)
+
+    p = case.params
+    return CaseAnatomy(volume_cm3("CTV_HR"), volume_cm3("Bladder"), volume_cm3("Rectum"), p.version_deg,
+                       p.flexion_deg, p.parametrial_extension, p.vaginal_extension_mm)

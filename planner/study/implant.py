@@ -12,19 +12,16 @@ written atomically as cases finish, so a stopped study resumes where it stopped.
 whose arms has no implant, is a row with status ``failed`` and the reason; the study goes on. At the end:
 ``cases.csv`` (one row per case), ``summary.json`` and ``summary.png``.
 
-Confidence intervals are paired Student t-intervals on the per-case differences (steered minus straight,
-cases where both arms have an implant): ``mean ± t(1 - α/2, n - 1) · s / √n`` with ``s`` the sample standard
-deviation (ddof 1). Sources: NIST/SEMATECH e-Handbook of Statistical Methods, section 1.3.5.2 "Confidence
-Limits for the Mean"; J. A. Rice, *Mathematical Statistics and Data Analysis*, 3rd ed. (2007), section 11.3
-"Comparing Paired Samples" (the paired t-interval is the one-sample interval on the differences). The
-interval assumes roughly normal differences; with few cases it is wider than a percentile bootstrap and,
-unlike it, keeps its nominal coverage for small cohorts.
+Each row also records the case's anatomy (:func:`reachplan.planner.study.cohort.case_anatomy`: HR-CTV, bladder and
+rectum volumes, uterine version and flexion, parametrial and vaginal extension) and whether the steered arm's chosen
+implant uses a steered needle. The statistics (:mod:`reachplan.planner.study.statistics`: Wilcoxon signed-rank,
+exact sign test and a bootstrap interval for the needles saved; paired t and Wilcoxon for D90 and organ doses;
+effect sizes; a power note) and the strata of anatomy are :mod:`reachplan.planner.study.summary`'s.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import os
 import socket
@@ -35,16 +32,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from reachplan import ReachplanError
-from reachplan.imaging.files import atomic_write_bytes, atomic_write_json
+from reachplan.imaging.files import atomic_write_json
 from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U, PlanConfig
 from reachplan.planner.errors import StudyError
 from reachplan.planner.study.cost import cost_json
 from reachplan.planner.study.designs import designs_json, part_design_rows, write_designs
+from reachplan.planner.study.statistics import t_interval
+from reachplan.planner.study.summary import ImplantCohortSummary, summarise_cohort
 
 if TYPE_CHECKING:
+    from reachplan.imaging.clinical import ClinicalCase
     from reachplan.planner.implant.case import DesignArms
     from reachplan.planner.implant.settings import ImplantSettings
 
@@ -58,111 +56,19 @@ MANIFEST_VERSION = 2  # 2: one straight + steered arm per stylet design (1: one 
 
 # ------------------------------------------------------------------------------------------------ statistics
 
-@dataclass(frozen=True)
-class PairedStat:
-    """Mean of a paired difference over the cases and its two-sided t confidence interval (same unit).
-
-    Parameters
-    ----------
-    mean : float or None, same unit as the differences
-        Mean difference; None when no case gives one.
-    low, high : float or None
-        Interval bounds; None when fewer than two cases give a difference (no spread to estimate).
-    n : int
-        Cases that give a difference.
-    level : float
-        The interval's confidence level, in (0, 1).
-    """
-
-    mean: float | None
-    low: float | None
-    high: float | None
-    n: int
-    level: float
-
-
-def t_interval(diffs: Sequence[float] | np.ndarray, level: float = 0.95) -> PairedStat:
-    """Return the mean of the paired differences ``diffs`` and its Student t confidence interval.
-
-    ``mean ± t(1 - α/2, n - 1) · s / √n`` with ``α = 1 - level`` and ``s`` the sample standard deviation
-    (NIST/SEMATECH e-Handbook of Statistical Methods, 1.3.5.2; Rice 2007, 11.3).
-
-    Parameters
-    ----------
-    diffs : (n,) float
-        Per-case differences (steered minus straight), in their own unit.
-    level : float
-        Confidence level, in (0, 1).
-
-    Returns
-    -------
-    PairedStat
-        Mean and interval, in the unit of ``diffs``.
-
-    Raises
-    ------
-    StudyError
-        ``level`` outside (0, 1) or a difference that is not finite.
-    """
-    from scipy.stats import t as student_t
-
-    if not 0.0 < level < 1.0:
-        raise StudyError(f"confidence level must be in (0, 1), got {level}")
-    d = np.asarray(diffs, dtype=float).ravel()
-    if not np.all(np.isfinite(d)):
-        raise StudyError("a paired difference is not finite; check the cases' results")
-    n = len(d)
-    if n == 0:
-        return PairedStat(None, None, None, 0, level)
-    mean = float(d.mean())
-    if n == 1:
-        return PairedStat(mean, None, None, 1, level)
-    half = float(student_t.ppf(0.5 + level / 2.0, n - 1)) * float(d.std(ddof=1)) / np.sqrt(n)
-    return PairedStat(mean, mean - half, mean + half, n, level)
-
-
-@dataclass(frozen=True)
-class ImplantCohortSummary:
-    """Needles saved and D90 gained by steering over a cohort.
-
-    Parameters
-    ----------
-    needles_saved : PairedStat
-        Straight-arm needles minus steered-arm needles of each case's chosen implant, over the cases where both
-        arms have an implant.
-    d90_gained_gy : PairedStat
-        Steered minus straight HR-CTV D90 (EQD2, Gy), over the same cases.
-    aims_met_straight, aims_met_steered : int
-        Cases whose chosen implant meets every aim, per arm (an arm without an implant does not).
-    n_cases : int
-        All cases.
-    n_paired : int
-        Cases with both arms planned.
-    """
-
-    needles_saved: PairedStat
-    d90_gained_gy: PairedStat
-    aims_met_straight: int
-    aims_met_steered: int
-    n_cases: int
-    n_paired: int
-
-
-def summarise_implants(cases: Sequence[Mapping[str, object]], level: float = 0.95) -> ImplantCohortSummary:
-    """Summarise a cohort from each case's plan.json ``implant`` section (paired t-intervals, see the module).
+def summarise_implants(cases: Sequence[Mapping[str, object]]) -> ImplantCohortSummary:
+    """Summarise a cohort from each case's plan.json ``implant`` section (the paired statistics of the summary).
 
     Parameters
     ----------
     cases : sequence of mapping
         One plan.json ``implant`` section per case: ``straight`` and ``steered`` with ``n_needles``,
         ``hrctv_d90_eqd2_gy`` (Gy) and ``aims_met``.
-    level : float
-        Confidence level of the intervals.
 
     Returns
     -------
     ImplantCohortSummary
-        Needles saved, D90 gained and aims met.
+        Needles saved, D90 gained and aims met (:func:`reachplan.planner.study.summary.summarise_cohort`).
 
     Raises
     ------
@@ -174,7 +80,7 @@ def summarise_implants(cases: Sequence[Mapping[str, object]], level: float = 0.9
     for k, case in enumerate(cases):
         if not all("n_needles" in _arm(case, a) for a in ARMS):
             raise StudyError(f"case {k + 1}: both arms need a chosen implant (n_needles); plan it again")
-    return _summary([_arm_values(c) for c in cases], level)
+    return summarise_cohort([_arm_values(c) for c in cases])
 
 
 def _arm_values(implant: Mapping[str, object]) -> dict[str, Any]:
@@ -192,15 +98,6 @@ def _arm_values(implant: Mapping[str, object]) -> dict[str, Any]:
 def _arm(implant: Mapping[str, object], arm: str) -> Mapping[str, Any]:
     a = implant.get(arm)
     return a if isinstance(a, Mapping) else {}
-
-
-def _summary(rows: Sequence[Mapping[str, Any]], level: float) -> ImplantCohortSummary:
-    paired = [r for r in rows if all(r[f"{a}_needles"] is not None for a in ARMS)]
-    saved = [r["straight_needles"] - r["steered_needles"] for r in paired]
-    gained = [r["steered_hrctv_d90_eqd2_gy"] - r["straight_hrctv_d90_eqd2_gy"] for r in paired]
-    return ImplantCohortSummary(t_interval(saved, level), t_interval(gained, level),
-                                sum(bool(r["straight_aims_met"]) for r in rows),
-                                sum(bool(r["steered_aims_met"]) for r in rows), len(rows), len(paired))
 
 
 # ------------------------------------------------------------------------------------------------ one case
@@ -298,6 +195,14 @@ class ImplantRow:
         The case's key (``clinical_<seed>``).
     seed : int
         Its seed.
+    hrctv_cm3, bladder_cm3, rectum_cm3 : float or None, cm³
+        The case's organ volumes (:class:`~reachplan.planner.study.cohort.CaseAnatomy`); None when not recorded.
+    uterus_version_deg, uterus_flexion_deg : float or None, degrees
+        Uterine version and flexion (negative: retro-).
+    parametrial_extension : str
+        ``none``, or side(s) and extent (``left proximal``, ``bilateral distal``, ...); "" when not recorded.
+    vaginal_extension_mm : float or None, mm
+        Length of the vaginal extension (0: none).
     status, reason : str
         ``ok`` or ``failed``, and why.
     straight_needles, steered_needles : int or None
@@ -318,6 +223,8 @@ class ImplantRow:
         Straight minus steered needles, when both arms have an implant.
     d90_gained_gy : float or None, Gy
         Steered minus straight HR-CTV D90, when both arms have an implant.
+    steered_needles_used : int or None
+        Steered needles in the steered arm's chosen implant (0: it uses straight needles only); None without one.
     seconds, cpu_seconds : float or None, s
         Wall and CPU time of the whole case (build, scene, both arms).
     worker : str
@@ -333,6 +240,13 @@ class ImplantRow:
     seed: int
     status: str
     reason: str = ""
+    hrctv_cm3: float | None = None
+    bladder_cm3: float | None = None
+    rectum_cm3: float | None = None
+    uterus_version_deg: float | None = None
+    uterus_flexion_deg: float | None = None
+    parametrial_extension: str = ""
+    vaginal_extension_mm: float | None = None
     straight_needles: int | None = None
     steered_needles: int | None = None
     straight_aims_met: bool = False
@@ -349,6 +263,7 @@ class ImplantRow:
     steered_note: str = ""
     needles_saved: int | None = None
     d90_gained_gy: float | None = None
+    steered_needles_used: int | None = None
     seconds: float | None = None
     cpu_seconds: float | None = None
     worker: str = ""
@@ -419,12 +334,15 @@ def case_row(task: ImplantCase, implant: Mapping[str, Any], seconds: float | Non
         needles_saved=values["straight_needles"] - values["steered_needles"] if paired else None,
         d90_gained_gy=round(values["steered_hrctv_d90_eqd2_gy"] - values["straight_hrctv_d90_eqd2_gy"], 3)
         if paired else None,
+        steered_needles_used=sum(n.get("kind") == "steered" for n in _arm(implant, "steered").get("needles", ()))
+        if values["steered_needles"] is not None else None,
         seconds=None if seconds is None else round(seconds, 3),
         cpu_seconds=None if cpu_seconds is None else round(cpu_seconds, 3),
         worker=f"{socket.gethostname()}:{os.getpid()}")
 
 
-def plan_case(seed: int, spec: ImplantStudySpec, threads: int = 2) -> tuple[DesignArms, dict[str, float]]:
+def plan_case(seed: int, spec: ImplantStudySpec, threads: int = 2,
+              case: ClinicalCase | None = None) -> tuple[DesignArms, dict[str, float]]:
     """Build the clinical case of ``seed`` in memory and plan its implant arms on it (as ``reachplan demo``).
 
     The straight arm once and one straight + steered arm per design of ``spec.config.designs``
@@ -441,6 +359,8 @@ def plan_case(seed: int, spec: ImplantStudySpec, threads: int = 2) -> tuple[Desi
         Configuration, settings, source and modality.
     threads : int
         Arms planned at once (1 on a study worker: one core each).
+    case : ClinicalCase or None
+        The case of ``seed`` already built (in ``spec.modality``); None builds it.
 
     Returns
     -------
@@ -459,7 +379,7 @@ def plan_case(seed: int, spec: ImplantStudySpec, threads: int = 2) -> tuple[Desi
     from reachplan.planner.lookup import get_source
 
     c0 = time.process_time()
-    case = clinical_case(seed, modality=spec.modality)
+    case = case or clinical_case(seed, modality=spec.modality)
     structures = structure_set(case.spec)
     grid = image_grid(case.spec)
     c1 = time.process_time()
@@ -495,17 +415,21 @@ def run_case(task: ImplantCase, spec: ImplantStudySpec) -> dict[str, Any]:
         is its ``steered``), ``designs``: each further design's arm section by design, and ``cpu_s``: the CPU time
         per stage (:func:`plan_case`).
     """
+    from reachplan.imaging.clinical import clinical_case
     from reachplan.planner.implant.case import ImplantComparison
+    from reachplan.planner.study.cohort import case_anatomy
     from reachplan.planner.study.tasks import task_threads
 
     t, cpu = time.perf_counter(), time.process_time()
     try:
-        arms, stages = plan_case(task.seed, spec, task_threads())
+        case = clinical_case(task.seed, modality=spec.modality)
+        arms, stages = plan_case(task.seed, spec, task_threads(), case)
     except ReachplanError as exc:
         return failed_case(task, f"{type(exc).__name__}: {exc}")
     first, *others = spec.config.designs
     implant = ImplantComparison(arms.straight, arms.steered[first], arms.candidates, arms.seconds).to_json()
     row = case_row(task, implant, time.perf_counter() - t, time.process_time() - cpu)
+    row = dataclasses.replace(row, **dataclasses.asdict(case_anatomy(case)))
     return {"row": dataclasses.asdict(row), "implant": implant,
             "designs": {d: arms.steered[d].to_json() for d in others}, "cpu_s": stages}
 
@@ -563,8 +487,6 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
         A client already connected; then ``scheduler`` and ``workers`` are not used.
     retry_failed : bool
         Plan again the cases a previous run recorded as failed.
-    level : float
-        Confidence level of the intervals.
     quiet : bool
         No progress bar.
     task_fn : callable (ImplantCase, ImplantStudySpec) -> dict
@@ -586,7 +508,7 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
     from tqdm import tqdm
 
     from reachplan.planner.study import check_manifest, dask_client, dask_results, serial_results
-    from reachplan.planner.study.summary import write_dataclass_csv
+    from reachplan.planner.study.summary import implant_summary_figure, implant_summary_json, write_dataclass_csv
 
     out = Path(out)
     t0 = time.perf_counter()
@@ -610,15 +532,16 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
             done[task.key] = part
             bar.update()
     rows = tuple(ImplantRow(**done[t.key]["row"]) for t in tasks)
-    summary = _summary([dataclasses.asdict(r) for r in rows], level)
+    row_dicts = [dataclasses.asdict(r) for r in rows]
+    summary = summarise_cohort(row_dicts)
     write_dataclass_csv(ImplantRow, rows, out / CASES_CSV)
     design_rows = [r for t in tasks for r in part_design_rows(t.key, t.seed, done[t.key], spec.config.designs)]
     write_designs(design_rows, out)
     wall = time.perf_counter() - t0
-    doc = {**summary_json(summary, rows, wall), "cost": cost_json([done[t.key] for t in tasks]),
+    doc = {**implant_summary_json(summary, row_dicts, wall), "cost": cost_json([done[t.key] for t in tasks]),
            "designs": designs_json(design_rows, spec.config.designs, t_interval, level)}
     atomic_write_json(out / SUMMARY_JSON, doc)
-    summary_figure(rows, summary, out / SUMMARY_PNG)
+    implant_summary_figure(summary, row_dicts, out / SUMMARY_PNG)
     return ImplantStudyResult(out, rows, summary, len(tasks) - len(todo), wall, doc)
 
 
@@ -636,135 +559,3 @@ def _read_parts(out: Path) -> dict[str, dict[str, Any]]:
         except (OSError, ValueError):
             raise StudyError(f"part file {p} cannot be read; delete it to plan that case again") from None
     return parts
-
-
-def _stat_json(s: PairedStat) -> dict[str, Any]:
-    def r(v: float | None) -> float | None:
-        return None if v is None else round(v, 4)
-
-    return {"mean": r(s.mean), "ci_low": r(s.low), "ci_high": r(s.high), "n": s.n}
-
-
-def summary_json(summary: ImplantCohortSummary, rows: Sequence[ImplantRow], wall_s: float) -> dict[str, Any]:
-    """Return ``summary.json``: paired differences with their intervals, aims met per arm, failed cases.
-
-    Parameters
-    ----------
-    summary : ImplantCohortSummary
-        The cohort's summary.
-    rows : sequence of ImplantRow
-        The cases.
-    wall_s : float, s
-        Wall time of the run.
-
-    Returns
-    -------
-    dict of str to JSON value
-        Numbers rounded (4 decimals for the statistics, 3 for seconds).
-    """
-    secs = [r.seconds for r in rows if r.seconds is not None]
-    return {
-        "cases": summary.n_cases, "paired_cases": summary.n_paired,
-        "interval": f"two-sided {100 * summary.needles_saved.level:g} % paired Student t-interval on the per-case "
-                    "differences (NIST/SEMATECH e-Handbook 1.3.5.2; Rice 2007, 11.3)",
-        "needles_saved": _stat_json(summary.needles_saved),
-        "d90_gained_gy": _stat_json(summary.d90_gained_gy),
-        "aims_met": {"straight": summary.aims_met_straight, "steered": summary.aims_met_steered},
-        "failed": {r.case: r.reason for r in rows if r.status == "failed"},
-        "mean_case_seconds": round(float(np.mean(secs)), 3) if secs else None,
-        "wall_s": round(wall_s, 3),
-    }
-
-
-def format_summary(summary: ImplantCohortSummary, rows: Sequence[ImplantRow]) -> str:
-    """Return a plain-text table: one line per case, then the paired differences with their intervals.
-
-    Parameters
-    ----------
-    summary : ImplantCohortSummary
-        Paired differences and aims met, printed last.
-    rows : sequence of ImplantRow
-        One line each.
-
-    Returns
-    -------
-    str
-        The table (D90 in Gy EQD2).
-    """
-    def v(x: object, fmt: str = "") -> str:
-        return "-" if x is None else format(x, fmt)
-
-    lines = [f"{'case':<14} {'needles':>11} {'D90 Gy (EQD2)':>15} {'aims met':>11}  note",
-             f"{'':<14} {'strt':>5} {'steer':>5} {'strt':>7} {'steer':>7} {'strt':>5} {'steer':>5}"]
-    for r in rows:
-        lines.append(f"{r.case:<14} {v(r.straight_needles):>5} {v(r.steered_needles):>5} "
-                     f"{v(r.straight_hrctv_d90_eqd2_gy, '.1f'):>7} {v(r.steered_hrctv_d90_eqd2_gy, '.1f'):>7} "
-                     f"{'yes' if r.straight_aims_met else 'no':>5} {'yes' if r.steered_aims_met else 'no':>5}  "
-                     f"{r.reason[:60]}")
-
-    def stat(name: str, s: PairedStat, unit: str) -> str:
-        if s.mean is None:
-            return f"{name}: no case with both arms planned"
-        ci = "CI needs 2 cases" if s.low is None else f"{100 * s.level:g} % CI {s.low:+.2f} .. {s.high:+.2f}"
-        return f"{name}: mean {s.mean:+.2f}{unit} ({ci}; {s.n} cases, paired t)"
-
-    lines += ["", stat("needles saved by steering", summary.needles_saved, ""),
-              stat("D90 gained by steering", summary.d90_gained_gy, " Gy"),
-              f"aims met: straight {summary.aims_met_straight}/{summary.n_cases}, "
-              f"steered {summary.aims_met_steered}/{summary.n_cases}"]
-    return "\n".join(lines)
-
-
-def summary_figure(rows: Sequence[ImplantRow], summary: ImplantCohortSummary, path: Path) -> None:
-    """Needles and D90 of each arm per case (lines join a case's arms), and the mean differences with their CIs.
-
-    Parameters
-    ----------
-    rows : sequence of ImplantRow
-        The cases.
-    summary : ImplantCohortSummary
-        The cohort's summary.
-    path : Path
-        The PNG file to write (atomically).
-    """
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(12.0, 4.0), layout="constrained")
-    ax_n, ax_d, ax_ns, ax_dg = fig.subplots(1, 4)
-    for ax, col, label in ((ax_n, "needles", "needles in the chosen implant"),
-                           (ax_d, "hrctv_d90_eqd2_gy", "HR-CTV D90 (Gy EQD2)")):
-        for k, r in enumerate(rows):
-            ys = [getattr(r, f"{a}_{col}") for a in ARMS]
-            if any(y is None for y in ys):
-                continue
-            dx = 0.2 * (k / max(len(rows) - 1, 1) - 0.5)  # spread the cases apart: equal counts would hide each other
-            ax.plot([dx, 1 + dx], ys, "-", color="0.6", lw=0.8)
-            for x, a in enumerate(ARMS):
-                ax.plot([x + dx], [ys[x]], "o", color=f"C{x}",
-                        mfc=f"C{x}" if getattr(r, f"{a}_aims_met") else "white")
-        ax.set_xticks([0, 1], list(ARMS))
-        ax.set_xlim(-0.4, 1.4)
-        ax.set_ylabel(label)
-    ax_n.yaxis.get_major_locator().set_params(integer=True)
-    ax_n.set_title("per case (filled: aims met)", fontsize=9)
-    ax_d.axhline(85.0, color="grey", lw=0.8, ls="--")
-    ax_d.set_title("EMBRACE II aim D90 >= 85 Gy (dashed)", fontsize=9)
-    pct = f"{100 * summary.needles_saved.level:g} %"
-    for ax, col, st, label in ((ax_ns, "needles_saved", summary.needles_saved, "needles saved by steering"),
-                               (ax_dg, "d90_gained_gy", summary.d90_gained_gy, "D90 gained by steering (Gy)")):
-        diffs = [getattr(r, col) for r in rows if getattr(r, col) is not None]
-        ax.plot(np.linspace(-0.15, 0.15, len(diffs)) if len(diffs) > 1 else [0.0] * len(diffs), diffs, "o",
-                color="0.5", ms=4, label="cases")
-        if st.mean is not None:
-            err = None if st.low is None or st.high is None else [[st.mean - st.low], [st.high - st.mean]]
-            ax.errorbar([0.45], [st.mean], yerr=err, fmt="s", color="C2", capsize=6, label=f"mean, {pct} CI")
-        ax.axhline(0.0, color="grey", lw=0.8)
-        ax.set_xticks([])
-        ax.set_xlim(-0.5, 0.9)
-        ax.set_ylabel(label)
-        ax.legend(fontsize=7, loc="best")
-    ax_ns.yaxis.get_major_locator().set_params(integer=True)
-    ax_ns.set_title(f"paired t-interval, {summary.n_paired} of {summary.n_cases} cases", fontsize=9)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    atomic_write_bytes(path, buf.getvalue())

@@ -1,18 +1,31 @@
-"""Per-design summary of a study: reach rates and the best candidates' metrics, as a table and a figure."""
+"""Summaries of studies.
+
+A design study: reach rates and the best candidates' metrics per design, as a table and a figure. An implant cohort
+(straight against steered): the paired statistics of :mod:`reachplan.planner.study.statistics`, the results by
+stratum of anatomy (:data:`STRATA`) and a figure of each case's difference coloured by stratum.
+"""
 
 from __future__ import annotations
 
 import csv
 import dataclasses
 import io
-from collections.abc import Sequence
+import json
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from reachplan.imaging.files import atomic_write_bytes
+from reachplan.planner.study.statistics import (
+    PairedSummary,
+    bootstrap_ci,
+    continuous_summary,
+    count_summary,
+    power_note,
+)
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -233,3 +246,347 @@ def summary_figure(table: pa.Table, summaries: Sequence[DesignSummary], path: Pa
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     atomic_write_bytes(path, buf.getvalue())
+
+
+# ------------------------------------------------------------------------------------------------ implant cohorts
+
+#: The effect the power note is for: a mean saving of half a needle per case (the issue's question).
+POWER_EFFECT_NEEDLES = 0.5
+#: What the implant cohort's statistics assume (written to summary.json).
+ASSUMPTIONS = (
+    "cases are independent: one synthetic anatomy per seed, drawn from the distributions of "
+    "reachplan.imaging.anatomy.VARIETY (published where a source exists, ASSUMED where it does not)",
+    "each case is paired: both arms plan the same anatomy, template and aims; differences are steered against "
+    "straight (needles saved = straight minus steered; dose gains = steered minus straight)",
+    "needles saved are small integers with many ties and zeros: the Wilcoxon signed-rank test (zeros dropped; normal "
+    "approximation with tie correction when ties or zeros occur) and the exact sign test, which assume no normality; "
+    "their interval is a percentile bootstrap of the mean over cases",
+    "D90 and organ D2cm3 differences are continuous: the paired t-test and t-interval assume roughly normal "
+    "differences; the Wilcoxon signed-rank test beside them assumes only symmetry",
+    "cases where an arm has no implant are left out of the paired statistics (listed under 'failed')",
+    "strata are descriptive: with a few cases per group their intervals are wide and no test is made between groups",
+)
+#: Stratum variables of the strata figure and ``summary.json`` ``strata``: name -> (row column, how it is split).
+STRATA = {
+    "parametrial_extension": ("parametrial_extension", "none, proximal or distal (either side)"),
+    "bladder_filling": ("bladder_cm3", "below or at least the cohort median volume"),
+    "uterine_version": ("uterus_version_deg", "anteverted (>= 0 degrees) or retroverted"),
+    "tumour_volume": ("hrctv_cm3", "HR-CTV below or at least the cohort median volume"),
+}
+
+
+@dataclass(frozen=True)
+class ImplantCohortSummary:
+    """Needles saved and doses gained by steering over a cohort of paired cases.
+
+    Parameters
+    ----------
+    needles_saved : PairedSummary
+        Straight-arm minus steered-arm needles of each case's chosen implant (cases with both arms planned).
+    d90_gain_gy : PairedSummary
+        Steered minus straight HR-CTV D90 (EQD2, Gy), same cases.
+    oar_d2cc_change_gy : tuple of (str, PairedSummary)
+        Per organ at risk, steered minus straight D2cm³ (EQD2, Gy; negative: steering spares it).
+    aims_met_straight, aims_met_steered : int
+        Cases whose chosen implant meets every aim, per arm (an arm without an implant does not).
+    n_cases : int
+        All cases.
+    n_paired : int
+        Cases with both arms planned.
+    n_steered_used : int
+        Paired cases whose steered arm's chosen implant holds at least one steered needle.
+    """
+
+    needles_saved: PairedSummary
+    d90_gain_gy: PairedSummary
+    oar_d2cc_change_gy: tuple[tuple[str, PairedSummary], ...]
+    aims_met_straight: int
+    aims_met_steered: int
+    n_cases: int
+    n_paired: int
+    n_steered_used: int
+
+
+def _paired(rows: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    return [r for r in rows if r["straight_needles"] is not None and r["steered_needles"] is not None]
+
+
+def _organ_changes(paired: Sequence[Mapping[str, Any]]) -> dict[str, list[float]]:
+    """Organ -> steered minus straight D2cm³ (Gy) over the paired cases that report it in both arms."""
+    out: dict[str, list[float]] = {}
+    for r in paired:
+        a, b = (json.loads(r.get(f"{arm}_oar_d2cc_eqd2_gy") or "{}") for arm in ("straight", "steered"))
+        for organ in sorted(set(a) & set(b)):
+            out.setdefault(organ, []).append(float(b[organ]) - float(a[organ]))
+    return out
+
+
+def summarise_cohort(rows: Sequence[Mapping[str, Any]]) -> ImplantCohortSummary:
+    """Summarise an implant cohort from its rows (``ImplantRow`` fields as a mapping).
+
+    Parameters
+    ----------
+    rows : sequence of mapping
+        One per case: ``straight_needles``, ``steered_needles`` (None without an implant), the arms'
+        ``*_hrctv_d90_eqd2_gy``, ``*_aims_met``, ``*_oar_d2cc_eqd2_gy`` (JSON object or "") and, optionally,
+        ``steered_needles_used``.
+
+    Returns
+    -------
+    ImplantCohortSummary
+        Paired statistics (:mod:`reachplan.planner.study.statistics`), aims met and counts.
+    """
+    paired = _paired(rows)
+    saved = [r["straight_needles"] - r["steered_needles"] for r in paired]
+    gained = [r["steered_hrctv_d90_eqd2_gy"] - r["straight_hrctv_d90_eqd2_gy"] for r in paired]
+    organs = tuple((o, continuous_summary(v)) for o, v in _organ_changes(paired).items())
+    return ImplantCohortSummary(
+        count_summary(saved), continuous_summary(gained), organs,
+        sum(bool(r["straight_aims_met"]) for r in rows), sum(bool(r["steered_aims_met"]) for r in rows),
+        len(rows), len(paired), sum(bool(r.get("steered_needles_used")) for r in paired))
+
+
+def stratum_of(row: Mapping[str, Any], variable: str, medians: Mapping[str, float]) -> str | None:
+    """Return the group of ``row`` for a stratum variable of :data:`STRATA` (None when the row lacks it).
+
+    Parameters
+    ----------
+    row : mapping
+        A case's row.
+    variable : str
+        A key of :data:`STRATA`.
+    medians : mapping of str to float
+        The cohort medians of the columns split at them (``bladder_cm3``, ``hrctv_cm3``).
+
+    Returns
+    -------
+    str or None
+        The group's label.
+    """
+    column, _ = STRATA[variable]
+    v = row.get(column)
+    if v is None or v == "":
+        return None
+    if variable == "parametrial_extension":
+        return str(v).split()[-1]  # "left distal" -> "distal"; "none" stays
+    if variable == "uterine_version":
+        return "anteverted" if float(v) >= 0.0 else "retroverted"
+    m = medians[column]
+    return f"< {m:.0f} cm3" if float(v) < m else f">= {m:.0f} cm3"
+
+
+def strata(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Return the paired results by stratum (for ``summary.json`` ``strata``).
+
+    Parameters
+    ----------
+    rows : sequence of mapping
+        The cases' rows (paired ones are used).
+
+    Returns
+    -------
+    dict
+        Per variable of :data:`STRATA`: ``split`` (how) and ``groups``: per group ``n``, ``needles_saved_mean``
+        and its bootstrap ``needles_saved_ci95``, ``d90_gain_gy_mean``, ``steered_needle_used`` (cases) and
+        ``cases`` (their keys).
+    """
+    paired = _paired(rows)
+    medians = {c: float(np.median([float(r[c]) for r in paired if r.get(c) is not None]))
+               for c in ("bladder_cm3", "hrctv_cm3") if any(r.get(c) is not None for r in paired)}
+    out: dict[str, Any] = {}
+    for variable, (_, split) in STRATA.items():
+        groups: dict[str, list[Mapping[str, Any]]] = {}
+        for r in paired:
+            g = stratum_of(r, variable, medians)
+            if g is not None:
+                groups.setdefault(g, []).append(r)
+        doc = {}
+        for g, members in sorted(groups.items()):
+            saved = [float(r["straight_needles"] - r["steered_needles"]) for r in members]
+            ci = bootstrap_ci(saved)
+            doc[g] = {"n": len(members), "needles_saved_mean": round(float(np.mean(saved)), 4),
+                      "needles_saved_ci95": None if ci is None else [round(ci[0], 4), round(ci[1], 4)],
+                      "d90_gain_gy_mean": round(float(np.mean([r["steered_hrctv_d90_eqd2_gy"]
+                                                                - r["straight_hrctv_d90_eqd2_gy"] for r in members])),
+                                                4),
+                      "steered_needle_used": sum(bool(r.get("steered_needles_used")) for r in members),
+                      "cases": [r["case"] for r in members]}
+        out[variable] = {"split": split, "groups": doc}
+    return out
+
+
+def _span(rows: Sequence[Mapping[str, Any]], column: str) -> dict[str, float | None]:
+    v = [float(r[column]) for r in rows if r.get(column) is not None]
+    if not v:
+        return {"min": None, "max": None, "ratio": None}
+    return {"min": round(min(v), 2), "max": round(max(v), 2),
+            "ratio": round(max(v) / min(v), 3) if min(v) > 0 else None}
+
+
+def implant_summary_json(summary: ImplantCohortSummary, rows: Sequence[Mapping[str, Any]],
+                         wall_s: float) -> dict[str, Any]:
+    """Return ``summary.json`` of an implant cohort: tests, intervals, effect sizes, power, strata, anatomy span.
+
+    Parameters
+    ----------
+    summary : ImplantCohortSummary
+        The cohort's summary.
+    rows : sequence of mapping
+        The cases' rows.
+    wall_s : float, s
+        Wall time of the run.
+
+    Returns
+    -------
+    dict of str to JSON value
+        ``needles_saved`` and ``d90_gain_gy`` each with ``mean``, ``ci95``, ``test``, ``p_value`` (and more),
+        ``oar_d2cc_change_gy``, ``aims_met``, ``steered_needle_used``, ``power``, ``assumptions``, ``strata``,
+        ``anatomy`` (span of the HR-CTV and bladder volumes, cases with parametrial extension), ``failed`` and the
+        times (``median_case_cpu_s`` over the planned cases, both arms).
+    """
+    paired = _paired(rows)
+    cpu = [float(r["cpu_seconds"]) for r in rows if r.get("cpu_seconds") is not None]
+    secs = [float(r["seconds"]) for r in rows if r.get("seconds") is not None]
+    ext = [r.get("parametrial_extension") for r in rows if r.get("parametrial_extension")]
+    saved = [r["straight_needles"] - r["steered_needles"] for r in paired]
+    return {
+        "cases": summary.n_cases, "paired_cases": summary.n_paired,
+        "needles_saved": summary.needles_saved.to_json(),
+        "d90_gain_gy": summary.d90_gain_gy.to_json(),
+        "oar_d2cc_change_gy": {o: s.to_json() for o, s in summary.oar_d2cc_change_gy},
+        "aims_met": {"straight": summary.aims_met_straight, "steered": summary.aims_met_steered},
+        "steered_needle_used": {"cases": summary.n_steered_used, "of_paired": summary.n_paired},
+        "power": power_note(saved, POWER_EFFECT_NEEDLES) if saved else None,
+        "assumptions": list(ASSUMPTIONS),
+        "strata": strata(rows),
+        "anatomy": {"hrctv_cm3": _span(rows, "hrctv_cm3"), "bladder_cm3": _span(rows, "bladder_cm3"),
+                    "parametrial_extension_cases": sum(e != "none" for e in ext), "with_anatomy": len(ext)},
+        "failed": {r["case"]: r["reason"] for r in rows if r["status"] == "failed"},
+        "mean_case_seconds": round(float(np.mean(secs)), 3) if secs else None,
+        "median_case_cpu_s": round(float(np.median(cpu)), 3) if cpu else None,
+        "wall_s": round(wall_s, 3),
+    }
+
+
+def format_implant_summary(summary: ImplantCohortSummary, rows: Sequence[Mapping[str, Any]]) -> str:
+    """Return a plain-text table: one line per case, then the paired statistics.
+
+    Parameters
+    ----------
+    summary : ImplantCohortSummary
+        Paired statistics and aims met, printed last.
+    rows : sequence of mapping
+        One line each (``ImplantRow`` fields).
+
+    Returns
+    -------
+    str
+        The table (D90 in Gy EQD2; ``st`` marks a steered arm whose implant holds a steered needle).
+    """
+    def v(x: object, fmt: str = "") -> str:
+        return "-" if x is None else format(x, fmt)
+
+    lines = [f"{'case':<12} {'HR-CTV':>6} {'bladder':>7} {'param.':<18} {'needles':>11} {'D90 Gy (EQD2)':>15} "
+             f"{'aims met':>11}  note",
+             f"{'':<12} {'cm3':>6} {'cm3':>7} {'':<18} {'strt':>5} {'steer':>5} {'strt':>7} {'steer':>7} "
+             f"{'strt':>5} {'steer':>5}"]
+    for r in rows:
+        lines.append(
+            f"{r['case']:<12} {v(r.get('hrctv_cm3'), '.0f'):>6} {v(r.get('bladder_cm3'), '.0f'):>7} "
+            f"{r.get('parametrial_extension') or '-'!s:<18} {v(r['straight_needles']):>5} "
+            f"{v(r['steered_needles']):>4}{'s' if r.get('steered_needles_used') else ' '} "
+            f"{v(r['straight_hrctv_d90_eqd2_gy'], '.1f'):>7} {v(r['steered_hrctv_d90_eqd2_gy'], '.1f'):>7} "
+            f"{'yes' if r['straight_aims_met'] else 'no':>5} {'yes' if r['steered_aims_met'] else 'no':>5}  "
+            f"{r['reason'][:50]}")
+
+    def stat(name: str, s: PairedSummary, unit: str) -> str:
+        if s.mean is None:
+            return f"{name}: no case with both arms planned"
+        ci = "CI needs 2 cases" if s.ci95 is None else f"95 % CI {s.ci95[0]:+.2f} .. {s.ci95[1]:+.2f}"
+        p = "no p-value" if s.primary.p_value is None else f"p = {s.primary.p_value:.3g}"
+        return f"{name}: mean {s.mean:+.2f}{unit} ({ci}; {s.primary.test} {p}; {s.n} cases)"
+
+    lines += ["", stat("needles saved by steering", summary.needles_saved, ""),
+              stat("D90 gained by steering", summary.d90_gain_gy, " Gy"),
+              f"steered arm uses a steered needle in {summary.n_steered_used} of {summary.n_paired} paired cases "
+              "(s after the count)",
+              f"aims met: straight {summary.aims_met_straight}/{summary.n_cases}, "
+              f"steered {summary.aims_met_steered}/{summary.n_cases}"]
+    return "\n".join(lines)
+
+
+#: Colours of the parametrial-extension groups in the implant cohort figure.
+_GROUP_COLOURS = {"none": "#7f7f7f", "proximal": "#1f77b4", "distal": "#d62728"}
+
+
+def implant_summary_figure(summary: ImplantCohortSummary, rows: Sequence[Mapping[str, Any]], path: Path) -> None:
+    """Waterfalls of each case's needles saved and D90 gained (coloured by parametrial extension), and the strata.
+
+    Bars of cases whose steered arm uses a steered needle are hatched. The third panel shows each stratum group's
+    mean needles saved with its bootstrap 95 % interval.
+
+    Parameters
+    ----------
+    summary : ImplantCohortSummary
+        The cohort's summary (its overall mean and interval are drawn as the first row of the strata panel).
+    rows : sequence of mapping
+        The cases' rows.
+    path : Path
+        The PNG file to write (atomically).
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    paired = _paired(rows)
+    saved = np.array([r["straight_needles"] - r["steered_needles"] for r in paired], dtype=float)
+    gain = np.array([r["steered_hrctv_d90_eqd2_gy"] - r["straight_hrctv_d90_eqd2_gy"] for r in paired], dtype=float)
+    group = [stratum_of(r, "parametrial_extension", {}) or "unknown" for r in paired]
+    used = [bool(r.get("steered_needles_used")) for r in paired]
+    fig = Figure(figsize=(13.0, 4.6), layout="constrained")
+    ax_n, ax_d, ax_s = fig.subplots(1, 3, width_ratios=(1.0, 1.0, 1.1))
+    order = np.lexsort((-gain, -saved)) if len(saved) else np.array([], dtype=int)
+    for ax, values, label in ((ax_n, saved, "needles saved by steering (per case)"),
+                              (ax_d, gain, "HR-CTV D90 gained by steering (Gy EQD2)")):
+        for x, k in enumerate(order):
+            colour = _GROUP_COLOURS.get(group[k], "#bcbd22")
+            ax.bar(x, values[k], 0.8, color=colour, edgecolor="black", lw=0.5, hatch="///" if used[k] else None)
+            ax.plot([x], [values[k]], "o", color=colour, mec="black", mew=0.5, ms=5)  # a zero difference shows too
+        ax.axhline(0.0, color="black", lw=0.8)
+        ax.set_xticks(range(len(order)), [paired[k]["case"].rsplit("_", 1)[-1] for k in order], fontsize=7,
+                      rotation=90)
+        ax.set_xlabel("case (seed); sorted by needles, then D90", fontsize=9)
+        ax.set_ylabel(label, fontsize=9)
+    ax_n.yaxis.get_major_locator().set_params(integer=True)
+    handles = [Patch(color=c, label=f"parametrium: {g}") for g, c in _GROUP_COLOURS.items()]
+    handles.append(Patch(facecolor="white", edgecolor="black", hatch="///", label="steered needle used"))
+    ax_n.legend(handles=handles, fontsize=8, loc="upper right")
+    s = summary.needles_saved
+    p = "" if s.primary.p_value is None else f", Wilcoxon p = {s.primary.p_value:.2g}"
+    ax_n.set_title(f"{summary.n_paired} paired cases{p}", fontsize=9)
+    _strata_panel(ax_s, summary, strata(rows))
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _strata_panel(ax: Any, summary: ImplantCohortSummary, by_stratum: Mapping[str, Any]) -> None:
+    """Mean needles saved with its bootstrap 95 % interval: the whole cohort, then each stratum group."""
+    labels: list[str] = []
+    s = summary.needles_saved
+    entries: list[tuple[str, float | None, list[float] | None, int]] = [
+        ("all cases", s.mean, None if s.ci95 is None else list(s.ci95), s.n)]
+    for variable, doc in by_stratum.items():
+        for g, d in doc["groups"].items():
+            entries.append((f"{variable.replace('_', ' ')}: {g}", d["needles_saved_mean"], d["needles_saved_ci95"],
+                            d["n"]))
+    for y, (label, mean, ci, n) in enumerate(entries):
+        labels.append(f"{label} (n={n})")
+        if mean is None:
+            continue
+        err = None if ci is None else [[mean - ci[0]], [ci[1] - mean]]
+        ax.errorbar([mean], [y], xerr=err, fmt="o", color="C0" if y else "black", capsize=3, ms=4)
+    ax.axvline(0.0, color="grey", lw=0.8)
+    ax.set_yticks(range(len(entries)), labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("mean needles saved (bootstrap 95 % CI)", fontsize=9)
+    ax.set_title("where steering pays: by stratum", fontsize=9)

@@ -106,7 +106,7 @@ def test_ct_numbers_per_tissue_are_in_the_cited_ranges(loaded: tuple[Volume, Str
     assert hu_at(cortical) == TISSUES["cortical bone"][0]
 
 
-@pytest.mark.parametrize("seed", [0, 3, 7])
+@pytest.mark.parametrize("seed", [0, 7, 22])  # 7: bulky, retroflexed, vaginal extension; 22: retroverted
 def test_no_organ_at_risk_overlaps_the_hrctv_or_another(seed: int) -> None:
     spec = clinical_case(seed).spec
     oars = [s for s in spec.structures if s.is_oar]
@@ -144,16 +144,51 @@ def test_variation_is_deterministic_and_within_the_ranges() -> None:
     assert a.params == b.params and a.targets == b.targets
     assert a.spec.get("Bladder").cross_section(60.0)[0].tobytes() == b.spec.get("Bladder").cross_section(60.0)[
         0].tobytes()
-    params = [sample_params(s) for s in range(1, 40)]
+    params = [sample_params(s) for s in range(1, 61)]
     assert len({p.bladder_volume_cc for p in params}) == len(params)  # seeds differ
     for p in params:
-        assert 20 <= p.version_deg <= 40 and 25 <= p.flexion_deg <= 45
-        assert 138 - 41 <= p.bladder_volume_cc <= 138 + 41
-        assert 79 - 11.5 <= p.cervix_length_mm + p.corpus_length_mm <= 79 + 11.5  # Nayab et al. 2022
-        assert p.parametria in ("L", "R", "LR")
-    assert {p.parametria for p in params} == {"L", "R", "LR"}
+        assert -20 <= p.version_deg <= 45 and -40 <= p.flexion_deg <= 50
+        assert 50 <= p.bladder_volume_cc <= 260 and 8 <= p.rectum_radius_mm <= 16
+        assert 25 <= p.cervix_length_mm <= 40 and p.cervix_length_mm + p.corpus_length_mm >= 60  # uterus >= 60 mm
+        assert p.parametria in ("", "L", "R", "LR") and 0 < p.hrctv_corpus_fraction <= 1
+    # the published shares, loosely (60 draws): most uteri anteverted (84.8 %) and anteflexed (83.9 %)
+    assert 0.65 < np.mean([p.version_deg >= 0 for p in params]) < 0.98
+    assert 0.65 < np.mean([p.flexion_deg >= 0 for p in params]) < 0.98
+    assert {p.parametria for p in params} == {"", "L", "R", "LR"}
+    assert np.mean([p.parametria != "" for p in params]) >= 1 / 3  # the cohort's acceptance: a third or more
+    assert {p.parametrial_extension.split()[-1] for p in params} == {"none", "proximal", "distal"}
+    bladder = [p.bladder_volume_cc for p in params]
+    assert max(bladder) / min(bladder) >= 2  # as drawn; cases.csv records the placed volume
     with pytest.raises(ValueError, match="parametria"):
         ClinicalParams(parametria="X")
+    with pytest.raises(ValueError, match="hrctv_corpus_fraction"):
+        ClinicalParams(hrctv_corpus_fraction=0.0)
+
+
+def test_drawn_anatomy_is_built_and_measured() -> None:
+    """A small and a bulky case (seeds 11 and 7): the HR-CTV volumes differ by more than a factor 2, each measured
+    volume agrees with a voxel count on a 1 mm lattice (an independent integration), a retroverted uterus leans
+    posteriorly, and the drawn distributions are documented with a source or ASSUMED."""
+    from reachplan.imaging.anatomy import VARIETY, variety_table
+    from reachplan.planner.study.cohort import case_anatomy
+
+    small, bulky = clinical_case(11), clinical_case(7)
+    vols = []
+    for case in (small, bulky):
+        a = case_anatomy(case)
+        shape = case.spec.get("CTV_HR").shapes[0]
+        lo, hi = shape.bounds()
+        axes = [np.arange(x0 + 0.5, x1, 1.0) for x0, x1 in zip(lo, hi, strict=True)]
+        pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+        voxels = sum(int(np.count_nonzero(shape.contains(pts[i]))) for i in range(len(pts))) / 1000.0
+        assert a.hrctv_cm3 == pytest.approx(voxels, rel=0.03)
+        vols.append(a.hrctv_cm3)
+    assert vols[1] > 2 * vols[0]
+    assert small.params.version_deg < 0 and case_anatomy(small).parametrial_extension == "none"
+    cervix = small.spec.get("Cervix").shapes[0].samples_mm
+    assert cervix[-1][1] > cervix[0][1]  # retroverted: the cervix axis runs posteriorly (+y) from the os
+    assert all(d.source and ("ASSUMED" in d.source or any(ch.isdigit() for ch in d.source)) for d in VARIETY.values())
+    assert variety_table().count("\n") == len(VARIETY) + 1
 
 
 def test_sweep_rejects_bad_input() -> None:

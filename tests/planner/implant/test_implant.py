@@ -17,7 +17,7 @@ from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
 from reachplan.planner.geometry.collision import Organ, check_path, make_organ
-from reachplan.planner.implant.arms import ImplantArm, recompute_target, with_subset
+from reachplan.planner.implant.arms import ImplantArm, recompute_target, with_straight_plans, with_subset
 from reachplan.planner.implant.candidates import Channel, needle_candidates
 from reachplan.planner.implant.plan import plan_arms, plan_implant
 from reachplan.planner.implant.settings import ImplantSettings
@@ -280,10 +280,12 @@ def test_cohort_summary_of_paired_arms() -> None:
 
     small, large = summarise_implants(cohort(10)), summarise_implants(cohort(200))
     for s in (small, large):
-        assert s.needles_saved.low <= s.needles_saved.mean <= s.needles_saved.high
-        assert s.d90_gained_gy.mean == pytest.approx(1.5)
-    assert large.needles_saved.low < 2.0 < large.needles_saved.high  # true mean: 2 needles saved
-    assert (large.needles_saved.high - large.needles_saved.low) < (small.needles_saved.high - small.needles_saved.low)
+        assert s.needles_saved.ci95 is not None and s.needles_saved.mean is not None
+        assert s.needles_saved.ci95[0] <= s.needles_saved.mean <= s.needles_saved.ci95[1]
+        assert s.d90_gain_gy.mean == pytest.approx(1.5)
+    lo, hi = large.needles_saved.ci95 or (0.0, 0.0)
+    assert lo < 2.0 < hi  # true mean: 2 needles saved
+    assert small.needles_saved.ci95 is not None and hi - lo < small.needles_saved.ci95[1] - small.needles_saved.ci95[0]
     assert large.aims_met_steered == 200
     with pytest.raises(StudyError):
         summarise_implants([{"straight": {"n_needles": 3}, "steered": {}}])
@@ -342,6 +344,21 @@ def test_steered_arm_never_worse_and_ties_in_the_open(open_case: tuple) -> None:
     assert straight.plan is not None and steered.plan is not None
     assert steered.plan.n_needles == straight.plan.n_needles
     assert steered.plan.target.d90_eqd2_gy >= straight.plan.target.d90_eqd2_gy - 1e-9
+
+
+def test_fair_arms_the_straight_arm_takes_the_steered_searchs_straight_plans(open_case: tuple) -> None:
+    """A straight arm whose own search found nothing (planted: no plans) takes in every plan of the steered arm
+    that holds no steered needle, and none that holds one: steering then saves no needle where straight ones do."""
+    _, _, straight, steered = open_case
+    blind = replace(straight, plans=(), plan=None, pareto=())
+    fair = with_straight_plans(blind, steered)
+    straight_only = [p for p in steered.plans if not any(c.steered for c in p.channels)]
+    assert straight_only and len(fair.plans) == len(straight_only)
+    assert not any(c.steered for p in fair.plans for c in p.channels)
+    assert fair.plan is not None and steered.plan is not None
+    if not any(c.steered for c in steered.plan.channels):  # the steered arm chose straight needles: a tie
+        assert fair.plan.n_needles == steered.plan.n_needles
+    assert with_straight_plans(straight, steered).plan.n_needles <= straight.plan.n_needles  # never worse
 
 
 def test_steered_arm_strictly_wins_with_a_hidden_lobe(bank: object, kernel: Tg43Kernel) -> None:

@@ -24,8 +24,8 @@ from reachplan.planner.study.implant import (
     ImplantRow,
     ImplantStudySpec,
     run_implant_study,
-    t_interval,
 )
+from reachplan.planner.study.statistics import t_interval
 from reachplan.planner.study.workers import WorkerSetup
 
 #: Student t quantiles t(0.975, df) from a printed table (NIST/SEMATECH e-Handbook, 1.3.6.7.2), not from scipy.
@@ -140,13 +140,19 @@ def test_rows_failures_and_summary(spec: ImplantStudySpec, tmp_path: Path) -> No
     doc = json.loads((tmp_path / "s" / "summary.json").read_text(encoding="utf-8"))
     assert doc["cases"] == len(SEEDS) and doc["paired_cases"] == len(paired)
     assert set(doc["failed"]) == {f"clinical_{FAILING_SEED}", f"clinical_{NO_STEERED_SEED}"}
-    for key, diffs in (("needles_saved", [float(s % 2) for s in paired]),
-                       ("d90_gained_gy", [1.0 + s / 2 for s in paired])):
-        mean, low, high = _closed_form(diffs)
-        got = doc[key]
-        assert got["n"] == len(paired) and got["mean"] == pytest.approx(mean, abs=1e-4)
-        assert got["ci_low"] == pytest.approx(low, abs=2e-3) and got["ci_high"] == pytest.approx(high, abs=2e-3)
-        assert got["ci_low"] < got["mean"] < got["ci_high"]
+    saved = [float(s % 2) for s in paired]  # 0, 1, 1, 1 (seeds 0, 1, 3, 5)
+    got = doc["needles_saved"]
+    assert got["n"] == len(paired) and got["mean"] == pytest.approx(np.mean(saved), abs=1e-4)
+    assert got["test"] == "Wilcoxon signed-rank" and got["ci95"][0] <= got["mean"] <= got["ci95"][1]
+    # three tied positive differences: W+ = 6, tie-corrected variance 3.5 - 0.5 = 3, z = 3 / sqrt(3)
+    assert got["p_value"] == pytest.approx(math.erfc(math.sqrt(3) / math.sqrt(2)), abs=1e-6)
+    assert got["other_tests"][0]["p_value"] == pytest.approx(0.25)  # exact sign test: 2 / 2^3
+    mean, low, high = _closed_form([1.0 + s / 2 for s in paired])
+    got = doc["d90_gain_gy"]
+    assert got["test"] == "paired t" and got["mean"] == pytest.approx(mean, abs=1e-4)
+    assert got["ci95"] == pytest.approx([low, high], abs=2e-3)
+    assert doc["power"]["cases_paired_t"] is not None and len(doc["assumptions"]) >= 4
+    assert set(doc["strata"]) == {"parametrial_extension", "bladder_filling", "uterine_version", "tumour_volume"}
     # aims met (D90 >= 85 Gy here): straight 85 (seed 5); steered 85.5 (seed 3), 88.5 (seed 5); none for failures
     assert doc["aims_met"] == {"straight": 1, "steered": 2}
     assert res.summary.n_paired == len(paired)
@@ -215,4 +221,4 @@ def test_clinical_case_end_to_end(tmp_path: Path) -> None:
         assert set(json.loads(getattr(row, f"{arm}_oar_d2cc_eqd2_gy"))) >= {"Bladder", "Rectum"}
     assert row.steered_candidates > row.straight_candidates  # the steered arm holds the straight candidates too
     assert row.needles_saved == row.straight_needles - row.steered_needles
-    assert res.summary.needles_saved.n == 1 and res.summary.needles_saved.low is None  # one case: no interval
+    assert res.summary.needles_saved.n == 1 and res.summary.needles_saved.ci95 is None  # one case: no interval
