@@ -487,6 +487,8 @@ def run_implant_study(spec: ImplantStudySpec, out: Path, *, scheduler: str | Non
         A client already connected; then ``scheduler`` and ``workers`` are not used.
     retry_failed : bool
         Plan again the cases a previous run recorded as failed.
+    level : float
+        Confidence level of the designs' intervals, in (0, 1).
     quiet : bool
         No progress bar.
     task_fn : callable (ImplantCase, ImplantStudySpec) -> dict
