@@ -10,9 +10,10 @@ on the model of :mod:`reachplan.planner.implant.model`):
    blocks of equal time, ``selection_target_points`` sampled target points, organ rows on a lattice of
    ``selection_oar_pitch_mm`` (each organ's planning aim less the headroom), the HR-CTV's V200 rows, one binary per
    needle, one needle per template hole; where the selections of at most K needles are few enough
-   (``exhaustive_max_selections``), every one is solved and the selection is proven optimal. The bound reported per
-   budget is the optimiser's (the built-in's: the LP relaxation's) and the relative gap to the selection kept
-   (:class:`reachplan.planner.implant.arms.BudgetResult`; plan.json ``selection``). The LP with every candidate
+   (``exhaustive_max_selections``), every one is solved and the selection is proven optimal (up to the first budget
+   whose plan meets every aim; the budgets after it, which only extend the Pareto curve, are searched). The bound
+   reported per budget is the optimiser's (the built-in's: the LP relaxation's) and the relative gap to the selection
+   kept (:class:`reachplan.planner.implant.arms.BudgetResult`; plan.json ``selection``). The LP with every candidate
    loaded, its organ rows calibrated once, bounds every budget (``selection.all_candidates_objective``); every
    budget's model has those rows.
 2. **Dwell times on the chosen channels** (:func:`reachplan.planner.implant.dwells._final`): the robust loading
@@ -346,7 +347,10 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     best_d90 = -np.inf
     for k in range(0 if intracavitary else 1, min(settings.max_needles, len(needles)) + 1):
         t_k = time.perf_counter()
-        sol = optimiser.optimise(selection, budget=k, limit_factor=kappa, start=keep)
+        # past the first plan that meets every aim a budget only extends the Pareto curve: searched, not enumerated
+        # (the same problem and cache, so the same model)
+        problem = selection if met_at is None else dataclasses.replace(selection, exhaustive_max=0)
+        sol = optimiser.optimise(problem, budget=k, limit_factor=kappa, start=keep)
         value, lower, status = sol.objective, sol.bound, sol.status
         if sol.times_s is None:
             budgets.append(BudgetResult(k, 0, value, None, None, status, time.perf_counter() - t_k, False))
