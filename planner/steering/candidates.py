@@ -91,6 +91,11 @@ class Candidate:
     worst_reach_mm, worst_clearance_mm, worst_case : float, float, str
         Robustness (see :mod:`reachplan.planner.steering.robustness`): worst reach error and smallest clearance under
         tension, roll and entry-angle errors, and which error gave them; NaN/"" when not assessed.
+    model_tolerance_mm : float, mm
+        The in-tissue tip error the candidate's margins allow its model (:mod:`reachplan.planner.case.fidelity`);
+        NaN when no model choice was made (a straight needle, a candidate not feasible on screening).
+    model_reason : str
+        Why ``model`` solved it, in words ("" when not recorded).
     """
 
     target: str
@@ -114,6 +119,8 @@ class Candidate:
     worst_clearance_mm: float = float("nan")
     worst_case: str = ""
     failed: bool = False
+    model_tolerance_mm: float = float("nan")
+    model_reason: str = ""
 
     @property
     def feasible(self) -> bool:
@@ -149,6 +156,8 @@ class Candidate:
             "steered": self.steered,
             "peak_tension_n": round(self.peak_tension_n, 3),
             "model": self.model.label,
+            "model_tolerance_mm": round(self.model_tolerance_mm, 3) if np.isfinite(self.model_tolerance_mm) else None,
+            "model_reason": self.model_reason,
             "collides": self.collides,
             "contact_depth_mm": None if self.contact_depth_mm is None else round(self.contact_depth_mm, 1),
             "reaches": self.reaches,
