@@ -98,6 +98,11 @@ TARGETS: tuple[Target, ...] = (
            (Option("--repeat", int, "timed renderings, the median is reported (5; quick 1)"),)),
     Target("factors", "factors", "kinematic curvature factor per stylet design against the tissue modulus, "
            "fitted to the in-tissue rod (the planner's package table)"),
+    Target("fidelity", "fidelity", "planning time against ranking fidelity: fixed insertion models and the scene "
+           "policy against the reference on the clinical case, and the ladder's in-tissue errors (package table)",
+           (Option("--cases", int, "clinical seeds 0 .. N-1 (5; quick 1)"),
+            Option("--table", int, "1: also measure the in-tissue error table of every preset (1; quick 0)"),
+            Option("--workers", int, "processes measuring the table (2)"))),
     Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
            (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
 )
