@@ -16,10 +16,10 @@ case, its tandem an obstacle as in ``reachplan demo``), the steering search
     every feasible steered candidate re-solved with the reference (``--models reference``), the yardstick.
 
 Fidelity against the reference policy, per target: the top-ranked candidate identical (hole, straight or steered,
-design), Kendall's tau between the reference's top 10 and their order in the policy's ranking (a candidate the
-policy does not hold feasible ranks last), and the largest reach and clearance difference over those 10 (clearance
-compared up to the ranking's cap + 1 mm, beyond which both are the distance field's estimate and the score ignores
-it). Time: the plan stage's wall and CPU seconds (the scene built once per seed, not counted).
+design), Kendall's tau between the two rankings over the union of both top 10s (a candidate one of them does not
+hold feasible ranks last in it), and the largest reach and clearance difference over the reference's top 10
+(clearance compared up to the ranking's cap + 1 mm, beyond which both are the distance field's estimate and the
+score ignores it). Time: the plan stage's wall and CPU seconds (the scene built once per seed, not counted).
 
 Run: ``reachplan bench fidelity --out DIR [--quick] [--install]``. Writes ``fidelity.csv`` (one row per seed and
 policy), ``fidelity.png`` (time against fidelity, medians over the seeds) and, with the error table
@@ -130,8 +130,10 @@ def compare(ref: dict[str, tuple[Candidate, ...]], other: dict[str, tuple[Candid
 
     Parameters
     ----------
-    ref, other : dict of str to tuple of Candidate
-        Ranked candidates per target (reference policy, the policy compared).
+    ref : dict of str to tuple of Candidate
+        Ranked candidates per target under the reference policy.
+    other : dict of str to tuple of Candidate
+        The same under the policy compared.
     cap_mm : float, mm
         Clearances are compared up to this.
 
@@ -149,8 +151,11 @@ def compare(ref: dict[str, tuple[Candidate, ...]], other: dict[str, tuple[Candid
         theirs = [c for c in other.get(target, ()) if c.feasible]
         order = {_key(c): i for i, c in enumerate(theirs)}
         same.append(bool(top) and bool(theirs) and _key(top[0]) == _key(theirs[0]))
-        pos = [order.get(_key(c), len(theirs)) for c in top]
-        taus.append(float(kendalltau(np.arange(len(top)), pos).statistic) if len(top) > 1 else 1.0)
+        mine = {_key(c): i for i, c in enumerate(c for c in ranked if c.feasible)}
+        union = list(dict.fromkeys([_key(c) for c in top] + [_key(c) for c in theirs[:TOP_N]]))
+        a = [mine.get(k, len(mine)) for k in union]
+        b = [order.get(k, len(theirs)) for k in union]
+        taus.append(float(kendalltau(a, b).statistic) if len(union) > 1 else 1.0)
         for c in top:
             o = next((x for x in theirs if _key(x) == _key(c)), None)
             if o is not None:

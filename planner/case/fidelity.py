@@ -70,6 +70,8 @@ class Rung:
     def model(self, reference: TissueRodInsertion = PLANNER_REFERENCE) -> TissueRodInsertion | None:
         """Return the in-tissue rod of this rung: ``reference`` at this rung's steps; None for the screening model.
 
+        The reference rung is ``reference`` itself.
+
         Parameters
         ----------
         reference : TissueRodInsertion
@@ -82,8 +84,8 @@ class Rung:
         """
         if self.step_mm is None:
             return None
-        if self.step_mm == reference.step_mm and self.richardson == reference.richardson:
-            return reference
+        if self.name == "reference" or (self.step_mm == reference.step_mm and self.richardson == reference.richardson):
+            return reference  # the plan's reference, whatever its settings
         return replace(reference, step_mm=self.step_mm, richardson=self.richardson)
 
 
@@ -259,7 +261,8 @@ def candidate_tolerance_mm(clearance_mm: float, reach_tolerance_mm: float,
     Parameters
     ----------
     clearance_mm : float, mm
-        The candidate's clearance to the nearest organ (from the screening model).
+        The candidate's clearance to the nearest organ (from the screening model); inf with no organ at all, NaN
+        when it was not checked (nothing is accurate enough then).
     reach_tolerance_mm : float, mm
         The plan's reach tolerance.
     safety_margin_mm : float, mm
@@ -272,7 +275,7 @@ def candidate_tolerance_mm(clearance_mm: float, reach_tolerance_mm: float,
     why : str
         ``"clearance"`` or ``"reach tolerance"``.
     """
-    by_clear = clearance_mm - safety_margin_mm if np.isfinite(clearance_mm) else -safety_margin_mm
+    by_clear = -safety_margin_mm if np.isnan(clearance_mm) else clearance_mm - safety_margin_mm  # inf: no organ
     if by_clear < reach_tolerance_mm:
         return float(by_clear), "clearance"
     return float(reach_tolerance_mm), "reach tolerance"

@@ -339,6 +339,11 @@ TENSION_PER_MM_N = 1.5
 #: A candidate in the decision band whose model is off by more than this (mm) is first re-solved with the cheapest
 #: rung within it (:func:`_boundary_rung`), and with the reference only if it is still in the band.
 BOUNDARY_STAGE_MM = 0.5
+#: At most ``refine_top`` + this many re-solves per target and design for the ranking's decision (the most
+#: threatening first: lowest score less band), as the shortlist before had: a symmetric template offers dozens of
+#: near-equal holes, and a re-solve that raises the top one's score hands the top to the next; the ranking's
+#: fidelity with this cap is measured (``reachplan bench fidelity``).
+BOUNDARY_MAX = 4
 
 
 def _noted(c: Candidate, tolerance_mm: float, reason: str) -> Candidate:
@@ -353,31 +358,35 @@ def _decision_boundary(scene: Scene, target: Target, design: RodDesign, current:
 
     The top ``refine_top`` feasible ones (the best steered needle), then every one whose score less its band
     (:func:`_score_band`: what its model's in-tissue error ``errors`` and its reach error could take off its score)
-    reaches the last of them, until none is left; a candidate in the band whose model is off by more than
-    :data:`BOUNDARY_STAGE_MM` is first re-solved with the cheapest rung within that (a narrower band), and with the
-    reference only if it is still in the band. ``exact`` holds the ids of those solved by the reference.
+    reaches the last of them, lowest first, until none is left or ``refine_top`` + :data:`BOUNDARY_MAX` re-solves
+    are spent. A candidate whose model is off by more than :data:`BOUNDARY_STAGE_MM` is first re-solved with the
+    cheapest rung within that (a narrower band), and with the reference only if it is still on top or in the band.
+    ``exact`` holds the ids of those solved by the reference.
     """
     w = config.weights
     k = max(config.refine_top, 1)
     modulus = target_modulus_pa(scene, target, config)
+    spent = 0
     while True:
         feasible = [c for c in rank(current, w).get(target.name, ()) if c.feasible]
         top = feasible[:k]
         todo = [c for c in top if id(c) not in exact]
-        why = f"reference: among the top {k} steered needles of {target.name} (the ranking's decision)"
+        why = f"among the top {k} steered needles of {target.name} (the ranking's decision)"
         if not todo and len(top) == k:
             bound = w.score(top[-1])
-            todo = [c for c in feasible[k:]
-                    if id(c) not in exact and w.score(c) - _score_band(c, errors.get(id(c), 0.0), w) <= bound]
+            optimistic = {id(c): w.score(c) - _score_band(c, errors.get(id(c), 0.0), w) for c in feasible[k:]}
+            todo = sorted((c for c in feasible[k:] if id(c) not in exact and optimistic[id(c)] <= bound),
+                          key=lambda c: optimistic[id(c)])
             why = (f"its score ({{score:.1f}}) could reach the top {k}'s ({bound:.1f}) within its model's in-tissue "
                    "error (the ranking's decision boundary)")
-        if not todo:
+        if not todo or spent >= config.refine_top + BOUNDARY_MAX:
             return current
+        spent += 1
         c = todo[0]
         rung = _boundary_rung(design, modulus, c.insertion_depth_mm) if errors.get(id(c), 0.0) > BOUNDARY_STAGE_MM \
             else REFERENCE_RUNG
         model = rung.model(reference) or reference
-        reason = why if why.startswith("reference") else f"{rung.name}: " + why.format(score=w.score(c))
+        reason = f"{rung.name}: " + why.format(score=w.score(c))
         new = _resolve(scene, target, design, c, config, model, c.model_tolerance_mm, reason)
         errors[id(new)] = rung_error_mm(rung.name, design, modulus, c.insertion_depth_mm)[0]
         if rung is REFERENCE_RUNG:
