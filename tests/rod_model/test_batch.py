@@ -159,9 +159,10 @@ def test_twist_is_the_torque_about_the_needles_axis_whatever_the_frame(roll_deg:
     toward = np.array([np.cos(a), np.sin(a), 0.0])  # the bending direction of tendon 0 at this roll
     normal = np.array([-np.sin(a), np.cos(a), 0.0])  # the bending plane's normal
 
-    def scene(moment: np.ndarray, force: tuple[float, ...] = (0.0, 0.0, 0.0)) -> Scene:
+    def scene(moment: np.ndarray, force: np.ndarray | None = None) -> Scene:
+        f = np.zeros(3) if force is None else force
         return Scene.of(Loads((5.0, 0.0, 0.0, 0.0), roll_deg=roll_deg, tip_moment_nm=tuple(moment),
-                              tip_force_n=tuple(force)), d)
+                              tip_force_n=(float(f[0]), float(f[1]), float(f[2]))), d)
 
     m = 5e-3  # N·m
     # about the bending direction (world x at roll 0: the case) it twists the bent needle, as about z
@@ -169,8 +170,8 @@ def test_twist_is_the_torque_about_the_needles_axis_whatever_the_frame(roll_deg:
     assert axial_torque_nm(Loads((5.0, 0, 0, 0), roll_deg=roll_deg, tip_moment_nm=tuple(m * toward)), d) == \
         pytest.approx(m)
     # about the plane's normal it only bends the needle in its plane; a force in the plane does not twist it either
-    assert not scene(m * normal).twist and not scene(np.zeros(3), tuple(0.1 * toward)).twist
-    assert scene(np.zeros(3), tuple(0.1 * normal)).twist  # a force out of the plane does, through its lever arm
+    assert not scene(m * normal).twist and not scene(np.zeros(3), 0.1 * toward).twist
+    assert scene(np.zeros(3), 0.1 * normal).twist  # a force out of the plane does, through its lever arm
 
 
 def test_a_twisting_moment_about_x_picks_the_two_tube_model_which_the_single_rod_misses() -> None:

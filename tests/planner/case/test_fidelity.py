@@ -126,3 +126,20 @@ def test_the_reference_policy_re_solves_every_feasible_candidate_with_the_refere
     assert steered and all(c.model.insertion == "tissue_rod" and c.model_reason.startswith("reference")
                            for c in steered)
     assert set(ref.steps) == {(PLANNER_REFERENCE.step_mm, True)}
+
+
+def test_models_option_on_plan_and_demo() -> None:
+    import argparse
+
+    from reachplan.planner.cli.plan import add_implant_arguments
+
+    parser = argparse.ArgumentParser()
+    add_implant_arguments(parser)
+    assert parser.parse_args([]).models == "scene"
+    assert parser.parse_args(["--models", "reference"]).models == "reference"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--models", "cheap"])
+    with pytest.raises(ValueError, match="models must be one of scene, reference"):
+        PlanConfig(models="cheap")
+    with pytest.raises(ValueError, match="safety_margin_mm"):
+        PlanConfig(safety_margin_mm=-1.0)
