@@ -7,7 +7,7 @@ tips after the steps ending at each depth of :data:`DEPTHS_MM` (multiples of 8 m
 give every rung of :data:`~reachplan.planner.case.fidelity.RUNGS` at once: the reference ``2 P(2) − P(4)`` (the
 planner's Richardson extrapolation, :data:`~reachplan.planner.steering.tissue_rod.PLANNER_REFERENCE`), ``P(4)``,
 ``2 P(4) − P(8)``, ``P(2)``, and the kinematic model at the packaged curvature factor. Each rung's largest and RMS
-tip distance from the reference at each depth, and its median time per insertion, is one row of the planner's
+tip distance from the reference at each depth, and its median CPU time per insertion, is one row of the planner's
 package table (:data:`~reachplan.planner.case.fidelity.ERROR_TABLE`). Part of ``reachplan bench fidelity``.
 """
 
@@ -40,9 +40,9 @@ def _tips(design_name: str, modulus_pa: float, step_mm: float,
     tips = np.full((len(schedules), len(depths), 3), np.nan)
     seconds = []
     for i, sch in enumerate(schedules):
-        t0 = time.perf_counter()
+        t0 = time.process_time()  # CPU: the shared machine's load does not count
         _, steps = rod.insert_steps(design, sch, float(depths[-1]))
-        seconds.append(time.perf_counter() - t0)
+        seconds.append(time.process_time() - t0)
         got = {round(d, 6): tip for d, tip in steps}
         for j, d in enumerate(depths):
             tips[i, j] = got.get(round(float(d), 6), np.full(3, np.nan))
@@ -81,10 +81,10 @@ def measure(job: tuple[str, float]) -> list[ErrorRow]:
     rows = np.round(depths).astype(int)
     kin = KinematicInsertion(tissue_modulus_pa=modulus).insert_array(design, factor_schedules(design),
                                                                       float(depths[-1]))[:, rows]
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     for _ in range(20):
         KinematicInsertion(tissue_modulus_pa=modulus).insert_array(design, factor_schedules(design), float(depths[-1]))
-    kin_ms = (time.perf_counter() - t0) / 20 / len(kin) * 1e3
+    kin_ms = (time.process_time() - t0) / 20 / len(kin) * 1e3
     ms = {"kinematic": kin_ms, "tissue_rod@4mm": statistics.median(s4) * 1e3,
           "tissue_rod@4+8mm": statistics.median(np.add(s4, s8)) * 1e3, "tissue_rod@2mm": statistics.median(s2) * 1e3,
           "reference": statistics.median(np.add(s2, s4)) * 1e3}

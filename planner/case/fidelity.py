@@ -89,9 +89,10 @@ class Rung:
         return replace(reference, step_mm=self.step_mm, richardson=self.richardson)
 
 
-#: The ladder, cheapest first (the cost order is the measured one of ``reachplan bench fidelity``); the last is the
-#: planner's reference (:data:`~reachplan.planner.steering.tissue_rod.PLANNER_REFERENCE`: 2 mm steps extrapolated
-#: with 4 mm ones).
+#: The ladder, cheapest first: the screening model's numbers cost nothing, and an in-tissue rod insertion costs about
+#: its number of steps (4 mm, 4 + 8 mm, 2 mm, 2 + 4 mm: 1 : 1.4 : 1.9 : 2.9 measured for 15ga-30j-tip in the gel,
+#: ``reachplan bench fidelity``, ``ms_per_insertion`` in the table); the last is the planner's reference
+#: (:data:`~reachplan.planner.steering.tissue_rod.PLANNER_REFERENCE`: 2 mm steps extrapolated with 4 mm ones).
 RUNGS: tuple[Rung, ...] = (
     Rung("kinematic", "the screening model (tip following at the design's curvature factor)"),
     Rung("tissue_rod@4mm", "the in-tissue rod at 4 mm insertion steps", 4.0),
@@ -128,7 +129,8 @@ class ErrorRow:
     rms_mm : tuple of float, mm
         Root mean square of the same.
     ms_per_insertion : float, ms
-        Median wall time of one insertion to the deepest depth (0 for the screening model's kept numbers).
+        Median CPU time of one insertion to the deepest depth (the first rows measured: wall time); the screening
+        model's per path.
     """
 
     design: str
@@ -151,12 +153,15 @@ class ErrorRow:
         Returns
         -------
         float, mm
-            The interpolated largest error (inf when a row is not finite).
+            The interpolated largest error (inf at and beyond a depth where an insertion failed).
         """
         d = np.asarray(self.depths_mm, dtype=float)
         e = np.asarray(self.max_mm, dtype=float)
-        if not np.all(np.isfinite(e)):
-            return float("inf")
+        bad = np.flatnonzero(~np.isfinite(e))
+        if len(bad):  # an insertion failed there: trusted only short of the row before it
+            if bad[0] == 0 or depth_mm > d[bad[0] - 1]:
+                return float("inf")
+            d, e = d[: bad[0]], e[: bad[0]]
         if depth_mm <= d[-1] or len(d) < 2:
             return float(np.interp(depth_mm, d, e))
         slope = max(0.0, (e[-1] - e[-2]) / (d[-1] - d[-2]))
@@ -284,7 +289,7 @@ def candidate_tolerance_mm(clearance_mm: float, reach_tolerance_mm: float,
 def choose_rung(clearance_mm: float, design: RodDesign, modulus_pa: float, depth_mm: float,
                 reach_tolerance_mm: float, safety_margin_mm: float = SAFETY_MARGIN_MM,
                 rows: tuple[ErrorRow, ...] | None = None) -> ModelChoice:
-    """Return the cheapest rung whose measured in-tissue error is within the candidate's tolerance.
+    """Return the cheapest rung (the first of :data:`RUNGS`) whose measured in-tissue error is within the tolerance.
 
     Parameters
     ----------
@@ -314,8 +319,8 @@ def choose_rung(clearance_mm: float, design: RodDesign, modulus_pa: float, depth
               else f"the {reach_tolerance_mm:g} mm reach tolerance")
     measured = {r.name: rung_error_mm(r.name, design, modulus_pa, depth_mm, rows) for r in RUNGS[:-1]}
     fits = [r for r in RUNGS[:-1] if measured[r.name][0] <= tol]
-    if fits:  # the cheapest by its measured time (the screening model's kept numbers cost nothing)
-        rung = min(fits, key=lambda r: 0.0 if r.step_mm is None else measured[r.name][1])
+    if fits:  # the ladder is in cost order
+        rung = fits[0]
         return ModelChoice(rung, tol, f"{rung.name}: {source} allows {tol:.2f} mm; {rung.words} is within "
                                       f"{measured[rung.name][0]:.2f} mm in tissue ({at})")
     kin = measured[RUNGS[0].name][0]

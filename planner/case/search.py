@@ -406,10 +406,9 @@ def _score_band(c: Candidate, error_mm: float, w: RankWeights) -> float:
 
 
 def _boundary_rung(design: RodDesign, modulus_pa: float, depth_mm: float) -> Rung:
-    """Return the cheapest rung (by measured time) within :data:`BOUNDARY_STAGE_MM`; the reference when none is."""
-    within = [(ms, r) for r in RUNGS[1:-1]
-              for err, ms in [rung_error_mm(r.name, design, modulus_pa, depth_mm)] if err <= BOUNDARY_STAGE_MM]
-    return min(within, key=lambda x: x[0])[1] if within else REFERENCE_RUNG
+    """Return the cheapest in-tissue rung within :data:`BOUNDARY_STAGE_MM`; the reference when none is."""
+    within = [r for r in RUNGS[1:-1] if rung_error_mm(r.name, design, modulus_pa, depth_mm)[0] <= BOUNDARY_STAGE_MM]
+    return within[0] if within else REFERENCE_RUNG
 
 
 def _resolve(scene: Scene, target: Target, design: RodDesign, c: Candidate, config: PlanConfig,
