@@ -309,6 +309,7 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
     current = [c if c.feasible else _noted(c, float("nan"), NOT_FEASIBLE) for c in cands]
     exact: set[int] = set()
     errors: dict[int, float] = {}
+    screened: dict[int, Candidate] = {}  # a re-solved candidate's screening: the reference always starts there
     for i, c in enumerate(current):
         if not c.feasible:
             continue
@@ -323,10 +324,11 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
         current[i] = (_noted(c, choice.tolerance_mm, choice.reason) if model is None else
                       _resolve(scene, target, design, c, config, model, choice.tolerance_mm, choice.reason))
         errors[id(current[i])] = rung_error_mm(choice.rung.name, design, modulus, c.insertion_depth_mm)[0]
+        screened[id(current[i])] = c
         if choice.rung is REFERENCE_RUNG:
             exact.add(id(current[i]))
     if config.models == "scene":
-        current = _decision_boundary(scene, target, design, current, config, reference, exact, errors)
+        current = _decision_boundary(scene, target, design, current, config, reference, exact, errors, screened)
     return current
 
 
@@ -353,7 +355,7 @@ def _noted(c: Candidate, tolerance_mm: float, reason: str) -> Candidate:
 
 def _decision_boundary(scene: Scene, target: Target, design: RodDesign, current: list[Candidate],
                        config: PlanConfig, reference: TissueRodInsertion, exact: set[int],
-                       errors: dict[int, float]) -> list[Candidate]:
+                       errors: dict[int, float], screened: dict[int, Candidate]) -> list[Candidate]:
     """Re-solve with ``reference`` the candidates the ranking's decision could rest on (``current`` updated).
 
     The top ``refine_top`` feasible ones (the best steered needle), then every one whose score less its band
@@ -361,7 +363,9 @@ def _decision_boundary(scene: Scene, target: Target, design: RodDesign, current:
     reaches the last of them, lowest first, until none is left or ``refine_top`` + :data:`BOUNDARY_MAX` re-solves
     are spent. A candidate whose model is off by more than :data:`BOUNDARY_STAGE_MM` is first re-solved with the
     cheapest rung within that (a narrower band), and with the reference only if it is still on top or in the band.
-    ``exact`` holds the ids of those solved by the reference.
+    ``exact`` holds the ids of those solved by the reference; ``screened`` maps a re-solved candidate's id to its
+    screened self, which every re-solve starts from (so the reference's numbers are those ``--models reference``
+    gives: a re-aim started elsewhere stops elsewhere within its 0.25 mm).
     """
     w = config.weights
     k = max(config.refine_top, 1)
@@ -387,8 +391,10 @@ def _decision_boundary(scene: Scene, target: Target, design: RodDesign, current:
             else REFERENCE_RUNG
         model = rung.model(reference) or reference
         reason = f"{rung.name}: " + why.format(score=w.score(c))
-        new = _resolve(scene, target, design, c, config, model, c.model_tolerance_mm, reason)
+        base = screened.get(id(c), c)
+        new = _resolve(scene, target, design, base, config, model, c.model_tolerance_mm, reason)
         errors[id(new)] = rung_error_mm(rung.name, design, modulus, c.insertion_depth_mm)[0]
+        screened[id(new)] = base
         if rung is REFERENCE_RUNG:
             exact.add(id(new))
         current = [new if x is c else x for x in current]
