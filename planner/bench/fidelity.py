@@ -19,7 +19,8 @@ Fidelity against the reference policy, per target: the top-ranked candidate iden
 design), Kendall's tau between the two rankings over the union of both top 10s (a candidate one of them does not
 hold feasible ranks last in it), and the largest reach and clearance difference over the reference's top 10
 (clearance compared up to the ranking's cap + 1 mm, beyond which both are the distance field's estimate and the
-score ignores it). Time: the plan stage's wall and CPU seconds (the scene built once per seed, not counted).
+score ignores it). Time: the plan stage's wall and CPU seconds (the scene built once per seed, not counted; the
+memoised in-tissue solves cleared before each policy).
 
 Run: ``reachplan bench fidelity --out DIR [--quick] [--install]``. Writes ``fidelity.csv`` (one row per seed and
 policy), ``fidelity.png`` (time against fidelity, medians over the seeds) and, with the error table
@@ -115,6 +116,9 @@ def _run(scene: Scene, policy: str) -> tuple[list[Candidate], dict[str, tuple[Ca
         assert rung_model is not None
         config, models = PlanConfig(models="reference"), PlanModels.for_config(PlanConfig())
         models = dataclasses.replace(models, reference=rung_model)
+    from reachplan.planner.steering.steered import _insert
+
+    _insert.cache_clear()  # the in-tissue solves are memoised: no policy may reuse another's
     t0, c0 = time.perf_counter(), time.process_time()
     result = plan(scene, config, models=models)
     return list(result.candidates), dict(result.ranking), time.perf_counter() - t0, time.process_time() - c0
