@@ -24,7 +24,9 @@ from dataclasses import dataclass
 from functools import cache
 from importlib import resources
 
-from reachplan.rod_model.design import Loads
+import numpy as np
+
+from reachplan.rod_model.design import Loads, RodDesign
 from reachplan.rod_model.errors import NoModelWithinToleranceError, RodModelError
 from reachplan.rod_model.protocol import Capabilities
 
@@ -56,14 +58,69 @@ class Scene:
     external_load: bool = False
 
     @classmethod
-    def of(cls, loads: Loads) -> Scene:
-        """Return the scene of ``loads``.
+    def of(cls, loads: Loads, design: RodDesign) -> Scene:
+        """Return the scene of ``loads`` on ``design``.
 
         Tendons alone always bend the rod in one plane (their net moment keeps its direction); external loads
-        need a Cosserat model, a torque about the axis the two-tube one.
+        need a Cosserat model, and a torque about the needle's axis (:func:`axial_torque_nm`, whatever the frame
+        the load is given in) the two-tube one.
+
+        Parameters
+        ----------
+        loads : Loads
+            Tendon tensions, roll and external loads (needle base frame).
+        design : RodDesign
+            The rod (its tendons' positions and its length).
+
+        Returns
+        -------
+        Scene
+            What the solve has to represent.
         """
-        return cls(planar=not loads.has_external, twist=loads.tip_moment_nm[2] != 0.0,
+        return cls(planar=not loads.has_external, twist=axial_torque_nm(loads, design) > TWIST_TOL_NM,
                    external_load=loads.has_external)
+
+
+#: Torque about the needle's axis, N·m, below which a load counts as untwisting (a numerical zero).
+TWIST_TOL_NM = 1e-9
+
+
+def axial_torque_nm(loads: Loads, design: RodDesign) -> float:
+    """Return the largest torque (N·m) the external loads can exert about the needle's axis, anywhere along it.
+
+    The tendons bend the needle in one plane, spanned by its unactuated axis ``e3`` and their net pull ``d``
+    (the tension-weighted tendon offsets, rolled): the axis anywhere along the bent needle is
+    ``t = cos θ e3 + sin θ d`` for some θ. A tip moment ``m`` has the axial part ``m·t``, at most the norm of its
+    part in that plane (``|m − (m·n) n|``, ``n = e3 × d`` the plane's normal): a moment about the world ``x`` axis
+    twists a needle bent toward ``x`` as surely as one about ``z`` twists a straight one, and one about ``n``
+    only bends it. A tip force ``f`` at lever arm ``r`` (in the plane) gives ``(r × f)·t = f·(t × r)``, along
+    ``n``: at most ``|f·n| L``; a distributed force ``q`` at most ``|q·n| L²/2``. With no net tendon pull the
+    bending plane is not set and every component counts. The foundation (an elastic medium) is not counted: it
+    pushes the needle back toward its own track, in the bending plane of a planar insertion.
+
+    Parameters
+    ----------
+    loads : Loads
+        The loads (N, N·m, N/m; needle base frame).
+    design : RodDesign
+        The rod: its tendons' angles and its length.
+
+    Returns
+    -------
+    float, N·m
+        The bound on the axial torque.
+    """
+    offsets = design.tendon_unit_offsets(loads.roll_deg)
+    k = min(len(loads.tensions_n), len(offsets))
+    pull = np.asarray(loads.tensions_n[:k], dtype=float) @ offsets[:k]
+    length_m = design.length_mm * 1e-3
+    m = np.asarray(loads.tip_moment_nm, dtype=float)
+    f = np.asarray(loads.tip_force_n, dtype=float)
+    q = np.asarray(loads.distributed_n_per_m, dtype=float)
+    if np.linalg.norm(pull) < 1e-12:
+        return float(np.linalg.norm(m) + np.linalg.norm(f) * length_m + np.linalg.norm(q) * length_m**2 / 2)
+    n = np.cross((0.0, 0.0, 1.0), pull / np.linalg.norm(pull))
+    return float(np.linalg.norm(m - (m @ n) * n) + abs(f @ n) * length_m + abs(q @ n) * length_m**2 / 2)
 
 
 @dataclass(frozen=True)

@@ -395,3 +395,21 @@ def test_demo_names_the_implant_needles_identically_everywhere(demo_run: tuple[P
     # the tandem is an obstacle without extra options, and the list says which ROIs were taken as applicators
     assert "Tandem" in plan["config"]["oar_names"]
     assert "Tandem (tandem; an obstacle" in plan["applicators"] and "Tandem (tandem; an obstacle" in printed
+
+
+def test_demo_candidates_name_their_model_its_tolerance_and_why(demo: Path) -> None:
+    """Issue 31.1: every ranked candidate carries ``model``, ``model_tolerance_mm`` and ``model_reason``; the best
+    steered needle of each target carries the reference's numbers, and the screening model's numbers are kept only
+    within the tolerance the candidate's margins allow."""
+    ranking = json.loads((demo / "ranking.json").read_text())
+    kept = 0
+    for target, cands in ranking.items():
+        assert all({"model", "model_tolerance_mm", "model_reason"} <= c.keys() and c["model_reason"] for c in cands)
+        steered = [c for c in cands if c["steered"] and c["feasible"]]
+        assert steered and steered[0]["model_reason"].startswith("reference"), target
+        for c in steered:
+            if c["model"].startswith("kinematic"):
+                kept += 1
+                err = float(c["model_reason"].split("is within ")[1].split(" mm")[0])
+                assert err <= c["model_tolerance_mm"] <= c["clearance_mm"]
+    assert kept  # the cheap model is used where it is enough

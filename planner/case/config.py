@@ -7,6 +7,7 @@ from functools import cached_property
 
 import numpy as np
 
+from reachplan.planner.case.fidelity import POLICIES, SAFETY_MARGIN_MM
 from reachplan.planner.lookup import rod_model, rod_model_capabilities
 from reachplan.planner.ranking import RankWeights
 from reachplan.planner.steering.factors import TIP_FOLLOWING_MIN_PA
@@ -96,6 +97,13 @@ class PlanConfig:
         the screened schedules' plateaus, the reference re-solve's re-aim and every implant needle stay at or
         below ``(1 - tension_reserve) × max_tension_n`` (:func:`~reachplan.planner.steering.steered.usable_tension_n`),
         leaving room for the hand's tension error (the robustness check's ± 10 %).
+    models : str
+        Which insertion model each feasible steered candidate is solved with (``--models``): ``"scene"`` (default)
+        the cheapest whose measured in-tissue error fits the candidate's margins, and the reference for those
+        near the ranking's decision; ``"reference"`` the reference for every one
+        (:mod:`~reachplan.planner.case.fidelity`). ``refine_top`` 0 re-solves none.
+    safety_margin_mm : float, mm
+        Clearance a candidate keeps beyond its model's in-tissue error (the scene policy's tolerance).
     """
 
     template: str = "needlefinder_syed_63"
@@ -117,6 +125,8 @@ class PlanConfig:
     tension_reserve: float = 0.10
     tissue_modulus_pa: float = SIMUGEL_MODULUS_PA
     modulus_band: ModulusBand = field(default_factory=ModulusBand)
+    models: str = "scene"
+    safety_margin_mm: float = SAFETY_MARGIN_MM
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
@@ -130,6 +140,10 @@ class PlanConfig:
             if not (np.isfinite(value) and value >= TIP_FOLLOWING_MIN_PA):
                 raise ValueError(f"the Young's modulus of {name} must be at least {TIP_FOLLOWING_MIN_PA / 1e6:g} MPa "
                                  f"(the screening model's range), got {value / 1e6:g} MPa")
+        if self.models not in POLICIES:
+            raise ValueError(f"models must be one of {', '.join(POLICIES)}, got {self.models!r}")
+        if not (np.isfinite(self.safety_margin_mm) and self.safety_margin_mm >= 0):
+            raise ValueError(f"safety_margin_mm must be a number of mm >= 0, got {self.safety_margin_mm}")
 
     @cached_property
     def rod_designs(self) -> tuple[RodDesign, ...]:

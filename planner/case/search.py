@@ -13,11 +13,12 @@ from tqdm import tqdm
 
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.case.config import PlanConfig, PlanModels, screening_model
+from reachplan.planner.case.fidelity import REFERENCE_RUNG, RUNGS, Rung, choose_rung, rung_error_mm
 from reachplan.planner.case.result import PlanResult, choose_needles
 from reachplan.planner.case.scene import Scene
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.template import hole_frames
-from reachplan.planner.ranking import rank
+from reachplan.planner.ranking import RankWeights, rank
 from reachplan.planner.steering.candidates import (
     Candidate,
     Target,
@@ -71,7 +72,7 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
     for target in tqdm(scene.targets, desc="planning targets", unit="target", disable=quiet, leave=False):
         straight = straight_candidates([target], hole_ids, dist, entry, direction, scene.organs,
                                        config.needle_radius_mm, config.reach_tolerance_mm, config.max_depth_mm)
-        cands += straight
+        cands += [_noted(c, float("nan"), STRAIGHT_REASON) for c in straight]
         clear = {c.hole_id for c in straight if c.feasible}  # a steered needle from these holes adds nothing
         # the tissue the target lies in (where the needle bends) sets the screening model's curvature factor
         screening = dataclasses.replace(models.screening, tissue_modulus_pa=target_modulus_pa(scene, target, config))
@@ -81,6 +82,10 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
     cands = assess_shortlist(scene, cands, config, models.robustness)
     cands = band_shortlist(scene, cands, config)
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
+
+
+#: The model reason of a straight needle.
+STRAIGHT_REASON = "straight: an exact line, no model error"
 
 
 def target_modulus_pa(scene: Scene, target: Target, config: PlanConfig) -> float:
@@ -318,15 +323,16 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
 
 def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: list[Candidate],
                      config: PlanConfig, reference: TissueRodInsertion = PLANNER_REFERENCE) -> list[Candidate]:
-    """Re-solve the best feasible steered candidates with the ``reference`` model (the in-tissue Cosserat rod).
+    """Give every feasible steered candidate of one target and design the model its policy asks for.
 
-    The rod takes the tissue modulus along the candidate's path (``config.tissue_moduli_pa`` per organ, the
-    reference's modulus elsewhere) and the schedule is re-aimed
-    (:func:`~reachplan.planner.steering.steered.refine_with`).
-
-    It stops when the top ``config.refine_top`` feasible ones all carry the reference's numbers (at most
-    ``refine_top + 4`` solves: a refined candidate that no longer reaches, or that the reference fails to solve
-    (marked failed, with the reason), drops down and the next one is refined).
+    ``config.models``: ``"reference"`` re-solves every one with ``reference``; ``"scene"`` (the default) gives
+    each the cheapest model its margins allow (:func:`~reachplan.planner.case.fidelity.choose_rung`; the screening
+    model's numbers are kept when they suffice) and then re-solves with ``reference`` the top ``refine_top`` and
+    every candidate whose score could reach theirs within its model's error
+    (:func:`_decision_boundary`). ``config.refine_top`` 0 re-solves none. A re-solve takes the tissue modulus
+    along the candidate's path (``config.tissue_moduli_pa`` per organ, the reference's modulus elsewhere) and
+    re-aims the schedule (:func:`~reachplan.planner.steering.steered.refine_with`); one the model fails to solve is
+    marked failed with the reason. Every candidate carries ``model_tolerance_mm`` and ``model_reason``.
 
     Parameters
     ----------
@@ -339,46 +345,151 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
     cands : list of Candidate
         The target's steered candidates of ``design`` from the screening.
     config : PlanConfig
-        ``refine_top``, ``weights``, ``tissue_moduli_pa`` and the reach tolerance.
+        ``models``, ``refine_top``, ``robust_top``, ``weights``, ``tissue_moduli_pa``, ``safety_margin_mm`` and the
+        reach tolerance.
     reference : TissueRodInsertion
-        The reference insertion model.
+        The reference insertion model (the cheaper rungs are it at coarser steps).
 
     Returns
     -------
     list of Candidate
-        ``cands`` in the same order, the re-solved ones replaced by the reference's candidates.
+        ``cands`` in the same order, the re-solved ones replaced.
     """
-    rel_all = _template_offsets(scene, target)
-    index = {h.hole_id: i for i, h in enumerate(scene.template.needle_holes)}
-    holes = {h.hole_id: h for h in scene.template.needle_holes}
-    radius = design.needle.outer_diameter_mm / 2
-    current = list(cands)
-    done: set[str] = set()
-    for _ in range(config.refine_top + 4):
-        ranked = rank(current, config.weights).get(target.name, ())
-        top = [c for c in ranked if c.feasible][: config.refine_top]
-        todo = [c for c in top if c.hole_id not in done and c.schedule is not None]
-        if not todo:
-            break
-        c = todo[0]
-        assert c.schedule is not None
-        done.add(c.hole_id)
-        roll = float(c.schedule.roll_deg[0])
-        base = TensionSchedule(c.schedule.depth_mm, c.schedule.tension_n, np.zeros(len(c.schedule.depth_mm)))
-        profile = modulus_profile(scene, c.path_mm, config.tissue_moduli_pa, reference.tissue_modulus_pa)
-        try:
-            sch, res = refine_with(reference, design, base, c.insertion_depth_mm, rel_all[index[c.hole_id]],
-                                   modulus_profile=profile,
-                                   max_tension_n=usable_tension_n(design, config.tension_reserve))
-        except (PlanInputError, RodModelError) as exc:
-            new = mark_failed(c, f"reference re-solve ({reference.info.label}) failed: {exc}")
-        else:
-            sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), roll))
-            step = c.insertion_depth_mm / (len(res.positions_mm) - 1)
-            path = place(res.positions_mm, step, c.insertion_depth_mm, roll,
-                         np.asarray(holes[c.hole_id].xy_mm), scene.patient_from_template)
-            new = score_path(target, c.hole_id, c.hole_distance_mm, path, scene.organs, radius,
-                             config.reach_tolerance_mm, res.model, steered=True, peak_tension_n=sch.peak_tension_n,
-                             design=design, schedule=sch, depth_mm=c.insertion_depth_mm)
-        current = [new if x is c else x for x in current]
+    if config.refine_top <= 0:
+        return [_noted(c, float("nan"), "kinematic: no re-solve (refine_top 0)") for c in cands]
+    modulus = target_modulus_pa(scene, target, config)
+    current = [c if c.feasible else _noted(c, float("nan"), NOT_FEASIBLE) for c in cands]
+    exact: set[int] = set()
+    errors: dict[int, float] = {}
+    screened: dict[int, Candidate] = {}  # a re-solved candidate's screening: the reference always starts there
+    for i, c in enumerate(current):
+        if not c.feasible:
+            continue
+        if config.models == "reference":
+            current[i] = _resolve(scene, target, design, c, config, reference, float("nan"),
+                                  "reference: --models reference re-solves every feasible candidate")
+            exact.add(id(current[i]))
+            continue
+        choice = choose_rung(c.clearance_mm, design, modulus, c.insertion_depth_mm, config.reach_tolerance_mm,
+                             config.safety_margin_mm)
+        model = choice.rung.model(reference)
+        current[i] = (_noted(c, choice.tolerance_mm, choice.reason) if model is None else
+                      _resolve(scene, target, design, c, config, model, choice.tolerance_mm, choice.reason))
+        errors[id(current[i])] = rung_error_mm(choice.rung.name, design, modulus, c.insertion_depth_mm)[0]
+        screened[id(current[i])] = c
+        if choice.rung is REFERENCE_RUNG:
+            exact.add(id(current[i]))
+    if config.models == "scene":
+        current = _decision_boundary(scene, target, design, current, config, reference, exact, errors, screened)
     return current
+
+
+#: The reason a candidate not feasible on screening keeps the screening model's numbers.
+NOT_FEASIBLE = "kinematic: not feasible on screening; no ranking decision rests on its numbers"
+#: Newtons of plateau tension a re-aim changes per mm of tip error: 0.8-1.8 N/mm on the clinical demo's reference
+#: re-solves (the kinematic tip moves about 1 mm per N at the planner's depths); with the ranking's weights it turns
+#: a model error into a score band.
+TENSION_PER_MM_N = 1.5
+#: A candidate in the decision band whose model is off by more than this (mm) is first re-solved with the cheapest
+#: rung within it (:func:`_boundary_rung`), and with the reference only if it is still in the band.
+BOUNDARY_STAGE_MM = 0.5
+#: At most ``refine_top`` + this many re-solves per target and design for the ranking's decision (the most
+#: threatening first: lowest score less band), as the shortlist before had: a symmetric template offers dozens of
+#: near-equal holes, and a re-solve that raises the top one's score hands the top to the next; the ranking's
+#: fidelity with this cap is measured (``reachplan bench fidelity``).
+BOUNDARY_MAX = 4
+
+
+def _noted(c: Candidate, tolerance_mm: float, reason: str) -> Candidate:
+    """``c`` with its model choice recorded (its numbers unchanged)."""
+    return dataclasses.replace(c, model_tolerance_mm=tolerance_mm, model_reason=reason)
+
+
+def _decision_boundary(scene: Scene, target: Target, design: RodDesign, current: list[Candidate],
+                       config: PlanConfig, reference: TissueRodInsertion, exact: set[int],
+                       errors: dict[int, float], screened: dict[int, Candidate]) -> list[Candidate]:
+    """Re-solve with ``reference`` the candidates the ranking's decision could rest on (``current`` updated).
+
+    The top ``refine_top`` feasible ones (the best steered needle), then every one whose score less its band
+    (:func:`_score_band`: what its model's in-tissue error ``errors`` and its reach error could take off its score)
+    reaches the last of them, lowest first, until none is left or ``refine_top`` + :data:`BOUNDARY_MAX` re-solves
+    are spent. A candidate whose model is off by more than :data:`BOUNDARY_STAGE_MM` is first re-solved with the
+    cheapest rung within that (a narrower band), and with the reference only if it is still on top or in the band.
+    ``exact`` holds the ids of those solved by the reference; ``screened`` maps a re-solved candidate's id to its
+    screened self, which every re-solve starts from (so the reference's numbers are those ``--models reference``
+    gives: a re-aim started elsewhere stops elsewhere within its 0.25 mm).
+    """
+    w = config.weights
+    k = max(config.refine_top, 1)
+    modulus = target_modulus_pa(scene, target, config)
+    spent = 0
+    while True:
+        feasible = [c for c in rank(current, w).get(target.name, ()) if c.feasible]
+        top = feasible[:k]
+        todo = [c for c in top if id(c) not in exact]
+        why = f"among the top {k} steered needles of {target.name} (the ranking's decision)"
+        if not todo and len(top) == k:
+            bound = w.score(top[-1])
+            optimistic = {id(c): w.score(c) - _score_band(c, errors.get(id(c), 0.0), w) for c in feasible[k:]}
+            todo = sorted((c for c in feasible[k:] if id(c) not in exact and optimistic[id(c)] <= bound),
+                          key=lambda c: optimistic[id(c)])
+            why = (f"its score ({{score:.1f}}) could reach the top {k}'s ({bound:.1f}) within its model's in-tissue "
+                   "error (the ranking's decision boundary)")
+        if not todo or spent >= config.refine_top + BOUNDARY_MAX:
+            return current
+        spent += 1
+        c = todo[0]
+        rung = _boundary_rung(design, modulus, c.insertion_depth_mm) if errors.get(id(c), 0.0) > BOUNDARY_STAGE_MM \
+            else REFERENCE_RUNG
+        model = rung.model(reference) or reference
+        reason = f"{rung.name}: " + why.format(score=w.score(c))
+        base = screened.get(id(c), c)
+        new = _resolve(scene, target, design, base, config, model, c.model_tolerance_mm, reason)
+        errors[id(new)] = rung_error_mm(rung.name, design, modulus, c.insertion_depth_mm)[0]
+        screened[id(new)] = base
+        if rung is REFERENCE_RUNG:
+            exact.add(id(new))
+        current = [new if x is c else x for x in current]
+
+
+def _score_band(c: Candidate, error_mm: float, w: RankWeights) -> float:
+    """How much a re-solve could lower ``c``'s score: its reach error (re-aimed away) and its model error's share.
+
+    The clearance term counts while the clearance less the error is under the cap; tension moves by
+    :data:`TENSION_PER_MM_N` per mm of error.
+    """
+    clear = w.per_mm_clearance if np.isfinite(c.clearance_mm) and c.clearance_mm - error_mm < w.clearance_cap_mm \
+        else 0.0
+    return w.per_mm_reach * c.reach_error_mm + (clear + w.per_newton * TENSION_PER_MM_N) * error_mm
+
+
+def _boundary_rung(design: RodDesign, modulus_pa: float, depth_mm: float) -> Rung:
+    """Return the cheapest in-tissue rung within :data:`BOUNDARY_STAGE_MM`; the reference when none is."""
+    within = [r for r in RUNGS[1:-1] if rung_error_mm(r.name, design, modulus_pa, depth_mm)[0] <= BOUNDARY_STAGE_MM]
+    return within[0] if within else REFERENCE_RUNG
+
+
+def _resolve(scene: Scene, target: Target, design: RodDesign, c: Candidate, config: PlanConfig,
+             model: TissueRodInsertion, tolerance_mm: float, reason: str) -> Candidate:
+    """Re-solve one screened candidate with the in-tissue ``model``, re-aimed; marked failed when it fails."""
+    assert c.schedule is not None
+    index = {h.hole_id: i for i, h in enumerate(scene.template.needle_holes)}
+    hole = scene.template.needle_holes[index[c.hole_id]]
+    rel = _template_offsets(scene, target)[index[c.hole_id]]
+    roll = float(c.schedule.roll_deg[0])
+    base = TensionSchedule(c.schedule.depth_mm, c.schedule.tension_n, np.zeros(len(c.schedule.depth_mm)))
+    profile = modulus_profile(scene, c.path_mm, config.tissue_moduli_pa, model.tissue_modulus_pa)
+    name = reason.split(":", 1)[0]
+    try:
+        sch, res = refine_with(model, design, base, c.insertion_depth_mm, rel, modulus_profile=profile,
+                               max_tension_n=usable_tension_n(design, config.tension_reserve))
+    except (PlanInputError, RodModelError) as exc:
+        return _noted(mark_failed(c, f"{name} re-solve ({model.info.label}) failed: {exc}"), tolerance_mm, reason)
+    sch = TensionSchedule(sch.depth_mm, sch.tension_n, np.full(len(sch.depth_mm), roll))
+    step = c.insertion_depth_mm / (len(res.positions_mm) - 1)
+    path = place(res.positions_mm, step, c.insertion_depth_mm, roll, np.asarray(hole.xy_mm),
+                 scene.patient_from_template)
+    new = score_path(target, c.hole_id, c.hole_distance_mm, path, scene.organs, design.needle.outer_diameter_mm / 2,
+                     config.reach_tolerance_mm, res.model, steered=True, peak_tension_n=sch.peak_tension_n,
+                     design=design, schedule=sch, depth_mm=c.insertion_depth_mm)
+    return _noted(new, tolerance_mm, reason)

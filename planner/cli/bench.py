@@ -103,6 +103,11 @@ TARGETS: tuple[Target, ...] = (
            "fitted to the in-tissue rod (the planner's package table)"),
     Target("joints", "joints", "discrete joint-section model: every published free-space row (calibration or "
            "validation), the joint-count trend, convergence"),
+    Target("fidelity", "fidelity", "planning time against ranking fidelity: fixed insertion models and the scene "
+           "policy against the reference on the clinical case, and the ladder's in-tissue errors (package table)",
+           (Option("--cases", int, "clinical seeds 0 .. N-1 (5; quick 1)"),
+            Option("--table", int, "1: also measure the in-tissue error table of every preset (1; quick 0)"),
+            Option("--workers", int, "processes measuring the table (2)"))),
     Target("demo", "demo", "reachplan demo on the clinical case: the median time of each stage against the 30 s limit",
            (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
     Target("band", "band", "the tissue band's rod model against the reference rod: tip change over the modulus band, "

@@ -125,7 +125,7 @@ def _demo(args: argparse.Namespace, out: Path, quiet: bool) -> dict[str, object]
               f"{volume.modality} {volume.grid.shape}, {len(structures.rois)} ROIs ({t_read:.1f} s)", file=sys.stderr)
     targets = tuple(n for n in structures.names if n.casefold().startswith("target"))
     # the clinical case's tandem (an applicator) is an obstacle: a needle must not cross it
-    config = PlanConfig(tension_reserve=args.tension_reserve, **tissue_options(args))
+    config = PlanConfig(tension_reserve=args.tension_reserve, models=args.models, **tissue_options(args))
     label = ("built-in phantom" if args.case == "pilot"
              else f"built-in clinical case (seed {args.seed}, {args.modality})")
     inputs = CaseInput(structures, volume, (files.ct_dir, files.rtstruct_path), label, builtin=True)

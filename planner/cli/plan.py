@@ -170,7 +170,7 @@ def add_rtplan_style(parser: argparse.ArgumentParser) -> None:
 
 
 def add_implant_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the implant planning options (shared with ``demo``): tip offset, tension reserve, ``--needles``.
+    """Add the options shared with ``demo``: tip offset, tension reserve, ``--needles``, ``--models``.
 
     Parameters
     ----------
@@ -184,6 +184,11 @@ def add_implant_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fraction of each stylet's tension limit no planned needle uses, for the hand's "
                              "tension error (default 0.1: 10 %%; 0 allows the full limit)")
     add_needles_argument(parser)
+    parser.add_argument("--models", choices=("scene", "reference"), default="scene",  # case.fidelity.POLICIES
+                        help="insertion model per steered candidate: scene (default: the cheapest whose measured "
+                             "in-tissue error its clearance and the reach tolerance allow, the reference near the "
+                             "ranking's decision) or reference (every feasible candidate re-solved with the "
+                             "reference in-tissue rod)")
 
 
 def implant_settings(args: argparse.Namespace) -> ImplantSettings:
@@ -485,7 +490,7 @@ def run(args: argparse.Namespace) -> int:
     start_kernels(quiet)  # before reading the series: the first run's compile overlaps it
     _reference_points(args.reference_point)  # a bad point is an error before the series is read
     config = PlanConfig(template=args.template, designs=tuple(args.design), tension_reserve=args.tension_reserve,
-                        **tissue_options(args))
+                        models=args.models, **tissue_options(args))
     table, overrides, config = _names(args, config)
     volume = read_series(args.ct, series_uid=args.series_uid) if args.ct else None
     structures = read_rtstruct(args.rtstruct, volume, synonyms=table)

@@ -106,8 +106,8 @@ def run(args: argparse.Namespace) -> int:
         raise RodArgumentError(f"tension {max(over):g} N exceeds {design.name}'s limit of {design.max_tension_n:g} N; "
                                "lower it or pass --allow-over-limit")
     if args.model == "auto":
-
-        name = select_model(args.tolerance, Scene.of(design.loads(values[0], args.roll)), rod_model_capabilities())
+        scene = Scene.of(design.loads(values[0], args.roll), design)
+        name = select_model(args.tolerance, scene, rod_model_capabilities())
     else:
         name = args.model
     model = rod_model(name)

@@ -166,8 +166,12 @@ def _case_section(scene: Scene, result: PlanResult, case: str, template_map: Fig
                 f"{scene.template.source.splitlines()[0] if scene.template.source else ''}")
     settings = (f"Needle radius {cfg.needle_radius_mm:.2f} mm; reach tolerance {cfg.reach_tolerance_mm:g} mm; "
                 f"free length up to {cfg.max_depth_mm:g} mm; stylet designs {', '.join(cfg.designs) or 'none'}; "
-                f"the top {cfg.refine_top} feasible steered candidate(s) per target re-solved with the reference "
-                "model.")
+                + ("every feasible steered candidate re-solved with the reference model (--models reference)."
+                   if cfg.models == "reference" else
+                   f"each feasible steered candidate solved with the cheapest model its clearance (less "
+                   f"{cfg.safety_margin_mm:g} mm) and the reach tolerance allow, the top {cfg.refine_top} per "
+                   "target and those near the ranking's decision with the reference (--models scene; each "
+                   "candidate's model_reason in ranking.json)."))
     return Section("Case", "case", (
         Paragraph(f"{case}. Coordinates are DICOM patient coordinates (LPS: +x patient left, +y posterior, "
                   "+z superior), in mm."),

@@ -245,9 +245,10 @@ def run_case(inputs: CaseInput, config: CaseConfig, *, quiet: bool = True,
     moduli = tuple((inputs.structures.get(n).normalized_name, e) for n, e in config.plan.tissue_moduli_pa)
     config = dataclasses.replace(config, plan=dataclasses.replace(config.plan, tissue_moduli_pa=moduli,
                                                                   oar_names=tuple(o.name for o in scene.organs)))
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     result = plan(scene, config.plan, quiet=quiet)
     timings["plan_s"] = time.perf_counter() - t
+    timings["plan_cpu_s"] = time.process_time() - cpu  # this process's CPU: a loaded machine's wall time is noise
     if not config.export:
         comparison, note = straight_vs_steered(result, inputs.structures, None)  # no dose: the note says so
         return CaseResult(inputs, config, scene, result, None, comparison, note, timings)

@@ -173,6 +173,11 @@ class Candidate:
     tissue_band : TissueBand or None
         The path over the plan's range of tissue moduli and its worst case (a steered needle the plan shows); None
         when not computed.
+    model_tolerance_mm : float, mm
+        The in-tissue tip error the candidate's margins allow its model (:mod:`reachplan.planner.case.fidelity`);
+        NaN when no model choice was made (a straight needle, a candidate not feasible on screening).
+    model_reason : str
+        Why ``model`` solved it, in words ("" when not recorded).
     """
 
     target: str
@@ -197,6 +202,8 @@ class Candidate:
     worst_case: str = ""
     failed: bool = False
     tissue_band: TissueBand | None = None
+    model_tolerance_mm: float = float("nan")
+    model_reason: str = ""
 
     @property
     def feasible(self) -> bool:
@@ -233,6 +240,8 @@ class Candidate:
             "steered": self.steered,
             "peak_tension_n": round(self.peak_tension_n, 3),
             "model": self.model.label,
+            "model_tolerance_mm": round(self.model_tolerance_mm, 3) if np.isfinite(self.model_tolerance_mm) else None,
+            "model_reason": self.model_reason,
             "collides": self.collides,
             "contact_depth_mm": None if self.contact_depth_mm is None else round(self.contact_depth_mm, 1),
             "reaches": self.reaches,

@@ -94,8 +94,9 @@ def test_selector_uses_measured_errors_and_capabilities() -> None:
     assert select_model(20.0, Scene(planar=False, twist=True), caps, rows) == "two_tube_cosserat"
     from reachplan.rod_model.design import Loads
 
-    assert Scene.of(Loads((3.0, 0.0, 3.0, 0.0))) == Scene()
-    assert Scene.of(Loads((3.0,), tip_moment_nm=(0.0, 0.0, 1e-3))) == Scene(False, True, True)
+    d = preset("15ga-20j-tip")
+    assert Scene.of(Loads((3.0, 0.0, 3.0, 0.0)), d) == Scene()
+    assert Scene.of(Loads((3.0,), tip_moment_nm=(0.0, 0.0, 1e-3)), d) == Scene(False, True, True)
     with pytest.raises(NoModelWithinToleranceError, match="best measured"):
         select_model(1e-3, Scene(), caps, rows[:3])
 
@@ -146,3 +147,41 @@ def test_selector_breaks_cost_ties_by_model_rank_not_by_timing_noise() -> None:
     assert select_model(0.5, Scene(), caps, rows) == "two_tube_cosserat"
     # the tolerance is against the two-tube model, which the docstring says (not against experiment)
     assert "not against experiment" in (select_model.__doc__ or "")
+
+
+@pytest.mark.parametrize("roll_deg", [0.0, 90.0, 37.0])
+def test_twist_is_the_torque_about_the_needles_axis_whatever_the_frame(roll_deg: float) -> None:
+    from reachplan.rod_model.design import Loads
+    from reachplan.rod_model.select import Scene, axial_torque_nm
+
+    d = preset("15ga-30j-tip")
+    a = np.radians(roll_deg)
+    toward = np.array([np.cos(a), np.sin(a), 0.0])  # the bending direction of tendon 0 at this roll
+    normal = np.array([-np.sin(a), np.cos(a), 0.0])  # the bending plane's normal
+
+    def scene(moment: np.ndarray, force: np.ndarray | None = None) -> Scene:
+        f = np.zeros(3) if force is None else force
+        return Scene.of(Loads((5.0, 0.0, 0.0, 0.0), roll_deg=roll_deg, tip_moment_nm=tuple(moment),
+                              tip_force_n=(float(f[0]), float(f[1]), float(f[2]))), d)
+
+    m = 5e-3  # N·m
+    # about the bending direction (world x at roll 0: the case) it twists the bent needle, as about z
+    assert scene(m * toward).twist and scene(np.array([0.0, 0.0, m])).twist
+    assert axial_torque_nm(Loads((5.0, 0, 0, 0), roll_deg=roll_deg, tip_moment_nm=tuple(m * toward)), d) == \
+        pytest.approx(m)
+    # about the plane's normal it only bends the needle in its plane; a force in the plane does not twist it either
+    assert not scene(m * normal).twist and not scene(np.zeros(3), 0.1 * toward).twist
+    assert scene(np.zeros(3), 0.1 * normal).twist  # a force out of the plane does, through its lever arm
+
+
+def test_a_twisting_moment_about_x_picks_the_two_tube_model_which_the_single_rod_misses() -> None:
+    from reachplan.rod_model.design import Loads
+    from reachplan.rod_model.select import Scene, select_model
+
+    caps = {m.name: m.capabilities for m in (CONSTANT_CURVATURE, PLANAR_BEAM, COSSERAT_ROD, TWO_TUBE_COSSERAT)}
+    d = preset("15ga-30j-tip")
+    loads = Loads((5.0, 0.0, 0.0, 0.0), tip_moment_nm=(5e-3, 0.0, 0.0))
+    assert select_model(0.01, Scene.of(loads, d), caps) == "two_tube_cosserat"
+    single, double = COSSERAT_ROD.solve(d, loads), TWO_TUBE_COSSERAT.solve(d, loads)
+    assert isinstance(single, RodPath) and isinstance(double, RodPath)
+    assert np.linalg.norm(single.positions_mm[-1] - double.positions_mm[-1]) > 0.01  # why it must not be picked

@@ -96,7 +96,7 @@ def test_a_failed_reference_resolve_marks_that_candidate_and_the_plan_goes_on(ki
     assert len(mirrors) <= 1 and all(m.reason == bad.reason and m.peak_tension_n == bad.peak_tension_n
                                      for m in mirrors)
     assert not bad.feasible and bad.steered and bad.reaches  # it did reach on the screening model's numbers
-    assert f"reference re-solve ({reference.info.label}) failed" in bad.reason and FAILURES[kind] in bad.reason
+    assert f"re-solve ({reference.info.label}) failed" in bad.reason and FAILURES[kind] in bad.reason
     assert bad.model.insertion == "kinematic"  # its numbers are the screening model's, and it says so
     doc = bad.to_json()
     assert doc["feasible"] is False and doc["reason"] == bad.reason and doc["model"] == bad.model.label

@@ -54,7 +54,7 @@ def test_run_case_chains_the_scene_and_the_steering_search(case: tuple[CaseInput
     assert result.delivery is None and result.comparison is None and "ranked only" in result.comparison_note
     doc = result.to_json()
     assert set(doc) >= {"config", "targets", "warnings", "blocked_straight"}
-    assert "delivery" not in doc and set(result.timings) == {"scene_s", "plan_s"}
+    assert "delivery" not in doc and set(result.timings) == {"scene_s", "plan_s", "plan_cpu_s"}
     blocked = result.result.blocked_straight()
     assert doc["blocked_straight"] == [b.to_json() for b in blocked]
     assert blocked and all(b.straight.collides and b.straight.reaches for b in blocked)
