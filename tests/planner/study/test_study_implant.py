@@ -209,7 +209,7 @@ def test_clinical_case_end_to_end(tmp_path: Path) -> None:
 
     config = PlanConfig(family=ScheduleFamily(**COARSE_FAMILY), oar_names=(*DEFAULT_OARS, "Tandem"))
     settings = ImplantSettings(max_needles=2, rolls=2, steered_per_hole=1, selection_target_points=150,
-                               final_target_points=400)
+                               final_target_points=400, exhaustive_max_selections=0)
     res = run_implant_study(ImplantStudySpec((0,), config, settings), tmp_path / "s", workers=0)
     (row,) = res.rows
     assert row.status == "ok", row.reason
