@@ -204,11 +204,11 @@ def test_cli_refuses_mixed_studies(tmp_path: Path, capsys: pytest.CaptureFixture
 
 @pytest.mark.slow
 def test_clinical_case_end_to_end(tmp_path: Path) -> None:
-    """One clinical case planned for real in a reduced configuration (coarse schedules, 2 needles at most)."""
+    """One clinical case planned for real in a reduced configuration (coarse schedules, 1 needle at most)."""
     from reachplan.planner.implant.settings import ImplantSettings
 
     config = PlanConfig(family=ScheduleFamily(**COARSE_FAMILY), oar_names=(*DEFAULT_OARS, "Tandem"))
-    settings = ImplantSettings(max_needles=2, rolls=2, steered_per_hole=1, selection_target_points=150,
+    settings = ImplantSettings(max_needles=1, rolls=2, steered_per_hole=1, selection_target_points=150,
                                final_target_points=400, exhaustive_max_selections=0)
     res = run_implant_study(ImplantStudySpec((0,), config, settings), tmp_path / "s", workers=0)
     (row,) = res.rows
@@ -216,7 +216,7 @@ def test_clinical_case_end_to_end(tmp_path: Path) -> None:
     part = json.loads((tmp_path / "s" / "parts" / "clinical_0.json").read_text(encoding="utf-8"))
     for arm in ("straight", "steered"):
         n, d90, d98 = (getattr(row, f"{arm}_{k}") for k in ("needles", "hrctv_d90_eqd2_gy", "hrctv_d98_eqd2_gy"))
-        assert 1 <= n <= 2 and n == sum(nd["kind"] != "intracavitary" for nd in part["implant"][arm]["needles"])
+        assert n == 1 and n == sum(nd["kind"] != "intracavitary" for nd in part["implant"][arm]["needles"])
         assert 0 < d98 <= d90 < 400  # D98 of a volume never exceeds its D90
         assert set(json.loads(getattr(row, f"{arm}_oar_d2cc_eqd2_gy"))) >= {"Bladder", "Rectum"}
     assert row.steered_candidates > row.straight_candidates  # the steered arm holds the straight candidates too
