@@ -302,6 +302,35 @@ def straight_path(entry_mm: np.ndarray, direction: np.ndarray, depth_mm: float) 
     return np.asarray(entry_mm, float) + np.outer([0.0, depth_mm], direction)
 
 
+def worst_case(nominal: Candidate, scored: Iterable[tuple[str, Candidate]]) -> tuple[float, float, str]:
+    """Return the largest reach error, the smallest clearance and what sets the worst case over ``scored``.
+
+    Parameters
+    ----------
+    nominal : Candidate
+        The candidate as planned (its reach error and clearance start the worst case, ``"nominal"``).
+    scored : iterable of (str, Candidate)
+        Each variant's label and the variant scored (``score_path``).
+
+    Returns
+    -------
+    worst_reach_mm : float, mm
+    worst_clearance_mm : float, mm
+    worst : str
+        The label of the variant with the largest reach error, or ``"<label>: collides with <organ>"`` of a later
+        variant with a smaller clearance that collides.
+    """
+    worst_reach, worst_clear, worst = nominal.reach_error_mm, nominal.clearance_mm, "nominal"
+    for label, c in scored:
+        if c.reach_error_mm > worst_reach:
+            worst_reach, worst = c.reach_error_mm, label
+        if c.clearance_mm < worst_clear:
+            worst_clear = c.clearance_mm
+            if c.collides:
+                worst = f"{label}: collides with {c.closest_organ}"
+    return float(worst_reach), float(worst_clear), worst
+
+
 def score_path(
     target: Target,
     hole_id: str,

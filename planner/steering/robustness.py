@@ -17,7 +17,7 @@ import numpy as np
 
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.geometry.collision import Organ
-from reachplan.planner.steering.candidates import Candidate, Target, score_path
+from reachplan.planner.steering.candidates import Candidate, Target, score_path, worst_case
 from reachplan.planner.steering.insertion import ModelInfo
 from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
@@ -115,18 +115,11 @@ def assess(candidate: Candidate, target: Target, organs: Sequence[Organ], patien
     """
     variants = perturbed_paths(candidate.path_mm, candidate.insertion_depth_mm, patient_from_template, perturbations,
                                model, candidate.design if candidate.steered else None, candidate.schedule)
-    worst_reach, worst_clear, worst = candidate.reach_error_mm, candidate.clearance_mm, "nominal"
-    for label, path in variants:
-        c = score_path(target, candidate.hole_id, candidate.hole_distance_mm, path, organs, needle_radius_mm,
-                       reach_tolerance_mm, candidate.model, steered=candidate.steered,
-                       depth_mm=candidate.insertion_depth_mm)
-        if c.reach_error_mm > worst_reach:
-            worst_reach, worst = c.reach_error_mm, label
-        if c.clearance_mm < worst_clear:
-            worst_clear = c.clearance_mm
-            if c.collides:
-                worst = f"{label}: collides with {c.closest_organ}"
-    return Robustness(float(worst_reach), float(worst_clear), worst, model.info)
+    worst_reach, worst_clear, worst = worst_case(candidate, (
+        (label, score_path(target, candidate.hole_id, candidate.hole_distance_mm, path, organs, needle_radius_mm,
+                           reach_tolerance_mm, candidate.model, steered=candidate.steered,
+                           depth_mm=candidate.insertion_depth_mm)) for label, path in variants))
+    return Robustness(worst_reach, worst_clear, worst, model.info)
 
 
 def perturbed_paths(path_mm: np.ndarray, depth_mm: float, patient_from_template: np.ndarray,

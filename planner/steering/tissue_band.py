@@ -30,7 +30,7 @@ import numpy as np
 from reachplan._arrays import arc_length_mm
 from reachplan.planner.errors import PlanInputError
 from reachplan.planner.geometry.collision import Organ
-from reachplan.planner.steering.candidates import Candidate, Target, TissueBand, score_path
+from reachplan.planner.steering.candidates import Candidate, Target, TissueBand, score_path, worst_case
 from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import insert_memo
@@ -213,22 +213,14 @@ def assess_band(candidate: Candidate, aim: Target, organs: Sequence[Organ], pati
     paths = band_paths(candidate.path_mm, candidate.insertion_depth_mm, candidate.design, candidate.schedule,
                        profile, patient_from_template, band, model)
     tip_pa = float(np.asarray(profile[1], float)[-1])  # the profile's last modulus: the tissue at the tip
-    reach, clear = [], []
-    worst_reach, worst_clear, worst = candidate.reach_error_mm, candidate.clearance_mm, "nominal"
+    scored = []
     for scale, path in zip(band.scales, paths, strict=True):
-        if scale == 1.0:
-            c = candidate
-        else:
-            c = score_path(aim, candidate.hole_id, candidate.hole_distance_mm, path, organs, needle_radius_mm,
-                           reach_tolerance_mm, candidate.model, steered=True, depth_mm=candidate.insertion_depth_mm)
-        reach.append(c.reach_error_mm)
-        clear.append(c.clearance_mm)
+        c = candidate if scale == 1.0 else score_path(
+            aim, candidate.hole_id, candidate.hole_distance_mm, path, organs, needle_radius_mm, reach_tolerance_mm,
+            candidate.model, steered=True, depth_mm=candidate.insertion_depth_mm)
         label = f"tissue {'x' if scale > 1 else '÷'}{max(scale, 1 / scale):.3g} ({tip_pa * scale / 1e6:.3g} MPa)"
-        if c.reach_error_mm > worst_reach:
-            worst_reach, worst = c.reach_error_mm, label
-        if c.clearance_mm < worst_clear:
-            worst_clear = c.clearance_mm
-            if c.collides:
-                worst = f"{label}: collides with {c.closest_organ}"
-    return TissueBand(band.scales, tuple(tip_pa * s for s in band.scales), tuple(paths), tuple(reach), tuple(clear),
-                      float(worst_reach), float(worst_clear), worst, model.info.label, band.source)
+        scored.append((label, c))
+    worst_reach, worst_clear, worst = worst_case(candidate, scored)
+    return TissueBand(band.scales, tuple(tip_pa * s for s in band.scales), tuple(paths),
+                      tuple(c.reach_error_mm for _, c in scored), tuple(c.clearance_mm for _, c in scored),
+                      worst_reach, worst_clear, worst, model.info.label, band.source)
