@@ -398,15 +398,17 @@ def test_demo_names_the_implant_needles_identically_everywhere(demo_run: tuple[P
 
 
 def test_demo_candidates_name_their_model_its_tolerance_and_why(demo: Path) -> None:
-    """Issue 31.1: every ranked candidate carries ``model``, ``model_tolerance_mm`` and ``model_reason``; the best
-    steered needle of each target carries the reference's numbers, and the screening model's numbers are kept only
-    within the tolerance the candidate's margins allow."""
+    """Issue 31.1: every ranked candidate carries ``model``, ``model_tolerance_mm`` and ``model_reason``; each
+    target's top needle is known exactly (straight, or the reference's numbers), its best steered one comes from
+    the in-tissue rod, and the screening model's numbers are kept only within the tolerance the candidate's
+    margins allow."""
     ranking = json.loads((demo / "ranking.json").read_text())
     kept = 0
     for target, cands in ranking.items():
         assert all({"model", "model_tolerance_mm", "model_reason"} <= c.keys() and c["model_reason"] for c in cands)
         steered = [c for c in cands if c["steered"] and c["feasible"]]
-        assert steered and steered[0]["model_reason"].startswith("reference"), target
+        assert cands[0]["model_reason"].split(":")[0] in ("straight", "reference"), target
+        assert steered and steered[0]["model"].startswith("tissue_rod"), target
         for c in steered:
             if c["model"].startswith("kinematic"):
                 kept += 1

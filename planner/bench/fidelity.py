@@ -116,9 +116,9 @@ def _run(scene: Scene, policy: str) -> tuple[list[Candidate], dict[str, tuple[Ca
         assert rung_model is not None
         config, models = PlanConfig(models="reference"), PlanModels.for_config(PlanConfig())
         models = dataclasses.replace(models, reference=rung_model)
-    from reachplan.planner.steering.steered import _insert
+    from reachplan.planner.steering.steered import forget_insertions
 
-    _insert.cache_clear()  # the in-tissue solves are memoised: no policy may reuse another's
+    forget_insertions()  # the in-tissue solves are memoised: no policy may reuse another's
     t0, c0 = time.perf_counter(), time.process_time()
     result = plan(scene, config, models=models)
     return list(result.candidates), dict(result.ranking), time.perf_counter() - t0, time.process_time() - c0

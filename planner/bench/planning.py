@@ -38,7 +38,7 @@ from reachplan.planner.report.workspace import workspace_figure
 from reachplan.planner.steering.kinematic import KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import shape_bank
-from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
+from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion, forget_runs
 from reachplan.rod_model.design import RodDesign, preset
 
 INSTALLS = {name: f"docs/{name}" for name in ("planning_timings.csv", "insertion_models.csv", "insertion_models.png",
@@ -196,6 +196,7 @@ def insertion_models(s: PlanningSettings) -> list[dict[str, object]]:
 def _tips(model: TissueRodInsertion, design: RodDesign, schedules: list[TensionSchedule],
           depth_mm: float) -> np.ndarray:
     """Tip positions (n, 3), mm, template frame, of one insertion per schedule (NaN where it fails)."""
+    forget_runs()  # timed from a cold memo: the models share runs at one step size
     paths = [model.insert_one(design, sc, depth_mm) for sc in schedules]
     return np.array([p[-1] if isinstance(p, np.ndarray) else np.full(3, np.nan) for p in paths])
 

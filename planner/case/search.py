@@ -76,9 +76,13 @@ def plan(scene: Scene, config: PlanConfig | None = None, quiet: bool = True,
         clear = {c.hole_id for c in straight if c.feasible}  # a steered needle from these holes adds nothing
         # the tissue the target lies in (where the needle bends) sets the screening model's curvature factor
         screening = dataclasses.replace(models.screening, tissue_modulus_pa=target_modulus_pa(scene, target, config))
+        known = [c for c in straight if c.feasible]  # candidates whose numbers are exact: the ranking's anchors
         for design in designs:
             steered = steered_candidates(scene, target, design, config, skip=clear, model=screening)
-            cands += refine_shortlist(scene, target, design, steered, config, models.reference)
+            bound = min((config.weights.score(c) for c in known), default=float("inf"))
+            refined = refine_shortlist(scene, target, design, steered, config, models.reference, bound)
+            known += [c for c in refined if c.feasible and c.model_reason.startswith(f"{REFERENCE_RUNG.name}:")]
+            cands += refined
     cands = assess_shortlist(scene, cands, config, models.robustness)
     cands = band_shortlist(scene, cands, config)
     return PlanResult(tuple(cands), rank(cands, config.weights), config)
@@ -322,14 +326,15 @@ def steered_candidates(scene: Scene, target: Target, design: RodDesign, config: 
 
 
 def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: list[Candidate],
-                     config: PlanConfig, reference: TissueRodInsertion = PLANNER_REFERENCE) -> list[Candidate]:
+                     config: PlanConfig, reference: TissueRodInsertion = PLANNER_REFERENCE,
+                     bound_score: float = float("inf")) -> list[Candidate]:
     """Give every feasible steered candidate of one target and design the model its policy asks for.
 
     ``config.models``: ``"reference"`` re-solves every one with ``reference``; ``"scene"`` (the default) gives
     each the cheapest model its margins allow (:func:`~reachplan.planner.case.fidelity.choose_rung`; the screening
-    model's numbers are kept when they suffice) and then re-solves with ``reference`` the top ``refine_top`` and
-    every candidate whose score could reach theirs within its model's error
-    (:func:`_decision_boundary`). ``config.refine_top`` 0 re-solves none. A re-solve takes the tissue modulus
+    model's numbers are kept when they suffice), then a model within :data:`BOUNDARY_STAGE_MM` to the top
+    ``refine_top`` (shown), and the reference to every candidate that could be the target's top within its model's
+    error (:func:`_decision_boundary`). ``config.refine_top`` 0 re-solves none. A re-solve takes the tissue modulus
     along the candidate's path (``config.tissue_moduli_pa`` per organ, the reference's modulus elsewhere) and
     re-aims the schedule (:func:`~reachplan.planner.steering.steered.refine_with`); one the model fails to solve is
     marked failed with the reason. Every candidate carries ``model_tolerance_mm`` and ``model_reason``.
@@ -349,6 +354,10 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
         reach tolerance.
     reference : TissueRodInsertion
         The reference insertion model (the cheaper rungs are it at coarser steps).
+    bound_score : float
+        The best score among the target's candidates known exactly (its straight needles, other designs'
+        reference re-solves; inf: none): a candidate that cannot reach it within its model's error is not
+        re-solved for the ranking's decision.
 
     Returns
     -------
@@ -380,7 +389,8 @@ def refine_shortlist(scene: Scene, target: Target, design: RodDesign, cands: lis
         if choice.rung is REFERENCE_RUNG:
             exact.add(id(current[i]))
     if config.models == "scene":
-        current = _decision_boundary(scene, target, design, current, config, reference, exact, errors, screened)
+        current = _decision_boundary(scene, target, design, current, config, reference, exact, errors, screened,
+                                     bound_score)
     return current
 
 
@@ -407,49 +417,67 @@ def _noted(c: Candidate, tolerance_mm: float, reason: str) -> Candidate:
 
 def _decision_boundary(scene: Scene, target: Target, design: RodDesign, current: list[Candidate],
                        config: PlanConfig, reference: TissueRodInsertion, exact: set[int],
-                       errors: dict[int, float], screened: dict[int, Candidate]) -> list[Candidate]:
-    """Re-solve with ``reference`` the candidates the ranking's decision could rest on (``current`` updated).
+                       errors: dict[int, float], screened: dict[int, Candidate],
+                       bound_score: float = float("inf")) -> list[Candidate]:
+    """Re-solve the candidates the ranking's decision could rest on, and the shown ones (``current`` updated).
 
-    The top ``refine_top`` feasible ones (the best steered needle), then every one whose score less its band
-    (:func:`_score_band`: what its model's in-tissue error ``errors`` and its reach error could take off its score)
-    reaches the last of them, lowest first, until none is left or ``refine_top`` + :data:`BOUNDARY_MAX` re-solves
-    are spent. A candidate whose model is off by more than :data:`BOUNDARY_STAGE_MM` is first re-solved with the
-    cheapest rung within that (a narrower band), and with the reference only if it is still on top or in the band.
-    ``exact`` holds the ids of those solved by the reference; ``screened`` maps a re-solved candidate's id to its
-    screened self, which every re-solve starts from (so the reference's numbers are those ``--models reference``
-    gives: a re-aim started elsewhere stops elsewhere within its 0.25 mm).
+    Two kinds of re-solve, the first before the second, until none is left or ``refine_top`` +
+    :data:`BOUNDARY_MAX` re-solves are spent:
+
+    shown
+        The top ``refine_top`` feasible ones (the best steered needle, which the report compares with the straight
+        ones) get a model within :data:`BOUNDARY_STAGE_MM` (the cheapest rung within it,
+        :func:`_boundary_rung`).
+    the decision
+        The target's top candidate is the best-scored one of all kinds. A candidate is in the decision while its
+        score less its band (:func:`_score_band`: what its model's in-tissue error ``errors`` and its reach error
+        could take off its score) reaches the best score known exactly: ``bound_score`` (the target's best straight
+        needle and the earlier designs' reference re-solves) or one of ``current`` solved by the reference. Those
+        are re-solved lowest first: with the reference, or first with the cheapest rung within
+        :data:`BOUNDARY_STAGE_MM` when their model is off by more (a narrower band, often out of the decision).
+
+    A candidate that cannot beat an exactly known one keeps the model its margins chose (or the shown one's): no
+    ranking decision rests on it. ``exact`` holds the ids of those solved by the reference; ``screened`` maps a
+    re-solved candidate's id to its screened self, which every re-solve starts from (so the reference's numbers
+    are those ``--models reference`` gives: a re-aim started elsewhere stops elsewhere within its 0.25 mm).
     """
     w = config.weights
     k = max(config.refine_top, 1)
     modulus = target_modulus_pa(scene, target, config)
-    spent = 0
-    while True:
+    for spent in range(config.refine_top + BOUNDARY_MAX + 1):
         feasible = [c for c in rank(current, w).get(target.name, ()) if c.feasible]
-        top = feasible[:k]
-        todo = [c for c in top if id(c) not in exact]
-        why = f"among the top {k} steered needles of {target.name} (the ranking's decision)"
-        if not todo and len(top) == k:
-            bound = w.score(top[-1])
-            optimistic = {id(c): w.score(c) - _score_band(c, errors.get(id(c), 0.0), w) for c in feasible[k:]}
-            todo = sorted((c for c in feasible[k:] if id(c) not in exact and optimistic[id(c)] <= bound),
+        shown = [c for c in feasible[:k] if errors.get(id(c), 0.0) > BOUNDARY_STAGE_MM]
+        best = min([bound_score, *(w.score(c) for c in feasible if id(c) in exact)])
+        if shown:
+            c, rung = shown[0], _boundary_rung(design, modulus, shown[0].insertion_depth_mm)
+            why = (f"among the top {k} steered needles of {target.name} (shown and compared with the straight "
+                   f"ones): a model within {BOUNDARY_STAGE_MM:g} mm")
+        else:
+            optimistic = {id(c): w.score(c) - _score_band(c, errors.get(id(c), 0.0), w) for c in feasible}
+            todo = sorted((c for c in feasible if id(c) not in exact and optimistic[id(c)] <= best),
                           key=lambda c: optimistic[id(c)])
-            why = (f"its score ({{score:.1f}}) could reach the top {k}'s ({bound:.1f}) within its model's in-tissue "
-                   "error (the ranking's decision boundary)")
-        if not todo or spent >= config.refine_top + BOUNDARY_MAX:
+            if not np.isfinite(best):  # nothing known exactly yet: the top one first, the anchor of the rest
+                todo = feasible[:1]
+            if not todo:
+                return current
+            c = todo[0]
+            rung = (_boundary_rung(design, modulus, c.insertion_depth_mm)
+                    if errors.get(id(c), 0.0) > BOUNDARY_STAGE_MM else REFERENCE_RUNG)
+            why = (f"its score ({{score:.1f}}) could reach the best known exactly ({best:.1f}) within its model's "
+                   f"in-tissue error (the ranking's decision boundary for {target.name})" if np.isfinite(best) else
+                   f"the top of {target.name}, no needle of which is known exactly yet (the ranking's decision)")
+        if spent == config.refine_top + BOUNDARY_MAX:
             return current
-        spent += 1
-        c = todo[0]
-        rung = _boundary_rung(design, modulus, c.insertion_depth_mm) if errors.get(id(c), 0.0) > BOUNDARY_STAGE_MM \
-            else REFERENCE_RUNG
         model = rung.model(reference) or reference
-        reason = f"{rung.name}: " + why.format(score=w.score(c))
         base = screened.get(id(c), c)
-        new = _resolve(scene, target, design, base, config, model, c.model_tolerance_mm, reason)
+        new = _resolve(scene, target, design, base, config, model, c.model_tolerance_mm,
+                       f"{rung.name}: " + why.format(score=w.score(c)))
         errors[id(new)] = rung_error_mm(rung.name, design, modulus, c.insertion_depth_mm)[0]
         screened[id(new)] = base
         if rung is REFERENCE_RUNG:
             exact.add(id(new))
         current = [new if x is c else x for x in current]
+    return current
 
 
 def _score_band(c: Candidate, error_mm: float, w: RankWeights) -> float:

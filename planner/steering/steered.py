@@ -18,7 +18,7 @@ from reachplan.planner.errors import PlanInputError
 from reachplan.planner.steering.insertion import InsertionPath, ModelInfo
 from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.planner.steering.tissue_rod import TissueRodInsertion
+from reachplan.planner.steering.tissue_rod import TissueRodInsertion, forget_runs
 from reachplan.rod_model.design import RodDesign
 
 
@@ -290,6 +290,12 @@ def _insert(model: TissueRodInsertion, design: RodDesign, schedule: tuple[tuple[
     out = np.column_stack([np.interp(even, arc, positions[:, i]) for i in range(3)])
     out.setflags(write=False)
     return out
+
+
+def forget_insertions() -> None:
+    """Empty the memos of in-tissue insertions (:func:`insert_memo` and the rod's runs): a benchmark's cold start."""
+    _insert.cache_clear()
+    forget_runs()
 
 
 def insert_memo(model: TissueRodInsertion, design: RodDesign, schedule: TensionSchedule, depth_mm: float,

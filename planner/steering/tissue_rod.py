@@ -64,6 +64,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
@@ -193,10 +194,10 @@ class TissueRodInsertion(NamedInsertion):
             The inserted centreline, mm, template frame (row 0 at the template, last row the tip): at the rod
             model's integration points, or with ``richardson`` every ``node_mm`` of arc length.
         """
-        path, _ = self.insert_steps(design, schedule, depth_mm, modulus_profile)
+        path = _run(self, design, schedule, depth_mm, modulus_profile)
         if not self.richardson or isinstance(path, FailedInsertion):
             return path
-        coarse, _ = replace(self, step_mm=2 * self.step_mm).insert_steps(design, schedule, depth_mm, modulus_profile)
+        coarse = _run(replace(self, step_mm=2 * self.step_mm), design, schedule, depth_mm, modulus_profile)
         if isinstance(coarse, FailedInsertion):
             return coarse
         frac = np.linspace(0.0, 1.0, max(2, round(depth_mm / self.node_mm)) + 1)
@@ -311,6 +312,38 @@ class TissueRodInsertion(NamedInsertion):
             steps.append((float(depth), tip.copy()))
         assert shape is not None
         return shape[1], steps
+
+
+def _run(model: TissueRodInsertion, design: RodDesign, schedule: TensionSchedule, depth_mm: float,
+         modulus_profile: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray | FailedInsertion:
+    """One insertion at ``model``'s step (no extrapolation), memoised on its exact inputs (read-only result).
+
+    The runs at one step size are shared by every model made of them: a rung at 4 mm steps, the 4 mm half of the
+    reference (2 mm extrapolated with 4 mm) and of the rung at 4 mm extrapolated with 8 mm, and the tissue band's
+    nominal shape all solve the same insertion when given the same schedule and tissue.
+    """
+    key = tuple(tuple(np.asarray(a, dtype=float).ravel().tolist())
+                for a in (schedule.depth_mm, schedule.tension_n, schedule.roll_deg))
+    if modulus_profile is None:  # the same tissue as a one-piece profile of the model's modulus
+        modulus_profile = (np.zeros(1), np.full(1, float(model.tissue_modulus_pa)))
+    profile = tuple(tuple(np.asarray(a, dtype=float).ravel().tolist()) for a in modulus_profile)
+    return _run_memo(replace(model, richardson=False), design, key, float(depth_mm), profile)
+
+
+@lru_cache(maxsize=512)
+def _run_memo(model: TissueRodInsertion, design: RodDesign, schedule: tuple[tuple[float, ...], ...],
+              depth_mm: float, profile: tuple[tuple[float, ...], ...]) -> np.ndarray | FailedInsertion:
+    """:func:`_run`'s cached solve (hashable inputs)."""
+    prof = (np.array(profile[0]), np.array(profile[1]))
+    path, _ = model.insert_steps(design, TensionSchedule(*map(np.array, schedule)), depth_mm, prof)
+    if isinstance(path, np.ndarray):
+        path.setflags(write=False)
+    return path
+
+
+def forget_runs() -> None:
+    """Empty the memo of insertion runs (:func:`_run`)."""
+    _run_memo.cache_clear()
 
 
 def _give_way(track: np.ndarray, inside: np.ndarray, pos: np.ndarray, slip_mm: float) -> None:

@@ -197,3 +197,26 @@ def test_richardson_extrapolation_in_the_insertion_step() -> None:
     np.testing.assert_allclose(extrapolated[0], 0.0, atol=1e-12)
     err = np.linalg.norm(extrapolated[-1] - limit)
     assert err < 0.5 * np.linalg.norm(tips[1.0] - limit) and err < 0.25 * np.linalg.norm(tips[2.0] - limit)
+
+
+def test_models_made_of_the_same_runs_share_them_and_the_shared_run_is_the_fresh_one() -> None:
+    # the reference (2 mm extrapolated with 4 mm) and a rung at 4 mm solve the same 4 mm run: it is solved once,
+    # is what a cold solve gives, and cannot be changed by a caller
+    from reachplan.planner.steering.tissue_rod import _run_memo, forget_runs
+
+    ramp = TensionSchedule.ramp(0.0, 20.0, 8.0)
+    forget_runs()
+    reference = TissueRodInsertion(step_mm=2.0, richardson=True).insert_one(DESIGN, ramp, 40.0)
+    misses = _run_memo.cache_info().misses
+    coarse = TissueRodInsertion(step_mm=4.0).insert_one(DESIGN, ramp, 40.0)
+    assert _run_memo.cache_info().misses == misses == 2  # the 4 mm run was reused
+    forget_runs()
+    fresh = TissueRodInsertion(step_mm=4.0).insert_one(DESIGN, ramp, 40.0)
+    assert isinstance(coarse, np.ndarray) and isinstance(fresh, np.ndarray) and isinstance(reference, np.ndarray)
+    np.testing.assert_array_equal(coarse, fresh)
+    with pytest.raises(ValueError, match="read-only"):
+        coarse[0, 0] = 1.0
+    # a missing profile is the model's own modulus everywhere: the same run as that one-piece profile
+    one_piece = (np.zeros(1), np.full(1, TissueRodInsertion().tissue_modulus_pa))
+    same = TissueRodInsertion(step_mm=4.0).insert_one(DESIGN, ramp, 40.0, modulus_profile=one_piece)
+    assert same is fresh
