@@ -34,10 +34,12 @@ length of explicit-VR DS).
 from __future__ import annotations
 
 import io
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from decimal import Decimal
+from functools import partial
 from importlib import metadata
 from pathlib import Path
 
@@ -85,12 +87,34 @@ def _ds(x: float, decimals: int = 4) -> str:
     return s
 
 
+#: ContourData elements already written, by the id of their points array (kept while the array lives).
+_WRITTEN: dict[int, tuple[weakref.ref[np.ndarray], RawDataElement]] = {}
+
+
 def _contour_data(points_mm: np.ndarray) -> RawDataElement:
     """ContourData (3006,0050) of ``points_mm`` ((n, 3) float, mm, LPS), each value as :func:`_ds` writes it.
 
     As raw bytes (implicit VR little endian, the files' transfer syntax): pydicom's check of each of a structure
-    set's half a million values took seconds.
+    set's half a million values took seconds. A contour array written before (the same structure set exported with
+    the plan and with each arm's implant) gives the same element again.
     """
+    seen = _WRITTEN.get(id(points_mm))
+    if seen is not None and seen[0]() is points_mm:
+        return seen[1]
+    element = _format_contour(points_mm)
+    if isinstance(points_mm, np.ndarray):
+        key = id(points_mm)
+        _WRITTEN[key] = (weakref.ref(points_mm, partial(_forget, key)), element)
+    return element
+
+
+def _forget(key: int, _ref: object) -> None:
+    """Drop the element of a points array that no longer exists."""
+    _WRITTEN.pop(key, None)
+
+
+def _format_contour(points_mm: np.ndarray) -> RawDataElement:
+    """Format the ContourData element of :func:`_contour_data`."""
     text = "\\".join(_ds(x) for x in np.asarray(points_mm, dtype=float).ravel()).encode("ascii")
     if len(text) % 2:
         text += b" "

@@ -427,3 +427,20 @@ def test_real_eclipse_structure_set_carried_over(reference_file: Callable[[str],
     assert sum(len(k.points_mm) for k in body_out.contours) == sum(len(k.points_mm) for k in body_in.contours)
     for a, b in zip(body_in.contours, body_out.contours, strict=True):
         np.testing.assert_allclose(b.points_mm, a.points_mm, atol=1e-4, rtol=0)
+
+
+def test_a_contour_written_twice_is_formatted_once_and_forgotten_with_its_array() -> None:
+    import gc
+
+    from reachplan.plugins.exporters import dicom_rt
+
+    points = np.array([[1.23456, -0.00004, 100.0], [2.5, 3.0, -4.125]])
+    first = dicom_rt._contour_data(points)
+    assert dicom_rt._contour_data(points) is first  # the same structure set in the plan's and each arm's export
+    assert first.value == b"1.2346\\0\\100\\2.5\\3\\-4.125 "  # padded to an even length
+    copy = points.copy()
+    assert dicom_rt._contour_data(copy) is not first and dicom_rt._contour_data(copy).value == first.value
+    key = id(points)
+    del points
+    gc.collect()
+    assert key not in dicom_rt._WRITTEN
