@@ -1,0 +1,267 @@
+"""Learning the tissue: the in-tissue curvature factor fitted to steered needles found after insertion.
+
+The kinematic insertion model turns a steered needle's path at the joint section's free-space curvature times a
+curvature factor (:mod:`reachplan.planner.steering.factors`), fitted to the in-tissue rod in the phantom's gel
+(0.19 MPa): no real insertion has checked it. A steered needle found in the post-insertion image (its centre line
+from the template's hole to its tip) is exactly the evidence that would: this module fits, per needle, the factor
+that makes the kinematic model's path through the plan's schedule match the found one, and pools the needles of
+one design into a site's estimate with its uncertainty.
+
+Per needle (:func:`fit_needle`)
+    Least squares on the found centre line in the template frame of its hole (hole at the origin, the hole's axis
+    +z): the lateral position at each found point's depth against the kinematic path's at the same depth, with
+    the factor, a roll offset (the bending plane as the hand set it) and an entry tilt (a lateral offset growing
+    linearly with depth) as unknowns. The roll and the tilt are nuisances the planner's own perturbation model
+    draws (:class:`~reachplan.planner.steering.robustness.Perturbations`); a tension error is not separable
+    from the factor (both scale the curvature) and is averaged out over needles.
+Pooled (:func:`pool`)
+    The mean of the needles' factor ratios (found over planned), with a Student-t 95 % interval over the needles
+    (their spread includes each needle's tension error, roll and reconstruction error); one needle gives no
+    interval.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from reachplan.planner.errors import PlanInputError
+from reachplan.planner.steering.kinematic import KinematicInsertion
+from reachplan.planner.steering.schedule import TensionSchedule
+from reachplan.rod_model.design import preset
+
+#: Fewest found points (about 1 mm apart) a needle's fit uses.
+MIN_POINTS = 10
+#: A needle whose planned path departs less than this from its hole's axis (mm) carries no information on the
+#: factor.
+MIN_DEFLECTION_MM = 2.0
+
+
+@dataclass(frozen=True)
+class FoundSteered:
+    """One steered needle as the plan meant it and as the image shows it.
+
+    Parameters
+    ----------
+    source : str
+        Where it was found (a reconstruction's folder or case name).
+    hole_id : str
+        Its template hole.
+    design : str
+        The stylet preset.
+    modulus_pa : float, Pa
+        The tissue modulus the plan used at its target (the planned factor's modulus).
+    depth_mm : float, mm
+        The planned inserted length.
+    schedule : TensionSchedule
+        The plan's tension (N) and roll (deg) against depth (mm), template frame.
+    found_mm : (n, 3) float, mm, template frame of its hole
+        The found centre line: hole at the origin, the hole's axis +z, the template's x and y.
+    """
+
+    source: str
+    hole_id: str
+    design: str
+    modulus_pa: float
+    depth_mm: float
+    schedule: TensionSchedule
+    found_mm: np.ndarray
+
+
+@dataclass(frozen=True)
+class NeedleFit:
+    """One needle's fitted curvature factor.
+
+    Parameters
+    ----------
+    source, hole_id, design : str
+        As in :class:`FoundSteered`.
+    planned_factor : float
+        The factor the plan's kinematic model used.
+    factor : float
+        The fitted factor.
+    roll_offset_deg : float, deg
+        Fitted offset of the bending plane from the plan's.
+    tilt_deg : float, deg
+        Fitted entry tilt.
+    rms_mm : float, mm
+        Root mean square lateral residual of the fit.
+    points : int
+        Found points used.
+    """
+
+    source: str
+    hole_id: str
+    design: str
+    planned_factor: float
+    factor: float
+    roll_offset_deg: float
+    tilt_deg: float
+    rms_mm: float
+    points: int
+
+    @property
+    def ratio(self) -> float:
+        """Fitted over planned factor."""
+        return self.factor / self.planned_factor
+
+    def to_json(self) -> dict[str, object]:
+        """Return the fit as plain JSON data.
+
+        Returns
+        -------
+        dict of str to object
+            Its fields and ``ratio`` (deg, mm).
+        """
+        return {"source": self.source, "hole_id": self.hole_id, "design": self.design,
+                "planned_factor": round(self.planned_factor, 5), "factor": round(self.factor, 5),
+                "ratio": round(self.ratio, 5), "roll_offset_deg": round(self.roll_offset_deg, 3),
+                "tilt_deg": round(self.tilt_deg, 4), "rms_mm": round(self.rms_mm, 4), "points": self.points}
+
+
+def _lateral_at(path_mm: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
+    """Lateral (x, y) of a template-frame path at depths ``z_mm`` (mm), linear between its samples."""
+    z = path_mm[:, 2]
+    keep = np.r_[True, np.diff(z) > 1e-9]  # depth increases along a needle that does not turn back
+    return np.column_stack([np.interp(z_mm, z[keep], path_mm[keep, i]) for i in (0, 1)])
+
+
+def fit_needle(needle: FoundSteered, fast: KinematicInsertion | None = None) -> NeedleFit:
+    """Fit the curvature factor, a roll offset and an entry tilt that make the kinematic path the found one.
+
+    Parameters
+    ----------
+    needle : FoundSteered
+        The needle as planned and found.
+    fast : KinematicInsertion or None
+        The kinematic model whose factor is fitted (its factor at ``needle.modulus_pa`` is the planned one);
+        None: the planner's, at the needle's modulus.
+
+    Returns
+    -------
+    NeedleFit
+        The fitted factor and nuisances.
+
+    Raises
+    ------
+    PlanInputError
+        Too few found points, a found line that does not go in along the hole's axis, or a planned path too
+        straight to tell the factor (:data:`MIN_DEFLECTION_MM`).
+    """
+    from scipy.optimize import least_squares
+
+    design = preset(needle.design)
+    model = fast or KinematicInsertion(tissue_modulus_pa=needle.modulus_pa)
+    planned_factor = model.factor_for(design)
+    found = np.asarray(needle.found_mm, dtype=float)
+    z = found[:, 2]
+    use = (z > 1.0) & (z <= needle.depth_mm + 1.0)
+    if found.ndim != 2 or found.shape[1] != 3 or int(use.sum()) < MIN_POINTS:
+        raise PlanInputError(f"needle {needle.hole_id} ({needle.source}): {int(use.sum())} found points along its "
+                             f"hole's axis; a fit needs at least {MIN_POINTS}")
+    z, xy = z[use], found[use, :2]
+
+    def path(factor: float) -> np.ndarray:
+        m = KinematicInsertion(tissue_modulus_pa=model.tissue_modulus_pa, tissue_factor=factor,
+                               rod_model=model.rod_model, step_mm=model.step_mm)
+        return m.insert_array(design, [needle.schedule], needle.depth_mm)[0]
+
+    planned = _lateral_at(path(planned_factor), z)
+    if float(np.max(np.linalg.norm(planned, axis=1))) < MIN_DEFLECTION_MM:
+        raise PlanInputError(f"needle {needle.hole_id} ({needle.source}): its planned path departs less than "
+                             f"{MIN_DEFLECTION_MM:g} mm from its hole's axis; it tells nothing of the factor")
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        c, s = math.cos(math.radians(p[1])), math.sin(math.radians(p[1]))
+        lat = _lateral_at(path(planned_factor * p[0]), z) @ np.array([[c, s], [-s, c]])
+        return (xy - lat - np.outer(z, p[2:4])).ravel()
+
+    fit = least_squares(residual, np.array([1.0, 0.0, 0.0, 0.0]), bounds=([0.2, -45.0, -0.1, -0.1],
+                                                                          [5.0, 45.0, 0.1, 0.1]),
+                        x_scale=np.array([0.1, 5.0, 0.01, 0.01]), diff_step=1e-4)
+    r = fit.fun.reshape(-1, 2)
+    return NeedleFit(needle.source, needle.hole_id, needle.design, planned_factor, planned_factor * float(fit.x[0]),
+                     float(fit.x[1]), math.degrees(math.atan(float(np.hypot(*fit.x[2:4])))),
+                     float(np.sqrt(np.mean((r**2).sum(axis=1)))), len(z))
+
+
+@dataclass(frozen=True)
+class FactorEstimate:
+    """A site's curvature factor for one design, pooled over its needles.
+
+    Parameters
+    ----------
+    design : str
+        The stylet preset.
+    planned_factor : float
+        The plan's factor (the needles' mean, when their moduli differ).
+    ratio : float
+        Mean of the needles' fitted over planned factors.
+    ci95 : tuple of float
+        Student-t 95 % interval of the mean ratio over the needles; NaN with one needle.
+    fits : tuple of NeedleFit
+        The needles.
+    """
+
+    design: str
+    planned_factor: float
+    ratio: float
+    ci95: tuple[float, float]
+    fits: tuple[NeedleFit, ...]
+
+    @property
+    def factor(self) -> float:
+        """The site's factor: the plan's times the pooled ratio."""
+        return self.planned_factor * self.ratio
+
+    def to_json(self) -> dict[str, object]:
+        """Return the estimate as plain JSON data.
+
+        Returns
+        -------
+        dict of str to object
+            ``design``, ``planned_factor``, ``factor``, ``ratio``, ``ci95_ratio`` (null bounds with one needle),
+            ``needles``, ``method`` and each needle's fit.
+        """
+        ci = [None if not np.isfinite(v) else round(v, 5) for v in self.ci95]
+        return {"design": self.design, "planned_factor": round(self.planned_factor, 5),
+                "factor": round(self.factor, 5), "ratio": round(self.ratio, 5), "ci95_ratio": ci,
+                "needles": len(self.fits), "method": POOL_METHOD, "fits": [f.to_json() for f in self.fits]}
+
+
+#: How :func:`pool` combines needles, in words (written with every estimate).
+POOL_METHOD = ("per needle: least squares of the found centre line's lateral position against the kinematic "
+               "path (factor, roll offset, entry tilt); pooled: mean of the needles' ratios, Student-t 95 % "
+               "interval over needles")
+
+
+def pool(fits: Sequence[NeedleFit]) -> list[FactorEstimate]:
+    """Pool needle fits per design (:data:`POOL_METHOD`).
+
+    Parameters
+    ----------
+    fits : sequence of NeedleFit
+        Needles of any designs.
+
+    Returns
+    -------
+    list of FactorEstimate
+        One per design, in name order.
+    """
+    from scipy import stats
+
+    out = []
+    for design in sorted({f.design for f in fits}):
+        mine = tuple(f for f in fits if f.design == design)
+        ratios = np.array([f.ratio for f in mine])
+        mean = float(ratios.mean())
+        if len(mine) > 1:
+            half = float(stats.t.ppf(0.975, len(mine) - 1) * ratios.std(ddof=1) / math.sqrt(len(mine)))
+            ci = (mean - half, mean + half)
+        else:
+            ci = (float("nan"), float("nan"))
+        out.append(FactorEstimate(design, float(np.mean([f.planned_factor for f in mine])), mean, ci, mine))
+    return out
