@@ -104,6 +104,11 @@ class PlanConfig:
         (:mod:`~reachplan.planner.case.fidelity`). ``refine_top`` 0 re-solves none.
     safety_margin_mm : float, mm
         Clearance a candidate keeps beyond its model's in-tissue error (the scene policy's tolerance).
+    curvature_scale : tuple of (str, float)
+        A site's calibration (``--calibration``, :mod:`~reachplan.planner.steering.calibration`): per design name,
+        the ratio of the in-tissue curvature its found needles showed to the model's. Every insertion model of the
+        plan applies it (the kinematic model to its curvature factor, the in-tissue rod to its path's departure
+        from the hole's axis). Empty: none.
     """
 
     template: str = "needlefinder_syed_63"
@@ -127,6 +132,7 @@ class PlanConfig:
     modulus_band: ModulusBand = field(default_factory=ModulusBand)
     models: str = "scene"
     safety_margin_mm: float = SAFETY_MARGIN_MM
+    curvature_scale: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("needle_radius_mm", "reach_tolerance_mm", "max_depth_mm", "obturator_depth_mm"):
@@ -144,6 +150,9 @@ class PlanConfig:
             raise ValueError(f"models must be one of {', '.join(POLICIES)}, got {self.models!r}")
         if not (np.isfinite(self.safety_margin_mm) and self.safety_margin_mm >= 0):
             raise ValueError(f"safety_margin_mm must be a number of mm >= 0, got {self.safety_margin_mm}")
+        for design, ratio in self.curvature_scale:
+            if not (np.isfinite(ratio) and 0.2 <= ratio <= 5.0):
+                raise ValueError(f"the curvature calibration of {design} must be a ratio in [0.2, 5], got {ratio}")
 
     @cached_property
     def rod_designs(self) -> tuple[RodDesign, ...]:
@@ -189,7 +198,7 @@ class PlanModels:
         """Return the default models, with the screening model of ``config`` (:func:`screening_model`).
 
         Every model's tissue modulus is ``config.tissue_modulus_pa`` (the organs of ``config.tissue_moduli_pa`` set
-        theirs per target and along each path).
+        theirs per target and along each path), and its site calibration ``config.curvature_scale``.
 
         Parameters
         ----------
@@ -201,10 +210,10 @@ class PlanModels:
         PlanModels
             The reference and robustness defaults, and that screening model, in the plan's tissue.
         """
-        e = config.tissue_modulus_pa
-        return cls(screening=replace(screening_model(config), tissue_modulus_pa=e),
-                   reference=replace(PLANNER_REFERENCE, tissue_modulus_pa=e),
-                   robustness=replace(KINEMATIC, tissue_modulus_pa=e))
+        e, scale = config.tissue_modulus_pa, config.curvature_scale
+        return cls(screening=replace(screening_model(config), tissue_modulus_pa=e, curvature_scale=scale),
+                   reference=replace(PLANNER_REFERENCE, tissue_modulus_pa=e, curvature_scale=scale),
+                   robustness=replace(KINEMATIC, tissue_modulus_pa=e, curvature_scale=scale))
 
 
 def screening_model(config: PlanConfig) -> KinematicInsertion:

@@ -32,7 +32,7 @@ from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
 from reachplan.planner.steering.robustness import assess, with_robustness
 from reachplan.planner.steering.schedule import TensionSchedule
 from reachplan.planner.steering.steered import match_targets, place, refine_with, shape_bank, usable_tension_n
-from reachplan.planner.steering.tissue_band import assess_band, uniform_profile
+from reachplan.planner.steering.tissue_band import BAND_MODEL, assess_band, uniform_profile
 from reachplan.planner.steering.tissue_rod import PLANNER_REFERENCE, TissueRodInsertion
 from reachplan.rod_model.design import RodDesign
 from reachplan.rod_model.errors import RodModelError
@@ -247,7 +247,8 @@ def band_shortlist(scene: Scene, cands: list[Candidate], config: PlanConfig) -> 
         try:
             band = assess_band(c, targets[c.target], scene.organs, scene.patient_from_template,
                                c.design.needle.outer_diameter_mm / 2, profile, config.modulus_band,
-                               config.reach_tolerance_mm)
+                               config.reach_tolerance_mm,
+                               dataclasses.replace(BAND_MODEL, curvature_scale=config.curvature_scale))
         except (PlanInputError, RodModelError) as exc:
             band = TissueBand.failed(str(exc), config.modulus_band.source)
         chosen[id(c)] = dataclasses.replace(c, tissue_band=band)

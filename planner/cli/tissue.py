@@ -36,6 +36,10 @@ def add_tissue_arguments(parser: argparse.ArgumentParser) -> None:
                             "multiplied by FACTOR, and its worst reach and clearance over that band reported "
                             f"(default 3, ASSUMED: no cited range for uterus, cervix or parametrium; 1: no band; at "
                             f"most {MAX_BAND_FACTOR:g})")
+    group.add_argument("--calibration", type=site_calibration, default=None, metavar="FILE",
+                       help="a site calibration file (written by 'reachplan calibrate' from the steered needles found "
+                            "in post-insertion images): each design's in-tissue curvature is scaled by the ratio "
+                            "its needles showed")
 
 
 def modulus_mpa(text: str) -> float:
@@ -99,18 +103,53 @@ def band_factor(text: str) -> float:
     return value
 
 
+def site_calibration(text: str) -> tuple[tuple[str, float], ...]:
+    """Argparse ``type=`` of ``--calibration FILE``: the file's per-design curvature ratios.
+
+    Parameters
+    ----------
+    text : str
+        The file's path.
+
+    Returns
+    -------
+    tuple of (str, float)
+        Design name and ratio (``PlanConfig.curvature_scale``).
+    """
+    import json
+    from pathlib import Path
+
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.steering.calibration import site_scales
+
+    try:
+        doc = json.loads(Path(text).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise argparse.ArgumentTypeError(f"cannot read the site calibration {text}: {exc}") from None
+    try:
+        scales = site_scales(doc)
+    except PlanInputError as exc:
+        raise argparse.ArgumentTypeError(f"{text}: {exc}") from None
+    for design, ratio in scales:
+        if not 0.2 <= ratio <= 5.0:
+            raise argparse.ArgumentTypeError(f"{text}: the curvature ratio of {design} is {ratio:g}, outside [0.2, 5]: "
+                                             "check the needles it was fitted to")
+    return scales
+
+
 def tissue_options(args: argparse.Namespace) -> dict[str, Any]:
     """Return the :class:`~reachplan.planner.case.config.PlanConfig` fields the tissue options set (Pa).
 
     Parameters
     ----------
     args : argparse.Namespace
-        Parsed options (``tissue_modulus``, ``organ_modulus``, ``modulus_band``; MPa).
+        Parsed options (``tissue_modulus``, ``organ_modulus``, ``modulus_band``; MPa; ``calibration``).
 
     Returns
     -------
     dict of str to object
-        ``tissue_modulus_pa``, ``tissue_moduli_pa`` and ``modulus_band`` for the options given (none for the others).
+        ``tissue_modulus_pa``, ``tissue_moduli_pa``, ``modulus_band`` and ``curvature_scale`` for the options given
+        (none for the others).
     """
     out: dict[str, Any] = {}
     if args.tissue_modulus is not None:
@@ -122,4 +161,6 @@ def tissue_options(args: argparse.Namespace) -> dict[str, Any]:
 
         source = None if args.modulus_band == 3.0 else f"given: --modulus-band {args.modulus_band:g}"
         out["modulus_band"] = ModulusBand(args.modulus_band, source=source) if source else ModulusBand()
+    if getattr(args, "calibration", None):
+        out["curvature_scale"] = args.calibration
     return out

@@ -69,9 +69,12 @@ def band_section(config: PlanConfig, bands: Sequence[tuple[str, TissueBand]]) ->
         per = " / ".join(_mm(r) for r in b.reach_mm) or "-"
         span = f"{b.moduli_pa[0] / 1e6:.3g}-{b.moduli_pa[-1] / 1e6:.3g}" if b.moduli_pa else "-"
         rows.append((label, span, per, _mm(b.worst_reach_mm), _mm(b.worst_clearance_mm), b.worst_case))
+    calibrated = "; ".join(f"{d} x {r:g}" for d, r in config.curvature_scale)
     return Section("Tissue: the band of moduli", "tissue-band", (
         Paragraph(f"Tissue modulus: {config.tissue_modulus_pa / 1e6:g} MPa"
                   + (f" ({organs} inside those organs)" if organs else "")
+                  + (f"; the site's calibration scales each design's in-tissue curvature ({calibrated}: the ratio "
+                     "its steered needles found after insertion showed, 'reachplan calibrate')" if calibrated else "")
                   + f". Each steered needle is re-inserted with its planned schedule in tissue of every modulus "
                   f"divided and multiplied by {band.factor:g} ({band.source}); drawn as a ribbon in the 3-D view. Its "
                   "reach is measured from the target (an implant needle's: from its own planned tip, where the "

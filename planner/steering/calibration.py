@@ -265,3 +265,102 @@ def pool(fits: Sequence[NeedleFit]) -> list[FactorEstimate]:
             ci = (float("nan"), float("nan"))
         out.append(FactorEstimate(design, float(np.mean([f.planned_factor for f in mine])), mean, ci, mine))
     return out
+
+
+#: The ``format`` of a site calibration file (``reachplan calibrate``; ``plan --calibration``).
+SITE_FORMAT = "reachplan-site-calibration/1"
+
+
+def site_document(fits: Sequence[NeedleFit], previous: dict[str, object] | None = None) -> dict[str, object]:
+    """Return a site calibration file's content: ``fits`` pooled with those ``previous`` holds, per design.
+
+    A needle fitted again (same ``source`` and ``hole_id``) replaces its earlier fit.
+
+    Parameters
+    ----------
+    fits : sequence of NeedleFit
+        New needle fits.
+    previous : dict or None
+        An earlier file's content (:func:`site_fits` reads its fits).
+
+    Returns
+    -------
+    dict of str to object
+        ``format`` (:data:`SITE_FORMAT`), ``method``, ``designs`` (each :meth:`FactorEstimate.to_json`).
+    """
+    kept = {(f.source, f.hole_id): f for f in (site_fits(previous) if previous else [])}
+    kept.update({(f.source, f.hole_id): f for f in fits})
+    return {"format": SITE_FORMAT, "method": POOL_METHOD,
+            "designs": [e.to_json() for e in pool(list(kept.values()))]}
+
+
+def _number(value: object, what: str) -> float:
+    """``value`` as a finite float, or the typed error naming ``what``."""
+    try:
+        x = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        x = float("nan")
+    if not math.isfinite(x):
+        raise PlanInputError(f"site calibration: {what} must be a finite number, got {value!r}")
+    return x
+
+
+def site_fits(doc: dict[str, object]) -> list[NeedleFit]:
+    """Return the needle fits a site calibration file holds.
+
+    Parameters
+    ----------
+    doc : dict
+        The file's content.
+
+    Returns
+    -------
+    list of NeedleFit
+        Every design's needles.
+
+    Raises
+    ------
+    PlanInputError
+        Not a site calibration file (its ``format``), or a design or needle without its numbers.
+    """
+    if not isinstance(doc, dict) or doc.get("format") != SITE_FORMAT:
+        raise PlanInputError(f"not a site calibration file: its 'format' must be {SITE_FORMAT!r} (written by "
+                             "'reachplan calibrate')")
+    designs = doc.get("designs")
+    if not isinstance(designs, list):
+        raise PlanInputError("site calibration: 'designs' must be a list")
+    out = []
+    for d in designs:
+        for f in (d.get("fits") if isinstance(d, dict) else None) or []:
+            if not isinstance(f, dict):
+                raise PlanInputError("site calibration: each fit must be an object")
+            out.append(NeedleFit(str(f.get("source", "")), str(f.get("hole_id", "")), str(d.get("design", "")),
+                                 _number(f.get("planned_factor"), "planned_factor"),
+                                 _number(f.get("factor"), "factor"), _number(f.get("roll_offset_deg", 0.0), "roll"),
+                                 _number(f.get("tilt_deg", 0.0), "tilt"), _number(f.get("rms_mm", 0.0), "rms_mm"),
+                                 int(_number(f.get("points", 0), "points"))))
+    return out
+
+
+def site_scales(doc: dict[str, object]) -> tuple[tuple[str, float], ...]:
+    """Return each design's calibration ratio from a site calibration file (``PlanConfig.curvature_scale``).
+
+    Parameters
+    ----------
+    doc : dict
+        The file's content.
+
+    Returns
+    -------
+    tuple of (str, float)
+        Design name and its pooled ratio (:func:`pool` of the file's fits), in name order.
+
+    Raises
+    ------
+    PlanInputError
+        As :func:`site_fits`; or a file with no fitted needle.
+    """
+    estimates = pool(site_fits(doc))
+    if not estimates:
+        raise PlanInputError("site calibration: the file holds no fitted needle")
+    return tuple((e.design, round(e.ratio, 5)) for e in estimates)

@@ -119,8 +119,10 @@ def _scalar_fields(obj: object) -> tuple[Setting, ...]:
     """Return the (name, value) pairs of a dataclass instance's scalar fields; () for anything else."""
     if not dataclasses.is_dataclass(obj):
         return ()
-    pairs = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
-    return tuple((k, v) for k, v in pairs if isinstance(v, (bool, int, float, str)))
+    pairs = [(f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj)]
+    scale = dict(pairs).get("curvature_scale")  # a site calibration, when one is in use: design=ratio
+    calibrated = (("curvature_scale", ",".join(f"{k}={v:g}" for k, v in scale)),) if scale else ()
+    return tuple((k, v) for k, v in pairs if isinstance(v, (bool, int, float, str))) + calibrated
 
 
 #: The model of a straight needle (an exact line, no model settings).
@@ -215,6 +217,21 @@ class NamedInsertion:
     def info(self) -> ModelInfo:
         """The model that produced a path: this model, its rod model and their settings."""
         return ModelInfo.of(self.label, self, self.rod_model)
+
+    def scale_for(self, design: RodDesign) -> float:
+        """Return the site's curvature calibration of ``design`` (``curvature_scale`` by design name; 1 without).
+
+        Parameters
+        ----------
+        design : RodDesign
+            The stylet.
+
+        Returns
+        -------
+        float
+            The ratio of the site's in-tissue curvature to the model's (dimensionless).
+        """
+        return dict(getattr(self, "curvature_scale", ())).get(design.name, 1.0)
 
 
 @dataclass(frozen=True, eq=False)

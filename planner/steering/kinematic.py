@@ -53,6 +53,9 @@ class KinematicInsertion(NamedInsertion):
         exact to 0.1 % of the two-tube model for free-space curvature; see the rod-model benchmark).
     step_mm : float
         Integration step along the insertion.
+    curvature_scale : tuple of (str, float)
+        A site's calibration (:mod:`reachplan.planner.steering.calibration`): per design name, the ratio of the
+        curvature factor its needles showed to the model's; the factor in use is multiplied by it.
 
     Raises
     ------
@@ -67,6 +70,7 @@ class KinematicInsertion(NamedInsertion):
     tissue_factor: float | None = None
     rod_model: RodModel = PLANAR_BEAM
     step_mm: float = 1.0
+    curvature_scale: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.tissue_factor is None:
@@ -77,7 +81,8 @@ class KinematicInsertion(NamedInsertion):
     def factor_for(self, design: RodDesign) -> float:
         """Return the curvature factor in use for ``design``: ``tissue_factor``, or the design's fitted one.
 
-        The fitted one is :func:`curvature_factor` at ``tissue_modulus_pa``.
+        The fitted one is :func:`curvature_factor` at ``tissue_modulus_pa``; either is multiplied by the design's
+        ``curvature_scale``.
 
         Parameters
         ----------
@@ -89,7 +94,8 @@ class KinematicInsertion(NamedInsertion):
         float
             The factor (dimensionless) the free-space curvature is multiplied by.
         """
-        return curvature_factor(self.tissue_modulus_pa, design) if self.tissue_factor is None else self.tissue_factor
+        base = curvature_factor(self.tissue_modulus_pa, design) if self.tissue_factor is None else self.tissue_factor
+        return base * self.scale_for(design)
 
     def insert(self, design: RodDesign, schedules: Sequence[TensionSchedule],
                depth_mm: float) -> list[InsertionPath | FailedInsertion]:

@@ -119,6 +119,11 @@ class TissueRodInsertion(NamedInsertion):
         at the same fractions of their arc length, every ``node_mm``. 15ga-30j-tip in the gel, 20 mm ramps from
         0 / 40 mm to 5 / 10 N, tip at 150 mm: 2 mm steps are 0.18-0.41 mm from the extrapolation of 1 and 2 mm
         steps, 1 mm steps 0.09-0.21 mm, this (2 and 4 mm, 1.5 times the cost of 2 mm) 0.03-0.08 mm.
+    curvature_scale : tuple of (str, float)
+        A site's calibration (:mod:`reachplan.planner.steering.calibration`): per design name, the ratio of the
+        curvature its needles showed to the kinematic model's. The rod's path departs from the hole's axis (the
+        template frame's x and y) by that ratio times its own: the same change as the kinematic model's to first
+        order in the angle (an empirical correction, not a change of the rod's mechanics).
     """
 
     label: ClassVar[str] = "tissue_rod"
@@ -132,6 +137,7 @@ class TissueRodInsertion(NamedInsertion):
     arc_cut: bool = True
     window_winkler: float = 6.0
     richardson: bool = False
+    curvature_scale: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if not (self.tissue_modulus_pa >= 0 and self.step_mm > 0 and self.node_mm > 0 and self.slip_mm > 0
@@ -194,16 +200,19 @@ class TissueRodInsertion(NamedInsertion):
             The inserted centreline, mm, template frame (row 0 at the template, last row the tip): at the rod
             model's integration points, or with ``richardson`` every ``node_mm`` of arc length.
         """
+        scale = self.scale_for(design)
         path = _run(self, design, schedule, depth_mm, modulus_profile)
-        if not self.richardson or isinstance(path, FailedInsertion):
+        if isinstance(path, FailedInsertion) or not (self.richardson or scale != 1.0):
             return path
-        coarse = _run(replace(self, step_mm=2 * self.step_mm), design, schedule, depth_mm, modulus_profile)
-        if isinstance(coarse, FailedInsertion):
-            return coarse
-        frac = np.linspace(0.0, 1.0, max(2, round(depth_mm / self.node_mm)) + 1)
-        fine_at, coarse_at = (np.column_stack([np.interp(frac, a / a[-1], p[:, i]) for i in range(3)])
-                              for p, a in ((path, arc_length_mm(path)), (coarse, arc_length_mm(coarse))))
-        return 2.0 * fine_at - coarse_at
+        if self.richardson:
+            coarse = _run(replace(self, step_mm=2 * self.step_mm), design, schedule, depth_mm, modulus_profile)
+            if isinstance(coarse, FailedInsertion):
+                return coarse
+            frac = np.linspace(0.0, 1.0, max(2, round(depth_mm / self.node_mm)) + 1)
+            fine_at, coarse_at = (np.column_stack([np.interp(frac, a / a[-1], p[:, i]) for i in range(3)])
+                                  for p, a in ((path, arc_length_mm(path)), (coarse, arc_length_mm(coarse))))
+            path = 2.0 * fine_at - coarse_at
+        return path * np.array([scale, scale, 1.0])
 
     def _moduli_at(self, nodes: np.ndarray, modulus_profile: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
         """Return the medium's modulus (Pa) at ``nodes`` (mm of inserted arc): the profile's or the default."""
@@ -327,7 +336,7 @@ def _run(model: TissueRodInsertion, design: RodDesign, schedule: TensionSchedule
     if modulus_profile is None:  # the same tissue as a one-piece profile of the model's modulus
         modulus_profile = (np.zeros(1), np.full(1, float(model.tissue_modulus_pa)))
     profile = tuple(tuple(np.asarray(a, dtype=float).ravel().tolist()) for a in modulus_profile)
-    return _run_memo(replace(model, richardson=False), design, key, float(depth_mm), profile)
+    return _run_memo(replace(model, richardson=False, curvature_scale=()), design, key, float(depth_mm), profile)
 
 
 @lru_cache(maxsize=512)

@@ -97,3 +97,44 @@ def test_one_needle_has_no_interval_and_a_straight_one_tells_nothing() -> None:
                          np.zeros((3, 3)))
     with pytest.raises(PlanInputError, match="a fit needs at least"):
         fit_needle(short)
+
+
+def test_a_site_file_round_trips_refits_replace_and_every_model_of_a_plan_applies_it(tmp_path) -> None:
+    import argparse
+    import json
+
+    from reachplan.planner.case.config import PlanConfig, PlanModels
+    from reachplan.planner.cli.tissue import site_calibration
+    from reachplan.planner.steering.calibration import site_document, site_fits, site_scales
+    from reachplan.planner.steering.tissue_rod import TissueRodInsertion
+
+    fits = [fit_needle(n) for n in _needles(perturbed=True, tension_fraction=0.0)]
+    doc = site_document(fits[:6])
+    doc = site_document(fits[4:], previous=json.loads(json.dumps(doc)))  # needles 4 and 5 fitted again
+    assert len(site_fits(doc)) == 10 and doc["designs"][0]["needles"] == 10
+    ((design, ratio),) = site_scales(doc)
+    assert design == DESIGN and ratio == pytest.approx(pool(fits)[0].ratio, abs=1e-5)
+    path = tmp_path / "site.json"
+    path.write_text(json.dumps(doc))
+    assert site_calibration(str(path)) == ((DESIGN, ratio),)
+    for bad in ({"format": "other"}, {"format": doc["format"], "designs": []},
+                {"format": doc["format"], "designs": [{"design": DESIGN, "fits": [{"factor": "x"}]}]}):
+        path.write_text(json.dumps(bad))
+        with pytest.raises(argparse.ArgumentTypeError, match=r"site calibration|format"):
+            site_calibration(str(path))
+    with pytest.raises(ValueError, match="curvature calibration"):
+        PlanConfig(curvature_scale=((DESIGN, 9.0),))
+    # the plan's models: the kinematic factor times the ratio, the rod's departure from the hole's axis times it
+    models = PlanModels.for_config(PlanConfig(curvature_scale=((DESIGN, 1.2),)))
+    design = preset(DESIGN)
+    plain = PlanModels.for_config(PlanConfig())
+    for m, p in ((models.screening, plain.screening), (models.robustness, plain.robustness)):
+        assert m.factor_for(design) == pytest.approx(1.2 * p.factor_for(design))
+        assert m.factor_for(preset("13ga-20j-tip")) == pytest.approx(p.factor_for(preset("13ga-20j-tip")))
+    ramp = TensionSchedule.ramp(0.0, 10.0, 6.0)
+    rod, rod_plain = (TissueRodInsertion(step_mm=4.0, curvature_scale=s) for s in (((DESIGN, 1.2),), ()))
+    scaled, unscaled = rod.insert_one(design, ramp, 30.0), rod_plain.insert_one(design, ramp, 30.0)
+    assert isinstance(scaled, np.ndarray) and isinstance(unscaled, np.ndarray)
+    np.testing.assert_allclose(scaled, unscaled * np.array([1.2, 1.2, 1.0]), atol=1e-12)
+    assert models.reference.curvature_scale == ((DESIGN, 1.2),)
+    assert ("curvature_scale", f"{DESIGN}=1.2") in models.reference.info.settings
