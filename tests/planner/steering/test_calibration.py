@@ -8,6 +8,7 @@ to 2 deg), sampled every mm with 0.2 mm of reconstruction noise; five implants, 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -99,7 +100,7 @@ def test_one_needle_has_no_interval_and_a_straight_one_tells_nothing() -> None:
         fit_needle(short)
 
 
-def test_a_site_file_round_trips_refits_replace_and_every_model_of_a_plan_applies_it(tmp_path) -> None:
+def test_a_site_file_round_trips_refits_replace_and_every_model_of_a_plan_applies_it(tmp_path: Path) -> None:
     import argparse
     import json
 
@@ -111,9 +112,9 @@ def test_a_site_file_round_trips_refits_replace_and_every_model_of_a_plan_applie
     fits = [fit_needle(n) for n in _needles(perturbed=True, tension_fraction=0.0)]
     doc = site_document(fits[:6])
     doc = site_document(fits[4:], previous=json.loads(json.dumps(doc)))  # needles 4 and 5 fitted again
-    assert len(site_fits(doc)) == 10 and doc["designs"][0]["needles"] == 10
-    ((design, ratio),) = site_scales(doc)
-    assert design == DESIGN and ratio == pytest.approx(pool(fits)[0].ratio, abs=1e-5)
+    assert len(site_fits(doc)) == 10 and json.loads(json.dumps(doc))["designs"][0]["needles"] == 10
+    ((name, ratio),) = site_scales(doc)
+    assert name == DESIGN and ratio == pytest.approx(pool(fits)[0].ratio, abs=1e-5)
     path = tmp_path / "site.json"
     path.write_text(json.dumps(doc))
     assert site_calibration(str(path)) == ((DESIGN, ratio),)
