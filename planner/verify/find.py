@@ -1,0 +1,441 @@
+"""Find the needles in a post-insertion image: which template holes hold one, and where each runs to its tip.
+
+No hole is named by the user. Every needle hole of the template (placed as ``plan`` places it) is tested: along the
+hole's axis from ``detect_from_mm`` to ``detect_to_mm`` (around the template plane, where a needle cannot yet have
+left its hole's line by more than a millimetre), the image's cross-section is sampled in the plane across the axis;
+a hole holds a needle when the median, over those depths, of the brightest excess within ``search_radius_mm`` above
+the ring around it (``ring_mm``) is above ``detect_sigmas`` times the image noise (the ring's robust spread) and above
+``min_contrast``. A dark needle (an MR signal void, an empty lumen in CT) is found the same way on the negated image.
+
+Each needle found is tracked from its hole in steps of ``step_mm``: the next point is predicted along the current
+direction, moved to the intensity-weighted centre of the needle's cross-section there (voxels above half the
+cross-section's peak excess), and the direction is the principal axis of the last ``direction_window_mm`` of track
+(tip following, as the kinematic insertion model moves a needle). The track stops where the peak excess falls below
+half the needle's own median for ``stop_steps`` steps. The tip is where the needle's integrated cross-section excess
+along the extrapolated axis falls to half its value in the shaft (linear between samples: the half-way point of a
+slice's partial volume is the tip for a needle crossing slices). The track is smoothed (a cubic smoothing spline
+per coordinate against arc length) and given from the template plane to the tip.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from reachplan.imaging.types import Volume
+from reachplan.plugins.templates import Template
+
+
+@dataclass(frozen=True)
+class FinderSettings:
+    """How needles are found and tracked (module docstring).
+
+    Parameters
+    ----------
+    polarity : str
+        ``"bright"`` (a metal obturator or stylet in CT), ``"dark"`` (an MR void, an empty lumen) or ``"auto"``:
+        bright for CT, dark for MR.
+    detect_from_mm, detect_to_mm : float, mm
+        Depths beyond the template plane (negative: outside it) over which a hole is tested.
+    search_radius_mm : float, mm
+        Radius of the cross-section searched for the needle around its predicted point.
+    ring_mm : (float, float), mm
+        Inner and outer radius of the ring whose median is the local background.
+    detect_sigmas : float
+        A needle's excess must be this many noise standard deviations.
+    min_contrast : float
+        And at least this (HU in CT, signal units in MR).
+    step_mm : float, mm
+        Tracking step.
+    direction_window_mm : float, mm
+        Length of track the direction is fitted over.
+    stop_steps : int
+        Steps below half the needle's contrast that end the track.
+    max_depth_mm : float, mm
+        Longest track beyond the template plane.
+    smoothing_mm : float, mm
+        Root-mean-square distance the smoothing spline may leave between the track points and the curve.
+
+    Raises
+    ------
+    ValueError
+        A bad polarity, a depth range or ring that is empty, or a non-positive step.
+    """
+
+    polarity: str = "auto"
+    detect_from_mm: float = -15.0
+    detect_to_mm: float = 15.0
+    search_radius_mm: float = 2.5
+    ring_mm: tuple[float, float] = (4.0, 7.0)
+    detect_sigmas: float = 10.0
+    min_contrast: float = 100.0
+    step_mm: float = 1.0
+    direction_window_mm: float = 12.0
+    stop_steps: int = 3
+    max_depth_mm: float = 250.0
+    smoothing_mm: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.polarity not in ("auto", "bright", "dark"):
+            raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {self.polarity!r}")
+        if not (self.detect_from_mm < self.detect_to_mm and 0 < self.ring_mm[0] < self.ring_mm[1]):
+            raise ValueError("the detection depths and the background ring must be non-empty ranges")
+        if not (self.step_mm > 0 and self.search_radius_mm > 0 and self.stop_steps >= 1):
+            raise ValueError("step, search radius and stop steps must be positive")
+
+
+@dataclass(frozen=True)
+class FoundNeedle:
+    """A needle found in the image.
+
+    Parameters
+    ----------
+    hole_id : str
+        The template hole it came through.
+    points_mm : (n, 3) float, mm, LPS
+        Its smoothed centre line from the template plane to the tip, about 1 mm apart.
+    tip_mm : (3,) float, mm, LPS
+        The tip (the last point).
+    contrast : float
+        Median excess of its cross-section over the background along the track (HU, or MR units).
+    confidence : float
+        0-1: the share of the track well above the detection threshold, scaled down when its contrast is near it.
+    seconds : float, s
+        Time spent on it.
+    """
+
+    hole_id: str
+    points_mm: np.ndarray
+    tip_mm: np.ndarray
+    contrast: float
+    confidence: float
+    seconds: float
+
+    @property
+    def length_mm(self) -> float:
+        """Arc length from the template plane to the tip (mm)."""
+        return float(np.sum(np.linalg.norm(np.diff(self.points_mm, axis=0), axis=1)))
+
+
+class _Image:
+    """The volume as a function of LPS points (trilinear), signed so that a needle is bright."""
+
+    def __init__(self, volume: Volume, sign: float) -> None:
+        self.array = np.asarray(volume.array, dtype=np.float32) * np.float32(sign)
+        self.index_from_patient = np.linalg.inv(volume.grid.patient_from_index)
+
+    def __call__(self, pts: np.ndarray) -> np.ndarray:
+        from scipy.ndimage import map_coordinates
+
+        p = np.asarray(pts, dtype=float).reshape(-1, 3)
+        ijk = p @ self.index_from_patient[:3, :3].T + self.index_from_patient[:3, 3]
+        lo = float(self.array.min())
+        out = map_coordinates(self.array, [ijk[:, 2], ijk[:, 1], ijk[:, 0]], order=1, mode="constant", cval=lo)
+        return np.asarray(out).reshape(np.shape(pts)[:-1])
+
+
+def _frame(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors across unit direction ``t``."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(t, a)
+    u /= np.linalg.norm(u)
+    return u, np.cross(t, u)
+
+
+def _disk(radius_mm: float, step_mm: float) -> np.ndarray:
+    """(m, 2) offsets (mm) of a square lattice within ``radius_mm``."""
+    r = np.arange(-radius_mm, radius_mm + 1e-9, step_mm)
+    g = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
+    return g[np.hypot(g[:, 0], g[:, 1]) <= radius_mm + 1e-9]
+
+
+def _ring(r0: float, r1: float, n: int = 48) -> np.ndarray:
+    """(2n, 2) offsets (mm) on two circles between ``r0`` and ``r1``."""
+    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    return np.concatenate([np.column_stack([r * np.cos(a), r * np.sin(a)]) for r in (r0, r1)])
+
+
+@dataclass(frozen=True)
+class _Section:
+    """One cross-section: its excess over the ring's median at each disk point, the peak and the ring's spread."""
+
+    excess: np.ndarray
+    peak: float
+    spread: float
+
+
+class _Sampler:
+    """Cross-sections of the image across a direction."""
+
+    def __init__(self, image: _Image, settings: FinderSettings) -> None:
+        self.image = image
+        self.disk = _disk(settings.search_radius_mm, 0.25)
+        self.ring = _ring(*settings.ring_mm)
+
+    def sections(self, centres: np.ndarray, t: np.ndarray) -> list[_Section]:
+        """Cross-sections at ``centres`` ((m, 3) mm, LPS) across unit ``t``."""
+        u, v = _frame(t)
+        offs = np.concatenate([self.disk, self.ring])
+        pts = centres[:, None, :] + offs[None, :, 0:1] * u + offs[None, :, 1:2] * v
+        vals = self.image(pts)
+        nd = len(self.disk)
+        out = []
+        for row in vals:
+            ring = row[nd:]
+            bg = float(np.median(ring))
+            spread = float(1.4826 * np.median(np.abs(ring - bg)))
+            ex = row[:nd] - bg
+            out.append(_Section(ex, float(ex.max()), spread))
+        return out
+
+    def centre(self, p: np.ndarray, t: np.ndarray, s: _Section) -> np.ndarray:
+        """Return the excess-weighted centre of the needle in section ``s`` at ``p`` (mm, LPS)."""
+        u, v = _frame(t)
+        w = np.clip(s.excess - 0.5 * s.peak, 0.0, None)
+        if w.sum() <= 0:
+            return p
+        off = (w[:, None] * self.disk).sum(axis=0) / w.sum()
+        return np.asarray(p + off[0] * u + off[1] * v)
+
+    def integrated(self, pts: np.ndarray, t: np.ndarray, radius_mm: float) -> np.ndarray:
+        """Excess over the background summed over a disk of ``radius_mm`` across ``t`` at each point (mm², units)."""
+        sel = np.hypot(self.disk[:, 0], self.disk[:, 1]) <= radius_mm
+        return np.array([np.clip(s.excess[sel], 0.0, None).sum() * 0.0625 for s in self.sections(pts, t)])
+
+
+def detect_holes(volume: Volume, template: Template, patient_from_template: np.ndarray,
+                 settings: FinderSettings = FinderSettings()) -> list[tuple[str, float, float]]:
+    """Test every needle hole of the template for a needle (module docstring).
+
+    Parameters
+    ----------
+    volume : Volume
+        The post-insertion image.
+    template : Template
+        The template.
+    patient_from_template : (4, 4) float
+        Its pose, template frame (mm) to LPS mm.
+    settings : FinderSettings
+        Depths, radii and thresholds.
+
+    Returns
+    -------
+    list of (str, float, float)
+        Per hole with a needle: its id, the median excess over the depths and the detection threshold (image units).
+    """
+    sampler = _Sampler(_Image(volume, _sign(volume, settings)), settings)
+    m = np.asarray(patient_from_template, dtype=float)
+    t = m[:3, 2] / np.linalg.norm(m[:3, 2])
+    depths = np.arange(settings.detect_from_mm, settings.detect_to_mm + 1e-9, 1.25)
+    found = []
+    for hole in template.needle_holes:
+        entry = m[:3, :3] @ np.array([*hole.xy_mm, 0.0]) + m[:3, 3]
+        secs = sampler.sections(entry + depths[:, None] * t, t)
+        peak = float(np.median([s.peak for s in secs]))
+        noise = float(np.median([s.spread for s in secs]))
+        threshold = max(settings.detect_sigmas * noise, settings.min_contrast)
+        if peak > threshold:
+            found.append((hole.hole_id, peak, threshold))
+    return found
+
+
+def _sign(volume: Volume, settings: FinderSettings) -> float:
+    """+1 when needles are bright, -1 when dark."""
+    if settings.polarity == "auto":
+        return -1.0 if volume.modality.upper() == "MR" else 1.0
+    return 1.0 if settings.polarity == "bright" else -1.0
+
+
+def _direction(track: list[np.ndarray], window: int, previous: np.ndarray) -> np.ndarray:
+    """Principal direction of the last ``window`` track points, pointing along ``previous``."""
+    pts = np.asarray(track[-window:])
+    if len(pts) < 4:
+        return previous
+    _, _, vt = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)
+    d = vt[0] if float(vt[0] @ previous) >= 0 else -vt[0]
+    return np.asarray(d / np.linalg.norm(d))
+
+
+def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: np.ndarray,
+                 settings: FinderSettings = FinderSettings(), image: Callable[..., np.ndarray] | None = None,
+                 ) -> FoundNeedle:
+    """Track one needle from its hole to its tip (module docstring).
+
+    Parameters
+    ----------
+    volume : Volume
+        The post-insertion image.
+    hole_id : str
+        The hole.
+    entry_mm : (3,) float, mm, LPS
+        The hole's centre on the template plane.
+    direction : (3,) float, LPS
+        The hole's insertion direction (unit).
+    settings : FinderSettings
+        Steps, radii, stopping rule.
+    image : callable, optional
+        The signed image (for reuse across needles); None: built from ``volume``.
+
+    Returns
+    -------
+    FoundNeedle
+        The smoothed centre line from the template plane to the tip.
+    """
+    import time
+
+    start = time.perf_counter()
+    img = image if isinstance(image, _Image) else _Image(volume, _sign(volume, settings))
+    sampler = _Sampler(img, settings)
+    t0 = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
+    h = settings.step_mm
+    p = np.asarray(entry_mm, dtype=float) + settings.detect_from_mm * t0
+    t = t0.copy()
+    track: list[np.ndarray] = []
+    peaks: list[float] = []
+    window = max(4, round(settings.direction_window_mm / h))
+    low = 0
+    while len(track) * h < settings.max_depth_mm - settings.detect_from_mm:
+        s = sampler.sections(p[None, :], t)[0]
+        reference = float(np.median(peaks[-40:])) if len(peaks) >= 5 else s.peak
+        if len(peaks) >= 5 and s.peak < 0.5 * reference:
+            low += 1
+            if low >= settings.stop_steps:
+                break
+            p = p + h * t
+            continue
+        low = 0
+        q = sampler.centre(p, t, s)
+        if track:  # keep the step along the track: the centre moves across it only
+            q = q - float((q - p) @ t) * t
+        track.append(q)
+        peaks.append(s.peak)
+        t = _direction(track, window, t)
+        p = q + h * t
+    pts = np.asarray(track)
+    contrast = float(np.median(peaks)) if peaks else 0.0
+    tip = _tip(sampler, pts, t, contrast, h)
+    line = _smoothed(pts, tip, settings.smoothing_mm)
+    line = _from_plane(line, np.asarray(entry_mm, float), t0)
+    strong = float(np.mean(np.asarray(peaks) > 0.5 * contrast)) if peaks else 0.0
+    return FoundNeedle(hole_id, line, line[-1].copy(), contrast, round(strong, 3),
+                       time.perf_counter() - start)
+
+
+def _tip(sampler: _Sampler, pts: np.ndarray, t: np.ndarray, contrast: float, h: float) -> np.ndarray:
+    """Return the tip: where the integrated excess along the track's extrapolated axis falls to half the shaft's."""
+    end = pts[-1]
+    back = pts[max(0, len(pts) - 8)]
+    axis = end - back
+    axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else t
+    s = np.arange(-8.0, 8.0 + 1e-9, 0.25)
+    prof = sampler.integrated(end + s[:, None] * axis, axis, 1.75)
+    shaft = float(np.median(prof[s <= -4.0]))
+    if shaft <= 0:
+        return end
+    after = np.flatnonzero((prof < 0.5 * shaft) & (s > -4.0))
+    if not len(after):
+        return np.asarray(end + s[-1] * axis)
+    k = int(after[0])
+    if k == 0:
+        return end
+    f = (prof[k - 1] - 0.5 * shaft) / max(prof[k - 1] - prof[k], 1e-9)
+    return np.asarray(end + (s[k - 1] + f * (s[k] - s[k - 1])) * axis)
+
+
+def _smoothed(pts: np.ndarray, tip: np.ndarray, smoothing_mm: float) -> np.ndarray:
+    """Return the track cut at (or extended to) the tip, smoothed by a cubic spline per coordinate, every ~1 mm."""
+    from scipy.interpolate import make_splrep
+
+    axis_end = pts[-1] - pts[max(0, len(pts) - 6)]
+    keep = pts[(pts - tip) @ axis_end < 0] if np.linalg.norm(axis_end) > 0 else pts
+    pts = np.vstack([keep, tip]) if len(keep) >= 1 else np.vstack([pts[:1], tip])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    ok = np.concatenate([[True], np.diff(s) > 1e-6])
+    pts, s = pts[ok], s[ok]
+    if len(pts) < 6:
+        return pts
+    w = np.ones(len(s))
+    w[-1] = 10.0  # the tip is measured, not only tracked
+    fine = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1])) + 1))
+    cols = []
+    for j in range(3):
+        spline = make_splrep(s, pts[:, j], w=w, k=3, s=len(s) * smoothing_mm ** 2 / 3.0)
+        cols.append(spline(fine))
+    out = np.column_stack(cols)
+    out[-1] = tip
+    return out
+
+
+def _from_plane(line: np.ndarray, entry: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Return the line from where it crosses the template plane (through ``entry``, across ``normal``) on."""
+    h = (line - entry) @ normal
+    after = np.flatnonzero(h >= 0)
+    if not len(after) or after[0] == 0:
+        return line
+    k = int(after[0])
+    f = -h[k - 1] / (h[k] - h[k - 1])
+    start = line[k - 1] + f * (line[k] - line[k - 1])
+    return np.vstack([start, line[k:]])
+
+
+def find_needles(volume: Volume, template: Template, patient_from_template: np.ndarray,
+                 settings: FinderSettings = FinderSettings(), progress: Callable[[str], None] | None = None,
+                 detected: Sequence[tuple[str, float, float]] | None = None) -> list[FoundNeedle]:
+    """Find every needle that entered through a hole of the template, each tracked to its tip.
+
+    Parameters
+    ----------
+    volume : Volume
+        The post-insertion image.
+    template : Template
+        The template.
+    patient_from_template : (4, 4) float
+        Its pose, template frame (mm) to LPS mm.
+    settings : FinderSettings
+        How needles are detected and tracked.
+    progress : callable, optional
+        Called with each hole id after its needle is tracked (a progress bar).
+    detected : sequence of (str, float, float), optional
+        The holes holding a needle (:func:`detect_holes`); None: detected here.
+
+    Returns
+    -------
+    list of FoundNeedle
+        In the template's hole order.
+    """
+    m = np.asarray(patient_from_template, dtype=float)
+    t = m[:3, 2] / np.linalg.norm(m[:3, 2])
+    image = _Image(volume, _sign(volume, settings))
+    holes = {h.hole_id: h for h in template.needle_holes}
+    out = []
+    for hole_id, _, _ in detect_holes(volume, template, m, settings) if detected is None else detected:
+        entry = m[:3, :3] @ np.array([*holes[hole_id].xy_mm, 0.0]) + m[:3, 3]
+        out.append(track_needle(volume, hole_id, entry, t, settings, image))
+        if progress is not None:
+            progress(hole_id)
+    return out
+
+
+def hole_entries(template: Template, patient_from_template: np.ndarray,
+                 hole_ids: Sequence[str]) -> np.ndarray:
+    """Entry points of named holes on the template plane.
+
+    Parameters
+    ----------
+    template : Template
+        The template.
+    patient_from_template : (4, 4) float
+        Its pose.
+    hole_ids : sequence of str
+        The holes.
+
+    Returns
+    -------
+    (n, 3) float, mm, LPS
+        Each hole's centre.
+    """
+    m = np.asarray(patient_from_template, dtype=float)
+    holes = {h.hole_id: h for h in template.needle_holes}
+    return np.array([m[:3, :3] @ np.array([*holes[h].xy_mm, 0.0]) + m[:3, 3] for h in hole_ids]).reshape(-1, 3)
