@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     volume = read_series(args.ct)
     structures = read_rtstruct(args.rtstruct, volume)
     pose, method = _pose(args, structures)
-    settings = FinderSettings(polarity=args.needle_look)
+    settings = FinderSettings.for_image(volume, args.needle_look)
     quiet = args.quiet or args.json
     holes = detect_holes(volume, template, pose, settings)
     with tqdm(total=len(holes), desc="needles", unit="needle", disable=quiet, leave=False) as bar:

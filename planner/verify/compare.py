@@ -17,15 +17,8 @@ import numpy as np
 from reachplan.planner.verify.find import FoundNeedle
 
 
-def _dense(path_mm: np.ndarray, step_mm: float = 0.05) -> np.ndarray:
-    """Return a polyline resampled every ``step_mm`` (so a nearest-point distance is within 1 µm of the exact one)."""
-    from reachplan.planner.verify.implant import resample_mm
-
-    return resample_mm(np.asarray(path_mm, dtype=float), step_mm)
-
-
 def distances_to_line(points_mm: np.ndarray, line_mm: np.ndarray) -> np.ndarray:
-    """Distance of each point from a polyline.
+    """Distance of each point from a polyline (exact: to its nearest segment).
 
     Parameters
     ----------
@@ -37,12 +30,18 @@ def distances_to_line(points_mm: np.ndarray, line_mm: np.ndarray) -> np.ndarray:
     Returns
     -------
     (n,) float, mm
-        Each point's distance to the nearest point of the line (its segments, not only its vertices).
+        Each point's distance to the nearest point of the line's segments.
     """
-    from scipy.spatial import cKDTree
-
-    dist, _ = cKDTree(_dense(line_mm)).query(np.asarray(points_mm, dtype=float).reshape(-1, 3))
-    return np.asarray(dist)
+    pts = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+    a = np.asarray(line_mm, dtype=float)[:-1]
+    d = np.diff(np.asarray(line_mm, dtype=float), axis=0)
+    dd = np.maximum((d * d).sum(axis=1), 1e-24)
+    out = np.empty(len(pts))
+    for lo in range(0, len(pts), 256):  # (256, m, 3) at a time
+        rel = pts[lo:lo + 256, None, :] - a[None, :, :]
+        u = np.clip((rel * d[None]).sum(axis=2) / dd[None], 0.0, 1.0)
+        out[lo:lo + 256] = np.linalg.norm(rel - u[..., None] * d[None], axis=2).min(axis=1)
+    return out
 
 
 @dataclass(frozen=True)

@@ -4,17 +4,22 @@ No hole is named by the user. Every needle hole of the template (placed as ``pla
 hole's axis from ``detect_from_mm`` to ``detect_to_mm`` (around the template plane, where a needle cannot yet have
 left its hole's line by more than a millimetre), the image's cross-section is sampled in the plane across the axis;
 a hole holds a needle when the median, over those depths, of the brightest excess within ``search_radius_mm`` above
-the ring around it (``ring_mm``) is above ``detect_sigmas`` times the image noise (the ring's robust spread) and above
-``min_contrast``. A dark needle (an MR signal void, an empty lumen in CT) is found the same way on the negated image.
+the ring around it (``ring_mm``) is above ``detect_sigmas`` times the image noise (the rings' typical robust spread
+over all holes) and above ``min_contrast``, and the bright part of its cross-section is thin (no wider than
+``spread_mm``: a needle, not the edge of the skin, a bone or an organ). The background of a hole's test is the
+ring's upper quartile: the ring must be darker than the needle nearly all round (a neighbouring needle or a streak
+crossing it does not matter; an edge does). A dark needle (an MR signal void, an empty lumen in CT) is found the
+same way on the negated image.
 
-Each needle found is tracked from its hole in steps of ``step_mm``: the next point is predicted along the current
-direction, moved to the intensity-weighted centre of the needle's cross-section there (voxels above half the
-cross-section's peak excess), and the direction is the principal axis of the last ``direction_window_mm`` of track
-(tip following, as the kinematic insertion model moves a needle). The track stops where the peak excess falls below
-half the needle's own median for ``stop_steps`` steps. The tip is where the needle's integrated cross-section excess
-along the extrapolated axis falls to half its value in the shaft (linear between samples: the half-way point of a
-slice's partial volume is the tip for a needle crossing slices). The track is smoothed (a cubic smoothing spline
-per coordinate against arc length) and given from the template plane to the tip.
+Each needle found is tracked from its hole in steps of ``step_mm``: the next point is predicted, then moved to the
+intensity-weighted centre of the needle's cross-section there (voxels above half the cross-section's peak excess,
+weighted by a Gaussian about the prediction); the prediction is a quadratic in arc length through the last
+``direction_window_mm`` of track (tip following on a circle, as a needle moves). Where the cross-section holds two
+needles (they cross), the track follows its prediction until they part. The track stops where the peak excess falls
+below half the needle's own median for ``stop_steps`` steps. The tip is where the needle's integrated cross-section
+excess along the extrapolated axis falls to half its value in the shaft (linear between samples: the half-way point
+of a slice's partial volume is the tip for a needle crossing slices). The track is smoothed (a cubic smoothing
+spline per coordinate against arc length) and given from the template plane to the tip.
 """
 
 from __future__ import annotations
@@ -57,6 +62,16 @@ class FinderSettings:
         Longest track beyond the template plane.
     smoothing_mm : float, mm
         Root-mean-square distance the smoothing spline may leave between the track points and the curve.
+    min_length_mm : float, mm
+        A track shorter than this beyond the template plane is not a needle (a stub of something else).
+    prior_mm : float, mm
+        Sigma of the Gaussian about the predicted point that weights the cross-section's centre.
+    spread_mm : float, mm
+        A cross-section whose bright voxels spread wider (largest standard deviation) holds two needles: the track
+        follows its prediction there.
+    detect_quantile : float
+        The quantile of the ring taken as the background when a hole is tested (the median while tracking); a high
+        one asks the ring to be darker than the needle all round (a thin tube, not the edge of a large region).
 
     Raises
     ------
@@ -76,6 +91,36 @@ class FinderSettings:
     stop_steps: int = 3
     max_depth_mm: float = 250.0
     smoothing_mm: float = 0.3
+    min_length_mm: float = 20.0
+    prior_mm: float = 1.0
+    spread_mm: float = 0.8
+    detect_quantile: float = 0.75
+
+    @staticmethod
+    def for_image(volume: Volume, polarity: str = "auto") -> FinderSettings:
+        """Return the settings for a needle look: the defaults for a bright needle, tighter for a dark one.
+
+        A dark needle (an MR void about 3 mm across, an empty lumen) is tested inside the body only (5-35 mm
+        beyond the template plane: outside, air is as dark as the needle) against a close ring (2.5-4.5 mm: MR
+        holds large dark regions, muscle, bone and gas, that a wide ring would take for a needle).
+
+        Parameters
+        ----------
+        volume : Volume
+            The image (its modality decides ``"auto"``).
+        polarity : str
+            ``"auto"``, ``"bright"`` or ``"dark"``.
+
+        Returns
+        -------
+        FinderSettings
+            The settings.
+        """
+        base = FinderSettings(polarity=polarity)
+        if _sign(volume, base) > 0:
+            return base
+        return FinderSettings(polarity=polarity, detect_from_mm=5.0, detect_to_mm=35.0, search_radius_mm=2.0,
+                              ring_mm=(2.5, 4.5), min_contrast=50.0)
 
     def __post_init__(self) -> None:
         if self.polarity not in ("auto", "bright", "dark"):
@@ -159,11 +204,16 @@ def _ring(r0: float, r1: float, n: int = 48) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _Section:
-    """One cross-section: its excess over the ring's median at each disk point, the peak and the ring's spread."""
+    """One cross-section: excess over the background per disk point, its peak, the ring's spread, the blob's width.
+
+    The width is the largest standard deviation (mm) of the disk points above half the peak, weighted by their
+    excess over it: about half a millimetre for a needle, several for the edge of an organ or the skin.
+    """
 
     excess: np.ndarray
     peak: float
     spread: float
+    width: float
 
 
 class _Sampler:
@@ -174,8 +224,23 @@ class _Sampler:
         self.disk = _disk(settings.search_radius_mm, 0.25)
         self.ring = _ring(*settings.ring_mm)
 
-    def sections(self, centres: np.ndarray, t: np.ndarray) -> list[_Section]:
-        """Cross-sections at ``centres`` ((m, 3) mm, LPS) across unit ``t``."""
+    def sections(self, centres: np.ndarray, t: np.ndarray, quantile: float = 0.5) -> list[_Section]:
+        """Return the cross-sections at points across a direction; the background is the ring's quantile.
+
+        Parameters
+        ----------
+        centres : (m, 3) float, mm, LPS
+            The sections' centres.
+        t : (3,) float, LPS
+            The unit direction they lie across.
+        quantile : float
+            The ring's quantile taken as the background (0.5: its median).
+
+        Returns
+        -------
+        list of _Section
+            One per centre.
+        """
         u, v = _frame(t)
         offs = np.concatenate([self.disk, self.ring])
         pts = centres[:, None, :] + offs[None, :, 0:1] * u + offs[None, :, 1:2] * v
@@ -184,23 +249,81 @@ class _Sampler:
         out = []
         for row in vals:
             ring = row[nd:]
-            bg = float(np.median(ring))
-            spread = float(1.4826 * np.median(np.abs(ring - bg)))
+            middle = float(np.median(ring))
+            spread = float(1.4826 * np.median(np.abs(ring - middle)))
+            bg = middle if quantile == 0.5 else float(np.quantile(ring, quantile))
             ex = row[:nd] - bg
-            out.append(_Section(ex, float(ex.max()), spread))
+            out.append(_Section(ex, float(ex.max()), spread, self.width(ex)))
         return out
 
-    def centre(self, p: np.ndarray, t: np.ndarray, s: _Section) -> np.ndarray:
-        """Return the excess-weighted centre of the needle in section ``s`` at ``p`` (mm, LPS)."""
-        u, v = _frame(t)
-        w = np.clip(s.excess - 0.5 * s.peak, 0.0, None)
+    def width(self, excess: np.ndarray) -> float:
+        """Return the width of the bright part of a cross-section.
+
+        Parameters
+        ----------
+        excess : (m,) float
+            Excess over the background at each disk point.
+
+        Returns
+        -------
+        float, mm
+            Largest standard deviation of the disk points above half the peak (weighted by their excess over it).
+        """
+        w = np.clip(excess - 0.5 * float(excess.max()), 0.0, None)
         if w.sum() <= 0:
-            return p
+            return float("inf")
+        mean = (w[:, None] * self.disk).sum(axis=0) / w.sum()
+        cov = ((w[:, None] * (self.disk - mean)).T @ (self.disk - mean)) / w.sum()
+        return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
+
+    def centre(self, p: np.ndarray, t: np.ndarray, s: _Section, prior_mm: float, spread_mm: float,
+               ) -> np.ndarray | None:
+        """Return the needle's centre in a cross-section at the predicted point, or None when it is ambiguous.
+
+        Parameters
+        ----------
+        p : (3,) float, mm, LPS
+            The predicted point (the section's centre).
+        t : (3,) float, LPS
+            The unit direction the section lies across.
+        s : _Section
+            The section.
+        prior_mm : float, mm
+            Sigma of the Gaussian about ``p`` that weights the voxels above half the peak excess.
+        spread_mm : float, mm
+            A section whose bright part is wider holds two needles (they cross).
+
+        Returns
+        -------
+        (3,) float, mm, LPS, or None
+            The weighted centre; None for two needles in the section (the track then follows its prediction).
+        """
+        u, v = _frame(t)
+        if s.width > spread_mm:
+            return None
+        w = np.clip(s.excess - 0.5 * s.peak, 0.0, None) * np.exp(-0.5 * (self.disk ** 2).sum(axis=1) / prior_mm ** 2)
+        if w.sum() <= 0:
+            return None
         off = (w[:, None] * self.disk).sum(axis=0) / w.sum()
         return np.asarray(p + off[0] * u + off[1] * v)
 
     def integrated(self, pts: np.ndarray, t: np.ndarray, radius_mm: float) -> np.ndarray:
-        """Excess over the background summed over a disk of ``radius_mm`` across ``t`` at each point (mm², units)."""
+        """Return the excess over the background summed over a disk across a direction at each point.
+
+        Parameters
+        ----------
+        pts : (m, 3) float, mm, LPS
+            The disks' centres.
+        t : (3,) float, LPS
+            The unit direction they lie across.
+        radius_mm : float, mm
+            The disks' radius.
+
+        Returns
+        -------
+        (m,) float, mm² x image units
+            The positive excess integrated over each disk.
+        """
         sel = np.hypot(self.disk[:, 0], self.disk[:, 1]) <= radius_mm
         return np.array([np.clip(s.excess[sel], 0.0, None).sum() * 0.0625 for s in self.sections(pts, t)])
 
@@ -229,16 +352,17 @@ def detect_holes(volume: Volume, template: Template, patient_from_template: np.n
     m = np.asarray(patient_from_template, dtype=float)
     t = m[:3, 2] / np.linalg.norm(m[:3, 2])
     depths = np.arange(settings.detect_from_mm, settings.detect_to_mm + 1e-9, 1.25)
-    found = []
+    peaks, spreads = [], []
     for hole in template.needle_holes:
         entry = m[:3, :3] @ np.array([*hole.xy_mm, 0.0]) + m[:3, 3]
-        secs = sampler.sections(entry + depths[:, None] * t, t)
-        peak = float(np.median([s.peak for s in secs]))
-        noise = float(np.median([s.spread for s in secs]))
-        threshold = max(settings.detect_sigmas * noise, settings.min_contrast)
-        if peak > threshold:
-            found.append((hole.hole_id, peak, threshold))
-    return found
+        secs = sampler.sections(entry + depths[:, None] * t, t, settings.detect_quantile)
+        thin = float(np.median([s.width for s in secs])) <= settings.spread_mm  # a needle, not an edge
+        peaks.append(float(np.median([s.peak for s in secs])) if thin else 0.0)
+        spreads.append(float(np.median([s.spread for s in secs])))
+    # the image's noise: the rings' typical spread over all holes (most hold no needle and lie in one tissue)
+    threshold = max(settings.detect_sigmas * float(np.median(spreads)), settings.min_contrast)
+    return [(hole.hole_id, peak, threshold) for hole, peak in zip(template.needle_holes, peaks, strict=True)
+            if peak > threshold]
 
 
 def _sign(volume: Volume, settings: FinderSettings) -> float:
@@ -248,14 +372,26 @@ def _sign(volume: Volume, settings: FinderSettings) -> float:
     return 1.0 if settings.polarity == "bright" else -1.0
 
 
-def _direction(track: list[np.ndarray], window: int, previous: np.ndarray) -> np.ndarray:
-    """Principal direction of the last ``window`` track points, pointing along ``previous``."""
+def _predict(track: list[np.ndarray], window: int, previous: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Predict the next point and direction: a quadratic in arc length through the last ``window`` track points.
+
+    Tip following on a circle of constant curvature, as a needle moves; a straight step along ``previous`` until
+    there are 6 points.
+    """
     pts = np.asarray(track[-window:])
-    if len(pts) < 4:
-        return previous
-    _, _, vt = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)
-    d = vt[0] if float(vt[0] @ previous) >= 0 else -vt[0]
-    return np.asarray(d / np.linalg.norm(d))
+    if len(pts) < 6:
+        return np.asarray(track[-1] + h * previous), previous
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    s_next = s[-1] + h
+    coef = [np.polyfit(s, pts[:, j], 2) for j in range(3)]
+    p = np.array([np.polyval(c, s_next) for c in coef])
+    d = np.array([np.polyval(np.polyder(c), s_next) for c in coef])
+    if not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-9:
+        return np.asarray(track[-1] + h * previous), previous
+    d /= np.linalg.norm(d)
+    if float(d @ previous) < 0.5:  # no turn this sharp in one step: keep the last direction
+        return np.asarray(track[-1] + h * previous), previous
+    return p, d
 
 
 def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: np.ndarray,
@@ -306,13 +442,14 @@ def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: 
             p = p + h * t
             continue
         low = 0
-        q = sampler.centre(p, t, s)
-        if track:  # keep the step along the track: the centre moves across it only
+        q = sampler.centre(p, t, s, settings.prior_mm, settings.spread_mm)
+        if q is None:  # two needles in the section (a crossing): follow the prediction
+            q = p
+        elif track:  # keep the step along the track: the centre moves across it only
             q = q - float((q - p) @ t) * t
         track.append(q)
         peaks.append(s.peak)
-        t = _direction(track, window, t)
-        p = q + h * t
+        p, t = _predict(track, window, t, h)
     pts = np.asarray(track)
     contrast = float(np.median(peaks)) if peaks else 0.0
     tip = _tip(sampler, pts, t, contrast, h)
@@ -340,7 +477,7 @@ def _tip(sampler: _Sampler, pts: np.ndarray, t: np.ndarray, contrast: float, h: 
     k = int(after[0])
     if k == 0:
         return end
-    f = (prof[k - 1] - 0.5 * shaft) / max(prof[k - 1] - prof[k], 1e-9)
+    f = float(np.clip((prof[k - 1] - 0.5 * shaft) / max(prof[k - 1] - prof[k], 1e-9), 0.0, 1.0))
     return np.asarray(end + (s[k - 1] + f * (s[k] - s[k - 1])) * axis)
 
 
@@ -372,8 +509,13 @@ def _from_plane(line: np.ndarray, entry: np.ndarray, normal: np.ndarray) -> np.n
     """Return the line from where it crosses the template plane (through ``entry``, across ``normal``) on."""
     h = (line - entry) @ normal
     after = np.flatnonzero(h >= 0)
-    if not len(after) or after[0] == 0:
+    if not len(after):
         return line
+    if after[0] == 0:  # the track starts beyond the plane: extended back to it along its first direction
+        d = line[min(5, len(line) - 1)] - line[0]
+        if float(d @ normal) <= 1e-9 or h[0] <= 1e-9:
+            return line
+        return np.vstack([line[0] - d * h[0] / float(d @ normal), line])
     k = int(after[0])
     f = -h[k - 1] / (h[k] - h[k - 1])
     start = line[k - 1] + f * (line[k] - line[k - 1])
@@ -403,7 +545,7 @@ def find_needles(volume: Volume, template: Template, patient_from_template: np.n
     Returns
     -------
     list of FoundNeedle
-        In the template's hole order.
+        In the template's hole order; tracks shorter than ``min_length_mm`` left out.
     """
     m = np.asarray(patient_from_template, dtype=float)
     t = m[:3, 2] / np.linalg.norm(m[:3, 2])
@@ -412,7 +554,9 @@ def find_needles(volume: Volume, template: Template, patient_from_template: np.n
     out = []
     for hole_id, _, _ in detect_holes(volume, template, m, settings) if detected is None else detected:
         entry = m[:3, :3] @ np.array([*holes[hole_id].xy_mm, 0.0]) + m[:3, 3]
-        out.append(track_needle(volume, hole_id, entry, t, settings, image))
+        needle = track_needle(volume, hole_id, entry, t, settings, image)
+        if needle.length_mm >= settings.min_length_mm:
+            out.append(needle)
         if progress is not None:
             progress(hole_id)
     return out

@@ -12,7 +12,7 @@ plan's reference path); a straight one runs along the hole's axis to its depth.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,7 +112,7 @@ def delivered_needles(doc: Mapping[str, object]) -> list[PlannedNeedle]:
 
 
 def extra_needles(template: Template, taken: Sequence[str], count: int, depth_mm: float,
-                  seed: int) -> list[PlannedNeedle]:
+                  seed: int, blocked: Callable[[np.ndarray], bool] | None = None) -> list[PlannedNeedle]:
     """Return ``count`` straight needles through free holes of the outer rings, chosen by ``seed``.
 
     Parameters
@@ -127,6 +127,9 @@ def extra_needles(template: Template, taken: Sequence[str], count: int, depth_mm
         Their depth beyond the template plane.
     seed : int
         Chooses the holes.
+    blocked : callable, optional
+        Whether a straight path ((n, 3) mm, template frame, hole to tip) crosses what no needle may (organs at risk,
+        bone); such holes are passed over.
 
     Returns
     -------
@@ -141,7 +144,8 @@ def extra_needles(template: Template, taken: Sequence[str], count: int, depth_mm
         if len(out) == count:
             break
         xy = np.asarray(holes[k].xy_mm)
-        if all(np.hypot(*(xy - u)) >= 14.0 for u in used):
+        line = np.column_stack([np.full(41, xy[0]), np.full(41, xy[1]), np.linspace(0.0, depth_mm, 41)])
+        if all(np.hypot(*(xy - u)) >= 14.0 for u in used) and not (blocked is not None and blocked(line)):
             used.append(xy)
             out.append(PlannedNeedle(holes[k].hole_id, depth_mm, extra=True))
     return out
@@ -449,7 +453,13 @@ def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2,
     template = load_template(str(config.get("template", "needlefinder_syed_63")))
     pose = np.asarray((doc.get("template_pose") or {}).get("patient_from_template", np.eye(4)), dtype=float)
     needles = delivered_needles(doc)
-    needles += extra_needles(template, [n.hole_id for n in needles], extra, 100.0, draw_seed + case_seed)
+    oars = [st for st in case.spec.structures if st.is_oar]
+
+    def blocked(line: np.ndarray) -> bool:  # template frame -> LPS, then inside an organ at risk or bone
+        pts = line @ pose[:3, :3].T + pose[:3, 3]
+        return any(bool(np.any(st.contains(pts))) for st in oars)
+
+    needles += extra_needles(template, [n.hole_id for n in needles], extra, 100.0, draw_seed + case_seed, blocked)
     drawn = draw_needles(needles, template, pose, config.get("perturbations") or {}, draw_seed,
                          plan_channel_paths(Path(plan_json), doc))
     look = TubeLook(outer_radius_mm=float(config.get("needle_radius_mm", 0.915)), content=content)
