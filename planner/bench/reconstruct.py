@@ -21,15 +21,15 @@ import argparse
 import json
 import statistics
 import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from reachplan.planner.bench._util import command_argv
 from reachplan.planner.bench.common import BenchError, settings, write_csv, write_png
-from reachplan.planner.verify.compare import match
+from reachplan.planner.verify.compare import match, needle_error
 from reachplan.planner.verify.find import FoundNeedle
 
 
@@ -59,9 +59,7 @@ MR_LIMITS_MM = (2.0, 1.0)
 
 def _reachplan(*argv: str) -> None:
     """Run the installed ``reachplan`` command; a failure is a :class:`BenchError` with its message."""
-    script = Path(sys.executable).with_name("reachplan")
-    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "reachplan.planner.cli"]
-    done = subprocess.run([*cmd, *argv, "--quiet"], capture_output=True, text=True, timeout=1800)
+    done = subprocess.run(command_argv(*argv, "--quiet"), capture_output=True, text=True, timeout=1800)
     if done.returncode != 0:
         raise BenchError(f"reachplan {argv[0]} failed: {done.stderr.strip()[-400:]}")
 
@@ -98,7 +96,8 @@ def measure_case(plan_json: Path, seed: int, modality: str, out: Path) -> list[d
     -------
     list of dict
         One row per needle of the truth or of the reconstruction: found, false, tip error, shaft distances, depth
-        error (mm), seconds.
+        error (mm), seconds; and planned versus actual (tip error, largest lateral deviation, mm) from the truth and
+        from the needle found.
     """
     post, rec = out / f"post{seed}_{modality}", out / f"rec{seed}_{modality}"
     _reachplan("phantom", "--out", str(post), "--implanted", str(plan_json), "--modality", modality)
@@ -109,24 +108,38 @@ def measure_case(plan_json: Path, seed: int, modality: str, out: Path) -> list[d
     kinds = {n["hole_id"]: ("extra" if n["extra"] else n["kind"]) for n in truth["needles"]}
     found = [FoundNeedle(n["hole_id"], np.asarray(n["points_mm"]), np.asarray(n["tip_mm"]), n["contrast"],
                          n["confidence"], n["seconds"]) for n in found_doc["needles"]]
-    seconds = {f.hole_id: f.seconds for f in found}
+    by_hole = {f.hole_id: f for f in found}
     m = match(found, {n["hole_id"]: np.asarray(n["points_mm"]) for n in truth["needles"]})
-    rows: list[dict[str, object]] = [{
-        "seed": seed, "modality": modality, "hole": e.hole_id, "kind": kinds[e.hole_id], "found": 1, "false": 0,
-        "tip_error_mm": round(e.tip_mm, 3), "shaft_mean_mm": round(e.shaft_mean_mm, 3),
-        "shaft_max_mm": round(e.shaft_max_mm, 3), "depth_error_mm": round(e.depth_mm, 3),
-        "seconds": round(seconds[e.hole_id], 3)} for e in m.errors]
-    rows += [{"seed": seed, "modality": modality, "hole": h, "kind": kinds[h], "found": 0, "false": 0,
-              "tip_error_mm": "", "shaft_mean_mm": "", "shaft_max_mm": "", "depth_error_mm": "", "seconds": ""}
+    planned = {n["hole_id"]: np.asarray(n["planned_points_mm"]) for n in truth["needles"]}
+    true = {n["hole_id"]: FoundNeedle(n["hole_id"], np.asarray(n["points_mm"]), np.asarray(n["tip_mm"]), 0.0, 1.0,
+                                      0.0) for n in truth["needles"]}
+    empty = dict.fromkeys(("tip_error_mm", "shaft_mean_mm", "shaft_max_mm", "depth_error_mm", "seconds",
+                           "plan_tip_true_mm", "plan_tip_found_mm", "plan_lateral_true_mm",
+                           "plan_lateral_found_mm"), "")
+    rows: list[dict[str, object]] = []
+    for e in m.errors:
+        # planned versus actual, from the truth and from the needle found: how well the reconstruction tells it
+        t_err, f_err = needle_error(true[e.hole_id], planned[e.hole_id]), needle_error(by_hole[e.hole_id],
+                                                                                        planned[e.hole_id])
+        rows.append({"seed": seed, "modality": modality, "hole": e.hole_id, "kind": kinds[e.hole_id], "found": 1,
+                     "false": 0, "tip_error_mm": round(e.tip_mm, 3), "shaft_mean_mm": round(e.shaft_mean_mm, 3),
+                     "shaft_max_mm": round(e.shaft_max_mm, 3), "depth_error_mm": round(e.depth_mm, 3),
+                     "seconds": round(by_hole[e.hole_id].seconds, 3),
+                     "plan_tip_true_mm": round(t_err.tip_mm, 3), "plan_tip_found_mm": round(f_err.tip_mm, 3),
+                     "plan_lateral_true_mm": round(t_err.shaft_max_mm, 3),
+                     "plan_lateral_found_mm": round(f_err.shaft_max_mm, 3)})
+    rows += [{"seed": seed, "modality": modality, "hole": h, "kind": kinds[h], "found": 0, "false": 0, **empty}
              for h in m.missed]
     rows += [{"seed": seed, "modality": modality, "hole": h, "kind": "", "found": 1, "false": 1,
-              "tip_error_mm": "", "shaft_mean_mm": "", "shaft_max_mm": "", "depth_error_mm": "",
-              "seconds": round(seconds[h], 3)} for h in m.false]
+              **empty, "seconds": round(by_hole[h].seconds, 3)} for h in m.false]
     return rows
 
 
 def summarise(rows: list[dict[str, object]], modality: str) -> dict[str, object]:
-    """Per modality: needles, found, missed, false; mean and largest tip error and shaft distance; s per needle.
+    """Per modality: needles, found, missed, false; tip error and shaft distance; s per needle; planned vs actual.
+
+    ``plan_tip_difference_mean_mm``: the mean difference between the planned-versus-actual tip error measured on
+    the needle found and on the truth (how well the reconstruction tells how far a needle went off its plan).
 
     Parameters
     ----------
@@ -157,6 +170,11 @@ def summarise(rows: list[dict[str, object]], modality: str) -> dict[str, object]
         "mean_shaft_mm": round(mean_shaft, 3), "max_shaft_mm": round(max(
             (float(str(r["shaft_max_mm"])) for r in ok), default=float("nan")), 3),
         "median_s_per_needle": round(statistics.median(secs), 3) if secs else float("nan"),
+        "plan_tip_true_mean_mm": round(statistics.fmean(float(str(r["plan_tip_true_mm"])) for r in ok), 3)
+        if ok else float("nan"),
+        "plan_tip_difference_mean_mm": round(statistics.fmean(
+            abs(float(str(r["plan_tip_found_mm"])) - float(str(r["plan_tip_true_mm"]))) for r in ok), 3)
+        if ok else float("nan"),
         "limit_tip_mm": limit_tip, "limit_shaft_mm": limit_shaft,
         "met": bool(missed == 0 and false == 0 and mean_tip <= limit_tip and mean_shaft <= limit_shaft),
     }
@@ -218,7 +236,8 @@ def run(args: argparse.Namespace) -> int:
             rows += measure_case(plan_json, seed, mod, out)
     summaries = [summarise(rows, mod) for mod in modalities]
     header = ["seed", "modality", "hole", "kind", "found", "false", "tip_error_mm", "shaft_mean_mm", "shaft_max_mm",
-              "depth_error_mm", "seconds"]
+              "depth_error_mm", "seconds", "plan_tip_true_mm", "plan_tip_found_mm", "plan_lateral_true_mm",
+              "plan_lateral_found_mm"]
     write_csv(out / "reconstruct_benchmark.csv", header, rows)
     write_csv(out / "reconstruct_benchmark_summary.csv", list(summaries[0]), summaries)
     write_png(out / "reconstruct_benchmark.png", _figure(rows, summaries))

@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from reachplan.imaging.types import StructureSet
+    from reachplan.planner.verify.compare import Matching
 
 NAME = "reconstruct"
 HELP = ("find the needles in a post-insertion CT/MR from the template's holes (none named) to their tips; write "
@@ -60,6 +61,14 @@ def _pose(args: argparse.Namespace, structures: StructureSet) -> tuple[np.ndarra
                              "X,Y,Z --template-axis X,Y,Z, --template-pose FILE or --rtplan FILE")
     m = pose_from_obturator(structures.get("Obturator"), config.obturator_depth_mm)
     return m, f"fitted to ROI 'Obturator' (template {config.obturator_depth_mm:g} mm behind its cranial tip)"
+
+
+def _versus_plan(versus: Matching) -> dict[str, object]:
+    """Return the needles against the plan for needles.json: counts, means and per needle errors (mm)."""
+    doc = versus.summary()
+    doc["planned_not_found"] = doc.pop("missed")
+    doc["found_not_planned"] = doc.pop("false")
+    return {**doc, "needles": [e.to_json() for e in versus.errors]}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -119,8 +128,7 @@ def run(args: argparse.Namespace) -> int:
         "image": str(args.ct), "modality": volume.modality, "template": template.name,
         "template_pose": {"method": method, "patient_from_template": np.round(pose, 6).tolist()},
         "settings": {"polarity": settings.polarity, "step_mm": settings.step_mm},
-        "versus_plan": None if versus is None else {**versus.summary(),
-                                                     "needles": [e.to_json() for e in versus.errors]},
+        "versus_plan": None if versus is None else _versus_plan(versus),
         "summary": summary})
     section = reconstruction_section(volume, found, about, planned, versus)
     html = render_html(Report("reachplan: needles found", about, (section,)))

@@ -14,11 +14,13 @@ same way on the negated image.
 Each needle found is tracked from its hole in steps of ``step_mm``: the next point is predicted, then moved to the
 intensity-weighted centre of the needle's cross-section there (voxels above half the cross-section's peak excess,
 weighted by a Gaussian about the prediction); the prediction is a quadratic in arc length through the last
-``direction_window_mm`` of track (tip following on a circle, as a needle moves). Where the cross-section holds two
-needles (they cross), the track follows its prediction until they part. The track stops where the peak excess falls
-below half the needle's own median for ``stop_steps`` steps. The tip is where the needle's integrated cross-section
-excess along the extrapolated axis falls to half its value in the shaft (linear between samples: the half-way point
-of a slice's partial volume is the tip for a needle crossing slices). The track is smoothed (a cubic smoothing
+``direction_window_mm`` of measured track (tip following on a circle, as a needle moves). Where the cross-section
+holds two needles (they cross), the track takes the bright blob nearest its prediction, or follows its prediction
+while the two are merged (a section too wide, or with about twice a needle's summed excess) until they part. The
+track stops where the peak excess falls below half the needle's own median for ``stop_steps`` steps. The tip is
+where the needle's integrated cross-section excess along the extrapolated axis falls to half its value in the shaft
+(linear between samples: the half-way point of a slice's partial volume is the tip for a needle crossing slices).
+The track is smoothed (a cubic smoothing
 spline per coordinate against arc length) and given from the template plane to the tip.
 """
 
@@ -69,6 +71,9 @@ class FinderSettings:
     spread_mm : float, mm
         A cross-section whose bright voxels spread wider (largest standard deviation) holds two needles: the track
         follows its prediction there.
+    merged_mass : float
+        A cross-section whose excess summed over the disk is this many times the needle's own (its median over the
+        last 20 measured steps) holds a second needle lying on it: the track follows its prediction there.
     detect_quantile : float
         The quantile of the ring taken as the background when a hole is tested (the median while tracking); a high
         one asks the ring to be darker than the needle all round (a thin tube, not the edge of a large region).
@@ -87,7 +92,7 @@ class FinderSettings:
     detect_sigmas: float = 10.0
     min_contrast: float = 100.0
     step_mm: float = 1.0
-    direction_window_mm: float = 12.0
+    direction_window_mm: float = 16.0
     stop_steps: int = 3
     max_depth_mm: float = 250.0
     smoothing_mm: float = 0.3
@@ -95,6 +100,7 @@ class FinderSettings:
     prior_mm: float = 1.0
     spread_mm: float = 0.8
     detect_quantile: float = 0.75
+    merged_mass: float = 1.5
 
     @staticmethod
     def for_image(volume: Volume, polarity: str = "auto") -> FinderSettings:
@@ -207,13 +213,16 @@ class _Section:
     """One cross-section: excess over the background per disk point, its peak, the ring's spread, the blob's width.
 
     The width is the largest standard deviation (mm) of the disk points above half the peak, weighted by their
-    excess over it: about half a millimetre for a needle, several for the edge of an organ or the skin.
+    excess over it: about half a millimetre for a needle, several for the edge of an organ or the skin. The mass is
+    the positive excess summed over the disk (mm² x image units): two needles lying on each other have about twice
+    one's.
     """
 
     excess: np.ndarray
     peak: float
     spread: float
     width: float
+    mass: float
 
 
 class _Sampler:
@@ -223,6 +232,8 @@ class _Sampler:
         self.image = image
         self.disk = _disk(settings.search_radius_mm, 0.25)
         self.ring = _ring(*settings.ring_mm)
+        self.cells = np.round((self.disk + settings.search_radius_mm) / 0.25).astype(int)  # lattice (row, column)
+        self.side = int(self.cells.max()) + 1
 
     def sections(self, centres: np.ndarray, t: np.ndarray, quantile: float = 0.5) -> list[_Section]:
         """Return the cross-sections at points across a direction; the background is the ring's quantile.
@@ -253,7 +264,8 @@ class _Sampler:
             spread = float(1.4826 * np.median(np.abs(ring - middle)))
             bg = middle if quantile == 0.5 else float(np.quantile(ring, quantile))
             ex = row[:nd] - bg
-            out.append(_Section(ex, float(ex.max()), spread, self.width(ex)))
+            out.append(_Section(ex, float(ex.max()), spread, self.width(ex), float(np.clip(ex, 0.0, None).sum())
+                                * 0.0625))
         return out
 
     def width(self, excess: np.ndarray) -> float:
@@ -280,6 +292,12 @@ class _Sampler:
                ) -> np.ndarray | None:
         """Return the needle's centre in a cross-section at the predicted point, or None when it is ambiguous.
 
+        One needle in the section (its bright part, above half the peak, no wider than ``spread_mm``): the centre
+        of that part, weighted by the excess and by a Gaussian of sigma ``prior_mm`` about the prediction. Two
+        (they cross): the voxels above 80 % of the peak are split into connected blobs, and the blob nearest the
+        prediction (within 1.5 mm, itself thin) gives the centre; when the blobs have merged, None (the track then
+        follows its prediction).
+
         Parameters
         ----------
         p : (3,) float, mm, LPS
@@ -289,23 +307,43 @@ class _Sampler:
         s : _Section
             The section.
         prior_mm : float, mm
-            Sigma of the Gaussian about ``p`` that weights the voxels above half the peak excess.
+            Sigma of the Gaussian about ``p`` that weights the centre.
         spread_mm : float, mm
-            A section whose bright part is wider holds two needles (they cross).
+            A bright part wider than this holds two needles.
 
         Returns
         -------
         (3,) float, mm, LPS, or None
-            The weighted centre; None for two needles in the section (the track then follows its prediction).
+            The centre; None when two needles cannot be told apart here.
         """
         u, v = _frame(t)
-        if s.width > spread_mm:
+        blob = np.clip(s.excess - 0.5 * s.peak, 0.0, None) if s.width <= spread_mm else self._nearest_blob(s, spread_mm)
+        if blob is None:
             return None
-        w = np.clip(s.excess - 0.5 * s.peak, 0.0, None) * np.exp(-0.5 * (self.disk ** 2).sum(axis=1) / prior_mm ** 2)
+        w = blob * np.exp(-0.5 * (self.disk ** 2).sum(axis=1) / prior_mm ** 2)
         if w.sum() <= 0:
             return None
         off = (w[:, None] * self.disk).sum(axis=0) / w.sum()
         return np.asarray(p + off[0] * u + off[1] * v)
+
+    def _nearest_blob(self, s: _Section, spread_mm: float) -> np.ndarray | None:
+        """Weights of the connected blob above 80 % of the peak nearest the centre (None: none thin and near)."""
+        from scipy.ndimage import label
+
+        bright = s.excess > 0.8 * s.peak
+        grid = np.zeros((self.side, self.side), dtype=bool)
+        grid[self.cells[:, 0], self.cells[:, 1]] = bright
+        labels, n = label(grid, structure=np.ones((3, 3)))
+        which = labels[self.cells[:, 0], self.cells[:, 1]]
+        best, best_d = None, 1.5
+        for k in range(1, n + 1):
+            w = np.where(which == k, s.excess - 0.8 * s.peak, 0.0)
+            if w.sum() <= 0 or self.width(np.where(which == k, s.excess, 0.0)) > spread_mm:
+                continue
+            d = float(np.linalg.norm((w[:, None] * self.disk).sum(axis=0) / w.sum()))
+            if d < best_d:
+                best, best_d = w, d
+        return best
 
     def integrated(self, pts: np.ndarray, t: np.ndarray, radius_mm: float) -> np.ndarray:
         """Return the excess over the background summed over a disk across a direction at each point.
@@ -372,18 +410,20 @@ def _sign(volume: Volume, settings: FinderSettings) -> float:
     return 1.0 if settings.polarity == "bright" else -1.0
 
 
-def _predict(track: list[np.ndarray], window: int, previous: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-    """Predict the next point and direction: a quadratic in arc length through the last ``window`` track points.
+def _predict(track: list[np.ndarray], measured: list[bool], window: int, previous: np.ndarray,
+             h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Predict the next point and direction: a quadratic in arc length through the last ``window`` measured points.
 
-    Tip following on a circle of constant curvature, as a needle moves; a straight step along ``previous`` until
-    there are 6 points.
+    Tip following on a circle of constant curvature, as a needle moves; points followed by prediction (a crossing)
+    do not feed it, so it does not drift on its own guesses. A straight step along ``previous`` until there are 6.
     """
-    pts = np.asarray(track[-window:])
-    if len(pts) < 6:
-        return np.asarray(track[-1] + h * previous), previous
+    pts = np.asarray(track)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    keep = np.flatnonzero(measured)[-window:]
+    if len(keep) < 6:
+        return np.asarray(track[-1] + h * previous), previous
     s_next = s[-1] + h
-    coef = [np.polyfit(s, pts[:, j], 2) for j in range(3)]
+    coef = [np.polyfit(s[keep], pts[keep, j], 2) for j in range(3)]
     p = np.array([np.polyval(c, s_next) for c in coef])
     d = np.array([np.polyval(np.polyder(c), s_next) for c in coef])
     if not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-9:
@@ -429,6 +469,8 @@ def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: 
     p = np.asarray(entry_mm, dtype=float) + settings.detect_from_mm * t0
     t = t0.copy()
     track: list[np.ndarray] = []
+    measured: list[bool] = []
+    mass: list[float] = []
     peaks: list[float] = []
     window = max(4, round(settings.direction_window_mm / h))
     low = 0
@@ -443,13 +485,18 @@ def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: 
             continue
         low = 0
         q = sampler.centre(p, t, s, settings.prior_mm, settings.spread_mm)
-        if q is None:  # two needles in the section (a crossing): follow the prediction
+        masses = [m for m, ok in zip(mass, measured, strict=True) if ok][-20:]
+        if q is not None and len(masses) >= 5 and s.mass > settings.merged_mass * float(np.median(masses)):
+            q = None  # another needle lies on this one (their blobs merged): follow the prediction
+        mass.append(s.mass)
+        measured.append(q is not None)
+        if q is None:  # two needles merged in the section (a crossing): follow the prediction
             q = p
         elif track:  # keep the step along the track: the centre moves across it only
             q = q - float((q - p) @ t) * t
         track.append(q)
         peaks.append(s.peak)
-        p, t = _predict(track, window, t, h)
+        p, t = _predict(track, measured, window, t, h)
     pts = np.asarray(track)
     contrast = float(np.median(peaks)) if peaks else 0.0
     tip = _tip(sampler, pts, t, contrast, h)

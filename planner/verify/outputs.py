@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 from collections.abc import Mapping, Sequence
 from datetime import datetime
+from typing import Any
 
 import numpy as np
 
@@ -56,6 +57,63 @@ def _ds(x: float) -> str:
     """Return a decimal string (DS) of at most 16 characters, 3 decimals."""
     s = f"{x:.3f}".rstrip("0").rstrip(".")
     return "0" if s in ("-0", "") else s
+
+
+def _referenced_frame(volume: Volume, study_uid: str) -> Any:
+    """Return the Referenced Frame of Reference item: with the slices, the study -> series -> images chain."""
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence as DicomSequence
+
+    ref_for = Dataset()
+    ref_for.FrameOfReferenceUID = volume.frame_of_reference_uid
+    if volume.slice_uids:
+        series = Dataset()
+        series.SeriesInstanceUID = volume.series_instance_uid
+        images = []
+        for cls, uid in volume.slice_uids:
+            item = Dataset()
+            item.ReferencedSOPClassUID, item.ReferencedSOPInstanceUID = cls, uid
+            images.append(item)
+        series.ContourImageSequence = DicomSequence(images)
+        study = Dataset()
+        study.ReferencedSOPClassUID = DETACHED_STUDY_MANAGEMENT
+        study.ReferencedSOPInstanceUID = study_uid
+        study.RTReferencedSeriesSequence = DicomSequence([series])
+        ref_for.RTReferencedStudySequence = DicomSequence([study])
+    return ref_for
+
+
+def _roi_items(found: Sequence[FoundNeedle], for_uid: str) -> tuple[list[Any], list[Any], list[Any]]:
+    """Return the Structure Set ROI, ROI Contour and RT ROI Observations items: one BRACHY_CHANNEL per needle."""
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence as DicomSequence
+
+    rois, contours, observations = [], [], []
+    for number, f in enumerate(found, start=1):
+        roi = Dataset()
+        roi.ROINumber = number
+        roi.ReferencedFrameOfReferenceUID = for_uid
+        roi.ROIName = f"Needle {f.hole_id}"[:64]
+        roi.ROIGenerationAlgorithm = "AUTOMATIC"
+        rois.append(roi)
+        c = Dataset()
+        c.ContourNumber = 1
+        c.ContourGeometricType = "OPEN_NONPLANAR"
+        pts = f.points_mm[::-1]  # tip first
+        c.NumberOfContourPoints = len(pts)
+        c.ContourData = [_ds(float(v)) for v in pts.ravel()]
+        rc = Dataset()
+        rc.ROIDisplayColor = [255, 255, 0]
+        rc.ContourSequence = DicomSequence([c])
+        rc.ReferencedROINumber = number
+        contours.append(rc)
+        ob = Dataset()
+        ob.ObservationNumber = number
+        ob.ReferencedROINumber = number
+        ob.RTROIInterpretedType = "BRACHY_CHANNEL"
+        ob.ROIInterpreter = ""
+        observations.append(ob)
+    return rois, contours, observations
 
 
 def needles_rtstruct(found: Sequence[FoundNeedle], volume: Volume, label: str = "NEEDLES",
@@ -109,48 +167,9 @@ def needles_rtstruct(found: Sequence[FoundNeedle], volume: Volume, label: str = 
     ds.PositionReferenceIndicator = ""
     ds.StructureSetLabel = label[:16]
     ds.StructureSetDate, ds.StructureSetTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
-    ref_for = Dataset()
-    ref_for.FrameOfReferenceUID = volume.frame_of_reference_uid
-    if volume.slice_uids:
-        series = Dataset()
-        series.SeriesInstanceUID = volume.series_instance_uid
-        images = []
-        for cls, uid in volume.slice_uids:
-            item = Dataset()
-            item.ReferencedSOPClassUID, item.ReferencedSOPInstanceUID = cls, uid
-            images.append(item)
-        series.ContourImageSequence = DicomSequence(images)
-        study = Dataset()
-        study.ReferencedSOPClassUID = DETACHED_STUDY_MANAGEMENT
-        study.ReferencedSOPInstanceUID = ds.StudyInstanceUID
-        study.RTReferencedSeriesSequence = DicomSequence([series])
-        ref_for.RTReferencedStudySequence = DicomSequence([study])
+    ref_for = _referenced_frame(volume, ds.StudyInstanceUID)
     ds.ReferencedFrameOfReferenceSequence = DicomSequence([ref_for])
-    rois, contours, observations = [], [], []
-    for number, f in enumerate(found, start=1):
-        roi = Dataset()
-        roi.ROINumber = number
-        roi.ReferencedFrameOfReferenceUID = volume.frame_of_reference_uid
-        roi.ROIName = f"Needle {f.hole_id}"[:64]
-        roi.ROIGenerationAlgorithm = "AUTOMATIC"
-        rois.append(roi)
-        c = Dataset()
-        c.ContourNumber = 1
-        c.ContourGeometricType = "OPEN_NONPLANAR"
-        pts = f.points_mm[::-1]  # tip first
-        c.NumberOfContourPoints = len(pts)
-        c.ContourData = [_ds(float(v)) for v in pts.ravel()]
-        rc = Dataset()
-        rc.ROIDisplayColor = [255, 255, 0]
-        rc.ContourSequence = DicomSequence([c])
-        rc.ReferencedROINumber = number
-        contours.append(rc)
-        ob = Dataset()
-        ob.ObservationNumber = number
-        ob.ReferencedROINumber = number
-        ob.RTROIInterpretedType = "BRACHY_CHANNEL"
-        ob.ROIInterpreter = ""
-        observations.append(ob)
+    rois, contours, observations = _roi_items(found, volume.frame_of_reference_uid)
     ds.StructureSetROISequence = DicomSequence(rois)
     ds.ROIContourSequence = DicomSequence(contours)
     ds.RTROIObservationsSequence = DicomSequence(observations)
