@@ -1,9 +1,10 @@
 """The report section of a needle reconstruction: the needles over the image, and per needle a straightened view.
 
 The overview draws every needle found (and, with the plan, its planned line dashed) over a coronal and a sagittal
-slab of the image, 20 mm thick, averaged, through the needles' middle. Each needle then gets a straightened view:
-the image sampled along its found centre line (vertical: depth from the template plane, mm) and across it (+-10 mm,
-horizontal), so a needle tracked well runs straight down the middle and ends where the bright (or dark) line ends.
+slab of the image, 20 mm thick (six planes averaged), through the needles' middle. Each needle then gets a
+straightened view: the image sampled along its found centre line (vertical: depth from the template plane, mm) and
+across it (+-10 mm, horizontal), so a needle tracked well runs straight down the middle and ends where the bright (or
+dark) line ends.
 """
 
 from __future__ import annotations
@@ -60,16 +61,15 @@ def overview_png(volume: Volume, found: Sequence[FoundNeedle], planned: Mapping[
     fig = MplFigure(figsize=(10, 5.2))
     for k, (a, b, across, name) in enumerate(((0, 2, 1, "coronal"), (1, 2, 0, "sagittal"))):
         ax = fig.add_subplot(1, 2, k + 1)
-        ua = np.arange(lo[a], hi[a], 0.5)
-        vb = np.arange(lo[b], hi[b], 0.5)
+        ua = np.arange(lo[a], hi[a], 0.75)
+        vb = np.arange(lo[b], hi[b], 0.75)
         mid = float(np.median(pts[:, across]))
-        img = np.zeros((len(vb), len(ua)))
-        for off in np.arange(-10.0, 10.01, 2.0):
-            grid = np.zeros((len(vb), len(ua), 3))
-            grid[..., a] = ua[None, :]
-            grid[..., b] = vb[:, None]
-            grid[..., across] = mid + off
-            img += _sample(volume, grid) / 11.0
+        offsets = np.linspace(-10.0, 10.0, 6)
+        grid = np.zeros((len(offsets), len(vb), len(ua), 3))
+        grid[..., a] = ua[None, None, :]
+        grid[..., b] = vb[None, :, None]
+        grid[..., across] = mid + offsets[:, None, None]
+        img = _sample(volume, grid).mean(axis=0)
         ax.imshow(img, cmap="gray", vmin=window[0], vmax=window[1], origin="lower",
                   extent=(ua[0], ua[-1], vb[0], vb[-1]))
         for f in found:

@@ -257,36 +257,54 @@ class _Sampler:
         pts = centres[:, None, :] + offs[None, :, 0:1] * u + offs[None, :, 1:2] * v
         vals = self.image(pts)
         nd = len(self.disk)
-        out = []
-        for row in vals:
-            ring = row[nd:]
-            middle = float(np.median(ring))
-            spread = float(1.4826 * np.median(np.abs(ring - middle)))
-            bg = middle if quantile == 0.5 else float(np.quantile(ring, quantile))
-            ex = row[:nd] - bg
-            out.append(_Section(ex, float(ex.max()), spread, self.width(ex), float(np.clip(ex, 0.0, None).sum())
-                                * 0.0625))
-        return out
+        ring = vals[:, nd:]
+        middle = np.median(ring, axis=1)
+        spread = 1.4826 * np.median(np.abs(ring - middle[:, None]), axis=1)
+        bg = middle if quantile == 0.5 else np.quantile(ring, quantile, axis=1)
+        ex = vals[:, :nd] - bg[:, None]
+        widths = self.widths(ex)
+        mass = np.clip(ex, 0.0, None).sum(axis=1) * 0.0625
+        return [_Section(ex[k], float(ex[k].max()), float(spread[k]), float(widths[k]), float(mass[k]))
+                for k in range(len(ex))]
 
-    def width(self, excess: np.ndarray) -> float:
-        """Return the width of the bright part of a cross-section.
+    def widths(self, excess: np.ndarray) -> np.ndarray:
+        """Return the width of the bright part of each cross-section.
 
         Parameters
         ----------
-        excess : (m,) float
+        excess : (m, d) float
+            Excess over the background at each disk point, one row per section.
+
+        Returns
+        -------
+        (m,) float, mm
+            Largest standard deviation of the disk points above half each row's peak (weighted by their excess over
+            it); infinite for a row without any.
+        """
+        w = np.clip(excess - 0.5 * excess.max(axis=1, keepdims=True), 0.0, None)
+        total = w.sum(axis=1)
+        safe = np.where(total > 0, total, 1.0)
+        mean = (w @ self.disk) / safe[:, None]
+        xx = (w @ self.disk[:, 0] ** 2) / safe - mean[:, 0] ** 2
+        yy = (w @ self.disk[:, 1] ** 2) / safe - mean[:, 1] ** 2
+        xy = (w @ (self.disk[:, 0] * self.disk[:, 1])) / safe - mean[:, 0] * mean[:, 1]
+        top = 0.5 * (xx + yy) + np.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)  # the 2 x 2 covariance's larger eigenvalue
+        return np.where(total > 0, np.sqrt(np.clip(top, 0.0, None)), np.inf)
+
+    def width(self, excess: np.ndarray) -> float:
+        """Return the width of the bright part of one cross-section.
+
+        Parameters
+        ----------
+        excess : (d,) float
             Excess over the background at each disk point.
 
         Returns
         -------
         float, mm
-            Largest standard deviation of the disk points above half the peak (weighted by their excess over it).
+            :meth:`widths` of that one section.
         """
-        w = np.clip(excess - 0.5 * float(excess.max()), 0.0, None)
-        if w.sum() <= 0:
-            return float("inf")
-        mean = (w[:, None] * self.disk).sum(axis=0) / w.sum()
-        cov = ((w[:, None] * (self.disk - mean)).T @ (self.disk - mean)) / w.sum()
-        return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
+        return float(self.widths(np.asarray(excess)[None, :])[0])
 
     def centre(self, p: np.ndarray, t: np.ndarray, s: _Section, prior_mm: float, spread_mm: float,
                ) -> np.ndarray | None:
