@@ -17,10 +17,10 @@ weighted by a Gaussian about the prediction); the prediction is a quadratic in a
 ``direction_window_mm`` of measured track (tip following on a circle, as a needle moves). Where the cross-section
 holds two needles (they cross), the track takes the bright blob nearest its prediction, or follows its prediction
 while the two are merged (a section too wide, or with about twice a needle's summed excess) until they part. The
-track stops where the peak excess falls below half the needle's own median for ``stop_steps`` steps. The tip is
-where the needle's integrated cross-section excess along the extrapolated axis falls to half its value in the shaft
-(linear between samples: the half-way point of a slice's partial volume is the tip for a needle crossing slices).
-The track is smoothed (a cubic smoothing
+track stops where the peak excess and the summed excess both fall below half the needle's own medians for
+``stop_steps`` steps. The tip is where the needle's integrated cross-section excess along the extrapolated axis
+falls to half its value in the shaft (linear between samples: the half-way point of a slice's partial volume is
+the tip for a needle crossing slices). The track is smoothed (a cubic smoothing
 spline per coordinate against arc length) and given from the template plane to the tip.
 """
 
@@ -494,8 +494,10 @@ def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: 
     low = 0
     while len(track) * h < settings.max_depth_mm - settings.detect_from_mm:
         s = sampler.sections(p[None, :], t)[0]
-        reference = float(np.median(peaks[-40:])) if len(peaks) >= 5 else s.peak
-        if len(peaks) >= 5 and s.peak < 0.5 * reference:
+        # the needle ends where its peak and its summed excess both fall below half their own: the peak alone
+        # dips wherever a thin lumen runs between voxel centres (partial volume), the sum does not
+        if len(peaks) >= 5 and s.peak < 0.5 * float(np.median(peaks[-40:])) \
+                and s.mass < 0.5 * float(np.median(mass[-40:])):
             low += 1
             if low >= settings.stop_steps:
                 break
