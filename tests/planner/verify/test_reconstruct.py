@@ -1,9 +1,9 @@
 """Needles found in a small post-insertion CT against their known centre lines (issue #32).
 
 A 96 x 96 x 56 CT (1 x 1 x 2.5 mm, soft tissue with a fat layer) holds three needles painted by the post-insertion
-image synthesis (metal obturator, partial volume, blur, streaks, noise) through holes of the built-in template: one
-straight along its hole, one tilted 2 degrees, one bent on a circle of 150 mm radius that ends 1.2 mm from the
-straight one's line. The finder is told no hole. Distances to the truth are checked with closed forms (a point to a
+image synthesis (metal obturator with partial volume, blur, streaks and noise; or an empty lumen) through holes of
+the built-in template: one straight along its hole, one tilted 2 degrees, one bent on a circle of 150 mm radius, all
+inside the body. The finder is told no hole. Distances to the truth are checked with closed forms (a point to a
 line, a point to a circle), not with the code's own metric.
 """
 
@@ -45,8 +45,8 @@ def _truth() -> dict[str, np.ndarray]:
     straight = HOLES["Ba"] + s[:, None] * [0.0, 0.0, 1.0]
     tilt = np.radians(2.0)
     tilted = HOLES["Bg"] + s[:, None] * [np.sin(tilt), 0.0, np.cos(tilt)]
-    a = s / RADIUS_MM  # bent toward -y (anterior) in the y-z plane, starting along +z at hole Dd
-    bent = HOLES["Dd"] + np.column_stack([np.zeros_like(a), -RADIUS_MM * (1 - np.cos(a)), RADIUS_MM * np.sin(a)])
+    a = s / RADIUS_MM  # bent toward +y (posterior, into the body) in the y-z plane, starting along +z at hole Dd
+    bent = HOLES["Dd"] + np.column_stack([np.zeros_like(a), RADIUS_MM * (1 - np.cos(a)), RADIUS_MM * np.sin(a)])
     return {"Ba": straight, "Bg": tilted, "Dd": bent}
 
 
@@ -56,16 +56,20 @@ def _outside(path: np.ndarray) -> np.ndarray:
     return np.vstack([path[0] - 20.0 * t, path])
 
 
+def _image(content: str) -> tuple[PhantomSpec, np.ndarray, dict[str, np.ndarray]]:
+    spec, truth = _spec(), _truth()
+    look = TubeLook(content=content)
+    return spec, implanted_image(spec, phantom_ct_hu(spec), [_outside(p) for p in truth.values()], look, seed=3), truth
+
+
 @pytest.fixture(scope="module")
 def case() -> tuple[PhantomSpec, np.ndarray, dict[str, np.ndarray]]:
-    spec, truth = _spec(), _truth()
-    image = implanted_image(spec, phantom_ct_hu(spec), [_outside(p) for p in truth.values()], TubeLook(), seed=3)
-    return spec, image, truth
+    return _image("metal")
 
 
 def _closed_form_distance(hole: str, pts: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    if hole == "Dd":  # the circle in the plane x = hole x, centre RADIUS_MM anterior of the hole
-        centre = HOLES["Dd"] + [0.0, -RADIUS_MM, 0.0]
+    if hole == "Dd":  # the circle in the plane x = hole x, centre RADIUS_MM posterior of the hole
+        centre = HOLES["Dd"] + [0.0, RADIUS_MM, 0.0]
         in_plane = np.hypot(pts[:, 1] - centre[1], pts[:, 2] - centre[2])
         return np.hypot(in_plane - RADIUS_MM, pts[:, 0] - centre[0])
     d = (truth[-1] - truth[0]) / np.linalg.norm(truth[-1] - truth[0])
@@ -73,10 +77,13 @@ def _closed_form_distance(hole: str, pts: np.ndarray, truth: np.ndarray) -> np.n
     return np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)
 
 
-def test_every_needle_is_found_from_its_hole_and_tracked_to_its_tip(case) -> None:
-    spec, image, truth = case
+@pytest.mark.parametrize("look", ["metal", "air"])
+def test_every_needle_is_found_from_its_hole_and_tracked_to_its_tip(case, look: str) -> None:
+    """A metal obturator (bright), and an empty lumen found as a dark line (``--needle-look dark``)."""
+    spec, image, truth = case if look == "metal" else _image(look)
     volume = Volume(image.astype(np.float32), image_grid(spec), "CT", "1.2.3", "1.2.4")
-    found = find_needles(volume, TEMPLATE, np.eye(4), FinderSettings())
+    found = find_needles(volume, TEMPLATE, np.eye(4), FinderSettings.for_image(volume, "bright" if look == "metal"
+                                                                                else "dark"))
     assert sorted(f.hole_id for f in found) == sorted(truth)  # none missed, none false among 62 holes
     for f in found:
         ref = truth[f.hole_id]
