@@ -24,7 +24,8 @@ Appearance (every number ASSUMED where no source is named; the reference materia
 * noise: white, ``noise_hu`` (12 HU, ASSUMED for a pelvis at a routine dose);
 * MR (T2-weighted-like, arbitrary units): plastic and metal give no signal; a metal core's susceptibility widens
   the void to ``mr_void_radius_mm`` (1.5 mm, ASSUMED; titanium and nitinol give small artefacts); Rician noise of
-  ``mr_noise`` (ASSUMED).
+  ``mr_noise`` (ASSUMED). Simplified: a lumen's content is not drawn in MR (a water-filled lumen 1.3 mm across would
+  show a faint bright core), nor are susceptibility distortion, flow or motion.
 """
 
 from __future__ import annotations
