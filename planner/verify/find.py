@@ -20,8 +20,9 @@ while the two are merged (a section too wide, or with about twice a needle's sum
 track stops where the peak excess and the summed excess both fall below half the needle's own medians for
 ``stop_steps`` steps. The tip is where the needle's integrated cross-section excess along the extrapolated axis
 falls to half its value in the shaft (linear between samples: the half-way point of a slice's partial volume is
-the tip for a needle crossing slices). The track is smoothed (a cubic smoothing
-spline per coordinate against arc length) and given from the template plane to the tip.
+the tip for a needle crossing slices); for a dark needle, where the larger of that and the peak excess does. The
+track is smoothed (a cubic smoothing spline per coordinate against arc length) and given from the template plane to
+the tip.
 """
 
 from __future__ import annotations
@@ -519,7 +520,7 @@ def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: 
         p, t = _predict(track, measured, window, t, h)
     pts = np.asarray(track)
     contrast = float(np.median(peaks)) if peaks else 0.0
-    tip = _tip(sampler, pts, t, contrast, h)
+    tip = _tip(sampler, pts, t, _sign(volume, settings) < 0)
     line = _smoothed(pts, tip, settings.smoothing_mm)
     line = _from_plane(line, np.asarray(entry_mm, float), t0)
     strong = float(np.mean(np.asarray(peaks) > 0.5 * contrast)) if peaks else 0.0
@@ -527,24 +528,34 @@ def track_needle(volume: Volume, hole_id: str, entry_mm: np.ndarray, direction: 
                        time.perf_counter() - start)
 
 
-def _tip(sampler: _Sampler, pts: np.ndarray, t: np.ndarray, contrast: float, h: float) -> np.ndarray:
-    """Return the tip: where the integrated excess along the track's extrapolated axis falls to half the shaft's."""
+def _tip(sampler: _Sampler, pts: np.ndarray, t: np.ndarray, with_peak: bool) -> np.ndarray:
+    """Return the tip: where the needle's signal along the track's extrapolated axis falls to half the shaft's.
+
+    The signal is the excess integrated over the cross-section (a metal core saturates the scanner's scale, so its
+    peak stays full well past the tip); for a dark needle (``with_peak``) the larger of that and the peak, each
+    against its shaft value (a background that changes around a void dims the integral, not the peak).
+    """
     end = pts[-1]
     back = pts[max(0, len(pts) - 8)]
     axis = end - back
     axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else t
     s = np.arange(-8.0, 8.0 + 1e-9, 0.25)
-    prof = sampler.integrated(end + s[:, None] * axis, axis, 1.75)
+    line = end + s[:, None] * axis
+    prof = sampler.integrated(line, axis, 1.75)
     shaft = float(np.median(prof[s <= -4.0]))
     if shaft <= 0:
         return end
-    after = np.flatnonzero((prof < 0.5 * shaft) & (s > -4.0))
+    ratio = prof / shaft
+    if with_peak:
+        peaks = np.array([sec.peak for sec in sampler.sections(line, axis)])
+        ratio = np.maximum(ratio, peaks / max(float(np.median(peaks[s <= -4.0])), 1e-9))
+    after = np.flatnonzero((ratio < 0.5) & (s > -4.0))
     if not len(after):
         return np.asarray(end + s[-1] * axis)
     k = int(after[0])
     if k == 0:
         return end
-    f = float(np.clip((prof[k - 1] - 0.5 * shaft) / max(prof[k - 1] - prof[k], 1e-9), 0.0, 1.0))
+    f = float(np.clip((ratio[k - 1] - 0.5) / max(ratio[k - 1] - ratio[k], 1e-9), 0.0, 1.0))
     return np.asarray(end + (s[k - 1] + f * (s[k] - s[k - 1])) * axis)
 
 
