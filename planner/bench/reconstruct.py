@@ -10,8 +10,9 @@ commands run through the installed ``reachplan`` entry point, so the DICOM round
 Acceptance (issue #32): every needle found, none false, mean tip error <= 1.0 mm and mean shaft distance <= 0.7 mm
 on CT; MR with a looser bound (:data:`MR_LIMITS_MM`).
 
-Run: ``reachplan bench reconstruct --out DIR [--quick] [--cases N] [--modality CT|MR|both] [--plans DIR]
-[--install]``. Writes ``reconstruct_benchmark.csv`` (one row per needle), ``reconstruct_benchmark_summary.csv`` (per
+Run: ``reachplan bench reconstruct --out DIR [--quick] [--cases N] [--modality CT|MR|both] [--draws N]
+[--content metal|air|fluid] [--plans DIR] [--install]`` (``--draws``: deviations drawn per case, draw seeds
+0 .. N-1). Writes ``reconstruct_benchmark.csv`` (one row per needle), ``reconstruct_benchmark_summary.csv`` (per
 modality) and ``reconstruct_benchmark.png``; ``--install`` copies them to ``docs/speed/``.
 """
 
@@ -43,10 +44,17 @@ class ReconstructBenchSettings:
         Clinical seeds 0 .. cases - 1.
     modality : str
         ``"CT"``, ``"MR"`` or ``"both"``.
+    draws : int
+        Draws of the needles' deviations per case (``--draw-seed`` 0 .. draws - 1).
+    content : str
+        What fills the needles (``--needle-content``): ``"metal"``, ``"air"`` or ``"fluid"``; an empty lumen is
+        found as a dark line (``--needle-look dark``).
     """
 
     cases: int = 5
     modality: str = "both"
+    draws: int = 1
+    content: str = "metal"
 
 
 INSTALLS = {name: f"docs/speed/{name}" for name in
@@ -78,7 +86,8 @@ def _plan(seed: int, plans: Path | None, out: Path) -> Path:
     return folder / "plan.json"
 
 
-def measure_case(plan_json: Path, seed: int, modality: str, out: Path) -> list[dict[str, object]]:
+def measure_case(plan_json: Path, seed: int, modality: str, out: Path, draw: int = 0,
+                 content: str = "metal") -> list[dict[str, object]]:
     """Image one plan's implant, reconstruct it and compare each needle with the truth.
 
     Parameters
@@ -91,6 +100,10 @@ def measure_case(plan_json: Path, seed: int, modality: str, out: Path) -> list[d
         ``"CT"`` or ``"MR"``.
     out : Path
         Where the image and the reconstruction go.
+    draw : int
+        The deviations' seed (``--draw-seed``).
+    content : str
+        What fills the needles (``--needle-content``).
 
     Returns
     -------
@@ -99,10 +112,12 @@ def measure_case(plan_json: Path, seed: int, modality: str, out: Path) -> list[d
         error (mm), seconds; and planned versus actual (tip error, largest lateral deviation, mm) from the truth and
         from the needle found.
     """
-    post, rec = out / f"post{seed}_{modality}", out / f"rec{seed}_{modality}"
-    _reachplan("phantom", "--out", str(post), "--implanted", str(plan_json), "--modality", modality)
+    tag = f"{seed}_{modality}" + (f"_d{draw}" if draw else "") + ("" if content == "metal" else f"_{content}")
+    post, rec = out / f"post{tag}", out / f"rec{tag}"
+    _reachplan("phantom", "--out", str(post), "--implanted", str(plan_json), "--modality", modality,
+               "--draw-seed", str(draw), "--needle-content", content)
     _reachplan("reconstruct", "--ct", str(post / modality), "--rtstruct", str(post / "RS.phantom.dcm"),
-               "--out", str(rec))
+               "--out", str(rec), *(["--needle-look", "dark"] if content != "metal" else []))
     truth = json.loads((post / "needles_truth.json").read_text(encoding="utf-8"))
     found_doc = json.loads((rec / "needles.json").read_text(encoding="utf-8"))
     kinds = {n["hole_id"]: ("extra" if n["extra"] else n["kind"]) for n in truth["needles"]}
@@ -202,7 +217,8 @@ def _figure(rows: list[dict[str, object]], summaries: list[dict[str, object]]) -
         ax.set_title(f"{label}: mean (black) and limit (dashed)", fontsize=9)
     fig.axes[0].legend(fontsize=7)
     fig.suptitle("needles found against the truth, clinical seeds " + ", ".join(
-        sorted({str(r["seed"]) for r in rows})), fontsize=10)
+        sorted({str(r["seed"]) for r in rows})) + f", {len({r.get('draw', 0) for r in rows})} draw(s) each",
+        fontsize=10)
     fig.tight_layout()
     return fig
 
@@ -222,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
     """
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    chosen = settings(args, ReconstructBenchSettings(), ReconstructBenchSettings(1, "CT"))
+    chosen = settings(args, ReconstructBenchSettings(), ReconstructBenchSettings(1, "CT", 1))
     modality = chosen.modality.upper()
     if modality not in ("CT", "MR", "BOTH"):
         raise BenchError(f"--modality must be CT, MR or both, got {chosen.modality!r}")
@@ -230,14 +246,18 @@ def run(args: argparse.Namespace) -> int:
     cases = chosen.cases
     plans = Path(args.plans) if args.plans is not None else None
     rows: list[dict[str, object]] = []
+    if chosen.content not in ("metal", "air", "fluid") or chosen.draws < 1:
+        raise BenchError(f"--content must be metal, air or fluid and --draws >= 1, got {chosen.content!r}, "
+                         f"{chosen.draws}")
     for seed in range(cases):
         plan_json = _plan(seed, plans, out)
         for mod in modalities:
-            rows += measure_case(plan_json, seed, mod, out)
+            for draw in range(chosen.draws):
+                rows += [{**r, "draw": draw} for r in measure_case(plan_json, seed, mod, out, draw, chosen.content)]
     summaries = [summarise(rows, mod) for mod in modalities]
-    header = ["seed", "modality", "hole", "kind", "found", "false", "tip_error_mm", "shaft_mean_mm", "shaft_max_mm",
-              "depth_error_mm", "seconds", "plan_tip_true_mm", "plan_tip_found_mm", "plan_lateral_true_mm",
-              "plan_lateral_found_mm"]
+    header = ["seed", "draw", "modality", "hole", "kind", "found", "false", "tip_error_mm", "shaft_mean_mm",
+              "shaft_max_mm", "depth_error_mm", "seconds", "plan_tip_true_mm", "plan_tip_found_mm",
+              "plan_lateral_true_mm", "plan_lateral_found_mm"]
     write_csv(out / "reconstruct_benchmark.csv", header, rows)
     write_csv(out / "reconstruct_benchmark_summary.csv", list(summaries[0]), summaries)
     write_png(out / "reconstruct_benchmark.png", _figure(rows, summaries))

@@ -116,6 +116,8 @@ TARGETS: tuple[Target, ...] = (
            "truth: tip error, shaft distance, found and false (issue #32)",
            (Option("--cases", int, "clinical seeds 0 .. N-1 (5; quick 1)"),
             Option("--modality", str, "CT, MR or both (both; quick CT)"),
+            Option("--draws", int, "deviations drawn per case, draw seeds 0 .. N-1 (1)"),
+            Option("--content", str, "what fills the needles: metal, air or fluid (metal)"),
             Option("--plans", Path, "folder holding demo<seed>/plan.json (default: run the demo per seed into "
                    "--out)"))),
 )
