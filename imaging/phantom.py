@@ -202,7 +202,7 @@ class PhantomFiles:
 
 
 def write_phantom(out_dir: Path, spec: PhantomSpec | None = None, beside: Mapping[str, bytes] | None = None,
-                  ) -> PhantomFiles:
+                  values: np.ndarray | None = None) -> PhantomFiles:
     """Write the phantom as a DICOM CT series and an RT Structure Set.
 
     Files: ``out_dir/CT/CT.0001.dcm ...`` (``out_dir/MR/MR.0001.dcm ...`` for an MR spec) and
@@ -222,6 +222,9 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None, beside: Mappin
     beside : mapping of str to bytes, optional
         More files for ``out_dir`` (name -> content, e.g. the clinical case's ``case.json``), written with the
         series; one that exists is replaced only when reachplan wrote it.
+    values : (n_slices, matrix, matrix) int16, optional
+        The image to write (HU, or MR signal), e.g. with needles painted in
+        (:func:`reachplan.imaging.implanted.implanted_image`); None: :func:`phantom_ct_hu` of ``spec``.
 
     Returns
     -------
@@ -251,7 +254,7 @@ def write_phantom(out_dir: Path, spec: PhantomSpec | None = None, beside: Mappin
             "refusing to overwrite: choose an empty or new --out folder"
         )
     ct, encoded = [], []
-    for name, data, ref in image_files(spec, phantom_ct_hu(spec)):
+    for name, data, ref in image_files(spec, phantom_ct_hu(spec) if values is None else values):
         encoded.append((ct_dir / name, data))
         ct.append(ref)
     encoded.append((rs_path, encode(rtstruct_dataset(spec, ct))))

@@ -36,6 +36,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "reachplan.planner.cli.dose",
     "reachplan.planner.cli.plugins",
     "reachplan.planner.cli.study",
+    "reachplan.planner.cli.reconstruct",
 )
 
 #: Exit code of an unexpected exception (a bug): EX_SOFTWARE of sysexits.h.

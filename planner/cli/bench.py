@@ -112,6 +112,14 @@ TARGETS: tuple[Target, ...] = (
            (Option("--repeat", int, "demo runs, the medians are reported (3; quick 1 of the pilot phantom)"),)),
     Target("band", "band", "the tissue band's rod model against the reference rod: tip change over the modulus band, "
            "CPU per solve"),
+    Target("reconstruct", "reconstruct", "needles found in post-insertion CT/MR of the demo's implants against the "
+           "truth: tip error, shaft distance, found and false (issue #32)",
+           (Option("--cases", int, "clinical seeds 0 .. N-1 (5; quick 1)"),
+            Option("--modality", str, "CT, MR or both (both; quick CT)"),
+            Option("--draws", int, "deviations drawn per case, draw seeds 0 .. N-1 (1)"),
+            Option("--content", str, "what fills the needles: metal, air or fluid (metal)"),
+            Option("--plans", Path, "folder holding demo<seed>/plan.json (default: run the demo per seed into "
+                   "--out)"))),
 )
 
 

@@ -40,6 +40,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True,
                         help="output folder (images in OUT/CT or OUT/MR, structures in OUT/RS.phantom.dcm)")
     add_case_arguments(parser)
+    post = parser.add_argument_group(
+        "post-insertion image", "the case a plan was made on, imaged with the plan's needles in, each drawn off its "
+        "plan by the planner's uncertainty model; the truth in OUT/needles_truth.json")
+    post.add_argument("--implanted", type=Path, metavar="PLAN_JSON",
+                      help="a plan.json of the clinical case (demo, or plan on its files): image its delivered implant")
+    post.add_argument("--extra-needles", type=int, default=2, metavar="N",
+                      help="straight needles added through free holes (default 2)")
+    post.add_argument("--needle-content", choices=("metal", "air", "fluid"), default="metal",
+                      help="what fills the needles: the metal obturator or stylet (default), or an empty (air) or "
+                           "water-filled lumen")
+    post.add_argument("--draw-seed", type=int, default=0,
+                      help="seed of the needles' deviations and the image noise (default 0)")
     parser.add_argument("--json", action="store_true", help="print the written paths and the analytic volumes as JSON")
 
 
@@ -97,7 +109,9 @@ def run(args: argparse.Namespace) -> int:
     int
         0 once the files are written.
     """
-    output_folder(args.out)
+    output_folder(args.out, [args.implanted])
+    if args.implanted is not None:
+        return _run_implanted(args)
     with writing(args.out):  # a full disk or a read-only place: a typed error; nothing new is left
         files, spec, about = write_case(args, args.out)
     if args.json:
@@ -116,4 +130,29 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"wrote {spec.n_slices} {spec.modality} slices to {files.ct_dir} and {len(spec.structures)} ROIs to "
               f"{files.rtstruct_path}")
+    return 0
+
+
+def _run_implanted(args: argparse.Namespace) -> int:
+    """``--implanted``: write the post-insertion image of a plan's case and its truth; return 0."""
+    from reachplan.imaging.files import json_bytes
+    from reachplan.imaging.phantom import write_phantom
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.verify.implant import implanted_case
+
+    if args.case != "clinical" or args.extra_needles < 0 or args.draw_seed < 0:
+        raise PlanInputError("--implanted images the clinical case; --extra-needles and --draw-seed must be >= 0")
+    post = implanted_case(args.implanted, args.modality, args.extra_needles, args.needle_content, args.draw_seed,
+                          args.seed)
+    with writing(args.out):
+        files = write_phantom(args.out, post.spec, beside={"needles_truth.json": json_bytes(post.truth)},
+                              values=post.image)
+    doc = {"ct_dir": str(files.ct_dir), "rtstruct_path": str(files.rtstruct_path),
+           "truth_path": str(args.out / "needles_truth.json"), "modality": post.spec.modality,
+           "needles": [d.needle.hole_id for d in post.drawn]}
+    if args.json:
+        print_json(doc, NAME)
+    elif not args.quiet:
+        print(f"wrote {post.spec.n_slices} post-insertion {post.spec.modality} slices with {len(post.drawn)} needles "
+              f"({', '.join(doc['needles'])}) to {files.ct_dir}; the truth in {doc['truth_path']}")
     return 0

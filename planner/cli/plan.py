@@ -67,6 +67,30 @@ def _needle_count(text: str) -> int:
     return value
 
 
+def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--template`` and the template pose options (shared with ``reconstruct``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser.
+    """
+    parser.add_argument("--template", default="needlefinder_syed_63", help="template plugin name")
+    pose = parser.add_argument_group(
+        "template pose", "where the template sits; without these it is fitted to the Obturator (vaginal cylinder) "
+        "ROI. Template +x is the patient's left made perpendicular to the axis (posterior when the axis is "
+        "within 10 degrees of left-right)")
+    pose.add_argument("--template-origin", metavar="X,Y,Z",
+                      help="template centre (the obturator axis on the template plane), mm, LPS")
+    pose.add_argument("--template-axis", metavar="X,Y,Z", help="insertion direction (LPS, any length)")
+    pose.add_argument("--template-pose", type=Path, metavar="FILE",
+                      help="rigid 4x4 patient_from_template (mm, LPS): JSON (a 4x4 list, or an object with "
+                           "'patient_from_template', e.g. a previous plan.json's 'template_pose') or 4 text rows")
+    pose.add_argument("--rtplan", type=Path, metavar="FILE",
+                      help="brachy RT Plan of the same Frame of Reference: the template is placed on its "
+                           "obturator or tandem channel")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``plan`` options to ``parser``.
 
@@ -88,20 +112,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "to its points; a point must lie inside the images and the body contour")
     parser.add_argument("--allow-outside-body", action="store_true",
                         help="plan target points that lie outside the image volume or the body contour")
-    parser.add_argument("--template", default="needlefinder_syed_63", help="template plugin name")
-    pose = parser.add_argument_group(
-        "template pose", "where the template sits; without these it is fitted to the Obturator (vaginal cylinder) "
-        "ROI. Template +x is the patient's left made perpendicular to the axis (posterior when the axis is "
-        "within 10 degrees of left-right)")
-    pose.add_argument("--template-origin", metavar="X,Y,Z",
-                      help="template centre (the obturator axis on the template plane), mm, LPS")
-    pose.add_argument("--template-axis", metavar="X,Y,Z", help="insertion direction (LPS, any length)")
-    pose.add_argument("--template-pose", type=Path, metavar="FILE",
-                      help="rigid 4x4 patient_from_template (mm, LPS): JSON (a 4x4 list, or an object with "
-                           "'patient_from_template', e.g. a previous plan.json's 'template_pose') or 4 text rows")
-    pose.add_argument("--rtplan", type=Path, metavar="FILE",
-                      help="brachy RT Plan of the same Frame of Reference: the template is placed on its "
-                           "obturator or tandem channel")
+    add_pose_arguments(parser)
     parser.add_argument("--oar", action="append", default=[], metavar="ORGAN=ROI_NAME",
                         help="use ROI_NAME as organ at risk ORGAN (e.g. Rectum=Rect_PRV); repeatable; an ORGAN "
                              "outside the default list (Bladder, Rectum, Sigmoid, Bowel, Bone) is added to it")

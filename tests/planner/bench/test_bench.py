@@ -58,7 +58,7 @@ def _assert_real_png(path: Path) -> None:
 def test_every_target_is_a_subcommand_installed_with_the_package(capsys: pytest.CaptureFixture[str]) -> None:
     assert [t.name for t in bench.TARGETS] == ["models", "planning", "dose", "imaging", "study", "studycost", "startup",
                                               "firstrun", "distance", "dosekernel", "implant", "report", "factors",
-                                              "joints", "fidelity", "demo", "band"]
+                                              "joints", "fidelity", "demo", "band", "reconstruct"]
     for target in bench.TARGETS:
         module = bench._load(target.module)
         assert callable(module.run)

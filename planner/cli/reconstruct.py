@@ -1,0 +1,145 @@
+"""``reachplan reconstruct``: find the needles in a post-insertion CT or MR, from the template's holes to their tips.
+
+Writes ``needles.json``, ``RS_needles.dcm`` (the needles as BRACHY_CHANNEL open ROIs) and ``report.html`` into
+``--out``; with ``--plan``, each needle is compared with its planned path.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from reachplan.planner.cli.edges import output_folder, print_json, staged_folder
+from reachplan.planner.cli.plan import add_pose_arguments
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from reachplan.imaging.types import StructureSet
+    from reachplan.planner.verify.compare import Matching
+
+NAME = "reconstruct"
+HELP = ("find the needles in a post-insertion CT/MR from the template's holes (none named) to their tips; write "
+        "needles.json, an RT Structure Set and a report")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the ``reconstruct`` options.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The sub-command's parser.
+    """
+    parser.add_argument("--ct", type=Path, required=True, help="the post-insertion CT (or MR) series folder")
+    parser.add_argument("--rtstruct", type=Path, required=True,
+                        help="its RT Structure Set (the Obturator ROI places the template unless a pose is given)")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--plan", type=Path, metavar="PLAN_JSON",
+                        help="the plan.json the needles were inserted from: planned versus actual per needle")
+    add_pose_arguments(parser)
+    parser.add_argument("--needle-look", choices=("auto", "bright", "dark"), default="auto",
+                        help="bright: a metal obturator or stylet (CT); dark: a signal void (MR) or an empty lumen; "
+                             "auto: bright on CT, dark on MR")
+    parser.add_argument("--json", action="store_true", help="print needles.json's summary as JSON")
+
+
+def _pose(args: argparse.Namespace, structures: StructureSet) -> tuple[np.ndarray, str]:
+    """Return the template pose as ``plan`` finds it: given on the command line, else fitted to the Obturator ROI."""
+    from reachplan.planner.case.config import PlanConfig
+    from reachplan.planner.cli.plan import template_pose
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.geometry.template import pose_from_obturator
+
+    config = PlanConfig(template=args.template)
+    given = template_pose(args, structures, config)
+    if given is not None:
+        return given.patient_from_template, given.method
+    if "Obturator" not in structures.names:
+        raise PlanInputError("no Obturator ROI to place the template on; give the pose with --template-origin "
+                             "X,Y,Z --template-axis X,Y,Z, --template-pose FILE or --rtplan FILE")
+    m = pose_from_obturator(structures.get("Obturator"), config.obturator_depth_mm)
+    return m, f"fitted to ROI 'Obturator' (template {config.obturator_depth_mm:g} mm behind its cranial tip)"
+
+
+def _versus_plan(versus: Matching) -> dict[str, object]:
+    """Return the needles against the plan for needles.json: counts, means and per needle errors (mm)."""
+    doc = versus.summary()
+    doc["planned_not_found"] = doc.pop("missed")
+    doc["found_not_planned"] = doc.pop("false")
+    return {**doc, "needles": [e.to_json() for e in versus.errors]}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Find the needles and write what was found; return 0.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The ``reconstruct`` options.
+
+    Returns
+    -------
+    int
+        0 once the files are written.
+    """
+    import json
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from reachplan.imaging.dicom_io import read_series
+    from reachplan.imaging.files import atomic_write_bytes, json_bytes
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.lookup import load_template
+    from reachplan.planner.report.html import Report, render_html
+    from reachplan.planner.report.reconstruction import reconstruction_section
+    from reachplan.planner.verify.compare import match
+    from reachplan.planner.verify.find import FinderSettings, detect_holes, find_needles
+    from reachplan.planner.verify.implant import delivered_needles, plan_channel_paths, planned_paths
+    from reachplan.planner.verify.outputs import needles_document, needles_rtstruct
+
+    output_folder(args.out, [args.ct, args.rtstruct, args.plan])
+    template = load_template(args.template)
+    volume = read_series(args.ct)
+    structures = read_rtstruct(args.rtstruct, volume)
+    pose, method = _pose(args, structures)
+    settings = FinderSettings.for_image(volume, args.needle_look)
+    quiet = args.quiet or args.json
+    holes = detect_holes(volume, template, pose, settings)
+    with tqdm(total=len(holes), desc="needles", unit="needle", disable=quiet, leave=False) as bar:
+        found = find_needles(volume, template, pose, settings, progress=lambda _h: bar.update(1), detected=holes)
+    planned = None
+    versus = None
+    if args.plan is not None:
+        try:
+            doc = json.loads(args.plan.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise PlanInputError(f"cannot read --plan {args.plan}: {exc}") from None
+        planned = planned_paths(delivered_needles(doc), template, pose, plan_channel_paths(args.plan, doc))
+        versus = match(found, planned)
+    about = (f"{volume.modality} series {args.ct.name}; template {template.name} {method}; "
+             f"{len(template.needle_holes)} holes tested, {len(found)} needles found and tracked to their tips.")
+    summary = {"found": len(found), "holes": [f.hole_id for f in found],
+               "seconds_per_needle": round(float(np.mean([f.seconds for f in found])), 3) if found else None}
+    doc_out = needles_document(found, {
+        "image": str(args.ct), "modality": volume.modality, "template": template.name,
+        "template_pose": {"method": method, "patient_from_template": np.round(pose, 6).tolist()},
+        "settings": {"polarity": settings.polarity, "step_mm": settings.step_mm},
+        "versus_plan": None if versus is None else _versus_plan(versus),
+        "summary": summary})
+    section = reconstruction_section(volume, found, about, planned, versus)
+    html = render_html(Report("reachplan: needles found", about, (section,)))
+    with staged_folder(args.out) as stage:
+        atomic_write_bytes(stage / "needles.json", json_bytes(doc_out))
+        if found:
+            atomic_write_bytes(stage / "RS_needles.dcm", needles_rtstruct(found, volume))
+        atomic_write_bytes(stage / "report.html", html.encode("utf-8"))
+    if args.json:
+        print_json({**summary, "versus_plan": doc_out["versus_plan"], "out": str(args.out)}, NAME)
+    elif not args.quiet:
+        print(f"found {len(found)} needles ({', '.join(f.hole_id for f in found)}); wrote needles.json, "
+              f"RS_needles.dcm and report.html to {args.out}")
+    return 0
