@@ -37,6 +37,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "reachplan.planner.cli.plugins",
     "reachplan.planner.cli.study",
     "reachplan.planner.cli.reconstruct",
+    "reachplan.planner.cli.calibrate",
 )
 
 #: Exit code of an unexpected exception (a bug): EX_SOFTWARE of sysexits.h.

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from reachplan.planner.cli.edges import output_folder, print_json, writing
+from reachplan.planner.cli.edges import finite_float, output_folder, print_json, writing
 
 NAME = "phantom"
 HELP = "write a built-in case (clinical by default, or the pilot phantom) as DICOM: image series + RT Structure Set"
@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            "water-filled lumen")
     post.add_argument("--draw-seed", type=int, default=0,
                       help="seed of the needles' deviations and the image noise (default 0)")
+    post.add_argument("--curvature-scale", type=finite_float, default=1.0, metavar="RATIO",
+                      help="the tissue bends each steered needle RATIO times as much as the plan's model (its "
+                           "departure from its hole's axis scaled; default 1): a tissue for 'reachplan calibrate'")
     parser.add_argument("--json", action="store_true", help="print the written paths and the analytic volumes as JSON")
 
 
@@ -142,8 +145,10 @@ def _run_implanted(args: argparse.Namespace) -> int:
 
     if args.case != "clinical" or args.extra_needles < 0 or args.draw_seed < 0:
         raise PlanInputError("--implanted images the clinical case; --extra-needles and --draw-seed must be >= 0")
+    if not 0.2 <= args.curvature_scale <= 5.0:
+        raise PlanInputError(f"--curvature-scale must be a ratio in [0.2, 5], got {args.curvature_scale:g}")
     post = implanted_case(args.implanted, args.modality, args.extra_needles, args.needle_content, args.draw_seed,
-                          args.seed)
+                          args.seed, args.curvature_scale)
     with writing(args.out):
         files = write_phantom(args.out, post.spec, beside={"needles_truth.json": json_bytes(post.truth)},
                               values=post.image)

@@ -126,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
                "seconds_per_needle": round(float(np.mean([f.seconds for f in found])), 3) if found else None}
     doc_out = needles_document(found, {
         "image": str(args.ct), "modality": volume.modality, "template": template.name,
+        "plan": None if args.plan is None else str(args.plan.resolve()),
         "template_pose": {"method": method, "patient_from_template": np.round(pose, 6).tolist()},
         "settings": {"polarity": settings.polarity, "step_mm": settings.step_mm},
         "versus_plan": None if versus is None else _versus_plan(versus),

@@ -1,23 +1,27 @@
-"""Learning the tissue: the in-tissue curvature factor fitted to steered needles found after insertion.
+"""Learning the tissue: the in-tissue curvature fitted to steered needles found after insertion.
 
-The kinematic insertion model turns a steered needle's path at the joint section's free-space curvature times a
-curvature factor (:mod:`reachplan.planner.steering.factors`), fitted to the in-tissue rod in the phantom's gel
-(0.19 MPa): no real insertion has checked it. A steered needle found in the post-insertion image (its centre line
-from the template's hole to its tip) is exactly the evidence that would: this module fits, per needle, the factor
-that makes the kinematic model's path through the plan's schedule match the found one, and pools the needles of
-one design into a site's estimate with its uncertainty.
+The planner's insertion models bend a steered needle by an in-tissue curvature that no real insertion has checked:
+the kinematic model's curvature factor (:mod:`reachplan.planner.steering.factors`) and the in-tissue rod are
+fitted to, or set by, the phantom's gel (0.19 MPa). A steered needle found in the post-insertion image (its
+centre line from the template's hole to its tip) is exactly the evidence that would check them: this module
+fits, per needle, the ratio by which its path departs from its hole's axis more (or less) than the plan's path of
+the same schedule did, and pools the needles of one design into a site's ratio with its uncertainty. The site's
+curvature factor is the plan's times that ratio; ``plan --calibration`` applies it to every insertion model
+(:class:`~reachplan.planner.steering.kinematic.KinematicInsertion`,
+:class:`~reachplan.planner.steering.tissue_rod.TissueRodInsertion`: ``curvature_scale``).
 
 Per needle (:func:`fit_needle`)
     Least squares on the found centre line in the template frame of its hole (hole at the origin, the hole's axis
-    +z): the lateral position at each found point's depth against the kinematic path's at the same depth, with
-    the factor, a roll offset (the bending plane as the hand set it) and an entry tilt (a lateral offset growing
-    linearly with depth) as unknowns. The roll and the tilt are nuisances the planner's own perturbation model
-    draws (:class:`~reachplan.planner.steering.robustness.Perturbations`); a tension error is not separable
-    from the factor (both scale the curvature) and is averaged out over needles.
+    +z): its lateral position at each found point's depth against the planned path's lateral position at the same
+    depth times the ratio, turned by a roll offset (the bending plane as the hand set it), plus an entry tilt (a
+    lateral offset growing linearly with depth). The roll and the tilt are nuisances the planner's own
+    perturbation model draws (:class:`~reachplan.planner.steering.robustness.Perturbations`); a tension error is
+    not separable from the ratio (both scale the curvature) and is averaged out over needles. For the kinematic
+    model the lateral departure is linear in the curvature factor to second order in the path's angle (a
+    15 % change of factor is recovered within 1 % on a 100 mm insertion that turns 17 degrees).
 Pooled (:func:`pool`)
-    The mean of the needles' factor ratios (found over planned), with a Student-t 95 % interval over the needles
-    (their spread includes each needle's tension error, roll and reconstruction error); one needle gives no
-    interval.
+    The mean of the needles' ratios, with a Student-t 95 % interval over the needles (their spread includes each
+    needle's tension error, roll and reconstruction error); one needle gives no interval.
 """
 
 from __future__ import annotations
@@ -29,9 +33,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from reachplan.planner.errors import PlanInputError
-from reachplan.planner.steering.kinematic import KinematicInsertion
-from reachplan.planner.steering.schedule import TensionSchedule
-from reachplan.rod_model.design import preset
 
 #: Fewest found points (about 1 mm apart) a needle's fit uses.
 MIN_POINTS = 10
@@ -52,23 +53,25 @@ class FoundSteered:
         Its template hole.
     design : str
         The stylet preset.
-    modulus_pa : float, Pa
-        The tissue modulus the plan used at its target (the planned factor's modulus).
-    depth_mm : float, mm
-        The planned inserted length.
-    schedule : TensionSchedule
-        The plan's tension (N) and roll (deg) against depth (mm), template frame.
+    planned_factor : float
+        The curvature factor of the planner's kinematic model for the design at the plan's tissue modulus, without
+        a site calibration (the site's factor is this times the ratio).
+    planned_mm : (k, 3) float, mm, template frame of its hole
+        The plan's centre line, hole (origin) to tip, the hole's axis +z.
     found_mm : (n, 3) float, mm, template frame of its hole
-        The found centre line: hole at the origin, the hole's axis +z, the template's x and y.
+        The found centre line, in the same frame.
+    plan_scale : float
+        The site calibration the plan itself applied to the design (``curvature_scale``; 1: none): the fitted
+        factor is the plan's factor times it times the fitted ratio.
     """
 
     source: str
     hole_id: str
     design: str
-    modulus_pa: float
-    depth_mm: float
-    schedule: TensionSchedule
+    planned_factor: float
+    planned_mm: np.ndarray
     found_mm: np.ndarray
+    plan_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -129,62 +132,51 @@ def _lateral_at(path_mm: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
     return np.column_stack([np.interp(z_mm, z[keep], path_mm[keep, i]) for i in (0, 1)])
 
 
-def fit_needle(needle: FoundSteered, fast: KinematicInsertion | None = None) -> NeedleFit:
-    """Fit the curvature factor, a roll offset and an entry tilt that make the kinematic path the found one.
+def fit_needle(needle: FoundSteered) -> NeedleFit:
+    """Fit the ratio, a roll offset and an entry tilt that make the planned path's departure the found one's.
 
     Parameters
     ----------
     needle : FoundSteered
         The needle as planned and found.
-    fast : KinematicInsertion or None
-        The kinematic model whose factor is fitted (its factor at ``needle.modulus_pa`` is the planned one);
-        None: the planner's, at the needle's modulus.
 
     Returns
     -------
     NeedleFit
-        The fitted factor and nuisances.
+        The fitted factor (the plan's times the ratio) and nuisances.
 
     Raises
     ------
     PlanInputError
-        Too few found points, a found line that does not go in along the hole's axis, or a planned path too
-        straight to tell the factor (:data:`MIN_DEFLECTION_MM`).
+        Too few found points along the planned depths, or a planned path too straight to tell the curvature
+        (:data:`MIN_DEFLECTION_MM`).
     """
     from scipy.optimize import least_squares
 
-    design = preset(needle.design)
-    model = fast or KinematicInsertion(tissue_modulus_pa=needle.modulus_pa)
-    planned_factor = model.factor_for(design)
-    found = np.asarray(needle.found_mm, dtype=float)
+    found = np.asarray(needle.found_mm, dtype=float).reshape(-1, 3)
+    planned = np.asarray(needle.planned_mm, dtype=float).reshape(-1, 3)
     z = found[:, 2]
-    use = (z > 1.0) & (z <= needle.depth_mm + 1.0)
-    if found.ndim != 2 or found.shape[1] != 3 or int(use.sum()) < MIN_POINTS:
+    use = (z > 1.0) & (z <= planned[-1, 2])
+    if int(use.sum()) < MIN_POINTS or len(planned) < 2:
         raise PlanInputError(f"needle {needle.hole_id} ({needle.source}): {int(use.sum())} found points along its "
-                             f"hole's axis; a fit needs at least {MIN_POINTS}")
+                             f"planned depths; a fit needs at least {MIN_POINTS}")
     z, xy = z[use], found[use, :2]
-
-    def path(factor: float) -> np.ndarray:
-        m = KinematicInsertion(tissue_modulus_pa=model.tissue_modulus_pa, tissue_factor=factor,
-                               rod_model=model.rod_model, step_mm=model.step_mm)
-        return m.insert_array(design, [needle.schedule], needle.depth_mm)[0]
-
-    planned = _lateral_at(path(planned_factor), z)
-    if float(np.max(np.linalg.norm(planned, axis=1))) < MIN_DEFLECTION_MM:
+    lateral = _lateral_at(planned, z)
+    if float(np.max(np.linalg.norm(lateral, axis=1))) < MIN_DEFLECTION_MM:
         raise PlanInputError(f"needle {needle.hole_id} ({needle.source}): its planned path departs less than "
-                             f"{MIN_DEFLECTION_MM:g} mm from its hole's axis; it tells nothing of the factor")
+                             f"{MIN_DEFLECTION_MM:g} mm from its hole's axis; it tells nothing of the curvature")
 
     def residual(p: np.ndarray) -> np.ndarray:
         c, s = math.cos(math.radians(p[1])), math.sin(math.radians(p[1]))
-        lat = _lateral_at(path(planned_factor * p[0]), z) @ np.array([[c, s], [-s, c]])
-        return (xy - lat - np.outer(z, p[2:4])).ravel()
+        return (xy - p[0] * lateral @ np.array([[c, s], [-s, c]]) - np.outer(z, p[2:4])).ravel()
 
     fit = least_squares(residual, np.array([1.0, 0.0, 0.0, 0.0]), bounds=([0.2, -45.0, -0.1, -0.1],
                                                                           [5.0, 45.0, 0.1, 0.1]),
-                        x_scale=np.array([0.1, 5.0, 0.01, 0.01]), diff_step=1e-4)
+                        x_scale=np.array([0.1, 5.0, 0.01, 0.01]))
     r = fit.fun.reshape(-1, 2)
-    return NeedleFit(needle.source, needle.hole_id, needle.design, planned_factor, planned_factor * float(fit.x[0]),
-                     float(fit.x[1]), math.degrees(math.atan(float(np.hypot(*fit.x[2:4])))),
+    return NeedleFit(needle.source, needle.hole_id, needle.design, needle.planned_factor,
+                     needle.planned_factor * needle.plan_scale * float(fit.x[0]), float(fit.x[1]),
+                     math.degrees(math.atan(float(np.hypot(*fit.x[2:4])))),
                      float(np.sqrt(np.mean((r**2).sum(axis=1)))), len(z))
 
 
@@ -233,9 +225,9 @@ class FactorEstimate:
 
 
 #: How :func:`pool` combines needles, in words (written with every estimate).
-POOL_METHOD = ("per needle: least squares of the found centre line's lateral position against the kinematic "
-               "path (factor, roll offset, entry tilt); pooled: mean of the needles' ratios, Student-t 95 % "
-               "interval over needles")
+POOL_METHOD = ("per needle: least squares of the found centre line's departure from its hole's axis against the "
+               "planned path's times a ratio (with a roll offset and an entry tilt); pooled: mean of the needles' "
+               "ratios, Student-t 95 % interval over needles")
 
 
 def pool(fits: Sequence[NeedleFit]) -> list[FactorEstimate]:

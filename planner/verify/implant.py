@@ -210,7 +210,8 @@ def planned_paths(needles: Sequence[PlannedNeedle], template: Template, patient_
 
 def draw_needles(needles: Sequence[PlannedNeedle], template: Template, patient_from_template: np.ndarray,
                  perturbations: Mapping[str, float], seed: int,
-                 planned_paths: Mapping[str, np.ndarray] | None = None) -> list[DrawnNeedle]:
+                 planned_paths: Mapping[str, np.ndarray] | None = None,
+                 curvature_scale: float = 1.0) -> list[DrawnNeedle]:
     """Draw where each needle really goes (module docstring), one seeded draw per needle.
 
     Parameters
@@ -229,6 +230,10 @@ def draw_needles(needles: Sequence[PlannedNeedle], template: Template, patient_f
         The plan's own centre lines by hole (hole to tip, e.g. its exported channels); a needle without one is
         planned by the kinematic model. The tension and roll errors are added to it as the kinematic model's
         change (the planner's robustness check does the same).
+    curvature_scale : float
+        The tissue bends every steered needle this many times as much as the plan's model did: its planned path's
+        departure from its hole's axis (the template frame's x and y) is scaled by it before the draw (a tissue to
+        learn from, ``reachplan calibrate``; 1: the plan's tissue).
 
     Returns
     -------
@@ -259,12 +264,15 @@ def draw_needles(needles: Sequence[PlannedNeedle], template: Template, patient_f
         nominal = _template_path(needle, 1.0, 0.0)
         planned = _planned(needle, nominal, holes[needle.hole_id], m, (planned_paths or {}).get(needle.hole_id))
         actual = planned
+        if needle.steered and curvature_scale != 1.0:  # the tissue's own curvature, against the plan's model's
+            local = (planned - planned[0]) @ m[:3, :3]
+            actual = (local * np.array([curvature_scale, curvature_scale, 1.0])) @ m[:3, :3].T + planned[0]
         if needle.steered:
             delta = _template_path(needle, factor, roll) - nominal
             s_model = np.linspace(0.0, 1.0, len(delta))
             s_path = arc_length_mm(planned) / max(float(arc_length_mm(planned)[-1]), 1e-9)
             shift = np.column_stack([np.interp(s_path, s_model, delta[:, j]) for j in range(3)])
-            actual = planned + shift @ m[:3, :3].T
+            actual = actual + shift @ m[:3, :3].T
         axis = m[:3, :3] @ np.array([-np.sin(np.radians(azimuth)), np.cos(np.radians(azimuth)), 0.0])
         actual = (actual - planned[0]) @ _rotation(axis, np.radians(tilt)).T + planned[0]
         out.append(DrawnNeedle(needle, planned, actual, {"tilt_deg": round(tilt, 4), "tilt_azimuth_deg":
@@ -400,7 +408,7 @@ class ImplantedCase:
 
 
 def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2, content: str = "metal",
-                   draw_seed: int = 0, seed: int | None = None) -> ImplantedCase:
+                   draw_seed: int = 0, seed: int | None = None, curvature_scale: float = 1.0) -> ImplantedCase:
     """Return the built-in case a plan was made on, imaged after its implant (plus ``extra`` straight needles) is in.
 
     Parameters
@@ -418,6 +426,8 @@ def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2,
         Seed of the needles' deviations and of the image noise.
     seed : int or None
         The clinical case's seed when the plan does not say it (a plan of ``plan`` on written phantom files).
+    curvature_scale : float
+        The tissue's in-tissue curvature over the plan's model's (:func:`draw_needles`; 1: the plan's tissue).
 
     Returns
     -------
@@ -461,12 +471,13 @@ def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2,
 
     needles += extra_needles(template, [n.hole_id for n in needles], extra, 100.0, draw_seed + case_seed, blocked)
     drawn = draw_needles(needles, template, pose, config.get("perturbations") or {}, draw_seed,
-                         plan_channel_paths(Path(plan_json), doc))
+                         plan_channel_paths(Path(plan_json), doc), curvature_scale)
     look = TubeLook(outer_radius_mm=float(config.get("needle_radius_mm", 0.915)), content=content)
     image = implanted_image(case.spec, phantom_ct_hu(case.spec), [painted_line(d) for d in drawn], look, draw_seed)
     spec = dataclasses.replace(case.spec, case_id=f"{case.spec.case_id or 'clinical'}_post{draw_seed}"[:40],
                                description=f"{case.spec.description}, post-insertion")
     truth = truth_document(drawn, {"case": "clinical", "seed": case_seed, "modality": mod, "draw_seed": draw_seed,
+                                   "curvature_scale": curvature_scale,
                                    "plan": Path(plan_json).name, "look": dataclasses.asdict(look),
                                    "patient_from_template": np.round(pose, 6).tolist()})
     return ImplantedCase(spec, image, truth, tuple(drawn))

@@ -22,6 +22,8 @@ from reachplan.rod_model.design import preset
 DESIGN = "15ga-30j-tip"
 MODULUS_PA = 1.9e5
 TRUE_RATIO = 1.15
+#: The plan's model: the kinematic model in the gel.
+PLANNED = KinematicInsertion(tissue_modulus_pa=MODULUS_PA)
 
 
 def _rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -33,10 +35,9 @@ def _found(rng: np.random.Generator, schedule: TensionSchedule, depth_mm: float,
            perturbed: bool, tension_fraction: float) -> np.ndarray:
     """A needle as the true tissue bends it (template frame of its hole), every mm, with reconstruction noise."""
     design = preset(DESIGN)
-    planned = KinematicInsertion(tissue_modulus_pa=MODULUS_PA).factor_for(design)
     tension = 1.0 + (rng.uniform(-tension_fraction, tension_fraction) if perturbed else 0.0)
     roll = rng.uniform(-10.0, 10.0) if perturbed else 0.0
-    true = KinematicInsertion(tissue_factor=planned * TRUE_RATIO)
+    true = KinematicInsertion(tissue_factor=PLANNED.factor_for(design) * TRUE_RATIO)
     drawn = TensionSchedule(schedule.depth_mm, np.minimum(schedule.tension_n * tension, design.max_tension_n),
                             schedule.roll_deg + roll)
     path = true.insert_array(design, [drawn], depth_mm)[0]
@@ -49,11 +50,13 @@ def _found(rng: np.random.Generator, schedule: TensionSchedule, depth_mm: float,
 
 def _needles(perturbed: bool, seed: int = 0, tension_fraction: float = 0.1) -> list[FoundSteered]:
     rng = np.random.default_rng(seed)
+    design = preset(DESIGN)
     out = []
     for case in range(5):  # five implants, two steered needles each
         for k, (onset, plateau, roll, depth) in enumerate([(20.0, 6.0, 0.0, 100.0), (30.0, 8.0, 180.0, 100.0)]):
             schedule = TensionSchedule.ramp(onset + 5 * case, 20.0, plateau - 0.5 * case, roll + 30 * case)
-            out.append(FoundSteered(f"case{case}", f"H{k}", DESIGN, MODULUS_PA, depth, schedule,
+            planned = PLANNED.insert_array(design, [schedule], depth)[0]
+            out.append(FoundSteered(f"case{case}", f"H{k}", DESIGN, PLANNED.factor_for(design), planned,
                                     _found(rng, schedule, depth, 0.2 if perturbed else 0.0, perturbed,
                                            tension_fraction)))
     return out
@@ -61,7 +64,7 @@ def _needles(perturbed: bool, seed: int = 0, tension_fraction: float = 0.1) -> l
 
 def test_an_unperturbed_needle_gives_the_true_factor() -> None:
     fit = fit_needle(_needles(perturbed=False)[0])
-    assert fit.ratio == pytest.approx(TRUE_RATIO, abs=2e-3)
+    assert fit.ratio == pytest.approx(TRUE_RATIO, rel=0.01)  # the departure is linear in the factor to 2nd order
     assert abs(fit.roll_offset_deg) < 0.1 and fit.tilt_deg < 0.01 and fit.rms_mm < 0.05
 
 
@@ -90,12 +93,11 @@ def test_with_the_planners_tension_errors_the_interval_is_as_wide_as_they_make_i
 def test_one_needle_has_no_interval_and_a_straight_one_tells_nothing() -> None:
     (one,) = pool([fit_needle(_needles(perturbed=False)[0])])
     assert all(math.isnan(v) for v in one.ci95) and one.to_json()["ci95_ratio"] == [None, None]
-    straight = FoundSteered("c", "H", DESIGN, MODULUS_PA, 80.0, TensionSchedule.constant(0.0),
-                            np.column_stack([np.zeros(81), np.zeros(81), np.arange(81.0)]))
-    with pytest.raises(PlanInputError, match="tells nothing of the factor"):
+    line = np.column_stack([np.zeros(81), np.zeros(81), np.arange(81.0)])
+    straight = FoundSteered("c", "H", DESIGN, 1.0, line, line)
+    with pytest.raises(PlanInputError, match="tells nothing of the curvature"):
         fit_needle(straight)
-    short = FoundSteered("c", "H", DESIGN, MODULUS_PA, 80.0, TensionSchedule.ramp(0.0, 10.0, 6.0),
-                         np.zeros((3, 3)))
+    short = FoundSteered("c", "H", DESIGN, 1.0, _needles(perturbed=False)[0].planned_mm, np.zeros((3, 3)))
     with pytest.raises(PlanInputError, match="a fit needs at least"):
         fit_needle(short)
 
