@@ -7,6 +7,8 @@ import io
 import json
 import math
 import re
+
+import numpy as np
 from pathlib import Path
 
 import pytest
@@ -415,3 +417,33 @@ def test_demo_candidates_name_their_model_its_tolerance_and_why(demo: Path) -> N
                 err = float(c["model_reason"].split("is within ")[1].split(" mm")[0])
                 assert err <= c["model_tolerance_mm"] <= c["clearance_mm"]
     assert kept  # the cheap model is used where it is enough
+
+
+def test_the_plans_times_on_needles_found_elsewhere_follow_each_needle_from_its_tip(demo: Path) -> None:
+    """Issue 32.3: a found needle turned 3 degrees about its hole carries the plan's dwells turned with it (the
+    afterloader's distance from the tip is kept); found as planned, nothing moves; the tandem, not searched, stays."""
+    from reachplan.imaging.rtplan import read_rtplan
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.verify.delivered import as_inserted
+    from reachplan.planner.verify.implant import plan_channel_paths
+
+    doc = json.loads((demo / "plan.json").read_text())
+    paths = plan_channel_paths(demo / "plan.json", doc)
+    rp, rs = read_rtplan(demo / "export" / "RP_reachplan.dcm"), read_rtstruct(demo / "export" / "RS_reachplan.dcm")
+    channel = next(c for c in rp.channels if c.applicator_id in paths and c.n_dwells)
+    hole = channel.applicator_id
+    a = np.radians(3.0)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    start = paths[hole][0]
+    turned = (paths[hole] - start) @ turn.T + start
+    same, _, kept_same = as_inserted(rp, rs, paths, paths)
+    moved, moved_rs, kept = as_inserted(rp, rs, paths, {hole: turned})
+    assert "Tandem" in kept and hole not in kept and hole not in kept_same
+    for before, after, unmoved in zip(rp.channels, moved.channels, same.channels, strict=True):
+        np.testing.assert_array_equal(after.dwell_times_s, before.dwell_times_s)
+        np.testing.assert_allclose(unmoved.dwell_positions_mm, before.dwell_positions_mm, atol=0.02)
+        expected = (before.dwell_positions_mm - start) @ turn.T + start if after.applicator_id == hole \
+            else before.dwell_positions_mm
+        np.testing.assert_allclose(after.dwell_positions_mm, expected, atol=0.05)
+    roi = next(r for r in moved_rs.rois if r.number == channel.roi_number)
+    np.testing.assert_allclose(roi.contours[0].points_mm, turned[::-1])

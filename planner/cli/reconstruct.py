@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from reachplan.planner.cli.edges import output_folder, print_json, staged_folder
 from reachplan.planner.cli.plan import add_pose_arguments
@@ -71,6 +71,57 @@ def _versus_plan(versus: Matching) -> dict[str, object]:
     return {**doc, "needles": [e.to_json() for e in versus.errors]}
 
 
+def _plan_export(plan_json: Path, doc: dict[str, Any], prefix: str) -> Path | None:
+    """Return the plan's exported file ``prefix*`` (RP, RS): where ``delivery.files`` says, or in ``export/``."""
+    files = (doc.get("delivery") or {}).get("files") or []
+    for name in files:
+        p = Path(str(name))
+        if p.name.startswith(prefix):
+            for where in (p, plan_json.parent / "export" / p.name):
+                if where.is_file():
+                    return where
+    return None
+
+
+def _as_inserted(plan_json: Path, doc: dict[str, Any], found: dict[str, np.ndarray],
+                 planned: dict[str, np.ndarray]) -> dict[str, object]:
+    """Return the plan's dose on the needles as found and as planned, against the plan's protocol.
+
+    The dose of the needles as found is the plan's times on them (:mod:`~reachplan.planner.verify.delivered`); both
+    are computed as ``reachplan dose`` computes any plan's, on the structure set exported with the plan.
+    """
+    from reachplan.imaging.rtplan import read_rtplan
+    from reachplan.imaging.rtstruct import read_rtstruct
+    from reachplan.planner.dose.protocol import load_protocol
+    from reachplan.planner.run.dose_aims import plan_dose_aims
+    from reachplan.planner.run.dose_check import DoseCheckConfig, check_plan_dose
+    from reachplan.planner.verify.delivered import as_inserted
+
+    rp, rs = _plan_export(plan_json, doc, "RP_"), _plan_export(plan_json, doc, "RS_")
+    if rp is None or rs is None:
+        return {"summary": "as inserted: the plan's exported RT Plan and Structure Set were not found; no dose "
+                           "computed"}
+    aims = load_protocol((doc.get("protocol") or {}).get("name"))
+    plan, structures = read_rtplan(rp), read_rtstruct(rs)
+    moved, moved_structures, kept = as_inserted(plan, structures, planned, found)
+    tables = {}
+    for label, p, st in (("planned", plan, structures), ("as_inserted", moved, moved_structures)):
+        check = check_plan_dose(p, st, DoseCheckConfig(points=True), label)
+        tables[label] = plan_dose_aims(p, st, check.grid, check.dose_gy, check.checks, aims)[0]
+    after = tables["as_inserted"]
+    verdict = ("every planning aim still met" if after.aims_met else
+               f"aims not met: {', '.join(after.not_met) or 'none assessed'}")
+    limits = "hard limits kept" if after.limits_met else "a hard limit broken"
+    rows = {r.label: r for r in tables["planned"].results}
+    changes = "; ".join(f"{r.label} {rows[r.label].value_eqd2_gy:.1f} -> {r.value_eqd2_gy:.1f}"
+                        for r in after.results if r.label in rows and r.value_eqd2_gy is not None
+                        and rows[r.label].value_eqd2_gy is not None)
+    summary = (f"as inserted, the plan's times on the needles found ({aims.name}, Gy EQD2): {verdict}, {limits}. "
+               f"{changes}" + (f" (as planned: {', '.join(kept)})" if kept else ""))
+    return {"rtplan": str(rp), "channels_as_planned": list(kept), "dvh_method": (doc.get("protocol") or {}).get(
+        "dvh_method"), "planned": tables["planned"].to_json(), "as_inserted": after.to_json(), "summary": summary}
+
+
 def run(args: argparse.Namespace) -> int:
     """Find the needles and write what was found; return 0.
 
@@ -113,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
         found = find_needles(volume, template, pose, settings, progress=lambda _h: bar.update(1), detected=holes)
     planned = None
     versus = None
+    delivered: dict[str, object] | None = None
     if args.plan is not None:
         try:
             doc = json.loads(args.plan.read_text(encoding="utf-8"))
@@ -120,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
             raise PlanInputError(f"cannot read --plan {args.plan}: {exc}") from None
         planned = planned_paths(delivered_needles(doc), template, pose, plan_channel_paths(args.plan, doc))
         versus = match(found, planned)
+        delivered = _as_inserted(args.plan, doc, {f.hole_id: f.points_mm for f in found}, planned)
     about = (f"{volume.modality} series {args.ct.name}; template {template.name} {method}; "
              f"{len(template.needle_holes)} holes tested, {len(found)} needles found and tracked to their tips.")
     summary = {"found": len(found), "holes": [f.hole_id for f in found],
@@ -130,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
         "template_pose": {"method": method, "patient_from_template": np.round(pose, 6).tolist()},
         "settings": {"polarity": settings.polarity, "step_mm": settings.step_mm},
         "versus_plan": None if versus is None else _versus_plan(versus),
+        "as_inserted": delivered,
         "summary": summary})
     section = reconstruction_section(volume, found, about, planned, versus)
     html = render_html(Report("reachplan: needles found", about, (section,)))
@@ -143,4 +197,6 @@ def run(args: argparse.Namespace) -> int:
     elif not args.quiet:
         print(f"found {len(found)} needles ({', '.join(f.hole_id for f in found)}); wrote needles.json, "
               f"RS_needles.dcm and report.html to {args.out}")
+        if delivered is not None:
+            print(str(delivered["summary"]))
     return 0
