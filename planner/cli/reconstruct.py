@@ -136,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
         0 once the files are written.
     """
     import json
+    import sys
 
     import numpy as np
     from tqdm import tqdm
@@ -162,6 +163,9 @@ def run(args: argparse.Namespace) -> int:
     holes = detect_holes(volume, template, pose, settings)
     with tqdm(total=len(holes), desc="needles", unit="needle", disable=quiet, leave=False) as bar:
         found = find_needles(volume, template, pose, settings, progress=lambda _h: bar.update(1), detected=holes)
+    for f in found:
+        if f.note:
+            tqdm.write(f"reachplan reconstruct: warning: needle {f.hole_id}: {f.note}", file=sys.stderr)
     planned = None
     versus = None
     delivered: dict[str, object] | None = None

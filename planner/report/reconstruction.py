@@ -160,6 +160,7 @@ def reconstruction_section(volume: Volume, found: Sequence[FoundNeedle], about: 
         Table(("hole", "length from template (mm)", "tip (mm, LPS)", "contrast", "confidence", "time (s)"), rows,
               caption=f"{len(found)} needles found", numeric=(1, 3, 4, 5)),
     ]
+    blocks += [Paragraph(f"Needle {f.hole_id}: {f.note}.") for f in found if f.note]
     if versus_plan is not None:
         blocks.append(Table(
             ("hole", "tip error (mm)", "largest lateral deviation (mm)", "depth error (mm, + deeper)"),

@@ -14,34 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reachplan.planner.verify.find import FoundNeedle
-
-
-def distances_to_line(points_mm: np.ndarray, line_mm: np.ndarray) -> np.ndarray:
-    """Distance of each point from a polyline (exact: to its nearest segment).
-
-    Parameters
-    ----------
-    points_mm : (n, 3) float, mm
-        The points.
-    line_mm : (m, 3) float, mm
-        The polyline, m >= 2.
-
-    Returns
-    -------
-    (n,) float, mm
-        Each point's distance to the nearest point of the line's segments.
-    """
-    pts = np.asarray(points_mm, dtype=float).reshape(-1, 3)
-    a = np.asarray(line_mm, dtype=float)[:-1]
-    d = np.diff(np.asarray(line_mm, dtype=float), axis=0)
-    dd = np.maximum((d * d).sum(axis=1), 1e-24)
-    out = np.empty(len(pts))
-    for lo in range(0, len(pts), 256):  # (256, m, 3) at a time
-        rel = pts[lo:lo + 256, None, :] - a[None, :, :]
-        u = np.clip((rel * d[None]).sum(axis=2) / dd[None], 0.0, 1.0)
-        out[lo:lo + 256] = np.linalg.norm(rel - u[..., None] * d[None], axis=2).min(axis=1)
-    return out
+from reachplan.planner.verify.find import FoundNeedle, distances_to_line
 
 
 @dataclass(frozen=True)

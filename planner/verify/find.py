@@ -156,6 +156,8 @@ class FoundNeedle:
         0-1: the share of the track well above the detection threshold, scaled down when its contrast is near it.
     seconds : float, s
         Time spent on it.
+    note : str
+        What to check by eye ("" when nothing): e.g. that its end runs along another needle's.
     """
 
     hole_id: str
@@ -164,6 +166,7 @@ class FoundNeedle:
     contrast: float
     confidence: float
     seconds: float
+    note: str = ""
 
     @property
     def length_mm(self) -> float:
@@ -637,27 +640,54 @@ def find_needles(volume: Volume, template: Template, patient_from_template: np.n
             out.append(needle)
         if progress is not None:
             progress(hole_id)
-    return out
+    return _flag_shared_ends(out)
 
 
-def hole_entries(template: Template, patient_from_template: np.ndarray,
-                 hole_ids: Sequence[str]) -> np.ndarray:
-    """Entry points of named holes on the template plane.
+def _flag_shared_ends(found: list[FoundNeedle], length_mm: float = 15.0, within_mm: float = 0.7) -> list[FoundNeedle]:
+    """Flag pairs of needles whose last ``length_mm`` run along each other (one may have taken the other's track).
+
+    Two needles do not end on one line: where two tracks share their end, one of them most likely followed the
+    other past a crossing. Both keep their tracks, at a confidence of at most 0.3, with a note saying so.
+    """
+    import dataclasses
+
+    shared: dict[str, list[str]] = {}
+    for a, fa in enumerate(found):
+        for fb in found[a + 1:]:
+            tail = fa.points_mm[np.cumsum(np.r_[0.0, np.linalg.norm(np.diff(fa.points_mm[::-1], axis=0), axis=1)])
+                                [::-1] <= length_mm]
+            if np.linalg.norm(fa.tip_mm - fb.tip_mm) < 2.0 and float(np.median(
+                    distances_to_line(tail, fb.points_mm))) < within_mm:
+                shared.setdefault(fa.hole_id, []).append(fb.hole_id)
+                shared.setdefault(fb.hole_id, []).append(fa.hole_id)
+    return [f if f.hole_id not in shared else dataclasses.replace(
+        f, confidence=min(f.confidence, 0.3),
+        note=f"its last {length_mm:g} mm run along needle {', '.join(shared[f.hole_id])}: one of them may have "
+             "taken the other's track where they cross; check both by eye") for f in found]
+
+
+def distances_to_line(points_mm: np.ndarray, line_mm: np.ndarray) -> np.ndarray:
+    """Distance of each point from a polyline (exact: to its nearest segment).
 
     Parameters
     ----------
-    template : Template
-        The template.
-    patient_from_template : (4, 4) float
-        Its pose.
-    hole_ids : sequence of str
-        The holes.
+    points_mm : (n, 3) float, mm
+        The points.
+    line_mm : (m, 3) float, mm
+        The polyline, m >= 2.
 
     Returns
     -------
-    (n, 3) float, mm, LPS
-        Each hole's centre.
+    (n,) float, mm
+        Each point's distance to the nearest point of the line's segments.
     """
-    m = np.asarray(patient_from_template, dtype=float)
-    holes = {h.hole_id: h for h in template.needle_holes}
-    return np.array([m[:3, :3] @ np.array([*holes[h].xy_mm, 0.0]) + m[:3, 3] for h in hole_ids]).reshape(-1, 3)
+    pts = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+    a = np.asarray(line_mm, dtype=float)[:-1]
+    d = np.diff(np.asarray(line_mm, dtype=float), axis=0)
+    dd = np.maximum((d * d).sum(axis=1), 1e-24)
+    out = np.empty(len(pts))
+    for lo in range(0, len(pts), 256):  # (256, m, 3) at a time
+        rel = pts[lo:lo + 256, None, :] - a[None, :, :]
+        u = np.clip((rel * d[None]).sum(axis=2) / dd[None], 0.0, 1.0)
+        out[lo:lo + 256] = np.linalg.norm(rel - u[..., None] * d[None], axis=2).min(axis=1)
+    return out

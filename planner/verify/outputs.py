@@ -49,6 +49,7 @@ def needles_document(found: Sequence[FoundNeedle], about: Mapping[str, object]) 
             "contrast": round(f.contrast, 1),
             "confidence": round(f.confidence, 3),
             "seconds": round(f.seconds, 3),
+            "note": f.note,
         } for f in found],
     }
 
