@@ -7,10 +7,9 @@ import io
 import json
 import math
 import re
-
-import numpy as np
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from reachplan.planner.cli import main
