@@ -446,3 +446,17 @@ def test_the_plans_times_on_needles_found_elsewhere_follow_each_needle_from_its_
         np.testing.assert_allclose(after.dwell_positions_mm, expected, atol=0.05)
     roi = next(r for r in moved_rs.rois if r.number == channel.roi_number)
     np.testing.assert_allclose(roi.contours[0].points_mm, turned[::-1])
+    # found where planned, the dose of the plan's times is the plan's, aim by aim, as 'reachplan dose' computes it
+    from reachplan.planner.cli.reconstruct import _as_inserted
+
+    same_doc = _as_inserted(demo / "plan.json", doc, paths, paths)
+    before, after = same_doc["planned"], same_doc["as_inserted"]
+    assert isinstance(before, dict) and isinstance(after, dict)
+    assert [a["value_eqd2_gy"] for a in after["aims"]] == pytest.approx([a["value_eqd2_gy"] for a in before["aims"]],
+                                                                          abs=0.05)
+    assert "every planning aim still met" in str(same_doc["summary"]) and "Tandem" in str(same_doc["summary"])
+    from reachplan.planner.cli.reconstruct import _as_inserted_section
+    from reachplan.planner.report.html import Report, render_html
+
+    page = render_html(Report("t", "t", (_as_inserted_section(same_doc),)))
+    assert 'id="as-inserted"' in page and page.count("<tr>") >= len(after["aims"]) + 1

@@ -93,7 +93,7 @@ def _as_inserted(plan_json: Path, doc: dict[str, Any], found: dict[str, np.ndarr
     from reachplan.imaging.rtplan import read_rtplan
     from reachplan.imaging.rtstruct import read_rtstruct
     from reachplan.planner.dose.protocol import load_protocol
-    from reachplan.planner.run.dose_aims import plan_dose_aims
+    from reachplan.planner.run.dose_aims import DVH_METHOD, plan_dose_aims
     from reachplan.planner.run.dose_check import DoseCheckConfig, check_plan_dose
     from reachplan.planner.verify.delivered import as_inserted
 
@@ -118,8 +118,34 @@ def _as_inserted(plan_json: Path, doc: dict[str, Any], found: dict[str, np.ndarr
                         and rows[r.label].value_eqd2_gy is not None)
     summary = (f"as inserted, the plan's times on the needles found ({aims.name}, Gy EQD2): {verdict}, {limits}. "
                f"{changes}" + (f" (as planned: {', '.join(kept)})" if kept else ""))
-    return {"rtplan": str(rp), "channels_as_planned": list(kept), "dvh_method": (doc.get("protocol") or {}).get(
-        "dvh_method"), "planned": tables["planned"].to_json(), "as_inserted": after.to_json(), "summary": summary}
+    return {"rtplan": str(rp), "channels_as_planned": list(kept), "dvh_method": DVH_METHOD,
+            "planned": tables["planned"].to_json(), "as_inserted": after.to_json(), "summary": summary}
+
+
+def _as_inserted_section(delivered: dict[str, Any]) -> Any:
+    """Return the report's section of the plan's dose on the needles as found, aim by aim beside the plan's."""
+    from reachplan.planner.report.html import Paragraph, Section, Table
+
+    def value(r: dict[str, Any]) -> str:
+        v = r.get("value_eqd2_gy")
+        return "-" if v is None else f"{v:.1f}"
+
+    def verdict(r: dict[str, Any]) -> str:
+        met = r.get("planning_aim_met")
+        return "-" if met is None else "met" if met else ("not met" if r.get("hard_limit_met") is not False
+                                                           else "not met, hard limit broken")
+
+    before = {r["aim"]: r for r in delivered["planned"]["aims"]}
+    rows = tuple((r["aim"], value(before[r["aim"]]) if r["aim"] in before else "-", value(r),
+                  str(r.get("planning_aim") or "-"), str(r.get("hard_limit") or "-"), verdict(r))
+                 for r in delivered["as_inserted"]["aims"])
+    return Section("As inserted: the plan's times on the needles found", "as-inserted", (
+        Paragraph(str(delivered["summary"]) + " Dose as 'reachplan dose' computes any plan's (TG-43 line source; "
+                  f"DVH method: {delivered['dvh_method']}); each needle's dwells kept at their distance from its tip "
+                  "along the needle found."),
+        Table(("aim", "as planned (Gy EQD2)", "as inserted (Gy EQD2)", "planning aim", "hard limit",
+               "as inserted"), rows, "The plan's dose aims, as planned and on the needles as found", numeric=(1, 2)),
+    ))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -190,7 +216,9 @@ def run(args: argparse.Namespace) -> int:
         "as_inserted": delivered,
         "summary": summary})
     section = reconstruction_section(volume, found, about, planned, versus)
-    html = render_html(Report("reachplan: needles found", about, (section,)))
+    sections = (section,) if delivered is None or "as_inserted" not in delivered else (section,
+                                                                                      _as_inserted_section(delivered))
+    html = render_html(Report("reachplan: needles found", about, sections))
     with staged_folder(args.out) as stage:
         atomic_write_bytes(stage / "needles.json", json_bytes(doc_out))
         if found:

@@ -28,6 +28,12 @@ from reachplan.planner.dose.plan_check import PointCheck
 from reachplan.planner.errors import ProtocolSiteWarning
 from reachplan.planner.geometry.organs import has_closed
 
+#: How a recomputed plan's dose-volume values are computed (the module docstring), in words for its outputs.
+DVH_METHOD = ("each ROI rasterised on its own grid (its contours' planes, 1 mm in plane) and the recomputed TG-43 "
+              "dose interpolated linearly at its voxel centres; D90/D98 the minimum dose of the hottest 90 %/98 % of "
+              "those voxels, D2cm³/D0.1cm³ the minimum dose of the hottest 2/0.1 cm³, no interpolation between "
+              "voxels (reachplan dose --protocol)")
+
 
 def _metrics(roi: Roi, grid: Grid, dose: np.ndarray, aims: Aims, alpha_beta_gy: float) -> StructureMetrics | None:
     """Return a ROI's metrics on its own grid, the dose interpolated from ``grid`` (None: no voxel inside)."""
