@@ -23,6 +23,11 @@ import numpy as np
 
 from reachplan.planner import lookup
 
+#: key of :attr:`DwellProblem.cache` under which a caller may leave a similar problem solved before (the last round
+#: of a robust loading: the same columns and target rows, a subset of its row sets); an optimiser may start from
+#: what it found there (the built-in ``"lp"``: its last basis) and should not keep the reference
+WARM_START = "warm_start"
+
 
 @dataclass(frozen=True, eq=False)
 class OrganRows:

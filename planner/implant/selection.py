@@ -31,7 +31,7 @@ import numpy as np
 from scipy import optimize as sopt
 
 from reachplan.planner.implant.model import _Model
-from reachplan.planner.implant.optimiser import DwellProblem, DwellSolution
+from reachplan.planner.implant.optimiser import WARM_START, DwellProblem, DwellSolution
 
 
 def _rounded(model: _Model, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
@@ -201,7 +201,9 @@ class LinearProgramme:
         """
         model = problem.cache.get(self.name)
         if not isinstance(model, _Model):
-            model = problem.cache[self.name] = _Model(problem)
+            last = problem.cache.pop(WARM_START, None)  # a similar problem solved before (a robust loading's round)
+            warm = last.cache.get(self.name) if isinstance(last, DwellProblem) else None
+            model = problem.cache[self.name] = _Model(problem, warm if isinstance(warm, _Model) else None)
         return model
 
     def optimise(self, problem: DwellProblem, *, budget: int | None = None, limit_factor: np.ndarray | None = None,
