@@ -370,10 +370,11 @@ class _Model:
     def _run(self, key: str, row_ub: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> sopt.OptimizeResult:
         """Solve the LP with these bounds on the HiGHS instance ``key``, from its last basis; the caller holds the lock.
 
-        The instance is built on first use: ``"selection"`` runs the primal simplex (a new selection changes
-        column bounds only, and its last basis stays primal feasible but for the needles taken out: 40-45 % less
-        time than the dual simplex on the clinical cases, the same optima to 1e-10 s of dwell time);
-        ``"full"`` the default (dual) simplex without presolve, from the warm model's basis when there is one.
+        The instance is built on first use, without presolve (it costs more than it saves on these LPs: a third of
+        a cold solve), and solves first with the dual simplex (``"full"``: from the warm model's basis when there is
+        one). ``"selection"`` then runs the primal simplex: a new selection changes column bounds only, and its last
+        basis stays primal feasible but for the needles taken out (40-45 % less time than the dual simplex on the
+        clinical cases, the same optima to 1e-10 s of dwell time).
 
         Parameters
         ----------
@@ -397,10 +398,8 @@ class _Model:
             h: Any = _highs._Highs()
             h.setOptionValue("output_flag", False)
             h.setOptionValue("threads", 1)
-            if key == "selection":
-                h.setOptionValue("simplex_strategy", 4)  # primal
-            else:  # presolve costs more than it saves here (a third of a cold solve of a robust loading's LP)
-                h.setOptionValue("presolve", "off")
+            # presolve costs more than it saves here (a third of a cold solve of a robust loading's LP)
+            h.setOptionValue("presolve", "off")
             lp = _highs.HighsLp()
             lp.num_col_, lp.num_row_ = self.n, self.a.shape[0]
             lp.col_cost_, lp.col_lower_, lp.col_upper_ = self.c, lo, hi_h
@@ -423,6 +422,8 @@ class _Model:
                 h.changeColsBounds(len(moved), moved, lo[moved], hi_h[moved])
         self._highs[key] = (h, (ub_h, lo.copy(), hi_h))
         h.run()
+        if key == "selection" and held is None:
+            h.setOptionValue("simplex_strategy", 4)  # the next selections: primal, from this basis
         status = h.getModelStatus()
         if status != _highs.HighsModelStatus.kOptimal:
             return sopt.OptimizeResult(x=None, fun=np.inf, status=1, message=f"HiGHS: {h.modelStatusToString(status)}")

@@ -54,6 +54,7 @@ from reachplan.planner.implant.optimiser import (
     OrganRows,
     resolve,
 )
+from reachplan.planner.implant.optimiser import restricted as _restricted
 from reachplan.planner.implant.problem import (
     PointLimit,
     _calibrate,
@@ -198,18 +199,6 @@ def _shared(channels: Sequence[Channel], planning: PlanningStructures, kernel: T
                                    selection.tail_means(free.times_s)[:n_org], selection.limits_gy[:n_org])
         free = optimiser.optimise(selection, limit_factor=kappa)
     return _Shared(prob, selection, free, kappa, _target_rows(prob, settings.final_target_points, p_t, p_g), vox_cc)
-
-
-def _restricted(selection: DwellProblem, allowed: Sequence[int]) -> DwellProblem:
-    """Return the selection problem on the channels ``allowed`` alone: the same rows, their units and needles."""
-    keep = set(allowed)
-    units = tuple(u for u in (selection.units or ()) if int(selection.channel[u[0]]) in keep)
-    choice = selection.needles
-    assert choice is not None
-    on = [i for i, c in enumerate(choice.channels) if c in keep]
-    needles = NeedleChoice(tuple(choice.channels[i] for i in on), tuple(choice.holes[i] for i in on),
-                           choice.cost[on])
-    return dataclasses.replace(selection, units=units, needles=needles, cache={})
 
 
 def _plan_arm(name: str, allowed: Sequence[int], shared: _Shared, aims: Aims, settings: ImplantSettings,

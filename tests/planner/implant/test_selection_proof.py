@@ -156,3 +156,25 @@ def test_a_robust_rounds_lp_starts_from_the_last_round_and_gives_the_cold_optimu
         cold = sopt.milp(selection.c, constraints=[sopt.LinearConstraint(selection.a, selection.lb, ub)],
                          bounds=sopt.Bounds(np.zeros(selection.n), hi))
         assert float(relaxed.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
+
+
+def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With many candidates each single needle's LP is solved among its hole's needles alone: the same optimum,
+    returned in the whole model's columns, and the same selection at the next budget from the kept results."""
+    from reachplan.planner.implant import selection
+
+    problem = _problem(8, 0)
+    plain = _Model(problem)
+    kappa = np.ones(1)
+    monkeypatch.setattr(selection, "SINGLE_MODEL_MIN_NEEDLES", 1)
+    model = LP.model(problem)
+    single = LP._single(problem, model)
+    assert single is not None and single(3)[0].n_y == 2  # hole C holds needles 3 and 4
+    memo: dict[tuple[int, ...], sopt.OptimizeResult] = {}
+    for budget in (1, 2):
+        best, _ = selection._exhaustive(model, budget, kappa, memo, single)
+        ref, _ = selection._exhaustive(plain, budget, kappa, {})
+        assert best is not None and ref is not None
+        assert float(best.fun) == pytest.approx(float(ref.fun), rel=1e-9)
+        assert model.selected(best.x) == plain.selected(ref.x)
+        assert np.allclose(model.dwell_times(best.x), plain.dwell_times(ref.x), atol=1e-6)
