@@ -440,7 +440,7 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
     d2_worst, _ = worst(results, hard)
     over = d2_worst > hard
     max_scale = float(np.min(hard[over] / d2_worst[over])) * (1 - 1e-9) if over.any() else 1.0
-    target, v200, gtv, oars, dvhs, scale = _metrics(prob, cols, t, aims, vox_cc, max_scale)
+    target, v200, gtv, oars, dvhs, scale, doses = _metrics(prob, cols, t, aims, vox_cc, max_scale)
     if scale < 1.0:
         t = np.where(t > 0, np.maximum(t * scale, settings.min_dwell_time_s), 0.0)
         results = check.evaluate(t)
@@ -450,7 +450,7 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
     down = _down_to_upper_aim(target.d90_gy, min((r.d90_gy for r in results), default=np.inf), aims)
     if down < 1.0:  # over the D90 upper aim: every time scaled down to it (as far as the scenarios' D90 allows)
         t = np.where(t > 0, np.maximum(t * down, settings.min_dwell_time_s), 0.0)
-        target, v200, gtv, oars, dvhs, _ = _metrics(prob, cols, t, aims, vox_cc)
+        target, v200, gtv, oars, dvhs, _, _ = _metrics(prob, cols, t, aims, vox_cc, base=(doses, down))
         scale *= down
         bias = target.d90_gy - check.nominal(t)[1]
         results = [dataclasses.replace(r, d90_gy=r.d90_gy + bias) for r in check.evaluate(t)]

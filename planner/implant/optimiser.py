@@ -15,6 +15,7 @@ object with a ``name`` and an ``optimise`` method (:class:`DwellOptimiser`), plu
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast, runtime_checkable
@@ -22,6 +23,11 @@ from typing import Any, Protocol, cast, runtime_checkable
 import numpy as np
 
 from reachplan.planner import lookup
+
+#: key of :attr:`DwellProblem.cache` under which a caller may leave a similar problem solved before (the last round
+#: of a robust loading: the same columns and target rows, a subset of its row sets); an optimiser may start from
+#: what it found there (the built-in ``"lp"``: its last basis) and should not keep the reference
+WARM_START = "warm_start"
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,6 +254,34 @@ class DwellOptimiser(Protocol):
         DwellSolution
         """
         ...
+
+
+def restricted(problem: DwellProblem, allowed: Sequence[int]) -> DwellProblem:
+    """Return the selection problem on the channels ``allowed`` alone: the same rows, their units and needles.
+
+    A selection of its needles has the same LP in it as in ``problem`` (the objective's scales are the whole
+    problem's), so it gets the same score in either.
+
+    Parameters
+    ----------
+    problem : DwellProblem
+        A selection problem (with ``units`` and ``needles``).
+    allowed : sequence of int
+        Channels kept (values of :attr:`DwellProblem.channel`).
+
+    Returns
+    -------
+    DwellProblem
+        With an empty cache.
+    """
+    keep = set(allowed)
+    units = tuple(u for u in (problem.units or ()) if int(problem.channel[u[0]]) in keep)
+    choice = problem.needles
+    assert choice is not None
+    on = [i for i, c in enumerate(choice.channels) if c in keep]
+    needles = NeedleChoice(tuple(choice.channels[i] for i in on), tuple(choice.holes[i] for i in on),
+                           choice.cost[on])
+    return dataclasses.replace(problem, units=units, needles=needles, cache={})
 
 
 def tail_mean(rates: np.ndarray, weight_cc: np.ndarray, volume_cc: float) -> np.ndarray:

@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -54,6 +54,7 @@ from reachplan.planner.implant.optimiser import (
     OrganRows,
     resolve,
 )
+from reachplan.planner.implant.optimiser import restricted as _restricted
 from reachplan.planner.implant.problem import (
     PointLimit,
     _calibrate,
@@ -164,7 +165,8 @@ class _Shared:
 
     The sampled problem of every arm's channels together, the selection problem on all of them (rows: target points,
     organ lattices near every candidate dwell, V200), the calibration of its organ rows from every candidate loaded,
-    the final step's target rows, and the needles' invasiveness normalised over all candidates.
+    the final step's target rows, and the needles' invasiveness normalised over all candidates; ``loaded``: the plan
+    of each channel set loaded so far (by any arm: the same set gets the same plan, so it is loaded once).
     """
 
     prob: _Problem
@@ -173,6 +175,7 @@ class _Shared:
     kappa: np.ndarray
     final_rows: tuple[np.ndarray, np.ndarray]
     vox_cc: float
+    loaded: dict[tuple[int, ...], ImplantPlan | None] = field(default_factory=dict, repr=False)
 
 
 def _shared(channels: Sequence[Channel], planning: PlanningStructures, kernel: Tg43Kernel, air_kerma_u: float,
@@ -198,18 +201,6 @@ def _shared(channels: Sequence[Channel], planning: PlanningStructures, kernel: T
     return _Shared(prob, selection, free, kappa, _target_rows(prob, settings.final_target_points, p_t, p_g), vox_cc)
 
 
-def _restricted(selection: DwellProblem, allowed: Sequence[int]) -> DwellProblem:
-    """Return the selection problem on the channels ``allowed`` alone: the same rows, their units and needles."""
-    keep = set(allowed)
-    units = tuple(u for u in (selection.units or ()) if int(selection.channel[u[0]]) in keep)
-    choice = selection.needles
-    assert choice is not None
-    on = [i for i, c in enumerate(choice.channels) if c in keep]
-    needles = NeedleChoice(tuple(choice.channels[i] for i in on), tuple(choice.holes[i] for i in on),
-                           choice.cost[on])
-    return dataclasses.replace(selection, units=units, needles=needles, cache={})
-
-
 def _plan_arm(name: str, allowed: Sequence[int], shared: _Shared, aims: Aims, settings: ImplantSettings,
               optimiser: DwellOptimiser) -> ImplantArm:
     """Return one arm's Pareto curve and chosen implant, its candidates the shared problem's ``allowed`` channels."""
@@ -221,7 +212,7 @@ def _plan_arm(name: str, allowed: Sequence[int], shared: _Shared, aims: Aims, se
     needles = list(selection.needles.channels)
     free = shared.free if whole else optimiser.optimise(selection, limit_factor=shared.kappa)
     bound = free.objective if free.times_s is not None else float("nan")
-    final = _Final(prob, *shared.final_rows, aims, settings, shared.vox_cc, optimiser, shared.kappa)
+    final = _Final(prob, *shared.final_rows, aims, settings, shared.vox_cc, optimiser, shared.kappa, shared.loaded)
     rank: list[int] = []  # needles (indices into ``needles``) by their time in the all-candidates loading
     if free.times_s is not None:
         ch_time = np.bincount(prob.channel_of, weights=free.times_s, minlength=len(prob.channels))
@@ -295,12 +286,17 @@ class _Final:
     kappa : (n_organs + n_v200,) float, unitless
         The calibration every plan starts from (the shared one: a needle set's plan does not depend on the arm or
         on the plans made before it).
+    loaded : dict, optional
+        The plans already made by channel set, shared by the arms (:attr:`_Shared.loaded`): a set another arm
+        loaded is not loaded again (its plan is the same; only its selection's status and gap are this arm's).
     """
 
     def __init__(self, prob: _Problem, fin_pts: np.ndarray, fin_p: np.ndarray, aims: Aims, settings: ImplantSettings,
-                 vox_cc: float, optimiser: DwellOptimiser, kappa: np.ndarray) -> None:
+                 vox_cc: float, optimiser: DwellOptimiser, kappa: np.ndarray,
+                 loaded: dict[tuple[int, ...], ImplantPlan | None] | None = None) -> None:
         self.prob, self.fin_pts, self.fin_p, self.aims, self.settings = prob, fin_pts, fin_p, aims, settings
         self.vox_cc, self.optimiser, self.kappa = vox_cc, optimiser, kappa
+        self.loaded = {} if loaded is None else loaded
 
     def __call__(self, chosen: np.ndarray, status: str, gap: float | None) -> ImplantPlan | None:
         """Return the plan of the channels ``chosen``, its selection's ``status`` and ``gap`` recorded.
@@ -319,8 +315,12 @@ class _Final:
         ImplantPlan or None
             None when the chosen channels give no plan.
         """
-        return _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings, self.vox_cc,
-                      self.kappa.copy(), status, gap, self.optimiser)
+        key = tuple(int(c) for c in chosen)
+        if key not in self.loaded:
+            self.loaded[key] = _final(self.prob, chosen, self.fin_pts, self.fin_p, self.aims, self.settings,
+                                      self.vox_cc, self.kappa.copy(), status, gap, self.optimiser)
+        plan = self.loaded[key]
+        return None if plan is None else dataclasses.replace(plan, mip_status=status, mip_gap=gap)
 
 
 def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,

@@ -232,35 +232,90 @@ def _organ_sample(lattice: tuple[np.ndarray, np.ndarray], near_mm: np.ndarray,
     return reps[keep], w[keep]
 
 
+@dataclass(frozen=True, eq=False)
+class _Doses:
+    """A loading's dose where :func:`_metrics` reads it (Gy per fraction), kept to re-read a scaled loading.
+
+    Parameters
+    ----------
+    times_s : (c,) float, s
+        The loading (of the metrics' columns).
+    oar_points : tuple of (n_o, 3) float, mm, LPS
+        Each organ's voxels within ``eval_radius_mm`` of a loaded dwell.
+    oar : tuple of (n_o,) float, Gy per fraction
+        The dose there.
+    target, gtv : (n,) float, Gy per fraction
+        The dose at the HR-CTV's (and GTV's, None without one) sub-voxel points (before their weights).
+    """
+
+    times_s: np.ndarray
+    oar_points: tuple[np.ndarray, ...]
+    oar: tuple[np.ndarray, ...]
+    target: np.ndarray
+    gtv: np.ndarray | None
+
+
+def _rescaled(prob: _Problem, cols: np.ndarray, times: np.ndarray, base: _Doses, factor: float,
+              points: np.ndarray, dose: np.ndarray) -> np.ndarray:
+    """Return the dose at ``points`` of the loading ``times`` from ``base``'s dose there, ``dose``.
+
+    ``factor`` × ``dose`` plus the dose of what is left, ``times - factor × base.times_s`` (the few dwells a minimum
+    dwell time held up). The same pair rates either way, summed in another order: the direct computation to the
+    compiled kernel's float32 rounding (1e-8 relative; the kernel is within 1e-4 of the float64 table).
+    """
+    rest = times - factor * base.times_s
+    on = rest != 0.0
+    out: np.ndarray = factor * dose
+    if on.any() and len(points):
+        out = out + _dose(points, prob.positions[cols][on], prob.directions[cols][on], rest[on], prob)
+    return out
+
+
 def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vox_cc: float,
-             max_scale: float = 1.0) -> tuple[StructureMetrics, float, StructureMetrics | None,
-                                              tuple[StructureMetrics, ...], tuple[tuple[str, Dvh], ...], float]:
+             max_scale: float = 1.0, base: tuple[_Doses, float] | None = None,
+             ) -> tuple[StructureMetrics, float, StructureMetrics | None, tuple[StructureMetrics, ...],
+                        tuple[tuple[str, Dvh], ...], float, _Doses]:
     """Compute target, V200, GTV and organ metrics of a loading on every voxel.
 
     Organs: voxels within ``oar_eval_radius`` of a loaded dwell. Also returns the factor <= ``max_scale`` (the
-    scenarios' own, <= 1) that keeps every nominal D2cm³ within its planning limit.
+    scenarios' own, <= 1) that keeps every nominal D2cm³ within its planning limit, and the doses of the loading
+    scaled by it. ``base``: the doses of an earlier loading with the same loaded dwells and the factor this one is
+    of it (but for dwells held at a minimum time): the doses are then that factor times the earlier ones plus the
+    dose of the difference (:func:`_rescaled`), not computed again on every sub-voxel.
     """
     loaded = times > 0
     pos, dirs, t = prob.positions[cols][loaded], prob.directions[cols][loaded], times[loaded]
     rx = aims.prescription_gy
+    if base is not None and not np.array_equal(base[0].times_s > 0, loaded):
+        base = None
+    pts_oar = base[0].oar_points if base is not None else tuple(
+        prob.near_organ(o, pos, prob.eval_radius_mm, vox_cc) for o in range(len(prob.oar_limits)))
     dose_oar = []
     scale = max_scale
     for o, limit in enumerate(prob.oar_limits):
-        d = _dose(prob.near_organ(o, pos, prob.eval_radius_mm, vox_cc), pos, dirs, t, prob)
+        d = (_rescaled(prob, cols, times, base[0], base[1], pts_oar[o], base[0].oar[o]) if base is not None
+             else _dose(pts_oar[o], pos, dirs, t, prob))
         dose_oar.append(d)
         if limit is not None and len(d):
             d2 = dose_to_volume(d, vox_cc, 2.0)
             if d2 > limit:
                 scale = min(scale, limit / d2 * (1 - 1e-9))
-    t = t * scale
     sub_cc = vox_cc * len(prob.target_pts) / max(len(prob.target_fine[0]), 1)  # target and GTV on sub-voxels
-    dt = np.repeat(_dose(prob.target_fine[0], pos, dirs, t, prob), prob.target_fine[1])
+
+    def fine(points: np.ndarray, earlier: np.ndarray | None) -> np.ndarray:
+        if base is None or earlier is None:
+            return _dose(points, pos, dirs, t * scale, prob)
+        return scale * _rescaled(prob, cols, times, base[0], base[1], points, earlier)
+
+    d_t = fine(prob.target_fine[0], None if base is None else base[0].target)
+    dt = np.repeat(d_t, prob.target_fine[1])
     target = structure_metrics("HR-CTV", dt, sub_cc, rx, aims.alpha_beta_target_gy, aims.fractionation)
     v200 = 100.0 * float(np.count_nonzero(dt >= 2.0 * rx)) / len(dt)
     dvhs = [("HR-CTV", cumulative_dvh(dt, sub_cc))]
-    gtv = None
+    gtv, d_g = None, None
     if prob.gtv_fine is not None and len(prob.gtv_fine[0]):
-        dg = np.repeat(_dose(prob.gtv_fine[0], pos, dirs, t, prob), prob.gtv_fine[1])
+        d_g = fine(prob.gtv_fine[0], None if base is None else base[0].gtv)
+        dg = np.repeat(d_g, prob.gtv_fine[1])
         gtv = structure_metrics("GTV", dg, sub_cc, rx, aims.alpha_beta_target_gy, aims.fractionation)
         dvhs.append(("GTV", cumulative_dvh(dg, sub_cc)))
     oars = []
@@ -268,7 +323,8 @@ def _metrics(prob: _Problem, cols: np.ndarray, times: np.ndarray, aims: Aims, vo
         d = d * scale if len(d) else np.zeros(1)
         oars.append(structure_metrics(name, d, vox_cc, rx, aims.alpha_beta_oar_gy, aims.fractionation))
         dvhs.append((name, cumulative_dvh(d, vox_cc)))
-    return target, v200, gtv, tuple(oars), tuple(dvhs), scale
+    doses = _Doses(times * scale, pts_oar, tuple(d * scale for d in dose_oar), d_t, d_g)
+    return target, v200, gtv, tuple(oars), tuple(dvhs), scale, doses
 
 
 def point_rows(prob: _Problem, pos: np.ndarray, dirs: np.ndarray) -> list[OrganRows]:

@@ -38,7 +38,7 @@ from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.coverage import dose_to_fraction, dose_to_volume
 from reachplan.planner.dose.dwells import dwell_directions
 from reachplan.planner.implant.candidates import Channel
-from reachplan.planner.implant.optimiser import DwellOptimiser, DwellProblem, OrganRows
+from reachplan.planner.implant.optimiser import WARM_START, DwellOptimiser, DwellProblem, OrganRows
 from reachplan.planner.implant.problem import (
     PointLimit,
     _calibrate,
@@ -467,6 +467,8 @@ class _RobustModel:
                                       p.hard_gy, 1.0, f"{p.name}, {prob.channels[sc.channel].name} {sc.label}")
                             for k, sc in enumerate(self.check.scenarios)]
         self.active: list[tuple[int, int]] = []  # (scenario, organ) with rows
+        self.scen: dict[tuple[int, int], OrganRows] = {}  # their rows, built once
+        self.last: DwellProblem | None = None  # the last problem handed out
         self.p_scale, self.d90_limit = 1.0, aims.per_fraction_target_gy(aims.target_d90_limit_eqd2_gy)
         self.fin_p = fin_p
         self.base = DwellProblem(a_t, fin_p, self.rx * (1.0 + settings.coverage_margin), (), prob.channel_of[cols],
@@ -484,13 +486,19 @@ class _RobustModel:
         -------
         DwellProblem
         """
-        scen = [OrganRows(self.check.displaced_rates(k, self.rates[i], self.samples[i][1]), self.samples[i][2],
-                          float(self.hard[i]), 2.0, f"{self.nominal[i].name}, "
-                          f"{self.prob.channels[self.check.scenarios[k].channel].name} {self.check.scenarios[k].label}")
-                for k, i in self.active]
-        return dataclasses.replace(self.base, target_dose_gy=self.fin_p * self.p_scale,
-                                   organs=(*self.nominal, *scen, *self.v200, *self.points), min_time_s=min_time_s,
-                                   cache={})
+        for k, i in self.active:
+            if (k, i) not in self.scen:
+                sc = self.check.scenarios[k]
+                self.scen[k, i] = OrganRows(self.check.displaced_rates(k, self.rates[i], self.samples[i][1]),
+                                            self.samples[i][2], float(self.hard[i]), 2.0,
+                                            f"{self.nominal[i].name}, {self.prob.channels[sc.channel].name} {sc.label}")
+        scen = [self.scen[key] for key in self.active]
+        # the last round's problem: the optimiser may start from its solution (the same rows and more)
+        cache = {} if self.last is None else {WARM_START: self.last}
+        self.last = dataclasses.replace(self.base, target_dose_gy=self.fin_p * self.p_scale,
+                                        organs=(*self.nominal, *scen, *self.v200, *self.points),
+                                        min_time_s=min_time_s, cache=cache)
+        return self.last
 
     def factors(self, kap: np.ndarray) -> np.ndarray:
         """Return the limit factors of :meth:`problem`'s rows: ``kap`` (organs, scenarios, V200), then 1 per point row.

@@ -8,10 +8,12 @@ bound.** When the selections of at most K needles (one per hole) number at most 
 (:class:`reachplan.planner.implant.optimiser.DwellProblem`; ``ImplantSettings.exhaustive_max_selections``), every
 one's LP is solved and the best kept (:func:`_exhaustive`): the selection is the model's optimum (gap 0), and the
 same needles get the same objective in every arm whose problem shares the rows
-(:func:`reachplan.planner.implant.plan.plan_arms`). Beyond that: the
+(:func:`reachplan.planner.implant.plan.plan_arms`); with many candidates (steered ones: several per hole) one
+needle's LP is solved in the model of its hole's needles alone, the same LP at a fraction of the cost
+(:meth:`LinearProgramme._single`). Beyond that: the
 model: each channel's dwells in ``segments_per_channel`` blocks of equal time, sampled target points, the needle
-binaries (:mod:`reachplan.planner.implant.model`). Its LP relaxation (HiGHS dual simplex through
-``scipy.optimize.milp``) bounds every selection of K needles from below. Starts: the relaxation rounded (its largest
+binaries (:mod:`reachplan.planner.implant.model`). Its LP relaxation (HiGHS dual simplex, warm from the last
+budget's) bounds every selection of K needles from below. Starts: the relaxation rounded (its largest
 ``y`` first) with and without the previous budget's needles, that selection itself (so the objective never rises
 with K); then a local search (:func:`_improved`): add a needle or swap one for another of the ``swap_pool`` needles
 with the largest relaxed ``y``, the best move while it lowers the objective, each move an LP on the chosen needles'
@@ -25,13 +27,18 @@ it is that far from it.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy import optimize as sopt
 
 from reachplan.planner.implant.model import _Model
-from reachplan.planner.implant.optimiser import DwellProblem, DwellSolution
+from reachplan.planner.implant.optimiser import WARM_START, DwellProblem, DwellSolution, restricted
+
+#: a selection's LP is solved in the model of a few needles (its hole's, or the local search's pool) when the problem
+#: has at least this many needles (:meth:`LinearProgramme._subset`): 40 or more candidates have several per hole
+#: (steered ones)
+SINGLE_MODEL_MIN_NEEDLES = 40
 
 
 def _rounded(model: _Model, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
@@ -70,13 +77,17 @@ def _moves(model: _Model, pool: Sequence[int], sel: Sequence[int], budget: int) 
 
 
 def _improved(model: _Model, budget: int, kappa: np.ndarray, relaxed: sopt.OptimizeResult,
-              start: sopt.OptimizeResult, pool_size: int, passes: int) -> tuple[sopt.OptimizeResult, int]:
+              start: sopt.OptimizeResult, pool_size: int, passes: int,
+              subset: Callable[[Sequence[int]], tuple[_Model, dict[int, int]]] | None = None,
+              ) -> tuple[sopt.OptimizeResult, int]:
     """Improve the selection ``start`` by swaps (a deterministic local search); return it and the LPs solved.
 
     Moves: add a needle (when under ``budget``) or swap one for another, each drawn from the ``pool_size`` needles
     with the largest relaxed ``y`` (``relaxed``, the LP relaxation at this budget); the best move is taken while it
     lowers the objective, for at most ``passes`` passes. Every move is a feasible selection, so the objective never
-    rises; the LP relaxation still bounds the optimum from below.
+    rises; the LP relaxation still bounds the optimum from below. ``subset``: for needles, a smaller model holding
+    them (and their indices there) in which their selections have the same LPs (:func:`restricted`): the moves
+    (among the pool and the start's needles) are solved there, and a better selection again in ``model``.
     """
     best = start
     n_lp = 0
@@ -84,22 +95,28 @@ def _improved(model: _Model, budget: int, kappa: np.ndarray, relaxed: sopt.Optim
         return best, n_lp
     y = relaxed.x[model.i_y:model.i_u]
     pool = [int(i) for i in np.argsort(-y, kind="stable")[:pool_size] if y[i] > 1e-6]
+    best_sel = list(model.selected(start.x))
+    where, index = model, {i: i for i in range(model.n_y)}
+    if subset is not None:
+        where, index = subset(sorted({*pool, *best_sel}))
     tried: set[frozenset[int]] = set()
     for _ in range(passes):
-        sel = list(model.selected(best.x))
-        tried.add(frozenset(sel))
-        step = best
-        for move in _moves(model, pool, sel, budget):
+        tried.add(frozenset(best_sel))
+        step, step_sel = best, best_sel
+        for move in _moves(model, pool, best_sel, budget):
             if frozenset(move) in tried:
                 continue
             tried.add(frozenset(move))
-            res = model.solve(budget, kappa=kappa, only=move)
+            res = where.solve(budget, kappa=kappa, only=[index[i] for i in move])
             n_lp += 1
             if res.x is not None and float(res.fun) < float(step.fun) - 1e-9 * max(1.0, abs(float(step.fun))):
-                step = res
+                step, step_sel = res, sorted(move)
         if step is best:
             break
-        best = step
+        best, best_sel = step, step_sel
+    if best is not start and where is not model:  # the selection's columns in the whole model
+        again = model.solve(budget, kappa=kappa, only=best_sel)
+        best = again if again.x is not None else start
     return best, n_lp
 
 
@@ -125,18 +142,21 @@ def selections_at_most(holes: Sequence[str], budget: int) -> int:
     return sum(e[1:])
 
 
-def _exhaustive(model: _Model, budget: int, kappa: np.ndarray,
-                memo: dict[tuple[int, ...], sopt.OptimizeResult]) -> tuple[sopt.OptimizeResult | None, int]:
+def _exhaustive(model: _Model, budget: int, kappa: np.ndarray, memo: dict[tuple[int, ...], sopt.OptimizeResult],
+                single: Callable[[int], tuple[_Model, int]] | None = None) -> tuple[sopt.OptimizeResult | None, int]:
     """Return the best selection of 1 to ``budget`` needles (one per hole) over all of them, and the LPs solved.
 
     Every selection's LP is solved (those in ``memo``, a smaller budget's, are read from it): the result is the
-    selection model's optimum at this budget, proven by enumeration.
+    selection model's optimum at this budget, proven by enumeration. ``single``: for a needle, a smaller model that
+    holds it (and its index there) in which its selection alone has the same LP (:func:`restricted`): one needle's
+    LP is solved there; when such a result is the best, it is solved again in ``model`` for its columns.
     """
     by_hole: dict[str, list[int]] = {}
     for i, h in enumerate(model.hole_of):
         by_hole.setdefault(h, []).append(i)
     groups = list(by_hole.values())
     best: sopt.OptimizeResult | None = None
+    best_key: tuple[int, ...] = ()
     n_lp = 0
     for size in range(1, budget + 1):
         for combo in itertools.combinations(groups, size):
@@ -144,10 +164,18 @@ def _exhaustive(model: _Model, budget: int, kappa: np.ndarray,
                 key = tuple(sorted(pick))
                 res = memo.get(key)
                 if res is None:
-                    res = memo[key] = model.solve(budget, kappa=kappa, only=key)
+                    if size == 1 and single is not None:
+                        sub, j = single(key[0])
+                        res = memo[key] = sub.solve(budget, kappa=kappa, only=[j])
+                        res["foreign"] = True  # its columns are the smaller model's
+                    else:
+                        res = memo[key] = model.solve(budget, kappa=kappa, only=key)
                     n_lp += 1
                 if res.x is not None and (best is None or float(res.fun) < float(best.fun) - 1e-12):
-                    best = res
+                    best, best_key = res, key
+    if best is not None and best.get("foreign", False):
+        again = model.solve(budget, kappa=kappa, only=best_key)
+        best = again if again.x is not None else None
     return best, n_lp
 
 
@@ -201,7 +229,9 @@ class LinearProgramme:
         """
         model = problem.cache.get(self.name)
         if not isinstance(model, _Model):
-            model = problem.cache[self.name] = _Model(problem)
+            last = problem.cache.pop(WARM_START, None)  # a similar problem solved before (a robust loading's round)
+            warm = last.cache.get(self.name) if isinstance(last, DwellProblem) else None
+            model = problem.cache[self.name] = _Model(problem, warm if isinstance(warm, _Model) else None)
         return model
 
     def optimise(self, problem: DwellProblem, *, budget: int | None = None, limit_factor: np.ndarray | None = None,
@@ -242,6 +272,48 @@ class LinearProgramme:
             return DwellSolution(model.dwell_times(res.x), status, float(res.fun), bound, model.selected(res.x))
         return self._select(problem, model, budget, kappa, start)
 
+    def _single(self, problem: DwellProblem, model: _Model) -> Callable[[int], tuple[_Model, int]] | None:
+        """Return, for a needle of ``model``, the model of its hole's needles alone and its index there.
+
+        None when the problem has few needles (few per hole: its own model is as small). One needle's LP in the
+        model of every candidate (100 needles and more with steered ones) costs several times its LP among its
+        hole's few needles; the models are built once and kept in the problem's cache.
+        """
+        choice = problem.needles
+        subset = self._subset(problem)
+        if choice is None or subset is None:
+            return None
+
+        def single(i: int) -> tuple[_Model, int]:
+            held, index = subset([j for j, h in enumerate(choice.holes) if h == choice.holes[i]])
+            return held, index[i]
+
+        return single
+
+    def _subset(self, problem: DwellProblem) -> Callable[[Sequence[int]], tuple[_Model, dict[int, int]]] | None:
+        """Return, for some needles of ``problem``, the model of them alone and each one's index there.
+
+        The model keeps the other channels (intracavitary); None when the problem has fewer than
+        :data:`SINGLE_MODEL_MIN_NEEDLES` needles. A selection of those needles has the same LP there as in the whole
+        model (:func:`restricted`), at a fraction of its cost. The models are kept in the problem's cache by needle
+        set.
+        """
+        choice = problem.needles
+        if choice is None or len(choice.channels) < SINGLE_MODEL_MIN_NEEDLES:
+            return None
+        others = sorted({int(c) for c in problem.channel} - set(choice.channels))
+
+        def subset(needles: Sequence[int]) -> tuple[_Model, dict[int, int]]:
+            chosen = sorted({int(i) for i in needles})
+            key = f"{self.name}:needles:{','.join(map(str, chosen))}"
+            held = problem.cache.get(key)
+            if not isinstance(held, _Model):
+                held = problem.cache[key] = self.model(restricted(problem, [*(choice.channels[i] for i in chosen),
+                                                                           *others]))
+            return held, {i: k for k, i in enumerate(chosen)}
+
+        return subset
+
     def _enumerate(self, problem: DwellProblem, model: _Model, k: int, kappa: np.ndarray) -> DwellSolution:
         """Select at most ``k`` needles by solving every selection's LP (:func:`_exhaustive`); the bound is its value.
 
@@ -250,7 +322,7 @@ class LinearProgramme:
         """
         memo = problem.cache.setdefault(f"{self.name}:selections:{kappa.tobytes().hex()}", {})
         n_all = selections_at_most(model.hole_of, k)
-        best, n_lp = _exhaustive(model, k, kappa, memo)
+        best, n_lp = _exhaustive(model, k, kappa, memo, self._single(problem, model))
         if best is None:
             return DwellSolution(None, f"no feasible selection among all {n_all} of at most {k} needles",
                                  float("inf"), None)
@@ -274,7 +346,8 @@ class LinearProgramme:
         lower = float(relaxed.fun) if relaxed.x is not None else None
         if inc is None:
             return DwellSolution(None, "no feasible selection (the rounded LP relaxation failed)", float("inf"), lower)
-        best, n_lp = _improved(model, k, kappa, relaxed, inc, problem.swap_pool, problem.swap_passes)
+        best, n_lp = _improved(model, k, kappa, relaxed, inc, problem.swap_pool, problem.swap_passes,
+                               self._subset(problem))
         status = (f"rounded LP relaxation improved by {n_lp} swap LPs" if best is not inc else
                   f"rounded LP relaxation, no better swap in {n_lp} LPs")
         return DwellSolution(model.dwell_times(best.x), status, float(best.fun), lower, model.selected(best.x))

@@ -227,3 +227,23 @@ def test_a_dose_point_with_an_aim_is_held_nominally_and_in_every_scenario(
 
     failed = _aims_failed(plan.target, plan.gtv, plan.oars, aims, points=[(tight[0], 1.0)])
     assert any(f.startswith("ICRU recto-vaginal") for f in failed)
+
+
+def test_a_scaled_loadings_metrics_from_the_earlier_doses_are_the_direct_ones(case: Case, kernel: Tg43Kernel) -> None:
+    """A loading scaled down (a few dwells held at the minimum time) read from the earlier loading's doses gives the
+    metrics computed afresh on every sub-voxel (to the float32 kernel's rounding)."""
+    from reachplan.planner.implant.problem import _metrics, _sampled_problem
+
+    prob = _sampled_problem(case.cands[:4], case.planning, kernel, SK, TIGHT, SETTINGS, None)
+    cols = np.arange(len(prob.positions))
+    t = np.random.default_rng(3).uniform(0.0, 20.0, len(cols)) * (np.arange(len(cols)) % 3 != 0)
+    vox = voxel_volume_cc(case.planning.grid)
+    first = _metrics(prob, cols, t, TIGHT, vox)
+    down = 0.6
+    t2 = np.where(t > 0, np.maximum(t * first[5] * down, 5.0), 0.0)  # the shortest held at 5 s
+    assert np.any((t > 0) & (t2 == 5.0)) and np.any(t2 > 5.0)
+    direct, reread = _metrics(prob, cols, t2, TIGHT, vox), _metrics(prob, cols, t2, TIGHT, vox, base=(first[6], down))
+    for a, b in zip([direct[0], *direct[3]], [reread[0], *reread[3]], strict=True):
+        assert (a.d90_gy, a.d98_gy, a.d2cc_gy) == pytest.approx((b.d90_gy, b.d98_gy, b.d2cc_gy), rel=1e-7)
+    assert direct[1] == pytest.approx(reread[1], abs=0.01) and direct[5] == pytest.approx(reread[5], rel=1e-7)
+    assert np.allclose(direct[6].target, reread[6].target, rtol=1e-7, atol=0)

@@ -4,13 +4,14 @@ branch and bound on the same mixed-integer programme, and one score per needle s
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy import optimize as sopt
 
 from reachplan.planner.implant.model import _Model
-from reachplan.planner.implant.optimiser import DwellProblem, Modulation, NeedleChoice, OrganRows
+from reachplan.planner.implant.optimiser import WARM_START, DwellProblem, Modulation, NeedleChoice, OrganRows
 from reachplan.planner.implant.plan import _restricted
 from reachplan.planner.implant.selection import LP, selections_at_most
 
@@ -121,3 +122,59 @@ def _cold(model: _Model, only: list[int]) -> sopt.OptimizeResult:
     ub = model.ub.copy()
     ub[-1] = 3
     return sopt.milp(model.c, constraints=[sopt.LinearConstraint(model.a, model.lb, ub)], bounds=sopt.Bounds(lo, hi))
+
+
+def test_a_robust_rounds_lp_starts_from_the_last_round_and_gives_the_cold_optimum() -> None:
+    """The next round's model (more row sets) starts from the last round's basis; budgets' relaxations from the
+    last budget's; every optimum is the cold solver's."""
+    base = _problem(6, 0)
+    loading = replace(base, needles=None, units=None, min_time_s=0.0)
+    rng = np.random.default_rng(7)
+    extra = OrganRows(rng.uniform(0.0, 0.4, (25, base.n_columns)), np.full(25, 0.2), 2.5, 2.0, "Rectum, shifted")
+    first = replace(loading, cache={})
+    LP.optimise(first, limit_factor=np.ones(1))
+    second = replace(loading, organs=(*loading.organs, extra), cache={WARM_START: first})
+    model = LP.model(second)
+    assert WARM_START not in second.cache  # the hint is read once, not kept
+    assert _Model(second, warm=LP.model(first))._inherited_basis() is not None
+    kappa = np.array([0.9, 1.1])
+    warm = model.solve(None, kappa=kappa)
+    ub = model.ub.copy()
+    ub[model.limit_rows] = model.limits * kappa
+    cold = sopt.milp(model.c, constraints=[sopt.LinearConstraint(model.a, model.lb, ub)],
+                     bounds=sopt.Bounds(np.zeros(model.n), np.full(model.n, np.inf)))
+    assert warm.x is not None and cold.x is not None
+    assert float(warm.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
+    assert np.allclose(model.dwell_times(warm.x), model.dwell_times(cold.x), rtol=0, atol=1e-6)
+    selection = LP.model(_problem(6, 0))
+    for budget in (1, 3, 2):  # one relaxation after the other on the model's instance
+        relaxed = selection.solve(budget)
+        ub = selection.ub.copy()
+        ub[-1] = budget
+        hi = np.full(selection.n, np.inf)
+        hi[selection.i_y:selection.i_u] = 1.0
+        cold = sopt.milp(selection.c, constraints=[sopt.LinearConstraint(selection.a, selection.lb, ub)],
+                         bounds=sopt.Bounds(np.zeros(selection.n), hi))
+        assert float(relaxed.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
+
+
+def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With many candidates each single needle's LP is solved among its hole's needles alone: the same optimum,
+    returned in the whole model's columns, and the same selection at the next budget from the kept results."""
+    from reachplan.planner.implant import selection
+
+    problem = _problem(8, 0)
+    plain = _Model(problem)
+    kappa = np.ones(1)
+    monkeypatch.setattr(selection, "SINGLE_MODEL_MIN_NEEDLES", 1)
+    model = LP.model(problem)
+    single = LP._single(problem, model)
+    assert single is not None and single(3)[0].n_y == 2  # hole C holds needles 3 and 4
+    memo: dict[tuple[int, ...], sopt.OptimizeResult] = {}
+    for budget in (1, 2):
+        best, _ = selection._exhaustive(model, budget, kappa, memo, single)
+        ref, _ = selection._exhaustive(plain, budget, kappa, {})
+        assert best is not None and ref is not None
+        assert float(best.fun) == pytest.approx(float(ref.fun), rel=1e-9)
+        assert model.selected(best.x) == plain.selected(ref.x)
+        assert np.allclose(model.dwell_times(best.x), plain.dwell_times(ref.x), atol=1e-6)
