@@ -119,9 +119,14 @@ def _float(ds: Dataset, keyword: str, default: float | None = None) -> float | N
         return default
 
 
+#: The range of a DICOM Integer String (IS), PS3.5 §6.2: a value outside it is no integer of the file.
+_IS_RANGE = (-(2**31), 2**31 - 1)
+
+
 def _int(ds: Dataset, keyword: str, default: int | None = None) -> int | None:
     v = _float(ds, keyword)
-    return default if v is None or not np.isfinite(v) else round(v)
+    usable = v is not None and np.isfinite(v) and _IS_RANGE[0] <= v <= _IS_RANGE[1]
+    return round(v) if usable and v is not None else default
 
 
 def _value(ds: Dataset, keyword: str, where: str, *, lo: float | None = None, hi: float | None = None,

@@ -22,7 +22,7 @@ import json
 import os
 import random
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +44,9 @@ SCALE = float(os.environ.get("REACHPLAN_FUZZ_SCALE", "3") or "3")
 BASE_MUTANTS = {"ct": 90, "rs_phantom": 30, "rp_hdr": 70, "rp_pdr": 50, "rs_hdr": 25, "rs_prostate": 25, "rd": 20}
 N_MUTANTS = {name: max(1, round(n * SCALE)) for name, n in BASE_MUTANTS.items()}
 DOSE_EVERY = 3  # one RT Plan mutant in DOSE_EVERY also goes through `reachplan dose`
+#: The fuzz runs in this many parts (each the k-th mutants, k = part mod PARTS, each from its own seeded generator),
+#: so that two test workers share it.
+PARTS = 3
 
 VALUES = ["nan", "-nan", "inf", "-inf", "-1", "0", "-0", "1e30", "-1e30", "1e308", "", " ", "x", "1\\2\\3\\4",
           "19500101", "99999999", "\x00", "3.4e38", "-5", "0.5", "1e-320", "1.0\\1e-320", "0.001", "Cs-137"]
@@ -230,14 +233,14 @@ def _run(args: list[str], tally: Tally, label: str, inputs: list[Path], out_dir:
     return code
 
 
-def _mutants(src: Path, n: int, rng: random.Random) -> list[bytes]:
+def _mutants(src: Path, name: str, n: int, part: int) -> Iterator[tuple[int, bytes]]:
+    """Yield this part's mutants of ``src``: the k-th of the ``n`` from its own seeded generator, k = part mod PARTS."""
     data = src.read_bytes()
-    out: list[bytes] = []
-    while len(out) < n:
-        m = _bytes_mutant(data, rng) if rng.random() < 0.5 else _element_mutant(src, rng)
-        if m is not None:
-            out.append(m)
-    return out
+    for k in range(part, n, PARTS):
+        rng = random.Random(f"{SEED}:{name}:{k}")
+        while (m := _bytes_mutant(data, rng) if rng.random() < 0.5 else _element_mutant(src, rng)) is None:
+            pass
+        yield k, m
 
 
 def _mutant_file(folder: Path, name: str, data: bytes) -> Path:
@@ -249,8 +252,8 @@ def _mutant_file(folder: Path, name: str, data: bytes) -> Path:
 
 
 @pytest.mark.slow
-def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
-    rng = random.Random(SEED)
+@pytest.mark.parametrize("part", range(PARTS))
+def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path, part: int) -> None:
     tally = Tally()
     plans: list[tuple[str, Path, Path]] = [("rp_hdr", seeds.rp_hdr, seeds.rs_hdr),
                                            ("rp_pdr", seeds.rp_pdr, seeds.rs_pdr)]
@@ -261,11 +264,11 @@ def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
         ("rs_prostate", seeds.rs_prostate, lambda p: ["inspect", str(p), "--json"]),
     ]
     for name, src, command in singles:
-        for k, data in enumerate(_mutants(src, N_MUTANTS[name], rng)):
+        for k, data in _mutants(src, name, N_MUTANTS[name], part):
             path = _mutant_file(tmp_path / f"{name}_{k}", "x.dcm", data)
             _run(command(path), tally, f"{name} #{k}", [path])
     for name, rp, rs in plans:
-        for k, data in enumerate(_mutants(rp, N_MUTANTS[name], rng)):
+        for k, data in _mutants(rp, name, N_MUTANTS[name], part):
             path = _mutant_file(tmp_path / f"{name}_{k}", "RP.dcm", data)
             folder = path.parent
             _run(["inspect", str(path), "--json"], tally, f"{name} #{k} inspect", [path])
@@ -274,7 +277,7 @@ def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
                 out.mkdir()
                 _run(["dose", "--plan", str(path), "--structures", str(rs), "--points", "--json", "--spacing", "8",
                       "--out", str(out / "RD.dcm")], tally, f"{name} #{k} dose", [path, rs], out)
-    for k, data in enumerate(_mutants(seeds.rd, N_MUTANTS["rd"], rng)):
+    for k, data in _mutants(seeds.rd, "rd", N_MUTANTS["rd"], part):
         folder = tmp_path / f"rd_{k}"
         (folder / "out").mkdir(parents=True)
         (folder / "RD.dcm").write_bytes(data)
@@ -282,8 +285,8 @@ def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path) -> None:
               "--json", "--out", str(folder / "out" / "RD.dcm")], tally, f"rd #{k} dose --like",
              [folder / "RD.dcm", seeds.rp_hdr, seeds.rs_hdr], folder / "out")
     assert tally.codes is not None and tally.failures is not None
-    print(f"mutation fuzz at size {SCALE:g}: {tally.runs} runs, exit codes {dict(sorted(tally.codes.items()))}, "
-          f"{len(tally.failures)} failures")  # shown with -s (the acceptance run reports it)
+    print(f"mutation fuzz at size {SCALE:g}, part {part + 1} of {PARTS}: {tally.runs} runs, exit codes "
+          f"{dict(sorted(tally.codes.items()))}, {len(tally.failures)} failures")  # shown with -s
     assert not tally.failures, f"{len(tally.failures)} of {tally.runs} runs failed:\n" + "\n".join(tally.failures[:20])
     # the fuzz reaches both outcomes: some mutants are still readable, many are refused with a typed error
-    assert tally.codes.get(0, 0) >= 20 and tally.codes.get(2, 0) >= 50, tally.codes
+    assert tally.codes.get(0, 0) >= 20 // PARTS and tally.codes.get(2, 0) >= 50 // PARTS, tally.codes

@@ -243,6 +243,19 @@ def test_overlong_decimal_string_is_read_with_warning(tmp_path: Path) -> None:
     assert plan.channels[0].total_time_s == pytest.approx(60.0)
 
 
+def test_an_integer_beyond_the_is_range_is_read_as_absent_with_a_warning(tmp_path: Path) -> None:
+    # found by the mutation fuzz: Channel Number "1e30" became a Python int no numpy array could hold
+    ds = _brachy_plan()
+    path = tmp_path / "rp.dcm"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds.ApplicationSetupSequence[0].ChannelSequence[0].ChannelNumber = "1e30"
+        _write(ds, path)
+    with pytest.warns(PlanQuirkWarning, match="1e30"):
+        plan = read_rtplan(path)
+    assert plan.channels[0].number == 0 and np.asarray([c.number for c in plan.channels]).dtype.kind == "i"
+
+
 def test_missing_total_time_is_typed_error(tmp_path: Path) -> None:
     path = _write(_brachy_plan(total=None), tmp_path / "rp.dcm")
     with pytest.raises(CorruptFileError, match="Channel Total Time"):
