@@ -439,12 +439,17 @@ def implant_summary_json(summary: ImplantCohortSummary, rows: Sequence[Mapping[s
     Returns
     -------
     dict of str to JSON value
-        ``needles_saved`` and ``d90_gain_gy`` each with ``mean``, ``ci95``, ``test``, ``p_value`` (and more),
-        ``oar_d2cc_change_gy``, ``aims_met``, ``steered_needle_used``, ``power``, ``assumptions``, ``strata``,
+        ``needles_saved`` and ``d90_gain_gy`` each with ``mean``, ``ci95``, ``test``, ``p_value`` (and more);
+        ``needles_saved_both_meet_aims`` (the same, over the cases where both arms meet every aim: a count of an arm
+        that misses an aim is no implant to compare with), ``only_steered_meets_aims`` and
+        ``only_straight_meets_aims`` (cases), ``oar_d2cc_change_gy``, ``aims_met``, ``steered_needle_used``,
+        ``power``, ``assumptions``, ``strata``,
         ``anatomy`` (span of the HR-CTV and bladder volumes, cases with parametrial extension), ``failed`` and the
         times (``median_case_cpu_s`` over the planned cases, both arms).
     """
     paired = _paired(rows)
+    like = [r["straight_needles"] - r["steered_needles"] for r in paired
+            if r["straight_aims_met"] and r["steered_aims_met"]]
     cpu = [float(r["cpu_seconds"]) for r in rows if r.get("cpu_seconds") is not None]
     secs = [float(r["seconds"]) for r in rows if r.get("seconds") is not None]
     ext = [r.get("parametrial_extension") for r in rows if r.get("parametrial_extension")]
@@ -452,6 +457,10 @@ def implant_summary_json(summary: ImplantCohortSummary, rows: Sequence[Mapping[s
     return {
         "cases": summary.n_cases, "paired_cases": summary.n_paired,
         "needles_saved": summary.needles_saved.to_json(),
+        # like for like: a needle count of an arm that misses an aim is no implant to compare with
+        "needles_saved_both_meet_aims": count_summary(like).to_json() if len(like) > 1 else None,
+        "only_steered_meets_aims": [r["case"] for r in paired if r["steered_aims_met"] and not r["straight_aims_met"]],
+        "only_straight_meets_aims": [r["case"] for r in paired if r["straight_aims_met"] and not r["steered_aims_met"]],
         "d90_gain_gy": summary.d90_gain_gy.to_json(),
         "oar_d2cc_change_gy": {o: s.to_json() for o, s in summary.oar_d2cc_change_gy},
         "aims_met": {"straight": summary.aims_met_straight, "steered": summary.aims_met_steered},

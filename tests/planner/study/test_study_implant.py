@@ -155,6 +155,9 @@ def test_rows_failures_and_summary(spec: ImplantStudySpec, tmp_path: Path) -> No
     assert set(doc["strata"]) == {"parametrial_extension", "bladder_filling", "uterine_version", "tumour_volume"}
     # aims met (D90 >= 85 Gy here): straight 85 (seed 5); steered 85.5 (seed 3), 88.5 (seed 5); none for failures
     assert doc["aims_met"] == {"straight": 1, "steered": 2}
+    # like for like: only seed 5 meets every aim in both arms (one case: no statistic); seed 3 only with steering
+    assert doc["needles_saved_both_meet_aims"] is None
+    assert doc["only_steered_meets_aims"] == ["clinical_3"] and doc["only_straight_meets_aims"] == []
     assert res.summary.n_paired == len(paired)
     assert (tmp_path / "s" / "summary.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     part = json.loads((tmp_path / "s" / "parts" / "clinical_0.json").read_text(encoding="utf-8"))
