@@ -10,6 +10,7 @@ import numpy as np
 from reachplan.planner.case.fidelity import POLICIES, SAFETY_MARGIN_MM
 from reachplan.planner.lookup import rod_model, rod_model_capabilities
 from reachplan.planner.ranking import RankWeights
+from reachplan.planner.steering.calibration import RATIO_RANGE
 from reachplan.planner.steering.factors import TIP_FOLLOWING_MIN_PA
 from reachplan.planner.steering.insertion import SIMUGEL_MODULUS_PA
 from reachplan.planner.steering.kinematic import KINEMATIC, KinematicInsertion
@@ -150,9 +151,11 @@ class PlanConfig:
             raise ValueError(f"models must be one of {', '.join(POLICIES)}, got {self.models!r}")
         if not (np.isfinite(self.safety_margin_mm) and self.safety_margin_mm >= 0):
             raise ValueError(f"safety_margin_mm must be a number of mm >= 0, got {self.safety_margin_mm}")
+        lo, hi = RATIO_RANGE
         for design, ratio in self.curvature_scale:
-            if not (np.isfinite(ratio) and 0.2 <= ratio <= 5.0):
-                raise ValueError(f"the curvature calibration of {design} must be a ratio in [0.2, 5], got {ratio}")
+            if not (np.isfinite(ratio) and lo <= ratio <= hi):
+                raise ValueError(f"the curvature calibration of {design} must be a ratio in [{lo:g}, {hi:g}], got "
+                                 f"{ratio}")
 
     @cached_property
     def rod_designs(self) -> tuple[RodDesign, ...]:

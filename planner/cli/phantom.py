@@ -141,12 +141,14 @@ def _run_implanted(args: argparse.Namespace) -> int:
     from reachplan.imaging.files import json_bytes
     from reachplan.imaging.phantom import write_phantom
     from reachplan.planner.errors import PlanInputError
+    from reachplan.planner.steering.calibration import RATIO_RANGE
     from reachplan.planner.verify.implant import implanted_case
 
     if args.case != "clinical" or args.extra_needles < 0 or args.draw_seed < 0:
         raise PlanInputError("--implanted images the clinical case; --extra-needles and --draw-seed must be >= 0")
-    if not 0.2 <= args.curvature_scale <= 5.0:
-        raise PlanInputError(f"--curvature-scale must be a ratio in [0.2, 5], got {args.curvature_scale:g}")
+    lo, hi = RATIO_RANGE
+    if not lo <= args.curvature_scale <= hi:
+        raise PlanInputError(f"--curvature-scale must be a ratio in [{lo:g}, {hi:g}], got {args.curvature_scale:g}")
     post = implanted_case(args.implanted, args.modality, args.extra_needles, args.needle_content, args.draw_seed,
                           args.seed, args.curvature_scale)
     with writing(args.out):

@@ -71,18 +71,6 @@ def _versus_plan(versus: Matching) -> dict[str, object]:
     return {**doc, "needles": [e.to_json() for e in versus.errors]}
 
 
-def _plan_export(plan_json: Path, doc: dict[str, Any], prefix: str) -> Path | None:
-    """Return the plan's exported file ``prefix*`` (RP, RS): where ``delivery.files`` says, or in ``export/``."""
-    files = (doc.get("delivery") or {}).get("files") or []
-    for name in files:
-        p = Path(str(name))
-        if p.name.startswith(prefix):
-            for where in (p, plan_json.parent / "export" / p.name):
-                if where.is_file():
-                    return where
-    return None
-
-
 def _as_inserted(plan_json: Path, doc: dict[str, Any], found: dict[str, np.ndarray],
                  planned: dict[str, np.ndarray]) -> dict[str, object]:
     """Return the plan's dose on the needles as found and as planned, against the plan's protocol.
@@ -96,8 +84,9 @@ def _as_inserted(plan_json: Path, doc: dict[str, Any], found: dict[str, np.ndarr
     from reachplan.planner.run.dose_aims import DVH_METHOD, plan_dose_aims
     from reachplan.planner.run.dose_check import DoseCheckConfig, check_plan_dose
     from reachplan.planner.verify.delivered import as_inserted
+    from reachplan.planner.verify.implant import plan_export
 
-    rp, rs = _plan_export(plan_json, doc, "RP_"), _plan_export(plan_json, doc, "RS_")
+    rp, rs = plan_export(plan_json, doc, "RP_"), plan_export(plan_json, doc, "RS_")
     if rp is None or rs is None:
         return {"summary": "as inserted: the plan's exported RT Plan and Structure Set were not found; no dose "
                            "computed"}

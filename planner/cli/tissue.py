@@ -120,7 +120,7 @@ def site_calibration(text: str) -> tuple[tuple[str, float], ...]:
     from pathlib import Path
 
     from reachplan.planner.errors import PlanInputError
-    from reachplan.planner.steering.calibration import site_scales
+    from reachplan.planner.steering.calibration import RATIO_RANGE, site_scales
 
     try:
         doc = json.loads(Path(text).read_text(encoding="utf-8"))
@@ -130,10 +130,11 @@ def site_calibration(text: str) -> tuple[tuple[str, float], ...]:
         scales = site_scales(doc)
     except PlanInputError as exc:
         raise argparse.ArgumentTypeError(f"{text}: {exc}") from None
+    lo, hi = RATIO_RANGE
     for design, ratio in scales:
-        if not 0.2 <= ratio <= 5.0:
-            raise argparse.ArgumentTypeError(f"{text}: the curvature ratio of {design} is {ratio:g}, outside [0.2, 5]: "
-                                             "check the needles it was fitted to")
+        if not lo <= ratio <= hi:
+            raise argparse.ArgumentTypeError(f"{text}: the curvature ratio of {design} is {ratio:g}, outside "
+                                             f"[{lo:g}, {hi:g}]: check the needles it was fitted to")
     return scales
 
 

@@ -36,6 +36,9 @@ from reachplan.planner.errors import PlanInputError
 
 #: Fewest found points (about 1 mm apart) a needle's fit uses.
 MIN_POINTS = 10
+#: The curvature ratios a site calibration may hold (and a fit may reach): beyond them the needles fitted, not the
+#: tissue, are wrong.
+RATIO_RANGE: tuple[float, float] = (0.2, 5.0)
 #: A needle whose planned path departs less than this from its hole's axis (mm) carries no information on the
 #: factor.
 MIN_DEFLECTION_MM = 2.0
@@ -170,8 +173,8 @@ def fit_needle(needle: FoundSteered) -> NeedleFit:
         c, s = math.cos(math.radians(p[1])), math.sin(math.radians(p[1]))
         return (xy - p[0] * lateral @ np.array([[c, s], [-s, c]]) - np.outer(z, p[2:4])).ravel()
 
-    fit = least_squares(residual, np.array([1.0, 0.0, 0.0, 0.0]), bounds=([0.2, -45.0, -0.1, -0.1],
-                                                                          [5.0, 45.0, 0.1, 0.1]),
+    fit = least_squares(residual, np.array([1.0, 0.0, 0.0, 0.0]), bounds=([RATIO_RANGE[0], -45.0, -0.1, -0.1],
+                                                                          [RATIO_RANGE[1], 45.0, 0.1, 0.1]),
                         x_scale=np.array([0.1, 5.0, 0.01, 0.01]))
     r = fit.fun.reshape(-1, 2)
     return NeedleFit(needle.source, needle.hole_id, needle.design, needle.planned_factor,

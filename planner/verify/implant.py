@@ -303,11 +303,41 @@ def resample_mm(path_mm: np.ndarray, step_mm: float) -> np.ndarray:
     return np.column_stack([np.interp(t, s, path_mm[:, j]) for j in range(3)])
 
 
+def plan_export(plan_json: Path, doc: Mapping[str, object], prefix: str) -> Path | None:
+    """Return the plan's exported file whose name starts with ``prefix`` (``"RP_"``, ``"RS_"``, ``"RD_"``).
+
+    The first such file of ``delivery.files`` found where it was written or in the plan's ``export`` folder.
+
+    Parameters
+    ----------
+    plan_json : Path
+        The ``plan.json`` file.
+    doc : mapping
+        Its document.
+    prefix : str
+        The file name's start.
+
+    Returns
+    -------
+    Path or None
+        The file; None when the plan names none or none is found.
+    """
+    delivery = doc.get("delivery")
+    files = delivery.get("files", []) if isinstance(delivery, Mapping) else []
+    for name in files:
+        p = Path(str(name))
+        if p.name.startswith(prefix):
+            for where in (p, plan_json.parent / "export" / p.name):
+                if where.is_file():
+                    return where
+    return None
+
+
 def plan_channel_paths(plan_json: Path, doc: Mapping[str, object]) -> dict[str, np.ndarray]:
     """Return the delivered needles' planned centre lines from the plan's exported RT Structure Set.
 
-    The structure set is the first ``RS_*.dcm`` of ``delivery.files`` found where it was written or in the plan's
-    ``export`` folder; each ``Needle <hole>`` BRACHY_CHANNEL ROI is its needle's path (written tip first).
+    The structure set is :func:`plan_export`'s ``RS_`` file; each ``Needle <hole>`` BRACHY_CHANNEL ROI is its
+    needle's path (written tip first).
 
     Parameters
     ----------
@@ -323,18 +353,12 @@ def plan_channel_paths(plan_json: Path, doc: Mapping[str, object]) -> dict[str, 
     """
     from reachplan.imaging.rtstruct import read_rtstruct
 
-    delivery = doc.get("delivery")
-    files = delivery.get("files", []) if isinstance(delivery, Mapping) else []
-    for name in files:
-        p = Path(str(name))
-        if not p.name.startswith("RS_"):
-            continue
-        for where in (p, plan_json.parent / "export" / p.name):
-            if where.is_file():
-                rs = read_rtstruct(where)
-                return {r.name.split(" ", 1)[1]: r.contours[0].points_mm[::-1].copy() for r in rs.rois
-                        if r.name.startswith("Needle ") and r.contours}
-    return {}
+    where = plan_export(plan_json, doc, "RS_")
+    if where is None:
+        return {}
+    rs = read_rtstruct(where)
+    return {r.name.split(" ", 1)[1]: r.contours[0].points_mm[::-1].copy() for r in rs.rois
+            if r.name.startswith("Needle ") and r.contours}
 
 
 def painted_line(drawn: DrawnNeedle) -> np.ndarray:
