@@ -43,7 +43,7 @@ SCALE = float(os.environ.get("REACHPLAN_FUZZ_SCALE", "3") or "3")
 #: Mutants per seed file at size 1 (the first fuzz: 351 runs).
 BASE_MUTANTS = {"ct": 90, "rs_phantom": 30, "rp_hdr": 70, "rp_pdr": 50, "rs_hdr": 25, "rs_prostate": 25, "rd": 20}
 N_MUTANTS = {name: max(1, round(n * SCALE)) for name, n in BASE_MUTANTS.items()}
-DOSE_EVERY = 3  # one RT Plan mutant in DOSE_EVERY also goes through `reachplan dose`
+DOSE_EVERY = 3  # one RT Plan mutant in DOSE_EVERY (of each part) also goes through `reachplan dose`
 #: The fuzz runs in this many parts (each the k-th mutants, k = part mod PARTS, each from its own seeded generator),
 #: so that two test workers share it.
 PARTS = 3
@@ -272,7 +272,7 @@ def test_seeded_mutation_fuzz(seeds: Seeds, tmp_path: Path, part: int) -> None:
             path = _mutant_file(tmp_path / f"{name}_{k}", "RP.dcm", data)
             folder = path.parent
             _run(["inspect", str(path), "--json"], tally, f"{name} #{k} inspect", [path])
-            if k % DOSE_EVERY == 0:
+            if (k // PARTS) % DOSE_EVERY == 0:  # every part its share of the dose runs
                 out = folder / "out"
                 out.mkdir()
                 _run(["dose", "--plan", str(path), "--structures", str(rs), "--points", "--json", "--spacing", "8",
