@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from reachplan.planner.implant.dwells import OptimisationResult
     from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.plugins.exporters import ExportPlan, NeedleExport
-    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint
+    from reachplan.plugins.exporters.base import PlannedDose, ReferencePoint, SourceSpec
 
 
 #: What a delivered channel is for when it is an applicator channel (tandem, ring, ovoid), and the delivered plan's
@@ -197,6 +197,91 @@ class Delivery:
         return doc
 
 
+@dataclass(frozen=True, eq=False)
+class Exporting:
+    """What every exported plan of one case shares; :meth:`plan` makes the export of one set of dwell times.
+
+    Parameters
+    ----------
+    planning : PlanningStructures
+        The planning masks (the prescription point lies in the target; the planned dose covers the target and
+        organs).
+    structures : StructureSet
+        The case's structures (carried into the export; the reference points' landmarks).
+    kernel : Tg43Kernel
+        The source's TG-43 kernel.
+    air_kerma_u : float, U
+        Source strength.
+    aims : Aims
+        The protocol (fractions, prescription per fraction).
+    target_roi : str
+        The prescription target's ROI name.
+    named_points : tuple of (str, (float, float, float))
+        Further reference points, name and position (mm, LPS).
+    source : SourceSpec
+        The treatment source as exported.
+    setup_type : str
+        DICOM Application Setup Type.
+    volume : Volume or None
+        The image series the export references.
+    input_paths : tuple of Path
+        The input files (never written).
+    now : datetime
+        The plan's date and time.
+    planned_dose : bool
+        Compute the planned dose for the RT Dose.
+    """
+
+    planning: PlanningStructures
+    structures: StructureSet
+    kernel: Tg43Kernel
+    air_kerma_u: float
+    aims: Aims
+    target_roi: str
+    named_points: tuple[tuple[str, Sequence[float]], ...]
+    source: SourceSpec
+    setup_type: str
+    volume: Volume | None
+    input_paths: tuple[Path, ...]
+    now: datetime
+    planned_dose: bool = True
+
+    def plan(self, name: str, needles: Sequence[NeedleExport], dwells: DwellSet, n_channels: int) -> ExportPlan:
+        """Return the export of ``dwells`` on ``needles``: its reference points, specification point and dose.
+
+        Parameters
+        ----------
+        name : str
+            The RT Plan Label (cut to 16 characters).
+        needles : sequence of NeedleExport
+            The channels, in order: exported channel ``ch`` (from 1) holds the dwells with ``dwells.channels == ch``.
+        dwells : DwellSet
+            Positions (mm, LPS), directions and times (s) of every dwell.
+        n_channels : int
+            The number of channels.
+
+        Returns
+        -------
+        ExportPlan
+            What the exporters write.
+        """
+        from reachplan.plugins.exporters import ExportPlan
+
+        act = dwells.select(dwells.times_s > 0)
+        aims, fractions = self.aims, self.aims.fractionation.n_fractions
+        rx = _rx_point(self.planning, act, self.kernel, self.air_kerma_u, aims.prescription_gy, self.target_roi,
+                       self.named_points)
+        pts = _reference_points(self.structures, [*rx, *self.named_points], dwells, n_channels, self.kernel,
+                                self.air_kerma_u)
+        dose = (_planned_dose(self.planning, act, self.kernel, self.air_kerma_u, fractions)
+                if self.planned_dose else None)
+        return ExportPlan(name[:16], tuple(needles), self.source, structure_set=self.structures, volume=self.volume,
+                          input_paths=self.input_paths, fractions_planned=fractions,
+                          prescription_dose_gy=aims.prescription_gy, target_name=self.target_roi[:64],
+                          reference_points=tuple(pts), application_setup_type=self.setup_type, dose=dose,
+                          plan_datetime=self.now, specification_point=rx[0][0] if rx else "")
+
+
 def plan_delivery(
     result: PlanResult,
     structures: StructureSet,
@@ -265,7 +350,7 @@ def plan_delivery(
         No feasible needle, no target structure to optimise on, or a bad named point.
     """
     from reachplan.planner.dose.tg43 import Tg43Kernel
-    from reachplan.plugins.exporters import ExportPlan, SourceSpec
+    from reachplan.plugins.exporters import SourceSpec
 
     planning = planning_structures(structures, grid, target_roi, result.config.oar_names,
                                    None if scene is None else scene.applicators)
@@ -273,30 +358,20 @@ def plan_delivery(
     kernel = Tg43Kernel(source)
     implant, opt, exports, roles, kind = _delivered(result, scene, planning, source, kernel, air_kerma_u, aims,
                                                     implant_settings, structures, named_points)
-    fractions = aims.fractionation.n_fractions
-    now, setup = datetime.now().replace(microsecond=0), load_template(result.config.template).application_setup_type
-    spec = SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0))  # Eclipse
-
-    def export_of(name: str, needles: Sequence[NeedleExport], dw: DwellSet, n: int) -> ExportPlan:
-        # the export of dwells ``dw`` on ``n`` channels: its reference points, specification point and dose
-        act = dw.select(dw.times_s > 0)
-        rx = _rx_point(planning, act, kernel, air_kerma_u, aims.prescription_gy, target_roi, named_points)
-        pts = _reference_points(structures, [*rx, *named_points], dw, n, kernel, air_kerma_u)
-        return ExportPlan(name[:16], tuple(needles), spec, structure_set=structures, volume=volume,
-                          input_paths=tuple(input_paths), fractions_planned=fractions,
-                          prescription_dose_gy=aims.prescription_gy, target_name=target_roi[:64],
-                          reference_points=tuple(pts), application_setup_type=setup,
-                          dose=_planned_dose(planning, act, kernel, air_kerma_u, fractions) if planned_dose else None,
-                          plan_datetime=now, specification_point=rx[0][0] if rx else "")
-
-    export = export_of(label, exports, opt.dwells, len(exports))
-    implant_exports = _arm_exports(implant, export_of, opt.dwells, export)
+    now = datetime.now().replace(microsecond=0)  # the source's reference at midnight, as Eclipse writes it
+    exporting = Exporting(planning, structures, kernel, air_kerma_u, aims, target_roi, tuple(named_points),
+                          SourceSpec.from_source_data(source, air_kerma_u, now.replace(hour=0, minute=0, second=0)),
+                          load_template(result.config.template).application_setup_type, volume,
+                          tuple(input_paths), now, planned_dose)
+    export = exporting.plan(label, exports, opt.dwells, len(exports))
+    implant_exports = _arm_exports(implant, exporting.plan, opt.dwells, export)
     points = list(export.reference_points)
     tables = _aims_tables(aims, planning, implant, opt, kind, points, kernel, air_kerma_u)
     own = {} if scene is None else {n: abs(float(m.volume)) / 1000.0 for n, m in scene.meshes.items()}
     return Delivery(opt, export, planning, source, roles, kind, implant, implant_exports, aims, tables,
                     _protocol_warnings(aims, target_roi, tables),
-                    whole_dvhs(planning, {"delivered": export, **implant_exports}, fractions, own))
+                    whole_dvhs(planning, {"delivered": export, **implant_exports}, aims.fractionation.n_fractions,
+                               own))
 
 
 def whole_dvhs(planning: PlanningStructures, exports: dict[str, ExportPlan], fractions: int,

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -418,7 +420,8 @@ def test_demo_candidates_name_their_model_its_tolerance_and_why(demo: Path) -> N
     assert kept  # the cheap model is used where it is enough
 
 
-def test_the_plans_times_on_needles_found_elsewhere_follow_each_needle_from_its_tip(demo: Path) -> None:
+def test_the_plans_times_on_needles_found_elsewhere_follow_each_needle_from_its_tip(
+        demo: Path, dciodvfy: Callable[[Path], list[str]]) -> None:
     """Issue 32.3: a found needle turned 3 degrees about its hole carries the plan's dwells turned with it (the
     afterloader's distance from the tip is kept); found as planned, nothing moves; the tandem, not searched, stays."""
     from reachplan.imaging.rtplan import read_rtplan
@@ -447,16 +450,40 @@ def test_the_plans_times_on_needles_found_elsewhere_follow_each_needle_from_its_
     roi = next(r for r in moved_rs.rois if r.number == channel.roi_number)
     np.testing.assert_allclose(roi.contours[0].points_mm, turned[::-1])
     # found where planned, the dose of the plan's times is the plan's, aim by aim, as 'reachplan dose' computes it
-    from reachplan.planner.cli.reconstruct import _as_inserted
+    from reachplan.imaging.dicom_io import read_series
+    from reachplan.planner.run.as_inserted import after_insertion
 
-    same_doc = _as_inserted(demo / "plan.json", doc, paths, paths)
+    volume = read_series(demo / "phantom" / "CT")
+    post = read_rtstruct(demo / "phantom" / "RS.phantom.dcm", volume)
+    same_doc = after_insertion(demo / "plan.json", doc, paths, paths, post, volume, demo / "replanned")
     before, after = same_doc["planned"], same_doc["as_inserted"]
     assert isinstance(before, dict) and isinstance(after, dict)
     assert [a["value_eqd2_gy"] for a in after["aims"]] == pytest.approx([a["value_eqd2_gy"] for a in before["aims"]],
                                                                           abs=0.05)
-    assert "every planning aim still met" in str(same_doc["summary"]) and "Tandem" in str(same_doc["summary"])
-    from reachplan.planner.cli.reconstruct import _as_inserted_section
+    assert "every planning aim met" in str(same_doc["summary"]) and "Tandem" in str(same_doc["summary"])
+    # Issue 32.3: re-optimised on those needles, the plan meets every aim as 'reachplan dose' computes it from the
+    # files written (the needles allow it: the plan met them), and the files are valid DICOM
+    re = same_doc["replanned"]
+    assert re["aims_met"] and re["limits_met"] and "every planning aim met" in re["summary"], re["summary"]
+    assert all(r["planning_aim_met"] is not False for r in re["aims"]["aims"])
+    assert set(re["loaded"]) <= {c.applicator_id for c in rp.channels if c.n_dwells} and "Tandem" in re["loaded"]
+    assert sorted(Path(f).name[:3] for f in re["files"]) == ["RD_", "RP_", "RS_"]
+    for f in re["files"]:
+        errors = [line for line in dciodvfy(Path(f)) if line.startswith("Error")]
+        assert errors == [], (f, errors)
+    # one needle and no tandem cannot cover the HR-CTV: the re-plan says which aim fails
+    from reachplan.planner.case.config import DEFAULT_AIR_KERMA_U
+    from reachplan.planner.dose.protocol import load_protocol
+    from reachplan.planner.run.as_inserted import replanned
+
+    alone = dataclasses.replace(post, rois=tuple(r for r in post.rois if r.name != "Tandem"))
+    short = replanned(doc, {hole: paths[hole]}, alone, volume, load_protocol(None), "gammamed_plus_hdr",
+                      DEFAULT_AIR_KERMA_U, demo / "replanned_one")
+    assert short["aims_met"] is False and "aims not met" in short["summary"] and "D90" in short["summary"]
+    assert short["loaded"] == [hole]
+    from reachplan.planner.cli.reconstruct import _as_inserted_section, _replanned_section
     from reachplan.planner.report.html import Report, render_html
 
-    page = render_html(Report("t", "t", (_as_inserted_section(same_doc),)))
+    page = render_html(Report("t", "t", (_as_inserted_section(same_doc), *_replanned_section(re))))
+    assert 'id="replanned"' in page
     assert 'id="as-inserted"' in page and page.count("<tr>") >= len(after["aims"]) + 1

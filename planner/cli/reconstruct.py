@@ -71,62 +71,26 @@ def _versus_plan(versus: Matching) -> dict[str, object]:
     return {**doc, "needles": [e.to_json() for e in versus.errors]}
 
 
-def _as_inserted(plan_json: Path, doc: dict[str, Any], found: dict[str, np.ndarray],
-                 planned: dict[str, np.ndarray]) -> dict[str, object]:
-    """Return the plan's dose on the needles as found and as planned, against the plan's protocol.
+def _value(r: dict[str, Any]) -> str:
+    """Return an aims-table row's value, Gy EQD2, or "-"."""
+    v = r.get("value_eqd2_gy")
+    return "-" if v is None else f"{v:.1f}"
 
-    The dose of the needles as found is the plan's times on them (:mod:`~reachplan.planner.verify.delivered`); both
-    are computed as ``reachplan dose`` computes any plan's, on the structure set exported with the plan.
-    """
-    from reachplan.imaging.rtplan import read_rtplan
-    from reachplan.imaging.rtstruct import read_rtstruct
-    from reachplan.planner.dose.protocol import load_protocol
-    from reachplan.planner.run.dose_aims import DVH_METHOD, plan_dose_aims
-    from reachplan.planner.run.dose_check import DoseCheckConfig, check_plan_dose
-    from reachplan.planner.verify.delivered import as_inserted
-    from reachplan.planner.verify.implant import plan_export
 
-    rp, rs = plan_export(plan_json, doc, "RP_"), plan_export(plan_json, doc, "RS_")
-    if rp is None or rs is None:
-        return {"summary": "as inserted: the plan's exported RT Plan and Structure Set were not found; no dose "
-                           "computed"}
-    aims = load_protocol((doc.get("protocol") or {}).get("name"))
-    plan, structures = read_rtplan(rp), read_rtstruct(rs)
-    moved, moved_structures, kept = as_inserted(plan, structures, planned, found)
-    tables = {}
-    for label, p, st in (("planned", plan, structures), ("as_inserted", moved, moved_structures)):
-        check = check_plan_dose(p, st, DoseCheckConfig(points=True), label)
-        tables[label] = plan_dose_aims(p, st, check.grid, check.dose_gy, check.checks, aims)[0]
-    after = tables["as_inserted"]
-    verdict = ("every planning aim still met" if after.aims_met else
-               f"aims not met: {', '.join(after.not_met) or 'none assessed'}")
-    limits = "hard limits kept" if after.limits_met else "a hard limit broken"
-    rows = {r.label: r for r in tables["planned"].results}
-    changes = "; ".join(f"{r.label} {rows[r.label].value_eqd2_gy:.1f} -> {r.value_eqd2_gy:.1f}"
-                        for r in after.results if r.label in rows and r.value_eqd2_gy is not None
-                        and rows[r.label].value_eqd2_gy is not None)
-    summary = (f"as inserted, the plan's times on the needles found ({aims.name}, Gy EQD2): {verdict}, {limits}. "
-               f"{changes}" + (f" (as planned: {', '.join(kept)})" if kept else ""))
-    return {"rtplan": str(rp), "channels_as_planned": list(kept), "dvh_method": DVH_METHOD,
-            "planned": tables["planned"].to_json(), "as_inserted": after.to_json(), "summary": summary}
+def _met(r: dict[str, Any]) -> str:
+    """Return an aims-table row's verdict: met, not met, or not met with its hard limit broken."""
+    met = r.get("planning_aim_met")
+    return "-" if met is None else "met" if met else ("not met" if r.get("hard_limit_met") is not False
+                                                       else "not met, hard limit broken")
 
 
 def _as_inserted_section(delivered: dict[str, Any]) -> Any:
     """Return the report's section of the plan's dose on the needles as found, aim by aim beside the plan's."""
     from reachplan.planner.report.html import Paragraph, Section, Table
 
-    def value(r: dict[str, Any]) -> str:
-        v = r.get("value_eqd2_gy")
-        return "-" if v is None else f"{v:.1f}"
-
-    def verdict(r: dict[str, Any]) -> str:
-        met = r.get("planning_aim_met")
-        return "-" if met is None else "met" if met else ("not met" if r.get("hard_limit_met") is not False
-                                                           else "not met, hard limit broken")
-
     before = {r["aim"]: r for r in delivered["planned"]["aims"]}
-    rows = tuple((r["aim"], value(before[r["aim"]]) if r["aim"] in before else "-", value(r),
-                  str(r.get("planning_aim") or "-"), str(r.get("hard_limit") or "-"), verdict(r))
+    rows = tuple((r["aim"], _value(before[r["aim"]]) if r["aim"] in before else "-", _value(r),
+                  str(r.get("planning_aim") or "-"), str(r.get("hard_limit") or "-"), _met(r))
                  for r in delivered["as_inserted"]["aims"])
     return Section("As inserted: the plan's times on the needles found", "as-inserted", (
         Paragraph(str(delivered["summary"]) + " Dose as 'reachplan dose' computes any plan's (TG-43 line source; "
@@ -135,6 +99,26 @@ def _as_inserted_section(delivered: dict[str, Any]) -> Any:
         Table(("aim", "as planned (Gy EQD2)", "as inserted (Gy EQD2)", "planning aim", "hard limit",
                "as inserted"), rows, "The plan's dose aims, as planned and on the needles as found", numeric=(1, 2)),
     ))
+
+
+def _replanned_section(replanned: dict[str, Any] | None) -> tuple[Any, ...]:
+    """Return the report's section of the plan re-optimised on the needles found (none without a re-plan)."""
+    from reachplan.planner.report.html import Paragraph, Section, Table
+
+    if replanned is None:
+        return ()
+    parts: list[Any] = [Paragraph(str(replanned["summary"]))]
+    if "aims" in replanned:
+        rows = tuple((r["aim"], _value(r), str(r.get("planning_aim") or "-"), str(r.get("hard_limit") or "-"),
+                      _met(r)) for r in replanned["aims"]["aims"])
+        parts += [Paragraph("Dwell times optimised again on the needles found and the applicators of the "
+                            "post-insertion structure set, as the planner loads an implant (the protocol's aims with "
+                            "their headroom, hard limits with any one needle displaced); the dose of the written RT "
+                            "Plan recomputed as 'reachplan dose' computes any plan's. Files for the TPS: "
+                            + ", ".join(Path(f).name for f in replanned["files"]) + "."),
+                  Table(("aim", "re-optimised (Gy EQD2)", "planning aim", "hard limit", "re-optimised"), rows,
+                        "The protocol's aims on the re-optimised plan", numeric=(1,))]
+    return (Section("Re-optimised on the needles found", "replanned", tuple(parts)),)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -163,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
     from reachplan.planner.lookup import load_template
     from reachplan.planner.report.html import Report, render_html
     from reachplan.planner.report.reconstruction import reconstruction_section
+    from reachplan.planner.run.as_inserted import after_insertion
     from reachplan.planner.verify.compare import match
     from reachplan.planner.verify.find import FinderSettings, detect_holes, find_needles
     from reachplan.planner.verify.implant import delivered_needles, plan_channel_paths, planned_paths
@@ -181,34 +166,33 @@ def run(args: argparse.Namespace) -> int:
     for f in found:
         if f.note:
             tqdm.write(f"reachplan reconstruct: warning: needle {f.hole_id}: {f.note}", file=sys.stderr)
-    planned = None
-    versus = None
-    delivered: dict[str, object] | None = None
-    if args.plan is not None:
-        try:
-            doc = json.loads(args.plan.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as exc:
-            raise PlanInputError(f"cannot read --plan {args.plan}: {exc}") from None
-        planned = planned_paths(delivered_needles(doc), template, pose, plan_channel_paths(args.plan, doc))
-        versus = match(found, planned)
-        delivered = _as_inserted(args.plan, doc, {f.hole_id: f.points_mm for f in found}, planned)
-    about = (f"{volume.modality} series {args.ct.name}; template {template.name} {method}; "
-             f"{len(template.needle_holes)} holes tested, {len(found)} needles found and tracked to their tips.")
-    summary = {"found": len(found), "holes": [f.hole_id for f in found],
-               "seconds_per_needle": round(float(np.mean([f.seconds for f in found])), 3) if found else None}
-    doc_out = needles_document(found, {
-        "image": str(args.ct), "modality": volume.modality, "template": template.name,
-        "plan": None if args.plan is None else str(args.plan.resolve()),
-        "template_pose": {"method": method, "patient_from_template": np.round(pose, 6).tolist()},
-        "settings": {"polarity": settings.polarity, "step_mm": settings.step_mm},
-        "versus_plan": None if versus is None else _versus_plan(versus),
-        "as_inserted": delivered,
-        "summary": summary})
-    section = reconstruction_section(volume, found, about, planned, versus)
-    sections = (section,) if delivered is None or "as_inserted" not in delivered else (section,
-                                                                                      _as_inserted_section(delivered))
-    html = render_html(Report("reachplan: needles found", about, sections))
     with staged_folder(args.out) as stage:
+        planned = versus = delivered = None
+        if args.plan is not None:
+            try:
+                doc = json.loads(args.plan.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                raise PlanInputError(f"cannot read --plan {args.plan}: {exc}") from None
+            planned = planned_paths(delivered_needles(doc), template, pose, plan_channel_paths(args.plan, doc))
+            versus = match(found, planned)
+            delivered = after_insertion(args.plan, doc, {f.hole_id: f.points_mm for f in found}, planned,
+                                        structures, volume, stage / "replanned", args.out / "replanned")
+        about = (f"{volume.modality} series {args.ct.name}; template {template.name} {method}; "
+                 f"{len(template.needle_holes)} holes tested, {len(found)} needles found and tracked to their tips.")
+        summary = {"found": len(found), "holes": [f.hole_id for f in found],
+                   "seconds_per_needle": round(float(np.mean([f.seconds for f in found])), 3) if found else None}
+        doc_out = needles_document(found, {
+            "image": str(args.ct), "modality": volume.modality, "template": template.name,
+            "plan": None if args.plan is None else str(args.plan.resolve()),
+            "template_pose": {"method": method, "patient_from_template": np.round(pose, 6).tolist()},
+            "settings": {"polarity": settings.polarity, "step_mm": settings.step_mm},
+            "versus_plan": None if versus is None else _versus_plan(versus),
+            "as_inserted": delivered,
+            "summary": summary})
+        sections = [reconstruction_section(volume, found, about, planned, versus)]
+        if delivered is not None and "as_inserted" in delivered:
+            sections += [_as_inserted_section(delivered), *_replanned_section(delivered.get("replanned"))]
+        html = render_html(Report("reachplan: needles found", about, tuple(sections)))
         atomic_write_bytes(stage / "needles.json", json_bytes(doc_out))
         if found:
             atomic_write_bytes(stage / "RS_needles.dcm", needles_rtstruct(found, volume))
@@ -220,4 +204,6 @@ def run(args: argparse.Namespace) -> int:
               f"RS_needles.dcm and report.html to {args.out}")
         if delivered is not None:
             print(str(delivered["summary"]))
+            if isinstance(delivered.get("replanned"), dict):
+                print(str(delivered["replanned"]["summary"]))
     return 0

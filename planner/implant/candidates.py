@@ -516,13 +516,60 @@ def intracavitary_channel(name: str, path_mm: np.ndarray, planning: PlanningStru
     """
     settings = settings or ImplantSettings()
     p = np.asarray(path_mm, dtype=float)
-    s_dw = applicator_dwell_arclengths(float(arc_length_mm(p)[-1]), settings)
-    pts = _points_at(p, s_dw)
+    pts = _dwells_in_region(p, applicator_dwell_arclengths(float(arc_length_mm(p)[-1]), settings), planning, settings)
+    return None if pts is None else Channel(name, "intracavitary", p, pts)
+
+
+def _dwells_in_region(path_mm: np.ndarray, s_dw: np.ndarray, planning: PlanningStructures,
+                      settings: ImplantSettings) -> np.ndarray | None:
+    """Return the points of ``path_mm`` at arc lengths ``s_dw`` that lie in the target grown by the dwell margin.
+
+    None when fewer than ``settings.min_dwells`` do.
+    """
+    pts = _points_at(path_mm, s_dw)
     region = _distance_field(planning.grid, planning.target.mask, settings.dwell_margin_mm + 5.0)
     pts = pts[region.at(pts) <= settings.dwell_margin_mm + 1e-6] if len(pts) else pts
-    if len(pts) < settings.min_dwells:
-        return None
-    return Channel(name, "intracavitary", p, pts)
+    return None if len(pts) < settings.min_dwells else pts
+
+
+def placed_needle(name: str, kind: str, path_mm: np.ndarray, planning: PlanningStructures,
+                  settings: ImplantSettings | None = None, hole_distance_mm: float = 0.0,
+                  design: str = "") -> Channel | None:
+    """Return a needle that lies where it lies (found in an image) as a channel, its dwells those it can take.
+
+    The afterloader reaches positions every ``settings.dwell_step_mm`` back from ``settings.tip_offset_mm`` short of
+    the tip (the deepest dwell of a planned needle lies there too, :func:`needle_candidates`); those in the HR-CTV
+    grown by ``settings.dwell_margin_mm`` are kept.
+
+    Parameters
+    ----------
+    name : str
+        The hole id.
+    kind : str
+        ``"straight"`` or ``"steered"``.
+    path_mm : (k, 3) float, mm, LPS
+        Its centre line, from the template plane to the tip.
+    planning : PlanningStructures
+        The target mask gives the dwell region.
+    settings : ImplantSettings, optional
+        Dwell step, dwell margin, tip offset and minimum dwells.
+    hole_distance_mm : float, mm
+        The hole's distance from the template centre.
+    design : str
+        Its stylet preset ("" for a straight needle).
+
+    Returns
+    -------
+    Channel or None
+        Dwells deepest first; None when fewer than ``settings.min_dwells`` of them lie in the region.
+    """
+    settings = settings or ImplantSettings()
+    p = np.asarray(path_mm, dtype=float)
+    length = float(arc_length_mm(p)[-1])
+    first = length - settings.tip_offset_mm
+    s_dw = first - settings.dwell_step_mm * np.arange(int(max(first, 0.0) // settings.dwell_step_mm) + 1)
+    pts = _dwells_in_region(p, s_dw[s_dw >= 0.0], planning, settings)
+    return None if pts is None else Channel(name, kind, p, pts, hole_distance_mm, length, design=design)
 
 
 def applicator_channels(applicators: Sequence[Applicator], planning: PlanningStructures,

@@ -432,8 +432,9 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
     """Return the plan of the loading ``t`` of ``cols``: its metrics, every scenario's, and the aims met.
 
     All times are scaled down (by one factor) when a nominal D2cm³ exceeds its planning limit or a scenario's its
-    hard limit, and when HR-CTV D90 is over its upper planning aim (down to it, or to the factor that keeps every
-    scenario's D90 at its hard limit); a dwell the scaling takes under ``min_dwell_time_s`` is set to that minimum.
+    hard limit, and when HR-CTV D90 is over its upper planning aim (down to the aim less the headroom, or to the
+    factor that keeps every scenario's D90 at its hard limit: :func:`_down_to_upper_aim`); a dwell the scaling takes
+    under ``min_dwell_time_s`` is set to that minimum.
     """
     hard = np.array([prob.oar_hard[o] for o in check.organs], dtype=float)
     results = check.evaluate(t)
@@ -470,16 +471,24 @@ def _plan(prob: _Problem, chosen: np.ndarray, cols: np.ndarray, t: np.ndarray, c
 
 
 def _down_to_upper_aim(d90_gy: float, worst_d90_gy: float, aims: Aims) -> float:
-    """Return the factor (<= 1) that brings HR-CTV D90 (Gy per fraction) down to its upper planning aim.
+    """Return the factor (<= 1) that brings HR-CTV D90 (Gy per fraction) down below its upper planning aim.
 
-    No lower than what keeps the lowest scenario D90 (``worst_d90_gy``) at its hard limit; 1 without an upper aim.
+    A D90 over the upper aim comes down to the aim less the protocol's headroom (no lower than the middle of the
+    D90 range): a plan scaled to the aim itself sits on it, and an independent recomputation, which lands within a
+    fraction of a Gy on either side (:mod:`reachplan.planner.dose.aims`), finds it over (0.4 Gy on a clinical
+    seed's plan). No lower than what keeps the lowest scenario D90 (``worst_d90_gy``) at its hard limit; 1 without
+    an upper aim.
     """
-    if aims.target_d90_max_eqd2_gy is None or d90_gy <= 0:
+    top = aims.target_d90_max_eqd2_gy
+    if top is None or d90_gy <= 0:
         return 1.0
-    down = aims.per_fraction_target_gy(aims.target_d90_max_eqd2_gy) / d90_gy
+    if d90_gy <= aims.per_fraction_target_gy(top):
+        return 1.0
+    goal = max(top - aims.headroom_eqd2_gy, 0.5 * (top + aims.target_d90_eqd2_gy))
+    down = aims.per_fraction_target_gy(goal) / d90_gy
     if np.isfinite(worst_d90_gy) and worst_d90_gy > 0:
         down = max(down, aims.per_fraction_target_gy(aims.target_d90_limit_eqd2_gy) / worst_d90_gy)
-    return min(1.0, down * (1 - 1e-6) if down < 1.0 else 1.0)
+    return min(1.0, down)
 
 
 def _limited_by(oars: Sequence[StructureMetrics], v200_pct: float, aims: Aims,
