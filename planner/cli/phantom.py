@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="a plan.json of the clinical case (demo, or plan on its files): image its delivered implant")
     post.add_argument("--extra-needles", type=int, default=2, metavar="N",
                       help="straight needles added through free holes (default 2)")
+    post.add_argument("--extra-steered", type=int, default=0, metavar="N",
+                      help="steered needles added besides the implant: the plan's ranked steered candidates through "
+                           "free holes, as a clinician inserting the report's alternatives would (default 0)")
     post.add_argument("--needle-content", choices=("metal", "air", "fluid"), default="metal",
                       help="what fills the needles: the metal obturator or stylet (default), or an empty (air) or "
                            "water-filled lumen")
@@ -144,13 +147,14 @@ def _run_implanted(args: argparse.Namespace) -> int:
     from reachplan.planner.steering.calibration import RATIO_RANGE
     from reachplan.planner.verify.implant import implanted_case
 
-    if args.case != "clinical" or args.extra_needles < 0 or args.draw_seed < 0:
-        raise PlanInputError("--implanted images the clinical case; --extra-needles and --draw-seed must be >= 0")
+    if args.case != "clinical" or min(args.extra_needles, args.extra_steered, args.draw_seed) < 0:
+        raise PlanInputError("--implanted images the clinical case; --extra-needles, --extra-steered and --draw-seed "
+                             "must be >= 0")
     lo, hi = RATIO_RANGE
     if not lo <= args.curvature_scale <= hi:
         raise PlanInputError(f"--curvature-scale must be a ratio in [{lo:g}, {hi:g}], got {args.curvature_scale:g}")
     post = implanted_case(args.implanted, args.modality, args.extra_needles, args.needle_content, args.draw_seed,
-                          args.seed, args.curvature_scale)
+                          args.seed, args.curvature_scale, args.extra_steered)
     with writing(args.out):
         files = write_phantom(args.out, post.spec, beside={"needles_truth.json": json_bytes(post.truth)},
                               values=post.image)

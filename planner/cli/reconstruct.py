@@ -1,7 +1,10 @@
 """``reachplan reconstruct``: find the needles in a post-insertion CT or MR, from the template's holes to their tips.
 
 Writes ``needles.json``, ``RS_needles.dcm`` (the needles as BRACHY_CHANNEL open ROIs) and ``report.html`` into
-``--out``; with ``--plan``, each needle is compared with its planned path.
+``--out``; with ``--plan``, each needle is compared with its planned path, the plan's dose on the needles as found is
+computed (:mod:`reachplan.planner.verify.delivered`), and the dwell times are optimised again on them and written to
+``replanned/`` as an RT Plan, Structure Set and Dose (:mod:`reachplan.planner.verify.replan`), each against the
+plan's protocol (:mod:`reachplan.planner.run.as_inserted`).
 """
 
 from __future__ import annotations
@@ -37,7 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="its RT Structure Set (the Obturator ROI places the template unless a pose is given)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--plan", type=Path, metavar="PLAN_JSON",
-                        help="the plan.json the needles were inserted from: planned versus actual per needle")
+                        help="the plan.json the needles were inserted from: planned versus actual per needle, the "
+                             "plan's dose on the needles found, and a plan re-optimised on them (replanned/: RT Plan, "
+                             "Structure Set, Dose)")
     add_pose_arguments(parser)
     parser.add_argument("--needle-look", choices=("auto", "bright", "dark"), default="auto",
                         help="bright: a metal obturator or stylet (CT); dark: a signal void (MR) or an empty lumen; "

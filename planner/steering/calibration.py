@@ -42,6 +42,10 @@ RATIO_RANGE: tuple[float, float] = (0.2, 5.0)
 #: A needle whose planned path departs less than this from its hole's axis (mm) carries no information on the
 #: factor.
 MIN_DEFLECTION_MM = 2.0
+#: A needle whose fit leaves more than this (mm, rms of the lateral residual) is not used: the fits of needles
+#: tracked right leave 0.03-0.2 mm on the synthetic post-insertion images; a track that took another needle's past a
+#: crossing left 1.6 mm.
+MAX_FIT_RMS_MM = 1.0
 
 
 @dataclass(frozen=True)
@@ -151,8 +155,8 @@ def fit_needle(needle: FoundSteered) -> NeedleFit:
     Raises
     ------
     PlanInputError
-        Too few found points along the planned depths, or a planned path too straight to tell the curvature
-        (:data:`MIN_DEFLECTION_MM`).
+        Too few found points along the planned depths, a planned path too straight to tell the curvature
+        (:data:`MIN_DEFLECTION_MM`), or a found needle the fit cannot follow (:data:`MAX_FIT_RMS_MM`).
     """
     from scipy.optimize import least_squares
 
@@ -177,10 +181,14 @@ def fit_needle(needle: FoundSteered) -> NeedleFit:
                                                                           [RATIO_RANGE[1], 45.0, 0.1, 0.1]),
                         x_scale=np.array([0.1, 5.0, 0.01, 0.01]))
     r = fit.fun.reshape(-1, 2)
+    rms = float(np.sqrt(np.mean((r**2).sum(axis=1))))
+    if rms > MAX_FIT_RMS_MM:
+        raise PlanInputError(f"needle {needle.hole_id} ({needle.source}): the fitted path follows the found one only "
+                             f"within {rms:.1f} mm rms (more than {MAX_FIT_RMS_MM:g}): a track taken from another "
+                             "needle, or a needle bent by what the model does not know; not used")
     return NeedleFit(needle.source, needle.hole_id, needle.design, needle.planned_factor,
                      needle.planned_factor * needle.plan_scale * float(fit.x[0]), float(fit.x[1]),
-                     math.degrees(math.atan(float(np.hypot(*fit.x[2:4])))),
-                     float(np.sqrt(np.mean((r**2).sum(axis=1)))), len(z))
+                     math.degrees(math.atan(float(np.hypot(*fit.x[2:4])))), rms, len(z))
 
 
 @dataclass(frozen=True)

@@ -643,11 +643,20 @@ def find_needles(volume: Volume, template: Template, patient_from_template: np.n
     return _flag_shared_ends(out)
 
 
-def _flag_shared_ends(found: list[FoundNeedle], length_mm: float = 15.0, within_mm: float = 0.7) -> list[FoundNeedle]:
+#: Two needles' centre lines lie at least one outer diameter apart: the 15-gauge plastic needle's 1.83 mm (the
+#: thinner of the needles the stylet fits; ASSUMED in ``reference/oncoreach.md``), less 0.3 mm for the tracks'
+#: own error.
+APART_MM = 1.83 - 0.3
+
+
+def _flag_shared_ends(found: list[FoundNeedle], length_mm: float = 15.0,
+                      within_mm: float = APART_MM) -> list[FoundNeedle]:
     """Flag pairs of needles whose last ``length_mm`` run along each other (one may have taken the other's track).
 
-    Two needles do not end on one line: where two tracks share their end, one of them most likely followed the
-    other past a crossing. Both keep their tracks, at a confidence of at most 0.3, with a note saying so.
+    Two needles do not end on one line: where two tracks end within 2 mm and the last ``length_mm`` of one lies
+    closer to the other than two needles' centre lines can (:data:`APART_MM`, median), one of them most likely
+    followed the other past a crossing. Both keep their tracks, at a confidence of at most 0.3, with a note saying
+    so.
     """
     import dataclasses
 

@@ -151,6 +151,74 @@ def extra_needles(template: Template, taken: Sequence[str], count: int, depth_mm
     return out
 
 
+def plan_candidates(doc: Mapping[str, object]) -> list[PlannedNeedle]:
+    """Return the plan's ranked feasible steered candidates, every target's, best first, each hole's once per shape.
+
+    The alternatives the plan's report lists: a clinician may insert one of them instead of (or beside) the delivered
+    needles.
+
+    Parameters
+    ----------
+    doc : mapping
+        ``plan.json`` as read: ``targets.<name>.candidates`` (hole, design, schedule, insertion depth, feasible).
+
+    Returns
+    -------
+    list of PlannedNeedle
+        Steered needles (``extra``), ranked within each target, the targets interleaved (every target's best, then
+        every target's second, ...); a hole, design and schedule repeated across targets is kept once.
+    """
+    targets = doc.get("targets")
+    ranked = [[c for c in (t.get("candidates") or []) if c.get("steered") and c.get("feasible") and c.get("design")
+               and c.get("schedule")] for t in (targets.values() if isinstance(targets, Mapping) else ())
+              if isinstance(t, Mapping)]
+    out: list[PlannedNeedle] = []
+    seen: set[tuple[object, ...]] = set()
+    for rank in range(max((len(r) for r in ranked), default=0)):
+        for cands in ranked:
+            if rank >= len(cands):
+                continue
+            c = cands[rank]
+            key = (c["hole_id"], c["design"], tuple(tuple(row) for row in c["schedule"]))
+            if key not in seen:
+                seen.add(key)
+                out.append(PlannedNeedle(str(c["hole_id"]), float(c["insertion_depth_mm"]), str(c["design"]),
+                                         np.asarray(c["schedule"], dtype=float), extra=True))
+    return out
+
+
+def steered_alternates(candidates: Sequence[PlannedNeedle], template: Template, taken: Sequence[str],
+                       count: int) -> list[PlannedNeedle]:
+    """Return the first ``count`` candidates through free holes at least 14 mm from every hole already used.
+
+    Parameters
+    ----------
+    candidates : sequence of PlannedNeedle
+        The plan's steered candidates in order (:func:`plan_candidates`).
+    template : Template
+        The template (its needle holes).
+    taken : sequence of str
+        Holes already used.
+    count : int
+        How many to add.
+
+    Returns
+    -------
+    list of PlannedNeedle
+        At most ``count`` of them, one per hole.
+    """
+    xy = {h.hole_id: np.asarray(h.xy_mm, dtype=float) for h in template.needle_holes}
+    used = [xy[h] for h in taken if h in xy]
+    out: list[PlannedNeedle] = []
+    for c in candidates:
+        if len(out) == count:
+            break
+        if c.hole_id in xy and all(np.hypot(*(xy[c.hole_id] - u)) >= 14.0 for u in used):
+            used.append(xy[c.hole_id])
+            out.append(c)
+    return out
+
+
 def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Rotation matrix about unit ``axis`` by ``angle_rad`` (Rodrigues)."""
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
@@ -432,7 +500,8 @@ class ImplantedCase:
 
 
 def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2, content: str = "metal",
-                   draw_seed: int = 0, seed: int | None = None, curvature_scale: float = 1.0) -> ImplantedCase:
+                   draw_seed: int = 0, seed: int | None = None, curvature_scale: float = 1.0,
+                   extra_steered: int = 0) -> ImplantedCase:
     """Return the built-in case a plan was made on, imaged after its implant (plus ``extra`` straight needles) is in.
 
     Parameters
@@ -452,6 +521,9 @@ def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2,
         The clinical case's seed when the plan does not say it (a plan of ``plan`` on written phantom files).
     curvature_scale : float
         The tissue's in-tissue curvature over the plan's model's (:func:`draw_needles`; 1: the plan's tissue).
+    extra_steered : int
+        The plan's steered candidates added besides its implant (:func:`steered_alternates`), as a clinician
+        inserting the report's alternatives would: more steered needles for the tissue's calibration.
 
     Returns
     -------
@@ -493,6 +565,7 @@ def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2,
         pts = line @ pose[:3, :3].T + pose[:3, 3]
         return any(bool(np.any(st.contains(pts))) for st in oars)
 
+    needles += steered_alternates(plan_candidates(doc), template, [n.hole_id for n in needles], extra_steered)
     needles += extra_needles(template, [n.hole_id for n in needles], extra, 100.0, draw_seed + case_seed, blocked)
     drawn = draw_needles(needles, template, pose, config.get("perturbations") or {}, draw_seed,
                          plan_channel_paths(Path(plan_json), doc), curvature_scale)

@@ -109,3 +109,46 @@ def test_a_drawn_tissue_bends_steered_needles_by_its_ratio_and_leaves_straight_o
         scale = RATIO if d.needle.steered else 1.0
         np.testing.assert_allclose(local_actual[:, :2], scale * local_planned[:, :2], atol=1e-9)
         np.testing.assert_allclose(local_actual[:, 2], local_planned[:, 2], atol=1e-9)
+
+
+def test_a_needle_inserted_as_one_of_the_plans_steered_candidates_is_fitted_too(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A clinician may insert one of the report's steered alternatives: found in its hole, bent as the tissue bends
+    it, it is fitted against that candidate's planned path; a straight needle in a candidate's hole is not."""
+    from reachplan.planner.verify.implant import plan_candidates, steered_alternates
+
+    planned = _write(tmp_path / "a", ["Cc"], [TensionSchedule.ramp(20.0, 20.0, 6.0, 0.0)])
+    m, design = _pose(), preset(DESIGN)
+    schedules = {"Cg": TensionSchedule.ramp(20.0, 20.0, 7.0, 270.0), "Ca": TensionSchedule.ramp(20.0, 20.0, 6.0, 90.0)}
+
+    def candidate(hole: str, sch: TensionSchedule | None, feasible: bool = True) -> dict[str, object]:
+        rows = None if sch is None else np.column_stack([sch.depth_mm, sch.tension_n, sch.roll_deg]).tolist()
+        return {"hole_id": hole, "steered": sch is not None, "feasible": feasible, "design": DESIGN if sch else None,
+                "schedule": rows, "insertion_depth_mm": 100.0}
+
+    plan_path = tmp_path / "a" / "plan.json"
+    plan = json.loads(plan_path.read_text())
+    plan["targets"] = {"T1": {"candidates": [candidate("Ce", None), candidate("Cg", schedules["Cg"]),
+                                             candidate("Ci", schedules["Cg"], feasible=False)]},
+                       "T2": {"candidates": [candidate("Ca", schedules["Ca"]), candidate("Cg", schedules["Cg"])]}}
+    plan_path.write_text(json.dumps(plan))
+    # ranked per target, targets interleaved, a repeated shape once, infeasible and straight ones left out
+    assert [c.hole_id for c in plan_candidates(plan)] == ["Cg", "Ca"]
+    template = load_template("needlefinder_syed_63")
+    assert [c.hole_id for c in steered_alternates(plan_candidates(plan), template, ["Cc"], 5)] == ["Cg", "Ca"]
+    assert steered_alternates(plan_candidates(plan), template, ["Cg"], 5)[0].hole_id == "Ca"
+    rec = json.loads((tmp_path / "a" / "rec" / "needles.json").read_text())
+    local = KinematicInsertion().insert_array(design, [schedules["Cg"]], 100.0)[0]
+    bent = (local * [RATIO, RATIO, 1.0] + HOLES["Cg"]) @ m[:3, :3].T + m[:3, 3]
+    line = (np.column_stack([np.zeros(101), np.zeros(101), np.arange(101.0)]) + HOLES["Ca"]) @ m[:3, :3].T + m[:3, 3]
+    rec["needles"] += [{"hole_id": h, "points_mm": p.tolist(), "tip_mm": p[-1].tolist()}
+                       for h, p in (("Cg", bent), ("Ca", line))]
+    (tmp_path / "a" / "rec" / "needles.json").write_text(json.dumps(rec))
+    monkeypatch.setattr("reachplan.planner.verify.implant.plan_channel_paths",
+                        lambda _path, doc: {h: planned[h] for h in doc["delivery"]["needles"]})
+    assert main(["calibrate", "--from", str(tmp_path / "a" / "rec"), "--site", str(tmp_path / "s.json"),
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["fitted"] == 2 and out["designs"][0]["ratio"] == pytest.approx(RATIO, rel=0.01)
+    fitted = json.loads((tmp_path / "s.json").read_text())
+    assert sorted(n["hole_id"] for n in fitted["designs"][0]["fits"]) == ["Cc", "Cg"]

@@ -100,6 +100,12 @@ def test_one_needle_has_no_interval_and_a_straight_one_tells_nothing() -> None:
     short = FoundSteered("c", "H", DESIGN, 1.0, _needles(perturbed=False)[0].planned_mm, np.zeros((3, 3)))
     with pytest.raises(PlanInputError, match="a fit needs at least"):
         fit_needle(short)
+    # a found track that leaves the planned shape half way (it took another needle's) is not used
+    planned = _needles(perturbed=False)[0].planned_mm
+    swapped = planned.copy()
+    swapped[len(swapped) // 2:, 0] -= np.linspace(0.0, 12.0, len(swapped) - len(swapped) // 2)
+    with pytest.raises(PlanInputError, match="not used"):
+        fit_needle(FoundSteered("c", "H", DESIGN, 1.0, planned, swapped))
 
 
 def test_a_site_file_round_trips_refits_replace_and_every_model_of_a_plan_applies_it(tmp_path: Path) -> None:
