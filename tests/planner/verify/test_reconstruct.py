@@ -122,3 +122,21 @@ def test_reconstruct_writes_needles_json_and_a_valid_structure_set(
     tip_first = np.asarray(ds.ROIContourSequence[0].ContourSequence[0].ContourData, float).reshape(-1, 3)
     assert tip_first[0, 2] > tip_first[-1, 2]  # written tip first
     assert "needles-found" in (out / "report.html").read_text(encoding="utf-8")
+
+
+def test_two_tracks_ending_closer_than_two_needles_can_lie_are_flagged_and_needles_apart_are_not() -> None:
+    """Two 15-gauge needles' centre lines lie at least 1.83 mm apart: tracks whose last 15 mm run 1.2 mm apart (one
+    took the other's past a crossing, as seen on a synthetic image) are both flagged; 2.5 mm apart, neither is."""
+    from reachplan.planner.verify.find import FoundNeedle, _flag_shared_ends
+
+    z = np.arange(0.0, 101.0)
+    a = np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+
+    def needle(hole: str, offset_mm: float) -> FoundNeedle:
+        pts = a + np.array([offset_mm, 0.0, 0.0])
+        return FoundNeedle(hole, pts, pts[-1], 500.0, 1.0, 0.1)
+
+    close = _flag_shared_ends([needle("Aa", 0.0), needle("Ab", 1.2)])
+    assert [f.confidence for f in close] == [0.3, 0.3] and "Ab" in close[0].note and "Aa" in close[1].note
+    apart = _flag_shared_ends([needle("Aa", 0.0), needle("Ab", 2.5)])
+    assert [f.confidence for f in apart] == [1.0, 1.0] and not any(f.note for f in apart)
