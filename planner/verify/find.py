@@ -64,7 +64,9 @@ class FinderSettings:
     max_depth_mm : float, mm
         Longest track beyond the template plane.
     smoothing_mm : float, mm
-        Root-mean-square distance the smoothing spline may leave between the track points and the curve.
+        Root-mean-square distance the smoothing spline may leave between the track points and the curve. 0.1 mm: at
+        0.3 mm the spline cut the curvature of steered needles enough to bias the fitted in-tissue curvature
+        (``reachplan calibrate``) by 3 % low on synthetic images; at 0.1 mm the bias was 0.4 %.
     min_length_mm : float, mm
         A track shorter than this beyond the template plane is not a needle (a stub of something else).
     prior_mm : float, mm
@@ -96,7 +98,7 @@ class FinderSettings:
     direction_window_mm: float = 16.0
     stop_steps: int = 3
     max_depth_mm: float = 250.0
-    smoothing_mm: float = 0.3
+    smoothing_mm: float = 0.1
     min_length_mm: float = 20.0
     prior_mm: float = 1.0
     spread_mm: float = 0.8
@@ -563,7 +565,11 @@ def _tip(sampler: _Sampler, pts: np.ndarray, t: np.ndarray, with_peak: bool) -> 
 
 
 def _smoothed(pts: np.ndarray, tip: np.ndarray, smoothing_mm: float) -> np.ndarray:
-    """Return the track cut at (or extended to) the tip, smoothed by a cubic spline per coordinate, every ~1 mm."""
+    """Return the track cut at (or extended to) the tip, smoothed by a cubic spline per coordinate, every ~1 mm.
+
+    The tip counts as one point of the spline like the others (weighted up, it pulled the last centimetres of a
+    curving needle toward its chord, the line along which the tip is sought) and ends the line as measured.
+    """
     from scipy.interpolate import make_splrep
 
     axis_end = pts[-1] - pts[max(0, len(pts) - 6)]
@@ -574,12 +580,10 @@ def _smoothed(pts: np.ndarray, tip: np.ndarray, smoothing_mm: float) -> np.ndarr
     pts, s = pts[ok], s[ok]
     if len(pts) < 6:
         return pts
-    w = np.ones(len(s))
-    w[-1] = 10.0  # the tip is measured, not only tracked
     fine = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1])) + 1))
     cols = []
     for j in range(3):
-        spline = make_splrep(s, pts[:, j], w=w, k=3, s=len(s) * smoothing_mm ** 2 / 3.0)
+        spline = make_splrep(s, pts[:, j], k=3, s=len(s) * smoothing_mm ** 2 / 3.0)
         cols.append(spline(fine))
     out = np.column_stack(cols)
     out[-1] = tip
