@@ -277,7 +277,7 @@ def planned_paths(needles: Sequence[PlannedNeedle], template: Template, patient_
 
 
 def draw_needles(needles: Sequence[PlannedNeedle], template: Template, patient_from_template: np.ndarray,
-                 perturbations: Mapping[str, float], seed: int,
+                 perturbations: Mapping[str, float], seed: int | Sequence[int],
                  planned_paths: Mapping[str, np.ndarray] | None = None,
                  curvature_scale: float = 1.0) -> list[DrawnNeedle]:
     """Draw where each needle really goes (module docstring), one seeded draw per needle.
@@ -292,8 +292,8 @@ def draw_needles(needles: Sequence[PlannedNeedle], template: Template, patient_f
         Template frame (mm) to LPS mm.
     perturbations : mapping of str to float
         ``tension_fraction``, ``roll_deg``, ``tilt_deg`` (the plan's ``config.perturbations``).
-    seed : int
-        The generator's seed.
+    seed : int or sequence of int
+        The generator's seed (``numpy.random.default_rng``'s: a case's seed and a draw's, for instance).
     planned_paths : mapping of str to (n, 3) float, mm, LPS, optional
         The plan's own centre lines by hole (hole to tip, e.g. its exported channels); a needle without one is
         planned by the kinematic model. The tension and roll errors are added to it as the kinematic model's
@@ -516,7 +516,8 @@ def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2,
         What fills the needles: ``"metal"`` (obturator or stylet), ``"air"`` or ``"fluid"``
         (:class:`reachplan.imaging.implanted.TubeLook`).
     draw_seed : int
-        Seed of the needles' deviations and of the image noise.
+        Seed of the needles' deviations (with the case's seed: each case's needles are drawn independently of
+        another case's) and of the image noise.
     seed : int or None
         The clinical case's seed when the plan does not say it (a plan of ``plan`` on written phantom files).
     curvature_scale : float
@@ -567,7 +568,7 @@ def implanted_case(plan_json: Path, modality: str | None = None, extra: int = 2,
 
     needles += steered_alternates(plan_candidates(doc), template, [n.hole_id for n in needles], extra_steered)
     needles += extra_needles(template, [n.hole_id for n in needles], extra, 100.0, draw_seed + case_seed, blocked)
-    drawn = draw_needles(needles, template, pose, config.get("perturbations") or {}, draw_seed,
+    drawn = draw_needles(needles, template, pose, config.get("perturbations") or {}, (case_seed, draw_seed),
                          plan_channel_paths(Path(plan_json), doc), curvature_scale)
     look = TubeLook(outer_radius_mm=float(config.get("needle_radius_mm", 0.915)), content=content)
     image = implanted_image(case.spec, phantom_ct_hu(case.spec), [painted_line(d) for d in drawn], look, draw_seed)
