@@ -182,8 +182,8 @@ class _Model:
         member = sparse.csr_matrix((np.ones(int(sizes.sum())), (np.concatenate(units),
                                                                 np.repeat(np.arange(n_u), sizes.astype(int)))),
                                    shape=(a_t.shape[1], n_u))
-        at = np.asarray((member.T @ a_t.T).T)
-        ao = [np.asarray((member.T @ o.rates.T).T) for o in organs]
+        at = _unit_sums(a_t, units)
+        ao = [_unit_sums(o.rates, units) for o in organs]
         n_p = sum(len(o.weight_cc) for o in organs)
         i_y, i_u, i_T, i_z, i_s = n_u, n_u + n_y, n_u + n_y + m, n_u + n_y + m + 1, n_u + n_y + m + 1 + len(organs)
         pairs = _neighbour_pairs(unit_ch)
@@ -506,6 +506,36 @@ class _Model:
             The needles with ``y`` > 0.5, as indices into the problem's needles (ascending).
         """
         return tuple(int(i) for i in np.flatnonzero(x[self.i_y:self.i_u] > 0.5))
+
+
+def _unit_sums(rates: np.ndarray, units: Sequence[np.ndarray]) -> np.ndarray:
+    """Return each unit's column: the sum of its dwells' columns of ``rates``, in the order of its dwells.
+
+    Only the units' columns are read (a restricted problem's few, not all of its rates). The sum runs from the unit's
+    first dwell to its last, one column added at a time: the same floating-point sums, bit for bit, as the product
+    with the units' 0/1 membership matrix (which adds each dwell's column to its unit's in dwell order).
+
+    Parameters
+    ----------
+    rates : (p, D) float
+        A column per dwell (any unit: Gy s⁻¹ per fraction for the models' rates).
+    units : sequence of (k_u,) int
+        Each unit's dwells (indices into ``rates``' columns), ascending.
+
+    Returns
+    -------
+    (p, n_u) float
+        In the unit of ``rates``.
+    """
+    sizes = np.array([len(u) for u in units], dtype=int)
+    if len(units) == 0:
+        return np.zeros((rates.shape[0], 0))
+    first = np.array([int(u[0]) for u in units], dtype=int)
+    out: np.ndarray = np.asarray(rates, dtype=float)[:, first]  # a copy (fancy indexing)
+    for k in range(1, int(sizes.max())):
+        on = np.flatnonzero(sizes > k)
+        out[:, on] += rates[:, np.array([int(units[int(u)][k]) for u in on], dtype=int)]
+    return out
 
 
 def _modulation_rows(rows: _Rows, sizes: np.ndarray, unit_ch: np.ndarray, i_T: int, share: float,
