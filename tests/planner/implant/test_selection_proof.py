@@ -159,7 +159,7 @@ def test_a_robust_rounds_lp_starts_from_the_last_round_and_gives_the_cold_optimu
 
 
 def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch: pytest.MonkeyPatch) -> None:
-    """With many candidates each single needle's LP is solved among its hole's needles alone: the same optimum,
+    """With many candidates each single needle's LP is solved among a few holes' needles alone: the same optimum,
     returned in the whole model's columns, and the same selection at the next budget from the kept results."""
     from reachplan.planner.implant import selection
 
@@ -167,9 +167,10 @@ def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch:
     plain = _Model(problem)
     kappa = np.ones(1)
     monkeypatch.setattr(selection, "SINGLE_MODEL_MIN_NEEDLES", 1)
+    monkeypatch.setattr(selection, "SINGLE_MODEL_HOLES", 2)
     model = LP.model(problem)
     single = LP._single(problem, model)
-    assert single is not None and single(3)[0].n_y == 2  # hole C holds needles 3 and 4
+    assert single is not None and single(3)[0].n_y == 3  # holes C and D hold needles 3, 4 and 5
     memo: dict[tuple[int, ...], sopt.OptimizeResult] = {}
     for budget in (1, 2):
         best, _ = selection._exhaustive(model, budget, kappa, memo, single)
