@@ -490,7 +490,7 @@ def roi_mesh(
     ijk = verts[:, ::-1].copy()
     ijk[:, 2] = (ijk[:, 2] + 0.5) / m - 0.5
     mesh = trimesh.Trimesh(fit.to_patient(ijk), faces, process=True)
-    if mesh.volume < 0:
+    if _signed_volume_mm3(mesh) < 0:
         mesh.invert()
     if smooth_iterations:
         trimesh.smoothing.filter_taubin(mesh, iterations=smooth_iterations)
@@ -499,6 +499,16 @@ def roi_mesh(
     if max_faces is not None and len(mesh.faces) > max_faces:
         mesh = _decimate(mesh, max_faces, roi.name)
     return mesh
+
+
+def _signed_volume_mm3(mesh: trimesh.Trimesh) -> float:
+    """Return a closed mesh's signed volume (mm³; negative when its normals point inward).
+
+    The divergence theorem over its triangles, the sign of ``mesh.volume`` without the rest of the mass properties
+    (centre of mass, inertia) that trimesh computes with it.
+    """
+    v = np.asarray(mesh.vertices, dtype=float)[np.asarray(mesh.faces)]
+    return float(np.einsum("ij,ij->", v[:, 0], np.cross(v[:, 1], v[:, 2]))) / 6.0
 
 
 def _decimate(mesh: trimesh.Trimesh, max_faces: int, name: str) -> trimesh.Trimesh:

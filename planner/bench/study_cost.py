@@ -76,13 +76,12 @@ def measure(out: Path, s: CostSettings) -> list[dict[str, Any]]:
         :data:`HEADER` keys; times in s.
     """
     from reachplan.planner.case.config import PlanConfig
-    from reachplan.planner.implant.settings import ImplantSettings
-    from reachplan.planner.study.implant import ImplantStudySpec, run_implant_study
+    from reachplan.planner.study.implant import ImplantStudySpec, run_implant_study, study_settings
 
-    implant = ImplantSettings()
+    implant = study_settings()
     if s.reduced:
-        implant = ImplantSettings(max_needles=2, rolls=2, steered_per_hole=1, selection_target_points=150,
-                                  final_target_points=400)
+        implant = study_settings(max_needles=2, rolls=2, steered_per_hole=1, selection_target_points=150,
+                                 final_target_points=400)
     spec = ImplantStudySpec(tuple(range(s.seed, s.seed + s.cases)), PlanConfig(), implant)
     run_implant_study(spec, out / "study", workers=s.workers)
     load = os.getloadavg()[0]

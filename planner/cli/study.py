@@ -146,17 +146,16 @@ def _implant(args: argparse.Namespace, quiet: bool) -> int:
         raise StudyError(f"--max-needles must be at least 1, got {args.max_needles}")
     output_folder(args.out)
     from reachplan.planner.case.config import PlanConfig
-    from reachplan.planner.implant.settings import ImplantSettings
     from reachplan.planner.steering.steered import ScheduleFamily
     from reachplan.planner.study.designs import format_designs
-    from reachplan.planner.study.implant import ImplantStudySpec, run_implant_study
+    from reachplan.planner.study.implant import ImplantStudySpec, run_implant_study, study_settings
     from reachplan.planner.study.summary import format_implant_summary
 
     family = ScheduleFamily(**COARSE_FAMILY) if args.family == "coarse" else ScheduleFamily()
     # as the demo: the clinical case's tandem (an applicator) is an obstacle, a needle must not cross it
     config = PlanConfig(template=args.template, family=family, designs=tuple(args.designs))
     spec = ImplantStudySpec(tuple(range(args.seed, args.seed + args.implant)), config,
-                            ImplantSettings(max_needles=args.max_needles))
+                            study_settings(max_needles=args.max_needles))
     result = run_implant_study(spec, args.out, scheduler=args.scheduler, workers=args.workers,
                                retry_failed=args.retry_failed, quiet=quiet)
     if args.json:

@@ -172,6 +172,7 @@ def plan_design_arms(
     steered: Mapping[str, Sequence[str]] | None = None,
     threads: int = 2,
     points: Sequence[PointLimit] = (),
+    tissue_bands: bool = True,
 ) -> DesignArms:
     """Plan the straight arm once and a straight + steered arm per group of stylet designs (as :func:`plan_implants`).
 
@@ -205,6 +206,9 @@ def plan_design_arms(
         Arms planned at once, each on its own thread (1: one after the other, the same result).
     points : sequence of PointLimit
         Dose points with a planning aim and a hard limit, held by every arm (as :func:`plan_implants`).
+    tissue_bands : bool
+        Give the chosen steered needles their tissue band (reported, not planned on; False: none, e.g. for a
+        study, which never reads them).
 
     Returns
     -------
@@ -249,8 +253,9 @@ def plan_design_arms(
                             aims=aims, gtv=gtv, extra_plans=straight.plans, cache=cache, points=points)
             for name, arm in zip(groups, steered_arms, strict=True)}
     # each chosen steered needle over the plan's range of tissue moduli (reported, not planned on)
-    banded = with_tissue_bands((checked, *arms.values()), scene, config_all)
-    checked, arms = banded[0], dict(zip(arms, banded[1:], strict=True))
+    if tissue_bands:
+        banded = with_tissue_bands((checked, *arms.values()), scene, config_all)
+        checked, arms = banded[0], dict(zip(arms, banded[1:], strict=True))
     c3 = time.process_time()
     return DesignArms(checked, arms, (*cands, *intracavitary), time.perf_counter() - t0,
                       {"candidates": round(c1 - c0, 3), "arms": round(c2 - c1, 3), "check": round(c3 - c2, 3)})

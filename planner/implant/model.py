@@ -49,7 +49,8 @@ from __future__ import annotations
 import itertools
 import threading
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy import optimize as sopt
@@ -68,6 +69,31 @@ except ImportError:  # pragma: no cover - exercised only without highspy
     _highs = None
 
 
+@dataclass(frozen=True)
+class _Eye:
+    """A part of a row block: ``value`` times the identity of ``size`` rows (:meth:`_Rows.cols`).
+
+    Parameters
+    ----------
+    size : int
+        Rows (and columns) of the part.
+    value : float
+        Its diagonal.
+    """
+
+    size: int
+    value: float = 1.0
+
+
+class _Block(NamedTuple):
+    """A row block as coordinate triplets (its entries in the order given) and its row count."""
+
+    row: np.ndarray
+    col: np.ndarray
+    data: np.ndarray
+    n_rows: int
+
+
 class _Rows:
     """The constraint rows of a model with ``n`` variables, block by block, with their lower and upper bounds.
 
@@ -82,7 +108,7 @@ class _Rows:
 
     def __init__(self, n: int) -> None:
         self.n = n
-        self.blocks: list[sparse.coo_matrix] = []
+        self.blocks: list[_Block] = []
         self.lb: list[np.ndarray] = []
         self.ub: list[np.ndarray] = []
         self._count = 0
@@ -92,41 +118,48 @@ class _Rows:
         """Rows added so far."""
         return self._count
 
-    def add(self, rows: sparse.spmatrix, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
+    def add(self, rows: sparse.spmatrix | _Block, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
         """Add the block ``lo <= rows x <= hi``.
 
         Parameters
         ----------
-        rows : (r, n) sparse matrix
-            The block's coefficients, in the unit of its bounds per unit of each variable.
+        rows : (r, n) sparse matrix or _Block
+            The block's coefficients, in the unit of its bounds per unit of each variable (:meth:`cols`).
         lo : float or (r,) float
             Lower bound of each row (``-inf``: none), broadcast to the block's rows.
         hi : float or (r,) float
             Upper bound of each row (``inf``: none).
         """
-        self.blocks.append(sparse.coo_matrix(rows))
-        self.lb.append(np.broadcast_to(lo, rows.shape[0]).astype(float))
-        self.ub.append(np.broadcast_to(hi, rows.shape[0]).astype(float))
-        self._count += rows.shape[0]
+        if not isinstance(rows, _Block):
+            m = sparse.coo_matrix(rows)
+            rows = _Block(m.row, m.col, m.data, m.shape[0])
+        self.blocks.append(rows)
+        self.lb.append(np.broadcast_to(lo, rows.n_rows).astype(float))
+        self.ub.append(np.broadcast_to(hi, rows.n_rows).astype(float))
+        self._count += rows.n_rows
 
-    def cols(self, parts: Sequence[tuple[int, sparse.spmatrix | np.ndarray]], n_rows: int) -> sparse.coo_matrix:
+    def cols(self, parts: Sequence[tuple[int, sparse.spmatrix | np.ndarray | _Eye]], n_rows: int) -> _Block:
         """Return a row block holding each ``(first column, matrix)`` part, zeros elsewhere.
 
         Parameters
         ----------
         parts : sequence of (int, (r, c) matrix)
-            The first column of each part and its coefficients (sparse or dense; a dense part's zeros are left
-            out), not overlapping.
+            The first column of each part and its coefficients (sparse, dense, a dense part's zeros left out, or a
+            scaled identity), not overlapping.
         n_rows : int
             ``r``, the rows of the block.
 
         Returns
         -------
-        (r, n) scipy.sparse COO matrix
+        _Block
+            Its entries part by part, each part's in row-major order (a sparse part's in its coordinate order).
         """
         r_i, c_i, v = [], [], []
         for start, mat in parts:
-            if sparse.issparse(mat):
+            if isinstance(mat, _Eye):
+                r = c = np.arange(mat.size)
+                d = np.full(mat.size, float(mat.value))
+            elif sparse.issparse(mat):
                 m = sparse.coo_matrix(mat)
                 r, c, d = m.row, m.col, m.data
             else:
@@ -136,8 +169,7 @@ class _Rows:
             r_i.append(r)
             c_i.append(c + start)
             v.append(d)
-        return sparse.coo_matrix((np.concatenate(v), (np.concatenate(r_i), np.concatenate(c_i))),
-                                 shape=(n_rows, self.n))
+        return _Block(np.concatenate(r_i), np.concatenate(c_i), np.concatenate(v), n_rows)
 
     def matrix(self) -> sparse.csr_matrix:
         """Return every block stacked, in the order added.
@@ -146,7 +178,7 @@ class _Rows:
         -------
         (rows, n) scipy.sparse CSR matrix
         """
-        offsets = np.cumsum([0] + [b.shape[0] for b in self.blocks])
+        offsets = np.cumsum([0] + [b.n_rows for b in self.blocks])
         rows = np.concatenate([b.row + o for b, o in zip(self.blocks, offsets, strict=False)])
         cols = np.concatenate([b.col for b in self.blocks])
         vals = np.concatenate([b.data for b in self.blocks]).astype(float)
@@ -182,8 +214,8 @@ class _Model:
         member = sparse.csr_matrix((np.ones(int(sizes.sum())), (np.concatenate(units),
                                                                 np.repeat(np.arange(n_u), sizes.astype(int)))),
                                    shape=(a_t.shape[1], n_u))
-        at = np.asarray((member.T @ a_t.T).T)
-        ao = [np.asarray((member.T @ o.rates.T).T) for o in organs]
+        at = _unit_sums(a_t, units)
+        ao = [_unit_sums(o.rates, units) for o in organs]
         n_p = sum(len(o.weight_cc) for o in organs)
         i_y, i_u, i_T, i_z, i_s = n_u, n_u + n_y, n_u + n_y + m, n_u + n_y + m + 1, n_u + n_y + m + 1 + len(organs)
         pairs = _neighbour_pairs(unit_ch)
@@ -199,7 +231,7 @@ class _Model:
         c[i_u:i_T] = 1.0 / (m * problem.reference_dose_gy)
         c[i_g:] = mod.smoothness_weight * float(a_t.mean()) / problem.reference_dose_gy
         rows = _Rows(n)
-        rows.add(rows.cols([(0, at), (i_u, sparse.identity(m))], m), p, np.inf)  # target: A t + u >= p
+        rows.add(rows.cols([(0, at), (i_u, _Eye(m))], m), p, np.inf)  # target: A t + u >= p
         _modulation_rows(rows, sizes, unit_ch, i_T, mod.max_dwell_share, mod.neighbour_ratio)
         if n > i_g:
             _gradient_rows(rows, pairs, i_g)
@@ -508,13 +540,43 @@ class _Model:
         return tuple(int(i) for i in np.flatnonzero(x[self.i_y:self.i_u] > 0.5))
 
 
+def _unit_sums(rates: np.ndarray, units: Sequence[np.ndarray]) -> np.ndarray:
+    """Return each unit's column: the sum of its dwells' columns of ``rates``, in the order of its dwells.
+
+    Only the units' columns are read (a restricted problem's few, not all of its rates). The sum runs from the unit's
+    first dwell to its last, one column added at a time: the same floating-point sums, bit for bit, as the product
+    with the units' 0/1 membership matrix (which adds each dwell's column to its unit's in dwell order).
+
+    Parameters
+    ----------
+    rates : (p, D) float
+        A column per dwell (any unit: Gy s⁻¹ per fraction for the models' rates).
+    units : sequence of (k_u,) int
+        Each unit's dwells (indices into ``rates``' columns), ascending.
+
+    Returns
+    -------
+    (p, n_u) float
+        In the unit of ``rates``.
+    """
+    sizes = np.array([len(u) for u in units], dtype=int)
+    if len(units) == 0:
+        return np.zeros((rates.shape[0], 0))
+    first = np.array([int(u[0]) for u in units], dtype=int)
+    out: np.ndarray = np.asarray(rates, dtype=float)[:, first]  # a copy (fancy indexing)
+    for k in range(1, int(sizes.max())):
+        on = np.flatnonzero(sizes > k)
+        out[:, on] += rates[:, np.array([int(units[int(u)][k]) for u in on], dtype=int)]
+    return out
+
+
 def _modulation_rows(rows: _Rows, sizes: np.ndarray, unit_ch: np.ndarray, i_T: int, share: float,
                      ratio: float) -> None:
     """Add the total time ``T = Σ sizes·t``, no unit over ``share`` of it, and the neighbour rows of each channel."""
     n_u = len(sizes)
     rows.add(rows.cols([(0, sizes[None, :]), (i_T, -np.ones((1, 1)))], 1), 0.0, 0.0)
     share = share * (1 - 1e-3)
-    rows.add(rows.cols([(0, sparse.identity(n_u)), (i_T, -share * np.ones((n_u, 1)))], n_u), -np.inf, 0.0)
+    rows.add(rows.cols([(0, _Eye(n_u)), (i_T, -share * np.ones((n_u, 1)))], n_u), -np.inf, 0.0)
     if not np.isfinite(ratio):
         return
     groups = [np.flatnonzero(unit_ch == ch) for ch in np.unique(unit_ch)]
@@ -552,7 +614,7 @@ def _organ_tail_rows(rows: _Rows, organs: Sequence[OrganRows], ao: Sequence[np.n
     limit_rows = []
     for k, (o, a) in enumerate(zip(organs, ao, strict=True)):
         q = len(o.weight_cc)
-        rows.add(rows.cols([(0, a), (i_z + k, -np.ones((q, 1))), (i_s + start, -sparse.identity(q))], q),
+        rows.add(rows.cols([(0, a), (i_z + k, -np.ones((q, 1))), (i_s + start, _Eye(q, -1.0))], q),
                  -np.inf, 0.0)
         limit_rows.append(rows.count)
         rows.add(rows.cols([(i_z + k, np.ones((1, 1))), (i_s + start, o.weight_cc[None, :] / o.volume_cc)], 1), -np.inf,

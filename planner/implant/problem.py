@@ -451,7 +451,14 @@ def _near_organ(pts: np.ndarray, pos: np.ndarray, radius_mm: float, vox_cc: floa
     if n_min is None:
         n_min = min(len(pts), times_2cc * math.ceil(2.0 / vox_cc))
     keep = dist <= radius_mm
-    keep[np.argsort(dist, kind="stable")[:n_min]] = True
+    if n_min > 0:
+        # the ``n_min`` nearest, the first of equal distances first (a stable sort's first ``n_min``), found by a
+        # partition: the voxels nearer than the ``n_min``-th distance and the first of those at it
+        kth = np.partition(dist, n_min - 1)[n_min - 1]
+        if kth > radius_mm:
+            nearer = dist < kth
+            keep |= nearer
+            keep[np.flatnonzero(dist == kth)[:n_min - int(np.count_nonzero(nearer))]] = True
     out: np.ndarray = pts[keep]
     return out
 

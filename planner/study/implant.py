@@ -3,7 +3,8 @@
 The cohort is seeds of the built-in clinical case (:func:`reachplan.imaging.clinical.clinical_case`). One task per
 case: the worker builds the case in memory (no DICOM is written), its scene and planning structures on the case's
 image grid, and both implant arms with their Pareto curves (:func:`reachplan.planner.implant.case.plan_implants`, as
-``reachplan demo`` does: the tandem is an intracavitary channel and an organ to keep needles off). Tasks run on
+``reachplan demo`` does: the tandem is an intracavitary channel and an organ to keep needles off), each curve up to
+the first needle budget that meets every aim (:func:`study_settings`). Tasks run on
 Dask as the design study's do (:func:`reachplan.planner.study.run_study`: a loopback ``LocalCluster`` of worker
 processes, a given scheduler, or this process with ``workers=0``).
 
@@ -52,6 +53,34 @@ CASES_CSV = "cases.csv"
 SUMMARY_JSON = "summary.json"
 SUMMARY_PNG = "summary.png"
 MANIFEST_VERSION = 2  # 2: one straight + steered arm per stylet design (1: one arm screening every design)
+#: Pareto points a study's arm computes past the first needle budget that meets every aim: none. A study reads each
+#: arm's chosen implant alone (its needles, aims, doses), which is the fewest needles that meet every aim; the point
+#: with one needle more that ``reachplan plan`` and the demo also compute (``ImplantSettings.extra_after_aims`` 1)
+#: extends the curve and cost a fifth of a case's CPU time.
+STUDY_EXTRA_AFTER_AIMS = 0
+
+
+def study_settings(**changes: Any) -> ImplantSettings:
+    """Return the implant settings of a study: the defaults, with :data:`STUDY_EXTRA_AFTER_AIMS` and ``changes``.
+
+    The selection up to the first budget whose plan meets every aim is the planner's own. Past it nothing is
+    planned, so a study's arm differs from ``reachplan plan``'s only where a plan of that next budget would have
+    counted: one with as many needles as the chosen that also meets every aim with a higher HR-CTV D90, the needle
+    check's fallback when the chosen implant fails it, or (fair arms) a plan of straight needles the straight +
+    steered arm found only there.
+
+    Parameters
+    ----------
+    **changes : object
+        Further fields of :class:`~reachplan.planner.implant.settings.ImplantSettings`.
+
+    Returns
+    -------
+    ImplantSettings
+    """
+    from reachplan.planner.implant.settings import ImplantSettings
+
+    return ImplantSettings(**{"extra_after_aims": STUDY_EXTRA_AFTER_AIMS, **changes})
 
 
 # ------------------------------------------------------------------------------------------------ statistics
@@ -133,7 +162,7 @@ class ImplantStudySpec:
         straight + steered arm each, the straight arm shared (:mod:`reachplan.planner.study.designs`); the first
         design's arm is the case's ``steered`` arm.
     settings : ImplantSettings or None
-        The implant settings (None: the defaults).
+        The implant settings (None: the study's, :func:`study_settings`).
     source : str
         Name of the TG-43 source data.
     modality : str
@@ -349,7 +378,9 @@ def plan_case(seed: int, spec: ImplantStudySpec, threads: int = 2,
     (:func:`~reachplan.planner.implant.case.plan_design_arms`), with the GTV_res and the protocol's dose points as
     the demo plans them. Organs whose contours an earlier case of this process
     had (the generated cases' pelvic bone) are not meshed again (:func:`~reachplan.planner.case.scene.build_scene`
-    ``reuse``).
+    ``reuse``). What the study never reads is not computed: no Pareto point past the first budget that meets every
+    aim (:func:`study_settings`, unless ``spec.settings`` says otherwise) and no tissue band of the chosen steered
+    needles.
 
     Parameters
     ----------
@@ -388,9 +419,10 @@ def plan_case(seed: int, spec: ImplantStudySpec, threads: int = 2,
     config = dataclasses.replace(spec.config, oar_names=tuple(o.name for o in scene.organs))
     planning = planning_structures(structures, grid, "HR-CTV", config.oar_names, scene.applicators)
     c2 = time.process_time()
-    arms = plan_design_arms(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U, spec.settings,
+    arms = plan_design_arms(scene, planning, config, get_source(spec.source), DEFAULT_AIR_KERMA_U,
+                            spec.settings or study_settings(),
                             gtv_structure(structures, planning.grid), steered={d: (d,) for d in spec.config.designs},
-                            threads=threads, points=case_point_limits(structures, Aims()))
+                            threads=threads, points=case_point_limits(structures, Aims()), tissue_bands=False)
     return arms, {"case": round(c1 - c0, 3), "scene": round(c2 - c1, 3), **arms.cpu_s}
 
 

@@ -159,7 +159,7 @@ def test_a_robust_rounds_lp_starts_from_the_last_round_and_gives_the_cold_optimu
 
 
 def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch: pytest.MonkeyPatch) -> None:
-    """With many candidates each single needle's LP is solved among its hole's needles alone: the same optimum,
+    """With many candidates each single needle's LP is solved among a few holes' needles alone: the same optimum,
     returned in the whole model's columns, and the same selection at the next budget from the kept results."""
     from reachplan.planner.implant import selection
 
@@ -167,9 +167,10 @@ def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch:
     plain = _Model(problem)
     kappa = np.ones(1)
     monkeypatch.setattr(selection, "SINGLE_MODEL_MIN_NEEDLES", 1)
+    monkeypatch.setattr(selection, "SINGLE_MODEL_HOLES", 2)
     model = LP.model(problem)
     single = LP._single(problem, model)
-    assert single is not None and single(3)[0].n_y == 2  # hole C holds needles 3 and 4
+    assert single is not None and single(3)[0].n_y == 3  # holes C and D hold needles 3, 4 and 5
     memo: dict[tuple[int, ...], sopt.OptimizeResult] = {}
     for budget in (1, 2):
         best, _ = selection._exhaustive(model, budget, kappa, memo, single)
@@ -178,3 +179,33 @@ def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch:
         assert float(best.fun) == pytest.approx(float(ref.fun), rel=1e-9)
         assert model.selected(best.x) == plain.selected(ref.x)
         assert np.allclose(model.dwell_times(best.x), plain.dwell_times(ref.x), atol=1e-6)
+
+
+def test_a_models_unit_columns_are_the_membership_products_bit_for_bit() -> None:
+    """Each unit's column (its dwells' columns summed, only the units' columns read) equals the product with the 0/1
+    membership matrix exactly: the models, and so every LP, are those of before."""
+    from scipy import sparse
+
+    from reachplan.planner.implant.model import _unit_sums
+
+    rng = np.random.default_rng(3)
+    rates = rng.uniform(0.0, 1.0, (50, 40)) * 10.0 ** rng.uniform(-6, 2, 40)
+    units = [u for u in np.split(np.arange(40), [3, 4, 9, 17, 18, 30]) if u[0] != 9]  # one left out (restricted)
+    sizes = [len(u) for u in units]
+    member = sparse.csr_matrix((np.ones(sum(sizes)), (np.concatenate(units), np.repeat(np.arange(len(units)), sizes))),
+                               shape=(40, len(units)))
+    assert np.array_equal(_unit_sums(rates, units), np.asarray((member.T @ rates.T).T))
+
+
+def test_an_organs_voxels_near_the_dwells_are_those_a_stable_sort_keeps() -> None:
+    """The voxels within the radius and the nearest n (the first of equal distances first), found by a partition,
+    are those of a stable sort, ties included."""
+    from reachplan.planner.implant.problem import _near_organ
+
+    rng = np.random.default_rng(4)
+    for radius, n_min in ((0.0, 7), (1.0, 40), (3.0, 5), (0.0, 0)):
+        pts = rng.uniform(0.0, 1.0, (200, 3))
+        dist = np.round(rng.uniform(0.0, 4.0, 200), 1)  # ties
+        keep = dist <= radius
+        keep[np.argsort(dist, kind="stable")[:n_min]] = True
+        assert np.array_equal(_near_organ(pts, np.zeros((1, 3)), radius, 0.1, 4, dist, n_min), pts[keep])
