@@ -111,6 +111,16 @@ def delivered_needles(doc: Mapping[str, object]) -> list[PlannedNeedle]:
     raise PlanInputError(f"no implant arm of the plan holds the delivered needles {names}")
 
 
+#: Needles added to a plan's for a post-insertion image go through holes at least this far (mm) from every hole used:
+#: no two in adjacent holes.
+HOLE_SPACING_MM = 14.0
+
+
+def _spaced(xy_mm: np.ndarray, used: Sequence[np.ndarray]) -> bool:
+    """Whether a hole at ``xy_mm`` (template frame, mm) lies :data:`HOLE_SPACING_MM` or more from every used one."""
+    return all(float(np.hypot(*(xy_mm - u))) >= HOLE_SPACING_MM for u in used)
+
+
 def extra_needles(template: Template, taken: Sequence[str], count: int, depth_mm: float,
                   seed: int, blocked: Callable[[np.ndarray], bool] | None = None) -> list[PlannedNeedle]:
     """Return ``count`` straight needles through free holes of the outer rings, chosen by ``seed``.
@@ -145,7 +155,7 @@ def extra_needles(template: Template, taken: Sequence[str], count: int, depth_mm
             break
         xy = np.asarray(holes[k].xy_mm)
         line = np.column_stack([np.full(41, xy[0]), np.full(41, xy[1]), np.linspace(0.0, depth_mm, 41)])
-        if all(np.hypot(*(xy - u)) >= 14.0 for u in used) and not (blocked is not None and blocked(line)):
+        if _spaced(xy, used) and not (blocked is not None and blocked(line)):
             used.append(xy)
             out.append(PlannedNeedle(holes[k].hole_id, depth_mm, extra=True))
     return out
@@ -213,7 +223,7 @@ def steered_alternates(candidates: Sequence[PlannedNeedle], template: Template, 
     for c in candidates:
         if len(out) == count:
             break
-        if c.hole_id in xy and all(np.hypot(*(xy[c.hole_id] - u)) >= 14.0 for u in used):
+        if c.hole_id in xy and _spaced(xy[c.hole_id], used):
             used.append(xy[c.hole_id])
             out.append(c)
     return out
