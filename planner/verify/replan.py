@@ -26,6 +26,7 @@ from reachplan.planner.dose.aims import Aims
 from reachplan.planner.errors import PlanInputError
 
 if TYPE_CHECKING:
+    from reachplan.planner.dose.structures import PlanningStructures
     from reachplan.planner.implant.arms import ImplantPlan
     from reachplan.planner.implant.candidates import Channel
     from reachplan.planner.implant.settings import ImplantSettings
@@ -60,7 +61,7 @@ class Replan:
     reason: str = ""
 
 
-def found_channels(found: Mapping[str, np.ndarray], designs: Mapping[str, str], planning: object,
+def found_channels(found: Mapping[str, np.ndarray], designs: Mapping[str, str], planning: PlanningStructures,
                    settings: ImplantSettings) -> tuple[list[Channel], list[str]]:
     """Return the found needles as channels, and the holes of those with too few dwells in the target region.
 
@@ -87,8 +88,7 @@ def found_channels(found: Mapping[str, np.ndarray], designs: Mapping[str, str], 
     channels, without = [], []
     for hole, path in found.items():
         design = designs.get(hole, "")
-        c = placed_needle(hole, "steered" if design else "straight", path, planning,  # type: ignore[arg-type]
-                          settings, design=design)
+        c = placed_needle(hole, "steered" if design else "straight", path, planning, settings, design=design)
         if c is None:
             without.append(hole)
         else:
