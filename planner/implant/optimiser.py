@@ -28,6 +28,10 @@ from reachplan.planner import lookup
 #: of a robust loading: the same columns and target rows, a subset of its row sets); an optimiser may start from
 #: what it found there (the built-in ``"lp"``: its last basis) and should not keep the reference
 WARM_START = "warm_start"
+#: key of :attr:`DwellProblem.cache` whose dict every restriction of the problem (:func:`restricted`) shares: a
+#: selection has the same LP in each, so an optimiser may keep there what holds for a needle set in all of them
+#: (the built-in ``"lp"``: each enumerated selection's LP, by its channels)
+SHARED = "shared"
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,7 +150,8 @@ class DwellProblem:
         A selecting optimiser that can enumerate solves every selection of at most the budget (one needle per hole)
         when there are at most this many (0: never), and so proves its selection optimal.
     cache : dict
-        Scratch space for optimisers (e.g. a built LP), keyed by the optimiser's name.
+        Scratch space for optimisers (e.g. a built LP), keyed by the optimiser's name; its :data:`SHARED` entry is
+        shared with the problem's restrictions.
     """
 
     target_rates: np.ndarray
@@ -234,7 +239,7 @@ class DwellOptimiser(Protocol):
     name: str
 
     def optimise(self, problem: DwellProblem, *, budget: int | None = None, limit_factor: np.ndarray | None = None,
-                 start: Sequence[int] = ()) -> DwellSolution:
+                 start: Sequence[Sequence[int]] = ()) -> DwellSolution:
         """Load the problem's columns.
 
         Parameters
@@ -246,8 +251,9 @@ class DwellOptimiser(Protocol):
         limit_factor : (n_organs,) float, unitless, optional
             Each organ's D2cm³ rows may reach this factor × its limit (the planner calibrates it to the exact
             D2cm³); None: 1.
-        start : sequence of int
-            A selection to start from (indices into ``problem.needles.channels``), e.g. a smaller budget's.
+        start : sequence of sequence of int
+            Selections to start from (each indices into ``problem.needles.channels``), e.g. a smaller budget's and
+            another arm's at this budget.
 
         Returns
         -------
@@ -272,7 +278,7 @@ def restricted(problem: DwellProblem, allowed: Sequence[int]) -> DwellProblem:
     Returns
     -------
     DwellProblem
-        With an empty cache.
+        With an empty cache but for ``problem``'s :data:`SHARED` dict (the same object).
     """
     keep = set(allowed)
     units = tuple(u for u in (problem.units or ()) if int(problem.channel[u[0]]) in keep)
@@ -281,7 +287,8 @@ def restricted(problem: DwellProblem, allowed: Sequence[int]) -> DwellProblem:
     on = [i for i, c in enumerate(choice.channels) if c in keep]
     needles = NeedleChoice(tuple(choice.channels[i] for i in on), tuple(choice.holes[i] for i in on),
                            choice.cost[on])
-    return dataclasses.replace(problem, units=units, needles=needles, cache={})
+    return dataclasses.replace(problem, units=units, needles=needles,
+                               cache={SHARED: problem.cache.setdefault(SHARED, {})})
 
 
 def tail_mean(rates: np.ndarray, weight_cc: np.ndarray, volume_cc: float) -> np.ndarray:

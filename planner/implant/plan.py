@@ -33,8 +33,9 @@ Gy and the organs' limits, kept with any one needle displaced.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -202,8 +203,14 @@ def _shared(channels: Sequence[Channel], planning: PlanningStructures, kernel: T
 
 
 def _plan_arm(name: str, allowed: Sequence[int], shared: _Shared, aims: Aims, settings: ImplantSettings,
-              optimiser: DwellOptimiser) -> ImplantArm:
-    """Return one arm's Pareto curve and chosen implant, its candidates the shared problem's ``allowed`` channels."""
+              optimiser: DwellOptimiser, given: _Published | None = None,
+              publish: _Published | None = None) -> ImplantArm:
+    """Return one arm's Pareto curve and chosen implant, its candidates the shared problem's ``allowed`` channels.
+
+    ``given``: per budget, another arm's selected needles (channels of the shared problem) as a start of this arm's
+    search at that budget, where all of them are among ``allowed``; ``publish``: where this arm's selections go (the
+    caller closes it).
+    """
     t0 = time.perf_counter()
     prob = shared.prob
     whole = len(allowed) == len(prob.channels)
@@ -217,7 +224,14 @@ def _plan_arm(name: str, allowed: Sequence[int], shared: _Shared, aims: Aims, se
     if free.times_s is not None:
         ch_time = np.bincount(prob.channel_of, weights=free.times_s, minlength=len(prob.channels))
         rank = [int(i) for i in np.argsort(-ch_time[needles], kind="stable") if ch_time[needles[i]] > 0]
-    budgets, plans = _budgets(selection, needles, optimiser, shared.kappa, bound, final, rank)
+    where = {c: i for i, c in enumerate(needles)}
+
+    def starts(k: int) -> list[int] | None:
+        sel = None if given is None else given.get(k)
+        return None if sel is None or not all(c in where for c in sel) else [where[c] for c in sel]
+
+    budgets, plans = _budgets(selection, needles, optimiser, shared.kappa, bound, final, rank, starts,
+                              None if publish is None else publish.put)
     record: dict[str, object] = {
         "model": getattr(optimiser, "description", "") or optimiser.name,
         "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
@@ -324,8 +338,15 @@ class _Final:
 
 
 def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,
-             bound: float, final: _Final, rank: Sequence[int]) -> tuple[list[BudgetResult], list[ImplantPlan]]:
+             bound: float, final: _Final, rank: Sequence[int],
+             given: Callable[[int], Sequence[int] | None] | None = None,
+             publish: Callable[[int, tuple[int, ...] | None], None] | None = None,
+             ) -> tuple[list[BudgetResult], list[ImplantPlan]]:
     """Select at budgets K = 1, 2, ... (0 with an intracavitary channel); return every budget and the new plans.
+
+    Each budget's search starts from the last budget's selection and from ``given(K)`` (another arm's selection at
+    K, indices into ``needles``, or None), so it is never worse on the selection model than either; ``publish(K,
+    channels)`` receives each budget's selected needles (indices into ``prob.channels``; None: no selection).
 
     The selection model holds the nominal rows only: when its selection at K is one already planned (or has fewer
     than K needles) and no plan meets every aim yet (the V200 limit or a scenario asks for more needles than the
@@ -333,7 +354,7 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     ``needles``) whose hole is free is added. The budgets stop ``extra_after_aims`` after the first plan that meets
     every aim (or at ``settings.needles``), after two budgets without a new selection, when the selection reaches the
     all-candidates bound with every aim met, or after two new plans that do not raise the best D90 by
-    :data:`MIN_GAIN_GY`.
+    :data:`MIN_GAIN_GY` (a plan of ``given``'s selection at its budget not counted).
     """
     prob, settings = final.prob, final.settings
     channels = prob.channels
@@ -350,9 +371,12 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         # past the first plan that meets every aim a budget only extends the Pareto curve: searched, not enumerated
         # (the same problem and cache, so the same model)
         problem = selection if met_at is None else dataclasses.replace(selection, exhaustive_max=0)
-        sol = optimiser.optimise(problem, budget=k, limit_factor=kappa, start=keep)
+        theirs = None if given is None else given(k)
+        sol = optimiser.optimise(problem, budget=k, limit_factor=kappa, start=[keep, *([theirs] if theirs else [])])
         value, lower, status = sol.objective, sol.bound, sol.status
         if sol.times_s is None:
+            if publish is not None:
+                publish(k, None)
             budgets.append(BudgetResult(k, 0, value, None, None, status, time.perf_counter() - t_k, False))
             continue
         ch_time = np.bincount(prob.channel_of, weights=sol.times_s, minlength=len(channels))
@@ -364,6 +388,8 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
                 keep.append(extra)
                 picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
                 status += f"; needle {channels[needles[extra]].name} added (no plan meets every aim yet)"
+        if publish is not None:
+            publish(k, tuple(needles[i] for i in keep))
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
         if new:
@@ -375,7 +401,9 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         plan = seen[picked] if new else None
         if plan is not None:
             plans.append(plan)
-            no_gain = 0 if plan.target.d90_eqd2_gy > best_d90 + MIN_GAIN_GY else no_gain + 1
+            # a plan of the other arm's selection says nothing of whether this arm's own search has stalled
+            same = theirs is not None and sorted(keep) == sorted(theirs)
+            no_gain = 0 if plan.target.d90_eqd2_gy > best_d90 + MIN_GAIN_GY else no_gain + (not same)
             best_d90 = max(best_d90, plan.target.d90_eqd2_gy)
             if plan.aims_met and met_at is None:
                 met_at = k
@@ -403,9 +431,12 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
     The arms share the sampled problem of all their channels (:class:`_Shared`: rows, organ-row calibration, the
     invasiveness scale, the final step's start): a needle set gets the same selection objective and the same plan
     whichever arm evaluates it, so an arm whose candidates include another's is never worse where both enumerate.
-    HiGHS and the compiled dose kernels release the GIL, so two arms run on two cores. Threads only when the
-    compiled kernels' threading layer allows calls from several threads at once (``omp`` or ``tbb``; numba's
-    ``workqueue`` does not); else one after the other, with the same result (the arms share no mutable state).
+    The first arm's selection at each budget is a start of the search at that budget of every later arm whose
+    candidates include the first arm's (the straight arm's for the steered arms: a steered arm's selection is then
+    never worse than the straight arm's on the selection model); a later arm waits for it (:class:`_Published`).
+    HiGHS and the compiled dose kernels release the GIL, so two arms run on two cores. Threads only when the compiled
+    kernels' threading layer allows calls from several threads at once (``omp`` or ``tbb``; numba's ``workqueue``
+    does not); else one after the other, with the same result.
 
     Parameters
     ----------
@@ -450,17 +481,75 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
     shared = _shared(union, planning, kernel, air_kerma_strength_u, aims, settings, gtv, optimiser,
                      points) if union else None
 
+    first = _Published()  # the first arm's selections, by budget, as its search makes them
+
     def one(i: int) -> ImplantArm:
-        if shared is None or not members[i]:
-            return ImplantArm(arms[i][0], 0, (), None, time.perf_counter() - t0, "no candidate channel")
-        return _plan_arm(arms[i][0], members[i], shared, aims, settings, optimiser)
+        try:
+            if shared is None or not members[i]:
+                return ImplantArm(arms[i][0], 0, (), None, time.perf_counter() - t0, "no candidate channel")
+            given = first if i > 0 and set(members[0]) <= set(members[i]) else None
+            return _plan_arm(arms[i][0], members[i], shared, aims, settings, optimiser, given,
+                             first if i == 0 else None)
+        finally:
+            if i == 0:  # done (or failed): the arms waiting on it go on
+                first.close()
 
     if workers < 2 or len(arms) < 2 or not _threads_safe(kernel):
         return tuple(one(i) for i in range(len(arms)))
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(min(workers, len(arms))) as pool:
+    with ThreadPoolExecutor(min(workers, len(arms))) as pool:  # the first arm starts first: the others wait on it
         return tuple(pool.map(one, range(len(arms))))
+
+
+class _Published:
+    """One arm's selected needles by budget, published as its search makes them, for the arms that start from them.
+
+    :meth:`get` waits until the budget's selection is published or the arm is done (so an arm on another thread
+    reads the same selections as one planned after it: the same result either way).
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._by_budget: dict[int, tuple[int, ...] | None] = {}
+        self._done = False
+
+    def put(self, budget: int, channels: tuple[int, ...] | None) -> None:
+        """Publish the selection at ``budget``.
+
+        Parameters
+        ----------
+        budget : int
+            The needle budget.
+        channels : tuple of int or None
+            The selected needles (channels of the shared problem); None: no selection there.
+        """
+        with self._cond:
+            self._by_budget[budget] = channels
+            self._cond.notify_all()
+
+    def close(self) -> None:
+        """Mark the arm done: a budget not published by now has no selection."""
+        with self._cond:
+            self._done = True
+            self._cond.notify_all()
+
+    def get(self, budget: int) -> tuple[int, ...] | None:
+        """Return the selection at ``budget`` once known.
+
+        Parameters
+        ----------
+        budget : int
+            The needle budget.
+
+        Returns
+        -------
+        tuple of int or None
+            The selected needles (channels of the shared problem); None: the arm has none there.
+        """
+        with self._cond:
+            self._cond.wait_for(lambda: budget in self._by_budget or self._done)
+            return self._by_budget.get(budget)
 
 
 def _threads_safe(kernel: Tg43Kernel) -> bool:

@@ -33,7 +33,7 @@ import numpy as np
 from scipy import optimize as sopt
 
 from reachplan.planner.implant.model import _Model
-from reachplan.planner.implant.optimiser import WARM_START, DwellProblem, DwellSolution, restricted
+from reachplan.planner.implant.optimiser import SHARED, WARM_START, DwellProblem, DwellSolution, restricted
 
 #: a selection's LP is solved in the model of a few needles (its hole's, or the local search's pool) when the problem
 #: has at least this many needles (:meth:`LinearProgramme._subset`): 40 or more candidates have several per hole
@@ -146,14 +146,16 @@ def selections_at_most(holes: Sequence[str], budget: int) -> int:
     return sum(e[1:])
 
 
-def _exhaustive(model: _Model, budget: int, kappa: np.ndarray, memo: dict[tuple[int, ...], sopt.OptimizeResult],
+def _exhaustive(model: _Model, budget: int, kappa: np.ndarray,
+                memo: dict[tuple[int, ...], tuple[_Model, sopt.OptimizeResult]], channels: Sequence[int],
                 single: Callable[[int], tuple[_Model, int]] | None = None) -> tuple[sopt.OptimizeResult | None, int]:
     """Return the best selection of 1 to ``budget`` needles (one per hole) over all of them, and the LPs solved.
 
-    Every selection's LP is solved (those in ``memo``, a smaller budget's, are read from it): the result is the
-    selection model's optimum at this budget, proven by enumeration. ``single``: for a needle, a smaller model that
-    holds it (and its index there) in which its selection alone has the same LP (:func:`restricted`): one needle's
-    LP is solved there; when such a result is the best, it is solved again in ``model`` for its columns.
+    Every selection's LP is solved (those in ``memo``, by their ``channels``, a smaller budget's or another
+    restriction's of the problem, are read from it): the result is the selection model's optimum at this budget,
+    proven by enumeration. ``single``: for a needle, a smaller model that holds it (and its index there) in which its
+    selection alone has the same LP (:func:`restricted`): one needle's LP is solved there. A best result solved in
+    another model is solved again in ``model`` for its columns.
     """
     by_hole: dict[str, list[int]] = {}
     for i, h in enumerate(model.hole_of):
@@ -161,23 +163,25 @@ def _exhaustive(model: _Model, budget: int, kappa: np.ndarray, memo: dict[tuple[
     groups = list(by_hole.values())
     best: sopt.OptimizeResult | None = None
     best_key: tuple[int, ...] = ()
+    best_in: _Model | None = None
     n_lp = 0
     for size in range(1, budget + 1):
         for combo in itertools.combinations(groups, size):
             for pick in itertools.product(*combo):
                 key = tuple(sorted(pick))
-                res = memo.get(key)
-                if res is None:
+                ident = tuple(sorted(int(channels[i]) for i in key))
+                held = memo.get(ident)
+                if held is None:
                     if size == 1 and single is not None:
                         sub, j = single(key[0])
-                        res = memo[key] = sub.solve(budget, kappa=kappa, only=[j])
-                        res["foreign"] = True  # its columns are the smaller model's
+                        held = memo[ident] = (sub, sub.solve(budget, kappa=kappa, only=[j]))
                     else:
-                        res = memo[key] = model.solve(budget, kappa=kappa, only=key)
+                        held = memo[ident] = (model, model.solve(budget, kappa=kappa, only=key))
                     n_lp += 1
+                solved_in, res = held
                 if res.x is not None and (best is None or float(res.fun) < float(best.fun) - 1e-12):
-                    best, best_key = res, key
-    if best is not None and best.get("foreign", False):
+                    best, best_key, best_in = res, key, solved_in
+    if best is not None and best_in is not model:  # its columns are another model's
         again = model.solve(budget, kappa=kappa, only=best_key)
         best = again if again.x is not None else None
     return best, n_lp
@@ -239,11 +243,12 @@ class LinearProgramme:
         return model
 
     def optimise(self, problem: DwellProblem, *, budget: int | None = None, limit_factor: np.ndarray | None = None,
-                 start: Sequence[int] = ()) -> DwellSolution:
+                 start: Sequence[Sequence[int]] = ()) -> DwellSolution:
         """Solve the LP (no budget) or select at most ``budget`` needles (:meth:`DwellOptimiser.optimise`).
 
-        With a budget: the rounded LP relaxation (with and without ``start``), ``start`` itself, then swaps; the
-        bound is the relaxation's. Without: one LP (needle binaries relaxed to [0, 1]), its own bound.
+        With a budget: the rounded LP relaxation (with each of ``start`` and without), each of ``start`` itself, then
+        swaps; the bound is the relaxation's. At budget 0 the one selection (no needle) is solved. Without: one LP
+        (needle binaries relaxed to [0, 1]), its own bound.
 
         Parameters
         ----------
@@ -253,8 +258,9 @@ class LinearProgramme:
             The most needles the selection may use; None: the LP alone.
         limit_factor : (n_organs,) float, unitless, optional
             The organ rows' calibration ``κ`` (None: 1 for every organ).
-        start : sequence of int
-            The previous budget's needles (indices into ``problem.needles.channels``); read with a budget only.
+        start : sequence of sequence of int
+            Selections to start from, e.g. the previous budget's needles and another arm's selection at this budget
+            (each indices into ``problem.needles.channels``); read with a budget only.
 
         Returns
         -------
@@ -266,6 +272,8 @@ class LinearProgramme:
         if budget is not None and budget >= 1 and \
                 selections_at_most(model.hole_of, budget) <= problem.exhaustive_max:
             return self._enumerate(problem, model, budget, kappa)
+        if budget == 0 and problem.needles is not None:
+            return self._none(model, kappa)
         if budget is None:
             res = model.solve(None, kappa=kappa)
             if res.x is None:
@@ -275,6 +283,15 @@ class LinearProgramme:
                 res, status = _min_time(model, kappa, res)
             return DwellSolution(model.dwell_times(res.x), status, float(res.fun), bound, model.selected(res.x))
         return self._select(problem, model, budget, kappa, start)
+
+    @staticmethod
+    def _none(model: _Model, kappa: np.ndarray) -> DwellSolution:
+        """Return the selection of no needle (the other channels loaded): the only one at budget 0, its own bound."""
+        res = model.solve(0, kappa=kappa, only=[])
+        if res.x is None:
+            return DwellSolution(None, f"no loading without needles: {res.message}", float("inf"), None)
+        value = float(res.fun)
+        return DwellSolution(model.dwell_times(res.x), "the only selection of no needle", value, value, ())
 
     def _single(self, problem: DwellProblem, model: _Model) -> Callable[[int], tuple[_Model, int]] | None:
         """Return, for a needle of ``model``, the model of the needles of its hole's group and its index there.
@@ -324,12 +341,14 @@ class LinearProgramme:
     def _enumerate(self, problem: DwellProblem, model: _Model, k: int, kappa: np.ndarray) -> DwellSolution:
         """Select at most ``k`` needles by solving every selection's LP (:func:`_exhaustive`); the bound is its value.
 
-        The LPs of one calibration ``kappa`` are kept in the problem's cache, so budget ``k`` solves only the
-        selections of ``k`` needles.
+        The LPs of one calibration ``kappa`` are kept by channels in the problem's :data:`SHARED` cache, so budget
+        ``k`` solves only the selections of ``k`` needles, and none another restriction of the problem solved (the
+        straight arm's selections, in the straight + steered arm).
         """
-        memo = problem.cache.setdefault(f"{self.name}:selections:{kappa.tobytes().hex()}", {})
+        memo = problem.cache.setdefault(SHARED, {}).setdefault(f"{self.name}:selections:{kappa.tobytes().hex()}", {})
         n_all = selections_at_most(model.hole_of, k)
-        best, n_lp = _exhaustive(model, k, kappa, memo, self._single(problem, model))
+        assert problem.needles is not None
+        best, n_lp = _exhaustive(model, k, kappa, memo, problem.needles.channels, self._single(problem, model))
         if best is None:
             return DwellSolution(None, f"no feasible selection among all {n_all} of at most {k} needles",
                                  float("inf"), None)
@@ -338,16 +357,17 @@ class LinearProgramme:
                              f"{k} needles ({n_lp} LPs solved here)", value, value, model.selected(best.x))
 
     def _select(self, problem: DwellProblem, model: _Model, k: int, kappa: np.ndarray,
-                keep: Sequence[int]) -> DwellSolution:
-        """Select at most ``k`` needles: the LP relaxation rounded with the last budget's needles kept, then swaps.
+                keep: Sequence[Sequence[int]]) -> DwellSolution:
+        """Select at most ``k`` needles: the LP relaxation rounded with each of ``keep`` kept, then swaps.
 
-        The objective never rises with ``k`` when ``keep`` is the last budget's selection (every budget's model has
-        the same organ rows).
+        The objective never rises with ``k`` when ``keep`` holds the last budget's selection (every budget's model
+        has the same organ rows), and is no higher than any selection of ``keep`` (another arm's at this budget).
         """
         relaxed = model.solve(k, kappa=kappa)  # its optimum bounds every selection of k needles from below
-        starts = [_rounded(model, k, kappa, relaxed, keep), _rounded(model, k, kappa, relaxed, ())]
-        if keep:  # the last budget's selection itself (a needle added to it costs its invasiveness)
-            last = model.solve(k, kappa=kappa, only=keep)
+        given = list(dict.fromkeys(tuple(int(i) for i in sel) for sel in keep if 0 < len(sel) <= k))
+        starts = [*(_rounded(model, k, kappa, relaxed, sel) for sel in given), _rounded(model, k, kappa, relaxed, ())]
+        for sel in given:  # each given selection itself (a needle added to it costs its invasiveness)
+            last = model.solve(k, kappa=kappa, only=sel)
             starts.append(last if last.x is not None else None)
         inc = min((r for r in starts if r is not None), key=lambda r: float(r.fun), default=None)
         lower = float(relaxed.fun) if relaxed.x is not None else None

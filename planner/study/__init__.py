@@ -403,12 +403,13 @@ def dask_client(scheduler: str | None, workers: int | None, n_tasks: int) -> Any
     n = workers if workers is not None else (os.cpu_count() or 1)
     if n < 1:
         raise StudyError(f"--workers must be >= 0, got {n}")
-    from reachplan.planner.study.workers import WORKER_ENV
+    from reachplan.planner.study.workers import WORKER_ENV, worker_config
 
     # one thread per worker and per numerical library (numba, OpenMP, BLAS; HiGHS: WorkerSetup): parallelism comes
-    # from the workers, one per core
-    cluster = LocalCluster(n_workers=min(n, n_tasks), threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, scheduler_kwargs=LOOPBACK_HTTP, env=dict(WORKER_ENV))
+    # from the workers, one per core; the allocator set before the worker processes start
+    with worker_config():
+        cluster = LocalCluster(n_workers=min(n, n_tasks), threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None, scheduler_kwargs=LOOPBACK_HTTP, env=dict(WORKER_ENV))
     client = Client(cluster)
     return _Closing(client, cluster)
 

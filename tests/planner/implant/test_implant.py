@@ -258,6 +258,9 @@ def test_tandem_is_a_channel_not_a_needle(open_case: tuple, kernel: Tg43Kernel) 
     assert any(not c.is_needle for c in arm.plan.channels)
     assert straight.plan is not None and arm.plan.n_needles <= straight.plan.n_needles
     assert arm.plan.needle_time_share < 1.0
+    (zero,) = [b for b in arm.budgets if b.budget == 0]  # the tandem alone: the one selection, solved, not searched
+    assert zero.status == "the only selection of no needle" and zero.mip_gap == 0.0 and zero.n_needles == 0
+    assert zero.plan is not None and not any(c.is_needle for c in zero.plan.channels)
 
 
 def test_cohort_summary_of_paired_arms() -> None:
@@ -380,7 +383,7 @@ def test_steered_arm_strictly_wins_with_a_hidden_lobe(bank: object, kernel: Tg43
 def test_arms_at_once_are_deterministic_and_never_worse(open_case: tuple, kernel: Tg43Kernel) -> None:
     """Both arms planned at once (two threads) give exactly what they give one after the other and what
     ``plan_implant`` gives (no wall-clock limit decides a selection); the steered arm merged with the straight
-    one is never worse than it."""
+    one is never worse than it, and its selection at each budget never worse on the selection model."""
     case, cands, straight, _ = open_case
     arms = [("straight", [c for c in cands if not c.steered]), ("steered", list(cands))]
     at_once = plan_arms(arms, case.planning, kernel, SK, LOOSE, SETTINGS)
@@ -393,3 +396,8 @@ def test_arms_at_once_are_deterministic_and_never_worse(open_case: tuple, kernel
     assert at_once[0].plan is not None and straight.plan is not None
     assert [c.name for c in at_once[0].plan.channels] == [c.name for c in straight.plan.channels]
     _no_worse(with_subset(at_once[1], at_once[0]), at_once[0])
+    # the straight arm's selection at each budget starts the steered arm's search there: never worse on the model
+    theirs = {b.budget: b.objective for b in at_once[0].budgets}
+    both = [(b.objective, theirs[b.budget]) for b in at_once[1].budgets if b.budget in theirs]
+    assert both and all(o <= t + 1e-6 * abs(t) for o, t in both), both
+

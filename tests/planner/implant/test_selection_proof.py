@@ -171,10 +171,11 @@ def test_one_needles_lps_in_its_holes_model_give_the_same_selection(monkeypatch:
     model = LP.model(problem)
     single = LP._single(problem, model)
     assert single is not None and single(3)[0].n_y == 3  # holes C and D hold needles 3, 4 and 5
-    memo: dict[tuple[int, ...], sopt.OptimizeResult] = {}
+    memo: dict[tuple[int, ...], tuple[_Model, sopt.OptimizeResult]] = {}
+    channels = problem.needles.channels if problem.needles else ()
     for budget in (1, 2):
-        best, _ = selection._exhaustive(model, budget, kappa, memo, single)
-        ref, _ = selection._exhaustive(plain, budget, kappa, {})
+        best, _ = selection._exhaustive(model, budget, kappa, memo, channels, single)
+        ref, _ = selection._exhaustive(plain, budget, kappa, {}, channels)
         assert best is not None and ref is not None
         assert float(best.fun) == pytest.approx(float(ref.fun), rel=1e-9)
         assert model.selected(best.x) == plain.selected(ref.x)
@@ -209,3 +210,19 @@ def test_an_organs_voxels_near_the_dwells_are_those_a_stable_sort_keeps() -> Non
         keep = dist <= radius
         keep[np.argsort(dist, kind="stable")[:n_min]] = True
         assert np.array_equal(_near_organ(pts, np.zeros((1, 3)), radius, 0.1, 4, dist, n_min), pts[keep])
+
+
+def test_a_restrictions_enumerated_lps_are_not_solved_again_in_the_whole_problem() -> None:
+    """The straight arm's selections, enumerated in its restricted problem, are read by the straight + steered arm's
+    enumeration (the same LPs, by channels): it solves only the others, and selects what it selects alone."""
+    problem = _problem(5, 100)
+    part = _restricted(problem, [0, 2, 3, 7])  # needles 0, 2, 3 (holes A, B, C) and the intracavitary channel
+    kappa = np.ones(1)
+    alone = LP.optimise(_problem(5, 100), budget=2, limit_factor=kappa)
+    LP.optimise(part, budget=2, limit_factor=kappa)  # 3 singles and 3 pairs
+    whole = LP.optimise(problem, budget=2, limit_factor=kappa)
+    n_all = selections_at_most(("A", "A", "B", "C", "C", "D", "E"), 2)  # the holes of _problem's needles
+    assert f"({n_all - 6} LPs solved here)" in whole.status, whole.status
+    assert f"({n_all} LPs solved here)" in alone.status, alone.status
+    assert whole.needles == alone.needles and whole.objective == pytest.approx(alone.objective, rel=1e-9)
+    assert np.allclose(whole.times_s, alone.times_s, atol=1e-6)

@@ -20,7 +20,7 @@ import pytest
 from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.cli.study import IMPLANT_CASES, add_arguments
 from reachplan.planner.study.implant import ImplantCase, ImplantStudySpec, case_row, run_implant_study
-from reachplan.planner.study.workers import WORKER_ENV, WorkerSetup
+from reachplan.planner.study.workers import ALLOCATOR_ENV, WORKER_ENV, WorkerSetup, worker_config
 
 DESIGNS = ("15ga-30j-tip", "13ga-20j-tip")
 SEEDS = (0, 1, 2, 3)
@@ -146,9 +146,9 @@ def test_study_on_a_process_cluster_by_scheduler_address(tmp_path: Path) -> None
     cloudpickle.register_pickle_by_value(sys.modules[probe.__module__])
     spec = ImplantStudySpec((0, 1), PlanConfig(designs=DESIGNS))
     try:
-        with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                      dashboard_address=None, scheduler_kwargs=LOOPBACK_HTTP,
-                                      env=dict(WORKER_ENV)) as cluster:
+        with worker_config(), distributed.LocalCluster(
+                n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
+                scheduler_kwargs=LOOPBACK_HTTP, env=dict(WORKER_ENV)) as cluster:
             res = run_implant_study(spec, tmp_path / "d", scheduler=cluster.scheduler_address, task_fn=_ByValue(probe),
                                     worker_setup=WorkerSetup(("distance",)))
     finally:
@@ -161,6 +161,7 @@ def test_study_on_a_process_cluster_by_scheduler_address(tmp_path: Path) -> None
         assert p["pid"] != os.getpid() and p["distance_loaded"]
         assert p["setup"]["highs_threads"] == 1 and p["setup"]["kernel_groups"] == ["distance"]
         assert p["setup"]["env"]["NUMBA_NUM_THREADS"] == "1"
+        assert {k: p["setup"]["env"][k] for k in ALLOCATOR_ENV} == ALLOCATOR_ENV  # not Dask's 64 kiB trim
     assert probes[0]["setup"] == probes[1]["setup"]  # one worker, set up once
 
 
