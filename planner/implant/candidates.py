@@ -180,11 +180,15 @@ class NeedleCheck:
 
 @dataclass(frozen=True, eq=False)
 class _Field:
-    """A distance map (mm) on a crop of the planning grid; points outside the crop read ``outside``."""
+    """A distance map (mm) on a crop of the planning grid; points outside the crop read ``outside``.
+
+    ``values`` holds the crop framed by one voxel of ``outside`` on every side, ``offset`` the frame's first voxel:
+    a point's voxel clipped to the framed array reads the crop inside it and ``outside`` beyond it.
+    """
 
     index_from_patient: np.ndarray
-    offset: np.ndarray  # (3,) int, (k, j, i) of the crop's first voxel
-    values: np.ndarray  # (nk, nj, ni) float
+    offset: np.ndarray  # (3,) int, (k, j, i) of the framed array's first voxel on the full grid
+    values: np.ndarray  # (nk + 2, nj + 2, ni + 2) float, the crop framed by ``outside``
     outside: float
 
     def index(self, points_mm: np.ndarray) -> np.ndarray:
@@ -220,10 +224,9 @@ class _Field:
             Distance to the mask (0 inside); ``outside`` for a point beyond the crop.
         """
         kji = (self.index(points_mm) if kji is None else kji) - self.offset
-        shape = np.array(self.values.shape)
-        ok = np.all((kji >= 0) & (kji < shape), axis=-1)
-        kc = np.where(ok[..., None], kji, 0)
-        out: np.ndarray = np.where(ok, self.values[kc[..., 0], kc[..., 1], kc[..., 2]], self.outside)
+        _, nj, ni = self.values.shape
+        k, j, i = np.moveaxis(np.clip(kji, 0, np.array(self.values.shape) - 1), -1, 0)  # beyond: the frame
+        out: np.ndarray = self.values.ravel().take((k * nj + j) * ni + i)
         return out
 
 
@@ -236,13 +239,14 @@ def _distance_field(grid: Grid, mask: np.ndarray, pad_mm: float, box_mask: np.nd
     box = mask if box_mask is None else box_mask
     idx = np.argwhere(box)
     if len(idx) == 0:
-        return _Field(grid.index_from_patient, np.zeros(3, int), np.full((1, 1, 1), np.inf), np.inf)
+        return _Field(grid.index_from_patient, np.zeros(3, int), np.full((1, 1, 1), np.inf), np.inf)  # all frame
     pad = np.ceil(pad_mm / spacing).astype(int) + 1
     lo = np.maximum(idx.min(axis=0) - pad, 0)
     hi = np.minimum(idx.max(axis=0) + pad + 1, np.array(grid.shape))
     crop = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
     values = distance_transform(crop, spacing)  # infinite without a seed
-    return _Field(grid.index_from_patient, lo, np.asarray(values, dtype=float), np.inf)
+    framed = np.pad(np.asarray(values, dtype=float), 1, constant_values=np.inf)
+    return _Field(grid.index_from_patient, lo - 1, framed, np.inf)
 
 
 def confirmed_clearance(path_mm: np.ndarray, organs: Sequence[Organ], needle_radius_mm: float, margin_mm: float,

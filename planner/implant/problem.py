@@ -169,7 +169,11 @@ class _Problem:
         key = (o, float(pitch_mm))
         if key not in self.lattices:
             pts = self.oar_pts[o]
-            _, first, counts = np.unique(np.floor(pts / pitch_mm).astype(np.int64), axis=0, return_index=True,
+            b = np.floor(pts / pitch_mm).astype(np.int64)
+            b -= b.min(axis=0) if len(b) else 0
+            span = b.max(axis=0) + 1 if len(b) else np.ones(3, np.int64)
+            # one integer per bin, in the bins' lexicographic order (as np.unique's rows, at a fraction of the cost)
+            _, first, counts = np.unique((b[:, 0] * span[1] + b[:, 1]) * span[2] + b[:, 2], return_index=True,
                                          return_counts=True)
             self.lattices[key] = (pts[first], counts * vox_cc)
         return self.lattices[key]

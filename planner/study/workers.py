@@ -25,19 +25,11 @@ a case reports would count their spinning).
   that is missing) when the worker starts (:func:`reachplan.planner.kernels.warm_up`), so the first case a worker
   plans costs what the others do.
 
-Workers of a cluster started by hand should get the same environment, and the allocator's and the profiler's
-settings from a Dask configuration file (``pre-spawn-environ`` is read before the worker process starts; Dask's
-``DASK_*`` variables would lower-case the allocator's names), e.g. ``reachplan.yaml`` in ``~/.config/dask``::
-
-    distributed:
-      nanny:
-        pre-spawn-environ: {MALLOC_MMAP_THRESHOLD_: "33554432", MALLOC_TRIM_THRESHOLD_: "67108864"}
-      worker:
-        profile: {enabled: false}
-
-and then::
+Workers of a cluster started by hand should get the same environment (a nanny takes the allocator's variables from
+its environment before its configuration, and passes them on before the worker process starts)::
 
     NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \\
+    MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=67108864 DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False \\
         dask worker tcp://SCHEDULER:8786 --nthreads 1 --nworkers N
 """
 
