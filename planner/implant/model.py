@@ -38,9 +38,10 @@ out (2-3 times fewer milliseconds per selection than a cold ``scipy.optimize.mil
 40-45 % fewer again with the primal; the same optimum to 1e-12). The whole LP (no ``only``: the relaxation at a
 budget, the loading of chosen channels) has a second instance: a new budget changes one row bound, a minimum dwell
 time column bounds, and the next round of a robust loading (a new model with more row sets,
-:data:`reachplan.planner.implant.optimiser.WARM_START`) starts from the last round's basis carried over
-(:meth:`_Model._inherited_basis`); the dual simplex then needs a fraction of a cold solve's iterations (2-2.5 times
-less time over a clinical case's robust loadings, the same dwell times to 1e-9 s). Without ``highspy`` every solve
+:data:`reachplan.planner.implant.optimiser.WARM_START`) takes over the last round's instance with the added row sets
+appended (:meth:`_Model._adopted`); the dual simplex then goes on from the last round's optimum and needs a fraction
+of a cold solve's iterations (2-2.5 times less time over a clinical case's robust loadings, the same dwell times to
+1e-9 s). Without ``highspy`` every solve
 goes through ``scipy.optimize.milp``.
 """
 
@@ -185,6 +186,43 @@ class _Rows:
         return sparse.csr_matrix((vals, (rows, cols)), shape=(int(offsets[-1]), self.n))
 
 
+class _Held(NamedTuple):
+    """A model's HiGHS instance and the bounds it holds, in its own order of rows and columns.
+
+    ``col`` and ``row``: the instance's column (row) of each of the model's (None: the same order); an instance
+    taken over from an earlier model (:meth:`_Model._adopted`) has the rows and columns that model had in their
+    place there and the added ones after them.
+    """
+
+    highs: Any
+    col: np.ndarray | None
+    row: np.ndarray | None
+    row_lo: np.ndarray
+    row_hi: np.ndarray
+    col_lo: np.ndarray
+    col_hi: np.ndarray
+
+
+def _placed(index: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Return ``values`` (one per model row or column) in an instance's order: ``out[index] = values``."""
+    out = np.empty(len(values), dtype=values.dtype)
+    out[index] = values
+    return out
+
+
+def _carried_index(came_from: np.ndarray, old_index: np.ndarray | None, old_count: int) -> np.ndarray:
+    """Return the instance index of each row (or column) of a model taking over an earlier model's instance.
+
+    ``came_from``: the earlier model's row of each (-1: added, appended in order); ``old_index``: the earlier model's
+    instance index of each of its rows (None: the same); ``old_count``: how many it had.
+    """
+    out = np.empty(len(came_from), dtype=np.int64)
+    kept = came_from >= 0
+    out[kept] = came_from[kept] if old_index is None else old_index[came_from[kept]]
+    out[~kept] = old_count + np.arange(int((~kept).sum()))
+    return out
+
+
 class _Model:
     """The linear model of a loading (module docstring), as an LP or, with needle binaries, a MIP.
 
@@ -198,8 +236,8 @@ class _Model:
         Its ``units`` (None: one unit per column), rates, organ rows, needle binaries and modulation.
     warm : _Model or None
         A model of the same units, target points and needles whose organ row sets are a subset of this one's (the
-        same :class:`OrganRows` objects), already solved without ``only``: this model's first LP starts from its
-        last basis (:meth:`_inherited_basis`).
+        same :class:`OrganRows` objects), already solved without ``only``: this model's first LP takes over its
+        HiGHS instance (:meth:`_adopted`), which the warm model then no longer has.
     """
 
     def __init__(self, problem: DwellProblem, warm: _Model | None = None) -> None:
@@ -261,7 +299,7 @@ class _Model:
         self.n_head_rows = int(self.organ_row[0]) if len(q) else self.a.shape[0]
         # HiGHS instances kept for warm starts, each with the bounds it holds: "selection" (the LPs of selections,
         # :meth:`_warm`), "full" (the whole LP, :meth:`_full`)
-        self._highs: dict[str, tuple[Any, tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+        self._highs: dict[str, _Held] = {}
         self._warm_from = warm
 
     def solve(self, budget: int | None = None, kappa: np.ndarray | None = None,
@@ -403,10 +441,10 @@ class _Model:
         """Solve the LP with these bounds on the HiGHS instance ``key``, from its last basis; the caller holds the lock.
 
         The instance is built on first use, without presolve (it costs more than it saves on these LPs: a third of
-        a cold solve), and solves first with the dual simplex (``"full"``: from the warm model's basis when there is
-        one). ``"selection"`` then runs the primal simplex: a new selection changes column bounds only, and its last
-        basis stays primal feasible but for the needles taken out (40-45 % less time than the dual simplex on the
-        clinical cases, the same optima to 1e-10 s of dwell time).
+        a cold solve), and solves first with the dual simplex; ``"full"`` first takes over the warm model's instance
+        when there is one (:meth:`_adopted`). ``"selection"`` then runs the primal simplex: a new selection changes
+        column bounds only, and its last basis stays primal feasible but for the needles taken out (40-45 % less
+        time than the dual simplex on the clinical cases, the same optima to 1e-10 s of dwell time).
 
         Parameters
         ----------
@@ -423,9 +461,12 @@ class _Model:
             ``x`` (None when HiGHS does not report an optimum), ``fun``, ``status`` (0: optimal) and ``message``.
         """
         inf = _highs.kHighsInf
-        hi_h = np.where(np.isfinite(hi), hi, inf)
-        ub_h = np.where(np.isfinite(row_ub), row_ub, inf)
+        row_lo = np.where(np.isfinite(self.lb), self.lb, -inf)
+        row_hi = np.where(np.isfinite(row_ub), row_ub, inf)
+        col_hi = np.where(np.isfinite(hi), hi, inf)
         held = self._highs.get(key)
+        if held is None and key == "full":
+            held = self._adopted()
         if held is None:
             h: Any = _highs._Highs()
             h.setOptionValue("output_flag", False)
@@ -434,80 +475,114 @@ class _Model:
             h.setOptionValue("presolve", "off")
             lp = _highs.HighsLp()
             lp.num_col_, lp.num_row_ = self.n, self.a.shape[0]
-            lp.col_cost_, lp.col_lower_, lp.col_upper_ = self.c, lo, hi_h
-            lp.row_lower_, lp.row_upper_ = np.where(np.isfinite(self.lb), self.lb, -inf), ub_h
+            lp.col_cost_, lp.col_lower_, lp.col_upper_ = self.c, lo, col_hi
+            lp.row_lower_, lp.row_upper_ = row_lo, row_hi
             lp.a_matrix_.format_ = _highs.MatrixFormat.kColwise
             lp.a_matrix_.start_, lp.a_matrix_.index_ = self.a_csc.indptr, self.a_csc.indices
             lp.a_matrix_.value_ = self.a_csc.data
             h.passModel(lp)
-            basis = self._inherited_basis() if key == "full" else None
-            if basis is not None:
-                h.setBasis(basis)
+            held = _Held(h, None, None, row_lo, row_hi, lo.copy(), col_hi)
         else:
-            h, (old_ub, old_lo, old_hi) = held
-            changed = np.flatnonzero(ub_h != old_ub).astype(np.int32)
+            h = held.highs
+            if held.row is not None and held.col is not None:  # into the instance's order
+                row_lo, row_hi = _placed(held.row, row_lo), _placed(held.row, row_hi)
+                lo, col_hi = _placed(held.col, lo), _placed(held.col, col_hi)
+            changed = np.flatnonzero((row_lo != held.row_lo) | (row_hi != held.row_hi)).astype(np.int32)
             if len(changed):
-                h.changeRowsBounds(len(changed), changed,
-                                   np.where(np.isfinite(self.lb[changed]), self.lb[changed], -inf), ub_h[changed])
-            moved = np.flatnonzero((lo != old_lo) | (hi_h != old_hi)).astype(np.int32)
+                h.changeRowsBounds(len(changed), changed, row_lo[changed], row_hi[changed])
+            moved = np.flatnonzero((lo != held.col_lo) | (col_hi != held.col_hi)).astype(np.int32)
             if len(moved):
-                h.changeColsBounds(len(moved), moved, lo[moved], hi_h[moved])
-        self._highs[key] = (h, (ub_h, lo.copy(), hi_h))
+                h.changeColsBounds(len(moved), moved, lo[moved], col_hi[moved])
+            held = held._replace(row_lo=row_lo, row_hi=row_hi, col_lo=lo.copy(), col_hi=col_hi)
+        first = key not in self._highs
+        self._highs[key] = held
         h.run()
-        if key == "selection" and held is None:
+        if key == "selection" and first:
             h.setOptionValue("simplex_strategy", 4)  # the next selections: primal, from this basis
         status = h.getModelStatus()
         if status != _highs.HighsModelStatus.kOptimal:
             return sopt.OptimizeResult(x=None, fun=np.inf, status=1, message=f"HiGHS: {h.modelStatusToString(status)}")
         x = np.asarray(h.getSolution().col_value, dtype=float)
+        if held.col is not None:
+            x = x[held.col]
         return sopt.OptimizeResult(x=x, fun=float(h.getInfo().objective_function_value), status=0,
                                    message="Optimization terminated successfully. (HiGHS Status 7: Optimal)")
 
-    def _inherited_basis(self) -> Any:
-        """Return the warm model's last basis carried over to this model's columns and rows, or None.
+    def _adopted(self) -> _Held | None:
+        """Take over the warm model's ``"full"`` instance, this model's added row sets appended; or None.
 
-        Columns and rows of the blocks both models share (times, binaries, underdoses, total time, gradients; the
-        target, modulation, gradient and needle rows; each organ row set of the warm model) keep their status; an
-        organ row set only this model has starts with its rows basic and its columns at 0. None when the models
-        differ otherwise (or the warm model has no basis).
+        The warm model (the last round of a robust loading) holds every row and column of this one but those of the
+        organ row sets it lacks: they are added to its instance (the columns at 0 and nonbasic, the rows basic), so
+        the instance keeps its basis and factorisation, and the dual simplex goes on from the last round's optimum,
+        which stays dual feasible (an added set's columns have zero cost and no entry in the other rows). Before, each
+        round passed its whole model to a new instance and set the last round's basis on it (15-20 ms a round more on
+        a clinical case's robust loadings). Shared rows and columns keep their place in the instance; added ones come
+        after them (:class:`_Held`). None when there is no such model (or it has no instance, or the models differ
+        otherwise): the caller then builds a new instance.
+
+        Returns
+        -------
+        _Held or None
         """
         old, self._warm_from = self._warm_from, None  # no chain of models kept alive
         held = None if old is None else old._highs.get("full")
-        if old is None or held is None:
+        carried = None if old is None or held is None else self._carried(old)
+        if old is None or held is None or carried is None:
             return None
+        col_from, row_from = carried
+        new_c, new_r = np.flatnonzero(col_from < 0), np.flatnonzero(row_from < 0)
+        added = self.a[new_r]
+        if self.a.nnz != old.a.nnz + added.nnz:  # a shared row or column with other entries: not the same model
+            return None
+        del old._highs["full"]
+        inf = _highs.kHighsInf
+        col = _carried_index(col_from, held.col, old.n)
+        row = _carried_index(row_from, held.row, old.a.shape[0])
+        h = held.highs
+        zeros, no_hi = np.zeros(len(new_c)), np.full(len(new_c), inf)
+        h.addCols(len(new_c), self.c[new_c], zeros, no_hi, 0, np.zeros(len(new_c), dtype=np.int32),
+                  np.zeros(0, dtype=np.int32), np.zeros(0))
+        r_lo = np.where(np.isfinite(self.lb[new_r]), self.lb[new_r], -inf)
+        r_hi = np.where(np.isfinite(self.ub[new_r]), self.ub[new_r], inf)
+        h.addRows(len(new_r), r_lo, r_hi, added.nnz, added.indptr[:-1].astype(np.int32),
+                  col[added.indices].astype(np.int32), added.data)
+        shared = np.flatnonzero(col_from >= 0)
+        cost = self.c[shared]
+        moved = np.flatnonzero(cost != old.c[col_from[shared]])
+        if len(moved):
+            h.changeColsCost(len(moved), col[shared[moved]].astype(np.int32), cost[moved])
+        return _Held(h, col, row, np.concatenate([held.row_lo, r_lo]), np.concatenate([held.row_hi, r_hi]),
+                     np.concatenate([held.col_lo, zeros]), np.concatenate([held.col_hi, no_hi]))
+
+    def _carried(self, old: _Model) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return the column and row of ``old`` each of this model's columns and rows is (-1: only this model has it).
+
+        Shared: the blocks both models have (times, binaries, underdoses, total time, gradients; the target,
+        modulation, gradient and needle rows) and each organ row set of ``old`` (by identity), which must all be this
+        model's too. None when the models differ otherwise.
+        """
         same = (old.n_u, old.n_y, old.m, old.n_head_rows, old.n - old.i_g, old.a.shape[0] - old.n_head_rows
                 - int((old.organ_q + 1).sum())) == (self.n_u, self.n_y, self.m, self.n_head_rows, self.n - self.i_g,
                                                     self.a.shape[0] - self.n_head_rows - int((self.organ_q + 1).sum()))
         where = {id(o): j for j, o in enumerate(self.organs)}
         if not same or any(id(o) not in where for o in old.organs):
             return None
-        last = held[0].getBasis()
-        if not last.valid:
+        if self.n_y and not np.array_equal(self.big_m, old.big_m):  # the needle rows' coefficients
             return None
-        col_old = np.fromiter(map(int, last.col_status), dtype=np.int8, count=old.n)
-        row_old = np.fromiter(map(int, last.row_status), dtype=np.int8, count=old.a.shape[0])
-        lower, basic = int(_highs.HighsBasisStatus.kLower.value), int(_highs.HighsBasisStatus.kBasic.value)
-        col = np.full(self.n, lower, dtype=np.int8)
-        row = np.full(self.a.shape[0], basic, dtype=np.int8)
-        col[:self.i_z] = col_old[:old.i_z]
-        col[self.i_g:] = col_old[old.i_g:]
-        row[:self.n_head_rows] = row_old[:old.n_head_rows]
-        tail = len(row_old) - int(old.organ_row[-1] + old.organ_q[-1] + 1) if len(old.organ_q) else 0
+        col = np.full(self.n, -1, dtype=np.int64)
+        row = np.full(self.a.shape[0], -1, dtype=np.int64)
+        col[:self.i_z] = np.arange(old.i_z)
+        col[self.i_g:] = old.i_g + np.arange(self.n - self.i_g)
+        row[:self.n_head_rows] = np.arange(old.n_head_rows)
+        tail = self.a.shape[0] - self.n_head_rows - int((self.organ_q + 1).sum())
         if tail:
-            row[len(row) - tail:] = row_old[len(row_old) - tail:]
+            row[len(row) - tail:] = old.a.shape[0] - tail + np.arange(tail)
         for j, o in enumerate(old.organs):
             k, q = where[id(o)], int(old.organ_q[j])
-            col[self.i_z + k] = col_old[old.i_z + j]
-            col[self.organ_s[k]:self.organ_s[k] + q] = col_old[old.organ_s[j]:old.organ_s[j] + q]
-            row[self.organ_row[k]:self.organ_row[k] + q + 1] = row_old[old.organ_row[j]:old.organ_row[j] + q + 1]
-        status = {int(v.value): v for v in (_highs.HighsBasisStatus.kLower, _highs.HighsBasisStatus.kBasic,
-                                            _highs.HighsBasisStatus.kUpper, _highs.HighsBasisStatus.kZero,
-                                            _highs.HighsBasisStatus.kNonbasic)}
-        basis = _highs.HighsBasis()
-        basis.col_status = [status[int(v)] for v in col]
-        basis.row_status = [status[int(v)] for v in row]
-        basis.valid = True
-        return basis
+            col[self.i_z + k] = old.i_z + j
+            col[self.organ_s[k]:self.organ_s[k] + q] = old.organ_s[j] + np.arange(q)
+            row[self.organ_row[k]:self.organ_row[k] + q + 1] = old.organ_row[j] + np.arange(q + 1)
+        return col, row
 
     def dwell_times(self, x: np.ndarray) -> np.ndarray:
         """Return the dwell times of a solution.

@@ -125,8 +125,8 @@ def _cold(model: _Model, only: list[int]) -> sopt.OptimizeResult:
 
 
 def test_a_robust_rounds_lp_starts_from_the_last_round_and_gives_the_cold_optimum() -> None:
-    """The next round's model (more row sets) starts from the last round's basis; budgets' relaxations from the
-    last budget's; every optimum is the cold solver's."""
+    """The next round's model (more row sets) goes on in the last round's HiGHS instance; budgets' relaxations from
+    the last budget's; every optimum is the cold solver's."""
     base = _problem(6, 0)
     loading = replace(base, needles=None, units=None, min_time_s=0.0)
     rng = np.random.default_rng(7)
@@ -136,9 +136,11 @@ def test_a_robust_rounds_lp_starts_from_the_last_round_and_gives_the_cold_optimu
     second = replace(loading, organs=(*loading.organs, extra), cache={WARM_START: first})
     model = LP.model(second)
     assert WARM_START not in second.cache  # the hint is read once, not kept
-    assert _Model(second, warm=LP.model(first))._inherited_basis() is not None
+    instance = LP.model(first)._highs["full"].highs
     kappa = np.array([0.9, 1.1])
     warm = model.solve(None, kappa=kappa)
+    assert model._highs["full"].highs is instance  # the last round's instance, the added rows appended
+    assert "full" not in LP.model(first)._highs
     ub = model.ub.copy()
     ub[model.limit_rows] = model.limits * kappa
     cold = sopt.milp(model.c, constraints=[sopt.LinearConstraint(model.a, model.lb, ub)],
@@ -146,6 +148,27 @@ def test_a_robust_rounds_lp_starts_from_the_last_round_and_gives_the_cold_optimu
     assert warm.x is not None and cold.x is not None
     assert float(warm.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
     assert np.allclose(model.dwell_times(warm.x), model.dwell_times(cold.x), rtol=0, atol=1e-6)
+    # a third round: a row set inserted before the last one, a higher coverage aim, then minimum dwell times
+    middle = OrganRows(rng.uniform(0.0, 0.4, (15, base.n_columns)), np.full(15, 0.3), 2.0, 2.0, "Bladder, shifted")
+    third = replace(loading, target_dose_gy=loading.target_dose_gy * 1.05, organs=(*loading.organs, middle, extra),
+                    cache={WARM_START: second})
+    model3 = LP.model(third)
+    kappa3 = np.array([0.95, 1.05, 1.1])
+    lo = np.zeros(model3.n_u)
+    lo[::3] = 0.5
+    for units in (None, (lo, np.full(model3.n_u, np.inf))):
+        warm = model3.solve(None, kappa=kappa3, units=units)
+        assert model3._highs["full"].highs is instance
+        ub = model3.ub.copy()
+        ub[model3.limit_rows] = model3.limits * kappa3
+        col_lo = np.zeros(model3.n)
+        if units is not None:
+            col_lo[:model3.n_u] = units[0]
+        cold = sopt.milp(model3.c, constraints=[sopt.LinearConstraint(model3.a, model3.lb, ub)],
+                         bounds=sopt.Bounds(col_lo, np.full(model3.n, np.inf)))
+        assert warm.x is not None and cold.x is not None
+        assert float(warm.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
+        assert np.allclose(model3.dwell_times(warm.x), model3.dwell_times(cold.x), rtol=0, atol=1e-6)
     selection = LP.model(_problem(6, 0))
     for budget in (1, 3, 2):  # one relaxation after the other on the model's instance
         relaxed = selection.solve(budget)

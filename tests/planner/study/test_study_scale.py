@@ -20,7 +20,13 @@ import pytest
 from reachplan.planner.case.config import PlanConfig
 from reachplan.planner.cli.study import IMPLANT_CASES, add_arguments
 from reachplan.planner.study.implant import ImplantCase, ImplantStudySpec, case_row, run_implant_study
-from reachplan.planner.study.workers import ALLOCATOR_ENV, WORKER_ENV, WorkerSetup, worker_config
+from reachplan.planner.study.workers import (
+    ALLOCATOR_ENV,
+    WORKER_DASK_CONFIG,
+    WORKER_ENV,
+    WorkerSetup,
+    worker_config,
+)
 
 DESIGNS = ("15ga-30j-tip", "13ga-20j-tip")
 SEEDS = (0, 1, 2, 3)
@@ -162,6 +168,7 @@ def test_study_on_a_process_cluster_by_scheduler_address(tmp_path: Path) -> None
         assert p["setup"]["highs_threads"] == 1 and p["setup"]["kernel_groups"] == ["distance"]
         assert p["setup"]["env"]["NUMBA_NUM_THREADS"] == "1"
         assert {k: p["setup"]["env"][k] for k in ALLOCATOR_ENV} == ALLOCATOR_ENV  # not Dask's 64 kiB trim
+        assert p["setup"]["dask"] == WORKER_DASK_CONFIG  # no profiler, slower monitors
     assert probes[0]["setup"] == probes[1]["setup"]  # one worker, set up once
 
 
