@@ -19,7 +19,7 @@ from reachplan.planner.case.scene import Scene
 from reachplan.planner.dose.aims import Aims
 from reachplan.planner.dose.structures import PlanningStructures, Structure
 from reachplan.planner.dose.tg43 import Tg43Kernel
-from reachplan.planner.implant.arms import ImplantArm, with_straight_plans, with_subset
+from reachplan.planner.implant.arms import ImplantArm, with_straight_plans
 from reachplan.planner.implant.candidates import Channel, applicator_channels, needle_candidates
 from reachplan.planner.implant.needles import check_arm, with_scenarios
 from reachplan.planner.implant.plan import plan_arms
@@ -242,7 +242,7 @@ def plan_design_arms(
                         points=points)
     c2 = time.process_time()
     straight = planned[0]
-    steered_arms = [with_subset(arm, straight) for arm in planned[1:]]
+    steered_arms = list(planned[1:])  # each with the straight arm's implants (plan_arms)
     for arm in steered_arms:  # fair arms: an implant of straight needles a steered arm's search found is the
         straight = with_straight_plans(straight, arm)  # straight arm's too
     # the chosen needles re-solved with the reference model, their robustness, the plans re-loaded on them

@@ -383,7 +383,8 @@ def test_steered_arm_strictly_wins_with_a_hidden_lobe(bank: object, kernel: Tg43
 def test_arms_at_once_are_deterministic_and_never_worse(open_case: tuple, kernel: Tg43Kernel) -> None:
     """Both arms planned at once (two threads) give exactly what they give one after the other and what
     ``plan_implant`` gives (no wall-clock limit decides a selection); the steered arm merged with the straight
-    one is never worse than it, and its selection at each budget never worse on the selection model."""
+    one is never worse than it, and its selection at each budget never worse on the selection model; the steered
+    arm's budgets stop past the straight arm's first plan that meets every aim."""
     case, cands, straight, _ = open_case
     arms = [("straight", [c for c in cands if not c.steered]), ("steered", list(cands))]
     at_once = plan_arms(arms, case.planning, kernel, SK, LOOSE, SETTINGS)
@@ -400,4 +401,48 @@ def test_arms_at_once_are_deterministic_and_never_worse(open_case: tuple, kernel
     theirs = {b.budget: b.objective for b in at_once[0].budgets}
     both = [(b.objective, theirs[b.budget]) for b in at_once[1].budgets if b.budget in theirs]
     assert both and all(o <= t + 1e-6 * abs(t) for o, t in both), both
+    # the steered arm takes in the straight arm's implants, and its budgets stop where the straight arm's first plan
+    # meeting every aim would stop its own
+    met = [b.budget for b in at_once[0].budgets if b.plan is not None and b.plan.aims_met]
+    assert met, at_once[0].pareto
+    _no_worse(at_once[1], at_once[0])
+    assert max(b.budget for b in at_once[1].budgets) <= max(met[0] + SETTINGS.extra_after_aims, SETTINGS.needles or 0)
 
+
+
+def test_a_later_arms_budgets_stop_past_the_first_arms_first_plan_meeting_every_aim() -> None:
+    """An arm that takes in another arm's implants stops its budgets past that arm's first plan meeting every aim (as
+    past its own, ``extra_after_aims`` later); the other arm's budgets are read once it is past them, from another
+    thread too."""
+    import threading
+    from types import SimpleNamespace
+
+    from reachplan.planner.implant.optimiser import DwellSolution
+    from reachplan.planner.implant.plan import _budgets, _Published
+
+    class FirstK:  # selects the first K needles at budget K, each loaded
+        name = "first-k"
+
+        def optimise(self, problem: object, *, budget: int | None = None, limit_factor: object = None,
+                     start: object = ()) -> DwellSolution:
+            k = int(budget or 0)
+            return DwellSolution(np.arange(4) < k, "planted", 1.0 / (1 + k), None, tuple(range(k)))
+
+    def plan(d90: float) -> SimpleNamespace:
+        return SimpleNamespace(aims_met=False, target=SimpleNamespace(d90_eqd2_gy=d90))
+
+    channels = [SimpleNamespace(name=f"N{i}", is_needle=True) for i in range(4)]
+
+    def budgets(extra: int, their_met: object) -> list[int]:
+        final = lambda chosen, status, gap: plan(80.0 + 5 * len(chosen))  # noqa: E731 - never meets the aims
+        final.prob = SimpleNamespace(channels=channels, channel_of=np.arange(4))  # type: ignore[attr-defined]
+        final.settings = replace(SETTINGS, max_needles=4, extra_after_aims=extra, needles=None)  # type: ignore[attr-defined]
+        done, _ = _budgets(None, [0, 1, 2, 3], FirstK(), np.ones(1), 0.0, final, [], their_met=their_met)  # type: ignore[arg-type]
+        return [b.budget for b in done]
+
+    assert budgets(0, None) == [1, 2, 3, 4]  # on its own: no plan meets the aims, every budget
+    first = _Published()
+    threading.Timer(0.2, lambda: (first.planned(1, False), first.planned(2, True), first.close())).start()
+    assert budgets(0, first.met_before) == [1, 2]  # waits for the other arm; met at 2: nothing past it
+    assert budgets(1, first.met_before) == [1, 2, 3]
+    assert first.met_before(2) is None and first.met_before(3) == 2
