@@ -365,6 +365,30 @@ class _Model:
             with _HIGHS_LOCK:
                 self._highs = {}
 
+    def selection_basis(self) -> Any:
+        """Return the basis the last selection's LP ended on (a HiGHS basis), None before any or without ``highspy``.
+
+        Returns
+        -------
+        highspy.HighsBasis or None
+        """
+        with _HIGHS_LOCK:
+            held = self._highs.get("selection")
+            return None if held is None else held.highs.getBasis()
+
+    def start_selection_from(self, basis: Any) -> None:
+        """Start the next selection's LP from ``basis`` (:meth:`selection_basis`) instead of the last LP's.
+
+        Parameters
+        ----------
+        basis : highspy.HighsBasis or None
+            A basis of this model's selection LPs; None: nothing changes.
+        """
+        with _HIGHS_LOCK:
+            held = self._highs.get("selection")
+            if basis is not None and held is not None:
+                held.highs.setBasis(basis)
+
     def _on_columns(self, only: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the column bounds (lower, upper) with the needles ``only`` used and every other needle empty."""
         on = np.zeros(self.n_y, dtype=bool)

@@ -102,12 +102,19 @@ def test_a_needle_set_gets_one_score_whichever_arm_evaluates_it() -> None:
 
 
 def test_warm_started_selection_lps_agree_with_cold_ones() -> None:
-    """The model's HiGHS instance, warm-started from the last selection, gives the cold solver's optimum."""
+    """The model's HiGHS instance, warm-started from the last selection (or an earlier one's basis), gives the cold
+    solver's optimum."""
     problem = _problem(4, 0)
     model = LP.model(problem)
     order = [[0], [3, 5], [1], [2, 4, 6], [6]]
-    for only in order:
+    assert model.selection_basis() is None  # no LP solved yet
+    for k, only in enumerate(order):
+        if k >= 3:  # from an earlier selection's basis instead of the last one's (the swap search's start)
+            model.start_selection_from(first)
         warm = model.solve(3, only=only)
+        if k == 0:
+            first = model.selection_basis()
+            assert first is not None and first.valid
         cold = _cold(model, only)
         assert warm.x is not None and cold.x is not None
         assert float(warm.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
