@@ -108,6 +108,7 @@ def test_warm_started_selection_lps_agree_with_cold_ones() -> None:
     model = LP.model(problem)
     order = [[0], [3, 5], [1], [2, 4, 6], [6]]
     assert model.selection_basis() is None  # no LP solved yet
+    first = None
     for k, only in enumerate(order):
         if k >= 3:  # from an earlier selection's basis instead of the last one's (the swap search's start)
             model.start_selection_from(first)
