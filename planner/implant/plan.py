@@ -570,17 +570,18 @@ class _Published:
             self._cond.notify_all()
 
     def met_before(self, budget: int) -> int | None:
-        """Return the first budget below ``budget`` by which a plan met every aim, once the arm is past them.
+        """Wait until the arm is past every budget below ``budget``; return the first of them that met every aim.
 
         Parameters
         ----------
         budget : int
-            The needle budget.
+            The budget the asking arm is about to search (the arm published from is waited for up to the one below).
 
         Returns
         -------
         int or None
-            None: no plan of a lower budget meets every aim.
+            The first budget below ``budget`` with a plan (of it or a lower one) that meets every aim; None: no such
+            budget.
         """
         with self._cond:
             self._cond.wait_for(lambda: self._last >= budget - 1 or self._done)
