@@ -537,7 +537,7 @@ class _Model:
 
         The warm model (the last round of a robust loading) holds every row and column of this one but those of the
         organ row sets it lacks: they are added to its instance (the columns at 0 and nonbasic, the rows basic), so
-        the instance keeps its basis and factorisation, and the dual simplex goes on from the last round's optimum,
+        the instance keeps its basis, and the dual simplex goes on from the last round's optimum,
         which stays dual feasible (an added set's columns have zero cost and no entry in the other rows). Before, each
         round passed its whole model to a new instance and set the last round's basis on it (15-20 ms a round more on
         a clinical case's robust loadings). Shared rows and columns keep their place in the instance; added ones come
