@@ -232,8 +232,7 @@ def _plan_arm(name: str, allowed: Sequence[int], shared: _Shared, aims: Aims, se
         return None if sel is None or not all(c in where for c in sel) else [where[c] for c in sel]
 
     budgets, plans = _budgets(selection, needles, optimiser, shared.kappa, bound, final, rank, starts,
-                              None if publish is None else publish.put, None if publish is None else publish.planned,
-                              None if given is None else given.met_before)
+                              publish, None if given is None else given.met_before)
     record: dict[str, object] = {
         "model": getattr(optimiser, "description", "") or optimiser.name,
         "all_candidates_objective": None if not np.isfinite(bound) else round(bound, 6),
@@ -342,15 +341,15 @@ class _Final:
 def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOptimiser, kappa: np.ndarray,
              bound: float, final: _Final, rank: Sequence[int],
              given: Callable[[int], Sequence[int] | None] | None = None,
-             publish: Callable[[int, tuple[int, ...] | None], None] | None = None,
-             planned: Callable[[int, bool], None] | None = None,
+             publish: _Published | None = None,
              their_met: Callable[[int], int | None] | None = None,
              ) -> tuple[list[BudgetResult], list[ImplantPlan]]:
     """Select at budgets K = 1, 2, ... (0 with an intracavitary channel); return every budget and the new plans.
 
     Each budget's search starts from the last budget's selection and from ``given(K)`` (another arm's selection at
-    K, indices into ``needles``, or None), so it is never worse on the selection model than either; ``publish(K,
-    channels)`` receives each budget's selected needles (indices into ``prob.channels``; None: no selection).
+    K, indices into ``needles``, or None), so it is never worse on the selection model than either; ``publish``
+    receives each budget's selected needles (indices into ``prob.channels``; None: no selection) and, once the budget
+    is done, whether a plan meets every aim by then.
 
     The selection model holds the nominal rows only: when its selection at K is one already planned (or has fewer
     than K needles) and no plan meets every aim yet (the V200 limit or a scenario asks for more needles than the
@@ -358,11 +357,11 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
     ``needles``) whose hole is free is added. The budgets stop ``extra_after_aims`` after the first plan that meets
     every aim (or at ``settings.needles``), after two budgets without a new selection, when the selection reaches the
     all-candidates bound with every aim met, or after two new plans that do not raise the best D90 by
-    :data:`MIN_GAIN_GY` (a plan of ``given``'s selection at its budget not counted). ``planned(K, met)`` hears when
-    budget K is done and whether a plan meets every aim by then. ``their_met(K)``: the first budget below K at which
-    the arm whose implants this arm takes in met every aim (None: none), which stops this arm's budgets as its own
-    would stop them (``extra_after_aims`` past it, or at ``settings.needles``): a budget past it cannot give a plan
-    chosen over that arm's (:func:`reachplan.planner.implant.arms._arm`: the fewest needles that meet every aim).
+    :data:`MIN_GAIN_GY` (a plan of ``given``'s selection at its budget not counted). ``their_met(K)``: the first
+    budget below K at which the arm whose implants this arm takes in met every aim (None: none), which stops this
+    arm's budgets as its own would stop them (``extra_after_aims`` past it, or at ``settings.needles``): a budget past
+    it cannot give a plan chosen over that arm's (:func:`reachplan.planner.implant.arms._arm`: the fewest needles
+    that meet every aim).
     """
     prob, settings = final.prob, final.settings
     channels = prob.channels
@@ -387,10 +386,10 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
         value, lower, status = sol.objective, sol.bound, sol.status
         if sol.times_s is None:
             if publish is not None:
-                publish(k, None)
+                publish.put(k, None)
             budgets.append(BudgetResult(k, 0, value, None, None, status, time.perf_counter() - t_k, False))
-            if planned is not None:
-                planned(k, met_at is not None)
+            if publish is not None:
+                publish.planned(k, met_at is not None)
             continue
         ch_time = np.bincount(prob.channel_of, weights=sol.times_s, minlength=len(channels))
         keep = [i for i in sol.needles if ch_time[needles[i]] > 0]
@@ -402,7 +401,7 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
                 picked = tuple(sorted([needles[i] for i in keep] + intracavitary))
                 status += f"; needle {channels[needles[extra]].name} added (no plan meets every aim yet)"
         if publish is not None:
-            publish(k, tuple(needles[i] for i in keep))
+            publish.put(k, tuple(needles[i] for i in keep))
         gap = None if lower is None else max(0.0, (value - lower) / max(abs(value), 1e-12))
         new = bool(picked) and picked not in seen
         if new:
@@ -420,8 +419,8 @@ def _budgets(selection: DwellProblem, needles: Sequence[int], optimiser: DwellOp
             best_d90 = max(best_d90, plan.target.d90_eqd2_gy)
             if plan.aims_met and met_at is None:
                 met_at = k
-        if planned is not None:
-            planned(k, met_at is not None)
+        if publish is not None:
+            publish.planned(k, met_at is not None)
         if met_at is not None and k >= max(met_at + settings.extra_after_aims, settings.needles or 0):
             break
         at_bound = value <= bound + 1e-9 * max(1.0, abs(bound))
@@ -501,14 +500,15 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
                      points) if union else None
 
     first = _Published()  # the first arm's selections, by budget, as its search makes them
+    # the later arms whose candidates include the first arm's: they start from its selections and take in its implants
+    over_first = [i > 0 and bool(members[0]) and set(members[0]) <= set(members[i]) for i in range(len(arms))]
 
     def one(i: int) -> ImplantArm:
         try:
             if shared is None or not members[i]:
                 return ImplantArm(arms[i][0], 0, (), None, time.perf_counter() - t0, "no candidate channel")
-            given = first if i > 0 and set(members[0]) <= set(members[i]) else None
-            return _plan_arm(arms[i][0], members[i], shared, aims, settings, optimiser, given,
-                             first if i == 0 else None)
+            return _plan_arm(arms[i][0], members[i], shared, aims, settings, optimiser,
+                             first if over_first[i] else None, first if i == 0 else None)
         finally:
             if i == 0:  # done (or failed): the arms waiting on it go on
                 first.close()
@@ -520,8 +520,7 @@ def plan_arms(arms: Sequence[tuple[str, Sequence[Channel]]], planning: PlanningS
 
         with ThreadPoolExecutor(min(workers, len(arms))) as pool:  # the first arm starts first: the others wait on it
             out = tuple(pool.map(one, range(len(arms))))
-    return tuple(with_subset(arm, out[0]) if i > 0 and set(members[0]) <= set(members[i]) and members[0] else arm
-                 for i, arm in enumerate(out))
+    return tuple(with_subset(arm, out[0]) if over_first[i] else arm for i, arm in enumerate(out))
 
 
 class _Published:
