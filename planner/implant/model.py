@@ -35,29 +35,42 @@ A selection's LP (its needles used, the others empty: :meth:`_Model.solve` with 
 instance kept with the model (``highspy``), warm-started from the last selection's basis: only column bounds change
 between selections, so the primal simplex starts from a basis that is primal feasible but for the needles taken
 out (2-3 times fewer milliseconds per selection than a cold ``scipy.optimize.milp`` with the dual simplex warm, and
-40-45 % fewer again with the primal; the same optimum to 1e-12). The whole LP (no ``only``: the relaxation at a
-budget, the loading of chosen channels) has a second instance: a new budget changes one row bound, a minimum dwell
-time column bounds, and the next round of a robust loading (a new model with more row sets,
+40-45 % fewer again with the primal; the same optimum to 1e-12). An enumerated selection starts from the optimal basis
+of its needles but the last, which is primal feasible for it; a model of a few holes' needles
+(:func:`reachplan.planner.implant.optimiser.restricted`) starts its first selection from the whole model's optimal
+basis of no needle, its rows and columns matched by what they stand for (:meth:`_Model.basis_onto`), instead of a
+cold solve (about 100 primal iterations instead of 400-1500 dual ones on a clinical case). The whole LP (no
+``only``: the relaxation at a budget, the loading of chosen channels) has a second instance: a new budget changes one
+row bound, a minimum dwell time column bounds, and the next round of a robust loading (a new model with more row sets,
 :data:`reachplan.planner.implant.optimiser.WARM_START`) takes over the last round's instance with the added row sets
 appended (:meth:`_Model._adopted`); the dual simplex then goes on from the last round's optimum and needs a fraction
 of a cold solve's iterations (2-2.5 times less time over a clinical case's robust loadings, the same dwell times to
-1e-9 s). Without ``highspy`` every solve
-goes through ``scipy.optimize.milp``.
+1e-9 s). Without ``highspy`` every solve goes through ``scipy.optimize.milp``. The rows are built block by block in
+:mod:`reachplan.planner.implant.rows`.
 """
 
 from __future__ import annotations
 
-import itertools
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
 from scipy import optimize as sopt
 from scipy import sparse
 
-from reachplan.planner.implant.optimiser import DwellProblem, OrganRows, tail_mean
+from reachplan.planner.implant.optimiser import DwellProblem
+from reachplan.planner.implant.rows import (
+    _big_m,
+    _Eye,
+    _gradient_rows,
+    _modulation_rows,
+    _needle_rows,
+    _neighbour_pairs,
+    _organ_tail_rows,
+    _Rows,
+    _unit_sums,
+)
 
 #: HiGHS instances of several threads do not run (or go) at once: two arms' instances solving on two threads crashed
 #: the process (its task scheduler is the process's; cf. HiGHS issues 810 and 3141). Re-entrant: a model collected
@@ -68,122 +81,6 @@ try:
     from highspy import _core as _highs
 except ImportError:  # pragma: no cover - exercised only without highspy
     _highs = None
-
-
-@dataclass(frozen=True)
-class _Eye:
-    """A part of a row block: ``value`` times the identity of ``size`` rows (:meth:`_Rows.cols`).
-
-    Parameters
-    ----------
-    size : int
-        Rows (and columns) of the part.
-    value : float
-        Its diagonal.
-    """
-
-    size: int
-    value: float = 1.0
-
-
-class _Block(NamedTuple):
-    """A row block as coordinate triplets (its entries in the order given) and its row count."""
-
-    row: np.ndarray
-    col: np.ndarray
-    data: np.ndarray
-    n_rows: int
-
-
-class _Rows:
-    """The constraint rows of a model with ``n`` variables, block by block, with their lower and upper bounds.
-
-    The blocks are kept as coordinate triplets and assembled once (:meth:`matrix`): the same matrix as stacking
-    sparse blocks, at a fraction of the cost (a model is built per selection problem and per robust round).
-
-    Parameters
-    ----------
-    n : int
-        Number of variables (columns) of the model.
-    """
-
-    def __init__(self, n: int) -> None:
-        self.n = n
-        self.blocks: list[_Block] = []
-        self.lb: list[np.ndarray] = []
-        self.ub: list[np.ndarray] = []
-        self._count = 0
-
-    @property
-    def count(self) -> int:
-        """Rows added so far."""
-        return self._count
-
-    def add(self, rows: sparse.spmatrix | _Block, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
-        """Add the block ``lo <= rows x <= hi``.
-
-        Parameters
-        ----------
-        rows : (r, n) sparse matrix or _Block
-            The block's coefficients, in the unit of its bounds per unit of each variable (:meth:`cols`).
-        lo : float or (r,) float
-            Lower bound of each row (``-inf``: none), broadcast to the block's rows.
-        hi : float or (r,) float
-            Upper bound of each row (``inf``: none).
-        """
-        if not isinstance(rows, _Block):
-            m = sparse.coo_matrix(rows)
-            rows = _Block(m.row, m.col, m.data, m.shape[0])
-        self.blocks.append(rows)
-        self.lb.append(np.broadcast_to(lo, rows.n_rows).astype(float))
-        self.ub.append(np.broadcast_to(hi, rows.n_rows).astype(float))
-        self._count += rows.n_rows
-
-    def cols(self, parts: Sequence[tuple[int, sparse.spmatrix | np.ndarray | _Eye]], n_rows: int) -> _Block:
-        """Return a row block holding each ``(first column, matrix)`` part, zeros elsewhere.
-
-        Parameters
-        ----------
-        parts : sequence of (int, (r, c) matrix)
-            The first column of each part and its coefficients (sparse, dense, a dense part's zeros left out, or a
-            scaled identity), not overlapping.
-        n_rows : int
-            ``r``, the rows of the block.
-
-        Returns
-        -------
-        _Block
-            Its entries part by part, each part's in row-major order (a sparse part's in its coordinate order).
-        """
-        r_i, c_i, v = [], [], []
-        for start, mat in parts:
-            if isinstance(mat, _Eye):
-                r = c = np.arange(mat.size)
-                d = np.full(mat.size, float(mat.value))
-            elif sparse.issparse(mat):
-                m = sparse.coo_matrix(mat)
-                r, c, d = m.row, m.col, m.data
-            else:
-                dense = np.asarray(mat, dtype=float)
-                r, c = np.nonzero(dense)
-                d = dense[r, c]
-            r_i.append(r)
-            c_i.append(c + start)
-            v.append(d)
-        return _Block(np.concatenate(r_i), np.concatenate(c_i), np.concatenate(v), n_rows)
-
-    def matrix(self) -> sparse.csr_matrix:
-        """Return every block stacked, in the order added.
-
-        Returns
-        -------
-        (rows, n) scipy.sparse CSR matrix
-        """
-        offsets = np.cumsum([0] + [b.n_rows for b in self.blocks])
-        rows = np.concatenate([b.row + o for b, o in zip(self.blocks, offsets, strict=False)])
-        cols = np.concatenate([b.col for b in self.blocks])
-        vals = np.concatenate([b.data for b in self.blocks]).astype(float)
-        return sparse.csr_matrix((vals, (rows, cols)), shape=(int(offsets[-1]), self.n))
 
 
 class _Held(NamedTuple):
@@ -287,6 +184,7 @@ class _Model:
         self.c, self.n, self.n_u, self.n_y, self.i_y, self.i_u = c, n, n_u, n_y, i_y, i_u
         self.member = member
         self.hole_of = [] if choice is None else list(choice.holes)
+        self.unit_ch, self.needles, self.neighbour_rows = unit_ch, needles, bool(np.isfinite(mod.neighbour_ratio))
         self.min_time_s = problem.min_time_s
         # what a later model needs to start from this one's basis: the organ row sets (by identity), their first
         # columns and rows; the rows before the organs' (target, modulation, gradient) and after them (needles)
@@ -300,6 +198,10 @@ class _Model:
         # HiGHS instances kept for warm starts, each with the bounds it holds: "selection" (the LPs of selections,
         # :meth:`_warm`), "full" (the whole LP, :meth:`_full`)
         self._highs: dict[str, _Held] = {}
+        # the optimal basis of each selection solved here by enumeration (needle indices, ascending): a selection one
+        # needle larger starts from it (:func:`reachplan.planner.implant.selection._exhaustive`)
+        self.selection_bases: dict[tuple[int, ...], Any] = {}
+        self._first_basis: Any = None  # the first selection's start (:meth:`start_selection_from` before any)
         self._warm_from = warm
 
     def solve(self, budget: int | None = None, kappa: np.ndarray | None = None,
@@ -379,15 +281,94 @@ class _Model:
     def start_selection_from(self, basis: Any) -> None:
         """Start the next selection's LP from ``basis`` (:meth:`selection_basis`) instead of the last LP's.
 
+        Before the model's first selection: its first LP starts there, with the primal simplex (as the later ones),
+        instead of the dual simplex from the slack basis.
+
         Parameters
         ----------
         basis : highspy.HighsBasis or None
-            A basis of this model's selection LPs; None: nothing changes.
+            A basis of this model's selection LPs (or :meth:`basis_onto` this model); None: nothing changes.
         """
         with _HIGHS_LOCK:
             held = self._highs.get("selection")
             if basis is not None and held is not None:
                 held.highs.setBasis(basis)
+            elif basis is not None:
+                self._first_basis = basis
+
+    def basis_onto(self, basis: Any, other: _Model) -> Any:
+        """Return ``basis``, one of this model's selection LPs, as a basis of ``other``'s, or None.
+
+        Rows and columns are matched by what they stand for (:meth:`_keys`): a unit, needle, target point, organ row
+        set (by identity) and its points. The other model's own rows are basic and its own columns nonbasic at their
+        lower bounds. Made for a model of some of this one's needles (:func:`restricted`): the basis of a selection of
+        those needles (e.g. of none) is then one of the same selection's LP there, and primal feasible for a selection
+        one needle larger. None without ``highspy``, when the basis is not of this model's selection instance, or when
+        the matched basis would not hold one basic variable per row.
+
+        Parameters
+        ----------
+        basis : highspy.HighsBasis or None
+            From :meth:`selection_basis`.
+        other : _Model
+            The model to start.
+
+        Returns
+        -------
+        highspy.HighsBasis or None
+        """
+        if basis is None or _highs is None:
+            return None
+        col_status, row_status = list(basis.col_status), list(basis.row_status)
+        mine, theirs = self._keys(), other._keys()
+        if mine is None or theirs is None or (len(col_status), len(row_status)) != (self.n, self.a.shape[0]):
+            return None
+        at_col = {k: i for i, k in enumerate(mine[0])}
+        at_row = {k: i for i, k in enumerate(mine[1])}
+        basic, lower = _highs.HighsBasisStatus.kBasic, _highs.HighsBasisStatus.kLower
+        cols = [col_status[at_col[k]] if k in at_col else lower for k in theirs[0]]
+        rows = [row_status[at_row[k]] if k in at_row else basic for k in theirs[1]]
+        if sum(s == basic for s in cols) + sum(s == basic for s in rows) != len(rows):
+            return None
+        out = _highs.HighsBasis()
+        out.col_status, out.row_status, out.valid = cols, rows, True
+        return out
+
+    def _keys(self) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]] | None:
+        """Return a key per column and per row naming what it stands for, in the model's order; None if unknown.
+
+        A unit is its channel and its rank among that channel's units; a needle its channel; a target point its
+        index; an organ row set its object's identity (its points by index). The rows follow the order in which
+        :class:`_Model` adds them.
+        """
+        uch = self.unit_ch
+        rank = np.zeros(len(uch), dtype=int)
+        for i in range(1, len(uch)):
+            rank[i] = rank[i - 1] + 1 if uch[i] == uch[i - 1] else 0
+        unit = [(int(c), int(r)) for c, r in zip(uch, rank, strict=True)]
+        pairs = _neighbour_pairs(uch)
+        gradient = self.n > self.i_g
+        cols: list[tuple[Any, ...]] = [("t", *u) for u in unit]
+        cols += [("y", int(c)) for c in self.needles]
+        cols += [("u", k) for k in range(self.m)] + [("T",)] + [("z", id(o)) for o in self.organs]
+        cols += [("s", id(o), i) for o in self.organs for i in range(len(o.weight_cc))]
+        cols += [("g", *unit[a]) for a in pairs[:, 0]] if gradient else []
+        rows: list[tuple[Any, ...]] = [("target", k) for k in range(self.m)] + [("T",)]
+        rows += [("share", *u) for u in unit]
+        if self.neighbour_rows:  # by channel, two per pair of neighbouring units (rows._neighbour_rows)
+            rows += [("ratio", *unit[int(a)], side) for ch in np.unique(uch)
+                     for a in np.flatnonzero(uch == ch)[:-1] for side in (0, 1)]
+        if gradient:
+            rows += [("g", sign, *unit[a]) for sign in (1, -1) for a in pairs[:, 0]]
+        for o in self.organs:
+            rows += [("s", id(o), i) for i in range(len(o.weight_cc))] + [("z", id(o))]
+        if self.n_y:
+            on = set(self.needles)
+            rows += [("M", *u) for u, ch in zip(unit, uch, strict=True) if int(ch) in on]
+            rows += [("hole", h) for h in sorted(set(self.hole_of))] + [("budget",)]
+        if (len(cols), len(rows)) != (self.n, self.a.shape[0]):
+            return None
+        return cols, rows
 
     def _on_columns(self, only: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the column bounds (lower, upper) with the needles ``only`` used and every other needle empty."""
@@ -506,6 +487,10 @@ class _Model:
             lp.a_matrix_.value_ = self.a_csc.data
             h.passModel(lp)
             held = _Held(h, None, None, row_lo, row_hi, lo.copy(), col_hi)
+            if key == "selection" and self._first_basis is not None:  # from a basis given: primal, as the next ones
+                h.setBasis(self._first_basis)
+                h.setOptionValue("simplex_strategy", 4)
+                self._first_basis = None
         else:
             h = held.highs
             if held.row is not None and held.col is not None:  # into the instance's order
@@ -637,136 +622,3 @@ class _Model:
             The needles with ``y`` > 0.5, as indices into the problem's needles (ascending).
         """
         return tuple(int(i) for i in np.flatnonzero(x[self.i_y:self.i_u] > 0.5))
-
-
-def _unit_sums(rates: np.ndarray, units: Sequence[np.ndarray]) -> np.ndarray:
-    """Return each unit's column: the sum of its dwells' columns of ``rates``, in the order of its dwells.
-
-    Only the units' columns are read (a restricted problem's few, not all of its rates). The sum runs from the unit's
-    first dwell to its last, one column added at a time: the same floating-point sums, bit for bit, as the product
-    with the units' 0/1 membership matrix (which adds each dwell's column to its unit's in dwell order).
-
-    Parameters
-    ----------
-    rates : (p, D) float
-        A column per dwell (any unit: Gy s⁻¹ per fraction for the models' rates).
-    units : sequence of (k_u,) int
-        Each unit's dwells (indices into ``rates``' columns), ascending.
-
-    Returns
-    -------
-    (p, n_u) float
-        In the unit of ``rates``.
-    """
-    sizes = np.array([len(u) for u in units], dtype=int)
-    if len(units) == 0:
-        return np.zeros((rates.shape[0], 0))
-    first = np.array([int(u[0]) for u in units], dtype=int)
-    out: np.ndarray = np.asarray(rates, dtype=float)[:, first]  # a copy (fancy indexing)
-    for k in range(1, int(sizes.max())):
-        on = np.flatnonzero(sizes > k)
-        out[:, on] += rates[:, np.array([int(units[int(u)][k]) for u in on], dtype=int)]
-    return out
-
-
-def _modulation_rows(rows: _Rows, sizes: np.ndarray, unit_ch: np.ndarray, i_T: int, share: float,
-                     ratio: float) -> None:
-    """Add the total time ``T = Σ sizes·t``, no unit over ``share`` of it, and the neighbour rows of each channel."""
-    n_u = len(sizes)
-    rows.add(rows.cols([(0, sizes[None, :]), (i_T, -np.ones((1, 1)))], 1), 0.0, 0.0)
-    share = share * (1 - 1e-3)
-    rows.add(rows.cols([(0, _Eye(n_u)), (i_T, -share * np.ones((n_u, 1)))], n_u), -np.inf, 0.0)
-    if not np.isfinite(ratio):
-        return
-    groups = [np.flatnonzero(unit_ch == ch) for ch in np.unique(unit_ch)]
-    for rowset in _neighbour_rows(groups, n_u, ratio):
-        rows.add(rows.cols([(0, rowset)], rowset.shape[0]), -np.inf, 0.0)
-
-
-def _neighbour_pairs(unit_ch: np.ndarray) -> np.ndarray:
-    """Return the (q, 2) int pairs of consecutive units of one channel (units of a channel are consecutive)."""
-    a = np.flatnonzero(unit_ch[1:] == unit_ch[:-1])
-    return np.column_stack([a, a + 1]).astype(int)
-
-
-def _gradient_rows(rows: _Rows, pairs: np.ndarray, i_g: int) -> None:
-    """Add ``g_k >= t_a - t_b`` and ``g_k >= t_b - t_a`` for each pair (a, b) of neighbouring units."""
-    q = len(pairs)
-    if q == 0:
-        return
-    r = np.arange(q)
-    for sign in (1.0, -1.0):
-        block = sparse.csr_matrix((np.concatenate([np.full(q, sign), np.full(q, -sign), np.full(q, -1.0)]),
-                                   (np.concatenate([r, r, r]), np.concatenate([pairs[:, 0], pairs[:, 1], i_g + r]))),
-                                  shape=(q, rows.n))
-        rows.add(block, -np.inf, 0.0)
-
-
-def _organ_tail_rows(rows: _Rows, organs: Sequence[OrganRows], ao: Sequence[np.ndarray], i_z: int,
-                     i_s: int) -> list[int]:
-    """Add each organ's mean-tail-dose rows; return the index of each organ's limit row.
-
-    Each organ's mean dose over its hottest 2 cm³ within its limit (it implies D2cm³ <= limit):
-    ``ζ + Σ w_i s_i / 2 cm³ <= limit``, ``s_i >= (A t)_i - ζ``, ``s >= 0``, ``ζ >= 0``.
-    """
-    start = 0
-    limit_rows = []
-    for k, (o, a) in enumerate(zip(organs, ao, strict=True)):
-        q = len(o.weight_cc)
-        rows.add(rows.cols([(0, a), (i_z + k, -np.ones((q, 1))), (i_s + start, _Eye(q, -1.0))], q),
-                 -np.inf, 0.0)
-        limit_rows.append(rows.count)
-        rows.add(rows.cols([(i_z + k, np.ones((1, 1))), (i_s + start, o.weight_cc[None, :] / o.volume_cc)], 1), -np.inf,
-                 o.limit_gy)
-        start += q
-    return limit_rows
-
-
-def _big_m(p: np.ndarray, at: np.ndarray, organs: Sequence[OrganRows], ao: Sequence[np.ndarray]) -> np.ndarray:
-    """Return each unit's big-M (s).
-
-    A unit's time is at most what brings every target point to its dose alone (more only adds time; scaling the
-    whole loading down keeps every row) and at most what alone fills an organ's limit.
-    """
-    big_m = p.max() / np.maximum(at.min(axis=0), 1e-30)
-    for o, a in zip(organs, ao, strict=True):
-        big_m = np.minimum(big_m, o.limit_gy / np.maximum(tail_mean(a, o.weight_cc, o.volume_cc), 1e-30))
-    out: np.ndarray = big_m
-    return out
-
-
-def _needle_rows(rows: _Rows, unit_ch: np.ndarray, needles: Sequence[int], hole_of: Sequence[str],
-                 big_m: np.ndarray, i_y: int) -> None:
-    """Add ``t <= M y`` for every needle unit, one needle per hole, and the budget row (last)."""
-    n_y = len(needles)
-    y_of = {ch: i for i, ch in enumerate(needles)}
-    r_i, c_i, v = [], [], []
-    r = 0
-    for u_i, ch in enumerate(unit_ch):
-        if int(ch) in y_of:
-            r_i += [r, r]
-            c_i += [u_i, i_y + y_of[int(ch)]]
-            v += [1.0, -float(big_m[u_i])]
-            r += 1
-    rows.add(sparse.csr_matrix((v, (r_i, c_i)), shape=(r, rows.n)), -np.inf, 0.0)
-    holes = sorted(set(hole_of))
-    h_of = {h: i for i, h in enumerate(holes)}
-    per_hole = sparse.csr_matrix((np.ones(n_y), ([h_of[h] for h in hole_of], np.arange(n_y))),
-                                 shape=(len(holes), n_y))
-    rows.add(rows.cols([(i_y, per_hole)], len(holes)), -np.inf, 1.0)
-    rows.add(rows.cols([(i_y, np.ones((1, n_y)))], 1), -np.inf, np.inf)  # the budget row (last)
-
-
-def _neighbour_rows(groups: Sequence[np.ndarray], n_cols: int, ratio: float) -> list[sparse.csr_matrix]:
-    """Rows ``x_a - r x_b <= 0`` and ``x_b - r x_a <= 0`` for consecutive columns a, b of each group."""
-    rows, cols, vals = [], [], []
-    r = 0
-    for g in groups:
-        for a, b in itertools.pairwise(g):
-            rows += [r, r, r + 1, r + 1]
-            cols += [a, b, b, a]
-            vals += [1.0, -ratio, 1.0, -ratio]
-            r += 2
-    if r == 0:
-        return []
-    return [sparse.csr_matrix((vals, (rows, cols)), shape=(r, n_cols))]

@@ -218,7 +218,7 @@ def test_a_models_unit_columns_are_the_membership_products_bit_for_bit() -> None
     membership matrix exactly: the models, and so every LP, are those of before."""
     from scipy import sparse
 
-    from reachplan.planner.implant.model import _unit_sums
+    from reachplan.planner.implant.rows import _unit_sums
 
     rng = np.random.default_rng(3)
     rates = rng.uniform(0.0, 1.0, (50, 40)) * 10.0 ** rng.uniform(-6, 2, 40)
@@ -257,3 +257,56 @@ def test_a_restrictions_enumerated_lps_are_not_solved_again_in_the_whole_problem
     assert f"({n_all} LPs solved here)" in alone.status, alone.status
     assert whole.needles == alone.needles and whole.objective == pytest.approx(alone.objective, rel=1e-9)
     assert np.allclose(whole.times_s, alone.times_s, atol=1e-6)
+
+
+@pytest.mark.parametrize("ratio, smooth", [(float("inf"), 0.0), (float("inf"), 1e-3), (3.0, 1e-3)])
+def test_a_smaller_models_first_selection_starts_from_the_whole_models_basis(ratio: float, smooth: float) -> None:
+    """The whole model's basis of no needle, matched onto a model of some of its needles, is that model's optimal
+    basis of no needle (no simplex iteration); each single needle's LP there from it gives the cold optimum, and the
+    whole model's optimal basis of that needle is its optimal basis there. A basis of another model's size is not
+    matched."""
+    base = _problem(9, 0)
+    per_dwell = tuple(np.array([j]) for j in range(base.n_columns))  # neighbouring units: gradient, ratio rows
+    problem = replace(base, units=per_dwell, modulation=Modulation(1.0, ratio, 1e-3, 1e-3, smooth))
+    whole = _Model(problem)
+    assert whole.solve(0, only=[]).x is not None
+    none = whole.selection_basis()
+    part = _Model(_restricted(problem, [3, 4, 5, 7]))  # holes C and D, and the intracavitary channel
+    assert part.n < whole.n and part.a.shape[0] < whole.a.shape[0]
+    start = whole.basis_onto(none, part)
+    assert start is not None and start.valid
+    assert part.basis_onto(none, whole) is None  # not a basis of ``part``
+    part.start_selection_from(start)
+    assert float(part.solve(0, only=[]).fun) == pytest.approx(float(whole.solve(0, only=[]).fun), rel=1e-12)
+    assert part._highs["selection"].highs.getInfo().simplex_iteration_count == 0
+    for j in range(part.n_y):
+        part.start_selection_from(start)
+        warm = part.solve(1, only=[j])
+        lo, hi = part._on_columns(np.array([j]))
+        ub = part.ub.copy()
+        ub[-1] = 1
+        cold = sopt.milp(part.c, constraints=[sopt.LinearConstraint(part.a, part.lb, ub)], bounds=sopt.Bounds(lo, hi))
+        assert warm.x is not None and cold.x is not None
+        assert float(warm.fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
+        assert whole.solve(1, only=[[3, 4, 5][j]]).x is not None
+        optimal = whole.basis_onto(whole.selection_basis(), part)
+        assert optimal is not None
+        part.start_selection_from(optimal)
+        assert float(part.solve(1, only=[j]).fun) == pytest.approx(float(cold.fun), rel=1e-9, abs=1e-12)
+        assert part._highs["selection"].highs.getInfo().simplex_iteration_count == 0
+
+
+def test_enumerated_selections_start_from_their_needles_but_the_last() -> None:
+    """Budget 0's basis, then each single's, are kept in the model; every pair starts from its first needle's, and
+    the enumeration's optimum is branch and bound's."""
+    problem = _problem(2, 10_000)
+    assert LP.optimise(problem, budget=0).times_s is not None
+    model = LP.model(problem)
+    assert set(model.selection_bases) == {()}
+    LP.optimise(problem, budget=1)
+    assert set(model.selection_bases) == {()} | {(i,) for i in range(7)}
+    best = LP.optimise(problem, budget=2)
+    pairs = {k for k in model.selection_bases if len(k) == 2}
+    holes = problem.needles.holes  # type: ignore[union-attr]
+    assert pairs == {(i, j) for i, j in itertools.combinations(range(7), 2) if holes[i] != holes[j]}
+    assert best.objective == pytest.approx(_branch_and_bound(_problem(2, 10_000), 2), rel=1e-7, abs=1e-9)
