@@ -417,30 +417,33 @@ def _steered(bank: ShapeBank, hole_ids: Sequence[str], xy: np.ndarray, hole_dist
     s_coarse = np.arange(coarse.shape[1]) * bank.step_mm * every
     per_dwell = settings.dwell_step_mm / (bank.step_mm * every)
     rolls = np.arange(settings.rolls) * 360.0 / settings.rolls
+    cos = np.array([math.cos(math.radians(r)) for r in rolls])
+    sin = np.array([math.sin(math.radians(r)) for r in rolls])
+    rot_t = np.zeros((len(rolls), 1, 3, 3))  # each roll's rotation about the template axis, transposed
+    rot_t[:, 0, 0, 0], rot_t[:, 0, 0, 1], rot_t[:, 0, 1, 0], rot_t[:, 0, 1, 1] = cos, sin, -sin, cos
+    rot_t[:, 0, 2, 2] = 1.0
     by_hole = {c.name: c for c in straight_channels}
     out: list[Channel] = []
     for h, hole in enumerate(hole_ids):
         found = []  # (approximate dwell count, peak tension, shape index, roll, centroid)
-        for roll in rolls:
-            c, s = math.cos(math.radians(roll)), math.sin(math.radians(roll))
-            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            local = coarse @ rot.T + np.array([xy[h, 0], xy[h, 1], 0.0])
-            pts = local @ m[:3, :3].T + m[:3, 3]  # (S', n, 3) LPS
-            kji = region.index(pts)
-            inside = region.at(pts, kji) <= in_region
-            n_in = inside.sum(axis=1)
-            rows = np.flatnonzero(n_in / per_dwell >= settings.min_dwells)
-            if len(rows) == 0:
-                continue
-            last = inside.shape[1] - 1 - np.argmax(inside[rows, ::-1], axis=1)
+        # every roll at once: (rolls, S', n, 3), each roll's slice the product its own loop computed
+        local = coarse[None] @ rot_t + np.array([xy[h, 0], xy[h, 1], 0.0])
+        pts = local @ m[:3, :3].T + m[:3, 3]  # LPS
+        kji = region.index(pts)
+        inside = region.at(pts, kji) <= in_region
+        n_in = inside.sum(axis=2)
+        ro, rows = np.nonzero(n_in / per_dwell >= settings.min_dwells)
+        if len(rows):
+            last = inside.shape[2] - 1 - np.argmax(inside[ro, rows, ::-1], axis=1)
             tip_idx = np.minimum(last + math.ceil(settings.tip_offset_mm / (bank.step_mm * every)),
-                                 inside.shape[1] - 1)
-            clear = np.minimum.accumulate(oar.at(pts[rows], kji[rows]), axis=1)[np.arange(len(rows)), tip_idx]
-            ok = clear >= oar_min
-            centroids = (inside[rows][..., None] * pts[rows]).sum(axis=1) / n_in[rows][:, None]
-            for r in np.flatnonzero(ok):
+                                 inside.shape[2] - 1)
+            clear = np.minimum.accumulate(oar.at(pts[ro, rows], kji[ro, rows]), axis=1)[np.arange(len(rows)),
+                                                                                        tip_idx]
+            centroids = (inside[ro, rows][..., None] * pts[ro, rows]).sum(axis=1) / n_in[ro, rows][:, None]
+            for r in np.flatnonzero(clear >= oar_min):
                 k = int(bent[rows[r]])
-                found.append((float(n_in[rows[r]]), bank.schedules[k].peak_tension_n, k, float(roll), centroids[r]))
+                found.append((float(n_in[ro[r], rows[r]]), bank.schedules[k].peak_tension_n, k, float(rolls[ro[r]]),
+                              centroids[r]))
         found.sort(key=lambda f: (-f[0], f[1], f[2], f[3]))
         kept: list[np.ndarray] = []
         if hole in by_hole:
