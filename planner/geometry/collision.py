@@ -56,7 +56,7 @@ class Organ:
             The mesh (LPS mm) at the identity transform.
         """
         bvh = fcl.BVHModel()
-        bvh.beginModel(len(self.mesh.vertices), len(self.mesh.faces))
+        bvh.beginModel(len(self.mesh.faces), len(self.mesh.vertices))  # (triangles, vertices): its arrays sized once
         bvh.addSubModel(np.asarray(self.mesh.vertices, dtype=float), np.asarray(self.mesh.faces, dtype=np.int64))
         bvh.endModel()
         return fcl.CollisionObject(bvh, fcl.Transform())
