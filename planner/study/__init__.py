@@ -217,7 +217,7 @@ def serial_results(todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R
 
 
 def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[[T, Any], R],
-          fail: Callable[[T, str], R], worker_setup: Any = None) -> Iterator[tuple[T, R]]:
+          fail: Callable[[T, str], R], worker_setup: Any = None, *, blocks: bool = True) -> Iterator[tuple[T, R]]:
     """Run ``task_fn(task, config)`` per task on the Dask ``client``, yielding results as they finish.
 
     Each task needs a unique ``key``; a task that raises (or whose worker keeps dying) gives ``fail(task, reason)``.
@@ -236,6 +236,9 @@ def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[
         The result of a task that raised.
     worker_setup : WorkerSetup or None
         Registered on the cluster's workers first (:func:`setup_workers`); None: the default set-up.
+    blocks : bool
+        Prefer (loosely) one worker for each block of consecutive tasks, so a worker runs one case's tasks in a row
+        and loads each case once; False (tasks that share nothing): each task to the first worker that frees.
 
     Yields
     ------
@@ -256,7 +259,8 @@ def dask_results(client: Any, todo: Sequence[T], config: Any, task_fn: Callable[
     for k, t in enumerate(todo):
         # Case-major blocks of equal size per worker (a loose preference: the scheduler still moves tasks to idle
         # or surviving workers), so a worker runs one case's designs in a row and loads each case once.
-        prefer = {"workers": [workers[k * len(workers) // len(todo)]], "allow_other_workers": True} if workers else {}
+        prefer = {"workers": [workers[k * len(workers) // len(todo)]], "allow_other_workers": True} \
+            if workers and blocks else {}
         futures[client.submit(task_fn, t, config, key=f"reachplan-study-{run}-{t.key}", pure=False, **prefer)] = t
     try:
         for fut in as_completed(futures):

@@ -34,6 +34,9 @@ its environment before its configuration, and passes them on before the worker p
     DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL=1s DASK_DISTRIBUTED__ADMIN__SYSTEM_MONITOR__INTERVAL=2s \\
     DASK_DISTRIBUTED__WORKER__MEMORY__MONITOR_INTERVAL=1s \\
         dask worker tcp://SCHEDULER:8786 --nthreads 1 --nworkers N
+
+and its scheduler :data:`SCHEDULER_DASK_CONFIG`
+(``DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0 dask scheduler``).
 """
 
 from __future__ import annotations
@@ -65,6 +68,11 @@ ALLOCATOR_ENV = {"MALLOC_MMAP_THRESHOLD_": str(32 * 2**20), "MALLOC_TRIM_THRESHO
 WORKER_DASK_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
                       "distributed.admin.system-monitor.interval": "2s",
                       "distributed.worker.memory.monitor-interval": "1s"}
+
+#: Dask's configuration for a study's scheduler: a worker holds one task at a time (with one thread, the default
+#: saturation of 1.1 lets it take two), the others wait at the scheduler for the first worker that frees, so a worker
+#: never waits while a task is held for another (a case takes 4-30 s; the extra round trip, milliseconds)
+SCHEDULER_DASK_CONFIG = {"distributed.scheduler.worker-saturation": 1.0}
 
 _HIGHS = threading.local()  # ``threads``: the HiGHS scheduler size this thread set
 
@@ -138,7 +146,8 @@ def worker_config() -> Iterator[None]:
 
     Dask's ``distributed.nanny.pre-spawn-environ`` with the allocator's variables added, and the worker's statistical
     profiler off and monitors slowed (:data:`WORKER_DASK_CONFIG`). A nanny takes both when
-    it is created (and keeps them for restarts), so create the cluster inside the context. A nanny prefers this
+    it is created (and keeps them for restarts), so create the cluster inside the context; its scheduler then takes
+    :data:`SCHEDULER_DASK_CONFIG`. A nanny prefers this
     process's environment to its configuration, and an earlier nanny leaves Dask's own values there: the allocator's
     variables are set in it too while the context lasts.
 
@@ -150,7 +159,8 @@ def worker_config() -> Iterator[None]:
     before = {k: os.environ.get(k) for k in ALLOCATOR_ENV}
     os.environ.update(ALLOCATOR_ENV)
     try:
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": pre, **WORKER_DASK_CONFIG}):
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": pre, **WORKER_DASK_CONFIG,
+                              **SCHEDULER_DASK_CONFIG}):
             yield
     finally:
         for k, v in before.items():

@@ -211,3 +211,58 @@ def test_cost_benchmark_writes_the_stages_per_case(tmp_path: Path) -> None:
         table = list(csv.DictReader(f))
     assert list(table[0]) == list(HEADER) and len(table) == 6 and table[5]["cpu_s"] == ""
     assert (tmp_path / "study_cost.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _square(task: ImplantCase, config: object) -> int:
+    """A study task that shares nothing with the others."""
+    return task.seed * task.seed
+
+
+def test_a_case_per_task_goes_to_the_first_free_worker(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Tasks in blocks prefer a worker each (a case's designs in a row); the implant study's tasks, one per case,
+    prefer none, and its cluster's scheduler gives a worker one task at a time (none waits held for a busy worker)."""
+    import distributed
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    import reachplan.planner.study as study
+    from reachplan.planner.study.workers import SCHEDULER_DASK_CONFIG
+
+    class Restrictions(SchedulerPlugin):  # type: ignore[misc]
+        """Each task's worker restrictions, as the scheduler first sees them."""
+
+        def __init__(self, scheduler: Any) -> None:
+            self.scheduler, self.seen = scheduler, {}
+
+        def transition(self, key: Any, start: str, finish: str, *args: Any, **kwargs: Any) -> None:
+            if start == "released" and key in self.scheduler.tasks:
+                self.seen[str(key)] = set(self.scheduler.tasks[key].worker_restrictions or ())
+
+    monkeypatch.setattr(study, "setup_workers", lambda client, plugin=None: None)  # no kernels in this process
+    tasks = [ImplantCase(s) for s in range(4)]
+    with worker_config(), distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                                   dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        saturation = SCHEDULER_DASK_CONFIG["distributed.scheduler.worker-saturation"]
+        assert cluster.scheduler.WORKER_SATURATION == saturation == 1.0
+        seen = {}
+        for blocks in (True, False):
+            plugin = Restrictions(cluster.scheduler)
+            cluster.scheduler.add_plugin(plugin, name=f"restrictions-{blocks}")
+            out = dict(study.dask_results(c, tasks, None, _square, lambda t, why: -1, blocks=blocks))
+            assert {t.seed: v for t, v in out.items()} == {s: s * s for s in range(4)}
+            cluster.scheduler.remove_plugin(name=f"restrictions-{blocks}")
+            seen[blocks] = list(plugin.seen.values())
+        assert len(seen[True]) == 4 and all(len(w) == 1 for w in seen[True])
+        assert len({frozenset(w) for w in seen[True]}) == 2  # two blocks of two, one per worker
+        assert len(seen[False]) == 4 and all(not w for w in seen[False])
+
+        calls: list[bool] = []
+        plain = study.dask_results
+
+        def recorded(*args: Any, blocks: bool = True, **kwargs: Any) -> Any:
+            calls.append(blocks)
+            return plain(*args, blocks=blocks, **kwargs)
+
+        monkeypatch.setattr(study, "dask_results", recorded)  # what the implant study imports when it runs
+        res = run_implant_study(ImplantStudySpec((0, 1), PlanConfig(designs=DESIGNS)), tmp_path / "study",
+                                scheduler=cluster.scheduler_address, task_fn=planted)
+        assert calls == [False] and len(res.rows) == 2
