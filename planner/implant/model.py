@@ -70,6 +70,7 @@ from reachplan.planner.implant.rows import (
     _organ_tail_rows,
     _Rows,
     _unit_sums,
+    keys,
 )
 
 #: HiGHS instances of several threads do not run (or go) at once: two arms' instances solving on two threads crashed
@@ -299,11 +300,11 @@ class _Model:
     def basis_onto(self, basis: Any, other: _Model) -> Any:
         """Return ``basis``, one of this model's selection LPs, as a basis of ``other``'s, or None.
 
-        Rows and columns are matched by what they stand for (:meth:`_keys`): a unit, needle, target point, organ row
-        set (by identity) and its points. The other model's own rows are basic and its own columns nonbasic at their
-        lower bounds. Made for a model of some of this one's needles (:func:`restricted`): the basis of a selection of
-        those needles (e.g. of none) is then one of the same selection's LP there, and primal feasible for a selection
-        one needle larger. None without ``highspy``, when the basis is not of this model's selection instance, or when
+        Rows and columns are matched by what they stand for (:func:`reachplan.planner.implant.rows.keys`): a unit,
+        needle, target point, organ row set (by identity) and its points. The other model's own rows are basic and its
+        own columns nonbasic at their lower bounds. Made for a model of some of this one's needles
+        (:func:`reachplan.planner.implant.optimiser.restricted`): the basis of a selection of those needles (e.g. of
+        none) is then one of the same selection's LP there, and primal feasible for a selection one needle larger. None without ``highspy``, when the basis is not of this model's selection instance, or when
         the matched basis would not hold one basic variable per row.
 
         Parameters
@@ -335,40 +336,10 @@ class _Model:
         return out
 
     def _keys(self) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]] | None:
-        """Return a key per column and per row naming what it stands for, in the model's order; None if unknown.
-
-        A unit is its channel and its rank among that channel's units; a needle its channel; a target point its
-        index; an organ row set its object's identity (its points by index). The rows follow the order in which
-        :class:`_Model` adds them.
-        """
-        uch = self.unit_ch
-        rank = np.zeros(len(uch), dtype=int)
-        for i in range(1, len(uch)):
-            rank[i] = rank[i - 1] + 1 if uch[i] == uch[i - 1] else 0
-        unit = [(int(c), int(r)) for c, r in zip(uch, rank, strict=True)]
-        pairs = _neighbour_pairs(uch)
-        gradient = self.n > self.i_g
-        cols: list[tuple[Any, ...]] = [("t", *u) for u in unit]
-        cols += [("y", int(c)) for c in self.needles]
-        cols += [("u", k) for k in range(self.m)] + [("T",)] + [("z", id(o)) for o in self.organs]
-        cols += [("s", id(o), i) for o in self.organs for i in range(len(o.weight_cc))]
-        cols += [("g", *unit[a]) for a in pairs[:, 0]] if gradient else []
-        rows: list[tuple[Any, ...]] = [("target", k) for k in range(self.m)] + [("T",)]
-        rows += [("share", *u) for u in unit]
-        if self.neighbour_rows:  # by channel, two per pair of neighbouring units (rows._neighbour_rows)
-            rows += [("ratio", *unit[int(a)], side) for ch in np.unique(uch)
-                     for a in np.flatnonzero(uch == ch)[:-1] for side in (0, 1)]
-        if gradient:
-            rows += [("g", sign, *unit[a]) for sign in (1, -1) for a in pairs[:, 0]]
-        for o in self.organs:
-            rows += [("s", id(o), i) for i in range(len(o.weight_cc))] + [("z", id(o))]
-        if self.n_y:
-            on = set(self.needles)
-            rows += [("M", *u) for u, ch in zip(unit, uch, strict=True) if int(ch) in on]
-            rows += [("hole", h) for h in sorted(set(self.hole_of))] + [("budget",)]
-        if (len(cols), len(rows)) != (self.n, self.a.shape[0]):
-            return None
-        return cols, rows
+        """Return :func:`~reachplan.planner.implant.rows.keys` of this model; None if they do not fit its shape."""
+        cols, rows = keys(self.unit_ch, self.needles, self.hole_of, self.m, self.organs, self.n > self.i_g,
+                          self.neighbour_rows)
+        return (cols, rows) if (len(cols), len(rows)) == (self.n, self.a.shape[0]) else None
 
     def _on_columns(self, only: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the column bounds (lower, upper) with the needles ``only`` used and every other needle empty."""

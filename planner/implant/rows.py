@@ -2,8 +2,8 @@
 
 Columns in the model's order ``[t (units), y (needles), u (target points), T, ζ (organs), s (organ points),
 g (gradients)]``. :class:`reachplan.planner.implant.model._Model` adds the blocks in this order: target, total time
-and shares, neighbour ratios, gradients, each organ's tail rows, needle rows (the budget row last); its
-:meth:`~reachplan.planner.implant.model._Model.basis_onto` names the rows in the same order.
+and shares, neighbour ratios, gradients, each organ's tail rows, needle rows (the budget row last); :func:`keys`
+names its columns and rows in the same order.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy import sparse
@@ -266,3 +266,58 @@ def _neighbour_rows(groups: Sequence[np.ndarray], n_cols: int, ratio: float) -> 
     if r == 0:
         return []
     return [sparse.csr_matrix((vals, (rows, cols)), shape=(r, n_cols))]
+
+
+def keys(unit_ch: np.ndarray, needles: Sequence[int], hole_of: Sequence[str], m: int, organs: Sequence[OrganRows],
+         gradient: bool, ratio_rows: bool) -> tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]:
+    """Return a key per column and per row of a model, naming what it stands for, in the order the model adds them.
+
+    A unit is its channel and its rank among that channel's units; a needle its channel; a target point its index; an
+    organ row set its object's identity (its points by index). Two models' rows and columns with equal keys are the
+    same variable or constraint (:meth:`reachplan.planner.implant.model._Model.basis_onto`).
+
+    Parameters
+    ----------
+    unit_ch : (n_u,) int
+        Each unit's channel (a channel's units consecutive).
+    needles : sequence of int
+        The needles' channels (empty: no needle rows).
+    hole_of : sequence of str
+        Each needle's template hole.
+    m : int
+        Target points.
+    organs : sequence of OrganRows
+        The organ row sets, in order.
+    gradient : bool
+        Whether the model has gradient columns and rows (:func:`_gradient_rows`).
+    ratio_rows : bool
+        Whether it has neighbour-ratio rows (:func:`_neighbour_rows`).
+
+    Returns
+    -------
+    cols, rows : list of tuple
+        The keys, in the model's order of columns and of rows.
+    """
+    rank = np.zeros(len(unit_ch), dtype=int)
+    for i in range(1, len(unit_ch)):
+        rank[i] = rank[i - 1] + 1 if unit_ch[i] == unit_ch[i - 1] else 0
+    unit = [(int(c), int(r)) for c, r in zip(unit_ch, rank, strict=True)]
+    pairs = _neighbour_pairs(unit_ch)
+    cols: list[tuple[Any, ...]] = [("t", *u) for u in unit]
+    cols += [("y", int(c)) for c in needles]
+    cols += [("u", k) for k in range(m)] + [("T",)] + [("z", id(o)) for o in organs]
+    cols += [("s", id(o), i) for o in organs for i in range(len(o.weight_cc))]
+    cols += [("g", *unit[a]) for a in pairs[:, 0]] if gradient else []
+    rows: list[tuple[Any, ...]] = [("target", k) for k in range(m)] + [("T",)] + [("share", *u) for u in unit]
+    if ratio_rows:  # by channel, two per pair of neighbouring units
+        rows += [("ratio", *unit[int(a)], side) for ch in np.unique(unit_ch)
+                 for a in np.flatnonzero(unit_ch == ch)[:-1] for side in (0, 1)]
+    if gradient:
+        rows += [("g", sign, *unit[a]) for sign in (1, -1) for a in pairs[:, 0]]
+    for o in organs:
+        rows += [("s", id(o), i) for i in range(len(o.weight_cc))] + [("z", id(o))]
+    if len(needles):
+        on = {int(c) for c in needles}
+        rows += [("M", *u) for u, ch in zip(unit, unit_ch, strict=True) if int(ch) in on]
+        rows += [("hole", h) for h in sorted(set(hole_of))] + [("budget",)]
+    return cols, rows
