@@ -304,8 +304,9 @@ class _Model:
         needle, target point, organ row set (by identity) and its points. The other model's own rows are basic and its
         own columns nonbasic at their lower bounds. Made for a model of some of this one's needles
         (:func:`reachplan.planner.implant.optimiser.restricted`): the basis of a selection of those needles (e.g. of
-        none) is then one of the same selection's LP there, and primal feasible for a selection one needle larger. None without ``highspy``, when the basis is not of this model's selection instance, or when
-        the matched basis would not hold one basic variable per row.
+        none) is then one of the same selection's LP there, and primal feasible for a selection one needle larger.
+        None without ``highspy``, when the basis is not of this model's selection instance, or when the matched basis
+        would not hold one basic variable per row.
 
         Parameters
         ----------
